@@ -1,0 +1,110 @@
+"""The formation law of Su, Bhowmick & Lanzon (2023) as pure functions. No I/O, no state.
+
+Every function works on one agent (vectors of shape ``(d,)``, scalar ``kappa``) and on all agents
+at once (arrays ``(N, d)``, ``kappa`` of shape ``(N, 1)``) through broadcasting, so the agent
+process and the vectorised reference simulator run the same arithmetic.
+
+Neighbour information enters only through weighted sums over the in-neighbours ``j`` of ``i``:
+``sum_wp = sum_j a_ij p_j``, ``sum_wv = sum_j a_ij v_j``, ``sum_wa = sum_j a_ij a_j`` (the
+neighbours' accelerations, Eq. 17's feed-forward) and the constant ``sum_wdelta = sum_j a_ij delta_ij``.
+
+Eq. 8, 9:  xi_i   = sum_j a_ij (p_i - p_j - delta_ij) = kappa_i p_i - sum_wp - sum_wdelta
+           zeta_i = sum_j a_ij (v_i - v_j)            = kappa_i v_i - sum_wv
+Eq. 17:    u_i = (sum_wa - Kp * xi_i - Kv * zeta_i) / kappa_i          (per-axis gains)
+           Kp' = -sigma (Kp - 1) + Gamma_p xi^2,   Kv' = -sigma (Kv - 1) + Gamma_v zeta^2
+Eq. 30:    the same with sigma = 0 (the benchmark law: no leakage, its gains can only grow).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tether.mission import Mission, per_axis
+
+
+@dataclass(frozen=True)
+class LawParams:
+    """Parameters of the law, shared by every agent of a mission.
+
+    Attributes:
+        sigma: leakage [1/s]; 0 selects the benchmark law (Eq. 30).
+        gamma_p, gamma_v: adaptation rates (> 0).
+        kp0, kv0: initial per-axis gains, shape ``(d,)``.
+    """
+
+    sigma: float
+    gamma_p: float
+    gamma_v: float
+    kp0: np.ndarray
+    kv0: np.ndarray
+
+    @classmethod
+    def from_mission(cls, m: Mission) -> "LawParams":
+        law = m.law
+        sigma = float(law.sigma) if law.kind == "sigma" and law.sigma is not None else 0.0
+        return cls(
+            sigma=sigma,
+            gamma_p=float(law.gamma_p),
+            gamma_v=float(law.gamma_v),
+            kp0=np.array(per_axis(law.kp0, m.dim)),
+            kv0=np.array(per_axis(law.kv0, m.dim)),
+        )
+
+
+def errors(
+    kappa: float | np.ndarray,
+    p: np.ndarray,
+    v: np.ndarray,
+    sum_wp: np.ndarray,
+    sum_wv: np.ndarray,
+    sum_wdelta: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Formation error ``xi`` [m] (Eq. 8) and velocity error ``zeta`` [m/s] (Eq. 9)."""
+    xi = kappa * p - sum_wp - sum_wdelta
+    zeta = kappa * v - sum_wv
+    return xi, zeta
+
+
+def control(
+    kappa: float | np.ndarray,
+    sum_wa: np.ndarray,
+    xi: np.ndarray,
+    zeta: np.ndarray,
+    kp: np.ndarray,
+    kv: np.ndarray,
+) -> np.ndarray:
+    """Eq. 17's command ``u`` [m/s^2; world frame] from the errors and the current gains."""
+    return (sum_wa - kp * xi - kv * zeta) / kappa
+
+
+@dataclass(frozen=True)
+class GainStep:
+    """Coefficients of the exact gain update over one control period ``h``.
+
+    For an error ``e`` held over the period, ``K' = -sigma (K - 1) + Gamma e^2`` is linear in K and
+    integrates exactly to ``K+ = 1 + (K - 1) decay + Gamma e^2 gain`` with ``decay = exp(-sigma h)``
+    and ``gain = (1 - exp(-sigma h)) / sigma`` (``= h`` when sigma = 0). As ``decay <= 1`` and
+    ``gain >= 0``, ``K >= 1`` is preserved in discrete time, as in Theorem 1's proof.
+    """
+
+    decay: float
+    gain: float
+
+    @classmethod
+    def over(cls, sigma: float, h: float) -> "GainStep":
+        if sigma == 0.0:
+            return cls(1.0, h)
+        return cls(math.exp(-sigma * h), -math.expm1(-sigma * h) / sigma)
+
+
+def gain_update(k: np.ndarray, e: np.ndarray, gamma: float, step: GainStep) -> np.ndarray:
+    """One exact step of the adaptive gain ODE (see :class:`GainStep`); same shapes as ``k``."""
+    return 1.0 + (k - 1.0) * step.decay + (gamma * step.gain) * (e * e)
+
+
+def gain_rate(k: np.ndarray, e: np.ndarray, gamma: float, sigma: float) -> np.ndarray:
+    """The gain ODE's right-hand side ``-sigma (K - 1) + Gamma e^2`` (for the continuous-time mode)."""
+    return -sigma * (k - 1.0) + gamma * (e * e)

@@ -1,0 +1,141 @@
+"""Reference profiles of the virtual leader (Eq. 6): ``t -> (p, v, a)``. Pure numpy, no I/O.
+
+Every profile is evaluated in closed form, so the leader process and the reference simulator read
+the same numbers at the same sample times. ``t`` may be a float or an array of shape ``(T,)``;
+results have shape ``(d,)`` or ``(T, d)``: position [m], velocity [m/s], acceleration [m/s^2], all
+in the world frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from tether import mission as ms
+
+Sample = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class Reference(Protocol):
+    def __call__(self, t: float | np.ndarray) -> Sample:
+        """Position, velocity and acceleration at time(s) ``t`` [s]."""
+        ...
+
+
+def _col(t: float | np.ndarray) -> np.ndarray:
+    return np.asarray(t, dtype=float)[..., None]
+
+
+@dataclass(frozen=True)
+class ExpAccel:
+    """``a = a0 exp(-decay t)`` (Section 4 uses a0 = [1, 0], decay = 0.1 1/s)."""
+
+    p0: np.ndarray
+    v0: np.ndarray
+    a0: np.ndarray
+    decay: float
+
+    def __call__(self, t: float | np.ndarray) -> Sample:
+        tc = _col(t)
+        if self.decay == 0.0:
+            e = np.ones_like(tc)
+            i1 = tc  # int_0^t e
+            i2 = 0.5 * tc * tc  # int_0^t int_0^s e
+        else:
+            lam = self.decay
+            e = np.exp(-lam * tc)
+            i1 = -np.expm1(-lam * tc) / lam
+            i2 = (tc - i1) / lam
+        p = self.p0 + self.v0 * tc + self.a0 * i2
+        v = self.v0 + self.a0 * i1
+        a = self.a0 * e
+        return _squeeze(t, p, v, a)
+
+
+@dataclass(frozen=True)
+class PiecewiseLinearVelocity:
+    """Velocity linear between knots ``(tau_m, v_m)``, constant after the last knot.
+
+    Equal consecutive knot times encode a step; the velocity is left-continuous there (Eq. 31's
+    ``0 <= t <= 5 s`` includes t = 5 in the first piece) and the impulse in acceleration is not
+    represented (reported as 0).
+    """
+
+    p0: np.ndarray
+    tau: np.ndarray  # (M,)
+    vel: np.ndarray  # (M, d)
+
+    @classmethod
+    def from_schedule(cls, p0: np.ndarray, segs: list[tuple[float, np.ndarray]], ramp: float) -> "PiecewiseLinearVelocity":
+        tau, vel = [0.0], [segs[0][1]]
+        for t, v in segs[1:]:
+            tau += [t, t + ramp]
+            vel += [vel[-1], v]
+        return cls(p0, np.array(tau), np.array(vel, dtype=float))
+
+    def __call__(self, t: float | np.ndarray) -> Sample:
+        tau, vel = self.tau, self.vel
+        dtau = np.diff(tau)
+        slope = np.zeros((len(tau), vel.shape[1]))
+        nz = dtau > 0
+        slope[:-1][nz] = (vel[1:][nz] - vel[:-1][nz]) / dtau[nz][:, None]
+        # position at each knot: trapezoids (exact for piecewise-linear velocity)
+        pk = self.p0 + np.concatenate([np.zeros((1, vel.shape[1])),
+                                       np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dtau[:, None], axis=0)])
+        tt = np.asarray(t, dtype=float)
+        m = np.clip(np.searchsorted(tau, tt, side="left") - 1, 0, len(tau) - 1)
+        s = (tt - tau[m])[..., None]
+        v = vel[m] + slope[m] * s
+        p = pk[m] + vel[m] * s + 0.5 * slope[m] * s * s
+        a = slope[m] + 0.0 * s
+        return _squeeze(t, p, v, a)
+
+
+@dataclass(frozen=True)
+class Waypoints:
+    """Minimum-jerk quintic segments between timed waypoints (zero velocity and acceleration at
+    each waypoint); holds the last waypoint afterwards."""
+
+    tau: np.ndarray  # (M,)
+    pts: np.ndarray  # (M, d)
+
+    def __call__(self, t: float | np.ndarray) -> Sample:
+        tt = np.asarray(t, dtype=float)
+        last = len(self.tau) - 1
+        m = np.clip(np.searchsorted(self.tau, tt, side="right") - 1, 0, last - 1)
+        span = self.tau[m + 1] - self.tau[m]
+        x = np.clip((tt - self.tau[m]) / span, 0.0, 1.0)[..., None]
+        span = np.asarray(span)[..., None]
+        dp = self.pts[m + 1] - self.pts[m]
+        s = x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
+        ds = 30.0 * x * x * (1.0 - x) ** 2
+        dds = 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)
+        p = self.pts[m] + dp * s
+        v = dp * ds / span
+        a = dp * dds / (span * span)
+        return _squeeze(t, p, v, a)
+
+
+def _squeeze(t: float | np.ndarray, p: np.ndarray, v: np.ndarray, a: np.ndarray) -> Sample:
+    if np.ndim(t) == 0:
+        return p.reshape(-1), v.reshape(-1), a.reshape(-1)
+    return p, v, a
+
+
+def build(leader: ms.Leader, dim: int) -> Reference:
+    """The :class:`Reference` a mission's leader follows."""
+    p0 = np.array(leader.p0, dtype=float)
+    v0 = np.array(leader.v0 if leader.v0 is not None else [0.0] * dim, dtype=float)
+    prof = leader.profile
+    if isinstance(prof, ms.ExpAccel):
+        return ExpAccel(p0, v0, np.array(prof.a0, dtype=float), float(prof.decay))
+    if isinstance(prof, ms.VelocitySchedule):
+        segs = [(s.t, np.array(s.v, dtype=float)) for s in prof.segments]
+        return PiecewiseLinearVelocity.from_schedule(p0, segs, prof.ramp)
+    if isinstance(prof, ms.Waypoints):
+        return Waypoints(np.array([w.t for w in prof.points]), np.array([w.p for w in prof.points], dtype=float))
+    if isinstance(prof, ms.Hold):
+        return ExpAccel(p0, v0, np.zeros(dim), 0.0)
+    raise TypeError(f"unknown leader profile {type(prof).__name__}")

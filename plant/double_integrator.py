@@ -1,0 +1,25 @@
+"""The double integrator ``p' = v, v' = u + d`` (Eq. 5), discretised exactly. Pure numpy.
+
+Works on one vehicle (``(d,)``) or many (``(N, d)``). Over one control period ``h`` the command
+``u`` is held (zero-order hold) and the disturbance enters through its exact increments
+(:meth:`plant.disturbance.DisturbanceBank.increments`)::
+
+    p+ = p + h v + (h^2 / 2) u + dp,     v+ = v + h u + dv,     a+ = u + dv / h
+
+``a+`` is the mean acceleration over the period, what an accelerometer averaged over the period
+reads: it is the "measured acceleration" every vehicle shares with its neighbours.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def step(
+    p: np.ndarray, v: np.ndarray, u: np.ndarray, dv: np.ndarray, dp: np.ndarray, h: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Advance one period; returns ``(p+ [m], v+ [m/s], a+ [m/s^2])``."""
+    p_next = p + h * v + (0.5 * h * h) * u + dp
+    v_next = v + h * u + dv
+    a_next = u + dv / h
+    return p_next, v_next, a_next

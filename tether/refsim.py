@@ -1,0 +1,197 @@
+"""The reference simulator: the whole swarm in one process, vectorised over agents with numpy.
+
+It is the oracle of the distributed runtime: with an ideal network, a lockstep run of the runtime
+must reproduce the ``discrete`` mode to round-off. Its sampled-data semantics are the runtime's:
+
+* Ticks ``t_k = k h``, ``h = 1 / rate``, ``k = 0 .. steps``.
+* At ``t_k`` every vehicle is measured: ``p_i(t_k)``, ``v_i(t_k)`` and ``a_i(t_k)``, the mean
+  acceleration over the previous period ``[t_{k-1}, t_k]`` (zero at k = 0, before any
+  measurement). The leader's sample is its profile at ``t_k`` (position, velocity, acceleration).
+* Agent i computes ``xi_i``, ``zeta_i`` (Eq. 8, 9) and ``u_i`` (Eq. 17) from its own sample and
+  its in-neighbours' samples of the same tick, with the gains ``K(t_k)``; the feed-forward
+  ``sum_j a_ij vdot_j`` uses the neighbours' measured accelerations ``a_j(t_k)``.
+* ``u_i`` is held over ``[t_k, t_{k+1})`` (zero-order hold); the plant integrates exactly
+  (:mod:`plant.double_integrator`, disturbance increments in closed form).
+* The gains advance by the exact solution of their ODE with ``xi_i(t_k)``, ``zeta_i(t_k)`` held.
+
+The ``continuous`` mode integrates the continuous-time closed loop with fixed-step RK4
+(``substeps`` per control period) and exact neighbour accelerations: Eq. 17's feed-forward makes
+``u`` depend on the neighbours' ``vdot``, an algebraic loop solved through ``L1``::
+
+    L1 vdot = a_{i,N+1} a_ref + kappa * d - Kp * xi - Kv * zeta
+
+Comparing the two modes shows what sampling changes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Literal
+
+import numpy as np
+
+from agent import law
+from leader import profile
+from plant import double_integrator
+from plant.disturbance import DisturbanceBank
+from tether import graph
+from tether.mission import Mission
+from tether.runfile import Run
+
+Mode = Literal["discrete", "continuous"]
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Arrays derived once from a mission."""
+
+    mission: Mission
+    topo: graph.Topology
+    params: law.LawParams
+    ref: profile.Reference
+    dist: DisturbanceBank
+    offsets: np.ndarray  # (N+1, d), the leader's row 0
+    sum_wdelta: np.ndarray  # (N, d): sum_j a_ij delta_ij
+    p0: np.ndarray  # (N, d)
+    v0: np.ndarray  # (N, d)
+
+    @classmethod
+    def of(cls, m: Mission) -> "Setup":
+        topo = graph.topology(m)
+        n, d = m.n, m.dim
+        offsets = np.zeros((n + 1, d))
+        offsets[:n] = [a.offset for a in m.agents]
+        sum_wdelta = topo.kappa[:, None] * offsets[:n] - topo.adjacency[:n] @ offsets
+        p0 = np.array([a.p0 for a in m.agents], dtype=float)
+        v0 = np.array([a.v0 if a.v0 is not None else [0.0] * d for a in m.agents], dtype=float)
+        return cls(m, topo, law.LawParams.from_mission(m), profile.build(m.leader, d),
+                   DisturbanceBank.from_mission(m), offsets, sum_wdelta, p0, v0)
+
+
+def neighbour_sums(topo: graph.Topology, x: np.ndarray) -> np.ndarray:
+    """``sum_j a_ij x_j`` for every agent i; ``x`` is ``(N+1, c)`` (leader last), result ``(N, c)``."""
+    return np.add.reduceat(x[topo.src] * topo.weight[:, None], topo.starts, axis=0)
+
+
+def simulate(
+    m: Mission,
+    mode: Mode = "discrete",
+    *,
+    duration: float | None = None,
+    record: bool = True,
+    substeps: int = 10,
+    progress: Progress | None = None,
+) -> Run:
+    """Run a mission in one process. ``duration`` overrides the mission's (a whole number of periods).
+
+    Returns a :class:`~tether.runfile.Run` with one sample per control tick (``steps + 1``
+    samples); with ``record=False`` only the final sample is kept (for benchmarks).
+    """
+    s = Setup.of(m)
+    steps = m.steps if duration is None else int(round(duration * m.rate))
+    meta = {"mission": m.name, "source": f"reference-{mode}", "law": m.law.kind, "rate": m.rate,
+            "steps": steps, "seed": m.seed}
+    if mode == "discrete":
+        return _discrete(s, steps, record, progress, meta)
+    if mode == "continuous":
+        return _continuous(s, steps, substeps, record, progress, meta)
+    raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
+
+
+def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: dict) -> Run:
+    m, topo, prm = s.mission, s.topo, s.params
+    n, d, h = m.n, m.dim, m.dt
+    kappa = topo.kappa[:, None]
+    gs = law.GainStep.over(prm.sigma, h)
+    lp, lv, la = s.ref(np.arange(steps + 1) * h)
+
+    state = np.zeros((n + 1, 3, d))  # rows: agents then leader; [p, v, a]
+    state[:n, 0], state[:n, 1] = s.p0, s.v0
+    flat = state.reshape(n + 1, 3 * d)
+    kp = np.broadcast_to(prm.kp0, (n, d)).copy()
+    kv = np.broadcast_to(prm.kv0, (n, d)).copy()
+    zero_d = s.dist.is_zero
+    run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta)
+    every = max(1, steps // 100)
+
+    for k in range(steps + 1):
+        state[n, 0], state[n, 1], state[n, 2] = lp[k], lv[k], la[k]
+        sums = neighbour_sums(topo, flat).reshape(n, 3, d)
+        p, v, a = state[:n, 0], state[:n, 1], state[:n, 2]
+        xi, zeta = law.errors(kappa, p, v, sums[:, 0], sums[:, 1], s.sum_wdelta)
+        u = law.control(kappa, sums[:, 2], xi, zeta, kp, kv)
+        if record or k == steps:
+            r = k if record else 0
+            run.t[r] = k * h
+            run.p[r], run.v[r], run.a[r], run.u[r] = p, v, a, u
+            run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = xi, zeta, kp, kv
+            run.d[r] = 0.0 if zero_d else s.dist.value(k)
+            run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp[k], lv[k], la[k]
+        if k == steps:
+            break
+        kp = law.gain_update(kp, xi, prm.gamma_p, gs)
+        kv = law.gain_update(kv, zeta, prm.gamma_v, gs)
+        dv, dp = s.dist.increments(k)
+        state[:n, 0], state[:n, 1], state[:n, 2] = double_integrator.step(p, v, u, dv, dp, h)
+        if progress is not None and k % every == 0:
+            progress(k, steps)
+    if progress is not None:
+        progress(steps, steps)
+    return run
+
+
+def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: dict) -> Run:
+    m, topo, prm = s.mission, s.topo, s.params
+    n, d, h = m.n, m.dim, m.dt
+    hf = h / substeps
+    kappa = topo.kappa[:, None]
+    a_lead = topo.adjacency[:n, n][:, None]
+    l1, _ = graph.partition(topo.adjacency)
+    l1_inv = np.linalg.inv(l1)
+    meta = dict(meta, substeps=substeps)
+
+    def rhs(t: float, y: np.ndarray) -> tuple[np.ndarray, dict]:
+        p, v, kp, kv = y
+        lp, lv, la = s.ref(t)
+        xp = np.vstack([p, lp])
+        xv = np.vstack([v, lv])
+        sp = neighbour_sums(topo, xp)
+        sv = neighbour_sums(topo, xv)
+        xi, zeta = law.errors(kappa, p, v, sp, sv, s.sum_wdelta)
+        dist = s.dist.value_at(t)
+        vdot = l1_inv @ (a_lead * la + kappa * dist - kp * xi - kv * zeta)
+        dy = np.stack([v, vdot, law.gain_rate(kp, xi, prm.gamma_p, prm.sigma),
+                       law.gain_rate(kv, zeta, prm.gamma_v, prm.sigma)])
+        return dy, {"xi": xi, "zeta": zeta, "vdot": vdot, "d": dist, "lead": (lp, lv, la)}
+
+    y = np.stack([s.p0, s.v0, np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]).astype(float)
+    run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta)
+    every = max(1, steps // 100)
+    for k in range(steps + 1):
+        t = k * h
+        k1, aux = rhs(t, y)
+        if record or k == steps:
+            r = k if record else 0
+            run.t[r] = t
+            run.p[r], run.v[r], run.a[r] = y[0], y[1], aux["vdot"]
+            run.u[r] = aux["vdot"] - aux["d"]
+            run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = aux["xi"], aux["zeta"], y[2], y[3]
+            run.d[r] = aux["d"]
+            run.leader_p[r], run.leader_v[r], run.leader_a[r] = aux["lead"]
+        if k == steps:
+            break
+        for j in range(substeps):
+            ts = t + j * hf
+            if j:
+                k1, _ = rhs(ts, y)
+            k2, _ = rhs(ts + 0.5 * hf, y + 0.5 * hf * k1)
+            k3, _ = rhs(ts + 0.5 * hf, y + 0.5 * hf * k2)
+            k4, _ = rhs(ts + hf, y + hf * k3)
+            y = y + (hf / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        if progress is not None and k % every == 0:
+            progress(k, steps)
+    if progress is not None:
+        progress(steps, steps)
+    return run
+
