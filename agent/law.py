@@ -108,3 +108,65 @@ def gain_update(k: np.ndarray, e: np.ndarray, gamma: float, step: GainStep) -> n
 def gain_rate(k: np.ndarray, e: np.ndarray, gamma: float, sigma: float) -> np.ndarray:
     """The gain ODE's right-hand side ``-sigma (K - 1) + Gamma e^2`` (for the continuous-time mode)."""
     return -sigma * (k - 1.0) + gamma * (e * e)
+
+
+@dataclass(frozen=True)
+class AgentLaw:
+    """Everything agent i needs to run the law, derived once from the mission.
+
+    Attributes:
+        neighbours: ids of the in-neighbours j (the leader's id included when ``a_i,N+1 > 0``),
+            in the order of ``weights``.
+        weights: ``(m,)`` the ``a_ij``.
+        kappa: ``sum_j a_ij``.
+        sum_wdelta: ``(d,)`` ``sum_j a_ij delta_ij`` [m].
+    """
+
+    agent_id: int
+    neighbours: tuple[int, ...]
+    weights: np.ndarray
+    kappa: float
+    sum_wdelta: np.ndarray
+    params: LawParams
+    gains: GainStep
+
+    @classmethod
+    def from_mission(cls, m: Mission, agent_id: int) -> "AgentLaw":
+        me = m.agent(agent_id)
+        offsets = {a.id: np.array(a.offset, dtype=float) for a in m.agents}
+        offsets[m.leader.id] = np.zeros(m.dim)
+        ins = sorted((m.index_of(e.src), e.src, e.weight) for e in m.edges if e.dst == agent_id)
+        nbrs = tuple(src for _, src, _ in ins)
+        w = np.array([wt for _, _, wt in ins], dtype=float)
+        h_i = np.array(me.offset, dtype=float)
+        kappa = float(w.sum())
+        sum_wdelta = kappa * h_i - w @ np.array([offsets[j] for j in nbrs])
+        params = LawParams.from_mission(m)
+        return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt))
+
+    def step(
+        self,
+        p: np.ndarray,
+        v: np.ndarray,
+        nb_p: np.ndarray,
+        nb_v: np.ndarray,
+        nb_a: np.ndarray,
+        kp: np.ndarray,
+        kv: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One control tick of agent i.
+
+        Args:
+            p, v: own position [m] and velocity [m/s], ``(d,)``.
+            nb_p, nb_v, nb_a: the neighbours' samples, ``(m, d)``, rows in ``neighbours`` order.
+            kp, kv: the gains ``K(t_k)``.
+        Returns:
+            ``(u, xi, zeta, kp_next, kv_next)``: the command for this tick, the errors, and the
+            gains for the next tick.
+        """
+        w = self.weights
+        xi, zeta = errors(self.kappa, p, v, w @ nb_p, w @ nb_v, self.sum_wdelta)
+        u = control(self.kappa, w @ nb_a, xi, zeta, kp, kv)
+        prm = self.params
+        return (u, xi, zeta, gain_update(kp, xi, prm.gamma_p, self.gains),
+                gain_update(kv, zeta, prm.gamma_v, self.gains))

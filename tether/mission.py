@@ -3,20 +3,26 @@
 A mission file is decoded into :class:`Mission` with msgspec (unknown fields are errors), then
 :func:`validate` checks what a type cannot say: the graph (Assumption 1, self-loops, weights, ids),
 dimensions, the law's parameters, and finiteness. Every error names the field by its path in the
-file and says how to fix it. :func:`load` does both and returns a :class:`Mission`; it raises
-:class:`MissionError` listing every problem found, not only the first.
+file (``agents[2].offset``) and says how to fix it, as ``"<what is wrong>; <how to fix it>"``.
+:func:`load` does both and returns a :class:`Mission`; it raises :class:`MissionError` listing every
+problem found, not only the first (a type error stops decoding, so it is reported alone).
 
 The file format, field by field, is documented in ``docs/mission.md``.
 """
 
 from __future__ import annotations
 
+import difflib
+import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Literal
 
 import msgspec
+import msgspec.inspect
+import msgspec.structs
 
 SCHEMA_VERSION = 1
 """The mission-file version this release reads."""
@@ -234,7 +240,11 @@ class Mission(_Strict):
 
 # --------------------------------------------------------------------------- errors
 class MissionError(ValueError):
-    """A mission file is not valid. ``problems`` holds one ``(field, message)`` pair per problem."""
+    """A mission file is not valid. ``problems`` holds one ``(field, message)`` pair per problem.
+
+    ``field`` is the path of the offending value in the file (``agents[2].offset``, ``law.kp0[1]``),
+    ``"<file>"`` for the file as a whole. Every message reads ``"<what is wrong>; <how to fix it>"``.
+    """
 
     def __init__(self, source: str, problems: list[tuple[str, str]]):
         self.source = source
@@ -246,24 +256,31 @@ class MissionError(ValueError):
 
 # --------------------------------------------------------------------------- decoding
 def loads(text: str | bytes, source: str = "<mission>") -> Mission:
-    """Decode and validate a mission from TOML text. Raises :class:`MissionError`."""
-    if isinstance(text, str):
-        text = text.encode()
+    """Decode and validate a mission from TOML text. Raises :class:`MissionError`.
+
+    Type errors stop decoding, so at most one of them is reported (with its fix); a mission that
+    decodes is then checked by :func:`validate`, which reports every problem it finds.
+    """
     try:
-        raw = tomllib.loads(text.decode())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise MissionError(source, [("<file>", f"not valid TOML ({exc}); fix the syntax")]) from None
-    version = raw.get("version") if isinstance(raw, dict) else None
-    if version != SCHEMA_VERSION:
+        raw = tomllib.loads(text.decode() if isinstance(text, bytes) else text)
+    except tomllib.TOMLDecodeError as exc:
+        raise MissionError(source, [("<file>", f"is not valid TOML: {exc}; fix the syntax there")]) from None
+    except UnicodeDecodeError:
+        raise MissionError(source, [("<file>", "is not UTF-8 text; save it as UTF-8")]) from None
+    if "version" not in raw:
+        raise MissionError(source, [("version", f"is missing; add `version = {SCHEMA_VERSION}` "
+                                                f"(this release reads version {SCHEMA_VERSION})")])
+    version = raw["version"]
+    if type(version) is not int or version != SCHEMA_VERSION:
         raise MissionError(
             source,
-            [("version", f"is {version!r}; this release reads version = {SCHEMA_VERSION}: "
-                         f"set `version = {SCHEMA_VERSION}` and check the fields against docs/mission.md")],
+            [("version", f"is {_toml(version)} but this release reads version {SCHEMA_VERSION}; set "
+                         f"`version = {SCHEMA_VERSION}` after checking the fields against docs/mission.md")],
         )
     try:
         mission = msgspec.convert(raw, type=Mission)
     except msgspec.ValidationError as exc:
-        raise MissionError(source, [_field_of(str(exc))]) from None
+        raise MissionError(source, [_field_of(str(exc), raw)]) from None
     problems = validate(mission)
     if problems:
         raise MissionError(source, problems)
@@ -280,36 +297,233 @@ def load(path: str | Path) -> Mission:
     return loads(text, source=str(path))
 
 
-def _field_of(msg: str) -> tuple[str, str]:
-    """Turn msgspec's ``"... - at `$.agents[0].p0`"`` into ``("agents[0].p0", fix)``."""
-    where = "<root>"
+# --------------------------------------------------------------------------- decode messages
+_MISSION_TYPE = msgspec.inspect.type_info(Mission)
+_KIND_NOUNS = {"profile": "leader profile", "disturbance": "disturbance", "plant": "plant"}
+"""What the ``kind`` of each tagged union selects, by the name of the field holding the union."""
+_GOT_NOUNS = {"str": "a string", "float": "a number", "int": "an integer", "bool": "a boolean",
+              "array": "an array", "object": "a table", "datetime": "a date-time", "date": "a date",
+              "time": "a time"}
+"""msgspec's names of the TOML value types, as a mission author calls them."""
+
+_KeyPath = list[str | int]
+"""A field path split into names and indices: ``agents[0].p0`` is ``["agents", 0, "p0"]``."""
+
+
+def _field_of(msg: str, raw: object = None) -> tuple[str, str]:
+    """Turn a msgspec validation message into ``(field path, message-with-fix)``.
+
+    ``msg`` reads like ``"Expected `float`, got `str` - at `$.agents[0].p0`"``. ``raw`` is the
+    decoded TOML document: it tells which member of a tagged union a path is in (from its ``kind``),
+    so that the message can list that member's fields, and which ``dim`` to use in examples.
+    """
+    text, where = msg, ""
     if " - at `$" in msg:
-        msg, _, at = msg.partition(" - at `$")
-        where = at.rstrip("`").lstrip(".") or "<root>"
-    fix = "see docs/mission.md for the field's type"
-    if msg.startswith("Object contains unknown field"):
-        name = msg.split("`")[1]
-        where = f"{where}.{name}" if where != "<root>" else name
-        fix = "remove it or fix its spelling (unknown fields are errors)"
-        msg = "unknown field"
-    elif msg.startswith("Object missing required field"):
-        name = msg.split("`")[1]
-        where = f"{where}.{name}" if where != "<root>" else name
-        msg = "is required"
-        fix = "add it"
-    elif "Invalid value" in msg and where.endswith("kind"):
-        fix = "use one of the kinds listed in docs/mission.md"
-    elif msg.startswith("Expected `object`, got") and where != "<root>":
-        fix = "write a table here"
-    return where, f"{msg.lower() if msg[:1].isupper() and msg != 'is required' else msg}; {fix}"
+        text, _, at = msg.partition(" - at `$")
+        where = at.rstrip("`").lstrip(".")
+    path = _tokens(where)
+    dim = raw.get("dim") if isinstance(raw, dict) and raw.get("dim") in (2, 3) else 3
+    if text.startswith("Object contains unknown field") and text.count("`") >= 2:
+        name = text.split("`")[1]
+        known = _field_names(_type_at(path, raw))
+        close = difflib.get_close_matches(name, known, n=1)
+        fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
+        listing = (f"the fields here are {', '.join(known)}" if len(known) > 1
+                   else f"this table takes only `{known[0]}`" if known else "this table takes no fields")
+        return _join(where, name), f"is not a known field; {fix} ({listing})"
+    if text.startswith("Object missing required field") and text.count("`") >= 2:
+        name = text.split("`")[1]
+        field = _join(where, name)
+        t = _type_at([*path, name], raw)
+        if t is None:
+            return field, "is required; add it (see docs/mission.md)"
+        if isinstance(t, msgspec.inspect.LiteralType):
+            return field, f"is required; add `{name} = ...` set to {_choices(t.values)}"
+        return field, f"is required; {_add(t, name, where, dim)}"
+    t = _type_at(path, raw)
+    if text.startswith(("Invalid value", "Invalid enum value")) and isinstance(t, msgspec.inspect.LiteralType):
+        value = _toml(_value_at(path, raw))
+        noun = _KIND_NOUNS.get(str(path[-2])) if len(path) >= 2 and path[-1] == "kind" else None
+        what = f"is {value}, not a {noun} kind" if noun else f"is {value}"
+        return where or "<root>", f"{what}; use {_choices(t.values)}"
+    if text.startswith("Expected `") and ", got `" in text and t is not None:
+        got = text.split("`")[3]
+        got_noun = _GOT_NOUNS.get(got, f"`{got}`")
+        if isinstance(t, msgspec.inspect.LiteralType):
+            return where or "<root>", f"is {got_noun}; use {_choices(t.values)}"
+        want = _noun(t)
+        name = path[-1] if path and isinstance(path[-1], str) else None
+        example = _example(t, name, dim)
+        sample = f"`{name} = {example}`" if name else f"`{example}`"
+        quotes = " (no quotes)" if got == "str" and isinstance(t, (msgspec.inspect.FloatType, msgspec.inspect.IntType)) else ""
+        return where or "<root>", f"is {got_noun} but must be {want}; write {want}{quotes}, e.g. {sample}"
+    plain = text[:1].lower() + text[1:]
+    return where or "<root>", f"{plain}; see docs/mission.md for this field's type"
+
+
+def _add(t: msgspec.inspect.Type, name: str, where: str, dim: int) -> str:
+    """How to add the missing field ``name`` of type ``t`` to the table at ``where``."""
+    if not where and isinstance(t, msgspec.inspect.StructType):
+        return f"add a [{name}] table (see docs/mission.md)"
+    if not where and isinstance(t, msgspec.inspect.ListType) and isinstance(t.item_type, msgspec.inspect.StructType):
+        return f"add one [[{name}]] table per item (see docs/mission.md)"
+    return f"add it ({_noun(t)}), e.g. `{name} = {_example(t, name, dim)}`"
+
+
+def _tokens(where: str) -> _KeyPath:
+    """``"agents[0].p0"`` -> ``["agents", 0, "p0"]``."""
+    return [int(idx) if idx else name for name, idx in re.findall(r"([^.\[\]]+)|\[(\d+)\]", where)]
+
+
+def _join(where: str, name: str) -> str:
+    return f"{where}.{name}" if where else name
+
+
+def _members(t: msgspec.inspect.Type) -> list[msgspec.inspect.Type]:
+    """The members of a union (``None`` left out), or ``[t]``."""
+    if isinstance(t, msgspec.inspect.UnionType):
+        return [m for m in t.types if not isinstance(m, msgspec.inspect.NoneType)]
+    return [t]
+
+
+def _tags(t: msgspec.inspect.Type) -> tuple[str, ...]:
+    """The ``kind`` values of a tagged union (or of one tagged struct); empty if ``t`` is not tagged."""
+    members = _members(t)
+    if all(isinstance(m, msgspec.inspect.StructType) and m.tag_field for m in members):
+        return tuple(str(m.tag) for m in members)  # type: ignore[union-attr]
+    return ()
+
+
+def _resolve(t: msgspec.inspect.Type, value: object) -> msgspec.inspect.Type:
+    """The member of a union that ``value`` selects (by its ``kind``, or list vs number); else ``t``."""
+    members = _members(t)
+    if len(members) == 1:
+        return members[0]
+    for m in members:
+        if isinstance(m, msgspec.inspect.StructType) and m.tag_field and isinstance(value, dict):
+            if value.get(m.tag_field) == m.tag:
+                return m
+        elif isinstance(m, msgspec.inspect.ListType) and isinstance(value, list):
+            return m
+    return t
+
+
+def _type_at(path: _KeyPath, raw: object) -> msgspec.inspect.Type | None:
+    """The schema type of the value at ``path`` (a union member when the file selects one), or None.
+
+    A tagged union's ``kind`` field comes back as a ``LiteralType`` of every kind of the union.
+    """
+    t: msgspec.inspect.Type = _MISSION_TYPE
+    value = raw
+    for k, tok in enumerate(path):
+        if isinstance(tok, str) and tok == "kind" and k == len(path) - 1 and _tags(t):
+            return msgspec.inspect.LiteralType(values=_tags(t))
+        t = _resolve(t, value)
+        if isinstance(tok, int):
+            if not isinstance(t, msgspec.inspect.ListType):
+                return None
+            t = t.item_type
+            value = value[tok] if isinstance(value, list) and tok < len(value) else None
+            continue
+        if not isinstance(t, msgspec.inspect.StructType):
+            return None
+        field = next((f for f in t.fields if f.encode_name == tok), None)
+        if field is None:
+            return None
+        t = field.type
+        value = value.get(tok) if isinstance(value, dict) else None
+    return _resolve(t, value)
+
+
+def _value_at(path: _KeyPath, raw: object) -> object:
+    value = raw
+    for tok in path:
+        if isinstance(tok, int) and isinstance(value, list) and tok < len(value):
+            value = value[tok]
+        elif isinstance(tok, str) and isinstance(value, dict):
+            value = value.get(tok)
+        else:
+            return None
+    return value
+
+
+def _field_names(t: msgspec.inspect.Type | None) -> list[str]:
+    """The fields a table of type ``t`` takes, ``kind`` first for a member of a tagged union."""
+    if not isinstance(t, msgspec.inspect.StructType):
+        return []
+    return ([t.tag_field] if t.tag_field else []) + [f.encode_name for f in t.fields]
+
+
+def _noun(t: msgspec.inspect.Type) -> str:
+    """How a mission author calls a value of type ``t``: "a number", "an array of numbers", ..."""
+    if isinstance(t, msgspec.inspect.FloatType):
+        return "a number"
+    if isinstance(t, msgspec.inspect.IntType):
+        return "an integer"
+    if isinstance(t, msgspec.inspect.StrType):
+        return "a string"
+    if isinstance(t, msgspec.inspect.BoolType):
+        return "true or false"
+    if isinstance(t, msgspec.inspect.LiteralType):
+        return _choices(t.values)
+    if isinstance(t, msgspec.inspect.ListType):
+        items = {"FloatType": "numbers", "IntType": "integers", "StrType": "strings", "StructType": "tables"}
+        return f"an array of {items.get(type(t.item_type).__name__, 'values')}"
+    if _tags(t):
+        return "a table with a `kind`"
+    if isinstance(t, msgspec.inspect.StructType):
+        return "a table"
+    return " or ".join(_noun(m) for m in _members(t))
+
+
+def _example(t: msgspec.inspect.Type, name: str | None, dim: int) -> str:
+    """A TOML value of type ``t`` to show in a fix."""
+    if isinstance(t, msgspec.inspect.FloatType):
+        return "1.0"
+    if isinstance(t, msgspec.inspect.IntType):
+        return "1"
+    if isinstance(t, msgspec.inspect.StrType):
+        return '"..."'
+    if isinstance(t, msgspec.inspect.LiteralType):
+        return _toml(t.values[0])
+    if isinstance(t, msgspec.inspect.ListType):
+        if isinstance(t.item_type, msgspec.inspect.StructType):
+            return "[{ ... }, ...]"
+        return "[" + ", ".join([_example(t.item_type, None, dim)] * (dim if name != "assumed" else 1)) + "]"
+    if _tags(t):
+        return f"{{ kind = {_toml(_tags(t)[0])}, ... }}"
+    if isinstance(t, msgspec.inspect.StructType):
+        return "{ ... }"
+    return _example(_members(t)[0], name, dim)
+
+
+def _toml(value: object) -> str:
+    """``value`` as it is written in TOML (strings in double quotes)."""
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+def _choices(values: tuple[object, ...] | list[object]) -> str:
+    """``one of "a", "b" or "c"`` (or the one value)."""
+    shown = [_toml(v) for v in values]
+    if len(shown) == 1:
+        return shown[0]
+    return f"one of {', '.join(shown[:-1])} or {shown[-1]}"
 
 
 # --------------------------------------------------------------------------- validation
-def _finite_tree(obj: object, path: str, out: list[tuple[str, str]]) -> None:
+Problems = list[tuple[str, str]]
+"""``(field path, "<what is wrong>; <how to fix it>")`` pairs."""
+
+
+def _finite_tree(obj: object, path: str, out: Problems) -> None:
     """Report every NaN/Inf number anywhere in the mission."""
     if isinstance(obj, float):
         if not math.isfinite(obj):
-            out.append((path, f"is {obj}; every number must be finite"))
+            out.append((path, f"is {obj}; write a finite number (NaN and infinity are not allowed)"))
     elif isinstance(obj, list):
         for k, item in enumerate(obj):
             _finite_tree(item, f"{path}[{k}]", out)
@@ -320,43 +534,72 @@ def _finite_tree(obj: object, path: str, out: list[tuple[str, str]]) -> None:
 
 
 def _encoded_name(cls: type, name: str) -> str:
-    info = msgspec.structs.fields(cls)
-    for f in info:
+    """The name a struct field has in the file (``Edge.src`` is ``from``)."""
+    for f in msgspec.structs.fields(cls):
         if f.name == name:
             return f.encode_name
     return name
 
 
-def _check_vec(v: list[float] | None, dim: int, path: str, out: list[tuple[str, str]]) -> None:
+def _axes(dim: int) -> str:
+    return "x, y" if dim == 2 else "x, y, z"
+
+
+def _check_vec(v: list[float] | None, dim: int, path: str, out: Problems) -> None:
     if v is not None and len(v) != dim:
-        out.append((path, f"has {len(v)} components but the mission has dim = {dim}; give {dim}"))
+        out.append((path, f"has {len(v)} component(s) but the mission has dim = {dim}; "
+                          f"give {dim} components ({_axes(dim)})"))
 
 
-def _check_per_axis(v: PerAxis, dim: int, path: str, out: list[tuple[str, str]]) -> None:
+def _check_per_axis(v: PerAxis, dim: int, path: str, out: Problems) -> None:
     if isinstance(v, list):
         _check_vec(v, dim, path, out)
 
 
+def _whole_periods(x: float, rate: float) -> bool:
+    """Whether ``x`` seconds is a whole number of control periods at ``rate`` Hz."""
+    return abs(x * rate - round(x * rate)) <= 1e-6
+
+
+def _nearest_periods(x: float, rate: float) -> float:
+    """The nearest positive whole number of control periods to ``x`` seconds, in seconds."""
+    return max(1, round(x * rate)) / rate
+
+
+def _and(items: list[int]) -> str:
+    """``[3]`` -> ``"3"``, ``[3, 4]`` -> ``"3 and 4"``, ``[2, 3, 4]`` -> ``"2, 3 and 4"``."""
+    words = [str(i) for i in items]
+    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} and {words[-1]}"
+
+
 def per_axis(v: PerAxis, dim: int) -> list[float]:
-    """Expand a :data:`PerAxis` value to ``dim`` components."""
+    """Expand a :data:`PerAxis` value to ``dim`` components (a list is returned as floats, unchanged
+    in length: :func:`validate` checks it has ``dim``)."""
     return [float(v)] * dim if not isinstance(v, list) else [float(x) for x in v]
 
 
-def validate(m: Mission) -> list[tuple[str, str]]:
-    """Every semantic problem of a decoded mission, as ``(field, message-with-fix)`` pairs."""
-    out: list[tuple[str, str]] = []
+def validate(m: Mission) -> Problems:
+    """Every semantic problem of a decoded mission, as ``(field, message-with-fix)`` pairs.
+
+    Non-finite numbers are reported alone (later checks compare numbers, and NaN would only add
+    confusing follow-ups); Assumption 1 is checked only once the ids and edges are otherwise right.
+    """
+    out: Problems = []
     _finite_tree(m, "", out)
     if out:
-        return out  # later checks compare numbers; NaN would only add confusing follow-ups
+        return out
     d = m.dim
 
     if m.rate <= 0:
-        out.append(("rate", f"is {m.rate} Hz; the control rate must be > 0 (e.g. 100)"))
+        out.append(("rate", f"is {m.rate} Hz; set a control rate > 0, e.g. `rate = 100.0`"))
     if m.duration <= 0:
-        out.append(("duration", f"is {m.duration} s; the duration must be > 0"))
-    elif m.rate > 0 and abs(m.duration * m.rate - round(m.duration * m.rate)) > 1e-6:
-        out.append(("duration", f"{m.duration} s is not a whole number of control periods at {m.rate} Hz; "
-                                "make duration * rate an integer"))
+        out.append(("duration", f"is {m.duration} s; set a duration > 0"))
+    elif m.rate > 0 and not _whole_periods(m.duration, m.rate):
+        out.append(("duration", f"is {m.duration} s, not a whole number of control periods at {m.rate} Hz; "
+                                f"make duration * rate an integer, e.g. "
+                                f"`duration = {_nearest_periods(m.duration, m.rate)!r}`"))
+    if m.seed < 0:
+        out.append(("seed", f"is {m.seed}; use a seed >= 0 (random generators take non-negative seeds)"))
 
     # ids
     if not m.agents:
@@ -364,41 +607,46 @@ def validate(m: Mission) -> list[tuple[str, str]]:
     seen: dict[int, int] = {}
     for k, a in enumerate(m.agents):
         if a.id <= 0:
-            out.append((f"agents[{k}].id", f"is {a.id}; ids must be positive integers"))
+            out.append((f"agents[{k}].id", f"is {a.id}; use a positive integer id"))
         if a.id in seen:
-            out.append((f"agents[{k}].id", f"duplicates agents[{seen[a.id]}].id = {a.id}; give every agent its own id"))
+            out.append((f"agents[{k}].id", f"is {a.id}, the id of agents[{seen[a.id]}]; give every agent its own id"))
         seen.setdefault(a.id, k)
         if a.id == m.leader.id:
-            out.append((f"agents[{k}].id", f"{a.id} is the leader's id; agents and the leader need distinct ids"))
+            out.append((f"agents[{k}].id", f"is {a.id}, the leader's id; give the agent and the leader "
+                                           "different ids"))
         _check_vec(a.p0, d, f"agents[{k}].p0", out)
         _check_vec(a.v0, d, f"agents[{k}].v0", out)
         _check_vec(a.offset, d, f"agents[{k}].offset", out)
         _validate_disturbance(a.disturbance, d, m.rate, f"agents[{k}].disturbance", out)
     if m.leader.id <= 0:
-        out.append(("leader.id", f"is {m.leader.id}; ids must be positive integers"))
+        out.append(("leader.id", f"is {m.leader.id}; use a positive integer id"))
     _check_vec(m.leader.p0, d, "leader.p0", out)
     _check_vec(m.leader.v0, d, "leader.v0", out)
     _validate_profile(m, out)
 
     # edges
-    nodes = set(seen) | {m.leader.id}
+    nodes = sorted(set(seen) | {m.leader.id})
     pairs: dict[tuple[int, int], int] = {}
     for k, e in enumerate(m.edges):
         where = f"edges[{k}]"
         if e.src not in nodes:
-            out.append((f"{where}.from", f"{e.src} is not an agent or the leader; use one of {sorted(nodes)}"))
+            out.append((f"{where}.from", f"is {e.src}, which is neither an agent nor the leader; "
+                                         f"use one of the ids {nodes}"))
         if e.dst not in nodes:
-            out.append((f"{where}.to", f"{e.dst} is not an agent or the leader; use one of {sorted(nodes)}"))
-        if e.dst == m.leader.id:
-            out.append((f"{where}.to", f"{e.dst} is the virtual leader, which hears nobody (Eq. 6); "
-                                       "remove the edge or reverse it"))
+            out.append((f"{where}.to", f"is {e.dst}, which is neither an agent nor the leader; "
+                                       f"use one of the ids {nodes}"))
+        if e.dst == m.leader.id and e.src != e.dst:
+            out.append((f"{where}.to", f"is {e.dst}, the virtual leader, which hears nobody (Eq. 6); "
+                                       f"remove the edge or reverse it (`from = {e.dst}, to = {e.src}`)"))
         if e.src == e.dst:
-            out.append((where, f"is a self-loop on {e.src}; a_ii = 0 by definition: remove it"))
+            out.append((where, f"is a self-loop on {e.src} (a_ii = 0 by definition); remove it"))
         if e.weight <= 0:
-            out.append((f"{where}.weight", f"is {e.weight}; a_ij > 0 for an edge (omit the edge for a_ij = 0)"))
+            out.append((f"{where}.weight", f"is {e.weight} but an edge has a_ij > 0; give a positive weight, "
+                                           "or remove the edge for a_ij = 0"))
         key = (e.src, e.dst)
         if key in pairs:
-            out.append((where, f"duplicates edges[{pairs[key]}] ({e.src} -> {e.dst}); merge them into one weight"))
+            out.append((where, f"repeats edges[{pairs[key]}] ({e.src} -> {e.dst}); merge them into one edge "
+                               "with one weight"))
         pairs.setdefault(key, k)
 
     # law
@@ -409,32 +657,38 @@ def validate(m: Mission) -> list[tuple[str, str]]:
     why = ("Theorem 1 needs K(0) >= 1 for the sigma law" if law.kind == "sigma"
            else "Eq. 30 needs K(0) >= 0")
     for name, val in (("kp0", law.kp0), ("kv0", law.kv0)):
-        for k, x in enumerate(per_axis(val, d)):
+        values = val if isinstance(val, list) else [val]
+        for k, x in enumerate(values):
             if x < floor:
                 field = f"law.{name}" + (f"[{k}]" if isinstance(val, list) else "")
-                out.append((field, f"is {x}; {why}: raise it to >= {floor:g}"))
+                out.append((field, f"is {x}, below {floor:g} ({why}); raise it to >= {floor:g}"))
     for name in ("gamma_p", "gamma_v"):
-        if getattr(law, name) <= 0:
-            out.append((f"law.{name}", f"is {getattr(law, name)}; the adaptation rate must be > 0"))
+        value = getattr(law, name)
+        if value <= 0:
+            out.append((f"law.{name}", f"is {value}; set an adaptation rate > 0, e.g. `{name} = 0.05`"))
     if law.kind == "sigma":
         if law.sigma is None:
-            out.append(("law.sigma", "is required for the sigma law; add e.g. `sigma = 1.0`"))
+            out.append(("law.sigma", "is missing but the sigma law (Eq. 17) needs it; add e.g. `sigma = 1.0`, "
+                                     "or use kind = \"benchmark\""))
         elif law.sigma <= 0:
-            out.append(("law.sigma", f"is {law.sigma}; sigma must be > 0 (use kind = \"benchmark\" for no leakage)"))
+            out.append(("law.sigma", f"is {law.sigma} but Theorem 1 needs sigma > 0; set e.g. `sigma = 1.0`, "
+                                     "or use kind = \"benchmark\" for a law without leakage"))
     elif law.sigma is not None:
-        out.append(("law.sigma", "is set but the benchmark law (Eq. 30) has no sigma; remove it or use kind = \"sigma\""))
+        out.append(("law.sigma", "is set but the benchmark law (Eq. 30) has no sigma; remove it, "
+                                 "or use kind = \"sigma\""))
 
     # Assumption 1 only makes sense on a graph whose ids are right
-    if not any(msg for f, msg in out if f.startswith("edges") or f.startswith("agents")):
+    if not any(f.startswith(("edges", "agents", "leader.id")) for f, _ in out):
         unreachable = unreachable_agents(m)
         if unreachable:
             out.append(("edges", f"break Assumption 1: the leader ({m.leader.id}) has no directed path to "
-                                 f"agent(s) {unreachable}; add edges so that each hears the leader or an agent "
-                                 "the leader reaches"))
+                                 f"agent{'s' if len(unreachable) > 1 else ''} {_and(unreachable)}; add edges so "
+                                 "that each of them hears the leader or an agent the leader reaches, e.g. "
+                                 f"`{{ from = {m.leader.id}, to = {unreachable[0]} }}`"))
     return out
 
 
-def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out: list[tuple[str, str]]) -> None:
+def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out: Problems) -> None:
     if isinstance(dist, Sinusoid):
         for name in ("amplitude", "omega", "phase"):
             _check_vec(getattr(dist, name), d, f"{path}.{name}", out)
@@ -443,45 +697,63 @@ def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out
     elif isinstance(dist, BoundedRandom):
         _check_per_axis(dist.bound, d, f"{path}.bound", out)
         if any(b < 0 for b in per_axis(dist.bound, d)):
-            out.append((f"{path}.bound", "has a negative component; bounds are magnitudes >= 0"))
+            out.append((f"{path}.bound", f"is {dist.bound} but a bound is a magnitude; give values >= 0"))
         if dist.hold <= 0:
-            out.append((f"{path}.hold", f"is {dist.hold} s; the redraw period must be > 0"))
-        elif rate > 0 and abs(dist.hold * rate - round(dist.hold * rate)) > 1e-6:
-            out.append((f"{path}.hold", f"{dist.hold} s is not a whole number of control periods at {rate} Hz; "
-                                        "make hold * rate an integer"))
+            out.append((f"{path}.hold", f"is {dist.hold} s; set a redraw period > 0 s, a whole number of "
+                                        "control periods"))
+        elif rate > 0 and not _whole_periods(dist.hold, rate):
+            out.append((f"{path}.hold", f"is {dist.hold} s, not a whole number of control periods at {rate} Hz; "
+                                        f"make hold * rate an integer, e.g. "
+                                        f"`hold = {_nearest_periods(dist.hold, rate)!r}`"))
 
 
-def _validate_profile(m: Mission, out: list[tuple[str, str]]) -> None:
+def _validate_profile(m: Mission, out: Problems) -> None:
     prof, d, path = m.leader.profile, m.dim, "leader.profile"
+    v0 = m.leader.v0
     if isinstance(prof, ExpAccel):
         _check_vec(prof.a0, d, f"{path}.a0", out)
         if prof.decay < 0:
-            out.append((f"{path}.decay", f"is {prof.decay}; the decay rate must be >= 0"))
+            out.append((f"{path}.decay", f"is {prof.decay} 1/s; set a decay rate >= 0 (0 keeps a0 constant)"))
     elif isinstance(prof, VelocitySchedule):
-        if not prof.segments:
-            out.append((f"{path}.segments", "is empty; give at least one segment starting at t = 0"))
-        elif prof.segments[0].t != 0:
-            out.append((f"{path}.segments[0].t", f"is {prof.segments[0].t}; the first segment must start at t = 0"))
-        for k, seg in enumerate(prof.segments):
+        segs = prof.segments
+        if not segs:
+            out.append((f"{path}.segments", "is empty; give at least one segment, the first at t = 0"))
+        else:
+            if segs[0].t != 0:
+                out.append((f"{path}.segments[0].t", f"is {segs[0].t} s; set it to 0 (the first segment gives "
+                                                     "the velocity from the start)"))
+            if v0 is not None and len(v0) == d and len(segs[0].v) == d and list(v0) != list(segs[0].v):
+                out.append(("leader.v0", f"is {v0} but the velocity schedule starts at segments[0].v = "
+                                         f"{segs[0].v}; remove leader.v0 (the schedule sets the velocity) "
+                                         "or make them equal"))
+        for k, seg in enumerate(segs):
             _check_vec(seg.v, d, f"{path}.segments[{k}].v", out)
-            if k and seg.t < prof.segments[k - 1].t + prof.ramp:
-                out.append((f"{path}.segments[{k}].t", "must come at least `ramp` after the previous segment's t; "
-                                                        "sort the segments or shorten the ramp"))
+            if k and seg.t < segs[k - 1].t + prof.ramp:
+                out.append((f"{path}.segments[{k}].t", f"is {seg.t} s, earlier than the previous segment's t + ramp "
+                                                       f"({segs[k - 1].t + prof.ramp} s); sort the segments by t "
+                                                       "or shorten the ramp"))
         if prof.ramp < 0:
-            out.append((f"{path}.ramp", f"is {prof.ramp}; the ramp duration must be >= 0"))
+            out.append((f"{path}.ramp", f"is {prof.ramp} s; set a ramp >= 0 (0 is a step)"))
     elif isinstance(prof, Waypoints):
         pts = prof.points
         if len(pts) < 2:
-            out.append((f"{path}.points", "needs at least two waypoints"))
+            out.append((f"{path}.points", f"has {len(pts)} waypoint(s); give at least two, the first at t = 0 "
+                                          "and leader.p0"))
         else:
             if pts[0].t != 0:
-                out.append((f"{path}.points[0].t", f"is {pts[0].t}; the first waypoint must be at t = 0"))
+                out.append((f"{path}.points[0].t", f"is {pts[0].t} s; set it to 0 (the leader starts at its "
+                                                   "first waypoint)"))
             if len(pts[0].p) == d and len(m.leader.p0) == d and list(pts[0].p) != list(m.leader.p0):
-                out.append((f"{path}.points[0].p", "must equal leader.p0 (the leader starts at its first waypoint)"))
+                out.append((f"{path}.points[0].p", f"is {pts[0].p} but leader.p0 is {m.leader.p0}; make them "
+                                                   "equal (the leader starts at its first waypoint)"))
+        if v0 is not None and any(x != 0 for x in v0):
+            out.append(("leader.v0", f"is {v0} but a waypoints profile starts at rest; remove leader.v0 "
+                                     "or set it to zeros"))
         for k, pt in enumerate(pts):
             _check_vec(pt.p, d, f"{path}.points[{k}].p", out)
             if k and pt.t <= pts[k - 1].t:
-                out.append((f"{path}.points[{k}].t", "must be later than the previous waypoint's t"))
+                out.append((f"{path}.points[{k}].t", f"is {pt.t} s, not later than points[{k - 1}].t = "
+                                                     f"{pts[k - 1].t} s; give strictly increasing times"))
 
 
 def unreachable_agents(m: Mission) -> list[int]:

@@ -1,0 +1,103 @@
+"""Figures for papers: Fig. 4-style comparisons and per-run panels. Writes PNG files only.
+
+Uses matplotlib's non-interactive Agg backend; every function takes runs and a path and returns
+the paths it wrote.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from tether import metrics  # noqa: E402
+from tether.runfile import Run  # noqa: E402
+
+AXES = "xyz"
+
+
+def _decimate(run: Run, max_points: int = 4000) -> slice:
+    return slice(None, None, max(1, len(run.t) // max_points))
+
+
+def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
+    """Fig. 4 layout: one column per run (e.g. sigma-modification, benchmark), rows ||xi_i||, Kp, Kv."""
+    path = Path(path)
+    cols = len(runs)
+    fig, ax = plt.subplots(3, cols, figsize=(5.2 * cols, 8.0), sharex="col", squeeze=False)
+    for c, (label, run) in enumerate(runs.items()):
+        sl = _decimate(run)
+        t = run.t[sl]
+        xn = metrics.xi_norm(run)[sl]
+        for i, aid in enumerate(run.agent_ids):
+            ax[0, c].plot(t, xn[:, i], lw=0.8, label=f"agent {aid}")
+            for k in range(run.kp.shape[2]):
+                ax[1, c].plot(t, run.kp[sl, i, k], lw=0.8, label=f"{aid}{AXES[k]}")
+                ax[2, c].plot(t, run.kv[sl, i, k], lw=0.8, label=f"{aid}{AXES[k]}")
+        ax[0, c].set_title(label)
+        ax[0, c].set_ylabel(r"$\|\xi_i\|$ [m]")
+        ax[1, c].set_ylabel(r"$K_p$")
+        ax[2, c].set_ylabel(r"$K_v$")
+        ax[2, c].set_xlabel("t [s]")
+        for r in range(3):
+            ax[r, c].grid(True, lw=0.3)
+        ax[0, c].legend(fontsize=7, loc="upper right")
+        ax[1, c].legend(fontsize=6, ncol=2, loc="upper left")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None) -> list[Path]:
+    """Per-run figures: errors and gains (``errors_gains.png``), velocities against the leader's
+    (``velocities.png``) and the path in the x-y plane with formation snapshots (``xy.png``)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [comparison({run.meta.get("law", "run"): run}, out / "errors_gains.png",
+                        title=str(run.meta.get("mission", "")))]
+
+    sl = _decimate(run)
+    dim = run.v.shape[2]
+    fig, ax = plt.subplots(dim, 1, figsize=(7, 2.3 * dim), sharex=True, squeeze=False)
+    for k in range(dim):
+        for i, aid in enumerate(run.agent_ids):
+            ax[k, 0].plot(run.t[sl], run.v[sl, i, k], lw=0.8, label=f"agent {aid}")
+        ax[k, 0].plot(run.t[sl], run.leader_v[sl, k], "k--", lw=1.0, label="leader")
+        ax[k, 0].set_ylabel(f"$v_{AXES[k]}$ [m/s]")
+        ax[k, 0].grid(True, lw=0.3)
+    ax[0, 0].legend(fontsize=7, ncol=3)
+    ax[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    paths.append(out / "velocities.png")
+    fig.savefig(paths[-1], dpi=150)
+    plt.close(fig)
+
+    fig, axp = plt.subplots(figsize=(6.5, 6))
+    for i, aid in enumerate(run.agent_ids):
+        axp.plot(run.p[sl, i, 0], run.p[sl, i, 1], lw=0.7, label=f"agent {aid}")
+    axp.plot(run.leader_p[sl, 0], run.leader_p[sl, 1], "k--", lw=0.8, label="leader")
+    for frac in (0.0, 0.25, 0.5, 1.0):
+        k = min(len(run.t) - 1, int(frac * (len(run.t) - 1)))
+        ring = np.vstack([run.p[k, :, :2], run.p[k, :1, :2]])
+        axp.plot(ring[:, 0], ring[:, 1], "k:", lw=0.8)
+        axp.plot(run.p[k, :, 0], run.p[k, :, 1], "^", ms=6, color="tab:blue")
+        axp.plot(run.leader_p[k, 0], run.leader_p[k, 1], "*", ms=10, color="tab:red")
+        axp.annotate(f"t={run.t[k]:.0f}s", run.leader_p[k, :2], fontsize=7, xytext=(4, 4), textcoords="offset points")
+    axp.set_xlabel("x [m]")
+    axp.set_ylabel("y [m]")
+    axp.set_aspect("equal", adjustable="datalim")
+    axp.grid(True, lw=0.3)
+    axp.legend(fontsize=7)
+    fig.tight_layout()
+    paths.append(out / "xy.png")
+    fig.savefig(paths[-1], dpi=150)
+    plt.close(fig)
+    return paths
