@@ -100,8 +100,9 @@ class GainStep:
         return cls(math.exp(-sigma * h), -math.expm1(-sigma * h) / sigma)
 
 
-def gain_update(k: np.ndarray, e: np.ndarray, gamma: float, step: GainStep) -> np.ndarray:
-    """One exact step of the adaptive gain ODE (see :class:`GainStep`); same shapes as ``k``."""
+def gain_update(k: np.ndarray, e: np.ndarray, gamma: float | np.ndarray, step: GainStep) -> np.ndarray:
+    """One exact step of the adaptive gain ODE (see :class:`GainStep`); same shapes as ``k``
+    (``gamma`` broadcasts, so Kp and Kv stacked on a leading axis advance in one call)."""
     return 1.0 + (k - 1.0) * step.decay + (gamma * step.gain) * (e * e)
 
 

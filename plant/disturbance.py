@@ -73,6 +73,24 @@ class DisturbanceBank:
         return cls(h, const, amp, omega, phase, table, hold)
 
     def __post_init__(self) -> None:
+        # Closed-form sinusoid increments over one period, as fixed combinations of
+        # s0 = sin(theta0), c0 = cos(theta0), theta0 = omega t_k + phase (y = omega h):
+        #   dv = amp (2/omega) sin(theta0 + y/2) sin(y/2) = s0 * cv_s + c0 * cv_c
+        #   dp = amp (c0 (y - sin y) + s0 2 sin^2(y/2)) / omega^2 = s0 * cp_s + c0 * cp_c
+        # with the omega -> 0 limits (dv = amp h sin(phase), dp = amp h^2/2 sin(phase)).
+        h, w = self.h, self.omega
+        moving = w != 0.0
+        ws = np.where(moving, w, 1.0)
+        y = ws * h
+        sy2 = np.sin(0.5 * y)
+        coeffs = {
+            "_cv_s": np.where(moving, 2.0 * np.cos(0.5 * y) * sy2 / ws, h),
+            "_cv_c": np.where(moving, 2.0 * sy2 * sy2 / ws, 0.0),
+            "_cp_s": np.where(moving, 2.0 * sy2 * sy2 / (ws * ws), 0.5 * h * h),
+            "_cp_c": np.where(moving, (y - np.sin(y)) / (ws * ws), 0.0),
+        }
+        for name, c in coeffs.items():
+            object.__setattr__(self, name, self.amp * c)
         object.__setattr__(self, "_has_sine", bool(np.any(self.amp != 0.0)))
         object.__setattr__(self, "_has_random", bool(np.any(self.table != 0.0)))
         object.__setattr__(self, "_has_const", bool(np.any(self.const != 0.0)))
@@ -99,20 +117,16 @@ class DisturbanceBank:
     def increments(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Exact ``(dv, dp)`` over tick k, each ``(n, d)`` (see the module docstring)."""
         h = self.h
-        held = self.const + self._random(k) if (self._has_random or self._has_const) else self.const
-        dv = held * h
-        dp = held * (0.5 * h * h)
-        if not self._has_sine:
-            return dv, dp
-        w = self.omega
-        moving = w != 0.0
-        theta0 = w * (k * h) + self.phase
-        y = w * h
-        safe_w = np.where(moving, w, 1.0)
-        # int sin(theta0 + w s) over [0, h] and int (h - s) sin(theta0 + w s) over [0, h]
-        sv = 2.0 * np.sin(theta0 + 0.5 * y) * np.sin(0.5 * y) / safe_w
-        sp = (np.cos(theta0) * (y - np.sin(y)) + np.sin(theta0) * 2.0 * np.sin(0.5 * y) ** 2) / (safe_w * safe_w)
-        still = np.sin(self.phase)  # omega = 0: a constant amp * sin(phase)
-        dv = dv + self.amp * np.where(moving, sv, still * h)
-        dp = dp + self.amp * np.where(moving, sp, still * 0.5 * h * h)
-        return dv, dp
+        theta0 = self.omega * (k * h) + self.phase if self._has_sine else None
+        if self._has_random or self._has_const:
+            held = self.const + self._random(k)
+            dv, dp = held * h, held * (0.5 * h * h)
+            if theta0 is None:
+                return dv, dp
+        elif theta0 is None:
+            return np.zeros_like(self.const), np.zeros_like(self.const)
+        else:
+            s0, c0 = np.sin(theta0), np.cos(theta0)
+            return s0 * self._cv_s + c0 * self._cv_c, s0 * self._cp_s + c0 * self._cp_c
+        s0, c0 = np.sin(theta0), np.cos(theta0)
+        return dv + s0 * self._cv_s + c0 * self._cv_c, dp + s0 * self._cp_s + c0 * self._cp_c

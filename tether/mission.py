@@ -100,8 +100,9 @@ class Leader(_Strict):
     p0: Vector
     """Initial position [m; world frame]."""
     v0: Vector | None = None
-    """Initial velocity [m/s; world frame]; zeros when omitted (ignored by ``velocity_schedule``
-    and ``waypoints``, which define it)."""
+    """Initial velocity [m/s; world frame]; zeros when omitted. ``velocity_schedule`` and
+    ``waypoints`` define it themselves: when given with them it must agree (``segments[0].v``;
+    zeros)."""
     profile: Profile = Hold()
 
 
@@ -345,20 +346,21 @@ def _field_of(msg: str, raw: object = None) -> tuple[str, str]:
         value = _toml(_value_at(path, raw))
         noun = _KIND_NOUNS.get(str(path[-2])) if len(path) >= 2 and path[-1] == "kind" else None
         what = f"is {value}, not a {noun} kind" if noun else f"is {value}"
-        return where or "<root>", f"{what}; use {_choices(t.values)}"
+        return where or "<file>", f"{what}; use {_choices(t.values)}"
     if text.startswith("Expected `") and ", got `" in text and t is not None:
         got = text.split("`")[3]
         got_noun = _GOT_NOUNS.get(got, f"`{got}`")
         if isinstance(t, msgspec.inspect.LiteralType):
-            return where or "<root>", f"is {got_noun}; use {_choices(t.values)}"
+            return where or "<file>", f"is {got_noun}; use {_choices(t.values)}"
         want = _noun(t)
         name = path[-1] if path and isinstance(path[-1], str) else None
-        example = _example(t, name, dim)
+        example = _example(t, dim)
         sample = f"`{name} = {example}`" if name else f"`{example}`"
-        quotes = " (no quotes)" if got == "str" and isinstance(t, (msgspec.inspect.FloatType, msgspec.inspect.IntType)) else ""
-        return where or "<root>", f"is {got_noun} but must be {want}; write {want}{quotes}, e.g. {sample}"
+        numeric = isinstance(t, (msgspec.inspect.FloatType, msgspec.inspect.IntType))
+        quotes = " (no quotes)" if got == "str" and numeric else ""
+        return where or "<file>", f"is {got_noun} but must be {want}; write {want}{quotes}, e.g. {sample}"
     plain = text[:1].lower() + text[1:]
-    return where or "<root>", f"{plain}; see docs/mission.md for this field's type"
+    return where or "<file>", f"{plain}; see docs/mission.md for this field's type"
 
 
 def _add(t: msgspec.inspect.Type, name: str, where: str, dim: int) -> str:
@@ -367,7 +369,7 @@ def _add(t: msgspec.inspect.Type, name: str, where: str, dim: int) -> str:
         return f"add a [{name}] table (see docs/mission.md)"
     if not where and isinstance(t, msgspec.inspect.ListType) and isinstance(t.item_type, msgspec.inspect.StructType):
         return f"add one [[{name}]] table per item (see docs/mission.md)"
-    return f"add it ({_noun(t)}), e.g. `{name} = {_example(t, name, dim)}`"
+    return f"add it ({_noun(t)}), e.g. `{name} = {_example(t, dim)}`"
 
 
 def _tokens(where: str) -> _KeyPath:
@@ -390,7 +392,7 @@ def _tags(t: msgspec.inspect.Type) -> tuple[str, ...]:
     """The ``kind`` values of a tagged union (or of one tagged struct); empty if ``t`` is not tagged."""
     members = _members(t)
     if all(isinstance(m, msgspec.inspect.StructType) and m.tag_field for m in members):
-        return tuple(str(m.tag) for m in members)  # type: ignore[union-attr]
+        return tuple(str(m.tag) for m in members)
     return ()
 
 
@@ -476,7 +478,7 @@ def _noun(t: msgspec.inspect.Type) -> str:
     return " or ".join(_noun(m) for m in _members(t))
 
 
-def _example(t: msgspec.inspect.Type, name: str | None, dim: int) -> str:
+def _example(t: msgspec.inspect.Type, dim: int) -> str:
     """A TOML value of type ``t`` to show in a fix."""
     if isinstance(t, msgspec.inspect.FloatType):
         return "1.0"
@@ -489,12 +491,15 @@ def _example(t: msgspec.inspect.Type, name: str | None, dim: int) -> str:
     if isinstance(t, msgspec.inspect.ListType):
         if isinstance(t.item_type, msgspec.inspect.StructType):
             return "[{ ... }, ...]"
-        return "[" + ", ".join([_example(t.item_type, None, dim)] * (dim if name != "assumed" else 1)) + "]"
+        count = dim if isinstance(t.item_type, msgspec.inspect.FloatType) else 1  # a vector, or a sample
+        return "[" + ", ".join([_example(t.item_type, dim)] * count) + "]"
     if _tags(t):
-        return f"{{ kind = {_toml(_tags(t)[0])}, ... }}"
+        first = _members(t)[0]
+        more = ", ..." if isinstance(first, msgspec.inspect.StructType) and first.fields else ""
+        return f"{{ kind = {_toml(_tags(t)[0])}{more} }}"
     if isinstance(t, msgspec.inspect.StructType):
         return "{ ... }"
-    return _example(_members(t)[0], name, dim)
+    return _example(_members(t)[0], dim)
 
 
 def _toml(value: object) -> str:

@@ -69,9 +69,7 @@ class Setup:
                    DisturbanceBank.from_mission(m), offsets, sum_wdelta, p0, v0)
 
 
-def neighbour_sums(topo: graph.Topology, x: np.ndarray) -> np.ndarray:
-    """``sum_j a_ij x_j`` for every agent i; ``x`` is ``(N+1, c)`` (leader last), result ``(N, c)``."""
-    return np.add.reduceat(x[topo.src] * topo.weight[:, None], topo.starts, axis=0)
+neighbour_sums = graph.neighbour_sums
 
 
 def simulate(
@@ -106,21 +104,24 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     gs = law.GainStep.over(prm.sigma, h)
     lp, lv, la = s.ref(np.arange(steps + 1) * h)
 
-    state = np.zeros((n + 1, 3, d))  # rows: agents then leader; [p, v, a]
-    state[:n, 0], state[:n, 1] = s.p0, s.v0
-    flat = state.reshape(n + 1, 3 * d)
-    kp = np.broadcast_to(prm.kp0, (n, d)).copy()
-    kv = np.broadcast_to(prm.kv0, (n, d)).copy()
+    # one contiguous (N+1, d) array per quantity, agents first and the leader last: strided views
+    # of a stacked array make every elementwise operation several times slower
+    pos, vel, acc = np.zeros((n + 1, d)), np.zeros((n + 1, d)), np.zeros((n + 1, d))
+    pos[:n], vel[:n] = s.p0, s.v0
+    gains = np.stack([np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))])  # [Kp, Kv]
+    gamma = np.array([prm.gamma_p, prm.gamma_v])[:, None, None]
+    err = np.empty((2, n, d))  # [xi, zeta]
     zero_d = s.dist.is_zero
     run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta)
     every = max(1, steps // 100)
+    nsum = graph.neighbour_sums
 
     for k in range(steps + 1):
-        state[n, 0], state[n, 1], state[n, 2] = lp[k], lv[k], la[k]
-        sums = neighbour_sums(topo, flat).reshape(n, 3, d)
-        p, v, a = state[:n, 0], state[:n, 1], state[:n, 2]
-        xi, zeta = law.errors(kappa, p, v, sums[:, 0], sums[:, 1], s.sum_wdelta)
-        u = law.control(kappa, sums[:, 2], xi, zeta, kp, kv)
+        pos[n], vel[n], acc[n] = lp[k], lv[k], la[k]
+        p, v, a = pos[:n], vel[:n], acc[:n]
+        err[0], err[1] = law.errors(kappa, p, v, nsum(topo, pos), nsum(topo, vel), s.sum_wdelta)
+        xi, zeta, kp, kv = err[0], err[1], gains[0], gains[1]
+        u = law.control(kappa, nsum(topo, acc), xi, zeta, kp, kv)
         if record or k == steps:
             r = k if record else 0
             run.t[r] = k * h
@@ -130,10 +131,9 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp[k], lv[k], la[k]
         if k == steps:
             break
-        kp = law.gain_update(kp, xi, prm.gamma_p, gs)
-        kv = law.gain_update(kv, zeta, prm.gamma_v, gs)
+        gains = law.gain_update(gains, err, gamma, gs)  # Kp and Kv in one call
         dv, dp = s.dist.increments(k)
-        state[:n, 0], state[:n, 1], state[:n, 2] = double_integrator.step(p, v, u, dv, dp, h)
+        pos[:n], vel[:n], acc[:n] = double_integrator.step(p, v, u, dv, dp, h)
         if progress is not None and k % every == 0:
             progress(k, steps)
     if progress is not None:

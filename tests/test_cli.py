@@ -1,0 +1,102 @@
+"""The ``tether`` command as a user runs it: real subprocesses, exit codes, files on disk."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from tether.runfile import Run
+
+BAD = """version = 1
+name = "bad"
+dim = 2
+rate = 100.0
+duration = 1.0
+edges = [{ from = 1, to = 2 }]
+[law]
+kind = "sigma"
+kp0 = 0.5
+kv0 = 1.0
+gamma_p = 0.1
+gamma_v = 0.1
+sigma = 0.1
+[leader]
+id = 9
+p0 = [0.0, 0.0]
+[[agents]]
+id = 1
+p0 = [0.0, 0.0]
+offset = [1.0, 0.0]
+[[agents]]
+id = 2
+p0 = [0.0, 0.0]
+offset = [0.0, 1.0]
+"""
+
+
+def tether(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "tether.cli", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_check_prints_a_summary() -> None:
+    r = tether("check", "section4")
+    assert r.returncode == 0, r.stderr
+    assert "4 agents" in r.stdout and "Assumption 1 holds" in r.stdout
+    lines = [ln.split() for ln in r.stdout.splitlines() if ln.strip()[:1].isdigit()]
+    by_id = {ln[0]: ln for ln in lines}
+    assert by_id["1"][1:3] == ["2", "yes"] and by_id["2"][1:3] == ["1", "no"]  # kappa, hears leader
+
+
+def test_check_rejects_a_bad_mission_with_status_2_naming_the_fields(tmp_path: Path) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text(BAD)
+    r = tether("check", str(f))
+    assert r.returncode == 2
+    assert "law.kp0" in r.stderr and ">= 1" in r.stderr
+    assert "Assumption 1" in r.stderr and "agents 1 and 2" in r.stderr  # names both unreachable agents
+    assert r.stdout == ""
+
+
+def test_check_missing_file_is_status_2(tmp_path: Path) -> None:
+    r = tether("check", str(tmp_path / "nope.toml"))
+    assert r.returncode == 2 and "cannot be read" in r.stderr
+
+
+def test_simulate_writes_a_run_metrics_and_figures(tmp_path: Path) -> None:
+    r = tether("simulate", "section4", "--out", str(tmp_path), "--duration", "5")
+    assert r.returncode == 0, r.stderr
+    run = Run.load(tmp_path / "run.npz")
+    assert run.p.shape == (501, 4, 2) and run.meta["source"] == "reference-discrete"
+    assert np.all(np.isfinite(run.kp))
+    assert json.loads((tmp_path / "metrics.json").read_text())["peak_kp"] >= 1.0
+    for name in ("errors_gains.png", "velocities.png", "xy.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    r2 = tether("plot", str(tmp_path), "--out", str(tmp_path / "again"))
+    assert r2.returncode == 0, r2.stderr
+    assert (tmp_path / "again" / "xy.png").exists()
+
+
+def test_reproduce_section4_short(tmp_path: Path) -> None:
+    r = tether("reproduce", "section4", "--out", str(tmp_path), "--duration", "20")
+    assert r.returncode == 0, r.stderr
+    table = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(table) == {"sigma-discrete", "benchmark-discrete"}
+    assert (tmp_path / "fig4.png").stat().st_size > 20_000
+    bench = Run.load(tmp_path / "benchmark-discrete")
+    assert np.all(np.diff(bench.kp, axis=0) >= 0)
+    assert "benchmark gains never decrease: yes" in (tmp_path / "metrics.md").read_text()
+
+
+def test_run_file_round_trip(tmp_path: Path) -> None:
+    run = Run.empty(3, [4, 7], 3, {"mission": "x"})
+    run.t[:] = [0.0, 0.1, 0.2]
+    run.p[:] = np.arange(18.0).reshape(3, 2, 3)
+    run.extra["link_delivery"] = np.ones((3, 2))
+    run.save(tmp_path / "r" / "run.npz")
+    back = Run.load(tmp_path / "r")
+    np.testing.assert_array_equal(back.p, run.p)
+    np.testing.assert_array_equal(back.agent_ids, [4, 7])
+    assert back.meta["mission"] == "x" and back.meta["format_version"] == 1
+    np.testing.assert_array_equal(back.extra["link_delivery"], 1.0)
