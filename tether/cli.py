@@ -94,6 +94,12 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_demo(args: argparse.Namespace) -> int:
+    """The README's demo: Section 4 reproduced with both laws."""
+    args.what, args.continuous = "section4", False
+    return cmd_reproduce(args)
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     from tether import figures
     from tether.runfile import Run
@@ -130,6 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--duration", type=float, default=None, help="override the 1000 s horizon [s]")
     r.add_argument("--continuous", action="store_true", help="also run the continuous-time RK4 mode (slow)")
     r.set_defaults(func=cmd_reproduce)
+
+    dm = sub.add_parser("demo", help="the main demo: Section 4 with both laws, figures and metrics")
+    dm.add_argument("--out", default="runs/demo")
+    dm.add_argument("--duration", type=float, default=None, help="override the 1000 s horizon [s]")
+    dm.set_defaults(func=cmd_demo)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file")
     pl.add_argument("run", help="a run.npz or the directory holding it")
