@@ -208,13 +208,13 @@ def main(argv: list[str]) -> None:
     callbacks = ["indirect", "direct"] if a.callback == "both" else [a.callback]
     print(f"{a.rate:g} Hz, {a.size} B, {a.seconds:g} s per case; latencies in microseconds")
     print(f"{'topology':8} {'callback':8} {'recv':>9} {'cb p50':>7} {'cb p99':>7} {'cb max':>7} "
-          f"{'loop p50':>8} {'loop p99':>8} {'loop max':>8} {'sub cpu':>7}")
+          f"{'loop p50':>8} {'loop p99':>8} {'loop max':>8} {'ovw':>4} {'sub cpu':>7}")
     for topology in topologies:
         for callback in callbacks:
             r = one_case(topology, callback, a.rate, a.seconds, a.size)
             print(f"{topology:8} {callback:8} {r['received']:>4}/{r['expected']:<4} "
                   f"{r['callback_p50_us']:7.0f} {r['callback_p99_us']:7.0f} {r['callback_max_us']:7.0f} "
-                  f"{r['loop_p50_us']:8.0f} {r['loop_p99_us']:8.0f} {r['loop_max_us']:8.0f} "
+                  f"{r['loop_p50_us']:8.0f} {r['loop_p99_us']:8.0f} {r['loop_max_us']:8.0f} {r['overwritten']:>4} "
                   f"{r['sub_cpu_pct']:6.1f}%", flush=True)
 
 

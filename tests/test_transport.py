@@ -82,8 +82,10 @@ async def test_pubsub_roundtrip_peer_to_peer() -> None:
     async with sessions(a, b) as (sa, sb):
         wakeup = Wakeup()
         slot: LatestSlot[Received] = LatestSlot(wakeup)
-        with tp.declare_subscriber(sa, "tether/test/agent/1/state", slot), \
-                tp.declare_publisher(sb, "tether/test/agent/1/state", tp.STATE) as pub:
+        with (
+            tp.declare_subscriber(sa, "tether/test/agent/1/state", slot),
+            tp.declare_publisher(sb, "tether/test/agent/1/state", tp.STATE) as pub,
+        ):
             got = await receive_one(pub, slot, wakeup, b"x" * 200)
     assert got == Received("tether/test/agent/1/state", b"x" * 200)
     assert slot.overwritten == 0
@@ -99,8 +101,10 @@ async def test_client_router_client_through_python_router() -> None:
         assert s1.info.peers_zid() == [] and s2.info.peers_zid() == []  # clients only see the router
         wakeup = Wakeup()
         slot: LatestSlot[Received] = LatestSlot(wakeup)
-        with tp.declare_subscriber(s1, "tether/test/plant/*/state", slot), \
-                tp.declare_publisher(s2, "tether/test/plant/2/state", tp.STATE) as pub:
+        with (
+            tp.declare_subscriber(s1, "tether/test/plant/*/state", slot),
+            tp.declare_publisher(s2, "tether/test/plant/2/state", tp.STATE) as pub,
+        ):
             got = await receive_one(pub, slot, wakeup, b"via-router")
     assert got == Received("tether/test/plant/2/state", b"via-router")
 
@@ -128,8 +132,10 @@ async def test_publisher_qos_reaches_the_subscriber() -> None:
     b = dialer(a)
     async with sessions(a, b) as (sa, sb):
         box: BoundedFifo[zenoh.Sample] = BoundedFifo(4, wakeup := Wakeup())
-        with sa.declare_subscriber("tether/test/qos", box.put), \
-                tp.declare_publisher(sb, "tether/test/qos", tp.COMMAND) as pub:
+        with (
+            sa.declare_subscriber("tether/test/qos", box.put),
+            tp.declare_publisher(sb, "tether/test/qos", tp.COMMAND) as pub,
+        ):
             assert pub.congestion_control == zenoh.CongestionControl.DROP
             assert pub.priority == zenoh.Priority.REAL_TIME
             await tp.wait_for_subscribers(pub, WAIT)

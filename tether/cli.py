@@ -15,25 +15,7 @@ import numpy as np
 from tether import graph
 from tether import mission as ms
 from tether import reproduce
-
-
-class Progress:
-    """A one-line progress display on stderr (redrawn on a terminal, every 10 % otherwise)."""
-
-    def __init__(self) -> None:
-        self.tty = sys.stderr.isatty()
-        self.last: dict[str, int] = {}
-
-    def __call__(self, k: int, n: int, label: str = "") -> None:
-        pct = 100 * k // max(n, 1)
-        if self.tty:
-            sys.stderr.write(f"\r{label:>20} {pct:3d}% ({k}/{n})")
-            if k >= n:
-                sys.stderr.write("\n")
-            sys.stderr.flush()
-        elif pct // 10 != self.last.get(label, -1):
-            self.last[label] = pct // 10
-            sys.stderr.write(f"{label} {pct}%\n")
+from tether.progress import Progress
 
 
 def _load(arg: str) -> ms.Mission:
@@ -112,6 +94,98 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _node_args(args: argparse.Namespace, role: str, node_id: int):
+    from tether import transport as tp
+    from tether.node import NodeArgs
+
+    settings = tp.ZenohSettings(mode=args.zenoh_mode, listen=tuple(args.listen), connect=tuple(args.connect),
+                                lease=args.lease, connect_timeout=args.connect_timeout)
+    tp.zenoh_config(settings)  # raises SettingsError naming the field
+    return NodeArgs(mission_path=reproduce.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
+                    zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
+                    duration=args.duration)
+
+
+def _serve(args: argparse.Namespace, role: str, node_id: int, body, on_stop=None) -> int:
+    import asyncio
+
+    from tether.node import serve, setup_logging
+
+    setup_logging(role, node_id, args.log_level)
+    return asyncio.run(serve(_node_args(args, role, node_id), body, on_stop))
+
+
+def cmd_leader(args: argparse.Namespace) -> int:
+    from leader import node
+
+    m = _load(args.mission)
+    return _serve(args, "leader", m.leader.id, node.run)
+
+
+def cmd_agent(args: argparse.Namespace) -> int:
+    from agent import node
+
+    _check_id(args)
+    return _serve(args, "agent", args.id, node.run)
+
+
+def cmd_plant(args: argparse.Namespace) -> int:
+    from plant import node
+
+    _check_id(args)
+    return _serve(args, "plant", args.id, node.run)
+
+
+def cmd_recorder(args: argparse.Namespace) -> int:
+    from tether import recorder
+
+    run, on_stop = recorder.make(Path(args.out))
+    return _serve(args, "recorder", 0, run, on_stop)
+
+
+def _check_id(args: argparse.Namespace) -> None:
+    m = _load(args.mission)
+    if args.id not in m.agent_ids:
+        raise ms.MissionError(str(args.mission), [("--id", f"{args.id} is not an agent of this mission; use one of {m.agent_ids}")])
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from deploy import local
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s launcher: %(message)s")
+    from tether.node import load_mission
+
+    path = reproduce.resolve(args.mission)
+    load_mission(path, args.duration)
+    opts = local.LaunchOptions(out=Path(args.out), clock=args.clock, network=args.network, window=args.window,
+                               ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
+                               duration=args.duration, handover_runtime=not args.no_handover)
+    return asyncio.run(local.run(path, opts))
+
+
+def _zenoh_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--zenoh-mode", choices=["peer", "client", "router"], default="peer")
+    g.add_argument("--listen", action="append", default=[], help="endpoint to listen on (repeatable)")
+    g.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
+    g.add_argument("--lease", type=float, default=2.0, help="link lease [s]: a frozen peer is seen gone after it")
+    g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
+
+
+def _process_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mission", required=True)
+    p.add_argument("--clock", choices=["lockstep", "realtime"], default="realtime")
+    p.add_argument("--ns", default=None, help="key namespace (default: the mission name)")
+    p.add_argument("--stall-timeout", type=float, default=30.0, help="lockstep: fail after waiting this long [s]")
+    p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is gone")
+    p.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
+    p.add_argument("--log-level", default="INFO")
+    _zenoh_options(p)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="tether", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -142,6 +216,33 @@ def build_parser() -> argparse.ArgumentParser:
     dm.add_argument("--duration", type=float, default=None, help="override the 1000 s horizon [s]")
     dm.set_defaults(func=cmd_demo)
 
+    rn = sub.add_parser("run", help="run a mission as separate processes over Zenoh (leader, agents, plants, recorder)")
+    rn.add_argument("mission")
+    rn.add_argument("--out", required=True, help="directory for run.npz and logs/")
+    rn.add_argument("--clock", choices=["lockstep", "realtime"], default="lockstep")
+    rn.add_argument("--network", choices=["star", "mesh"], default="star",
+                    help="star: clients around one router session (default); mesh: peers")
+    rn.add_argument("--window", type=int, default=8, help="lockstep ticks in flight")
+    rn.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
+    rn.add_argument("--no-handover", action="store_true",
+                    help="leave Zenoh's runtime threads as they are (default: hand them over, ZENOH_RUNTIME)")
+    rn.add_argument("--ns", default=None)
+    rn.add_argument("--stall-timeout", type=float, default=30.0)
+    rn.add_argument("--quiet", action="store_true", help="no progress display")
+    rn.set_defaults(func=cmd_run)
+
+    for role, fn, helptext in (("leader", cmd_leader, "the virtual leader's process"),
+                               ("agent", cmd_agent, "one agent's process"),
+                               ("plant", cmd_plant, "one simulated plant's process"),
+                               ("recorder", cmd_recorder, "the recorder's process")):
+        rp = sub.add_parser(role, help=helptext)
+        _process_options(rp)
+        if role in ("agent", "plant"):
+            rp.add_argument("--id", type=int, required=True)
+        if role == "recorder":
+            rp.add_argument("--out", required=True)
+        rp.set_defaults(func=fn)
+
     pl = sub.add_parser("plot", help="draw a run's figures from its run file")
     pl.add_argument("run", help="a run.npz or the directory holding it")
     pl.add_argument("--out", default=None)
@@ -157,6 +258,13 @@ def main(argv: list[str] | None = None) -> int:
     except ms.MissionError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # bad settings (e.g. a zenoh endpoint): the message names the field
+        from tether.transport import SettingsError
+
+        if isinstance(exc, SettingsError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        raise
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

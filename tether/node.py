@@ -1,0 +1,324 @@
+"""What every process shares: its session, its inputs, its clock, its publishers, its lifetime.
+
+A role (leader, agent, plant, recorder) is an ``async def run(node)`` that declares its inputs and
+publishers on a :class:`Node`, calls :meth:`Node.ready`, then loops over ticks. ``Node`` hides the
+two clocks behind one code path:
+
+* inputs are :class:`Source` objects; ``await node.sample(src, k)`` returns, in lockstep, the
+  sample of tick ``k`` exactly (waiting for it), and in real time the newest sample held;
+* ``await node.clock.wait_for(k)`` gates tick ``k`` (a grant in lockstep, an instant in real time).
+
+Zenoh callbacks only hand raw samples to one bounded FIFO (:class:`~tether.transport.BoundedFifo`,
+drop-oldest, counted); decoding and checks run on the event loop (:class:`~tether.wire.Receiver`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import zenoh
+
+from tether import mission as ms
+from tether import transport as tp
+from tether import wire
+from tether.clock import ClockKind, LockstepClock, RealtimeClock
+
+log = logging.getLogger("tether")
+
+FIFO_CAPACITY = 65536
+"""Samples a process can hold between two drains before the oldest is dropped (and counted)."""
+
+
+class Stalled(RuntimeError):
+    """A lockstep input did not arrive in time; the message names it."""
+
+
+@dataclass(frozen=True)
+class NodeArgs:
+    """Everything a process needs, as parsed from its command line."""
+
+    mission_path: Path
+    role: str
+    node_id: int
+    clock: ClockKind
+    zenoh: tp.ZenohSettings
+    ns: str | None = None
+    """Key namespace; the mission name by default."""
+    window: int = 2
+    stall_timeout: float = 30.0
+    """Lockstep: give up when an input of the current tick has not come for this long [s]."""
+    parent_pid: int | None = None
+    """Stop when this process (the launcher) is gone."""
+    duration: float | None = None
+    """Override the mission's duration [s] (a whole number of periods)."""
+
+
+@dataclass
+class Source:
+    """One input key: the samples accepted from it, by tick and newest, and what was seen."""
+
+    key: str
+    expect: type
+    sender: int | None
+    by_tick: dict[int, Any] = field(default_factory=dict)
+    newest: Any = None
+    received: int = 0
+    stale: int = 0
+    """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
+    silent: bool = False
+    """Its producer's liveliness token is gone."""
+    on_message: Callable[[Any], None] | None = None
+
+    def offer(self, msg: Any) -> None:
+        self.received += 1
+        if self.newest is not None and msg.seq <= self.newest.seq:
+            self.stale += 1
+        else:
+            self.newest = msg
+        self.by_tick.setdefault(msg.k, msg)
+        if self.on_message is not None:
+            self.on_message(msg)
+
+    def forget_before(self, k: int) -> None:
+        for old in [t for t in self.by_tick if t < k]:
+            del self.by_tick[old]
+
+
+class Publisher:
+    """A publisher that stamps sender, sequence number, tick and sample time on every message."""
+
+    def __init__(self, pub: zenoh.Publisher, sender: int):
+        self._pub = pub
+        self._sender = sender
+        self.seq = 0
+
+    def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
+        msg = cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields)
+        self.seq += 1
+        self._pub.put(wire.encode(msg))
+
+
+class Node:
+    """A process's session, inputs, clock and lifetime. Create with :func:`open_node`."""
+
+    def __init__(self, args: NodeArgs, mission: ms.Mission, session: zenoh.Session):
+        self.args = args
+        self.mission = mission
+        self.session = session
+        self.keys = wire.Keys(args.ns or mission.name)
+        self.receiver = wire.Receiver(mission.dim)
+        self.wakeup = tp.Wakeup()
+        self.fifo: tp.BoundedFifo[tp.Received] = tp.BoundedFifo(FIFO_CAPACITY, self.wakeup)
+        self.tokens: tp.BoundedFifo[tp.TokenEvent] = tp.BoundedFifo(4096, self.wakeup)
+        self.sources: dict[str, Source] = {}
+        self._watched: dict[str, list[Source]] = {}
+        self._declared: list[Any] = []
+        self._token: Any = None
+        self.lockstep = LockstepClock()
+        self.clock: LockstepClock | RealtimeClock = self.lockstep
+        self._start: Source | None = None
+        self._paced = False
+        self.stop = asyncio.Event()
+        self.token_log: list[tuple[str, bool]] = []
+
+    # ------------------------------------------------------------------ declarations
+    @property
+    def qos_state(self) -> tp.StreamQos:
+        """Lockstep needs every sample (determinism): BLOCK; real time drops (newest wins)."""
+        return tp.SYNC if self.args.clock == "lockstep" else tp.STATE
+
+    def publisher(self, key: str, qos: tp.StreamQos | None = None) -> Publisher:
+        if self.args.clock == "lockstep":
+            qos = tp.SYNC
+        pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
+        self._declared.append(pub)
+        return Publisher(pub, self.args.node_id)
+
+    def source(self, key: str, expect: type, sender: int | None,
+               on_message: Callable[[Any], None] | None = None) -> Source:
+        """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``."""
+        src = Source(key, expect, sender, on_message=on_message)
+        self.sources[key] = src
+        self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
+        return src
+
+    def watch(self, role: str, node_id: int, *sources: Source) -> None:
+        """Mark ``sources`` silent while the token of ``role``/``node_id`` is absent."""
+        key = self.keys.token(role, node_id)
+        self._watched.setdefault(key, []).extend(sources)
+
+    async def ready(self, paced: bool = False) -> None:
+        """Declare liveliness (after every subscription, so a launcher that sees the token knows
+        this process hears everything it needs), then wait for the start.
+
+        In lockstep, only a ``paced`` role (the leader, whose inputs do not depend on the tick)
+        follows the clock's grants; every other role is gated by its inputs of tick k, which is
+        what makes the run deterministic, and needs only the start."""
+        if self._watched:
+            self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
+        self._paced = paced and self.args.clock == "lockstep"
+        if self._paced:
+            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: self.lockstep.grant(m.grant))
+        start = self._start = self.source(self.keys.start, wire.Start, 0)
+        self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
+        await self.until(lambda: start.newest is not None, None, "the launcher's start message")
+        if self.args.clock == "realtime":
+            epoch = start.newest.epoch
+            mono = time.monotonic
+            self.clock = RealtimeClock(self.mission.dt, mono() + (epoch - time.time()), mono)
+            log.info("real time: tick 0 at %.3f (in %.3f s)", epoch, epoch - time.time())
+
+    # ------------------------------------------------------------------ inputs
+    def drain(self) -> None:
+        """Decode every pending sample and token event (on the event loop)."""
+        for rec in self.fifo.drain():
+            src = self.sources.get(rec.key)
+            if src is None:
+                continue
+            msg = self.receiver.accept(rec.payload, src.expect, src.sender)
+            if msg is not None:
+                src.offer(msg)
+        for ev in self.tokens.drain():
+            self.token_log.append((ev.key, ev.alive))
+            for src in self._watched.get(ev.key, ()):
+                if src.silent == ev.alive:
+                    log.warning("%s %s", ev.key, "is back" if ev.alive else "went silent (liveliness token gone)")
+                src.silent = not ev.alive
+
+    async def until(self, ready: Callable[[], bool], timeout: float | None, what: str) -> None:
+        """Wait (draining inputs) until ``ready()``; :class:`Stalled` naming ``what`` after ``timeout``."""
+        self.drain()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not ready():
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                raise Stalled(f"waited {timeout:g} s for {what}")
+            await self.wakeup.wait(left)
+            self.drain()
+
+    async def sample(self, src: Source, k: int) -> Any:
+        """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None)."""
+        if self.args.clock == "lockstep":
+            await self.until(lambda: k in src.by_tick, self.args.stall_timeout, f"tick {k} on {src.key}")
+            msg = src.by_tick[k]
+            src.forget_before(k)
+            return msg
+        self.drain()
+        src.by_tick.clear()
+        return src.newest
+
+    async def tick(self, k: int) -> float:
+        """Wait until tick ``k`` may run (draining inputs meanwhile); returns its lateness [s]."""
+        if self.args.clock == "lockstep":
+            if self._paced:
+                await self.until(lambda: self.lockstep.granted >= k, self.args.stall_timeout,
+                                 f"the clock's grant of tick {k}")
+            return 0.0
+        late = await self.clock.wait_for(k)
+        self.drain()
+        return late
+
+    def close(self) -> None:
+        for obj in reversed(self._declared):
+            try:
+                obj.undeclare()
+            except zenoh.ZError:
+                pass
+        self._declared.clear()
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+
+
+def load_mission(path: Path, duration: float | None = None) -> ms.Mission:
+    """Load a mission, with its duration overridden when ``duration`` is given (then re-validated)."""
+    m = ms.load(path)
+    if duration is None:
+        return m
+    m = msgspec.structs.replace(m, duration=float(duration))
+    problems = ms.validate(m)
+    if problems:
+        raise ms.MissionError(f"{path} with --duration {duration}", problems)
+    return m
+
+
+async def _watch_parent(pid: int, stop: asyncio.Event) -> None:
+    while not stop.is_set():
+        if os.getppid() != pid:
+            log.warning("launcher (pid %d) is gone: stopping", pid)
+            stop.set()
+            return
+        try:
+            async with asyncio.timeout(1.0):
+                await stop.wait()
+        except TimeoutError:
+            pass
+
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_STOPPED = 0, 1, 2, 143
+
+
+async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
+                on_stop: Callable[[Node], None] | None = None) -> int:
+    """Run one role until it finishes, fails, or is told to stop (SIGTERM/SIGINT, launcher gone).
+
+    Returns the exit status: 0 finished, 1 failed (logged), 2 bad mission, 143 stopped by a
+    signal. ``on_stop`` runs after a stop too (the recorder writes its file there). The session is
+    always closed.
+    """
+    try:
+        mission = load_mission(args.mission_path, args.duration)
+    except ms.MissionError as exc:
+        log.error("%s", exc)
+        return EXIT_BAD_INPUT
+    loop = asyncio.get_running_loop()
+    status = EXIT_OK
+    async with tp.open_session(args.zenoh) as session:
+        node = Node(args, mission, session)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, node.stop.set)
+        watcher = asyncio.create_task(_watch_parent(args.parent_pid, node.stop)) if args.parent_pid else None
+        work = asyncio.create_task(role(node))
+        stopper = asyncio.create_task(node.stop.wait())
+        try:
+            await asyncio.wait({work, stopper}, return_when=asyncio.FIRST_COMPLETED)
+            if not work.done():
+                work.cancel()
+                status = EXIT_STOPPED
+            try:
+                await work
+            except asyncio.CancelledError:
+                pass
+            except Stalled as exc:
+                log.error("stalled: %s", exc)
+                status = EXIT_FAILED
+            except Exception:
+                log.exception("failed")
+                status = EXIT_FAILED
+            if on_stop is not None:
+                on_stop(node)
+        finally:
+            stopper.cancel()
+            if watcher is not None:
+                watcher.cancel()
+            node.close()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+    return status
+
+
+def setup_logging(role: str, node_id: int, level: str = "INFO") -> None:
+    """Plain one-line records on stderr: ISO time, level, role/id, message."""
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format=f"%(asctime)s %(levelname)s {role}/{node_id}: %(message)s",
+    )

@@ -1,0 +1,136 @@
+"""The recorder's process: hears every sample of a run and writes one run file (``run.npz``).
+
+It subscribes to the leader's state, every agent's telemetry and every plant's state, and fills a
+:class:`~tether.runfile.Run` indexed by tick. In lockstep it acknowledges tick k once it holds
+every sample of k, so the clock never runs ahead of what is recorded. In real time it records
+until every producer has sent its last tick or gone, or until it is stopped; the file is written
+in both cases (a stopped run is marked ``complete = false``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from tether import wire
+from tether.node import Node
+from tether.runfile import Run
+
+log = logging.getLogger("tether")
+
+
+class Recording:
+    """The run being filled, sample by sample (pure bookkeeping, no I/O until :meth:`save`)."""
+
+    def __init__(self, node: Node, out: Path):
+        m = node.mission
+        self.mission = m
+        self.out = out
+        self.col = {aid: i for i, aid in enumerate(m.agent_ids)}
+        n, d, T = m.n, m.dim, m.steps + 1
+        self.degree = {a.id: sum(1 for e in m.edges if e.dst == a.id) for a in m.agents}
+        width = max(self.degree.values())
+        meta = {"mission": m.name, "source": f"runtime-{node.args.clock}", "law": m.law.kind, "rate": m.rate,
+                "steps": m.steps, "seed": m.seed, "namespace": node.keys.ns,
+                "mission_text": node.args.mission_path.read_text()}
+        self.run = Run.empty(T, m.agent_ids, d, meta)
+        self.run.t[:] = np.arange(T) * m.dt
+        ex = self.run.extra
+        for name in ("plant_p", "plant_v", "plant_a"):
+            ex[name] = np.full((T, n, d), np.nan)
+        ex["link_src"] = np.zeros((n, width), dtype=np.int64)
+        for name in ("link_age", "link_received", "link_stale", "link_silent"):
+            ex[name] = np.full((T, n, width), np.nan)
+        ex["drops"] = np.full((T, n), np.nan)
+        ex["late"] = np.full((T, n), np.nan)
+        self.count = np.zeros(T, dtype=np.int64)
+        self.expected = 1 + 2 * n
+        self.saved = False
+
+    def leader(self, msg: wire.State) -> None:
+        if 0 <= msg.k < len(self.count):
+            r = self.run
+            r.leader_p[msg.k], r.leader_v[msg.k], r.leader_a[msg.k] = msg.p, msg.vel, msg.a
+            self.count[msg.k] += 1
+
+    def plant(self, msg: wire.PlantState) -> None:
+        if 0 <= msg.k < len(self.count):
+            i, ex = self.col[msg.sender], self.run.extra
+            ex["plant_p"][msg.k, i], ex["plant_v"][msg.k, i], ex["plant_a"][msg.k, i] = msg.p, msg.vel, msg.a
+            self.run.d[msg.k, i] = msg.d
+            self.count[msg.k] += 1
+
+    def telemetry(self, msg: wire.Telemetry) -> None:
+        k = msg.k
+        if not 0 <= k < len(self.count):
+            return
+        i, r, ex = self.col[msg.sender], self.run, self.run.extra
+        r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
+        r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
+        for n, link in enumerate(msg.links[: ex["link_src"].shape[1]]):
+            ex["link_src"][i, n] = link.src
+            ex["link_age"][k, i, n] = link.age
+            ex["link_received"][k, i, n] = link.received
+            ex["link_stale"][k, i, n] = link.stale
+            ex["link_silent"][k, i, n] = float(link.silent)
+        ex["drops"][k, i] = sum(msg.drops.values())
+        ex["late"][k, i] = msg.late
+        self.count[k] += 1
+
+    def save(self, complete: bool, drops: dict[str, int]) -> Path:
+        self.run.meta["complete"] = complete
+        self.run.meta["recorder_drops"] = json.loads(json.dumps(drops))
+        self.run.meta["samples_recorded"] = int(self.count.sum())
+        self.run.meta["samples_expected"] = int(self.expected * len(self.count))
+        path = self.run.save(self.out / "run.npz")
+        self.saved = True
+        log.info("wrote %s (%d of %d samples)", path, self.count.sum(), self.expected * len(self.count))
+        return path
+
+
+def make(out: Path):
+    """The recorder role writing to ``out``, and its stop hook (writes a partial file)."""
+    holder: dict[str, Recording] = {}
+
+    async def run(node: Node) -> None:
+        m, keys = node.mission, node.keys
+        rec = Recording(node, out)
+        holder["rec"] = rec
+        node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id, on_message=rec.leader)
+        producers = [("leader", m.leader.id)]
+        for aid in m.agent_ids:
+            node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry)
+            node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant)
+            producers += [("agent", aid), ("plant", aid)]
+        ack = node.publisher(keys.topic("recorder", node.args.node_id, "ack"))
+        seen: set[str] = set()
+        gone: set[str] = set()
+        wanted = {keys.token(r, i) for r, i in producers}
+        for r, i in producers:
+            node.watch(r, i)
+        await node.ready()
+        last = m.steps
+        if node.args.clock == "lockstep":
+            for k in range(last + 1):
+                await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
+                                 f"every sample of tick {k} (have {rec.count[k]} of {rec.expected})")
+                ack.send(wire.Ack, k, k * m.dt, role="recorder")
+        else:
+            def finished() -> bool:
+                for key, alive in node.token_log:
+                    (seen if alive else gone).add(key)
+                node.token_log.clear()
+                return rec.count[last] >= rec.expected or (seen >= wanted and (gone & wanted) == wanted)
+
+            await node.until(finished, None, "the end of the run")
+        rec.save(complete=bool(np.all(rec.count >= rec.expected)), drops=node.receiver.drops)
+
+    def on_stop(node: Node) -> None:
+        rec = holder.get("rec")
+        if rec is not None and not rec.saved:
+            rec.save(complete=False, drops=node.receiver.drops)
+
+    return run, on_stop

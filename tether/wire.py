@@ -1,0 +1,248 @@
+"""The wire: key expressions and messages every process speaks. Pure (no Zenoh, no I/O).
+
+Keys (one scheme, ``docs/wire.md``)::
+
+    tether/<ns>/leader/<id>/state        State      the virtual leader's p, v, a at t_k
+    tether/<ns>/agent/<id>/state         State      agent i's measured p, v, a at t_k (from its plant)
+    tether/<ns>/agent/<id>/cmd           Command    u_i(t_k) for plant i
+    tether/<ns>/agent/<id>/telemetry     Telemetry  xi, zeta, Kp, Kv, u, link and drop statistics
+    tether/<ns>/plant/<id>/state         PlantState plant i's measurement at t_k (+ the true d, for records)
+    tether/<ns>/clock/0/tick             Tick       lockstep: ticks up to ``grant`` may run
+    tether/<ns>/<role>/<id>/ack          Ack        lockstep: ``<role> <id>`` has finished tick k
+    tether/<ns>/control/0/start          Start      real time: the common start instant
+    @tether/<ns>/<role>/<id>             liveliness token of every process (hermetic: ``**`` never matches ``@``)
+
+``<ns>`` is the run's namespace (the mission name by default). Every message is a msgspec Struct
+in one tagged union, msgpack-encoded, carrying the wire version ``v``, the ``sender`` id, a
+per-sender sequence number ``seq`` (from 0, +1 per message on that key) and the sample time
+``t`` [s] of tick ``k``. A plain Zenoh client decodes any sample with::
+
+    msgspec.msgpack.decode(payload, type=tether.wire.Message)
+
+:class:`Receiver` decodes and checks a sample (version, tag, expected sender, vector sizes,
+finiteness) and counts each reason for dropping it; it never raises.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import msgspec
+
+WIRE_VERSION = 1
+
+Role = Literal["leader", "agent", "plant", "clock", "control", "recorder", "launcher", "world"]
+
+
+class _Msg(msgspec.Struct, tag_field="type", forbid_unknown_fields=True, frozen=True, kw_only=True):
+    v: int = WIRE_VERSION
+    """Wire version."""
+    sender: int
+    """Id of the sending node (agent, plant or leader id; 0 for the clock and control)."""
+    seq: int
+    """Per-sender, per-key sequence number."""
+    k: int
+    """Tick index."""
+    t: float
+    """Sample time t_k = k h [s]."""
+
+
+class State(_Msg, tag="state"):
+    """A node's state as its neighbours use it."""
+
+    p: list[float]
+    """Position [m; world frame]."""
+    vel: list[float]
+    """Velocity [m/s; world frame]."""
+    a: list[float]
+    """Acceleration [m/s^2; world frame]: the leader's reference, or a vehicle's measured mean
+    acceleration over the previous period."""
+
+
+class PlantState(_Msg, tag="plant_state"):
+    """A plant's measurement at t_k, and the disturbance it applied (for records, not for agents)."""
+
+    p: list[float]
+    vel: list[float]
+    a: list[float]
+    d: list[float]
+    """True disturbance d(t_k) [m/s^2]; NaN where the plant cannot know it (a real vehicle)."""
+
+
+class Command(_Msg, tag="cmd"):
+    u: list[float]
+    """Commanded acceleration u_i(t_k) [m/s^2; world frame], held until the next command."""
+
+
+class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What agent i saw of one in-neighbour j up to tick k."""
+
+    src: int
+    received: int
+    """Samples accepted from j."""
+    used: int
+    """Ticks at which a sample of j was used."""
+    stale: int
+    """Samples dropped for being older than the newest held (reordered or duplicated)."""
+    age: float
+    """Age of j's sample at the moment of use at this tick: t_k - t_sample [s] (NaN if none)."""
+    silent: bool
+    """j's liveliness token is gone."""
+
+
+class Telemetry(_Msg, tag="telemetry"):
+    """Agent i's tick: what it measured, computed and saw."""
+
+    p: list[float]
+    vel: list[float]
+    a: list[float]
+    u: list[float]
+    xi: list[float]
+    zeta: list[float]
+    kp: list[float]
+    kv: list[float]
+    links: list[LinkStats]
+    drops: dict[str, int]
+    """Messages dropped since start, by reason (see :class:`Receiver`)."""
+    late: int = 0
+    """Real time: ticks that started more than one period late."""
+
+
+class Tick(_Msg, tag="tick"):
+    """Lockstep: every process may run ticks up to and including ``grant``."""
+
+    grant: int
+
+
+class Ack(_Msg, tag="ack"):
+    """Lockstep: the sender has finished tick k."""
+
+    role: str
+
+
+class Start(_Msg, tag="start"):
+    """Real time: tick 0 is at ``epoch`` [s since the Unix epoch, UTC]; tick k at epoch + k h."""
+
+    epoch: float
+
+
+Message = State | PlantState | Command | Telemetry | Tick | Ack | Start
+
+_ENCODER = msgspec.msgpack.Encoder()
+_DECODER = msgspec.msgpack.Decoder(Message)
+
+
+def encode(msg: Message) -> bytes:
+    return _ENCODER.encode(msg)
+
+
+def decode(payload: bytes) -> Message:
+    """Decode one message; raises ``msgspec.DecodeError``/``ValidationError`` on bad input."""
+    return _DECODER.decode(payload)
+
+
+# --------------------------------------------------------------------------- keys
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one run namespace."""
+
+    ns: str
+
+    def __post_init__(self) -> None:
+        bad = set("/*$#?@ ") & set(self.ns)
+        if not self.ns or bad:
+            raise ValueError(f"namespace {self.ns!r} must be a non-empty key chunk without {sorted(bad) or '/*$#?@'}; "
+                             "rename the mission or pass --ns")
+
+    def topic(self, role: str, node: int, topic: str) -> str:
+        return f"tether/{self.ns}/{role}/{node}/{topic}"
+
+    def token(self, role: str, node: int) -> str:
+        return f"@tether/{self.ns}/{role}/{node}"
+
+    @property
+    def tokens(self) -> str:
+        return f"@tether/{self.ns}/**"
+
+    @property
+    def everything(self) -> str:
+        return f"tether/{self.ns}/**"
+
+    @property
+    def tick(self) -> str:
+        return self.topic("clock", 0, "tick")
+
+    @property
+    def acks(self) -> str:
+        return f"tether/{self.ns}/*/*/ack"
+
+    @property
+    def start(self) -> str:
+        return self.topic("control", 0, "start")
+
+    @staticmethod
+    def parse(key: str) -> tuple[str, int, str]:
+        """``tether/<ns>/<role>/<id>/<topic>`` -> ``(role, id, topic)``; raises ValueError."""
+        parts = str(key).split("/")
+        if len(parts) != 5 or parts[0] != "tether":
+            raise ValueError(f"not a tether key: {key}")
+        return parts[2], int(parts[3]), parts[4]
+
+    @staticmethod
+    def parse_token(key: str) -> tuple[str, int]:
+        parts = str(key).split("/")
+        if len(parts) != 4 or parts[0] != "@tether":
+            raise ValueError(f"not a tether liveliness key: {key}")
+        return parts[2], int(parts[3])
+
+
+# --------------------------------------------------------------------------- checked receive
+_VECTOR_FIELDS = {State: ("p", "vel", "a"), PlantState: ("p", "vel", "a"), Command: ("u",),
+                  Telemetry: ("p", "vel", "a", "u", "xi", "zeta", "kp", "kv")}
+
+
+@dataclass
+class Receiver:
+    """Decodes and checks incoming samples; counts every drop by reason. Never raises.
+
+    Reasons: ``malformed`` (not msgpack or not a known message), ``version`` (another wire
+    version), ``type`` (a message of the wrong type for the key), ``sender`` (sender id differs
+    from the key's), ``size`` (a vector of the wrong dimension), ``nonfinite`` (NaN/Inf where a
+    number must be finite).
+    """
+
+    dim: int
+    drops: dict[str, int] = field(default_factory=dict)
+
+    def _drop(self, reason: str) -> None:
+        self.drops[reason] = self.drops.get(reason, 0) + 1
+
+    def accept(self, payload: bytes, expect: type, sender: int | None) -> Message | None:
+        try:
+            msg = _DECODER.decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            self._drop("malformed")
+            return None
+        if msg.v != WIRE_VERSION:
+            self._drop("version")
+            return None
+        if not isinstance(msg, expect):
+            self._drop("type")
+            return None
+        if sender is not None and msg.sender != sender:
+            self._drop("sender")
+            return None
+        if not math.isfinite(msg.t):
+            self._drop("nonfinite")
+            return None
+        for name in _VECTOR_FIELDS.get(type(msg), ()):
+            vec = getattr(msg, name)
+            if len(vec) != self.dim:
+                self._drop("size")
+                return None
+            if not all(math.isfinite(x) for x in vec):
+                self._drop("nonfinite")
+                return None
+        return msg
