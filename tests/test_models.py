@@ -7,7 +7,7 @@ from leader import profile
 from plant import double_integrator
 from plant.disturbance import DisturbanceBank
 from tether import mission as ms
-from tether.reproduce import builtin_path
+from tether.catalog import builtin_path
 from tests.factories import random_mission
 
 

@@ -147,7 +147,7 @@ def test_benchmark_gains_never_decrease(seed: int) -> None:
 def test_discrete_converges_to_continuous_on_section4() -> None:
     import msgspec
 
-    from tether.reproduce import builtin_path
+    from tether.catalog import builtin_path
     from tether import mission
 
     m = mission.load(builtin_path("section4"))

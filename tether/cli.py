@@ -10,19 +10,20 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from tether import graph
+from tether import catalog
 from tether import mission as ms
-from tether import reproduce
 from tether.progress import Progress
 
 
 def _load(arg: str) -> ms.Mission:
-    return ms.load(reproduce.resolve(arg))
+    return ms.load(catalog.resolve(arg))
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from tether import graph
+
     m = _load(args.mission)
     topo = graph.topology(m)
     graph.check_lemma3(topo.adjacency)
@@ -55,7 +56,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     prog = Progress()
     run = refsim.simulate(m, args.mode, duration=args.duration, substeps=args.substeps,
                           progress=lambda k, n: prog(k, n, m.name))
-    run.meta["mission_text"] = reproduce.resolve(args.mission).read_text()
+    run.meta["mission_text"] = catalog.resolve(args.mission).read_text()
     run.save(out / "run.npz")
     summary = metrics.summary(run)
     summary["tracking_error_m"] = metrics.tracking_error(run, Setup.of(m).offsets[: m.n])
@@ -68,6 +69,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
+    from tether import reproduce
+
     prog = Progress()
     result = reproduce.section4(Path(args.out), duration=args.duration, continuous=args.continuous,
                                 progress=prog)
@@ -101,7 +104,7 @@ def _node_args(args: argparse.Namespace, role: str, node_id: int):
     settings = tp.ZenohSettings(mode=args.zenoh_mode, listen=tuple(args.listen), connect=tuple(args.connect),
                                 lease=args.lease, connect_timeout=args.connect_timeout)
     tp.zenoh_config(settings)  # raises SettingsError naming the field
-    return NodeArgs(mission_path=reproduce.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
+    return NodeArgs(mission_path=catalog.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
                     zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
                     duration=args.duration)
 
@@ -158,7 +161,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s launcher: %(message)s")
     from tether.node import load_mission
 
-    path = reproduce.resolve(args.mission)
+    path = catalog.resolve(args.mission)
     load_mission(path, args.duration)
     opts = local.LaunchOptions(out=Path(args.out), clock=args.clock, network=args.network, window=args.window,
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
@@ -191,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     c = sub.add_parser("check", help="validate a mission file and print a summary")
-    c.add_argument("mission", help="mission file, or the name of a shipped mission (" + ", ".join(reproduce.builtin_names()) + ")")
+    c.add_argument("mission", help="mission file, or the name of a shipped mission (" + ", ".join(catalog.builtin_names()) + ")")
     c.set_defaults(func=cmd_check)
 
     s = sub.add_parser("simulate", help="run a mission in the reference simulator (one process)")

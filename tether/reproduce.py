@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-from importlib import resources
 from pathlib import Path
 
 import msgspec
@@ -17,27 +16,8 @@ import numpy as np
 
 from tether import figures, metrics, refsim
 from tether import mission as ms
+from tether.catalog import builtin_path
 from tether.runfile import Run
-
-
-def builtin_path(name: str) -> Path:
-    """Path of a mission shipped with tether (``tether/missions/<name>.toml``)."""
-    return Path(str(resources.files("tether") / "missions" / f"{name}.toml"))
-
-
-def builtin_names() -> list[str]:
-    root = resources.files("tether") / "missions"
-    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
-
-
-def resolve(arg: str) -> Path:
-    """A mission argument: a path to a file, or the name of a shipped mission."""
-    p = Path(arg)
-    if p.exists() or arg.endswith(".toml") or "/" in arg:
-        return p
-    if arg in builtin_names():
-        return builtin_path(arg)
-    return p
 
 
 def with_law(m: ms.Mission, kind: str) -> ms.Mission:
