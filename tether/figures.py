@@ -80,22 +80,40 @@ def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None)
     fig.savefig(paths[-1], dpi=150)
     plt.close(fig)
 
-    fig, axp = plt.subplots(figsize=(6.5, 6))
+    fig, (axp, axr) = plt.subplots(1, 2, figsize=(12, 5.5))
     for i, aid in enumerate(run.agent_ids):
         axp.plot(run.p[sl, i, 0], run.p[sl, i, 1], lw=0.7, label=f"agent {aid}")
+        rel = run.p[sl, i, :2] - run.leader_p[sl, :2]
+        axr.plot(rel[:, 0], rel[:, 1], lw=0.5, alpha=0.6, label=f"agent {aid}")
     axp.plot(run.leader_p[sl, 0], run.leader_p[sl, 1], "k--", lw=0.8, label="leader")
+    rows = [k for k in range(len(run.t)) if np.all(np.isfinite(run.p[k]))]
     for frac in (0.0, 0.25, 0.5, 1.0):
-        k = min(len(run.t) - 1, int(frac * (len(run.t) - 1)))
+        if not rows:
+            break
+        k = rows[min(len(rows) - 1, int(frac * (len(rows) - 1)))]
         ring = np.vstack([run.p[k, :, :2], run.p[k, :1, :2]])
         axp.plot(ring[:, 0], ring[:, 1], "k:", lw=0.8)
         axp.plot(run.p[k, :, 0], run.p[k, :, 1], "^", ms=6, color="tab:blue")
         axp.plot(run.leader_p[k, 0], run.leader_p[k, 1], "*", ms=10, color="tab:red")
         axp.annotate(f"t={run.t[k]:.0f}s", run.leader_p[k, :2], fontsize=7, xytext=(4, 4), textcoords="offset points")
+        rel = run.p[k, :, :2] - run.leader_p[k, :2]
+        ring = np.vstack([rel, rel[:1]])
+        axr.plot(ring[:, 0], ring[:, 1], ":", lw=0.8, color="0.3")
+        axr.plot(rel[:, 0], rel[:, 1], "^", ms=6)
+        axr.annotate(f"t={run.t[k]:.0f}s", rel[0], fontsize=7, xytext=(4, 4), textcoords="offset points")
+    if offsets is not None:
+        axr.plot(offsets[:, 0], offsets[:, 1], "o", mfc="none", mec="k", ms=10, label="offsets $h_i$")
+    axr.plot(0.0, 0.0, "*", ms=12, color="tab:red", label="leader")
     axp.set_xlabel("x [m]")
     axp.set_ylabel("y [m]")
-    axp.set_aspect("equal", adjustable="datalim")
-    axp.grid(True, lw=0.3)
-    axp.legend(fontsize=7)
+    axp.set_title("paths and formation snapshots")
+    axr.set_xlabel("x - x_leader [m]")
+    axr.set_ylabel("y - y_leader [m]")
+    axr.set_title("positions relative to the leader")
+    axr.set_aspect("equal", adjustable="datalim")
+    for ax in (axp, axr):
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(out / "xy.png")
     fig.savefig(paths[-1], dpi=150)

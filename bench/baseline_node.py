@@ -1,0 +1,394 @@
+"""A bare process for the runtime benchmarks: tether's message pattern with no tether in it.
+
+    python bench/baseline_node.py SPEC.json hub ENDPOINT     # router session (+ lockstep clock source)
+    python bench/baseline_node.py SPEC.json leader|agent|plant|recorder ID ENDPOINT
+
+``bench/runtime.py`` writes SPEC.json and starts these processes; they are not meant to be run by
+hand. Each one does what the tether process of the same role does on the wire — same keys, same
+payload sizes, same QoS, same star topology (a router session in the hub, every other process a
+client), same liveliness handshake, same ``ZENOH_RUNTIME`` as the launcher gives its children —
+but its "work" is trivial: a payload is 16 header bytes ``<qq`` (tick k, send time
+[ns, CLOCK_MONOTONIC]) padded with zeros to the size of the tether message it stands for, and
+nothing is decoded beyond ``k``.
+
+Imports are zenoh and the standard library only (no numpy, no msgspec, no tether), so this
+process is also the memory and CPU floor of "a Python process that speaks Zenoh".
+
+Hand-off (like tether's): a subscriber callback runs on zenoh-python's per-subscriber thread and
+only appends ``(input, payload)`` to a deque; in lockstep it also wakes the asyncio loop (one
+``call_soon_threadsafe`` per burst, as ``tether.transport.Wakeup``). In real time the loop is
+timer-driven and reads the newest payload per input at each tick; the callback does not wake it
+unless the spec says ``"wake": true`` (then it does, as tether's nodes do, to measure that cost).
+
+Lockstep per tick k (the dependency pattern of tether's roles):
+
+* leader: publish state(k) once the clock granted k;
+* plant i: publish state(k) once it holds cmd(k-1) (state(0) at once);
+* agent i: on plant(k) publish state(k), then once every in-neighbour's state(k) is in, publish
+  cmd(k) and telemetry(k);
+* recorder: once leader(k), every plant(k) and every telemetry(k) are in, publish ack(k);
+* hub (the launcher's twin): on ack(k) grant k + window.
+
+Prints one JSON line on stdout when done: role, id, late ticks, samples received.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import struct
+import sys
+import threading
+import time
+
+import zenoh
+
+HEADER = struct.Struct("<qq")  # tick k, send time [ns, CLOCK_MONOTONIC]
+
+
+def _qos(kind: str) -> dict:
+    """The QoS tether's ``Node.publisher`` gives every stream: SYNC in lockstep, STATE in real time."""
+    if kind == "lockstep":
+        return {"congestion_control": zenoh.CongestionControl.BLOCK, "priority": zenoh.Priority.INTERACTIVE_LOW,
+                "express": True}
+    return {"congestion_control": zenoh.CongestionControl.DROP, "priority": zenoh.Priority.INTERACTIVE_HIGH,
+            "express": True}
+
+
+class Bare:
+    """One bare process: a session, its subscriptions, its publishers, a deque and a wake-up."""
+
+    def __init__(self, spec: dict, role: str, nid: int, endpoint: str):
+        self.spec, self.role, self.nid = spec, role, nid
+        self.ns = spec["ns"]
+        self.clock = spec["clock"]
+        self.h = 1.0 / spec["rate"]
+        self.steps = spec["steps"]
+        self.sizes = spec["sizes"]
+        cfg = zenoh.Config.from_json5(spec["client_config"])
+        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.session = zenoh.open(cfg)
+        self.loop = asyncio.get_running_loop()
+        self.queue: collections.deque = collections.deque()
+        self.latest: dict[int, bytes] = {}
+        self.received = 0
+        self.event = asyncio.Event()
+        self.lock = threading.Lock()
+        self.pending = False
+        self.wake = self.clock == "lockstep" or bool(spec.get("wake"))
+        self.declared: list = []
+        self.token = None
+        self.pubs: dict[str, zenoh.Publisher] = {}
+        self.seq = 0
+        self.late = 0
+
+    def key(self, role: str, nid: int, topic: str) -> str:
+        return f"tether/{self.ns}/{role}/{nid}/{topic}"
+
+    # ---------------------------------------------------------------- wiring
+    def subscribe(self, key: str, idx: int) -> None:
+        q, latest, wake, notify = self.queue, self.latest, self.wake, self._notify
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            data = sample.payload.to_bytes()
+            q.append((idx, data))
+            latest[idx] = data
+            if wake:
+                notify()
+
+        self.declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def _notify(self) -> None:
+        with self.lock:
+            if self.pending:
+                return
+            self.pending = True
+        try:
+            self.loop.call_soon_threadsafe(self.event.set)
+        except RuntimeError:
+            pass
+
+    async def wait(self) -> None:
+        await self.event.wait()
+        self.event.clear()
+        with self.lock:
+            self.pending = False
+
+    def publisher(self, name: str, key: str) -> None:
+        pub = self.session.declare_publisher(key, **_qos(self.clock))
+        self.declared.append(pub)
+        self.pubs[name] = pub
+
+    def put(self, name: str, size: int, k: int) -> None:
+        self.pubs[name].put(HEADER.pack(k, time.monotonic_ns()) + bytes(size - HEADER.size))
+
+    def drain(self) -> list[tuple[int, int]]:
+        """Pending samples as ``(input, k)``, oldest first."""
+        out = []
+        q = self.queue
+        while q:
+            idx, data = q.popleft()
+            self.received += 1
+            out.append((idx, HEADER.unpack_from(data)[0]))
+        return out
+
+    async def ready(self) -> float:
+        """Declare the token, wait for the hub's start; returns tick 0's instant on CLOCK_MONOTONIC."""
+        start_key = self.key("control", 0, "start")
+        got: list[float] = []
+
+        def on_start(sample: zenoh.Sample) -> None:
+            epoch = struct.unpack_from("<d", sample.payload.to_bytes(), HEADER.size)[0]
+            got.append(epoch)
+            self._notify()
+
+        self.declared.append(self.session.declare_subscriber(start_key, on_start))
+        self.token = self.session.liveliness().declare_token(f"@tether/{self.ns}/{self.role}/{self.nid}")
+        while not got:
+            await self.wait()
+        epoch = got[0]
+        return time.monotonic() + (epoch - time.time())
+
+    def close(self) -> None:
+        for d in reversed(self.declared):
+            try:
+                d.undeclare()
+            except zenoh.ZError:
+                pass
+        if self.token is not None:
+            self.token.undeclare()
+        self.session.close()
+
+    # ---------------------------------------------------------------- roles
+    async def run(self) -> dict:
+        spec, nid = self.spec, self.nid
+        sz = self.sizes
+        if self.role == "leader":
+            if self.clock == "lockstep":
+                self.subscribe(self.key("clock", 0, "tick"), 0)
+            self.publisher("state", self.key("leader", nid, "state"))
+        elif self.role == "plant":
+            self.subscribe(self.key("agent", nid, "cmd"), 0)
+            self.publisher("state", self.key("plant", nid, "state"))
+        elif self.role == "agent":
+            self.subscribe(self.key("plant", nid, "state"), 0)
+            for n, (role, j) in enumerate(spec["nbrs"][str(nid)]):
+                self.subscribe(self.key(role, j, "state"), 1 + n)
+            for topic in ("state", "cmd", "telemetry"):
+                self.publisher(topic, self.key("agent", nid, topic))
+        elif self.role == "recorder":
+            self.subscribe(self.key("leader", spec["leader"], "state"), 0)
+            for aid in spec["agents"]:
+                self.subscribe(self.key("agent", aid, "telemetry"), 1)
+                self.subscribe(self.key("plant", aid, "state"), 2)
+            self.publisher("ack", self.key("recorder", nid, "ack"))
+        t0 = await self.ready()
+        if self.clock == "lockstep":
+            await getattr(self, f"_lockstep_{self.role}")()
+        else:
+            await self._realtime(t0)
+        return {"role": self.role, "id": nid, "late": self.late, "received": self.received}
+
+    async def _realtime(self, t0: float) -> None:
+        sz, steps, h = self.sizes, self.steps, self.h
+        if self.role == "recorder":  # records nothing: count what arrives until the end
+            end = t0 + steps * h + 0.5
+            while time.monotonic() < end:
+                await asyncio.sleep(min(0.5, max(0.0, end - time.monotonic())))
+                self.drain()
+            return
+        if self.wake:  # drain on every wake-up, as tether's nodes do between ticks
+            async def drainer() -> None:
+                while True:
+                    await self.wait()
+                    self.drain()
+            task = asyncio.create_task(drainer())
+        for k in range(steps + 1):
+            due = t0 + k * h
+            delay = due - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            if time.monotonic() - due > h:
+                self.late += 1
+            self.drain()
+            if self.role == "leader":
+                self.put("state", sz["state"], k)
+            elif self.role == "plant":
+                self.latest.get(0)  # the newest command
+                self.put("state", sz["plant_state"], k)
+            else:
+                self.put("state", sz["state"], k)
+                [self.latest.get(i) for i in range(1, 1 + len(self.spec["nbrs"][str(self.nid)]))]
+                self.put("cmd", sz["cmd"], k)
+                self.put("telemetry", sz["telemetry"], k)
+        if self.wake:
+            task.cancel()
+
+    async def _lockstep_leader(self) -> None:
+        granted, k = -1, 0
+        while k <= self.steps:
+            for _, g in self.drain():
+                granted = max(granted, g)
+            while k <= min(granted, self.steps):
+                self.put("state", self.sizes["state"], k)
+                k += 1
+            if k <= self.steps:
+                await self.wait()
+
+    async def _lockstep_plant(self) -> None:
+        cmds: set[int] = set()
+        self.put("state", self.sizes["plant_state"], 0)
+        k = 1
+        while k <= self.steps:
+            await self.wait()
+            cmds.update(j for _, j in self.drain())
+            while k <= self.steps and k - 1 in cmds:
+                cmds.discard(k - 1)
+                self.put("state", self.sizes["plant_state"], k)
+                k += 1
+
+    async def _lockstep_agent(self) -> None:
+        n_nbrs = len(self.spec["nbrs"][str(self.nid)])
+        plant: set[int] = set()
+        have: dict[int, int] = collections.defaultdict(int)
+        k, sent_state = 0, -1
+        sz = self.sizes
+        while k <= self.steps:
+            for idx, j in self.drain():
+                if idx == 0:
+                    plant.add(j)
+                else:
+                    have[j] += 1
+            while k <= self.steps and k in plant:
+                if sent_state < k:
+                    self.put("state", sz["state"], k)
+                    sent_state = k
+                if have[k] < n_nbrs:
+                    break
+                self.put("cmd", sz["cmd"], k)
+                self.put("telemetry", sz["telemetry"], k)
+                plant.discard(k)
+                del have[k]
+                k += 1
+            if k <= self.steps:
+                await self.wait()
+
+    async def _lockstep_recorder(self) -> None:
+        expected = 1 + 2 * len(self.spec["agents"])
+        count: dict[int, int] = collections.defaultdict(int)
+        k = 0
+        while k <= self.steps:
+            await self.wait()
+            for _, j in self.drain():
+                count[j] += 1
+            while k <= self.steps and count[k] >= expected:
+                del count[k]
+                self.put("ack", self.sizes["ack"], k)
+                k += 1
+
+
+# -------------------------------------------------------------------- the hub
+async def hub(spec: dict, endpoint: str) -> None:
+    """Router session + (lockstep) clock source, as ``deploy.local`` runs in the launcher process.
+
+    Prints ``listening``, then ``up <s>`` when every token is in, ``start <epoch>``, and at the end
+    ``ran <mission s> <wall s>`` (wall time from the first grant / from tick 0 to the last tick)."""
+    cfg = zenoh.Config.from_json5(spec["router_config"])
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    session = zenoh.open(cfg)
+    loop = asyncio.get_running_loop()
+    event = asyncio.Event()
+    q: collections.deque = collections.deque()
+    ns = spec["ns"]
+
+    def notify() -> None:
+        loop.call_soon_threadsafe(event.set)
+
+    members = {f"@tether/{ns}/leader/{spec['leader']}", f"@tether/{ns}/recorder/0"}
+    members |= {f"@tether/{ns}/{r}/{a}" for a in spec["agents"] for r in ("agent", "plant")}
+    alive: set[str] = set()
+    put_kind = zenoh.SampleKind.PUT
+
+    def on_token(sample: zenoh.Sample) -> None:
+        q.append(("token", str(sample.key_expr), sample.kind == put_kind))
+        notify()
+
+    declared = [session.liveliness().declare_subscriber(f"@tether/{ns}/**", on_token, history=True)]
+    print("listening", flush=True)
+    t_open = time.monotonic()
+    try:
+        while not alive >= members:
+            await event.wait()
+            event.clear()
+            while q:
+                _, key, up = q.popleft()
+                (alive.add if up else alive.discard)(key)
+        print(f"up {time.monotonic() - t_open:.3f}", flush=True)
+        steps, h = spec["steps"], 1.0 / spec["rate"]
+        start_pub = session.declare_publisher(f"tether/{ns}/control/0/start", **_qos("lockstep"))
+        declared.append(start_pub)
+        if spec["clock"] == "realtime":
+            epoch = time.time() + spec["start_lead"]
+            start_pub.put(HEADER.pack(0, 0) + struct.pack("<d", epoch) + bytes(spec["sizes"]["start"] - 24))
+            print(f"start {epoch:.6f}", flush=True)
+            t1 = time.monotonic() + (epoch - time.time())
+            await asyncio.sleep(max(0.0, t1 + steps * h - time.monotonic()))
+            print(f"ran {steps * h:g} {time.monotonic() - t1:.3f}", flush=True)
+            return
+        acks: collections.deque = collections.deque()
+
+        def on_ack(sample: zenoh.Sample) -> None:
+            acks.append(sample.payload.to_bytes())
+            notify()
+
+        declared.append(session.declare_subscriber(f"tether/{ns}/*/*/ack", on_ack))
+        tick = session.declare_publisher(f"tether/{ns}/clock/0/tick", **_qos("lockstep"))
+        declared.append(tick)
+        window, done, seq = spec["window"], -1, 0
+        tick_pad = bytes(spec["sizes"]["tick"] - HEADER.size)
+        start_pub.put(HEADER.pack(0, 0) + struct.pack("<d", time.time()) + bytes(spec["sizes"]["start"] - 24))
+        print(f"start {time.time():.6f}", flush=True)
+        t1 = time.monotonic()
+        tick.put(HEADER.pack(min(steps, done + window), time.monotonic_ns()) + tick_pad)
+        while done < steps:
+            await event.wait()
+            event.clear()
+            moved = False
+            while acks:
+                k = HEADER.unpack_from(acks.popleft())[0]
+                if k > done:
+                    done, moved = k, True
+            if moved:
+                tick.put(HEADER.pack(min(steps, done + window), time.monotonic_ns()) + tick_pad)
+                seq += 1
+        print(f"ran {steps * h:g} {time.monotonic() - t1:.3f}", flush=True)
+    finally:
+        for d in reversed(declared):
+            try:
+                d.undeclare()
+            except zenoh.ZError:
+                pass
+        session.close()
+
+
+async def node(spec: dict, role: str, nid: int, endpoint: str) -> None:
+    b = Bare(spec, role, nid, endpoint)
+    try:
+        out = await b.run()
+    finally:
+        b.close()
+    print(json.dumps(out), flush=True)
+
+
+def main(argv: list[str]) -> None:
+    with open(argv[0]) as fh:
+        spec = json.load(fh)
+    if argv[1] == "hub":
+        asyncio.run(hub(spec, argv[2]))
+    else:
+        asyncio.run(node(spec, argv[1], int(argv[2]), argv[3]))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
