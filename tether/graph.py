@@ -64,14 +64,17 @@ def topology(m: Mission) -> Topology:
                     slot_src, slot_weight[:, :, None])
 
 
-def neighbour_sums(topo: Topology, x: np.ndarray) -> np.ndarray:
+def neighbour_sums(topo: Topology, x: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """``sum_j a_ij x_j`` for every agent i; ``x`` is ``(N+1, c)`` (leader last), result ``(N, c)``.
 
     Summed slot by slot (gather, multiply, add), which numpy does far faster than a segmented
-    reduction when in-degrees are small; the order of the terms is each agent's sorted in-edges."""
-    acc = topo.slot_weight[0] * np.take(x, topo.slot_src[0], axis=0)
+    reduction when in-degrees are small; the order of the terms is each agent's sorted in-edges.
+    ``weight`` may be ``topo.slot_weight`` repeated to ``(D, N, c)``: same-shape products avoid
+    numpy's slow path for broadcasting over a short last axis (several times faster)."""
+    w = topo.slot_weight if weight is None else weight
+    acc = w[0] * np.take(x, topo.slot_src[0], axis=0)
     for k in range(1, topo.slot_src.shape[0]):
-        acc += topo.slot_weight[k] * np.take(x, topo.slot_src[k], axis=0)
+        acc += w[k] * np.take(x, topo.slot_src[k], axis=0)
     return acc
 
 

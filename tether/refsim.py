@@ -100,7 +100,9 @@ def simulate(
 def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: dict) -> Run:
     m, topo, prm = s.mission, s.topo, s.params
     n, d, h = m.n, m.dim, m.dt
-    kappa = topo.kappa[:, None]
+    # full-shape kappa and weights: numpy is several times slower broadcasting (N, 1) over (N, d)
+    kappa = np.repeat(topo.kappa[:, None], d, axis=1)
+    weight = np.repeat(topo.slot_weight, d, axis=2)
     gs = law.GainStep.over(prm.sigma, h)
     lp, lv, la = s.ref(np.arange(steps + 1) * h)
 
@@ -109,7 +111,7 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     pos, vel, acc = np.zeros((n + 1, d)), np.zeros((n + 1, d)), np.zeros((n + 1, d))
     pos[:n], vel[:n] = s.p0, s.v0
     gains = np.stack([np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))])  # [Kp, Kv]
-    gamma = np.array([prm.gamma_p, prm.gamma_v])[:, None, None]
+    gamma = np.repeat(np.array([prm.gamma_p, prm.gamma_v])[:, None, None], n, axis=1).repeat(d, axis=2)
     err = np.empty((2, n, d))  # [xi, zeta]
     zero_d = s.dist.is_zero
     run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta)
@@ -119,9 +121,9 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     for k in range(steps + 1):
         pos[n], vel[n], acc[n] = lp[k], lv[k], la[k]
         p, v, a = pos[:n], vel[:n], acc[:n]
-        err[0], err[1] = law.errors(kappa, p, v, nsum(topo, pos), nsum(topo, vel), s.sum_wdelta)
+        err[0], err[1] = law.errors(kappa, p, v, nsum(topo, pos, weight), nsum(topo, vel, weight), s.sum_wdelta)
         xi, zeta, kp, kv = err[0], err[1], gains[0], gains[1]
-        u = law.control(kappa, nsum(topo, acc), xi, zeta, kp, kv)
+        u = law.control(kappa, nsum(topo, acc, weight), xi, zeta, kp, kv)
         if record or k == steps:
             r = k if record else 0
             run.t[r] = k * h
