@@ -1,0 +1,225 @@
+"""tether.clock: the lockstep source's bookkeeping, the lockstep clock's grants, the real-time clock.
+
+The real-time clock reads time only through the ``monotonic`` function it is given; here that is a
+fake whose readings the test sets, so a tick "in the past" costs no sleep at all and a tick in the
+future costs the few milliseconds the test chooses.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from tether.clock import LockstepClock, LockstepSource, RealtimeClock
+
+WAIT = 2.0
+"""Upper bound [s] on a wait for something that happens within one event-loop turn."""
+
+MEMBERS = frozenset({("recorder", 0), ("agent", 1), ("plant", 1)})
+
+
+# --------------------------------------------------------------------------- LockstepSource
+def test_source_grants_window_ticks_ahead_of_what_is_done() -> None:
+    src = LockstepSource(MEMBERS, last=100, window=3)
+    assert (src.done, src.grant, src.finished) == (-1, 2, False)  # ticks 0, 1, 2 may run at once
+    for who in sorted(MEMBERS):
+        src.ack(*who, 0)
+    assert (src.done, src.grant) == (0, 3)
+
+
+def test_source_with_window_one_runs_strictly_one_tick_at_a_time() -> None:
+    src = LockstepSource(MEMBERS, last=5, window=1)
+    assert src.grant == 0
+    for k in range(6):
+        for who in sorted(MEMBERS):
+            src.ack(*who, k)
+        assert src.done == k and src.grant == min(5, k + 1)
+    assert src.finished
+
+
+def test_source_advances_only_when_every_member_acked_and_reports_who_is_missing() -> None:
+    src = LockstepSource(MEMBERS, last=10, window=2)
+    assert src.missing() == sorted(MEMBERS)
+    assert src.ack("agent", 1, 0) is False
+    assert src.ack("plant", 1, 0) is False
+    assert src.missing() == [("recorder", 0)]
+    assert src.ack("recorder", 0, 0) is True  # the last one in moves `done`
+    assert src.done == 0 and src.missing() == sorted(MEMBERS)
+
+
+def test_source_takes_acks_in_any_order() -> None:
+    rng = np.random.default_rng(7)
+    last = 30
+    acks = [(r, i, k) for k in range(last + 1) for r, i in sorted(MEMBERS)]
+    for _ in range(20):
+        src = LockstepSource(MEMBERS, last=last, window=4)
+        order = rng.permutation(len(acks))
+        done_seen = []
+        for n in order:
+            src.ack(*acks[n])
+            done_seen.append(src.done)
+            # invariant: done is the highest tick with every lower-or-equal tick fully acked
+            acked = {acks[m] for m in order[: len(done_seen)]}
+            expect = -1
+            while all((r, i, expect + 1) in acked for r, i in MEMBERS) and expect < last:
+                expect += 1
+            assert src.done == expect
+        assert done_seen == sorted(done_seen)  # never goes back
+        assert src.finished and src.done == last and src.grant == last
+
+
+def test_source_ignores_duplicates_unknown_members_and_old_ticks() -> None:
+    src = LockstepSource(MEMBERS, last=10, window=2)
+    assert src.ack("agent", 1, 0) is False
+    assert src.ack("agent", 1, 0) is False  # duplicate: still one member of three
+    assert src.ack("agent", 99, 0) is False  # not a member
+    assert src.ack("stranger", 0, 0) is False
+    assert src.ack("plant", 1, 0) is False
+    assert src.done == -1 and src.missing() == [("recorder", 0)]
+    assert src.ack("recorder", 0, 0) is True
+    assert src.done == 0
+    for who in sorted(MEMBERS):  # an ack of a finished tick changes nothing
+        assert src.ack(*who, 0) is False
+    assert src.done == 0 and src.grant == 2
+
+
+def test_source_jumps_over_ticks_acked_ahead() -> None:
+    src = LockstepSource(MEMBERS, last=10, window=2)
+    for k in (3, 2, 1):
+        for who in sorted(MEMBERS):
+            assert src.ack(*who, k) is False  # tick 0 still open
+    for who in sorted(MEMBERS)[:-1]:
+        src.ack(*who, 0)
+    assert src.ack(*sorted(MEMBERS)[-1], 0) is True
+    assert src.done == 3 and src.grant == 5
+
+
+def test_source_grant_never_passes_the_last_tick() -> None:
+    src = LockstepSource(MEMBERS, last=2, window=8)
+    assert src.grant == 2
+    for k in range(3):
+        for who in sorted(MEMBERS):
+            src.ack(*who, k)
+    assert src.finished and src.grant == 2
+
+
+def test_source_rejects_an_empty_window() -> None:
+    with pytest.raises(ValueError, match="window"):
+        LockstepSource(MEMBERS, last=10, window=0)
+
+
+# --------------------------------------------------------------------------- LockstepClock
+@pytest.mark.asyncio
+async def test_lockstep_clock_waits_for_its_grant() -> None:
+    clock = LockstepClock()
+    assert clock.granted == -1
+    waiter = asyncio.create_task(clock.wait_for(2))
+    await asyncio.sleep(0)
+    clock.grant(1)
+    await asyncio.sleep(0)
+    assert not waiter.done()  # 1 < 2: still waiting
+    clock.grant(2)
+    assert await asyncio.wait_for(waiter, WAIT) == 0.0
+    assert clock.granted == 2
+
+
+@pytest.mark.asyncio
+async def test_lockstep_clock_returns_at_once_for_granted_ticks_and_never_goes_back() -> None:
+    clock = LockstepClock()
+    clock.grant(5)
+    clock.grant(3)  # older grants (reordered Tick messages) are ignored
+    assert clock.granted == 5
+    for k in range(6):
+        assert await asyncio.wait_for(clock.wait_for(k), WAIT) == 0.0
+
+
+@pytest.mark.asyncio
+async def test_lockstep_clock_releases_every_waiter_up_to_the_grant() -> None:
+    clock = LockstepClock()
+    waiters = {k: asyncio.create_task(clock.wait_for(k)) for k in range(6)}
+    await asyncio.sleep(0)
+    clock.grant(3)
+    await asyncio.wait_for(asyncio.gather(*(waiters[k] for k in range(4))), WAIT)
+    for _ in range(3):  # give the others every chance to (wrongly) wake
+        await asyncio.sleep(0)
+    assert not waiters[4].done() and not waiters[5].done()
+    clock.grant(5)
+    await asyncio.wait_for(asyncio.gather(*waiters.values()), WAIT)
+
+
+# --------------------------------------------------------------------------- RealtimeClock
+class FakeMonotonic:
+    """A monotonic clock [s] the test sets; each reading can also advance it by a fixed step."""
+
+    def __init__(self, now: float = 0.0, step: float = 0.0):
+        self.now = now
+        self.step = step
+        self.reads = 0
+
+    def __call__(self) -> float:
+        self.reads += 1
+        value = self.now
+        self.now += self.step
+        return value
+
+
+@pytest.mark.asyncio
+async def test_realtime_clock_does_not_sleep_for_ticks_already_due() -> None:
+    # period and instants exactly representable in binary, so "exactly one period late" is exact
+    fake = FakeMonotonic(now=1.0)
+    clock = RealtimeClock(period=0.25, start=0.0, monotonic=fake)
+    t0 = time.monotonic()
+    lateness = [await clock.wait_for(k) for k in range(5)]  # due at 0, 0.25, 0.5, 0.75, 1.0; now is 1.0
+    assert time.monotonic() - t0 < 0.05
+    assert lateness == [1.0, 0.75, 0.5, 0.25, 0.0]
+    assert clock.late == 3  # one period late (tick 3) is not "more than one period late"
+
+
+@pytest.mark.asyncio
+async def test_realtime_clock_counts_ticks_more_than_one_period_late() -> None:
+    fake = FakeMonotonic()
+    period = 0.01
+    clock = RealtimeClock(period=period, start=0.0, monotonic=fake)
+    # (tick, the clock's reading when the tick is asked for) -> expected lateness [s], late?
+    cases = [(0, 0.0, 0.0, False), (1, 0.0105, 0.0005, False), (2, 0.0299, 0.0099, False),
+             (3, 0.0500, 0.0200, True), (4, 0.0650, 0.0250, True), (10, 0.1050, 0.0050, False)]
+    for n, (k, now, lateness, late) in enumerate(cases):
+        fake.now = now
+        before = clock.late
+        assert await clock.wait_for(k) == pytest.approx(lateness, abs=1e-12)
+        assert clock.late - before == int(late), f"tick {k}"
+    assert clock.late == 2
+
+
+@pytest.mark.asyncio
+async def test_realtime_clock_sleeps_until_a_future_tick_then_reports_lateness() -> None:
+    # the first reading says tick 1 is 4 ms away; the second (after the sleep) that it started 1 ms late
+    readings = iter([0.006, 0.011])
+    clock = RealtimeClock(period=0.01, start=0.0, monotonic=lambda: next(readings))
+    t0 = time.monotonic()
+    lateness = await asyncio.wait_for(clock.wait_for(1), WAIT)
+    slept = time.monotonic() - t0
+    assert lateness == pytest.approx(0.001, abs=1e-12)
+    assert 0.004 - 0.001 <= slept < 0.5  # it really slept the 4 ms the fake clock asked for
+    assert clock.late == 0
+
+
+@pytest.mark.asyncio
+async def test_realtime_clock_lateness_is_zero_when_woken_early() -> None:
+    readings = iter([0.008, 0.0095])  # asyncio may wake a little early; lateness is clamped at 0
+    clock = RealtimeClock(period=0.01, start=0.0, monotonic=lambda: next(readings))
+    assert await asyncio.wait_for(clock.wait_for(1), WAIT) == 0.0
+    assert clock.late == 0
+
+
+@pytest.mark.asyncio
+async def test_realtime_clock_schedule_is_start_plus_k_periods() -> None:
+    fake = FakeMonotonic(now=50.0)
+    clock = RealtimeClock(period=0.02, start=50.0, monotonic=fake)
+    for k in range(501):
+        fake.now = 50.0 + k * 0.02 + 0.03  # every tick asked for 30 ms (1.5 periods) after its instant
+        assert await clock.wait_for(k) == pytest.approx(0.03, abs=1e-9)
+    assert clock.late == 501

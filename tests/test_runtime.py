@@ -1,0 +1,712 @@
+"""The distributed runtime as a user runs it: real processes, real Zenoh sessions on loopback.
+
+Every process is started with ``subprocess`` (never a fork of this process, which may have Zenoh
+loaded) in its own session, so a signal reaches only the process it is sent to. Every Zenoh
+session opened here has multicast scouting off and talks to one explicit ``tcp/127.0.0.1`` endpoint
+on a port picked free at run time, and every run gets its own key namespace, so runs never see each
+other. Every wait is on a condition with a timeout; nothing is left running (the fixtures kill
+what they started, by pid, if a test fails half-way).
+
+The expensive runs are module-scoped and shared by several tests:
+
+* ``lockstep`` — two lockstep runs of Section 4 (5 s), started together: equivalence with the
+  reference simulator, completeness, determinism;
+* ``interrupted`` — a real-time run that a plain Zenoh client joins (decoding live samples with the
+  schema alone, publishing malformed samples on agent 1's inputs) and that is then stopped by
+  SIGINT: live decoding, drops counted, Ctrl-C;
+* ``killed`` — a real-time run in which agent 2 is SIGKILLed: failure reported, silence detected;
+* ``realtime`` — a 20 s real-time run: the formation-error envelope against the lockstep one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import math
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+import pytest
+import zenoh
+
+import tether
+import tether.wire
+from tether import refsim
+from tether import transport as tp
+from tether import wire
+from tether.node import load_mission
+from tether.runfile import SERIES, Run
+
+REPO = Path(__file__).resolve().parents[1]
+SECTION4 = Path(tether.__file__).resolve().parent / "missions" / "section4.toml"
+AGENTS, LEADER = (1, 2, 3, 4), 5
+CHILDREN = ["leader/5", *[f"{r}/{i}" for i in AGENTS for r in ("agent", "plant")], "recorder/0"]
+LOGS = ["leader-5.log", *[f"{r}-{i}.log" for i in AGENTS for r in ("agent", "plant")], "recorder-0.log"]
+
+STARTUP = 90.0
+"""Upper bound [s] on a launch coming up (ten Python processes importing numpy and Zenoh on two
+cores, possibly beside another test run)."""
+WAIT = 10.0
+"""Upper bound [s] on anything that takes milliseconds once the processes are up."""
+ATOL = 1e-9
+"""Lockstep vs reference simulator: same arithmetic in the same order; this only allows for
+round-off should the two ever order a sum differently."""
+
+
+# =========================================================================== helpers
+def tether_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "tether.cli", *args]
+
+
+def wait_until(ready: Callable[[], Any], timeout: float, what: str, poll: float = 0.05) -> Any:
+    """Poll ``ready()`` until it returns something truthy (returned); fail naming ``what`` after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = ready()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            pytest.fail(f"waited {timeout:g} s for {what}")
+        time.sleep(poll)
+
+
+def read(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except OSError:
+        return ""
+
+
+def cmdline(pid: int) -> list[str]:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
+def alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rpartition(")")[2].split()[0] != "Z"
+
+
+def children_of(launcher: int) -> dict[str, int]:
+    """``{"agent/1": pid, ...}`` for every live process started with ``--parent-pid <launcher>``."""
+    found: dict[str, int] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        argv = cmdline(int(entry.name))
+        if "--parent-pid" not in argv or argv[argv.index("--parent-pid") + 1] != str(launcher):
+            continue
+        role = argv[argv.index("tether.cli") + 1]
+        node = {"leader": LEADER, "recorder": 0}.get(role)
+        if node is None:
+            node = int(argv[argv.index("--id") + 1])
+        found[f"{role}/{node}"] = int(entry.name)
+    return found
+
+
+def processes_naming(ns: str) -> list[int]:
+    """Live processes whose command line names namespace ``ns`` (``--ns ns``)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            argv = cmdline(int(entry.name))
+            if "--ns" in argv and argv[argv.index("--ns") + 1] == ns and alive(int(entry.name)):
+                out.append(int(entry.name))
+    return out
+
+
+def router_of(children: dict[str, int]) -> str:
+    """The launcher's router endpoint, as its children were told to connect to it."""
+    argv = cmdline(children["recorder/0"])
+    return argv[argv.index("--connect") + 1]
+
+
+def log_time(line: str) -> float:
+    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
+    stamp, ms = line[:23].split(",")
+    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms) / 1000
+
+
+def stop(proc: subprocess.Popen) -> None:
+    """Kill a process this module started, if it is still running (a failed test's leftovers)."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(WAIT)
+
+
+def exit_statuses(launcher_log: str) -> dict[str, int]:
+    """``{"agent/1": 143, ...}`` from the launcher's closing ``<name> exit <status>`` lines."""
+    return {m[1]: int(m[2]) for m in re.finditer(r"launcher: (\S+/\d+)\s+exit (-?\d+)", launcher_log)}
+
+
+@dataclass
+class Launched:
+    """A ``tether run`` in progress or finished."""
+
+    proc: subprocess.Popen
+    out: Path
+    log: Path
+    ns: str
+    children: dict[str, int] = field(default_factory=dict)
+    status: int | None = None
+
+    @property
+    def launcher_log(self) -> str:
+        return read(self.log)
+
+    def child_log(self, name: str) -> str:
+        return read(self.out / "logs" / f"{name.replace('/', '-')}.log")
+
+    def wait(self, timeout: float) -> int:
+        self.status = self.proc.wait(timeout)
+        return self.status
+
+
+@contextlib.contextmanager
+def launch(base: Path, ns: str, *args: str) -> Iterator[Launched]:
+    """Start ``tether run section4 --ns ns --out base/out`` with ``args``; kill it and every child
+    it started (found by ``--parent-pid``) if the block is left while it still runs."""
+    out, log = base / "out", base / "launcher.log"
+    base.mkdir(parents=True, exist_ok=True)
+    with open(log, "wb") as fh:
+        proc = subprocess.Popen(tether_cmd("run", "section4", "--out", str(out), "--ns", ns, "--quiet", *args),
+                                cwd=REPO, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    run = Launched(proc, out, log, ns)
+    try:
+        yield run
+    finally:
+        leftovers = children_of(proc.pid)  # children outlive a launcher that died (briefly: they watch it)
+        stop(proc)
+        for pid in leftovers.values():
+            if alive(pid):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def wait_for_realtime_start(run: Launched) -> None:
+    """Every child has heard the start instant (``real time: tick 0 at ...`` in its log)."""
+    def started() -> bool:
+        if run.proc.poll() is not None:
+            pytest.fail(f"launcher exited with {run.proc.returncode} during start-up:\n{run.launcher_log}")
+        return all("real time: tick 0" in run.child_log(n) for n in CHILDREN)
+
+    wait_until(started, STARTUP, "every child to log 'real time: tick 0'")
+    run.children = children_of(run.proc.pid)
+    assert sorted(run.children) == sorted(CHILDREN)
+
+
+# --------------------------------------------------------------------------- a plain Zenoh client
+class PlainClient:
+    """A Zenoh client session built with nothing but zenoh and the wire schema: what a third party
+    would write to listen to (or disturb) a run. Samples are queued by the callback, decoded here."""
+
+    def __init__(self, router: str):
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", f'["{router}"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(conf)
+        self.samples: queue.Queue[tuple[str, bytes]] = queue.Queue()
+        self._subs: list[Any] = []
+
+    def subscribe(self, key_expr: str) -> None:
+        self._subs.append(self.session.declare_subscriber(
+            key_expr, lambda s: self.samples.put((str(s.key_expr), s.payload.to_bytes()))))
+
+    def unsubscribe(self) -> None:
+        """Undeclare every subscriber and forget what they queued."""
+        for sub in self._subs:
+            sub.undeclare()
+        self._subs.clear()
+        with contextlib.suppress(queue.Empty):
+            while True:
+                self.samples.get_nowait()
+
+    def next_matching(self, want: Callable[[str, Any], bool], timeout: float, what: str) -> tuple[str, Any]:
+        """The next sample whose ``(key, decoded message)`` satisfies ``want``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                pytest.fail(f"waited {timeout:g} s for {what}")
+            try:
+                key, payload = self.samples.get(timeout=left)
+            except queue.Empty:
+                continue
+            msg = msgspec.msgpack.decode(payload, type=tether.wire.Message)
+            if want(key, msg):
+                return key, msg
+
+    def publisher(self, key: str) -> zenoh.Publisher:
+        """A publisher on ``key`` once some subscriber matches it (else puts are not delivered)."""
+        pub = self.session.declare_publisher(key)
+        wait_until(lambda: pub.matching_status.matching, WAIT, f"a subscriber of {key}", poll=0.01)
+        return pub
+
+    def close(self) -> None:
+        self.unsubscribe()
+        self.session.close()
+
+
+def raw(msg: wire.Message, **changes: object) -> bytes:
+    """``msg`` encoded, with fields replaced behind the schema's back (what a buggy sender would send)."""
+    fields = msgspec.msgpack.decode(wire.encode(msg))
+    fields.update(changes)
+    return msgspec.msgpack.encode(fields)
+
+
+def junk_for_agent_1(ns: str, k: int) -> list[tuple[str, bytes, str]]:
+    """Malformed samples on each of agent 1's inputs (its plant, the leader, agent 4), each as
+    ``(key, payload, the reason it must be dropped for)``."""
+    keys = wire.Keys(ns)
+    plant = wire.PlantState(sender=1, seq=10**6, k=k, t=k / 100, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0],
+                            d=[0.0, 0.0])
+    leader = wire.State(sender=LEADER, seq=10**6, k=k, t=k / 100, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0])
+    agent4 = wire.State(sender=4, seq=10**6, k=k, t=k / 100, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0])
+    kp, kl, k4 = keys.topic("plant", 1, "state"), keys.topic("leader", LEADER, "state"), keys.topic("agent", 4, "state")
+    return [
+        (kp, b"\xc1garbage, not msgpack", "malformed"),
+        (kp, raw(plant, type="teleport"), "malformed"),  # unknown type tag
+        (kp, raw(plant, v=wire.WIRE_VERSION + 1), "version"),
+        (kp, raw(plant, sender=2), "sender"),
+        (kp, raw(plant, p=[math.nan, 0.0]), "nonfinite"),
+        (kl, b"", "malformed"),
+        (kl, raw(leader, v=0), "version"),
+        (kl, raw(leader, sender=4), "sender"),
+        (kl, raw(leader, vel=[0.0, math.inf]), "nonfinite"),
+        (kl, raw(leader, a=[0.0, 0.0, 0.0]), "size"),
+        (k4, wire.encode(wire.Command(sender=4, seq=0, k=k, t=k / 100, u=[0.0, 0.0])), "type"),
+        (k4, raw(agent4, sender=3), "sender"),
+        (k4, raw(agent4, t=math.nan), "nonfinite"),
+        (k4, b"\x93\x01\x02", "malformed"),
+    ]
+
+
+def count(reasons: list[str]) -> dict[str, int]:
+    """``{reason: how many}``, as ``Receiver.drops`` counts them."""
+    return dict(collections.Counter(reasons))
+
+
+# =========================================================================== lockstep: equivalence, determinism
+@dataclass
+class Finished:
+    out: Path
+    status: int
+    launcher_log: str
+
+
+@pytest.fixture(scope="module")
+def lockstep(tmp_path_factory: pytest.TempPathFactory) -> tuple[Finished, Finished]:
+    """Two lockstep runs of Section 4 over 5 s, started at the same time (one router each)."""
+    base = tmp_path_factory.mktemp("lockstep")
+    ns = f"lockstep-{os.getpid()}"
+    with launch(base / "a", f"{ns}-a", "--duration", "5") as a, launch(base / "b", f"{ns}-b", "--duration", "5") as b:
+        runs = []
+        for run in (a, b):
+            run.wait(STARTUP + 60)
+            runs.append(Finished(run.out, run.proc.returncode, run.launcher_log))
+    return runs[0], runs[1]
+
+
+def test_lockstep_run_is_complete_and_every_process_ended_well(lockstep: tuple[Finished, Finished]) -> None:
+    run = lockstep[0]
+    assert run.status == 0, run.launcher_log
+    for name in LOGS:
+        assert (run.out / "logs" / name).is_file(), name
+    assert exit_statuses(run.launcher_log) == {n: 0 for n in CHILDREN}
+    rec = Run.load(run.out)
+    assert rec.meta["complete"] is True
+    assert rec.meta["source"] == "runtime-lockstep"
+    assert rec.meta["samples_recorded"] == rec.meta["samples_expected"] == (1 + 2 * len(AGENTS)) * 501
+    assert rec.meta["recorder_drops"] == {}
+
+
+def test_lockstep_run_equals_the_reference_simulator(lockstep: tuple[Finished, Finished]) -> None:
+    """The most important test: the distributed runtime in lockstep is the reference simulator."""
+    run = Run.load(lockstep[0].out)
+    ref = refsim.simulate(load_mission(SECTION4, 5.0))
+    assert run.t.shape == ref.t.shape == (501,)
+    np.testing.assert_array_equal(run.agent_ids, ref.agent_ids)
+    np.testing.assert_allclose(run.t, ref.t, rtol=0, atol=1e-12)
+    pairs = {name: (getattr(run, name), getattr(ref, name)) for name in SERIES}
+    pairs.update({name: (getattr(run, name), getattr(ref, name)) for name in ("leader_p", "leader_v", "leader_a")})
+    for name in ("p", "v", "a"):  # what the plants measured, as the recorder heard it from them
+        pairs[f"plant_{name}"] = (run.extra[f"plant_{name}"], getattr(ref, name))
+    worst = {}
+    for name, (got, want) in pairs.items():
+        assert got.shape == want.shape, name
+        assert np.isfinite(got).all(), f"{name}: {np.count_nonzero(~np.isfinite(got))} samples missing or non-finite"
+        np.testing.assert_allclose(got, want, rtol=0, atol=ATOL, equal_nan=False, err_msg=name)
+        worst[name] = float(np.max(np.abs(got - want)))
+    assert max(worst.values()) <= ATOL, worst
+    # the run did something worth comparing: the gains adapted and the formation error shrank
+    assert not np.allclose(run.kp[-1], run.kp[0])
+    assert np.linalg.norm(run.xi[-1], axis=-1).max() < np.linalg.norm(run.xi[0], axis=-1).max()
+
+
+TIMING_DIAGNOSTICS = ("link_received", "link_silent")
+"""Run-file arrays that record when samples *arrived* (not which were used); see the xfail below."""
+
+
+def differing_arrays(a: Path, b: Path) -> list[str]:
+    """Names of the arrays (not ``meta``) whose dtype, shape or bytes differ between two run files."""
+    with np.load(a / "run.npz") as za, np.load(b / "run.npz") as zb:
+        assert sorted(za.files) == sorted(zb.files)
+        arrays = [f for f in za.files if f != "meta"]
+        assert len(arrays) >= len(SERIES) + 5
+        return [name for name in arrays if (za[name].dtype, za[name].shape, za[name].tobytes())
+                != (zb[name].dtype, zb[name].shape, zb[name].tobytes())]
+
+
+def test_two_lockstep_runs_are_identical_bit_for_bit(lockstep: tuple[Finished, Finished]) -> None:
+    """Every array that depends on what was computed and used — the whole state, the law's errors,
+    gains and commands, the plants' measurements, link ages, staleness and drops — is identical."""
+    a, b = lockstep
+    assert a.status == 0 and b.status == 0, a.launcher_log + b.launcher_log
+    differ = differing_arrays(a.out, b.out)
+    assert [name for name in differ if name not in TIMING_DIAGNOSTICS] == []
+
+
+@pytest.mark.xfail(strict=True, reason="BUG agent/node.py + node.Source: in lockstep, LinkStats.received counts "
+                   "the samples that happened to have arrived when tick k ran (up to `window` ticks ahead) and "
+                   "LinkStats.silent turns true when a neighbour that finished first exits, so the run file's "
+                   "link_received and link_silent differ from run to run")
+def test_two_lockstep_run_files_are_identical_in_every_array(lockstep: tuple[Finished, Finished]) -> None:
+    a, b = lockstep
+    assert differing_arrays(a.out, b.out) == []
+
+
+# =========================================================================== a single agent process, fed by hand
+@pytest.mark.asyncio
+async def test_an_agent_process_drops_and_counts_malformed_input_and_carries_on(tmp_path: Path) -> None:
+    """Agent 1 alone, in lockstep, around this test's own router session: the test plays its plant,
+    the leader, agent 4 and the launcher. Malformed samples sent before each input's valid samples
+    are all dropped, counted by reason in the telemetry of tick 0 already, and the agent still
+    runs every tick and exits 0."""
+    ns = f"agent-alone-{os.getpid()}"
+    keys = wire.Keys(ns)
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    junk = junk_for_agent_1(ns, 0)
+    expected = count([r for *_, r in junk])
+    steps = 10
+    log = tmp_path / "agent-1.log"
+    async with tp.open_session(tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0)) as session:
+        wakeup = tp.Wakeup()
+        heard: tp.BoundedFifo[tp.Received] = tp.BoundedFifo(4096, wakeup)
+        sub = tp.declare_subscriber(session, f"tether/{ns}/agent/1/*", heard)
+        with open(log, "wb") as fh:
+            proc = subprocess.Popen(
+                tether_cmd("agent", "--mission", "section4", "--id", "1", "--clock", "lockstep", "--ns", ns,
+                           "--duration", str(steps / 100), "--stall-timeout", "20",
+                           "--zenoh-mode", "client", "--connect", endpoint),
+                cwd=REPO, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            await tp.wait_for_tokens(session, [keys.token("agent", 1)], STARTUP)
+            pubs = {}
+            for key in (keys.topic("plant", 1, "state"), keys.topic("leader", LEADER, "state"),
+                        keys.topic("agent", 4, "state"), keys.start):
+                pubs[key] = tp.declare_publisher(session, key, tp.SYNC)
+                await tp.wait_for_subscribers(pubs[key], WAIT)
+            for key, payload, _ in junk:  # on the same publisher as the valid samples that follow
+                pubs[key].put(payload)
+            pubs[keys.start].put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=time.time())))
+            for k in range(steps + 1):
+                t = k / 100
+                zero = [0.0, 0.0]
+                pubs[keys.topic("plant", 1, "state")].put(wire.encode(wire.PlantState(
+                    sender=1, seq=k, k=k, t=t, p=[1.5 + t, -0.5], vel=[1.0, 0.0], a=zero, d=zero)))
+                pubs[keys.topic("leader", LEADER, "state")].put(wire.encode(wire.State(
+                    sender=LEADER, seq=k, k=k, t=t, p=[t, 0.0], vel=[1.0, 0.0], a=zero)))
+                pubs[keys.topic("agent", 4, "state")].put(wire.encode(wire.State(
+                    sender=4, seq=k, k=k, t=t, p=[t, -1.0], vel=[1.0, 0.0], a=zero)))
+            telemetry: dict[int, wire.Telemetry] = {}
+            async with asyncio.timeout(WAIT + 20):
+                while len(telemetry) < steps + 1:
+                    for rec in heard.drain():
+                        msg = msgspec.msgpack.decode(rec.payload, type=wire.Message)
+                        if isinstance(msg, wire.Telemetry):
+                            telemetry[msg.k] = msg
+                    if proc.poll() is not None and not heard:
+                        break
+                    await wakeup.wait(0.5)
+            status = await asyncio.to_thread(proc.wait, WAIT + 20)
+        finally:
+            stop(proc)
+            sub.undeclare()
+    text = read(log)
+    assert status == 0, text
+    assert sorted(telemetry) == list(range(steps + 1)), text
+    assert telemetry[0].drops == expected, text  # every junk sample came before tick 0's inputs
+    assert telemetry[steps].drops == expected  # and nothing valid was dropped since
+    assert sum(expected.values()) == len(junk) and set(expected) == {"malformed", "version", "type", "sender",
+                                                                      "size", "nonfinite"}
+    for msg in telemetry.values():
+        assert all(math.isfinite(x) for x in [*msg.u, *msg.xi, *msg.zeta, *msg.kp, *msg.kv])
+        assert {link.src for link in msg.links} == {4, LEADER}
+    # the valid samples, and only they, were used (Eq. 8, 9): agent 1 at (1.5 + t, -0.5) with offset (1, 0),
+    # the leader at (t, 0), agent 4 at (t, -1) with offset (0, -1), all moving at (1, 0):
+    # xi = [(0.5, -0.5) - 0] + [(0.5, -0.5) - (0, 0)] = (1, -1), zeta = 0
+    for msg in telemetry.values():
+        np.testing.assert_allclose(msg.xi, [1.0, -1.0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(msg.zeta, [0.0, 0.0], rtol=0, atol=1e-12)
+    assert "Traceback" not in text and "ERROR" not in text
+
+
+def test_an_agent_with_an_id_the_mission_lacks_exits_2_naming_the_option() -> None:
+    port = tp.free_tcp_port()
+    r = subprocess.run(tether_cmd("agent", "--mission", "section4", "--id", "9", "--clock", "lockstep",
+                                  "--zenoh-mode", "client", "--connect", tp.loopback_endpoint(port)),
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert "--id" in r.stderr and "9" in r.stderr and "[1, 2, 3, 4]" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+# =========================================================================== real time, interrupted
+@dataclass
+class Interrupted:
+    run: Launched
+    live: dict[str, Any]
+    """One decoded sample per kind of key, as a plain client heard it."""
+    telemetry_drops: dict[str, int]
+    """Agent 1's ``drops`` in the first telemetry that showed every malformed sample dropped."""
+    expected_drops: dict[str, int]
+    recorder_expected: dict[str, int]
+    seconds_to_exit: float
+    survivors: list[str | int]
+    """Children still alive after the launcher exited, by name, and any other process naming the run's namespace."""
+
+
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupted]:
+    """A 60 s real-time run: a plain client joins it, reads live samples, publishes malformed ones
+    on agent 1's inputs and waits until agent 1's telemetry counts them; then SIGINT."""
+    ns = f"interrupted-{os.getpid()}"
+    keys = wire.Keys(ns)
+    with launch(tmp_path_factory.mktemp("interrupted"), ns, "--clock", "realtime", "--duration", "60") as run:
+        wait_for_realtime_start(run)
+        client = PlainClient(router_of(run.children))
+        try:
+            client.subscribe(keys.everything)
+            live: dict[str, Any] = {}
+            kinds = {f"{role}/{topic}" for role, topic in (("leader", "state"), ("agent", "state"), ("agent", "cmd"),
+                                                           ("agent", "telemetry"), ("plant", "state"))}
+            deadline = time.monotonic() + WAIT
+            while set(live) != kinds:
+                key, msg = client.next_matching(lambda k, m: True, deadline - time.monotonic(),
+                                                f"a live sample of each of {sorted(kinds - set(live))}")
+                role, node, topic = wire.Keys.parse(key)
+                live.setdefault(f"{role}/{topic}", (node, msg))
+            client.unsubscribe()
+            agent1 = keys.topic("agent", 1, "telemetry")
+            client.subscribe(agent1)
+            junk = junk_for_agent_1(ns, 10**6)
+            expected = count([r for *_, r in junk])
+            heard_by_recorder = (keys.topic("plant", 1, "state"), keys.topic("leader", LEADER, "state"))
+            recorder_expected = count([r for key, _, r in junk if key in heard_by_recorder])
+            pubs = {key: client.publisher(key) for key in {key for key, _, _ in junk}}
+            for key, payload, _ in junk:
+                pubs[key].put(payload)
+            _, tele = client.next_matching(lambda k, m: k == agent1 and m.drops == expected, WAIT,
+                                           f"agent 1's telemetry to count {expected}")
+            client.next_matching(lambda k, m: k == agent1 and m.k >= 100, WAIT,
+                                 "agent 1 at tick 100")  # a second of run to record
+            for pub in pubs.values():
+                pub.undeclare()
+        finally:
+            client.close()
+        assert run.proc.poll() is None, f"the launcher ended early:\n{run.launcher_log}"
+        assert len(processes_naming(ns)) == 1 + len(CHILDREN)  # the survivor check below sees them all
+        sent = time.monotonic()
+        run.proc.send_signal(signal.SIGINT)
+        run.wait(30)
+        took = time.monotonic() - sent
+        survivors = [name for name, pid in run.children.items() if alive(pid)] + processes_naming(ns)
+        yield Interrupted(run, live, dict(tele.drops), expected, recorder_expected, took, survivors)
+
+
+def test_ctrl_c_stops_every_process_within_seconds_and_keeps_a_partial_run(interrupted: Interrupted) -> None:
+    run = interrupted.run
+    assert run.status == 130, run.launcher_log
+    print(f"\nlauncher exited {interrupted.seconds_to_exit:.2f} s after SIGINT")
+    assert interrupted.seconds_to_exit < 15.0
+    assert interrupted.survivors == []
+    assert "interrupted" in run.launcher_log
+    statuses = exit_statuses(run.launcher_log)
+    # each stopped by its SIGTERM; the recorder may beat its own: in real time it also ends, well, once
+    # every producer's token is gone, which the others' stopping can bring about first
+    assert statuses.pop("recorder/0") in (0, 143)
+    assert statuses == {n: 143 for n in CHILDREN if n != "recorder/0"}
+    rec = Run.load(run.out)
+    assert rec.meta["complete"] is False
+    assert rec.meta["source"] == "runtime-realtime"
+    assert 0 < rec.meta["samples_recorded"] < rec.meta["samples_expected"]
+    # the second of run waited for before SIGINT is in the file (real-time streams may drop a sample)
+    assert np.isfinite(rec.leader_p).all(axis=1).sum() >= 90
+
+
+def test_a_plain_zenoh_client_decodes_live_samples_with_the_schema_alone(interrupted: Interrupted) -> None:
+    live = interrupted.live
+    expect = {"leader/state": wire.State, "agent/state": wire.State, "agent/cmd": wire.Command,
+              "agent/telemetry": wire.Telemetry, "plant/state": wire.PlantState}
+    assert {kind: type(msg) for kind, (_, msg) in live.items()} == expect
+    for kind, (node, msg) in live.items():
+        assert msg.v == wire.WIRE_VERSION and msg.sender == node, kind
+        assert msg.t == pytest.approx(msg.k / 100, abs=1e-9) and msg.k >= 0, kind
+    node, tele = live["agent/telemetry"]
+    assert len(tele.xi) == 2 and all(math.isfinite(x) for x in tele.kp)
+    assert {link.src for link in tele.links} == {4: {3}, 1: {4, LEADER}, 2: {1}, 3: {2}}[node]
+
+
+def test_malformed_input_in_a_live_run_is_dropped_counted_and_crashes_nothing(interrupted: Interrupted) -> None:
+    assert interrupted.telemetry_drops == interrupted.expected_drops
+    run = interrupted.run
+    assert run.status == 130  # not 1: no process failed before the interrupt
+    for name in CHILDREN:
+        assert "Traceback" not in run.child_log(name) and "ERROR" not in run.child_log(name), name
+    rec = Run.load(run.out)
+    total = sum(interrupted.expected_drops.values())
+    drops = rec.extra["drops"]  # (T, N): agent i's drops since start, as of each tick
+    assert np.nanmax(drops[:, 0]) == total
+    assert np.nanmax(drops[:, 1:]) == 0  # nothing was sent to the others
+    assert rec.meta["recorder_drops"] == interrupted.recorder_expected
+
+
+# =========================================================================== real time, one agent killed
+@dataclass
+class Killed:
+    run: Launched
+    victim: str
+    killed_at: float
+    """Unix time [s] of the SIGKILL."""
+    survivors: list[str | int]
+
+
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Killed]:
+    ns = f"killed-{os.getpid()}"
+    with launch(tmp_path_factory.mktemp("killed"), ns, "--clock", "realtime", "--duration", "60") as run:
+        wait_for_realtime_start(run)
+        client = PlainClient(router_of(run.children))
+        try:  # under way: agent 3, which hears agent 2, has run half a second of ticks
+            agent3 = wire.Keys(ns).topic("agent", 3, "telemetry")
+            client.subscribe(agent3)
+            client.next_matching(lambda k, m: k == agent3 and m.k >= 50 and m.links[0].used > 0, WAIT,
+                                 "agent 3 at tick 50, using agent 2's samples")
+        finally:
+            client.close()
+        victim = "agent/2"
+        killed_at = time.time()
+        os.kill(run.children[victim], signal.SIGKILL)
+        run.wait(30)
+        survivors = [name for name, pid in run.children.items() if alive(pid)] + processes_naming(ns)
+        yield Killed(run, victim, killed_at, survivors)
+
+
+def test_killing_an_agent_fails_the_run_naming_it(killed: Killed) -> None:
+    run = killed.run
+    assert run.status == 1, run.launcher_log
+    assert f"{killed.victim} exited with status {-signal.SIGKILL}" in run.launcher_log
+    assert exit_statuses(run.launcher_log)[killed.victim] == -signal.SIGKILL
+    assert killed.survivors == []
+
+
+def test_out_neighbours_see_a_killed_agent_go_silent_within_a_second(killed: Killed) -> None:
+    token = f"@tether/{killed.run.ns}/{killed.victim}"
+    # agent 3 hears agent 2 (edge 2 -> 3) and plant 2 takes its commands
+    for watcher in ("agent/3", "plant/2"):
+        lines = [ln for ln in killed.run.child_log(watcher).splitlines() if f"{token} went silent" in ln]
+        assert lines, f"{watcher} never noticed {token} go:\n{killed.run.child_log(watcher)}"
+        assert "WARNING" in lines[0]
+        delay = log_time(lines[0]) - killed.killed_at
+        print(f"\n{watcher} logged {token} silent {delay:.3f} s after the SIGKILL")
+        assert -0.01 <= delay < 1.0, f"{watcher} noticed after {delay:.3f} s"
+    for other in ("agent/1", "agent/4"):  # they do not hear agent 2: no warning about it
+        assert f"{token} went silent" not in killed.run.child_log(other)
+
+
+# =========================================================================== real time, measured
+@pytest.fixture(scope="module")
+def realtime(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Finished]:
+    ns = f"realtime-{os.getpid()}"
+    with launch(tmp_path_factory.mktemp("realtime"), ns, "--clock", "realtime", "--duration", "20") as run:
+        run.wait(STARTUP + 60)
+        yield Finished(run.out, run.status, run.launcher_log)
+
+
+def envelope(run: Run, since: float) -> float:
+    """The formation-error envelope: max over agents and ticks t_k >= ``since`` of ||xi_i(t_k)|| [m],
+    xi as the agents computed it (Eq. 8) and recorded it."""
+    recent = run.t >= since - 1e-9
+    return float(np.nanmax(np.linalg.norm(run.xi[recent], axis=-1)))
+
+
+def physical_envelope(run: Run, since: float) -> float:
+    """The same envelope with xi recomputed (Eq. 8) from the plants' measurements and the leader's
+    state of one and the same tick: the formation as it was, not as the agents perceived it."""
+    setup = refsim.Setup.of(load_mission(SECTION4, float(run.t[-1])))
+    recent = np.nonzero(run.t >= since - 1e-9)[0]
+    p = run.extra["plant_p"] if "plant_p" in run.extra else run.p
+    kappa = setup.topo.kappa[:, None]
+    xi = np.array([kappa * p[k] - refsim.neighbour_sums(setup.topo, np.vstack([p[k], run.leader_p[k]]))
+                   - setup.sum_wdelta for k in recent])
+    return float(np.nanmax(np.linalg.norm(xi, axis=-1)))
+
+
+@pytest.mark.xfail(strict=True, reason="measured +17 % to +18 % (1.22-1.23 m) on a quiet machine, +52 % (1.58 m) "
+                   "on a loaded one, against 1.04 m in lockstep. The excess is single-tick spikes where an agent's "
+                   "own sample and its neighbours' are from different ticks (the leader moves at ~8 m/s: ~8 cm of "
+                   "apparent error per period of mismatch); see "
+                   "test_realtime_telemetry_is_stamped_with_the_time_of_its_measurement")
+def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(realtime: Finished) -> None:
+    """Over the last 10 s of a 20 s run. The lockstep run of the same mission equals the reference
+    simulator to 1e-9 (test_lockstep_run_equals_the_reference_simulator), so the reference
+    simulator stands in for a second, 20 s lockstep run."""
+    assert realtime.status == 0, realtime.launcher_log
+    rt = Run.load(realtime.out)
+    ref = refsim.simulate(load_mission(SECTION4, 20.0))
+    got, want = envelope(rt, 10.0), envelope(ref, 10.0)
+    phys, phys_ref = physical_envelope(rt, 10.0), physical_envelope(ref, 10.0)
+    print(f"\nformation-error envelope over the last 10 s: real time {got:.4f} m, lockstep {want:.4f} m "
+          f"({100 * (got / want - 1):+.1f} %); from the plants at common ticks: real time {phys:.4f} m, "
+          f"lockstep {phys_ref:.4f} m ({100 * (phys / phys_ref - 1):+.1f} %)")
+    assert abs(got / want - 1) <= 0.10, f"real time {got:.4f} m vs lockstep {want:.4f} m"
+
+
+def test_realtime_run_ends_well_and_records_most_ticks(realtime: Finished) -> None:
+    assert realtime.status == 0, realtime.launcher_log
+    assert exit_statuses(realtime.launcher_log) == {n: 0 for n in CHILDREN}
+    rt = Run.load(realtime.out)
+    assert rt.meta["source"] == "runtime-realtime"
+    recorded = np.isfinite(rt.xi).all(axis=-1).mean()
+    assert recorded > 0.9, f"only {recorded:.1%} of agent ticks recorded"
+
+
+@pytest.mark.xfail(strict=True, reason="BUG agent/node.py: in real time the agent republishes and records its "
+                   "plant's newest sample (usually of tick k-1) stamped with its own tick k and t_k, so the "
+                   "run file's p[k] is p(t_{k-1}) and neighbours under-estimate the sample's age by a period")
+def test_realtime_telemetry_is_stamped_with_the_time_of_its_measurement(realtime: Finished) -> None:
+    rt = Run.load(realtime.out)
+    both = np.isfinite(rt.p).all(axis=-1) & np.isfinite(rt.extra["plant_p"]).all(axis=-1)
+    same = (rt.p == rt.extra["plant_p"]).all(axis=-1)
+    stale = int(np.count_nonzero(both & ~same))
+    assert stale == 0, f"{stale} of {int(both.sum())} agent ticks carry another tick's plant measurement"
