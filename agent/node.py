@@ -1,8 +1,11 @@
 """Agent i's process: Eq. 17 on what it hears from its plant and its in-neighbours only.
 
-Tick k: take its plant's measurement of tick k, publish it as agent i's state (what its
-out-neighbours use), take each in-neighbour's state of tick k (lockstep) or the newest held (real
-time), run :meth:`agent.law.AgentLaw.step`, publish the command to its plant and telemetry.
+Its plant's measurement is relayed as agent i's state (what its out-neighbours use) as soon as it
+arrives, stamped with the measurement's own tick and sample time. Tick k: take the plant's
+measurement of tick k and each in-neighbour's state of tick k (lockstep: exactly those; real
+time: the newest held), run :meth:`agent.law.AgentLaw.step`, publish the command to its plant and
+telemetry. In real time the agent ticks half a period after its plant and the leader
+(``AGENT_PHASE``), so that the tick-k samples are usually in by then.
 """
 
 from __future__ import annotations
@@ -18,13 +21,21 @@ from tether.node import Node, Source
 
 log = logging.getLogger("tether")
 
+AGENT_PHASE = 0.5
+"""Real time: agents tick at ``epoch + (k + AGENT_PHASE) h``; plants and the leader at ``epoch + k h``."""
+
 
 async def run(node: Node) -> None:
     m = node.mission
     aid = node.args.node_id
     law = AgentLaw.from_mission(m, aid)
     keys = node.keys
-    plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid)
+    state = node.publisher(keys.topic("agent", aid, "state"))
+
+    def relay(msg: wire.PlantState) -> None:
+        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=msg.a)
+
+    plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
     node.watch("plant", aid, plant)
     nbrs: list[Source] = []
     for j in law.neighbours:
@@ -32,12 +43,12 @@ async def run(node: Node) -> None:
         src = node.source(keys.topic(role, j, "state"), wire.State, j)
         node.watch(role, j, src)
         nbrs.append(src)
-    state = node.publisher(keys.topic("agent", aid, "state"))
     cmd = node.publisher(keys.topic("agent", aid, "cmd"))
     tele = node.publisher(keys.topic("agent", aid, "telemetry"))
-    await node.ready()
+    await node.ready(phase=AGENT_PHASE)
 
     d = m.dim
+    lockstep = node.args.clock == "lockstep"
     kp, kv = law.params.kp0.copy(), law.params.kv0.copy()
     used = [0] * len(nbrs)
     nb_p, nb_v, nb_a = (np.zeros((len(nbrs), d)) for _ in range(3))
@@ -47,7 +58,6 @@ async def run(node: Node) -> None:
         own = await node.sample(plant, k)
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
-        state.send(wire.State, k, t, p=own.p, vel=own.vel, a=own.a)
         ages = []
         for n, src in enumerate(nbrs):
             msg = await node.sample(src, k)
@@ -60,9 +70,10 @@ async def run(node: Node) -> None:
         p, v = np.array(own.p), np.array(own.vel)
         u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
         cmd.send(wire.Command, k, t, u=u.tolist())
-        links = [wire.LinkStats(src=j, received=s.received, used=used[n], stale=s.stale, age=ages[n], silent=s.silent)
+        links = [wire.LinkStats(src=j, received=s.received_upto(k) if lockstep else s.received, used=used[n],
+                                stale=s.stale, age=ages[n], silent=s.silent)
                  for n, (j, s) in enumerate(zip(law.neighbours, nbrs))]
-        tele.send(wire.Telemetry, k, t, p=own.p, vel=own.vel, a=own.a, u=u.tolist(), xi=xi.tolist(),
+        tele.send(wire.Telemetry, k, t, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u.tolist(), xi=xi.tolist(),
                   zeta=zeta.tolist(), kp=kp.tolist(), kv=kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=getattr(node.clock, "late", 0))
         kp, kv = kp_next, kv_next

@@ -47,13 +47,28 @@ import zenoh
 HEADER = struct.Struct("<qq")  # tick k, send time [ns, CLOCK_MONOTONIC]
 
 
-def _qos(kind: str) -> dict:
-    """The QoS tether's ``Node.publisher`` gives every stream: SYNC in lockstep, STATE in real time."""
-    if kind == "lockstep":
-        return {"congestion_control": zenoh.CongestionControl.BLOCK, "priority": zenoh.Priority.INTERACTIVE_LOW,
-                "express": True}
-    return {"congestion_control": zenoh.CongestionControl.DROP, "priority": zenoh.Priority.INTERACTIVE_HIGH,
-            "express": True}
+PRESETS = {  # tether.transport's presets, spelled out
+    "SYNC": (zenoh.CongestionControl.BLOCK, zenoh.Priority.INTERACTIVE_LOW, True),
+    "STATE": (zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_HIGH, True),
+    "COMMAND": (zenoh.CongestionControl.DROP, zenoh.Priority.REAL_TIME, True),
+    "TELEMETRY": (zenoh.CongestionControl.DROP, zenoh.Priority.DATA_LOW, False),
+}
+
+
+def _qos(kind: str, stream: str = "state", override: dict | None = None) -> dict:
+    """The QoS tether's ``Node.publisher`` gives every stream: SYNC in lockstep, STATE in real time
+    (``override`` maps a stream name to another preset, for experiments)."""
+    name = (override or {}).get(stream) or ("SYNC" if kind == "lockstep" else "STATE")
+    cc, prio, express = PRESETS[name]
+    return {"congestion_control": cc, "priority": prio, "express": express}
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 class Bare:
@@ -68,6 +83,8 @@ class Bare:
         self.sizes = spec["sizes"]
         cfg = zenoh.Config.from_json5(spec["client_config"])
         cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        if spec.get("mesh"):  # a peer listening on its own port, meeting the others through gossip
+            cfg.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{_free_port()}"]))
         self.session = zenoh.open(cfg)
         self.loop = asyncio.get_running_loop()
         self.queue: collections.deque = collections.deque()
@@ -87,8 +104,11 @@ class Bare:
         return f"tether/{self.ns}/{role}/{nid}/{topic}"
 
     # ---------------------------------------------------------------- wiring
-    def subscribe(self, key: str, idx: int) -> None:
-        q, latest, wake, notify = self.queue, self.latest, self.wake, self._notify
+    def subscribe(self, key: str, idx: int, wake: bool | None = None) -> None:
+        """Hand every sample of ``key`` to the deque as input ``idx``; wake the loop if ``wake``
+        (default: in lockstep, or when the spec asks every input to wake it)."""
+        q, latest, notify = self.queue, self.latest, self._notify
+        wake = self.wake if wake is None else wake or self.wake
 
         def on_sample(sample: zenoh.Sample) -> None:
             data = sample.payload.to_bytes()
@@ -97,7 +117,8 @@ class Bare:
             if wake:
                 notify()
 
-        self.declared.append(self.session.declare_subscriber(key, on_sample))
+        handler = zenoh.handlers.Callback(on_sample, indirect=False) if self.spec.get("direct") else on_sample
+        self.declared.append(self.session.declare_subscriber(key, handler))
 
     def _notify(self) -> None:
         with self.lock:
@@ -116,7 +137,7 @@ class Bare:
             self.pending = False
 
     def publisher(self, name: str, key: str) -> None:
-        pub = self.session.declare_publisher(key, **_qos(self.clock))
+        pub = self.session.declare_publisher(key, **_qos(self.clock, name, self.spec.get("qos")))
         self.declared.append(pub)
         self.pubs[name] = pub
 
@@ -172,7 +193,7 @@ class Bare:
             self.subscribe(self.key("agent", nid, "cmd"), 0)
             self.publisher("state", self.key("plant", nid, "state"))
         elif self.role == "agent":
-            self.subscribe(self.key("plant", nid, "state"), 0)
+            self.subscribe(self.key("plant", nid, "state"), 0, wake=True)  # relayed on arrival
             for n, (role, j) in enumerate(spec["nbrs"][str(nid)]):
                 self.subscribe(self.key(role, j, "state"), 1 + n)
             for topic in ("state", "cmd", "telemetry"):
@@ -198,11 +219,15 @@ class Bare:
                 await asyncio.sleep(min(0.5, max(0.0, end - time.monotonic())))
                 self.drain()
             return
-        if self.wake:  # drain on every wake-up, as tether's nodes do between ticks
+        agent = self.role == "agent"
+        if agent:  # tether's agent ticks a fraction of a period after its plant and the leader
+            t0 += self.spec.get("agent_phase", 0.0) * h
+        task = None
+        if self.wake or agent:  # drain on every wake-up (the agent relays its plant's samples at once)
             async def drainer() -> None:
                 while True:
                     await self.wait()
-                    self.drain()
+                    self.relay(self.drain())
             task = asyncio.create_task(drainer())
         for k in range(steps + 1):
             due = t0 + k * h
@@ -211,19 +236,25 @@ class Bare:
                 await asyncio.sleep(delay)
             if time.monotonic() - due > h:
                 self.late += 1
-            self.drain()
+            self.relay(self.drain())
             if self.role == "leader":
                 self.put("state", sz["state"], k)
             elif self.role == "plant":
                 self.latest.get(0)  # the newest command
                 self.put("state", sz["plant_state"], k)
             else:
-                self.put("state", sz["state"], k)
-                [self.latest.get(i) for i in range(1, 1 + len(self.spec["nbrs"][str(self.nid)]))]
+                [self.latest.get(i) for i in range(len(self.spec["nbrs"][str(self.nid)]) + 1)]
                 self.put("cmd", sz["cmd"], k)
                 self.put("telemetry", sz["telemetry"], k)
-        if self.wake:
+        if task is not None:
             task.cancel()
+
+    def relay(self, items: list[tuple[int, int]]) -> None:
+        """Agent: publish each plant sample as the agent's state, with the plant's tick."""
+        if self.role == "agent":
+            for idx, k in items:
+                if idx == 0:
+                    self.put("state", self.sizes["state"], k)
 
     async def _lockstep_leader(self) -> None:
         granted, k = -1, 0
@@ -319,7 +350,12 @@ async def hub(spec: dict, endpoint: str) -> None:
     t_open = time.monotonic()
     try:
         while not alive >= members:
-            await event.wait()
+            try:
+                async with asyncio.timeout(spec.get("startup_timeout", 60.0)):
+                    await event.wait()
+            except TimeoutError:
+                print(f"missing {sorted(members - alive)}", flush=True)
+                sys.exit(1)
             event.clear()
             while q:
                 _, key, up = q.popleft()
@@ -352,7 +388,12 @@ async def hub(spec: dict, endpoint: str) -> None:
         t1 = time.monotonic()
         tick.put(HEADER.pack(min(steps, done + window), time.monotonic_ns()) + tick_pad)
         while done < steps:
-            await event.wait()
+            try:
+                async with asyncio.timeout(spec.get("stall_timeout", 30.0)):
+                    await event.wait()
+            except TimeoutError:
+                print(f"stalled at tick {done + 1}", flush=True)
+                sys.exit(1)
             event.clear()
             moved = False
             while acks:

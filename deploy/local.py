@@ -160,11 +160,12 @@ class LaunchFailed(RuntimeError):
     pass
 
 
-async def _watch_children(launch: Launch, allowed_to_end: asyncio.Event) -> None:
-    """Raise :class:`LaunchFailed` as soon as a child ends badly, or ends before the run is over."""
+async def _watch_children(launch: Launch) -> None:
+    """Raise :class:`LaunchFailed` as soon as a child ends badly. (Ending well early is normal:
+    in lockstep the leader finishes up to ``window`` ticks before the others.)"""
     while True:
         for c in launch.poll():
-            if c.status != 0 or not allowed_to_end.is_set():
+            if c.status != 0:
                 raise LaunchFailed(f"{c.name} exited with status {c.status}; its log ends:\n{c.tail()}")
         await asyncio.sleep(0.2)
 
@@ -248,13 +249,12 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    ended_ok = asyncio.Event()
     status = 0
     t0 = time.monotonic()
     try:
         async with tp.open_session(settings) as session:
             launch.spawn(router)
-            watcher = asyncio.create_task(_watch_children(launch, ended_ok))
+            watcher = asyncio.create_task(_watch_children(launch))
             stopper = asyncio.create_task(stop.wait())
 
             async def body() -> None:
@@ -266,7 +266,6 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                     await _lockstep(launch, session, progress)
                 else:
                     await _realtime(launch, session, progress)
-                ended_ok.set()
                 log.info("ran %g s of mission time in %.2f s of wall time", m.duration, time.monotonic() - t1)
                 while any(c.proc.poll() is None for c in launch.children):
                     await asyncio.sleep(0.05)

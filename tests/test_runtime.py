@@ -386,10 +386,6 @@ def test_two_lockstep_runs_are_identical_bit_for_bit(lockstep: tuple[Finished, F
     assert [name for name in differ if name not in TIMING_DIAGNOSTICS] == []
 
 
-@pytest.mark.xfail(strict=True, reason="BUG agent/node.py + node.Source: in lockstep, LinkStats.received counts "
-                   "the samples that happened to have arrived when tick k ran (up to `window` ticks ahead) and "
-                   "LinkStats.silent turns true when a neighbour that finished first exits, so the run file's "
-                   "link_received and link_silent differ from run to run")
 def test_two_lockstep_run_files_are_identical_in_every_array(lockstep: tuple[Finished, Finished]) -> None:
     a, b = lockstep
     assert differing_arrays(a.out, b.out) == []
@@ -672,11 +668,6 @@ def physical_envelope(run: Run, since: float) -> float:
     return float(np.nanmax(np.linalg.norm(xi, axis=-1)))
 
 
-@pytest.mark.xfail(strict=True, reason="measured +17 % to +18 % (1.22-1.23 m) on a quiet machine, +52 % (1.58 m) "
-                   "on a loaded one, against 1.04 m in lockstep. The excess is single-tick spikes where an agent's "
-                   "own sample and its neighbours' are from different ticks (the leader moves at ~8 m/s: ~8 cm of "
-                   "apparent error per period of mismatch); see "
-                   "test_realtime_telemetry_is_stamped_with_the_time_of_its_measurement")
 def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(realtime: Finished) -> None:
     """Over the last 10 s of a 20 s run. The lockstep run of the same mission equals the reference
     simulator to 1e-9 (test_lockstep_run_equals_the_reference_simulator), so the reference
@@ -701,12 +692,24 @@ def test_realtime_run_ends_well_and_records_most_ticks(realtime: Finished) -> No
     assert recorded > 0.9, f"only {recorded:.1%} of agent ticks recorded"
 
 
-@pytest.mark.xfail(strict=True, reason="BUG agent/node.py: in real time the agent republishes and records its "
-                   "plant's newest sample (usually of tick k-1) stamped with its own tick k and t_k, so the "
-                   "run file's p[k] is p(t_{k-1}) and neighbours under-estimate the sample's age by a period")
 def test_realtime_telemetry_is_stamped_with_the_time_of_its_measurement(realtime: Finished) -> None:
+    """Each agent tick records the measurement it used and that measurement's age: the run's p[k]
+    is the plant's sample of tick k - age/h, exactly, and with agents ticking half a period after
+    their plants the age is 0 (the tick-k sample) nearly always."""
     rt = Run.load(realtime.out)
-    both = np.isfinite(rt.p).all(axis=-1) & np.isfinite(rt.extra["plant_p"]).all(axis=-1)
-    same = (rt.p == rt.extra["plant_p"]).all(axis=-1)
-    stale = int(np.count_nonzero(both & ~same))
-    assert stale == 0, f"{stale} of {int(both.sum())} agent ticks carry another tick's plant measurement"
+    h = 1.0 / rt.meta["rate"]
+    age = rt.extra["meas_age"]
+    plant_p = rt.extra["plant_p"]
+    ok = np.isfinite(age)
+    lag = np.rint(np.where(ok, age, 0.0) / h).astype(int)
+    assert np.all(np.abs(age[ok] - lag[ok] * h) < 1e-9)
+    checked = 0
+    for k, i in zip(*np.nonzero(ok)):
+        src = k - lag[k, i]
+        if 0 <= src and np.all(np.isfinite(plant_p[src, i])):
+            np.testing.assert_array_equal(rt.p[k, i], plant_p[src, i])
+            checked += 1
+    assert checked > 0.9 * ok.sum()
+    fresh = float(np.mean(lag[ok] == 0))
+    print(f"\nshare of agent ticks that used their plant's sample of the same tick: {fresh:.1%}")
+    assert fresh > 0.5  # load-dependent: ~80-95 % on this 2-core VM

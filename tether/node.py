@@ -74,9 +74,17 @@ class Source:
     received: int = 0
     stale: int = 0
     """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
-    silent: bool = False
-    """Its producer's liveliness token is gone."""
+    last: int = -1
+    """The producer's last tick (the mission's), when known."""
+    gone: bool = False
+    """Its producer's liveliness token is absent."""
     on_message: Callable[[Any], None] | None = None
+
+    @property
+    def silent(self) -> bool:
+        """The producer is gone before its last tick (one that sent its last tick and left is not
+        silent, whatever order its last sample and its token's end arrive in)."""
+        return self.gone and not (self.newest is not None and self.newest.k >= self.last >= 0)
 
     def offer(self, msg: Any) -> None:
         self.received += 1
@@ -87,6 +95,11 @@ class Source:
         self.by_tick.setdefault(msg.k, msg)
         if self.on_message is not None:
             self.on_message(msg)
+
+    def received_upto(self, k: int) -> int:
+        """Samples accepted whose tick is at most ``k`` (in lockstep, what tick k could have seen,
+        whatever arrived early)."""
+        return self.received - sum(1 for t in self.by_tick if t > k)
 
     def forget_before(self, k: int) -> None:
         for old in [t for t in self.by_tick if t < k]:
@@ -127,6 +140,7 @@ class Node:
         self.clock: LockstepClock | RealtimeClock = self.lockstep
         self._start: Source | None = None
         self._paced = False
+        self._pump: asyncio.Task | None = None
         self.stop = asyncio.Event()
         self.token_log: list[tuple[str, bool]] = []
 
@@ -146,7 +160,7 @@ class Node:
     def source(self, key: str, expect: type, sender: int | None,
                on_message: Callable[[Any], None] | None = None) -> Source:
         """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``."""
-        src = Source(key, expect, sender, on_message=on_message)
+        src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message)
         self.sources[key] = src
         self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
         return src
@@ -156,13 +170,21 @@ class Node:
         key = self.keys.token(role, node_id)
         self._watched.setdefault(key, []).extend(sources)
 
-    async def ready(self, paced: bool = False) -> None:
+    async def pump(self) -> None:
+        """Real time: drain inputs whenever samples arrive, so that ``on_message`` hooks (an agent
+        relaying its plant's measurement) run at once instead of at the next tick."""
+        while True:
+            await self.wakeup.wait()
+            self.drain()
+
+    async def ready(self, paced: bool = False, phase: float = 0.0) -> None:
         """Declare liveliness (after every subscription, so a launcher that sees the token knows
         this process hears everything it needs), then wait for the start.
 
         In lockstep, only a ``paced`` role (the leader, whose inputs do not depend on the tick)
         follows the clock's grants; every other role is gated by its inputs of tick k, which is
-        what makes the run deterministic, and needs only the start."""
+        what makes the run deterministic, and needs only the start. In real time, tick k starts at
+        ``epoch + (k + phase) h``."""
         if self._watched:
             self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
         self._paced = paced and self.args.clock == "lockstep"
@@ -174,8 +196,13 @@ class Node:
         if self.args.clock == "realtime":
             epoch = start.newest.epoch
             mono = time.monotonic
-            self.clock = RealtimeClock(self.mission.dt, mono() + (epoch - time.time()), mono)
-            log.info("real time: tick 0 at %.3f (in %.3f s)", epoch, epoch - time.time())
+            if abs(epoch - time.time()) > 3600:
+                raise Stalled(f"the start instant {epoch} is more than an hour from this host's clock; "
+                              "check the clocks (NTP) of the launcher and this host")
+            h = self.mission.dt
+            self.clock = RealtimeClock(h, mono() + (epoch - time.time()) + phase * h, mono)
+            self._pump = asyncio.create_task(self.pump())
+            log.info("real time: tick 0 at %.3f (in %.3f s), phase %.2f", epoch, epoch - time.time(), phase)
 
     # ------------------------------------------------------------------ inputs
     def drain(self) -> None:
@@ -190,9 +217,11 @@ class Node:
         for ev in self.tokens.drain():
             self.token_log.append((ev.key, ev.alive))
             for src in self._watched.get(ev.key, ()):
-                if src.silent == ev.alive:
-                    log.warning("%s %s", ev.key, "is back" if ev.alive else "went silent (liveliness token gone)")
-                src.silent = not ev.alive
+                was_gone, src.gone = src.gone, not ev.alive
+                if ev.alive and was_gone:
+                    log.warning("%s is back", ev.key)
+                elif not ev.alive and src.silent:
+                    log.warning("%s went silent (liveliness token gone)", ev.key)
 
     async def until(self, ready: Callable[[], bool], timeout: float | None, what: str) -> None:
         """Wait (draining inputs) until ``ready()``; :class:`Stalled` naming ``what`` after ``timeout``."""
@@ -228,6 +257,8 @@ class Node:
         return late
 
     def close(self) -> None:
+        if self._pump is not None:
+            self._pump.cancel()
         for obj in reversed(self._declared):
             try:
                 obj.undeclare()

@@ -45,6 +45,7 @@ class Recording:
         for name in ("link_age", "link_received", "link_stale", "link_silent"):
             ex[name] = np.full((T, n, width), np.nan)
         ex["drops"] = np.full((T, n), np.nan)
+        ex["meas_age"] = np.full((T, n), np.nan)
         ex["late"] = np.full((T, n), np.nan)
         self.count = np.zeros(T, dtype=np.int64)
         self.expected = 1 + 2 * n
@@ -77,6 +78,7 @@ class Recording:
             ex["link_stale"][k, i, n] = link.stale
             ex["link_silent"][k, i, n] = float(link.silent)
         ex["drops"][k, i] = sum(msg.drops.values())
+        ex["meas_age"][k, i] = msg.t - msg.meas_t
         ex["late"][k, i] = msg.late
         self.count[k] += 1
 
@@ -126,7 +128,11 @@ def make(out: Path):
                 return rec.count[last] >= rec.expected or (seen >= wanted and (gone & wanted) == wanted)
 
             await node.until(finished, None, "the end of the run")
-        rec.save(complete=bool(np.all(rec.count >= rec.expected)), drops=node.receiver.drops)
+        complete = bool(np.all(rec.count >= rec.expected))
+        rec.save(complete=complete, drops=node.receiver.drops)
+        if rec.count[last] == 0:
+            raise RuntimeError("every producer left before the last tick: the run was cut short "
+                               f"(recorded {int(rec.count.sum())} of {rec.expected * len(rec.count)} samples)")
 
     def on_stop(node: Node) -> None:
         rec = holder.get("rec")

@@ -1,6 +1,6 @@
 """The wire: key expressions and messages every process speaks. Pure (no Zenoh, no I/O).
 
-Keys (one scheme, ``docs/wire.md``)::
+Keys (one scheme, also in ``docs/runtime.md``)::
 
     tether/<ns>/leader/<id>/state        State      the virtual leader's p, v, a at t_k
     tether/<ns>/agent/<id>/state         State      agent i's measured p, v, a at t_k (from its plant)
@@ -95,6 +95,9 @@ class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
 class Telemetry(_Msg, tag="telemetry"):
     """Agent i's tick: what it measured, computed and saw."""
 
+    meas_t: float
+    """Sample time of the own measurement used at this tick [s] (t_k in lockstep; in real time
+    the newest plant sample held, usually t_k when the agent ticks half a period after its plant)."""
     p: list[float]
     vel: list[float]
     a: list[float]
@@ -132,6 +135,16 @@ Message = State | PlantState | Command | Telemetry | Tick | Ack | Start
 
 _ENCODER = msgspec.msgpack.Encoder()
 _DECODER = msgspec.msgpack.Decoder(Message)
+
+
+class _Version(msgspec.Struct):
+    """Only the wire version, read before the strict decode (unknown fields ignored), so that a
+    message of another version is told apart from a malformed one."""
+
+    v: int
+
+
+_VERSION = msgspec.msgpack.Decoder(_Version)
 
 
 def encode(msg: Message) -> bytes:
@@ -221,12 +234,17 @@ class Receiver:
 
     def accept(self, payload: bytes, expect: type, sender: int | None) -> Message | None:
         try:
-            msg = _DECODER.decode(payload)
+            version = _VERSION.decode(payload).v
         except (msgspec.DecodeError, msgspec.ValidationError):
             self._drop("malformed")
             return None
-        if msg.v != WIRE_VERSION:
+        if version != WIRE_VERSION:
             self._drop("version")
+            return None
+        try:
+            msg = _DECODER.decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            self._drop("malformed")
             return None
         if not isinstance(msg, expect):
             self._drop("type")
@@ -234,7 +252,8 @@ class Receiver:
         if sender is not None and msg.sender != sender:
             self._drop("sender")
             return None
-        if not math.isfinite(msg.t):
+        if not math.isfinite(msg.t) or (isinstance(msg, Start) and not math.isfinite(msg.epoch)) \
+                or (isinstance(msg, Telemetry) and not math.isfinite(msg.meas_t)):
             self._drop("nonfinite")
             return None
         for name in _VECTOR_FIELDS.get(type(msg), ()):
