@@ -113,6 +113,32 @@ def threads(pid: int) -> int | None:
         return None
 
 
+def machine_jiffies() -> tuple[int, int]:
+    """(busy, total) jiffies of the whole machine since boot (``/proc/stat``, first line)."""
+    with open("/proc/stat") as fh:
+        f = [int(x) for x in fh.readline().split()[1:]]
+    idle = f[3] + (f[4] if len(f) > 4 else 0)  # idle + iowait
+    return sum(f) - idle, sum(f)
+
+
+def busy_cores(seconds: float = 1.0) -> float:
+    """Cores' worth of CPU the whole machine used over the next ``seconds`` (blocks that long)."""
+    b0, _ = machine_jiffies()
+    time.sleep(seconds)
+    b1, _ = machine_jiffies()
+    return (b1 - b0) / CLK_TCK / seconds
+
+
+def wait_quiet(limit: float, timeout: float) -> float:
+    """Wait (up to ``timeout`` s) until the machine uses less than ``limit`` cores with none of our runs
+    going, so that another user's burst does not land in a measurement; returns the last reading."""
+    deadline = time.monotonic() + timeout
+    busy = busy_cores()
+    while busy > limit and time.monotonic() < deadline:
+        busy = busy_cores(2.0)
+    return busy
+
+
 def rss_kib(pid: int) -> int | None:
     try:
         with open(f"/proc/{pid}/status") as fh:
@@ -218,6 +244,27 @@ class Sampler:
             p.snap1()
 
 
+class Window:
+    """The measured window of one run: every process's CPU, and the whole machine's."""
+
+    def __init__(self, procs: list[Proc]):
+        self.procs = procs
+        self.sampler = Sampler(procs)
+
+    def open(self) -> None:
+        self.t0 = time.monotonic()
+        self.m0 = machine_jiffies()[0]
+        for p in self.procs:
+            p.snap0()
+        self.sampler.start()
+
+    def close(self, res: "Result") -> None:
+        self.sampler.stop()
+        res.window_s = time.monotonic() - self.t0
+        machine = 100 * (machine_jiffies()[0] - self.m0) / CLK_TCK / res.window_s
+        res.foreign_pct = machine - sum(100 * p.cpu / res.window_s for p in self.procs if p.cpu == p.cpu)
+
+
 @dataclass
 class Result:
     """One run (tether or baseline)."""
@@ -233,6 +280,8 @@ class Result:
     startup_s: float = float("nan")
     window_s: float = float("nan")
     """Wall time between the two CPU snapshots [s]."""
+    foreign_pct: float = float("nan")
+    """CPU used by everything else on the machine during the window [% of one core]: noise."""
     procs: list[Proc] = field(default_factory=list)
     late: float = float("nan")
     """Late ticks / agent ticks (real time)."""
@@ -247,7 +296,9 @@ class Result:
         return self.mission_s / self.wall_s
 
     def cpu_pct(self, role: str | None = None) -> list[float]:
-        return [100 * p.cpu / self.window_s for p in self.procs if role is None or p.role == role]
+        """CPU per process over the window [% of one core]; every measured role but the probe by default."""
+        return [100 * p.cpu / self.window_s for p in self.procs
+                if (role is None and p.role != "probe") or p.role == role]
 
     def total_cpu_pct(self) -> float:
         return float(sum(self.cpu_pct()))
@@ -485,23 +536,15 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
                 t_up = time.monotonic()
                 lead = START_LEAD if clock == "realtime" else 0.0
 
-                def snap0() -> None:
-                    nonlocal t0, sampler
-                    t0 = time.monotonic()
-                    for pr in res.procs:
-                        pr.snap0()
-                    sampler = Sampler(res.procs)
-                    sampler.start()
-
-                t0 = sampler = None
-                timer = threading.Timer(max(0.0, t_up + lead - time.monotonic()), snap0)
+                if probe_proc is not None:
+                    res.procs.append(Proc(probe_proc.pid, "probe", 0))
+                window = Window(res.procs)
+                timer = threading.Timer(max(0.0, t_up + lead - time.monotonic()), window.open)
                 timer.start()
             mo = re.search(r"ran (\S+) s of mission time in (\S+) s of wall time", line)
             if mo:
                 timer.join()
-                t1 = time.monotonic()
-                sampler.stop()
-                res.window_s = t1 - t0
+                window.close(res)
                 res.mission_s, res.wall_s = float(mo[1]), float(mo[2])
         rc = p.wait(timeout=60)
         if rc != 0:
@@ -566,7 +609,9 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
                                   stdin=subprocess.DEVNULL, text=True, env=env, start_new_session=True)
             kids.append((kp, role, nid))
         res.procs = [Proc(kp.pid, role, nid) for kp, role, nid in kids] + [Proc(hub.pid, "launcher", 0)]
-        t0 = None
+        if probe_proc is not None:
+            res.procs.append(Proc(probe_proc.pid, "probe", 0))
+        window = Window(res.procs)
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=_reader, args=(hub.stdout, lines), daemon=True).start()
         deadline = time.monotonic() + 120 + 3 * duration
@@ -586,15 +631,9 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
                 if clock == "realtime":
                     t_tick0 = time.monotonic() + (float(rest[0]) - time.time())
                     time.sleep(max(0.0, t_tick0 - time.monotonic()))
-                t0 = time.monotonic()
-                for pr in res.procs:
-                    pr.snap0()
-                sampler = Sampler(res.procs)
-                sampler.start()
+                window.open()
             elif word == "ran":
-                t1 = time.monotonic()
-                sampler.stop()
-                res.window_s = t1 - t0
+                window.close(res)
                 res.mission_s, res.wall_s = float(rest[0]), float(rest[1])
         hub.wait(timeout=30)
         if not res.ok:
@@ -652,6 +691,16 @@ def say(text: str = "") -> None:
     print(text, flush=True)
 
 
+QUIET = {"limit": 0.5, "timeout": 60.0}
+
+
+def settle() -> None:
+    """Before a run: wait for the machine to be quiet (see :func:`wait_quiet`); say so if it is not."""
+    busy = wait_quiet(QUIET["limit"], QUIET["timeout"])
+    if busy > QUIET["limit"]:
+        say(f"   (the machine is busy with other work: {busy:.2f} cores in use before this run)")
+
+
 def mission_file(work: Path, n: int, rate: float, duration: float) -> tuple[Path, ms.Mission]:
     path = work / f"ring{n}-{rate:g}hz.toml"
     return path, missions.write(path, n, rate=rate, duration=duration, topology="ring")
@@ -669,7 +718,9 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
     rows = []
     t, b, r = [], [], []
     for i in range(a.repeats):
+        settle()
         rt = run_tether(path, m, "lockstep", a.lockstep_duration, work)
+        settle()
         rb = run_baseline(m, "lockstep", a.lockstep_duration, work)
         t0 = time.perf_counter()
         refsim.simulate(m, "discrete")
@@ -725,7 +776,9 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
     largest = None
     for n in a.sizes:
         path, m = mission_file(work, n, a.scale_rate, a.rt_duration)
+        settle()
         rt = run_tether(path, m, "realtime", a.rt_duration, work)
+        settle()
         rb = run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)
         pairs.append((rt, rb))
         row = _rt_row(rt, rb)
@@ -755,7 +808,9 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
     say("          router -> agent callback -> hand-off -> decode -> relay put -> router)")
     rows = []
     for i in range(a.repeats):
+        settle()
         rt = run_tether(path, m, "realtime", a.latency_duration, work, probe=True)
+        settle()
         rb = run_baseline(m, "realtime", a.latency_duration, work, probe=True, wake=a.baseline_wake)
         pairs.append((rt, rb))
         row = _rt_row(rt, rb)
@@ -836,9 +891,13 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--latency-duration", type=float, default=10.0)
     ap.add_argument("--baseline-wake", action="store_true",
                     help="real-time baseline wakes its loop on every sample, as tether's nodes do")
+    ap.add_argument("--quiet-below", type=float, default=0.5,
+                    help="before each run, wait until the machine uses fewer cores than this (other users)")
+    ap.add_argument("--quiet-timeout", type=float, default=60.0, help="... but no longer than this [s]")
     ap.add_argument("--work", type=Path, default=None, help="keep run directories here (default: a temp dir)")
     ap.add_argument("--json", type=Path, default=None, help="write every figure here")
     a = ap.parse_args(argv)
+    QUIET.update(limit=a.quiet_below, timeout=a.quiet_timeout)
     report: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                           "load_at_start": os.getloadavg()}}
     say(f"bench/runtime.py: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, load average at start "

@@ -364,7 +364,7 @@ def test_lockstep_run_equals_the_reference_simulator(lockstep: tuple[Finished, F
 
 
 TIMING_DIAGNOSTICS = ("link_received", "link_silent")
-"""Run-file arrays that record when samples *arrived* (not which were used); see the xfail below."""
+"""Run-file arrays that once depended on when samples arrived (now deterministic too)."""
 
 
 def differing_arrays(a: Path, b: Path) -> list[str]:

@@ -28,7 +28,7 @@ SAMPLES: dict[type, wire.Message] = {
     wire.PlantState: wire.PlantState(sender=2, seq=1, k=1, t=0.01, p=[0.1, 0.2], vel=[0.3, 0.4], a=[0.5, 0.6],
                                      d=[math.nan, 0.125]),
     wire.Command: wire.Command(sender=4, seq=99, k=99, t=0.99, u=[-1.5, 3.0]),
-    wire.Telemetry: wire.Telemetry(sender=1, seq=12, k=12, t=0.12, p=[1.0, 2.0], vel=[3.0, 4.0], a=[5.0, 6.0],
+    wire.Telemetry: wire.Telemetry(sender=1, seq=12, k=12, t=0.12, meas_t=0.12, p=[1.0, 2.0], vel=[3.0, 4.0], a=[5.0, 6.0],
                                    u=[7.0, 8.0], xi=[0.1, -0.1], zeta=[0.2, -0.2], kp=[1.5, 1.25], kv=[2.0, 1.0],
                                    links=LINKS, drops={"malformed": 2, "sender": 1}, late=3),
     wire.Tick: wire.Tick(sender=0, seq=4, k=40, t=0.4, grant=40),
