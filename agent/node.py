@@ -55,12 +55,11 @@ async def run(node: Node) -> None:
     for k in range(m.steps + 1):
         await node.tick(k)
         t = k * m.dt
-        own = await node.sample(plant, k)
+        own, *heard = await node.aligned([plant, *nbrs], k)
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
         ages = []
-        for n, src in enumerate(nbrs):
-            msg = await node.sample(src, k)
+        for n, msg in enumerate(heard):
             if msg is None:
                 ages.append(math.nan)
                 continue

@@ -106,6 +106,33 @@ def context_switches(pid: int) -> int | None:
     return total
 
 
+def thread_cpu(pid: int) -> dict[int, tuple[str, float]] | None:
+    """CPU time [s] of every thread of ``pid``: tid -> (kind, seconds), kind ``main`` (the asyncio
+    thread), ``zenoh`` (Zenoh's runtime threads: ``app-*``, ``rx-*``, ``tx-*``, ``net-*``, ``acc-*``)
+    or ``callback`` (the other Python threads: zenoh-python runs one per subscriber callback)."""
+    out = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return None
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm") as fh:
+                comm = fh.read().strip()
+            with open(f"/proc/{pid}/task/{tid}/stat") as fh:
+                rest = fh.read().rpartition(")")[2].split()
+        except OSError:
+            continue
+        if int(tid) == pid:
+            kind = "main"
+        elif re.match(r"(app|rx|tx|net|acc)-\d+$", comm):
+            kind = "zenoh"
+        else:
+            kind = "callback"
+        out[int(tid)] = (kind, (int(rest[11]) + int(rest[12])) / CLK_TCK)
+    return out
+
+
 def threads(pid: int) -> int | None:
     try:
         return len(os.listdir(f"/proc/{pid}/task"))
@@ -185,15 +212,29 @@ class Proc:
     rss: int | None = None
     threads: int | None = None
 
+    th0: dict[int, tuple[str, float]] | None = None
+    th1: dict[int, tuple[str, float]] | None = None
+
     def snap0(self) -> None:
         self.cpu0 = cpu_times(self.pid)
         self.ctx0 = context_switches(self.pid)
+        self.th0 = thread_cpu(self.pid)
 
     def snap1(self) -> None:
         """Read the end of the window; a process already gone keeps its last sampled values."""
         cpu, ctx, rss, nth = cpu_times(self.pid), context_switches(self.pid), rss_kib(self.pid), threads(self.pid)
-        if None not in (cpu, ctx, rss, nth):
-            self.cpu1, self.ctx1, self.rss, self.threads = cpu, ctx, rss, nth
+        th = thread_cpu(self.pid)
+        if None not in (cpu, ctx, rss, nth, th):
+            self.cpu1, self.ctx1, self.rss, self.threads, self.th1 = cpu, ctx, rss, nth, th
+
+    def by_thread(self) -> dict[str, float]:
+        """CPU over the window [s] by thread kind (see :func:`thread_cpu`)."""
+        out = {"main": 0.0, "callback": 0.0, "zenoh": 0.0}
+        if self.th0 is None or self.th1 is None:
+            return {k: float("nan") for k in out}
+        for tid, (kind, sec) in self.th1.items():
+            out[kind] += sec - self.th0.get(tid, (kind, 0.0))[1]
+        return out
 
     @property
     def cpu(self) -> float:
@@ -299,6 +340,11 @@ class Result:
         """CPU per process over the window [% of one core]; every measured role but the probe by default."""
         return [100 * p.cpu / self.window_s for p in self.procs
                 if (role is None and p.role != "probe") or p.role == role]
+
+    def thread_pct(self, role: str) -> dict[str, float]:
+        """Median over the role's processes of CPU by thread kind [% of one core]."""
+        rows = [p.by_thread() for p in self.procs if p.role == role]
+        return {k: med([100 * r[k] / self.window_s for r in rows]) for k in ("main", "callback", "zenoh")}
 
     def total_cpu_pct(self) -> float:
         return float(sum(self.cpu_pct()))
@@ -873,6 +919,45 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
         report["cpu"] = {"rows": rows, "agent_cpu_ratio": cpu_r, "agent_rss_ratio": rss_r}
 
 
+def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25) -> None:
+    """Run ``tether run`` (launcher in this process) with one child under cProfile and print where its
+    time goes. ``who`` is ``role:id`` (``agent:1``, ``recorder:0``, ...). The child is started by the
+    launcher exactly as usual, with ``-m cProfile -o FILE`` put before ``-m tether.cli``."""
+    import asyncio
+    import cProfile  # noqa: F401  (the child runs it)
+    import pstats
+
+    from deploy import local
+    from tether.node import load_mission
+
+    role, nid = who.split(":")
+    path = catalog.resolve(mission)
+    out = work / f"profile-{role}-{nid}-{clock}"
+    prof = out / f"{role}-{nid}.prof"
+    out.mkdir(parents=True, exist_ok=True)
+    real_popen = subprocess.Popen
+
+    def popen(cmd, *args, **kwargs):
+        if "tether.cli" in cmd and cmd[cmd.index("tether.cli") + 1] == role and \
+                (role in ("leader", "recorder") or cmd[cmd.index("--id") + 1] == nid):
+            i = cmd.index("-m")
+            cmd = [*cmd[:i], "-m", "cProfile", "-o", str(prof), *cmd[i:]]
+        return real_popen(cmd, *args, **kwargs)
+
+    load_mission(path, duration)
+    opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False)
+    local.subprocess.Popen = popen
+    try:
+        status = asyncio.run(local.run(path, opts))
+    finally:
+        local.subprocess.Popen = real_popen
+    say(f"tether run {mission} --clock {clock} --duration {duration:g}: exit {status}; profile of {role}/{nid}: {prof}")
+    if prof.exists():
+        st = pstats.Stats(str(prof))
+        st.sort_stats("tottime").print_stats(top)
+        st.sort_stats("cumulative").print_stats(top)
+
+
 def main(argv: list[str]) -> None:
     if argv and argv[0] == "_probe":
         ep, ns, rate, kind, n, steps, out = argv[1:8]
@@ -896,7 +981,14 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--quiet-timeout", type=float, default=60.0, help="... but no longer than this [s]")
     ap.add_argument("--work", type=Path, default=None, help="keep run directories here (default: a temp dir)")
     ap.add_argument("--json", type=Path, default=None, help="write every figure here")
+    ap.add_argument("--profile", metavar="ROLE:ID", default=None,
+                    help="instead of the cases: one tether run with this process under cProfile (e.g. agent:1)")
+    ap.add_argument("--profile-clock", choices=["lockstep", "realtime"], default="lockstep")
+    ap.add_argument("--profile-duration", type=float, default=10.0)
     a = ap.parse_args(argv)
+    if a.profile:
+        work = a.work or Path(tempfile.mkdtemp(prefix="tether-profile-"))
+        return profile_run(a.mission, a.profile_clock, a.profile_duration, a.profile, work)
     QUIET.update(limit=a.quiet_below, timeout=a.quiet_timeout)
     report: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                           "load_at_start": os.getloadavg()}}

@@ -236,14 +236,33 @@ class Node:
 
     async def sample(self, src: Source, k: int) -> Any:
         """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None)."""
+        return (await self.aligned([src], k))[0]
+
+    async def aligned(self, sources: list[Source], k: int, max_lag: int = 8) -> list[Any]:
+        """One sample per source, all of the same tick where possible.
+
+        Lockstep: the samples of tick ``k`` (waits for each). Real time: among the sources whose
+        newest sample is at most ``max_lag`` ticks old, the newest tick ``c <= k`` that all of them
+        hold, so that a tick never mixes, say, an own measurement of k-1 with neighbours' of k
+        (which would show as a spurious formation error of about one period of motion); a source
+        older than that (silent, or not started) gives its newest sample, or None."""
         if self.args.clock == "lockstep":
-            await self.until(lambda: k in src.by_tick, self.args.stall_timeout, f"tick {k} on {src.key}")
-            msg = src.by_tick[k]
-            src.forget_before(k)
-            return msg
+            out = []
+            for src in sources:
+                await self.until(lambda: k in src.by_tick, self.args.stall_timeout, f"tick {k} on {src.key}")
+                out.append(src.by_tick[k])
+                src.forget_before(k)
+            return out
         self.drain()
-        src.by_tick.clear()
-        return src.newest
+        newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
+        live = [t for t in newest if t >= k - max_lag]
+        common = min(live) if live else -1
+        out = []
+        for src, t in zip(sources, newest):
+            msg = src.by_tick.get(common) if t >= k - max_lag else None
+            out.append(msg if msg is not None else src.newest)
+            src.forget_before(k - max_lag)
+        return out
 
     async def tick(self, k: int) -> float:
         """Wait until tick ``k`` may run (draining inputs meanwhile); returns its lateness [s]."""
