@@ -52,6 +52,7 @@ PRESETS = {  # tether.transport's presets, spelled out
     "STATE": (zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_HIGH, True),
     "COMMAND": (zenoh.CongestionControl.DROP, zenoh.Priority.REAL_TIME, True),
     "TELEMETRY": (zenoh.CongestionControl.DROP, zenoh.Priority.DATA_LOW, False),
+    "SYNC_BATCHED": (zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_LOW, False),  # experiment
 }
 
 
@@ -192,6 +193,12 @@ class Bare:
         elif self.role == "plant":
             self.subscribe(self.key("agent", nid, "cmd"), 0)
             self.publisher("state", self.key("plant", nid, "state"))
+        elif self.role == "agent" and spec.get("colocate"):  # experiment: the plant runs inside the agent
+            for n, (role, j) in enumerate(spec["nbrs"][str(nid)]):
+                self.subscribe(self.key(role, j, "state"), 1 + n)
+            for topic in ("state", "telemetry"):
+                self.publisher(topic, self.key("agent", nid, topic))
+            self.publisher("plant_state", self.key("plant", nid, "state"))
         elif self.role == "agent":
             self.subscribe(self.key("plant", nid, "state"), 0, wake=True)  # relayed on arrival
             for n, (role, j) in enumerate(spec["nbrs"][str(nid)]):
@@ -279,7 +286,31 @@ class Bare:
                 self.put("state", self.sizes["plant_state"], k)
                 k += 1
 
+    async def _lockstep_agent_colocated(self) -> None:
+        """Experiment: the plant is a function call in the agent, so a tick needs only the
+        neighbours' states; the plant's state still goes out for the recorder."""
+        n_nbrs = len(self.spec["nbrs"][str(self.nid)])
+        have: dict[int, int] = collections.defaultdict(int)
+        sz = self.sizes
+        self.put("plant_state", sz["plant_state"], 0)
+        self.put("state", sz["state"], 0)
+        k = 0
+        while k <= self.steps:
+            for _, j in self.drain():
+                have[j] += 1
+            while k <= self.steps and have[k] >= n_nbrs:
+                self.put("telemetry", sz["telemetry"], k)
+                del have[k]
+                k += 1
+                if k <= self.steps:
+                    self.put("plant_state", sz["plant_state"], k)
+                    self.put("state", sz["state"], k)
+            if k <= self.steps:
+                await self.wait()
+
     async def _lockstep_agent(self) -> None:
+        if self.spec.get("colocate"):
+            return await self._lockstep_agent_colocated()
         n_nbrs = len(self.spec["nbrs"][str(self.nid)])
         plant: set[int] = set()
         have: dict[int, int] = collections.defaultdict(int)
@@ -337,7 +368,8 @@ async def hub(spec: dict, endpoint: str) -> None:
         loop.call_soon_threadsafe(event.set)
 
     members = {f"@tether/{ns}/leader/{spec['leader']}", f"@tether/{ns}/recorder/0"}
-    members |= {f"@tether/{ns}/{r}/{a}" for a in spec["agents"] for r in ("agent", "plant")}
+    roles = ("agent",) if spec.get("colocate") else ("agent", "plant")
+    members |= {f"@tether/{ns}/{r}/{a}" for a in spec["agents"] for r in roles}
     alive: set[str] = set()
     put_kind = zenoh.SampleKind.PUT
 

@@ -225,7 +225,8 @@ class Proc:
         cpu, ctx, rss, nth = cpu_times(self.pid), context_switches(self.pid), rss_kib(self.pid), threads(self.pid)
         th = thread_cpu(self.pid)
         if None not in (cpu, ctx, rss, nth, th):
-            self.cpu1, self.ctx1, self.rss, self.threads, self.th1 = cpu, ctx, rss, nth, th
+            self.cpu1, self.ctx1, self.rss, self.threads = cpu, ctx, rss, nth
+            self.th1 = {**(self.th1 or {}), **th}  # threads that ended keep their last reading
 
     def by_thread(self) -> dict[str, float]:
         """CPU over the window [s] by thread kind (see :func:`thread_cpu`)."""
@@ -426,7 +427,7 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
         "window": v.get("window", WINDOW), "leader": m.leader.id, "agents": m.agent_ids, "nbrs": nbrs,
         "sizes": wire_sizes(m), "client_config": configs[0], "router_config": configs[1],
         "wake": wake, "start_lead": START_LEAD, "direct": bool(v.get("direct")), "mesh": bool(v.get("mesh")),
-        "qos": v.get("qos", {}), "agent_phase": AGENT_PHASE,
+        "qos": v.get("qos", {}), "agent_phase": AGENT_PHASE, "colocate": bool(v.get("colocate")),
     }
 
 
@@ -646,8 +647,8 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
     try:
         if hub.stdout.readline().strip() != "listening":
             raise RuntimeError("baseline hub did not start")
-        members = [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")],
-                   ("recorder", 0)]
+        roles = ("agent",) if spec.get("colocate") else ("agent", "plant")
+        members = [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in roles], ("recorder", 0)]
         if probe:
             probe_proc = _spawn_probe(endpoint, m.name, m.rate, "bare", m.n, spec["steps"], probe_out)
         for role, nid in members:
@@ -922,7 +923,10 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
 def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25) -> None:
     """Run ``tether run`` (launcher in this process) with one child under cProfile and print where its
     time goes. ``who`` is ``role:id`` (``agent:1``, ``recorder:0``, ...). The child is started by the
-    launcher exactly as usual, with ``-m cProfile -o FILE`` put before ``-m tether.cli``."""
+    launcher exactly as usual but through ``bench/runtime.py _cprofile FILE`` instead of ``-m
+    tether.cli``: ``cProfile`` with ``time.thread_time`` as its timer, so the figures are CPU time of
+    the asyncio thread (time asleep in epoll counts as zero, Zenoh's and the callbacks' threads are
+    not in it: see the per-thread CPU of the cases for those)."""
     import asyncio
     import cProfile  # noqa: F401  (the child runs it)
     import pstats
@@ -941,7 +945,7 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
         if "tether.cli" in cmd and cmd[cmd.index("tether.cli") + 1] == role and \
                 (role in ("leader", "recorder") or cmd[cmd.index("--id") + 1] == nid):
             i = cmd.index("-m")
-            cmd = [*cmd[:i], "-m", "cProfile", "-o", str(prof), *cmd[i:]]
+            cmd = [*cmd[:i], __file__, "_cprofile", str(prof), *cmd[i + 2:]]
         return real_popen(cmd, *args, **kwargs)
 
     load_mission(path, duration)
@@ -958,7 +962,25 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
         st.sort_stats("cumulative").print_stats(top)
 
 
+def cprofile_child(out: str, args: list[str]) -> int:
+    """``python bench/runtime.py _cprofile OUT <tether.cli args>``: run the CLI under cProfile timed by
+    the main thread's CPU clock; stats are written to OUT when it returns (SIGTERM ends it normally)."""
+    import cProfile
+    import signal
+
+    from tether import cli
+
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    prof = cProfile.Profile(time.thread_time)
+    try:
+        return prof.runcall(cli.main, args)
+    finally:
+        prof.dump_stats(out)
+
+
 def main(argv: list[str]) -> None:
+    if argv and argv[0] == "_cprofile":
+        sys.exit(cprofile_child(argv[1], argv[2:]))
     if argv and argv[0] == "_probe":
         ep, ns, rate, kind, n, steps, out = argv[1:8]
         return run_probe(ep, ns, float(rate), kind, int(n), int(steps), out)

@@ -62,6 +62,9 @@ class LaunchOptions:
     progress: bool = True
     duration: float | None = None
     """Override the mission's duration [s]."""
+    failure_grace: float = 1.0
+    """After a child fails, let the others run this long [s] before stopping them, so that the run
+    file and their logs show how the swarm saw the failure (silence flags)."""
     handover_runtime: bool = True
     """Hand Zenoh's runtime threads over to one thread per child (ZENOH_RUNTIME), which measured
     here lowest CPU for many processes on few cores."""
@@ -280,7 +283,12 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                     watcher.result()
                 else:
                     work.result()
-            except (LaunchFailed, tp.TokensMissing) as exc:
+            except LaunchFailed as exc:
+                log.error("%s", exc)
+                status = 1
+                log.info("stopping the others in %.1f s", opts.failure_grace)
+                await asyncio.sleep(opts.failure_grace)
+            except tp.TokensMissing as exc:
                 log.error("%s", exc)
                 status = 1
             finally:
