@@ -205,7 +205,7 @@ def _probability(value: float, field: str, out: Problems, example: str = "0.01")
     if _finite(value, field, out) and not 0.0 <= value <= 1.0:
         name = field.rsplit(".", 1)[-1]
         out.append((field, f"is {value} but a probability is in [0, 1] (a fraction, not a percentage); "
-                           f"write e.g. `{name} = {example}` for {float(example):.0%}"))
+                           f"write e.g. `{name} = {example}` for {float(example) * 100:g} %"))
 
 
 def _non_negative(value: float, field: str, unit: str, out: Problems, meaning: str) -> None:
@@ -312,6 +312,9 @@ def _from_validation_error(exc: msgspec.ValidationError, path: str) -> tuple[str
         close = difflib.get_close_matches(name, _FIELD_NAMES, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
         return _join(inner, name), f"is not a known field; {fix} (see docs/netem.md)"
+    if text.startswith("Object missing required field `kind`"):
+        return _join(inner, "kind"), ("is missing; say which loss model this is, `kind = \"bernoulli\"` or "
+                                      "`kind = \"gilbert_elliott\"`")
     if text.startswith(("Invalid value", "Invalid enum value")) and where.endswith("kind"):
         return where, "is not a loss model; use \"bernoulli\" or \"gilbert_elliott\""
     if text.startswith(("Invalid value", "Invalid enum value")) and where.endswith("distribution"):
@@ -391,10 +394,13 @@ def preset(name: str) -> LinkProfile:
     try:
         return PRESETS[name]
     except KeyError:
-        close = difflib.get_close_matches(name, list(PRESETS), n=1)
-        hint = f"did you mean `{close[0]}`? " if close else ""
-        raise KeyError(f"is {name!r}, not a preset; {hint}use one of {', '.join(PRESETS)} "
-                       "or write the profile inline") from None
+        raise KeyError(_not_a_preset(name)) from None
+
+
+def _not_a_preset(name: str) -> str:
+    close = difflib.get_close_matches(name, list(PRESETS), n=1)
+    hint = f"did you mean `{close[0]}`? " if close else ""
+    return f"is {name!r}, not a preset; {hint}use one of {', '.join(PRESETS)} or write the profile inline"
 
 
 # --------------------------------------------------------------------------- network section
@@ -435,10 +441,7 @@ def validate_network(net: Network, node_ids: Collection[int] | None = None, path
     def check(p: str | LinkProfile, where: str) -> None:
         if isinstance(p, str):
             if p not in PRESETS:
-                try:
-                    preset(p)
-                except KeyError as exc:
-                    out.append((where, exc.args[0]))
+                out.append((where, _not_a_preset(p)))
         else:
             out.extend(validate(p, where))
 
