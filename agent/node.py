@@ -70,7 +70,7 @@ async def run(node: Node) -> None:
         u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
         cmd.send(wire.Command, k, t, u=u.tolist())
         links = [wire.LinkStats(src=j, received=s.received_upto(k) if lockstep else s.received, used=used[n],
-                                stale=s.stale, age=ages[n], silent=s.silent)
+                                stale=s.stale, age=ages[n], silent=s.silent_at(k))
                  for n, (j, s) in enumerate(zip(law.neighbours, nbrs))]
         tele.send(wire.Telemetry, k, t, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u.tolist(), xi=xi.tolist(),
                   zeta=zeta.tolist(), kp=kp.tolist(), kv=kv.tolist(), links=links,

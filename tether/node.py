@@ -84,7 +84,13 @@ class Source:
     def silent(self) -> bool:
         """The producer is gone before its last tick (one that sent its last tick and left is not
         silent, whatever order its last sample and its token's end arrive in)."""
-        return self.gone and not (self.newest is not None and self.newest.k >= self.last >= 0)
+        return self.silent_at(self.last)
+
+    def silent_at(self, k: int) -> bool:
+        """Silent as far as tick ``k`` is concerned: gone without having delivered tick ``k``.
+        (In lockstep a tick runs only with its samples in, so this is never true there, and the
+        flag cannot depend on when the token's end happened to be seen.)"""
+        return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
 
     def offer(self, msg: Any) -> None:
         self.received += 1
