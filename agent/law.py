@@ -121,6 +121,7 @@ class AgentLaw:
         weights: ``(m,)`` the ``a_ij``.
         kappa: ``sum_j a_ij``.
         sum_wdelta: ``(d,)`` ``sum_j a_ij delta_ij`` [m].
+        deltas: ``(m, d)`` the offsets ``delta_ij = h_i - h_j`` [m], rows in ``neighbours`` order.
     """
 
     agent_id: int
@@ -130,6 +131,7 @@ class AgentLaw:
     sum_wdelta: np.ndarray
     params: LawParams
     gains: GainStep
+    deltas: np.ndarray
 
     @classmethod
     def from_mission(cls, m: Mission, agent_id: int) -> "AgentLaw":
@@ -141,9 +143,10 @@ class AgentLaw:
         w = np.array([wt for _, _, wt in ins], dtype=float)
         h_i = np.array(me.offset, dtype=float)
         kappa = float(w.sum())
-        sum_wdelta = kappa * h_i - w @ np.array([offsets[j] for j in nbrs])
+        h_nb = np.array([offsets[j] for j in nbrs])
+        sum_wdelta = kappa * h_i - w @ h_nb
         params = LawParams.from_mission(m)
-        return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt))
+        return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt), h_i - h_nb)
 
     def step(
         self,
@@ -171,3 +174,24 @@ class AgentLaw:
         prm = self.params
         return (u, xi, zeta, gain_update(kp, xi, prm.gamma_p, self.gains),
                 gain_update(kv, zeta, prm.gamma_v, self.gains))
+
+
+def neighbour_sample(
+    p: np.ndarray, v: np.ndarray, a: np.ndarray, delta: np.ndarray,
+    sample: tuple[np.ndarray, np.ndarray, np.ndarray] | None, age: float, max_age: float, compensate: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """What agent i uses for in-neighbour j at a tick: ``(p_j, v_j, a_j, used)``.
+
+    ``sample`` is j's newest sample ``(p, v, a)`` and ``age`` how old it is [s]. A sample older
+    than ``max_age``, or none, is replaced by j "in formation": ``p_j = p_i - delta_ij``,
+    ``v_j = v_i``, ``a_j = a_i``, so that j adds nothing to xi_i and zeta_i and the agent's own
+    acceleration to the feed-forward (``used`` is then False). With ``compensate``, a usable sample
+    is moved forward by its age with its own velocity and acceleration (constant-acceleration
+    extrapolation).
+    """
+    if sample is None or not age <= max_age:
+        return p - delta, v, a, False
+    pj, vj, aj = sample
+    if compensate and age > 0.0:
+        return pj + vj * age + (0.5 * age * age) * aj, vj + aj * age, aj, True
+    return pj, vj, aj, True

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from agent.law import AgentLaw
+from agent.law import AgentLaw, neighbour_sample
 from tether import wire
 from tether.node import Node, Source
 
@@ -40,7 +40,7 @@ async def run(node: Node) -> None:
     nbrs: list[Source] = []
     for j in law.neighbours:
         role = "leader" if j == m.leader.id else "agent"
-        src = node.source(keys.topic(role, j, "state"), wire.State, j)
+        src = node.source(keys.topic(role, j, "state"), wire.State, j, link=True)
         node.watch(role, j, src)
         nbrs.append(src)
     cmd = node.publisher(keys.topic("agent", aid, "cmd"))
@@ -49,6 +49,7 @@ async def run(node: Node) -> None:
 
     d = m.dim
     lockstep = node.args.clock == "lockstep"
+    policy = m.links
     kp, kv = law.params.kp0.copy(), law.params.kv0.copy()
     used = [0] * len(nbrs)
     nb_p, nb_v, nb_a = (np.zeros((len(nbrs), d)) for _ in range(3))
@@ -58,15 +59,15 @@ async def run(node: Node) -> None:
         own, *heard = await node.aligned([plant, *nbrs], k)
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
+        p, v, a = np.array(own.p), np.array(own.vel), np.array(own.a)
         ages = []
         for n, msg in enumerate(heard):
-            if msg is None:
-                ages.append(math.nan)
-                continue
-            nb_p[n], nb_v[n], nb_a[n] = msg.p, msg.vel, msg.a
-            used[n] += 1
-            ages.append(t - msg.t)
-        p, v = np.array(own.p), np.array(own.vel)
+            age = t - msg.t if msg is not None else math.nan
+            sample = (np.array(msg.p), np.array(msg.vel), np.array(msg.a)) if msg is not None else None
+            nb_p[n], nb_v[n], nb_a[n], ok = neighbour_sample(p, v, a, law.deltas[n], sample, age,
+                                                             policy.max_age, policy.compensate)
+            used[n] += ok
+            ages.append(age)
         u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
         cmd.send(wire.Command, k, t, u=u.tolist())
         links = [wire.LinkStats(src=j, received=s.received_upto(k) if lockstep else s.received, used=used[n],

@@ -24,6 +24,8 @@ import msgspec
 import msgspec.inspect
 import msgspec.structs
 
+from netem.profile import Network, validate_network
+
 SCHEMA_VERSION = 1
 """The mission-file version this release reads."""
 
@@ -188,6 +190,20 @@ class Law(_Strict):
     """Leakage ``sigma`` of the sigma-modification [1/s]; required for ``sigma``, absent for ``benchmark``."""
 
 
+class LinkPolicy(_Strict):
+    """What an agent does with its in-neighbours' samples (part of the law's implementation).
+
+    Samples older than the newest held are never used (sequence numbers). A neighbour whose newest
+    sample is older than ``max_age`` (or that has sent none yet) is treated as in formation: it
+    contributes nothing to xi and zeta and the agent's own acceleration to the feed-forward, as if
+    its edge were absent but kappa_i kept (``docs/runtime.md``)."""
+
+    max_age: float = 0.5
+    """Oldest neighbour sample an agent uses [s]."""
+    compensate: bool = False
+    """Latency compensation: move each neighbour sample forward by its age with its own v and a."""
+
+
 class Mission(_Strict):
     version: int
     name: str
@@ -202,7 +218,11 @@ class Mission(_Strict):
     agents: list[Agent]
     edges: list[Edge]
     seed: int = 0
-    """Seed of every random part of the run (random disturbances; later, network models)."""
+    """Seed of every random part of the run (random disturbances, network models)."""
+    netem: Network | None = None
+    """Network degradation per directed link j -> i (``docs/netem.md``); none: ideal links."""
+    links: "LinkPolicy" = msgspec.field(default_factory=lambda: LinkPolicy())
+    """What agents do with old neighbour data."""
     description: str = ""
     assumed: list[str] = []
     """What the mission assumes that its source does not state (e.g. topology read off a figure)."""
@@ -681,6 +701,11 @@ def validate(m: Mission) -> Problems:
     elif law.sigma is not None:
         out.append(("law.sigma", "is set but the benchmark law (Eq. 30) has no sigma; remove it, "
                                  "or use kind = \"sigma\""))
+
+    if m.links.max_age <= 0:
+        out.append(("links.max_age", f"is {m.links.max_age} s; the oldest usable sample age must be > 0 (e.g. 0.5)"))
+    if m.netem is not None:
+        out.extend(validate_network(m.netem, set(seen) | {m.leader.id}, path="netem"))
 
     # Assumption 1 only makes sense on a graph whose ids are right
     if not any(f.startswith(("edges", "agents", "leader.id")) for f, _ in out):

@@ -27,6 +27,8 @@ from typing import Any
 import msgspec
 import zenoh
 
+from netem.channel import DeliveryQueue, Link, link_rng
+from netem.profile import schedule
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -76,6 +78,10 @@ class Source:
     """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
     last: int = -1
     """The producer's last tick (the mission's), when known."""
+    channel: "Channel | None" = None
+    """The emulated network link this input arrives through (``[netem]``), if any."""
+    raw_k: int = -1
+    """Newest tick offered to the channel (what the sender has sent, before the network)."""
     gone: bool = False
     """Its producer's liveliness token is absent."""
     on_message: Callable[[Any], None] | None = None
@@ -110,6 +116,26 @@ class Source:
     def forget_before(self, k: int) -> None:
         for old in [t for t in self.by_tick if t < k]:
             del self.by_tick[old]
+
+
+@dataclass
+class Channel:
+    """One directed link j -> i of the emulated network: the link model, its profile schedule, and
+    the copies in flight. Samples enter with :meth:`send` and leave with :meth:`release`."""
+
+    link: Link
+    changes: list[tuple[float, Any]]
+    queue: DeliveryQueue = field(default_factory=DeliveryQueue)
+    _next: int = 1
+
+    def send(self, now: float, payload: bytes) -> None:
+        while self._next < len(self.changes) and self.changes[self._next][0] <= now:
+            self.link.set_profile(self.changes[self._next][1])
+            self._next += 1
+        self.queue.push(self.link.offer(now, payload))
+
+    def release(self, now: float) -> list[Any]:
+        return self.queue.pop_due(now)
 
 
 class Publisher:
@@ -147,6 +173,8 @@ class Node:
         self._start: Source | None = None
         self._paced = False
         self._pump: asyncio.Task | None = None
+        self._epoch_mono: float | None = None
+        """Real time: tick 0's instant on this host's monotonic clock."""
         self.stop = asyncio.Event()
         self.token_log: list[tuple[str, bool]] = []
 
@@ -164,9 +192,17 @@ class Node:
         return Publisher(pub, self.args.node_id)
 
     def source(self, key: str, expect: type, sender: int | None,
-               on_message: Callable[[Any], None] | None = None) -> Source:
-        """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``."""
+               on_message: Callable[[Any], None] | None = None, link: bool = False) -> Source:
+        """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``link``: the
+        samples cross the network from ``sender`` to this node, through the mission's emulated
+        link ``sender -> node`` when it has a ``[netem]`` section (an ideal link delivers every sample
+        at its own time: the run is then the same as without the section, bit for bit)."""
         src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message)
+        net = self.mission.netem
+        if link and net is not None and sender is not None:
+            changes = schedule(net, sender, self.args.node_id)
+            rng = link_rng(self.mission.seed, sender, self.args.node_id)
+            src.channel = Channel(Link(changes[0][1], rng), changes)
         self.sources[key] = src
         self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
         return src
@@ -180,7 +216,8 @@ class Node:
         """Real time: drain inputs whenever samples arrive, so that ``on_message`` hooks (an agent
         relaying its plant's measurement) run at once instead of at the next tick."""
         while True:
-            await self.wakeup.wait()
+            due = self.next_delivery()
+            await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
     async def ready(self, paced: bool = False, phase: float = 0.0) -> None:
@@ -206,20 +243,36 @@ class Node:
                 raise Stalled(f"the start instant {epoch} is more than an hour from this host's clock; "
                               "check the clocks (NTP) of the launcher and this host")
             h = self.mission.dt
-            self.clock = RealtimeClock(h, mono() + (epoch - time.time()) + phase * h, mono)
+            self._epoch_mono = mono() + (epoch - time.time())
+            self.clock = RealtimeClock(h, self._epoch_mono + phase * h, mono)
             self._pump = asyncio.create_task(self.pump())
             log.info("real time: tick 0 at %.3f (in %.3f s), phase %.2f", epoch, epoch - time.time(), phase)
 
     # ------------------------------------------------------------------ inputs
+    def mission_time(self) -> float:
+        """Real time: seconds since tick 0 on this host's monotonic clock (the emulated network's
+        time base). Lockstep: the emulated network runs on sample times instead."""
+        return time.monotonic() - self._epoch_mono if self._epoch_mono is not None else 0.0
+
     def drain(self) -> None:
-        """Decode every pending sample and token event (on the event loop)."""
+        """Decode every pending sample and token event (on the event loop). A sample that crosses
+        an emulated link is offered to it (at its sample time in lockstep, at the current mission
+        time in real time) and reaches its source when the link delivers it (:meth:`release`)."""
+        realtime = isinstance(self.clock, RealtimeClock)
         for rec in self.fifo.drain():
             src = self.sources.get(rec.key)
             if src is None:
                 continue
             msg = self.receiver.accept(rec.payload, src.expect, src.sender)
-            if msg is not None:
+            if msg is None:
+                continue
+            if src.channel is None:
                 src.offer(msg)
+                continue
+            src.raw_k = max(src.raw_k, msg.k)
+            src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
+        if realtime:
+            self.release(self.mission_time())
         for ev in self.tokens.drain():
             self.token_log.append((ev.key, ev.alive))
             for src in self._watched.get(ev.key, ()):
@@ -228,6 +281,26 @@ class Node:
                     log.warning("%s is back", ev.key)
                 elif not ev.alive and src.silent:
                     log.warning("%s went silent (liveliness token gone)", ev.key)
+
+    def release(self, now: float, only: Source | None = None) -> None:
+        """Hand the copies that emulated links deliver by ``now`` to their sources. A corrupted
+        copy fails its checksum: dropped and counted as ``corrupt``."""
+        for src in (only,) if only is not None else self.sources.values():
+            if src.channel is None:
+                continue
+            for copy in src.channel.release(now):
+                if copy.corrupted:
+                    self.receiver.drops["corrupt"] = self.receiver.drops.get("corrupt", 0) + 1
+                    continue
+                msg = self.receiver.accept(copy.payload, src.expect, src.sender)
+                if msg is not None:
+                    src.offer(msg)
+
+    def next_delivery(self) -> float | None:
+        """The earliest time [s, mission time] an emulated link will deliver a copy, if any."""
+        times = [s.channel.queue.next_at for s in self.sources.values() if s.channel is not None]
+        times = [t for t in times if t is not None]
+        return min(times) if times else None
 
     async def until(self, ready: Callable[[], bool], timeout: float | None, what: str) -> None:
         """Wait (draining inputs) until ``ready()``; :class:`Stalled` naming ``what`` after ``timeout``."""
@@ -255,17 +328,31 @@ class Node:
         if self.args.clock == "lockstep":
             out = []
             for src in sources:
-                await self.until(lambda: k in src.by_tick, self.args.stall_timeout, f"tick {k} on {src.key}")
-                out.append(src.by_tick[k])
-                src.forget_before(k)
+                if src.channel is None:
+                    await self.until(lambda: k in src.by_tick, self.args.stall_timeout, f"tick {k} on {src.key}")
+                    out.append(src.by_tick[k])
+                    src.forget_before(k)
+                    continue
+                # through an emulated link: once the sender's tick k has entered the link, what the
+                # link has delivered by t_k is known; use the newest of it (possibly older, or none)
+                await self.until(lambda: src.raw_k >= k, self.args.stall_timeout, f"tick {k} sent on {src.key}")
+                self.release(k * self.mission.dt, only=src)
+                held = [t for t in src.by_tick if t <= k]
+                out.append(src.by_tick[max(held)] if held else None)
+                src.forget_before(max(held) if held else 0)
             return out
         self.drain()
         newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
-        live = [t for t in newest if t >= k - max_lag]
+        # align the on-board and ideal inputs; an emulated link's delay is what is being studied,
+        # so its input is the newest it has delivered
+        live = [t for s, t in zip(sources, newest) if t >= k - max_lag and s.channel is None]
         common = min(live) if live else -1
         out = []
         for src, t in zip(sources, newest):
-            msg = src.by_tick.get(common) if t >= k - max_lag else None
+            if src.channel is not None:
+                msg = src.by_tick.get(t)
+            else:
+                msg = src.by_tick.get(common) if t >= k - max_lag else None
             out.append(msg if msg is not None else src.newest)
             src.forget_before(k - max_lag)
         return out
