@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from agent.law import AgentLaw, neighbour_sample
+from tether import transport as tp
 from tether import wire
 from tether.node import Node, Source
 
@@ -43,8 +44,8 @@ async def run(node: Node) -> None:
         src = node.source(keys.topic(role, j, "state"), wire.State, j, link=True)
         node.watch(role, j, src)
         nbrs.append(src)
-    cmd = node.publisher(keys.topic("agent", aid, "cmd"))
-    tele = node.publisher(keys.topic("agent", aid, "telemetry"))
+    cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND)
+    tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY)
     await node.ready(phase=AGENT_PHASE)
 
     d = m.dim

@@ -4,9 +4,10 @@ A role (leader, agent, plant, recorder) is an ``async def run(node)`` that decla
 publishers on a :class:`Node`, calls :meth:`Node.ready`, then loops over ticks. ``Node`` hides the
 two clocks behind one code path:
 
-* inputs are :class:`Source` objects; ``await node.sample(src, k)`` returns, in lockstep, the
-  sample of tick ``k`` exactly (waiting for it), and in real time the newest sample held;
-* ``await node.clock.wait_for(k)`` gates tick ``k`` (a grant in lockstep, an instant in real time).
+* inputs are :class:`Source` objects; ``await node.aligned([src, ...], k)`` returns, in lockstep,
+  the samples of tick ``k`` exactly (waiting for them), and in real time the newest samples of one
+  common tick; an input that crosses an emulated link (``[netem]``) gives what the link delivered;
+* ``await node.tick(k)`` gates tick ``k`` (a grant in lockstep, an instant in real time).
 
 Zenoh callbacks only hand raw samples to one bounded FIFO (:class:`~tether.transport.BoundedFifo`,
 drop-oldest, counted); decoding and checks run on the event loop (:class:`~tether.wire.Receiver`).
@@ -55,7 +56,6 @@ class NodeArgs:
     zenoh: tp.ZenohSettings
     ns: str | None = None
     """Key namespace; the mission name by default."""
-    window: int = 2
     stall_timeout: float = 30.0
     """Lockstep: give up when an input of the current tick has not come for this long [s]."""
     parent_pid: int | None = None
@@ -153,7 +153,7 @@ class Publisher:
 
 
 class Node:
-    """A process's session, inputs, clock and lifetime. Create with :func:`open_node`."""
+    """A process's session, inputs, clock and lifetime; :func:`serve` makes one per process."""
 
     def __init__(self, args: NodeArgs, mission: ms.Mission, session: zenoh.Session):
         self.args = args
@@ -179,12 +179,11 @@ class Node:
         self.token_log: list[tuple[str, bool]] = []
 
     # ------------------------------------------------------------------ declarations
-    @property
-    def qos_state(self) -> tp.StreamQos:
-        """Lockstep needs every sample (determinism): BLOCK; real time drops (newest wins)."""
-        return tp.SYNC if self.args.clock == "lockstep" else tp.STATE
-
     def publisher(self, key: str, qos: tp.StreamQos | None = None) -> Publisher:
+        """A stamped publisher on ``key``. Real time: ``qos`` (default :data:`~tether.transport.STATE`,
+        DROP: the newest supersedes). Lockstep: always :data:`~tether.transport.SYNC` (BLOCK),
+        because a lost sample would stall the run: measured here, DROP state streams lost samples
+        under load and stalled lockstep runs."""
         if self.args.clock == "lockstep":
             qos = tp.SYNC
         pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
