@@ -15,19 +15,28 @@ Imports are zenoh and the standard library only (no numpy, no msgspec, no tether
 process is also the memory and CPU floor of "a Python process that speaks Zenoh".
 
 Hand-off (like tether's): a subscriber callback runs on zenoh-python's per-subscriber thread and
-only appends ``(input, payload)`` to a deque; in lockstep it also wakes the asyncio loop (one
-``call_soon_threadsafe`` per burst, as ``tether.transport.Wakeup``). In real time the loop is
-timer-driven and reads the newest payload per input at each tick; the callback does not wake it
-unless the spec says ``"wake": true`` (then it does, as tether's nodes do, to measure that cost).
+only appends ``(input, payload)`` to a deque; where the process must react to a sample (every
+input in lockstep, the agent's plant input in real time) it also wakes the asyncio loop (one
+``call_soon_threadsafe`` per burst, as ``tether.transport.Wakeup``). Otherwise the loop is
+timer-driven and reads the newest payload per input at its tick.
 
 Lockstep per tick k (the dependency pattern of tether's roles):
 
 * leader: publish state(k) once the clock granted k;
 * plant i: publish state(k) once it holds cmd(k-1) (state(0) at once);
-* agent i: on plant(k) publish state(k), then once every in-neighbour's state(k) is in, publish
-  cmd(k) and telemetry(k);
+* agent i: on plant(k) publish state(k) (the relay), then once every in-neighbour's state(k) is
+  in, publish cmd(k) and telemetry(k);
 * recorder: once leader(k), every plant(k) and every telemetry(k) are in, publish ack(k);
 * hub (the launcher's twin): on ack(k) grant k + window.
+
+Real time: every process ticks at ``epoch + k h`` (agents at ``epoch + (k + agent_phase) h``, as
+tether's agents do); the leader and the plants publish their state at each tick, each agent relays
+its plant's sample as its state the moment it arrives (so its plant input wakes the loop) and
+publishes cmd and telemetry at its tick; the recorder only counts what arrives.
+
+Experiments (spec keys, all off by default): ``direct`` callbacks on Zenoh's thread, ``colocate`` (lockstep: the plant is computed inside its agent process
+and no plant process runs), ``batch`` (with ``colocate``: each agent sends the recorder one message
+per ``batch`` ticks instead of two per tick), ``wake`` (every input wakes the loop).
 
 Prints one JSON line on stdout when done: role, id, late ticks, samples received.
 """
@@ -52,24 +61,18 @@ PRESETS = {  # tether.transport's presets, spelled out
     "STATE": (zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_HIGH, True),
     "COMMAND": (zenoh.CongestionControl.DROP, zenoh.Priority.REAL_TIME, True),
     "TELEMETRY": (zenoh.CongestionControl.DROP, zenoh.Priority.DATA_LOW, False),
-    "SYNC_BATCHED": (zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_LOW, False),  # experiment
 }
 
 
 def _qos(kind: str, stream: str = "state", override: dict | None = None) -> dict:
-    """The QoS tether's ``Node.publisher`` gives every stream: SYNC in lockstep, STATE in real time
-    (``override`` maps a stream name to another preset, for experiments)."""
-    name = (override or {}).get(stream) or ("SYNC" if kind == "lockstep" else "STATE")
+    """The QoS of a stream: SYNC for every stream in lockstep (as tether's ``Node.publisher`` forces),
+    in real time STATE unless ``override`` (the spec's ``qos``, real time only) names another preset
+    for the stream (``bench/runtime.py`` gives the presets tether's agents declare)."""
+    name = "SYNC" if kind == "lockstep" else (override or {}).get(stream) or "STATE"
     cc, prio, express = PRESETS[name]
     return {"congestion_control": cc, "priority": prio, "express": express}
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Bare:
@@ -84,8 +87,6 @@ class Bare:
         self.sizes = spec["sizes"]
         cfg = zenoh.Config.from_json5(spec["client_config"])
         cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        if spec.get("mesh"):  # a peer listening on its own port, meeting the others through gossip
-            cfg.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{_free_port()}"]))
         self.session = zenoh.open(cfg)
         self.loop = asyncio.get_running_loop()
         self.queue: collections.deque = collections.deque()
@@ -209,7 +210,8 @@ class Bare:
             self.subscribe(self.key("leader", spec["leader"], "state"), 0)
             for aid in spec["agents"]:
                 self.subscribe(self.key("agent", aid, "telemetry"), 1)
-                self.subscribe(self.key("plant", aid, "state"), 2)
+                if not spec.get("batch"):
+                    self.subscribe(self.key("plant", aid, "state"), 2)
             self.publisher("ack", self.key("recorder", nid, "ack"))
         t0 = await self.ready()
         if self.clock == "lockstep":
@@ -292,18 +294,26 @@ class Bare:
         n_nbrs = len(self.spec["nbrs"][str(self.nid)])
         have: dict[int, int] = collections.defaultdict(int)
         sz = self.sizes
-        self.put("plant_state", sz["plant_state"], 0)
+        batch = int(self.spec.get("batch", 0))  # > 0: the recorder's samples go out every `batch` ticks
+        record_size = sz["plant_state"] + sz["telemetry"]
+        if not batch:
+            self.put("plant_state", sz["plant_state"], 0)
         self.put("state", sz["state"], 0)
         k = 0
         while k <= self.steps:
             for _, j in self.drain():
                 have[j] += 1
             while k <= self.steps and have[k] >= n_nbrs:
-                self.put("telemetry", sz["telemetry"], k)
+                if batch:
+                    if k % batch == batch - 1 or k == self.steps:  # ticks k - k % batch .. k in one message
+                        self.put("telemetry", HEADER.size + (k % batch + 1) * record_size, k)
+                else:
+                    self.put("telemetry", sz["telemetry"], k)
                 del have[k]
                 k += 1
                 if k <= self.steps:
-                    self.put("plant_state", sz["plant_state"], k)
+                    if not batch:
+                        self.put("plant_state", sz["plant_state"], k)
                     self.put("state", sz["state"], k)
             if k <= self.steps:
                 await self.wait()
@@ -337,13 +347,18 @@ class Bare:
                 await self.wait()
 
     async def _lockstep_recorder(self) -> None:
-        expected = 1 + 2 * len(self.spec["agents"])
+        batch = int(self.spec.get("batch", 0))
+        expected = 1 + (1 if batch else 2) * len(self.spec["agents"])
         count: dict[int, int] = collections.defaultdict(int)
         k = 0
         while k <= self.steps:
             await self.wait()
-            for _, j in self.drain():
-                count[j] += 1
+            for idx, j in self.drain():
+                if batch and idx == 1:  # a batch of telemetry + plant state ending at tick j
+                    for t in range(j - j % batch, j + 1):
+                        count[t] += 1
+                else:
+                    count[j] += 1
             while k <= self.steps and count[k] >= expected:
                 del count[k]
                 self.put("ack", self.sizes["ack"], k)
@@ -365,7 +380,10 @@ async def hub(spec: dict, endpoint: str) -> None:
     ns = spec["ns"]
 
     def notify() -> None:
-        loop.call_soon_threadsafe(event.set)
+        try:
+            loop.call_soon_threadsafe(event.set)
+        except RuntimeError:  # the loop has closed: a late liveliness event, nobody to wake
+            pass
 
     members = {f"@tether/{ns}/leader/{spec['leader']}", f"@tether/{ns}/recorder/0"}
     roles = ("agent",) if spec.get("colocate") else ("agent", "plant")

@@ -1,32 +1,41 @@
 """Figures of the distributed runtime, each beside a bare Zenoh baseline measured in the same run.
 
-    .venv/bin/python bench/runtime.py                        # every case (about 5-7 minutes)
+    .venv/bin/python bench/runtime.py                        # every case (about 7 minutes)
     .venv/bin/python bench/runtime.py --cases lockstep --repeats 5
-    .venv/bin/python bench/runtime.py --cases scale --sizes 4 8 16 32
+    .venv/bin/python bench/runtime.py --cases scale --sizes 4 8 16 32 --scale-repeats 2
     .venv/bin/python bench/runtime.py --cases latency cpu --json /tmp/bench.json
+    .venv/bin/python bench/runtime.py --profile agent:1 [--profile-clock realtime --mission FILE]
 
-Cases (``docs/benchmarks.md`` has the method, the figures and what they mean):
+The baseline (``bench/baseline_node.py``) runs the same processes with the same keys, payload
+sizes, QoS, rates, star topology (router session in the launcher's place, every other process a
+client) and ``ZENOH_RUNTIME`` handover as ``tether run``, but with trivial work. Cases
+(``docs/benchmarks.md`` has the method, the figures and what they mean):
 
 1. ``lockstep``: simulated seconds per wall second of ``tether run MISSION --clock lockstep``
    (section4: N = 4, 100 Hz), from the launcher's "ran X s of mission time in Y s of wall time";
-   beside it the in-process reference simulator on the same mission and a bare lockstep baseline
-   (``bench/baseline_node.py``: the same processes, keys, sizes and per-tick message pattern,
-   trivial work).
+   beside it the bare baseline, two bare experiments (plants co-located in their agents; and also
+   the recorder's samples batched per 4 ticks with a window of 16), the in-process reference
+   simulator, and CPU per tick by role and thread kind (asyncio main / callback / Zenoh runtime).
 2. ``scale``: real time at 50 Hz, N = 4, 8, 16 (32 if 16 holds) agents on a ring
-   (``bench/missions.py``); late ticks from the run file's ``extra["late"]``; total CPU of every
-   process (launcher/router included) from ``/proc/<pid>/stat`` over the mission window, beside the
-   baseline's at the same N.
+   (``bench/missions.py``), stepping up until a size does not hold; late ticks from the run file's
+   ``extra["late"]``; total CPU of every process (launcher/router included) from
+   ``/proc/<pid>/stat`` over the mission window, beside the baseline's at the same N.
 3. ``latency``: real time, N = 8, 100 Hz. A probe process (a Zenoh client of the same router)
-   subscribes to every agent's state key and to the start message, and records each sample's
-   arrival on CLOCK_MONOTONIC in its subscriber callback; the latency of a sample of tick k is
-   ``arrival - (t0 + k h)``, where ``t0`` is the start epoch mapped to CLOCK_MONOTONIC exactly as
-   the nodes' ``RealtimeClock`` maps it. This is *tick instant -> receiving callback*: the
-   publisher's timer lateness, its work before ``put``, and the transport. The baseline's payload
-   also carries its send time, which splits off the transport alone. Plus ``extra["link_age"]``.
-4. ``cpu``: CPU and VmRSS per agent process, tether vs baseline, from the real-time runs of cases
-   2 and 3 (or one N = 8, 50 Hz pair if neither ran).
+   subscribes to every plant's and agent's state key and to the start message, and stamps each
+   arrival on CLOCK_MONOTONIC in its subscriber callback. ``plant``: arrival - (t0 + k h), t0 the
+   start epoch mapped to CLOCK_MONOTONIC exactly as the nodes' ``RealtimeClock`` maps it (the
+   plant's timer, its work before ``put``, one hop). ``relay``: arrival of agent i's relay of plant
+   i's sample k minus arrival of that sample (one hop more, through the agent's receive path and
+   back out; no clock assumption). The baseline's payload also carries its send time (put ->
+   callback alone). Plus the share of relays arriving after a phase of the period, and
+   ``extra["link_age"]``/``extra["meas_age"]``.
+4. ``cpu``: CPU, VmRSS, PSS and USS per agent process, tether vs baseline, from the real-time runs
+   of cases 2 and 3 that held their rate and were not disturbed (or one N = 8, 50 Hz pair).
 
-Figures are medians over ``--repeats`` (runs) and over processes; tether and baseline runs alternate.
+Every run is preceded by a wait for the machine to be quiet (``--quiet-below``), and the CPU that
+other users took during each run is measured (``/proc/stat`` minus our processes) and printed;
+runs where it exceeds 50 % of a core are flagged NOISY and left out of the medians when a quiet
+run exists. Figures are medians over runs and over processes of a role.
 """
 
 from __future__ import annotations
@@ -68,6 +77,9 @@ from tether import wire  # noqa: E402
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 PY = sys.executable
 BASELINE = str(REPO / "bench" / "baseline_node.py")
+REALTIME_QOS = {"cmd": "COMMAND", "telemetry": "TELEMETRY"}
+"""Real time: the presets ``agent/node.py`` declares its command and telemetry publishers with (every
+other stream, and every stream in lockstep, gets what ``Node.publisher`` gives: STATE / SYNC)."""
 START_LEAD = 1.0  # deploy.local.LaunchOptions.start_lead: tick 0 comes this long after "all up"
 WINDOW = 8  # deploy.local.LaunchOptions.window (tether run's default)
 
@@ -81,29 +93,6 @@ def cpu_times(pid: int) -> tuple[float, float] | None:
         return int(rest[11]) / CLK_TCK, int(rest[12]) / CLK_TCK
     except (OSError, IndexError, ValueError):
         return None
-
-
-def cpu_seconds(pid: int) -> float | None:
-    """utime + stime of ``pid`` [s], or None if it is gone."""
-    t = cpu_times(pid)
-    return None if t is None else t[0] + t[1]
-
-
-def context_switches(pid: int) -> int | None:
-    """Voluntary + involuntary context switches of every thread of ``pid``."""
-    total = 0
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            try:
-                with open(f"/proc/{pid}/task/{tid}/status") as fh:
-                    for line in fh:
-                        if "ctxt_switches" in line:
-                            total += int(line.split()[1])
-            except OSError:
-                pass
-    except OSError:
-        return None
-    return total
 
 
 def thread_cpu(pid: int) -> dict[int, tuple[str, float]] | None:
@@ -131,6 +120,18 @@ def thread_cpu(pid: int) -> dict[int, tuple[str, float]] | None:
             kind = "callback"
         out[int(tid)] = (kind, (int(rest[11]) + int(rest[12])) / CLK_TCK)
     return out
+
+
+def memory_kib(pid: int) -> dict[str, int] | None:
+    """Rss, Pss (shared pages divided among their users) and USS (private pages) of ``pid`` [KiB],
+    from ``/proc/<pid>/smaps_rollup``."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            f = {line.split(":")[0]: int(line.split()[1]) for line in fh if line.split(":")[0] in
+                 ("Rss", "Pss", "Private_Clean", "Private_Dirty")}
+    except (OSError, ValueError, IndexError):
+        return None
+    return {"rss": f["Rss"], "pss": f["Pss"], "uss": f["Private_Clean"] + f["Private_Dirty"]}
 
 
 def threads(pid: int) -> int | None:
@@ -207,25 +208,29 @@ class Proc:
     nid: int
     cpu0: tuple[float, float] | None = None
     cpu1: tuple[float, float] | None = None
-    ctx0: int | None = None
-    ctx1: int | None = None
     rss: int | None = None
     threads: int | None = None
 
     th0: dict[int, tuple[str, float]] | None = None
     th1: dict[int, tuple[str, float]] | None = None
+    mem: dict[str, int] | None = None
+    """Rss/Pss/USS [KiB], read now and then during the window (the last reading kept)."""
+
+    def snap_mem(self) -> None:
+        mem = memory_kib(self.pid)
+        if mem is not None:
+            self.mem = mem
 
     def snap0(self) -> None:
         self.cpu0 = cpu_times(self.pid)
-        self.ctx0 = context_switches(self.pid)
         self.th0 = thread_cpu(self.pid)
 
     def snap1(self) -> None:
         """Read the end of the window; a process already gone keeps its last sampled values."""
-        cpu, ctx, rss, nth = cpu_times(self.pid), context_switches(self.pid), rss_kib(self.pid), threads(self.pid)
+        cpu, rss, nth = cpu_times(self.pid), rss_kib(self.pid), threads(self.pid)
         th = thread_cpu(self.pid)
-        if None not in (cpu, ctx, rss, nth, th):
-            self.cpu1, self.ctx1, self.rss, self.threads = cpu, ctx, rss, nth
+        if None not in (cpu, rss, nth, th):
+            self.cpu1, self.rss, self.threads = cpu, rss, nth
             self.th1 = {**(self.th1 or {}), **th}  # threads that ended keep their last reading
 
     def by_thread(self) -> dict[str, float]:
@@ -254,12 +259,6 @@ class Proc:
             return float("nan")
         return self.cpu1[1] - self.cpu0[1]
 
-    @property
-    def switches(self) -> float:
-        if self.ctx0 is None or self.ctx1 is None:
-            return float("nan")
-        return float(self.ctx1 - self.ctx0)
-
 
 class Sampler:
     """Samples every process's end-of-window figures every ``period`` s while the window is open, so
@@ -274,9 +273,13 @@ class Sampler:
         self._thread.start()
 
     def _run(self) -> None:
+        n = 0
         while not self._stop.wait(self.period):
+            n += 1
             for p in self.procs:
                 p.snap1()
+                if n % 10 == 1:
+                    p.snap_mem()
 
     def stop(self) -> None:
         """Close the window: one last reading of every live process."""
@@ -284,6 +287,7 @@ class Sampler:
         self._thread.join()
         for p in self.procs:
             p.snap1()
+            p.snap_mem()
 
 
 class Window:
@@ -304,7 +308,8 @@ class Window:
         self.sampler.stop()
         res.window_s = time.monotonic() - self.t0
         machine = 100 * (machine_jiffies()[0] - self.m0) / CLK_TCK / res.window_s
-        res.foreign_pct = machine - sum(100 * p.cpu / res.window_s for p in self.procs if p.cpu == p.cpu)
+        mine = sum(100 * p.cpu / res.window_s for p in self.procs if p.cpu == p.cpu)
+        res.foreign_pct = max(0.0, machine - mine)  # both are read at 10 ms granularity
 
 
 @dataclass
@@ -348,10 +353,11 @@ class Result:
         return {k: med([100 * r[k] / self.window_s for r in rows]) for k in ("main", "callback", "zenoh")}
 
     def total_cpu_pct(self) -> float:
-        return float(sum(self.cpu_pct()))
+        return float(sum(x for x in self.cpu_pct() if x == x))
 
-    def rss_mib(self, role: str) -> list[float]:
-        return [p.rss / 1024 for p in self.procs if p.role == role and p.rss is not None]
+    def mem_mib(self, role: str, kind: str) -> list[float]:
+        """``kind``: rss, pss or uss of the role's processes [MiB]."""
+        return [p.mem[kind] / 1024 for p in self.procs if p.role == role and p.mem is not None]
 
 
 # =========================================================================== sizes and specs
@@ -402,15 +408,12 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
                   variant: dict[str, Any] | None = None) -> dict[str, Any]:
     """What every baseline process needs: the mission's shape, the sizes, the exact Zenoh configs
     (those ``deploy.local`` gives the launcher's router and its clients). ``variant`` changes one
-    thing for an experiment: ``direct`` callbacks, ``mesh`` (peers, as ``--network mesh``), ``qos``
-    (stream -> preset), ``window``, ``config`` (Zenoh key -> JSON value, inserted in every config)."""
+    thing for an experiment: ``direct`` callbacks, ``qos`` (real time: stream -> preset), ``window``,
+    ``colocate`` (lockstep: plants computed inside their agents), ``handover`` (False: no
+    ``ZENOH_RUNTIME``), ``config`` (Zenoh key -> JSON value, inserted in every config)."""
     v = variant or {}
     placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
-    if v.get("mesh"):
-        client = tp.ZenohSettings(mode="peer", connect=(placeholder,), listen=(placeholder,), lease=2.0,
-                                  connect_timeout=10.0)
-    else:
-        client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
+    client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
     router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0)
     configs = []
     for settings in (client, router):
@@ -426,8 +429,9 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
         "ns": m.name, "clock": clock, "rate": m.rate, "steps": int(round(duration * m.rate)),
         "window": v.get("window", WINDOW), "leader": m.leader.id, "agents": m.agent_ids, "nbrs": nbrs,
         "sizes": wire_sizes(m), "client_config": configs[0], "router_config": configs[1],
-        "wake": wake, "start_lead": START_LEAD, "direct": bool(v.get("direct")), "mesh": bool(v.get("mesh")),
-        "qos": v.get("qos", {}), "agent_phase": AGENT_PHASE, "colocate": bool(v.get("colocate")),
+        "wake": wake, "start_lead": START_LEAD, "direct": bool(v.get("direct")),
+        "qos": v.get("qos", REALTIME_QOS), "agent_phase": AGENT_PHASE, "colocate": bool(v.get("colocate")),
+        "batch": int(v.get("batch", 0)),
     }
 
 
@@ -495,18 +499,26 @@ def run_probe(endpoint: str, ns: str, rate: float, kind: str, n_agents: int, ste
     Path(out).write_text(json.dumps({"rows": rows, "received": len(arrivals), "expected": expected}))
 
 
-def probe_stats(probe: dict) -> dict[str, Any]:
+PHASES = (0.25, 0.5, 0.75, 0.9)
+
+
+def probe_stats(probe: dict, rate: float) -> dict[str, Any]:
     """p50/p99 [us] of: plant tick instant -> probe (one hop), agent relay of the same sample -> probe
     (two hops), their difference per sample (one hop through the agent: its callback, hand-off,
-    decode and relay publish), and for the baseline put -> callback; sample counts."""
+    decode and relay publish), and for the baseline put -> callback; sample counts; and, for agents
+    ticking a fraction ``phase`` of a period after their plants, the share of relayed samples that
+    arrive after that instant (a neighbour hears them about when the probe does)."""
     if not probe or "error" in probe:
         return {"error": (probe or {}).get("error", "no probe data")}
     rows = probe["rows"]
     plant = {(i, k): lat for role, i, k, lat, _ in rows if role == 0}
     agent = {(i, k): lat for role, i, k, lat, _ in rows if role == 1}
     relay = [agent[key] - plant[key] for key in agent.keys() & plant.keys()]
+    h_us = 1e6 / rate
     out: dict[str, Any] = {"received": f"{probe['received']}/{probe['expected']}",
-                           "plant_received": len(plant), "agent_received": len(agent)}
+                           "plant_received": len(plant), "agent_received": len(agent),
+                           "after_phase": {str(ph): float(np.mean([x > ph * h_us for x in agent.values()]))
+                                           if agent else float("nan") for ph in PHASES}}
     for name, xs in (("plant_tick", list(plant.values())), ("agent_tick", list(agent.values())), ("relay", relay),
                      ("put_cb", [sent for *_, sent in rows if sent is not None])):
         out[name] = [pct(xs, 50), pct(xs, 99)] if xs else [float("nan")] * 2
@@ -536,10 +548,11 @@ def _tether_cmd() -> list[str]:
 
 
 def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, work: Path,
-               probe: bool = False, timeout: float = 300.0) -> Result:
-    """``tether run MISSION --clock CLOCK --duration S --quiet``, measured from outside."""
+               probe: bool = False, timeout: float = 300.0, launcher: list[str] | None = None) -> Result:
+    """``tether run MISSION --clock CLOCK --duration S --quiet``, measured from outside (``launcher``
+    replaces the ``tether`` command, for experiments with a patched runtime)."""
     out = work / f"tether-{clock}-{m.n}-{time.monotonic_ns()}"
-    cmd = [*_tether_cmd(), "run", str(mission_path), "--out", str(out), "--clock", clock,
+    cmd = [*(launcher or _tether_cmd()), "run", str(mission_path), "--out", str(out), "--clock", clock,
            "--duration", repr(duration), "--quiet"]
     res = Result("tether", m.n, clock, m.rate)
     t_start = time.monotonic()
@@ -748,100 +761,201 @@ def settle() -> None:
         say(f"   (the machine is busy with other work: {busy:.2f} cores in use before this run)")
 
 
+NOISY = 50.0
+"""A run during which other users took more than this much CPU [% of one core] is flagged noisy."""
+
+
+def _quiet(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows whose runs were not noisy (both tether's and the baseline's), or all if none was quiet."""
+    quiet = [r for r in rows if max(r["foreign_pct"]) < NOISY]
+    return quiet or rows
+
+
 def mission_file(work: Path, n: int, rate: float, duration: float) -> tuple[Path, ms.Mission]:
     path = work / f"ring{n}-{rate:g}hz.toml"
     return path, missions.write(path, n, rate=rate, duration=duration, topology="ring")
 
 
 # =========================================================================== cases
+ROLES = ("launcher", "leader", "agent", "plant", "recorder")
+
+
+def _per_tick(res: Result, ticks: float) -> dict[str, Any]:
+    """CPU per tick [us] by role (median process) and by thread kind, and the total."""
+    f = 1e4 * res.window_s / ticks  # % of one core over the window -> us per tick
+    out: dict[str, Any] = {"total_us": res.total_cpu_pct() * f}
+    for ro in ROLES:
+        th = res.thread_pct(ro)
+        out[ro] = {"us": med(res.cpu_pct(ro)) * f, **{k: v * f for k, v in th.items()}}
+    return out
+
+
+def _role_table(tether: dict[str, Any], base: dict[str, Any], title: str) -> None:
+    """Print per-role CPU per tick, tether vs baseline, split by thread kind."""
+    say(f"   {title}")
+    say(f"   {'role':9} {'tether us':>10} {'(main/cb/zenoh)':>17} {'baseline us':>12} {'(main/cb/zenoh)':>17} {'ratio':>6}")
+    for ro in ROLES:
+        t, b = tether[ro], base[ro]
+        say(f"   {ro:9} {t['us']:>10.0f} {t['main']:>6.0f}/{t['callback']:>4.0f}/{t['zenoh']:>5.0f} {b['us']:>12.0f} "
+            f"{b['main']:>6.0f}/{b['callback']:>4.0f}/{b['zenoh']:>5.0f} {ratio(t['us'], b['us']):>6.2f}")
+
+
+def _med_dict(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Element-wise median of nested dicts of numbers."""
+    out: dict[str, Any] = {}
+    for key, val in rows[0].items():
+        if isinstance(val, dict):
+            out[key] = _med_dict([r[key] for r in rows])
+        else:
+            out[key] = med([r[key] for r in rows])
+    return out
+
+
 def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
     from tether import refsim
     from tether.node import load_mission
 
     path = catalog.resolve(a.mission)
     m = load_mission(path, a.lockstep_duration)
-    say(f"\n== 1. lockstep speed: {a.mission} ({m.n} agents, {m.dim}D, {m.rate:g} Hz), "
-        f"{a.lockstep_duration:g} s of mission time, window {WINDOW}, {a.repeats} repeats")
+    ticks = m.steps + 1
+    say(f"\n== 1. lockstep speed: {a.mission} ({m.n} agents, {m.dim}D, {m.rate:g} Hz), {a.lockstep_duration:g} s of "
+        f"mission time per run, window {WINDOW}, {a.repeats} repeats; speed = mission s / wall s")
+    if not a.no_variants:
+        say("   experiments on the bare baseline: 'co-located' = each plant computed inside its agent process (one")
+        say("   Zenoh hop per tick on the critical path instead of three); '+batched' = co-located, and each agent")
+        say("   sends the recorder one message per 4 ticks instead of two per tick, window 16")
     rows = []
-    t, b, r = [], [], []
     for i in range(a.repeats):
         settle()
         rt = run_tether(path, m, "lockstep", a.lockstep_duration, work)
         settle()
         rb = run_baseline(m, "lockstep", a.lockstep_duration, work)
+        rc = rcb = None
+        if not a.no_variants:
+            settle()
+            rc = run_baseline(m, "lockstep", a.lockstep_duration, work, variant={"colocate": True})
+            settle()
+            rcb = run_baseline(m, "lockstep", a.lockstep_duration, work,
+                               variant={"colocate": True, "batch": 4, "window": 16})
         t0 = time.perf_counter()
         refsim.simulate(m, "discrete")
-        r.append(m.duration / (time.perf_counter() - t0))
-        for res in (rt, rb):
-            if not res.ok:
+        ref = m.duration / (time.perf_counter() - t0)
+        for res in (rt, rb, rc, rcb):
+            if res is not None and not res.ok:
                 say(f"   {res.kind} failed: {res.why}")
-        t.append(rt.speed if rt.ok else float("nan"))
-        b.append(rb.speed if rb.ok else float("nan"))
-        rows.append({"tether_speed": t[-1], "baseline_speed": b[-1], "refsim_speed": r[-1],
-                     "tether_cpu_pct": rt.total_cpu_pct(), "baseline_cpu_pct": rb.total_cpu_pct(),
-                     "tether_startup_s": rt.startup_s, "baseline_startup_s": rb.startup_s,
-                     "tether_cpu_by_role": {ro: med(rt.cpu_pct(ro)) for ro in ("launcher", "leader", "agent", "plant", "recorder")},
-                     "baseline_cpu_by_role": {ro: med(rb.cpu_pct(ro)) for ro in ("launcher", "leader", "agent", "plant", "recorder")}})
-        say(f"   run {i + 1}: tether {t[-1]:6.2f} x   baseline {b[-1]:6.2f} x   refsim {r[-1]:8.0f} x   "
-            f"(total CPU {rt.total_cpu_pct():.0f} % vs {rb.total_cpu_pct():.0f} % of one core; "
-            f"start-up {rt.startup_s:.1f} s vs {rb.startup_s:.1f} s)")
-    st, sb, sr = med(t), med(b), med(r)
-    h = m.dt
-    say(f"   median: tether {st:.2f} x real time ({1e3 * h / st:.2f} ms per tick), target >= 20 x")
-    say(f"           bare baseline {sb:.2f} x ({1e3 * h / sb:.2f} ms per tick): tether/baseline = {ratio(st, sb):.2f}; "
-        f"the transport pattern alone takes {100 * ratio(st, sb):.0f} % of tether's per-tick time")
-    say(f"           reference simulator {sr:.0f} x: tether/refsim = {ratio(st, sr):.4f} (refsim is {ratio(sr, st):.0f} x faster)")
-    by = {ro: med([row["tether_cpu_by_role"][ro] for row in rows]) for ro in rows[0]["tether_cpu_by_role"]}
-    byb = {ro: med([row["baseline_cpu_by_role"][ro] for row in rows]) for ro in rows[0]["baseline_cpu_by_role"]}
-    say("           CPU per process [% of one core], tether / baseline: "
-        + ", ".join(f"{ro} {by[ro]:.0f}/{byb[ro]:.0f}" for ro in by))
+
+        def speed(res: Result | None) -> float:
+            return res.speed if res is not None and res.ok else float("nan")
+
+        row = {"tether": speed(rt), "baseline": speed(rb), "colocated": speed(rc), "batched": speed(rcb),
+               "refsim": ref, "tether_cpu": _per_tick(rt, ticks), "baseline_cpu": _per_tick(rb, ticks),
+               "colocated_cpu_us": _per_tick(rc, ticks)["total_us"] if rc is not None else float("nan"),
+               "batched_cpu_us": _per_tick(rcb, ticks)["total_us"] if rcb is not None else float("nan"),
+               "foreign_pct": [rt.foreign_pct, rb.foreign_pct],
+               "startup_s": [rt.startup_s, rb.startup_s]}
+        rows.append(row)
+        noisy = " NOISY" if max(row["foreign_pct"]) >= NOISY else ""
+        variants = "" if a.no_variants else (f"co-located {row['colocated']:5.2f} x  +batched "
+                                             f"{row['batched']:5.2f} x  ")
+        say(f"   run {i + 1}: tether {row['tether']:5.2f} x  baseline {row['baseline']:5.2f} x  {variants}"
+            f"refsim {ref:5.0f} x | CPU per tick {row['tether_cpu']['total_us'] / 1e3:.2f} vs "
+            f"{row['baseline_cpu']['total_us'] / 1e3:.2f} ms | other load {rt.foreign_pct:.0f} / {rb.foreign_pct:.0f} % "
+            f"| start-up {rt.startup_s:.1f} / {rb.startup_s:.1f} s{noisy}")
+    use = _quiet(rows)
+    mm = _med_dict([{k: v for k, v in r.items() if k not in ("foreign_pct", "startup_s")} for r in use])
+    say(f"   medians over {len(use)} of {len(rows)} runs (runs with other load >= {NOISY:g} % left out when a "
+        "quiet one exists)")
+    st, sb, sc, sr = mm["tether"], mm["baseline"], mm["colocated"], mm["refsim"]
+    say(f"   median: tether {st:.2f} x real time ({1e3 * m.dt / st:.2f} ms per tick; target >= 20 x)")
+    say(f"           bare baseline {sb:.2f} x ({1e3 * m.dt / sb:.2f} ms per tick): tether / baseline = {ratio(st, sb):.2f}")
+    if not a.no_variants:
+        say(f"           bare co-located {sc:.2f} x; bare co-located + batched + window 16 {mm['batched']:.2f} x")
+    say(f"           reference simulator {sr:.0f} x: tether / refsim = {ratio(st, sr):.3f}")
+    say(f"           CPU per tick, all processes: tether {mm['tether_cpu']['total_us'] / 1e3:.2f} ms, baseline "
+        f"{mm['baseline_cpu']['total_us'] / 1e3:.2f} ms (ratio {ratio(mm['tether_cpu']['total_us'], mm['baseline_cpu']['total_us']):.2f})"
+        + ("" if a.no_variants else f", co-located {mm['colocated_cpu_us'] / 1e3:.2f} ms, + batched "
+                                    f"{mm['batched_cpu_us'] / 1e3:.2f} ms"))
+    _role_table(mm["tether_cpu"], mm["baseline_cpu"], "CPU per tick by role [us], median process; thread kinds: asyncio main / "
+                "callback threads / Zenoh runtime")
     report["lockstep"] = {"mission": a.mission, "n": m.n, "rate": m.rate, "duration": a.lockstep_duration,
-                          "runs": rows, "median": {"tether": st, "baseline": sb, "refsim": sr},
-                          "cpu_by_role": {"tether": by, "baseline": byb}}
+                          "window": WINDOW, "runs": rows, "median": mm}
 
 
 def _rt_row(rt: Result, rb: Result) -> dict[str, Any]:
-    return {"n": rt.n, "rate": rt.rate, "tether_ok": rt.ok, "tether_why": rt.why, "baseline_ok": rb.ok,
-            "tether_late": rt.late, "tether_late_max": rt.late_max, "baseline_late": rb.late,
+    """What a real-time pair (tether, baseline) gives: late ticks, CPU, memory, ages, losses."""
+    ticks = rt.rate * rt.mission_s + 1 if rt.mission_s == rt.mission_s else float("nan")
+
+    def mem(res: Result) -> dict[str, float]:
+        return {kind: med(res.mem_mib("agent", kind)) for kind in ("rss", "pss", "uss")}
+
+    return {"n": rt.n, "rate": rt.rate, "tether_ok": rt.ok, "tether_why": rt.why.strip()[-300:],
+            "baseline_ok": rb.ok, "tether_late": rt.late, "tether_late_max": rt.late_max, "baseline_late": rb.late,
             "tether_total_cpu": rt.total_cpu_pct(), "baseline_total_cpu": rb.total_cpu_pct(),
-            "tether_cpu_by_role": {ro: med(rt.cpu_pct(ro)) for ro in ("launcher", "leader", "agent", "plant", "recorder")},
-            "baseline_cpu_by_role": {ro: med(rb.cpu_pct(ro)) for ro in ("launcher", "leader", "agent", "plant", "recorder")},
-            "tether_rss_mib": {ro: med(rt.rss_mib(ro)) for ro in ("launcher", "leader", "agent", "plant", "recorder")},
-            "baseline_rss_mib": {ro: med(rb.rss_mib(ro)) for ro in ("launcher", "leader", "agent", "plant", "recorder")},
+            "tether_cpu_by_role": {ro: med(rt.cpu_pct(ro)) for ro in ROLES},
+            "baseline_cpu_by_role": {ro: med(rb.cpu_pct(ro)) for ro in ROLES},
+            "tether_per_tick": _per_tick(rt, ticks) if rt.ok else None,
+            "baseline_per_tick": _per_tick(rb, ticks) if rb.ok else None,
+            "tether_agent_mem_mib": mem(rt), "baseline_agent_mem_mib": mem(rb),
             "link_age_ms": [1e3 * pct(rt.link_age, q) if rt.link_age is not None else float("nan") for q in (50, 99)],
+            "stale_ticks": 100 * float(np.mean(rt.link_age > 1e-9)) if rt.link_age is not None and rt.link_age.size
+            else float("nan"),
             "meas_age_ms": [1e3 * pct(rt.meas_age, q) if rt.meas_age is not None else float("nan") for q in (50, 99)],
             "tether_recorded": rt.complete, "baseline_recorded": rb.complete,
-            "complete": rt.complete, "tether_startup_s": rt.startup_s, "baseline_startup_s": rb.startup_s}
+            "foreign_pct": [rt.foreign_pct, rb.foreign_pct],
+            "startup_s": [rt.startup_s, rb.startup_s]}
+
+
+def _frac(recorded: str) -> float:
+    try:
+        got, want = recorded.split("/")
+        return 100 * int(got) / int(want)
+    except (ValueError, ZeroDivisionError):
+        return float("nan")
 
 
 def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:
-    say(f"\n== 2. real-time scale: ring missions, {a.scale_rate:g} Hz, {a.rt_duration:g} s, 3D; "
-        "'holds' = < 1 % late ticks (tick started > 1 period late), run complete")
-    say(f"   {'N':>3} {'procs':>5} {'late %':>7} {'max/agent':>9} {'bl late %':>9} {'CPU tether':>10} {'CPU base':>9} "
-        f"{'ratio':>6} {'link age p50/p99 ms':>20} {'recorded':>14}  holds")
+    say(f"\n== 2. real-time scale: ring missions, 3D, {a.scale_rate:g} Hz, {a.rt_duration:g} s per run, "
+        f"{a.scale_repeats} run(s) per N; holds = under 1 % of agent ticks late (started > 1 period late, median")
+    say("   over the quiet runs) and every run ended well. CPU = sum over every process (launcher/router included)")
+    say("   over the mission window [% of one core]; recorded = samples the recorder got of those sent;")
+    say("   other = other users' CPU during the run (tether / baseline)")
+    say(f"   {'N':>3} {'procs':>5} {'late %':>7} {'worst':>6} {'bl late':>7} {'CPU':>6} {'bl CPU':>6} {'ratio':>5} "
+        f"{'recorded %':>12} {'link age ms':>12} {'other %':>8}")
     rows = []
     largest = None
     for n in a.sizes:
         path, m = mission_file(work, n, a.scale_rate, a.rt_duration)
-        settle()
-        rt = run_tether(path, m, "realtime", a.rt_duration, work)
-        settle()
-        rb = run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)
-        pairs.append((rt, rb))
-        row = _rt_row(rt, rb)
-        holds = rt.ok and rt.late == rt.late and rt.late < 0.01
-        row["holds"] = holds
-        rows.append(row)
-        say(f"   {n:>3} {len(rt.procs):>5} {100 * rt.late:>7.2f} {100 * rt.late_max:>8.2f}% {100 * rb.late:>9.2f} "
-            f"{row['tether_total_cpu']:>9.0f}% {row['baseline_total_cpu']:>8.0f}% "
-            f"{ratio(row['tether_total_cpu'], row['baseline_total_cpu']):>6.2f} "
-            f"{row['link_age_ms'][0]:>9.1f} / {row['link_age_ms'][1]:<8.1f} {rt.complete:>14}  {'yes' if holds else 'NO'}"
-            + ("" if rt.ok else f"  ({rt.why.strip()[:120]})"))
+        runs = []
+        for _ in range(a.scale_repeats):
+            settle()
+            rt = run_tether(path, m, "realtime", a.rt_duration, work)
+            settle()
+            rb = run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)
+            pairs.append((rt, rb))
+            row = _rt_row(rt, rb)
+            runs.append(row)
+            noisy = " NOISY" if max(row["foreign_pct"]) >= NOISY else ""
+            say(f"   {n:>3} {len(rt.cpu_pct()):>5} {100 * rt.late:>7.2f} {100 * rt.late_max:>6.2f} {100 * rb.late:>7.2f} "
+                f"{row['tether_total_cpu']:>6.0f} {row['baseline_total_cpu']:>6.0f} "
+                f"{ratio(row['tether_total_cpu'], row['baseline_total_cpu']):>5.2f} "
+                f"{_frac(rt.complete):>5.1f}/{_frac(rb.complete):<6.1f} "
+                f"{row['link_age_ms'][0]:>5.1f}/{row['link_age_ms'][1]:<6.1f} "
+                f"{rt.foreign_pct:>3.0f}/{rb.foreign_pct:<4.0f}{noisy}"
+                + ("" if rt.ok else f"  FAILED ({rt.why.strip()[-160:]})"))
+        use = _quiet(runs)
+        late = med([r["tether_late"] for r in use])
+        holds = all(r["tether_ok"] for r in runs) and late == late and late < 0.01
+        rows.append({"n": n, "runs": runs, "late": late, "holds": holds,
+                     "tether_total_cpu": med([r["tether_total_cpu"] for r in use]),
+                     "baseline_total_cpu": med([r["baseline_total_cpu"] for r in use])})
+        say(f"   {n:>3} agents: median late {100 * late:.2f} %, CPU {rows[-1]['tether_total_cpu']:.0f} % vs "
+            f"{rows[-1]['baseline_total_cpu']:.0f} % (ratio {ratio(rows[-1]['tether_total_cpu'], rows[-1]['baseline_total_cpu']):.2f})"
+            f" -> {'holds' if holds else 'does NOT hold'} {a.scale_rate:g} Hz")
         if holds:
             largest = n
         else:
             break
-    say(f"   largest N holding {a.scale_rate:g} Hz: {largest}")
+    say(f"   largest N holding {a.scale_rate:g} Hz here: {largest}")
     report["scale"] = {"rate": a.scale_rate, "duration": a.rt_duration, "rows": rows, "largest": largest}
 
 
@@ -849,7 +963,7 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
     n, rate = a.latency_n, a.latency_rate
     path, m = mission_file(work, n, rate, a.latency_duration)
     say(f"\n== 3. latency: ring of {n}, {rate:g} Hz, {a.latency_duration:g} s; a probe subscribes to every plant's and "
-        f"agent's state ({a.repeats} repeats); microseconds, p50 / p99")
+        f"agent's state ({a.repeats} repeats); microseconds, p50 / p99, tether vs baseline")
     say("   plant: plant tick instant -> probe callback (plant timer + one hop through the router)")
     say("   relay: probe arrival of agent i's relay of plant i's sample k - arrival of that sample itself (one more hop:")
     say("          router -> agent callback -> hand-off -> decode -> relay put -> router)")
@@ -861,63 +975,169 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
         rb = run_baseline(m, "realtime", a.latency_duration, work, probe=True, wake=a.baseline_wake)
         pairs.append((rt, rb))
         row = _rt_row(rt, rb)
-        row["tether_probe"], row["baseline_probe"] = probe_stats(rt.probe), probe_stats(rb.probe)
-        rows.append(row)
+        row["tether_probe"], row["baseline_probe"] = probe_stats(rt.probe, rate), probe_stats(rb.probe, rate)
         tp_, bp = row["tether_probe"], row["baseline_probe"]
         if "error" in tp_ or "error" in bp:
             say(f"   run {i + 1}: probe failed: {tp_.get('error')} {bp.get('error')}")
             continue
+        rows.append(row)
+        noisy = " NOISY" if max(row["foreign_pct"]) >= NOISY else ""
         say(f"   run {i + 1}: plant {tp_['plant_tick'][0]:.0f}/{tp_['plant_tick'][1]:.0f} vs {bp['plant_tick'][0]:.0f}/"
             f"{bp['plant_tick'][1]:.0f}; relay {tp_['relay'][0]:.0f}/{tp_['relay'][1]:.0f} vs {bp['relay'][0]:.0f}/"
-            f"{bp['relay'][1]:.0f}; baseline put->callback {bp['put_cb'][0]:.0f}/{bp['put_cb'][1]:.0f}; "
-            f"probe got {tp_['received']} vs {bp['received']}; recorder {rt.complete} vs {rb.complete}; "
-            f"link age {row['link_age_ms'][0]:.1f}/{row['link_age_ms'][1]:.1f} ms; late {100 * rt.late:.2f} %")
-    ok = [r for r in rows if "error" not in r["tether_probe"] and "error" not in r["baseline_probe"]]
+            f"{bp['relay'][1]:.0f}; bare put->callback {bp['put_cb'][0]:.0f}/{bp['put_cb'][1]:.0f}; late "
+            f"{100 * rt.late:.2f} %; recorded {_frac(rt.complete):.1f}/{_frac(rb.complete):.1f} %; link age "
+            f"{row['link_age_ms'][0]:.0f}/{row['link_age_ms'][1]:.0f} ms; other load "
+            f"{rt.foreign_pct:.0f}/{rb.foreign_pct:.0f} %{noisy}")
+    if not rows:
+        return
+    use = _quiet(rows)
     mm: dict[str, Any] = {}
     for who in ("tether", "baseline"):
         for name in ("plant_tick", "agent_tick", "relay", "put_cb"):
-            mm[f"{who}_{name}"] = [med([r[f"{who}_probe"][name][j] for r in ok]) for j in (0, 1)]
-    age = [med([r["link_age_ms"][j] for r in rows]) for j in (0, 1)]
-    meas = [med([r["meas_age_ms"][j] for r in rows]) for j in (0, 1)]
-    say(f"   median: plant tick -> callback  tether {mm['tether_plant_tick'][0]:.0f} / {mm['tether_plant_tick'][1]:.0f}, "
+            mm[f"{who}_{name}"] = [med([r[f"{who}_probe"][name][j] for r in use]) for j in (0, 1)]
+        mm[f"{who}_after_phase"] = {ph: med([r[f"{who}_probe"]["after_phase"][ph] for r in use])
+                                    for ph in use[0][f"{who}_probe"]["after_phase"]}
+    age = [med([r["link_age_ms"][j] for r in use]) for j in (0, 1)]
+    meas = [med([r["meas_age_ms"][j] for r in use]) for j in (0, 1)]
+    stale = med([r["stale_ticks"] for r in use])
+    say(f"   medians over {len(use)} of {len(rows)} runs (noisy runs left out when a quiet one exists):")
+    say(f"     plant tick -> callback   tether {mm['tether_plant_tick'][0]:.0f} / {mm['tether_plant_tick'][1]:.0f}, "
         f"baseline {mm['baseline_plant_tick'][0]:.0f} / {mm['baseline_plant_tick'][1]:.0f}  "
         f"(p99 ratio {ratio(mm['tether_plant_tick'][1], mm['baseline_plant_tick'][1]):.2f})")
-    say(f"           relay hop through an agent   tether {mm['tether_relay'][0]:.0f} / {mm['tether_relay'][1]:.0f}, "
+    say(f"     relay hop via an agent   tether {mm['tether_relay'][0]:.0f} / {mm['tether_relay'][1]:.0f}, "
         f"baseline {mm['baseline_relay'][0]:.0f} / {mm['baseline_relay'][1]:.0f}  "
         f"(p99 ratio {ratio(mm['tether_relay'][1], mm['baseline_relay'][1]):.2f}; target p99 < 2000 and <= 1.5 x)")
-    say(f"           baseline put -> callback (transport alone) {mm['baseline_put_cb'][0]:.0f} / {mm['baseline_put_cb'][1]:.0f}")
-    say(f"           neighbour data age at use (extra['link_age']) {age[0]:.2f} / {age[1]:.2f} ms; own measurement "
-        f"age (extra['meas_age']) {meas[0]:.2f} / {meas[1]:.2f} ms; period {1e3 / rate:.1f} ms")
+    say(f"     bare put -> callback     {mm['baseline_put_cb'][0]:.0f} / {mm['baseline_put_cb'][1]:.0f}")
+    say("     relayed samples arriving after phase x period (a neighbour ticking at that phase misses them), "
+        "tether / baseline: " + ", ".join(f"{ph}: {100 * mm['tether_after_phase'][ph]:.2f} / "
+                                          f"{100 * mm['baseline_after_phase'][ph]:.2f} %" for ph in mm["tether_after_phase"]))
+    say(f"     neighbour data age at use (extra['link_age']) {age[0]:.1f} / {age[1]:.1f} ms; own measurement age "
+        f"(extra['meas_age']) {meas[0]:.1f} / {meas[1]:.1f} ms; agent ticks using older-than-current samples "
+        f"{stale:.2f} %; period {1e3 / rate:.1f} ms, agents tick at phase {AGENT_PHASE:g}")
     report["latency"] = {"n": n, "rate": rate, "duration": a.latency_duration, "runs": rows, "median": mm,
-                         "link_age_ms": age, "meas_age_ms": meas}
+                         "link_age_ms": age, "meas_age_ms": meas, "stale_ticks_pct": stale,
+                         "agent_phase": AGENT_PHASE, "quiet_runs": len(use)}
 
 
 def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:
     if not pairs:
-        path, m = mission_file(work, 8, 50.0, a.rt_duration)
-        pairs.append((run_tether(path, m, "realtime", a.rt_duration, work),
-                      run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)))
-    say("\n== 4. per process: CPU [% of one core] and VmRSS [MiB], medians over processes (tether / baseline = ratio)")
-    say(f"   {'N':>3} {'Hz':>4} {'agent CPU':>22} {'agent RSS':>22} {'plant CPU':>18} {'recorder CPU':>18} {'launcher CPU':>18}")
+        path, m = mission_file(work, 8, a.scale_rate, a.rt_duration)
+        settle()
+        rt = run_tether(path, m, "realtime", a.rt_duration, work)
+        settle()
+        pairs.append((rt, run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)))
+    say("\n== 4. per agent process, real time: CPU [% of one core] and memory [MiB] (median process; tether / "
+        "baseline = ratio)")
+    say("   RSS counts shared library pages in full in every process; PSS divides them among their users;")
+    say("   USS is what the process alone holds")
+    say(f"   {'N':>3} {'Hz':>4} {'agent CPU':>20} {'agent RSS':>20} {'agent PSS':>20} {'agent USS':>20} "
+        f"{'plant CPU':>17} {'recorder CPU':>17}")
     rows = []
     for rt, rb in pairs:
-        if not (rt.ok and rb.ok):
+        if not (rt.ok and rb.ok and rt.late < 0.01):
+            say(f"   ({rt.n} agents at {rt.rate:g} Hz left out: tether did not hold the rate, so its CPU is capped)")
             continue
-        row = {"n": rt.n, "rate": rt.rate}
+        if max(rt.foreign_pct, rb.foreign_pct) >= NOISY:
+            say(f"   ({rt.n} agents at {rt.rate:g} Hz left out: noisy run, other load {rt.foreign_pct:.0f} / "
+                f"{rb.foreign_pct:.0f} %)")
+            continue
+        row: dict[str, Any] = {"n": rt.n, "rate": rt.rate}
         cells = []
-        for ro, what in (("agent", "cpu"), ("agent", "rss"), ("plant", "cpu"), ("recorder", "cpu"), ("launcher", "cpu")):
-            x = med(rt.cpu_pct(ro)) if what == "cpu" else med(rt.rss_mib(ro))
-            y = med(rb.cpu_pct(ro)) if what == "cpu" else med(rb.rss_mib(ro))
+        for ro, what, width in (("agent", "cpu", 20), ("agent", "rss", 20), ("agent", "pss", 20), ("agent", "uss", 20),
+                                ("plant", "cpu", 17), ("recorder", "cpu", 17)):
+            if what == "cpu":
+                x, y = med(rt.cpu_pct(ro)), med(rb.cpu_pct(ro))
+            else:
+                x, y = med(rt.mem_mib(ro, what)), med(rb.mem_mib(ro, what))
             row[f"{ro}_{what}"] = [x, y, ratio(x, y)]
-            w = 22 if ro == "agent" else 18
-            cells.append(f"{x:.1f}/{y:.1f}={ratio(x, y):.2f}".rjust(w))
+            cells.append(f"{x:.1f}/{y:.1f}={ratio(x, y):.2f}".rjust(width))
         rows.append(row)
         say(f"   {rt.n:>3} {rt.rate:>4g} " + " ".join(cells))
     if rows:
-        cpu_r = med([r["agent_cpu"][2] for r in rows])
-        rss_r = med([r["agent_rss"][2] for r in rows])
-        say(f"   median agent ratios: CPU {cpu_r:.2f} (target <= 1.3), RSS {rss_r:.2f} (target <= 1.1)")
-        report["cpu"] = {"rows": rows, "agent_cpu_ratio": cpu_r, "agent_rss_ratio": rss_r}
+        summary = {k: med([r[k][2] for r in rows]) for k in rows[0] if k not in ("n", "rate")}
+        say(f"   median ratios: agent CPU {summary['agent_cpu']:.2f} (target <= 1.3), agent RSS {summary['agent_rss']:.2f} "
+            f"(target <= 1.1), PSS {summary['agent_pss']:.2f}, USS {summary['agent_uss']:.2f}; plant CPU "
+            f"{summary['plant_cpu']:.2f}, recorder CPU {summary['recorder_cpu']:.2f}")
+        report["cpu"] = {"rows": rows, "median_ratios": summary}
+
+
+def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
+    """The Python work of one tick per role, in this process, hot (timeit): what the runtime must
+    spend whatever the transport, against the CPU per tick its processes take (cases 1 and 4)."""
+    import asyncio
+    import math
+    import timeit
+
+    from agent.law import AgentLaw
+    from leader import profile
+    from plant import double_integrator
+    from plant.disturbance import DisturbanceBank
+
+    _, m = mission_file(work, a.latency_n, a.latency_rate, 1.0)
+    d, h = m.dim, m.dt
+    width = max(sum(1 for e in m.edges if e.dst == ag.id) for ag in m.agents)
+    rx = wire.Receiver(d)
+    enc = {name: wire.encode(_example(cls, m, width)) for name, cls in
+           (("state", wire.State), ("plant", wire.PlantState), ("cmd", wire.Command), ("tele", wire.Telemetry))}
+    vec = [0.1] * d
+
+    def us(f: Any, n: int = 20000) -> float:
+        return 1e6 * timeit.timeit(f, number=n) / n
+
+    rows: dict[str, float] = {}
+    rows["msgpack decode, PlantState"] = us(lambda: wire.decode(enc["plant"]))
+    rows["Receiver.accept, PlantState"] = us(lambda: rx.accept(enc["plant"], wire.PlantState, m.leader.id))
+    rows["Receiver.accept, Telemetry"] = us(lambda: rx.accept(enc["tele"], wire.Telemetry, m.leader.id))
+    rows["construct + encode, State"] = us(lambda: wire.encode(wire.State(sender=1, seq=1, k=1, t=0.01, p=vec,
+                                                                          vel=vec, a=vec)))
+    dist = DisturbanceBank.from_mission(m, [m.agent_ids[0]])
+    p0 = np.zeros(d)
+
+    def plant_tick() -> bytes:
+        u = np.array(vec)
+        dv, dp = dist.increments(5)
+        p, v, acc = double_integrator.step(p0, p0, u, dv[0], dp[0], h)
+        dd = dist.value(5)[0]
+        return wire.encode(wire.PlantState(sender=1, seq=5, k=5, t=0.05, p=p.tolist(), vel=v.tolist(),
+                                           a=acc.tolist(), d=dd.tolist()))
+
+    rows["plant tick: integrate + disturbance + encode"] = us(plant_tick)
+    ref = profile.build(m.leader, d)
+    rows["leader tick: profile + encode"] = us(lambda: wire.encode(wire.State(
+        sender=1, seq=1, k=1, t=0.01, **dict(zip(("p", "vel", "a"), (x.tolist() for x in ref(0.05)))))))
+    law = AgentLaw.from_mission(m, m.agent_ids[0])
+    nb = np.zeros((len(law.neighbours), d))
+    kp, kv = law.params.kp0.copy(), law.params.kv0.copy()
+    rows["AgentLaw.step (numpy, d = 3)"] = us(lambda: law.step(p0, p0, nb, nb, nb, kp, kv))
+    rows["isfinite over a 3-vector: generator / map"] = us(lambda: all(math.isfinite(x) for x in vec))
+    rows["  ... all(map(math.isfinite, v))"] = us(lambda: all(map(math.isfinite, vec)))
+
+    async def wakeups() -> tuple[float, float, float]:
+        w, loop, ev, n = tp.Wakeup(), asyncio.get_running_loop(), asyncio.Event(), 20000
+        t0 = time.thread_time()
+        for _ in range(n):
+            w.notify()
+            await w.wait(30.0)
+        t1 = time.thread_time()
+        for _ in range(n):
+            w.notify()
+            await w.wait()
+        t2 = time.thread_time()
+        for _ in range(n):
+            loop.call_soon(ev.set)
+            await ev.wait()
+            ev.clear()
+        t3 = time.thread_time()
+        return 1e6 * (t1 - t0) / n, 1e6 * (t2 - t1) / n, 1e6 * (t3 - t2) / n
+
+    with_t, without_t, bare = asyncio.run(wakeups())
+    rows["Wakeup.notify + wait(timeout) on the loop"] = with_t
+    rows["Wakeup.notify + wait() on the loop"] = without_t
+    rows["bare call_soon + Event.wait"] = bare
+    say(f"\n== Python work per tick, in one process, hot caches (timeit; {m.n} agents, {d}D); microseconds")
+    for name, val in rows.items():
+        say(f"   {name:48} {val:7.2f}")
+    report["python_us"] = rows
 
 
 def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25) -> None:
@@ -985,17 +1205,19 @@ def main(argv: list[str]) -> None:
         ep, ns, rate, kind, n, steps, out = argv[1:8]
         return run_probe(ep, ns, float(rate), kind, int(n), int(steps), out)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", choices=["lockstep", "scale", "latency", "cpu"],
-                    default=["lockstep", "scale", "latency", "cpu"])
+    ap.add_argument("--cases", nargs="+", choices=["lockstep", "scale", "latency", "cpu", "python"],
+                    default=["lockstep", "scale", "latency", "cpu", "python"])
     ap.add_argument("--repeats", type=int, default=3, help="runs per figure in cases 1 and 3 (medians)")
     ap.add_argument("--mission", default="section4", help="case 1's mission (N = 4, 100 Hz)")
     ap.add_argument("--lockstep-duration", type=float, default=10.0, help="case 1: mission seconds per run")
     ap.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16, 32], help="case 2: N, stepped until one fails")
     ap.add_argument("--scale-rate", type=float, default=50.0)
+    ap.add_argument("--scale-repeats", type=int, default=1, help="case 2: runs per N (median late share)")
     ap.add_argument("--rt-duration", type=float, default=15.0, help="case 2 (and 4): mission seconds per run")
     ap.add_argument("--latency-n", type=int, default=8)
     ap.add_argument("--latency-rate", type=float, default=100.0)
     ap.add_argument("--latency-duration", type=float, default=10.0)
+    ap.add_argument("--no-variants", action="store_true", help="case 1: skip the co-located baseline experiment")
     ap.add_argument("--baseline-wake", action="store_true",
                     help="real-time baseline wakes its loop on every sample, as tether's nodes do")
     ap.add_argument("--quiet-below", type=float, default=0.5,
@@ -1029,6 +1251,8 @@ def main(argv: list[str]) -> None:
             case_latency(a, work, report, pairs)
         if "cpu" in a.cases:
             case_cpu(a, work, report, pairs)
+        if "python" in a.cases:
+            case_python(a, work, report)
         say(f"\ndone in {time.monotonic() - t0:.0f} s; load average at end " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
     if a.json is not None:
         report["machine"]["load_at_end"] = os.getloadavg()
