@@ -190,8 +190,14 @@ class Node:
         self._declared.append(pub)
         return Publisher(pub, self.args.node_id)
 
+    def subscribe(self, pattern: str) -> None:
+        """One subscription (one callback thread) for many inputs: samples on keys matching
+        ``pattern`` reach the sources declared with ``subscribe=False``; others are ignored."""
+        self._declared.append(tp.declare_subscriber(self.session, pattern, self.fifo))
+
     def source(self, key: str, expect: type, sender: int | None,
-               on_message: Callable[[Any], None] | None = None, link: bool = False) -> Source:
+               on_message: Callable[[Any], None] | None = None, link: bool = False,
+               subscribe: bool = True) -> Source:
         """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``link``: the
         samples cross the network from ``sender`` to this node, through the mission's emulated
         link ``sender -> node`` when it has a ``[netem]`` section (an ideal link delivers every sample
@@ -203,7 +209,8 @@ class Node:
             rng = link_rng(self.mission.seed, sender, self.args.node_id)
             src.channel = Channel(Link(changes[0][1], rng), changes)
         self.sources[key] = src
-        self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
+        if subscribe:
+            self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
         return src
 
     def watch(self, role: str, node_id: int, *sources: Source) -> None:

@@ -101,12 +101,18 @@ def make(out: Path):
         m, keys = node.mission, node.keys
         rec = Recording(node, out)
         holder["rec"] = rec
+        # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
+        # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
         node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id, on_message=rec.leader)
         producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
-            node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry)
-            node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant)
+            node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
+                        subscribe=False)
+            node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
+                        subscribe=False)
             producers += [("agent", aid), ("plant", aid)]
+        node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
+        node.subscribe(f"tether/{keys.ns}/plant/*/state")
         ack = node.publisher(keys.topic("recorder", node.args.node_id, "ack"))
         seen: set[str] = set()
         gone: set[str] = set()

@@ -234,17 +234,17 @@ class Receiver:
 
     def accept(self, payload: bytes, expect: type, sender: int | None) -> Message | None:
         try:
-            version = _VERSION.decode(payload).v
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            self._drop("malformed")
-            return None
-        if version != WIRE_VERSION:
-            self._drop("version")
-            return None
-        try:
             msg = _DECODER.decode(payload)
         except (msgspec.DecodeError, msgspec.ValidationError):
-            self._drop("malformed")
+            # only now read the version: a message of another version is not a malformed one
+            try:
+                other = _VERSION.decode(payload).v != WIRE_VERSION
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                other = False
+            self._drop("version" if other else "malformed")
+            return None
+        if msg.v != WIRE_VERSION:
+            self._drop("version")
             return None
         if not isinstance(msg, expect):
             self._drop("type")
@@ -261,7 +261,7 @@ class Receiver:
             if len(vec) != self.dim:
                 self._drop("size")
                 return None
-            if not all(math.isfinite(x) for x in vec):
+            if not all(map(math.isfinite, vec)):
                 self._drop("nonfinite")
                 return None
         return msg
