@@ -34,6 +34,8 @@ from typing import Any, Generic, Literal, NamedTuple, Protocol, TypeVar
 import msgspec
 import zenoh
 
+from tether import wire
+
 __all__ = [
     "COMMAND",
     "STATE",
@@ -69,9 +71,7 @@ __all__ = [
 
 T = TypeVar("T")
 
-TOKEN_ROOT = "@tether"
-"""First chunk of every liveliness token. Starting with ``@`` makes it hermetic: ``*`` and ``**``
-never match it, so only a subscriber that names ``@tether`` explicitly sees tokens."""
+TOKEN_ROOT = wire.TOKEN_ROOT
 
 
 # =========================================================================== settings
@@ -668,7 +668,7 @@ def token_key(mission: str, role: str, ident: int | str) -> str:
             raise ValueError(
                 f"{name} is {part!r}; a key chunk is non-empty, without '/', '*', '$', '?', '#', '@' or spaces"
             )
-    return f"{TOKEN_ROOT}/{mission}/{role}/{ident}"
+    return wire.Keys(mission).token(role, ident)
 
 
 def declare_token(session: zenoh.Session, key: str) -> zenoh.LivelinessToken:

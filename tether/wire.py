@@ -33,6 +33,10 @@ import msgspec
 
 WIRE_VERSION = 1
 
+TOKEN_ROOT = "@tether"
+"""First chunk of every liveliness token; starting with ``@`` makes it hermetic (``*`` and ``**``
+never match it, so only a subscriber that names ``@tether`` sees tokens)."""
+
 Role = Literal["leader", "agent", "plant", "clock", "control", "recorder", "launcher", "world"]
 
 
@@ -172,12 +176,12 @@ class Keys:
     def topic(self, role: str, node: int, topic: str) -> str:
         return f"tether/{self.ns}/{role}/{node}/{topic}"
 
-    def token(self, role: str, node: int) -> str:
-        return f"@tether/{self.ns}/{role}/{node}"
+    def token(self, role: str, node: int | str) -> str:
+        return f"{TOKEN_ROOT}/{self.ns}/{role}/{node}"
 
     @property
     def tokens(self) -> str:
-        return f"@tether/{self.ns}/**"
+        return f"{TOKEN_ROOT}/{self.ns}/**"
 
     @property
     def everything(self) -> str:
@@ -206,7 +210,7 @@ class Keys:
     @staticmethod
     def parse_token(key: str) -> tuple[str, int]:
         parts = str(key).split("/")
-        if len(parts) != 4 or parts[0] != "@tether":
+        if len(parts) != 4 or parts[0] != TOKEN_ROOT:
             raise ValueError(f"not a tether liveliness key: {key}")
         return parts[2], int(parts[3])
 
