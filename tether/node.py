@@ -85,6 +85,9 @@ class Source:
     gone: bool = False
     """Its producer's liveliness token is absent."""
     on_message: Callable[[Any], None] | None = None
+    keep: bool = True
+    """Hold samples by tick for :meth:`Node.aligned`; False for inputs consumed by ``on_message``
+    alone (the recorder), which would otherwise hold every sample of the run."""
 
     @property
     def silent(self) -> bool:
@@ -104,7 +107,8 @@ class Source:
             self.stale += 1
         else:
             self.newest = msg
-        self.by_tick.setdefault(msg.k, msg)
+        if self.keep:
+            self.by_tick.setdefault(msg.k, msg)
         if self.on_message is not None:
             self.on_message(msg)
 
@@ -197,12 +201,12 @@ class Node:
 
     def source(self, key: str, expect: type, sender: int | None,
                on_message: Callable[[Any], None] | None = None, link: bool = False,
-               subscribe: bool = True) -> Source:
+               subscribe: bool = True, keep: bool = True) -> Source:
         """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``link``: the
         samples cross the network from ``sender`` to this node, through the mission's emulated
         link ``sender -> node`` when it has a ``[netem]`` section (an ideal link delivers every sample
         at its own time: the run is then the same as without the section, bit for bit)."""
-        src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message)
+        src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep)
         net = self.mission.netem
         if link and net is not None and sender is not None:
             changes = schedule(net, sender, self.args.node_id)
@@ -238,8 +242,8 @@ class Node:
             self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
         self._paced = paced and self.args.clock == "lockstep"
         if self._paced:
-            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: self.lockstep.grant(m.grant))
-        start = self._start = self.source(self.keys.start, wire.Start, 0)
+            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: self.lockstep.grant(m.grant), keep=False)
+        start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
         self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
         await self.until(lambda: start.newest is not None, None, "the launcher's start message")
         if self.args.clock == "realtime":

@@ -103,13 +103,14 @@ def make(out: Path):
         holder["rec"] = rec
         # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
-        node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id, on_message=rec.leader)
+        node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id, on_message=rec.leader,
+                    keep=False)
         producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
             node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
-                        subscribe=False)
+                        subscribe=False, keep=False)
             node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
-                        subscribe=False)
+                        subscribe=False, keep=False)
             producers += [("agent", aid), ("plant", aid)]
         node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
         node.subscribe(f"tether/{keys.ns}/plant/*/state")
