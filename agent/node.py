@@ -74,7 +74,10 @@ async def run(node: Node) -> None:
         links = [wire.LinkStats(src=j, received=s.received_upto(k) if lockstep else s.received, used=used[n],
                                 stale=s.stale, age=ages[n], silent=s.silent_at(k))
                  for n, (j, s) in enumerate(zip(law.neighbours, nbrs))]
-        tele.send(wire.Telemetry, k, t, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u.tolist(), xi=xi.tolist(),
+        decisions = [wire.LinkDecision(src=j, seq=d.seq, now=d.now, event=d.event, at=d.at)
+                     for j, s in zip(law.neighbours, nbrs) if s.channel is not None
+                     for d in s.channel.link.take_decisions()]
+        tele.send(wire.Telemetry, k, t, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u.tolist(), xi=xi.tolist(),
                   zeta=zeta.tolist(), kp=kp.tolist(), kv=kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=getattr(node.clock, "late", 0))
         kp, kv = kp_next, kv_next

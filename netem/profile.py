@@ -426,6 +426,9 @@ class Network(_Strict):
 
     default: str | LinkProfile = "ideal"
     rules: tuple[LinkRule, ...] = ()
+    log: bool = False
+    """Keep every link decision (dropped, delayed, duplicated, reordered, corrupted) and write it to
+    the run directory as ``netem.jsonl``, for replay and debugging."""
 
 
 def resolve(p: str | LinkProfile) -> LinkProfile:

@@ -3,6 +3,7 @@ for old neighbour data. Real processes, real Zenoh on loopback, lockstep."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -42,9 +43,23 @@ def test_an_ideal_network_changes_nothing_bit_for_bit(tmp_path: Path) -> None:
 
 
 def test_a_degraded_network_is_deterministic_for_a_seed_and_changes_the_run(tmp_path: Path) -> None:
-    mission = with_netem(tmp_path, "lossy", '[netem]\ndefault = "lossy-burst"\n')
+    mission = with_netem(tmp_path, "lossy", '[netem]\ndefault = "lossy-burst"\nlog = true\n')
     a = run(mission, tmp_path / "a")
     b = run(mission, tmp_path / "b")
+    # the decision log is written, identical across runs, and agrees with what the agents received
+    log_a = (tmp_path / "a" / "netem.jsonl").read_text()
+    assert log_a == (tmp_path / "b" / "netem.jsonl").read_text()
+    decisions = [json.loads(line) for line in log_a.splitlines()]
+    events = {d["event"] for d in decisions}
+    assert "deliver" in events and "drop:loss" in events
+    end = a.t[-1]
+    for i, aid in enumerate(a.agent_ids):
+        for n, src in enumerate(a.extra["link_src"][i]):
+            if src == 0:
+                continue
+            due = [d for d in decisions if d["dst"] == aid and d["src"] == src and d["at"] is not None
+                   and d["at"] <= end + 1e-9 and "corrupt" not in d["event"]]
+            assert a.extra["link_received"][-1, i, n] == len(due), (aid, src)
     for name in (*SERIES, "link_age", "link_received", "link_stale"):
         x = getattr(a, name) if name in SERIES else a.extra[name]
         y = getattr(b, name) if name in SERIES else b.extra[name]

@@ -211,7 +211,7 @@ class Node:
         if link and net is not None and sender is not None:
             changes = schedule(net, sender, self.args.node_id)
             rng = link_rng(self.mission.seed, sender, self.args.node_id)
-            src.channel = Channel(Link(changes[0][1], rng), changes)
+            src.channel = Channel(Link(changes[0][1], rng, log=net.log), changes)
         self.sources[key] = src
         if subscribe:
             self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))

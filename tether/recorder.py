@@ -47,6 +47,8 @@ class Recording:
         ex["drops"] = np.full((T, n), np.nan)
         ex["meas_age"] = np.full((T, n), np.nan)
         ex["late"] = np.full((T, n), np.nan)
+        self.netem: list[dict] = []
+        """Link decisions, when the mission logs them (written to ``netem.jsonl``)."""
         self.count = np.zeros(T, dtype=np.int64)
         self.expected = 1 + 2 * n
         self.saved = False
@@ -79,6 +81,9 @@ class Recording:
             ex["link_silent"][k, i, n] = float(link.silent)
         ex["drops"][k, i] = sum(msg.drops.values())
         ex["meas_age"][k, i] = msg.t - msg.meas_t
+        for d in msg.netem:
+            self.netem.append({"dst": msg.sender, "src": d.src, "seq": d.seq, "now": d.now, "event": d.event,
+                               "at": d.at})
         ex["late"][k, i] = msg.late
         self.count[k] += 1
 
@@ -88,6 +93,10 @@ class Recording:
         self.run.meta["samples_recorded"] = int(self.count.sum())
         self.run.meta["samples_expected"] = int(self.expected * len(self.count))
         path = self.run.save(self.out / "run.npz")
+        if self.mission.netem is not None and self.mission.netem.log:
+            self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
+            lines = "".join(json.dumps(d) + "\n" for d in self.netem)
+            (self.out / "netem.jsonl").write_text(lines)
         self.saved = True
         log.info("wrote %s (%d of %d samples)", path, self.count.sum(), self.expected * len(self.count))
         return path

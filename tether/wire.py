@@ -96,6 +96,20 @@ class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     """j's liveliness token is gone."""
 
 
+class LinkDecision(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What the emulated link ``src -> sender`` did with one copy (``[netem] log = true``)."""
+
+    src: int
+    seq: int
+    """Index of the offer on that link, from 0."""
+    now: float
+    """When the sample entered the link [s; mission time]."""
+    event: str
+    """``deliver``, ``duplicate`` (``+reorder``, ``+corrupt``), or ``drop:loss|outage|queue``."""
+    at: float | None
+    """Delivery time [s]; None for a drop."""
+
+
 class Telemetry(_Msg, tag="telemetry"):
     """Agent i's tick: what it measured, computed and saw."""
 
@@ -115,6 +129,8 @@ class Telemetry(_Msg, tag="telemetry"):
     """Messages dropped since start, by reason (see :class:`Receiver`)."""
     late: int = 0
     """Real time: ticks that started more than one period late."""
+    netem: list[LinkDecision] = []
+    """The emulated links' decisions since the previous tick (only with ``[netem] log = true``)."""
 
 
 class Tick(_Msg, tag="tick"):
