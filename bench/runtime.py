@@ -191,6 +191,15 @@ def children_of(pid: int) -> list[int]:
     return out
 
 
+def reap(proc: subprocess.Popen, timeout: float) -> None:
+    """Wait up to ``timeout`` [s] for ``proc`` to end by itself, then kill it."""
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def cmdline(pid: int) -> list[str]:
     try:
         with open(f"/proc/{pid}/cmdline", "rb") as fh:
@@ -614,11 +623,7 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
             p.terminate()
             p.wait()
         if probe_proc is not None:
-            try:
-                probe_proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                probe_proc.kill()
-                probe_proc.wait()
+            reap(probe_proc, 30.0)
     run_file = out / "run.npz"
     if run_file.exists():
         with np.load(run_file) as z:
@@ -722,11 +727,7 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
             hub.kill()
             hub.wait()
         if probe_proc is not None:
-            try:
-                probe_proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                probe_proc.kill()
-                probe_proc.wait()
+            reap(probe_proc, 30.0)
     if probe and probe_out.exists():
         res.probe = json.loads(probe_out.read_text())
     return res
