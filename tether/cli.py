@@ -176,6 +176,26 @@ def _check_id(args: argparse.Namespace) -> None:
         raise ms.MissionError(str(args.mission), [("--id", f"{args.id} is not an agent of this mission; use one of {m.agent_ids}")])
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from tether import sweep
+
+    m = _load(args.mission)
+    try:
+        grid = {"loss": sweep.parse_list(args.loss, "--loss", 0.0, 100.0, "%", hi_open=True),
+                "delay": sweep.parse_list(args.delay, "--delay", 0.0, 60_000.0, "ms"),
+                "burst": sweep.parse_list(args.burst, "--burst", 1.0, 1e6, "messages")}
+        laws = tuple(x.strip() for x in args.laws.split(","))
+        prog = Progress()
+        rows = sweep.sweep(m, Path(args.out), laws=laws, jitter_ms=args.jitter, duration=args.duration,
+                           engine=args.engine, jobs=args.jobs, progress=prog, **grid)
+    except sweep.SweepError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    diverged = sum(r["diverged"] for r in rows)
+    print(f"{len(rows)} runs, {diverged} diverged; wrote {Path(args.out) / 'sweep.csv'}, sweep.md and heatmaps")
+    return 0
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import asyncio
     import logging
@@ -269,6 +289,21 @@ def build_parser() -> argparse.ArgumentParser:
         if role == "recorder":
             rp.add_argument("--out", required=True)
         rp.set_defaults(func=fn)
+
+    sw = sub.add_parser("sweep", help="degradation study: a mission over a grid of link loss and delay, both laws")
+    sw.add_argument("mission")
+    sw.add_argument("--out", required=True, help="directory for sweep.csv, sweep.md, heatmaps and each point's mission")
+    sw.add_argument("--loss", default="0,10,30,50", help="loss ratios [%%], comma-separated (default 0,10,30,50)")
+    sw.add_argument("--delay", default="0,20,50,100,200", help="one-way delays [ms] (default 0,20,50,100,200)")
+    sw.add_argument("--burst", default="1", help="mean loss-burst lengths [messages]; 1: independent losses")
+    sw.add_argument("--jitter", type=float, default=0.0, help="uniform delay jitter, half-width [ms]")
+    sw.add_argument("--laws", default="sigma,benchmark", help="laws to run (default both)")
+    sw.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
+    sw.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess",
+                    help="inprocess: the lockstep runtime's arithmetic in one process (equal bit for bit, "
+                         "~100x faster); runtime: real processes over Zenoh (tether run) for every point")
+    sw.add_argument("--jobs", type=int, default=1, help="grid points run at once (processes)")
+    sw.set_defaults(func=cmd_sweep)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file")
     pl.add_argument("run", help="a run.npz or the directory holding it")

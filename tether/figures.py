@@ -119,3 +119,61 @@ def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None)
     fig.savefig(paths[-1], dpi=150)
     plt.close(fig)
     return paths
+
+
+def heatmaps(rows: list[dict], out_dir: str | Path, *, loss: list[float], delay: list[float], burst: list[float],
+             laws: list[str], title: str = "") -> list[Path]:
+    """A degradation sweep's maps (``tether sweep``): one figure per burst length, ``heatmap.png``
+    or ``heatmap-burst<b>.png``; rows ultimate bound of ``||xi||`` (log colour scale), peak gain
+    and divergence, one column per law; loss on the vertical axis, delay on the horizontal one.
+    Every cell is labelled with its value."""
+    from matplotlib.colors import LogNorm
+
+    out_dir = Path(out_dir)
+    paths = []
+    for b in burst:
+        fig, ax = plt.subplots(3, len(laws), figsize=(4.6 * len(laws) + 1.0, 10.0), squeeze=False)
+        grids = {}
+        for law in laws:
+            cell = {(r["loss_pct"], r["delay_ms"]): r for r in rows if r["law"] == law and r["burst"] == b}
+            bound = np.array([[cell[lo, de]["ultimate_bound_m"] if not cell[lo, de]["diverged"] else np.nan
+                               for de in delay] for lo in loss])
+            gain = np.array([[cell[lo, de]["peak_gain"] for de in delay] for lo in loss])
+            div = np.array([[float(cell[lo, de]["diverged"]) for de in delay] for lo in loss])
+            grids[law] = (bound, gain, div)
+        finite = np.concatenate([g[0][np.isfinite(g[0])] for g in grids.values()] + [np.array([])])
+        finite = finite[finite > 0]
+        norm = LogNorm(vmin=finite.min(), vmax=max(finite.max(), finite.min() * 1.01)) if finite.size else None
+        gains = np.concatenate([g[1][np.isfinite(g[1])].ravel() for g in grids.values()] + [np.array([1.0])])
+        for c, law in enumerate(laws):
+            bound, gain, div = grids[law]
+            panels = ((bound, r"ultimate bound $\|\xi\|$ [m]", "viridis", norm, "{:.3g}"),
+                      (gain, r"peak gain max($K_p$, $K_v$)", "magma", None, "{:.3g}"),
+                      (div, "diverged", "Reds", None, None))
+            for r, (z, label, cmap, nrm, fmt) in enumerate(panels):
+                a = ax[r, c]
+                kw = {"norm": nrm} if nrm is not None else (
+                    {"vmin": 0.0, "vmax": 1.0} if fmt is None else {"vmin": gains.min(), "vmax": gains.max()})
+                im = a.imshow(np.ma.masked_invalid(z), origin="lower", aspect="auto", cmap=cmap, **kw)
+                for i in range(len(loss)):
+                    for j in range(len(delay)):
+                        text = ("yes" if z[i, j] else "no") if fmt is None else (
+                            "div." if not np.isfinite(z[i, j]) else fmt.format(z[i, j]))
+                        rgb = im.cmap(im.norm(z[i, j]))[:3] if np.isfinite(z[i, j]) else (1.0, 1.0, 1.0)
+                        light = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2] > 0.5
+                        a.text(j, i, text, ha="center", va="center", fontsize=7, color="black" if light else "white")
+                a.set_xticks(range(len(delay)), [f"{d:g}" for d in delay])
+                a.set_yticks(range(len(loss)), [f"{lo:g}" for lo in loss])
+                a.set_xlabel("one-way delay [ms]")
+                a.set_ylabel("loss [%]")
+                a.set_title(f"{law}: {label}", fontsize=9)
+                if fmt is not None:
+                    fig.colorbar(im, ax=a, fraction=0.046)
+        burst_note = "independent losses" if b <= 1 else f"loss bursts of {b:g} messages on average"
+        fig.suptitle(f"{title}\n{burst_note}" if title else burst_note, fontsize=10)
+        fig.tight_layout()
+        path = out_dir / ("heatmap.png" if len(burst) == 1 else f"heatmap-burst{b:g}.png")
+        fig.savefig(path, dpi=150)
+        plt.close(fig)
+        paths.append(path)
+    return paths

@@ -800,3 +800,38 @@ def unreachable_agents(m: Mission) -> list[int]:
                 reached.add(nxt)
                 frontier.append(nxt)
     return [a.id for a in m.agents if a.id not in reached]
+
+
+# --------------------------------------------------------------------------- encode
+def dumps(m: Mission) -> str:
+    """``m`` as mission-file TOML that :func:`loads` reads back to an equal mission (defaults and
+    unset optional fields are written out or left out as the schema encodes them)."""
+    raw = msgspec.to_builtins(m)
+    plain = {k: v for k, v in raw.items() if not _is_table(v) and not _is_table_array(v)}
+    lines = [f"{k} = {_inline(v)}" for k, v in plain.items() if v is not None]
+    for k, v in raw.items():
+        if _is_table(v):
+            lines += ["", f"[{k}]"] + [f"{kk} = {_inline(vv)}" for kk, vv in v.items() if vv is not None]
+        elif _is_table_array(v):
+            for item in v:
+                lines += ["", f"[[{k}]]"] + [f"{kk} = {_inline(vv)}" for kk, vv in item.items() if vv is not None]
+    return "\n".join(lines) + "\n"
+
+
+def _is_table(v: object) -> bool:
+    return isinstance(v, dict)
+
+
+def _is_table_array(v: object) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
+def _inline(v: object) -> str:
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{json.dumps(k) if not k.isidentifier() else k} = {_inline(x)}"
+                                for k, x in v.items() if x is not None) + " }"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_inline(x) for x in v) + "]"
+    if isinstance(v, float):
+        return "inf" if v == math.inf else "-inf" if v == -math.inf else "nan" if v != v else repr(v)
+    return _toml(v)

@@ -1,0 +1,129 @@
+"""The in-process lockstep engine against the real runtime, the mission writer, and ``tether sweep``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from tether import lockstep, refsim, sweep
+from tether import mission as ms
+from tether.catalog import builtin_path
+from tether.node import load_mission
+from tether.runfile import Run
+
+SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d")
+
+# every impairment that changes what arrives and when, on every link, changing during the run
+DEGRADED = """
+[netem]
+default = { delay = { constant = 0.03, jitter = 0.02, distribution = "pareto", correlation = 0.3 }, loss = { kind = "gilbert_elliott", p = 0.05, r = 0.3 }, duplicate = 0.05, reorder = { p = 0.2, gap = 3 }, corrupt = { p = 0.02 }, rate = { bytes_per_s = 20000, limit = 4 } }
+rules = [{ from = 2, to = 3, start = 1.0, profile = { outages = [[1.2, 1.9]] } }, { to = 1, start = 2.0, profile = "wifi-lossy" }]
+[links]
+max_age = 0.15
+compensate = true
+"""
+
+
+def mission_with(tmp: Path, name: str, section: str, duration: float | None = None) -> Path:
+    path = tmp / f"{name}.toml"
+    path.write_text(builtin_path("section4").read_text() + section)
+    load_mission(path, duration)
+    return path
+
+
+def test_without_a_network_it_is_the_reference_simulator_bit_for_bit() -> None:
+    m = load_mission(builtin_path("section4"), 5.0)
+    a, b = lockstep.simulate(m), refsim.simulate(m)
+    for name in SERIES:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_under_a_degraded_network_it_is_the_distributed_runtime_bit_for_bit(tmp_path: Path) -> None:
+    path = mission_with(tmp_path, "degraded", DEGRADED)
+    r = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(tmp_path / "run"),
+                        "--duration", "3", "--quiet"], capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = Run.load(tmp_path / "run")
+    want = lockstep.simulate(load_mission(path, 3.0))
+    ideal = lockstep.simulate(load_mission(builtin_path("section4"), 3.0))
+    assert np.abs(want.p - ideal.p).max() > 1e-3  # the network changed the run
+    for name in SERIES:
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    # the same links, the same samples received and the same ages of what was used
+    np.testing.assert_array_equal(got.extra["link_src"], want.extra["link_src"])
+    slot = want.extra["link_src"] > 0
+    np.testing.assert_array_equal(got.extra["link_received"][-1][slot], want.extra["link_received"][slot])
+    np.testing.assert_array_equal(got.extra["link_stale"][-1][slot], want.extra["link_stale"][slot])
+    used = np.isfinite(want.extra["link_age"])
+    np.testing.assert_array_equal(got.extra["link_age"][used], want.extra["link_age"][used])
+    assert want.extra["link_stale"].sum() > 0 and want.extra["link_corrupt"].sum() > 0
+
+
+def test_a_diverging_run_stops_and_says_when() -> None:
+    base = load_mission(builtin_path("section4"), 20.0)
+    # 300 ms of delay in a loop with gains of 40 that never come down (the benchmark): unstable
+    law = msgspec.structs.replace(base.law, kp0=40.0, kv0=40.0)
+    m = sweep.point_mission(msgspec.structs.replace(base, law=law), sweep.Point("benchmark", 0.0, 300.0, 1.0))
+    run = lockstep.simulate(m)
+    at = run.meta["diverged_at"]
+    assert at is not None and 0 < at < 20.0
+    k = int(round(at * m.rate))
+    assert np.all(np.isfinite(run.xi[: k + 1])) and np.all(np.isnan(run.xi[k + 1:]))
+    assert sweep.figures_of_merit(run)["diverged"]
+
+
+def test_mission_files_round_trip_through_the_writer(tmp_path: Path) -> None:
+    for m in (ms.load(builtin_path("section4")), load_mission(mission_with(tmp_path, "deg", DEGRADED))):
+        assert ms.loads(ms.dumps(m)) == m
+
+
+def test_grid_points_have_the_asked_for_loss_and_delay() -> None:
+    prof = sweep.link_profile(30.0, 50.0, 5.0)
+    ge = prof.loss
+    assert ge.p / (ge.p + ge.r) == pytest.approx(0.3) and 1.0 / ge.r == pytest.approx(5.0)
+    assert prof.delay.constant == pytest.approx(0.05)
+    assert sweep.link_profile(10.0, 0.0, 1.0).loss.p == pytest.approx(0.1)
+
+
+def test_sweep_command_writes_the_table_maps_and_every_point(tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    r = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", "section4", "--out", str(out), "--loss", "0,50",
+                        "--delay", "0,100", "--burst", "1,4", "--duration", "4", "--jobs", "2"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    assert len(rows) == 2 * 2 * 2 * 2
+    assert {row["law"] for row in rows} == {"sigma", "benchmark"}
+    for name in ("heatmap-burst1.png", "heatmap-burst4.png", "sweep.md", "sweep.json"):
+        assert (out / name).stat().st_size > 0
+    ideal = next(row for row in rows if row["law"] == "sigma" and row["loss_pct"] == "0" and row["delay_ms"] == "0")
+    assert float(ideal["delivery_ratio"]) == 1.0 and float(ideal["age_p99_ms"]) == 0.0
+    lossy = next(row for row in rows if row["law"] == "sigma" and row["loss_pct"] == "50" and row["burst"] == "1"
+                 and row["delay_ms"] == "0")
+    assert 0.4 < float(lossy["delivery_ratio"]) < 0.6
+    # a cell re-run alone from its mission file gives the same figures
+    point = out / "points" / "sigma-loss50-delay0-burst1" / "mission.toml"
+    again = sweep.figures_of_merit(lockstep.simulate(ms.load(point)))
+    assert float(lossy["ultimate_bound_m"]) == pytest.approx(again["ultimate_bound_m"], rel=1e-5)
+    assert json.loads((out / "sweep.json").read_text())["meta"]["engine"] == "inprocess"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--loss", "0,100"], "--loss: 100 is out of range"),
+    (["--delay", "5,x"], "--delay: 'x' is not a number"),
+    (["--burst", "0.5"], "--burst: 0.5 is out of range"),
+    (["--laws", "sigma,pid"], "--laws: 'pid' is not a law"),
+    (["--loss", "10,10"], "--loss: 10,10 repeats a value"),
+])
+def test_bad_grids_are_refused_before_anything_runs(tmp_path: Path, args: list[str], message: str) -> None:
+    r = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", "section4", "--out", str(tmp_path / "o"), *args],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
