@@ -44,6 +44,7 @@ async def run(node: Node) -> None:
         src = node.source(keys.topic(role, j, "state"), wire.State, j, link=True)
         node.watch(role, j, src)
         nbrs.append(src)
+    node.netem_control()
     cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND)
     tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY)
     await node.ready(phase=AGENT_PHASE)

@@ -65,6 +65,9 @@ class LaunchOptions:
     failure_grace: float = 1.0
     """After a child fails, let the others run this long [s] before stopping them, so that the run
     file and their logs show how the swarm saw the failure (silence flags)."""
+    listen: tuple[str, ...] = ()
+    """More endpoints for the launcher's router to listen on, for tools that attach to the run
+    (``tether netem-set``, a plain Zenoh client, a partition study's far side)."""
     handover_runtime: bool = True
     """Hand Zenoh's runtime threads over to one thread per child (ZENOH_RUNTIME), which measured
     here lowest CPU for many processes on few cores."""
@@ -246,7 +249,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     opts.out.mkdir(parents=True, exist_ok=True)
     launch = Launch(mission_path.resolve(), m, opts)
     router = tp.loopback_endpoint(tp.free_tcp_port())
-    settings = tp.ZenohSettings(mode="router", listen=(router,), lease=opts.lease)
+    settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease)
+    tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
     progress = Progress() if opts.progress else None
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -256,6 +260,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     t0 = time.monotonic()
     try:
         async with tp.open_session(settings) as session:
+            log.info("router listening on %s (namespace %s)", ", ".join(settings.listen), keys.ns)
             launch.spawn(router)
             watcher = asyncio.create_task(_watch_children(launch))
             stopper = asyncio.create_task(stop.wait())

@@ -157,6 +157,11 @@ class Link:
         self._profile = profile
         self._identity = is_identity(profile)
 
+    @property
+    def last_offer(self) -> float:
+        """Time of the newest offer [s]; -inf before the first."""
+        return self._last_now
+
     def take_decisions(self) -> list[Decision]:
         """The decisions logged since the last call, and forget them (bounded memory in long runs)."""
         if self.decisions is None:

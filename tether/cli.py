@@ -196,6 +196,44 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_netem_set(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from netem.profile import ProfileError
+    from tether import control
+    from tether import transport as tp
+
+    try:
+        profile = control.parse_profile(args.profile)
+    except ProfileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    settings = tp.ZenohSettings(mode=args.zenoh_mode, listen=tuple(args.listen), connect=tuple(args.connect),
+                                lease=args.lease, connect_timeout=args.connect_timeout)
+    tp.zenoh_config(settings)
+    try:
+        answers = asyncio.run(control.netem_set(settings, args.ns, control.rule_of(profile, args.src, args.dst),
+                                                args.at, args.timeout))
+    except TimeoutError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    ok = True
+    for a in sorted(answers, key=lambda a: (a.node is None, a.node or 0)):
+        who = f"agent {a.node}" if a.node is not None else "an agent"
+        if a.error is not None:
+            ok = False
+            print(f"{who}: {a.error}")
+        elif not a.changed:
+            print(f"{who}: no matching in-link")
+        else:
+            print(f"{who}: " + ", ".join(f"{c['src']} -> {c['dst']} from t = {c['at']:.3f} s" for c in a.changed))
+    if not answers:
+        print(f"error: no agent of namespace {args.ns!r} answered within {args.timeout:g} s; "
+              "check --ns and --connect", file=sys.stderr)
+        return 1
+    return 0 if ok else 1
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import asyncio
     import logging
@@ -209,7 +247,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     load_mission(path, args.duration)
     opts = local.LaunchOptions(out=Path(args.out), clock=args.clock, network=args.network, window=args.window,
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
-                               duration=args.duration, handover_runtime=not args.no_handover)
+                               duration=args.duration, handover_runtime=not args.no_handover,
+                               listen=tuple(args.listen))
     return asyncio.run(local.run(path, opts))
 
 
@@ -275,6 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="leave Zenoh's runtime threads as they are (default: hand them over, ZENOH_RUNTIME)")
     rn.add_argument("--ns", default=None)
     rn.add_argument("--stall-timeout", type=float, default=30.0)
+    rn.add_argument("--listen", action="append", default=[],
+                    help="another endpoint for the launcher's router, for tools that attach to the run "
+                         "(tether netem-set, plain Zenoh clients); repeatable")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.set_defaults(func=cmd_run)
 
@@ -304,6 +346,16 @@ def build_parser() -> argparse.ArgumentParser:
                          "~100x faster); runtime: real processes over Zenoh (tether run) for every point")
     sw.add_argument("--jobs", type=int, default=1, help="grid points run at once (processes)")
     sw.set_defaults(func=cmd_sweep)
+
+    nc = sub.add_parser("netem-set", help="change the emulated links of a running swarm (its mission needs [netem])")
+    nc.add_argument("profile", help='a preset (wifi, wifi-lossy, ...) or an inline TOML table, e.g. "{ loss = { p = 0.3 } }"')
+    nc.add_argument("--ns", required=True, help="the run's namespace: its mission's name unless the run was given --ns")
+    nc.add_argument("--from", dest="src", type=int, default=None, help="only links from this node (default: all)")
+    nc.add_argument("--to", dest="dst", type=int, default=None, help="only links into this agent (default: all)")
+    nc.add_argument("--at", type=float, default=None, help="mission time [s] it takes effect (default: on receipt)")
+    nc.add_argument("--timeout", type=float, default=5.0, help="how long to wait for the agents' answers [s]")
+    _zenoh_options(nc)
+    nc.set_defaults(func=cmd_netem_set, zenoh_mode="client")
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file")
     pl.add_argument("run", help="a run.npz or the directory holding it")

@@ -16,7 +16,9 @@ drop-oldest, counted); decoding and checks run on the event loop (:class:`~tethe
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
+import math
 import os
 import signal
 import time
@@ -29,7 +31,7 @@ import msgspec
 import zenoh
 
 from netem.channel import DeliveryQueue, Link, link_rng
-from netem.profile import schedule
+from netem.profile import Network, resolve, schedule, validate_network
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -141,6 +143,19 @@ class Channel:
     def release(self, now: float) -> list[Any]:
         return self.queue.pop_due(now)
 
+    @property
+    def last_offer(self) -> float:
+        """Time of the newest offer [s] (-inf before the first)."""
+        return self.link.last_offer
+
+    def change(self, at: float, profile: Any) -> None:
+        """Use ``profile`` for the offers from ``at`` on (one already past: from the next offer).
+        Changes asked for the same time apply in the order they were asked for."""
+        pending = self.changes[self._next:]
+        pending.append((at, profile))
+        pending.sort(key=lambda c: c[0])  # stable
+        self.changes[self._next:] = pending
+
 
 class Publisher:
     """A publisher that stamps sender, sequence number, tick and sample time on every message."""
@@ -168,6 +183,7 @@ class Node:
         self.wakeup = tp.Wakeup()
         self.fifo: tp.BoundedFifo[tp.Received] = tp.BoundedFifo(FIFO_CAPACITY, self.wakeup)
         self.tokens: tp.BoundedFifo[tp.TokenEvent] = tp.BoundedFifo(4096, self.wakeup)
+        self.queries: tp.BoundedFifo[zenoh.Query] = tp.BoundedFifo(64, self.wakeup)
         self.sources: dict[str, Source] = {}
         self._watched: dict[str, list[Source]] = {}
         self._declared: list[Any] = []
@@ -216,6 +232,68 @@ class Node:
         if subscribe:
             self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
         return src
+
+    def netem_control(self) -> None:
+        """Serve ``tether netem-set``: a query on ``tether/<ns>/<role>/<id>/netem`` carrying a
+        :class:`~tether.wire.NetemSet` changes this node's emulated in-links at run time, and is
+        answered with what changed (or why nothing did: a malformed message, invalid rules, or a
+        mission without a ``[netem]`` section, whose links bypass the emulator; those are also
+        counted as ``netem_invalid``)."""
+        key = self.keys.topic(self.args.role, self.args.node_id, "netem")
+        self._declared.append(self.session.declare_queryable(key, self.queries.put))
+
+    def _serve_queries(self) -> None:
+        for query in self.queries.drain():
+            try:
+                payload = query.payload
+                msg = self.receiver.accept(payload.to_bytes() if payload is not None else b"", wire.NetemSet, 0)
+                if msg is None:
+                    query.reply_err("not a valid NetemSet message (see tether.wire); nothing changed")
+                    continue
+                try:
+                    done = self._apply_netem(msg)
+                except ValueError as exc:
+                    self.receiver.drops["netem_invalid"] = self.receiver.drops.get("netem_invalid", 0) + 1
+                    log.error("netem change refused: %s", exc)
+                    query.reply_err(f"{self.args.role} {self.args.node_id}: refused: {exc}")
+                    continue
+                query.reply(query.key_expr, json.dumps({"node": self.args.node_id, "changed": done}))
+            except zenoh.ZError as exc:  # the asker is gone: nothing to answer
+                log.warning("netem change: could not answer: %s", exc)
+            finally:
+                query.drop()
+
+    def _apply_netem(self, msg: wire.NetemSet) -> list[dict]:
+        """Apply a change to the matching in-links; returns ``[{src, dst, at}]``. Raises ValueError."""
+        me = self.args.node_id
+        ids = [*self.mission.agent_ids, self.mission.leader.id]
+        problems = validate_network(Network(rules=tuple(msg.rules)), ids, path="rules")
+        if msg.at is not None and not (math.isfinite(msg.at) and msg.at >= 0):
+            problems.append(("at", f"is {msg.at}; give a mission time >= 0 [s], or none for 'now'"))
+        if self.mission.netem is None:
+            problems.append(("netem", "the mission has no [netem] section, so its links bypass the emulator; "
+                                      'add `[netem]` with `default = "ideal"` to change links at run time'))
+        if problems:
+            raise ValueError("; ".join(f"{f} {m}" for f, m in problems))
+        channels = {s.sender: s.channel for s in self.sources.values() if s.channel is not None}
+        done = []
+        for rule in msg.rules:
+            if rule.dst not in (None, me):
+                continue
+            prof = resolve(rule.profile)
+            for src, ch in sorted(channels.items()):
+                if rule.src not in (None, src):
+                    continue
+                now = ch.last_offer
+                at = msg.at if msg.at is not None else (
+                    self.mission_time() if isinstance(self.clock, RealtimeClock) else now)
+                if at < now:
+                    log.warning("netem change of link %d -> %d for t = %.3f s arrived at t = %.3f s: "
+                                "applied from the next sample", src, me, at, now)
+                ch.change(at, prof)
+                done.append({"src": src, "dst": me, "at": max(at, now)})
+                log.info("link %d -> %d: profile changed from t = %.3f s", src, me, max(at, now))
+        return done
 
     def watch(self, role: str, node_id: int, *sources: Source) -> None:
         """Mark ``sources`` silent while the token of ``role``/``node_id`` is absent."""
@@ -283,6 +361,7 @@ class Node:
             src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
         if realtime:
             self.release(self.mission_time())
+        self._serve_queries()
         for ev in self.tokens.drain():
             self.token_log.append((ev.key, ev.alive))
             for src in self._watched.get(ev.key, ()):

@@ -31,6 +31,8 @@ from typing import Literal
 
 import msgspec
 
+from netem.profile import LinkRule
+
 WIRE_VERSION = 1
 
 TOKEN_ROOT = "@tether"
@@ -151,7 +153,18 @@ class Start(_Msg, tag="start"):
     epoch: float
 
 
-Message = State | PlantState | Command | Telemetry | Tick | Ack | Start
+class NetemSet(_Msg, tag="netem_set"):
+    """Control: change emulated links during a run (``tether netem-set``). Each rule, as in the
+    mission's ``[netem] rules``, applies to the links it matches from ``at`` on; its ``start`` is
+    ignored (``at`` says when)."""
+
+    rules: list[LinkRule]
+    at: float | None = None
+    """When the change takes effect [s; mission time]; None: as soon as it is received. A time
+    already past when it arrives takes effect at once (the receiving agent logs how late)."""
+
+
+Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet
 
 _ENCODER = msgspec.msgpack.Encoder()
 _DECODER = msgspec.msgpack.Decoder(Message)
@@ -214,6 +227,10 @@ class Keys:
     @property
     def start(self) -> str:
         return self.topic("control", 0, "start")
+
+    @property
+    def netem(self) -> str:
+        return self.topic("control", 0, "netem")
 
     @staticmethod
     def parse(key: str) -> tuple[str, int, str]:
