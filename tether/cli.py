@@ -187,7 +187,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         laws = tuple(x.strip() for x in args.laws.split(","))
         prog = Progress()
         rows = sweep.sweep(m, Path(args.out), laws=laws, jitter_ms=args.jitter, duration=args.duration,
-                           engine=args.engine, jobs=args.jobs, progress=prog, **grid)
+                           engine=args.engine, jobs=args.jobs, compensate=args.compensate, progress=prog, **grid)
     except sweep.SweepError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -345,6 +345,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="inprocess: the lockstep runtime's arithmetic in one process (equal bit for bit, "
                          "~100x faster); runtime: real processes over Zenoh (tether run) for every point")
     sw.add_argument("--jobs", type=int, default=1, help="grid points run at once (processes)")
+    sw.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
+                    help="latency compensation on every agent (default: as the mission's [links] says)")
     sw.set_defaults(func=cmd_sweep)
 
     nc = sub.add_parser("netem-set", help="change the emulated links of a running swarm (its mission needs [netem])")

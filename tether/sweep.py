@@ -95,8 +95,10 @@ def link_profile(loss_pct: float, delay_ms: float, burst: float, jitter_ms: floa
     return LinkProfile(delay=Delay(constant=delay_ms / 1000.0, jitter=jitter_ms / 1000.0), loss=loss)
 
 
-def point_mission(m: ms.Mission, pt: Point, jitter_ms: float = 0.0, duration: float | None = None) -> ms.Mission:
-    """The mission of one grid point: ``m`` under ``pt.law`` with the point's network everywhere."""
+def point_mission(m: ms.Mission, pt: Point, jitter_ms: float = 0.0, duration: float | None = None,
+                  compensate: bool | None = None) -> ms.Mission:
+    """The mission of one grid point: ``m`` under ``pt.law`` with the point's network everywhere
+    (and ``[links] compensate`` set when ``compensate`` is given)."""
     if pt.law not in LAWS:
         raise SweepError(f"--laws: {pt.law!r} is not a law; use sigma, benchmark or both")
     base = m if pt.law == m.law.kind else with_law(m, pt.law)
@@ -104,6 +106,8 @@ def point_mission(m: ms.Mission, pt: Point, jitter_ms: float = 0.0, duration: fl
     out = msgspec.structs.replace(base, netem=net, name=f"{m.name}-{pt.name}")
     if duration is not None:
         out = msgspec.structs.replace(out, duration=duration)
+    if compensate is not None:
+        out = msgspec.structs.replace(out, links=msgspec.structs.replace(out.links, compensate=compensate))
     problems = ms.validate(out)
     if problems:
         raise SweepError("; ".join(f"{f} {msg}" for f, msg in problems))
@@ -171,7 +175,7 @@ COLUMNS = ("law", "loss_pct", "delay_ms", "burst", "ultimate_bound_m", "settling
 
 def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], burst: list[float] = (1.0,),
           laws: tuple[str, ...] = LAWS, jitter_ms: float = 0.0, duration: float | None = None,
-          engine: Engine = "inprocess", jobs: int = 1,
+          engine: Engine = "inprocess", jobs: int = 1, compensate: bool | None = None,
           progress: Callable[[int, int, str], None] | None = None) -> list[dict]:
     """Run the grid, write ``sweep.csv``, ``sweep.json``, ``sweep.md``, the heatmaps and every
     point's mission file under ``out``; returns the rows (in grid order)."""
@@ -182,7 +186,7 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
     if jobs < 1:
         raise SweepError(f"--jobs: {jobs} must be at least 1")
     points = [Point(law, lo, de, b) for law in laws for b in burst for lo in loss for de in delay]
-    texts = {pt: ms.dumps(point_mission(m, pt, jitter_ms, duration)) for pt in points}
+    texts = {pt: ms.dumps(point_mission(m, pt, jitter_ms, duration, compensate)) for pt in points}
     out.mkdir(parents=True, exist_ok=True)
     for pt, text in texts.items():
         d = out / "points" / pt.name
@@ -213,7 +217,8 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
             w.writerow({k: _csv(row.get(k)) for k in COLUMNS})
     meta = {"mission": m.name, "engine": engine, "duration_s": duration if duration is not None else m.duration,
             "rate_hz": m.rate, "seed": m.seed, "loss_pct": loss, "delay_ms": delay, "burst": list(burst),
-            "jitter_ms": jitter_ms, "laws": list(laws), "cpu_count": os.cpu_count()}
+            "jitter_ms": jitter_ms, "laws": list(laws), "cpu_count": os.cpu_count(),
+            "max_age_s": m.links.max_age, "compensate": m.links.compensate if compensate is None else compensate}
     (out / "sweep.json").write_text(json.dumps({"meta": meta, "rows": ordered}, indent=2, default=_json))
     paths = figures.heatmaps(ordered, out, loss=loss, delay=delay, burst=list(burst), laws=list(laws),
                              title=f"{m.name}: {meta['duration_s']:g} s, swarm-wide link impairment")
@@ -241,7 +246,9 @@ def report(rows: list[dict], meta: dict, figures: list[Path]) -> str:
              f"{meta['engine']} lockstep engine, {meta['duration_s']:g} s at {meta['rate_hz']:g} Hz, seed {meta['seed']}; "
              f"every link (the leader's included) delayed by the column's constant delay"
              + (f" ± {meta['jitter_ms']:g} ms uniform jitter" if meta["jitter_ms"] else "")
-             + " and losing the row's share of messages. Definitions: docs/netem.md (Degradation studies).", ""]
+             + " and losing the row's share of messages; agents use neighbour data up to "
+             f"{meta['max_age_s']:g} s old, " + ("with" if meta["compensate"] else "without")
+             + " latency compensation. Definitions: docs/netem.md (Degradation studies).", ""]
     lines += [f"![{p.stem}]({p.name})" for p in figures]
     for law in meta["laws"]:
         for b in meta["burst"]:
