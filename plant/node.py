@@ -1,7 +1,11 @@
-"""A simulated plant's process: one double integrator with the mission's disturbance model.
+"""A simulated plant's process (``plant``: one vehicle) or a world's (``world``: every vehicle of
+a ``[payload]`` mission and the payload), around :func:`plant.base.build`.
 
-Tick k: integrate ``[t_{k-1}, t_k]`` with the command of tick k-1 (lockstep: exactly that one;
-real time: the newest held, zero before the first), then publish the measurement of tick k.
+Tick k: advance ``[t_{k-1}, t_k]`` with each vehicle's command of tick k-1 (lockstep: exactly
+that one; real time: the newest held, zero before the first), then publish each vehicle's
+measurement of tick k on its own ``plant/<id>/state`` key, stamped with its id. A world also
+declares each vehicle's ``plant`` liveliness token and publishes the payload's state on
+``world/0/state``: agents cannot tell a world from single plants.
 """
 
 from __future__ import annotations
@@ -10,8 +14,8 @@ import logging
 
 import numpy as np
 
-from plant import double_integrator
-from plant.disturbance import DisturbanceBank
+from plant import base
+from tether import transport as tp
 from tether import wire
 from tether.node import Node
 
@@ -19,26 +23,47 @@ log = logging.getLogger("tether")
 
 
 async def run(node: Node) -> None:
-    m = node.mission
-    pid = node.args.node_id
-    me = m.agent(pid)
-    dist = DisturbanceBank.from_mission(m, [pid])
+    """One vehicle: the agent ``node.args.node_id``."""
+    await _host(node, [node.args.node_id], world=False)
+
+
+async def run_world(node: Node) -> None:
+    """Every vehicle of the mission and its payload."""
+    await _host(node, node.mission.agent_ids, world=True)
+
+
+async def _host(node: Node, ids: list[int], world: bool) -> None:
+    m, keys = node.mission, node.keys
+    (plant,) = base.build(m, ids)
     h = m.dt
-    p = np.array(me.p0, dtype=float)
-    v = np.array(me.v0 if me.v0 is not None else [0.0] * m.dim, dtype=float)
-    a = np.zeros(m.dim)
-    cmd = node.source(node.keys.topic("agent", pid, "cmd"), wire.Command, pid)
-    node.watch("agent", pid, cmd)
-    state = node.publisher(node.keys.topic("plant", pid, "state"))
+    cmds = []
+    for aid in ids:
+        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid)
+        node.watch("agent", aid, src)
+        cmds.append(src)
+    states = [node.publisher(keys.topic("plant", aid, "state"), sender=aid) for aid in ids]
+    payload = node.publisher(keys.topic("world", 0, "state")) if world else None
+    if world:  # each hosted vehicle is a plant to the agents, the recorder and the launcher
+        node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
     await node.ready()
     zero = np.zeros(m.dim)
-    for k in range(m.steps + 1):
-        await node.tick(k)
-        if k > 0:
-            msg = await node.sample(cmd, k - 1)
-            u = np.array(msg.u) if msg is not None else zero
-            dv, dp = dist.increments(k - 1)
-            p, v, a = double_integrator.step(p, v, u, dv[0], dp[0], h)
-        t = k * h
-        d = dist.value(k)[0]
-        state.send(wire.PlantState, k, t, p=p.tolist(), vel=v.tolist(), a=a.tolist(), d=d.tolist())
+    try:
+        for k in range(m.steps + 1):
+            await node.tick(k)
+            if k > 0:
+                u = []
+                for src in cmds:
+                    msg = await node.sample(src, k - 1)
+                    u.append(np.array(msg.u) if msg is not None else zero)
+                plant.step(np.array(u))
+            t = k * h
+            s = plant.state()
+            for r, pub in enumerate(states):
+                pub.send(wire.PlantState, k, t, p=s.p[r].tolist(), vel=s.v[r].tolist(), a=s.a[r].tolist(),
+                         d=s.d[r].tolist())
+            if payload is not None:
+                ex = s.extra
+                payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
+                             tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
+    finally:
+        plant.close()

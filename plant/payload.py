@@ -255,6 +255,9 @@ class PayloadWorld:
         substep: integration substep ``dt`` [s] (default 1 ms); a control period must be a whole
             number of substeps.
         g: gravity [m/s^2].
+        floor: height [m] of a rigid, frictionless floor under the payload (``None``: no floor).
+            The payload rests on it (inelastic contact: a downward velocity is cancelled and the
+            floor takes whatever net downward force remains) until the cables lift it.
 
     Every array the world returns is a copy.
     """
@@ -269,6 +272,7 @@ class PayloadWorld:
         substep: float = DEFAULT_SUBSTEP,
         *,
         g: float = G,
+        floor: float | None = None,
     ) -> None:
         self.vehicles = list(vehicles)
         n = len(self.vehicles)
@@ -282,6 +286,7 @@ class PayloadWorld:
         self.payload_mass = float(payload_mass)
         self.substep = float(substep)
         self.g = float(g)
+        self.floor = None if floor is None else float(floor)
         self.masses = np.array([float(veh.mass) for veh in self.vehicles])
         omega, damp = frequency_bound(self.masses, self.payload_mass, self.cables)
         if omega * self.substep > MAX_OMEGA_DT or damp * self.substep > MAX_DAMPING_DT:
@@ -347,6 +352,9 @@ class PayloadWorld:
             a_l = f.sum(axis=0) * -inv_ml + gvec
             pl = pl + dt * vl + (half * dt) * a_l
             vl = vl + dt * a_l
+            if self.floor is not None and pl[2] < self.floor:  # resting on the floor
+                pl[2] = self.floor
+                vl[2] = max(vl[2], 0.0)
             p = np.array([veh.p for veh in vehicles])
             v = np.array([veh.v for veh in vehicles])
         self._pl, self._vl = pl, vl

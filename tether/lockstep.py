@@ -5,8 +5,9 @@ Zenoh; a lockstep run is fully determined by the mission (seed included), so the
 done in one loop gives the same run. This module is that loop, written against the very functions
 the processes call, in the order they call them:
 
-* plant j (``plant/node.py``): :func:`plant.double_integrator.step` with the command of tick k-1
-  and the per-vehicle :class:`~plant.disturbance.DisturbanceBank` increments;
+* the plants (``plant/node.py``, ``plant/world.py``): :func:`plant.base.build`'s plants, stepped
+  with the commands of tick k-1 (an exact double integrator per agent, vehicles with mass, or a
+  payload world hosting all of them);
 * agent i relays its plant's sample of tick k as a :class:`~tether.wire.State` with sequence
   number k; the leader publishes its profile at ``t_k`` the same way;
 * every in-link ``j -> i`` of a mission with a ``[netem]`` section is a :class:`netem.channel.Link`
@@ -37,8 +38,7 @@ from agent.law import AgentLaw, neighbour_sample
 from leader import profile
 from netem.channel import DeliveryQueue, Link, link_rng
 from netem.profile import schedule
-from plant import double_integrator
-from plant.disturbance import DisturbanceBank
+from plant import base as plants
 from tether import wire
 from tether.mission import Mission
 from tether.runfile import Run
@@ -102,7 +102,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     lid = m.leader.id
     ref = profile.build(m.leader, d)
     laws = [AgentLaw.from_mission(m, i) for i in ids]
-    banks = [DisturbanceBank.from_mission(m, [i]) for i in ids]
+    hosts = plants.build(m)
+    row_of = {aid: (h, r) for h in hosts for r, aid in enumerate(h.ids)}
+    order = [row_of[aid] for aid in ids]
     policy = m.links
     net = m.netem
 
@@ -117,9 +119,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     width = max((len(row) for row in links), default=0)
     senders = sorted({j for law in laws for j in law.neighbours})
 
-    p = [np.array(a.p0, dtype=float) for a in m.agents]
-    v = [np.array(a.v0 if a.v0 is not None else [0.0] * d, dtype=float) for a in m.agents]
-    a = [np.zeros(d) for _ in ids]
+    extras: dict[str, np.ndarray] = {}
     kp = [law.params.kp0.copy() for law in laws]
     kv = [law.params.kv0.copy() for law in laws]
     meta = {"mission": m.name, "source": "lockstep-inprocess", "law": m.law.kind, "rate": m.rate,
@@ -130,6 +130,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
 
     for k in range(steps + 1):
         t = k * h
+        samples = {id(host): host.state() for host in hosts}
+        p, v, a, dist = ([samples[id(host)].__dict__[f][r] for host, r in order] for f in ("p", "v", "a", "d"))
         lp, lv, la = ref(t)
         # what each sender publishes at tick k: the leader's reference, each agent's relayed sample
         sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {
@@ -170,11 +172,12 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             if keep:
                 run.p[r, i], run.v[r, i], run.a[r, i], run.u[r, i] = p[i], v[i], a[i], u
                 run.xi[r, i], run.zeta[r, i], run.kp[r, i], run.kv[r, i] = xi, zeta, kp[i], kv[i]
-                run.d[r, i] = banks[i].value(k)[0]
+                run.d[r, i] = dist[i]
             kp[i], kv[i] = kp_next, kv_next
         if keep:
             run.t[r] = t
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp, lv, la
+            _record_extras(extras, [samples[id(host)] for host in hosts], r, steps + 1 if record else 1)
         if not (worst <= diverge_at):  # also catches NaN
             run.meta["diverged_at"] = t
             if record:
@@ -185,9 +188,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             break
         if k == steps:
             break
-        for i in range(n):
-            dv, dp = banks[i].increments(k)
-            p[i], v[i], a[i] = double_integrator.step(p[i], v[i], us[i], dv[0], dp[0], h)
+        for host in hosts:
+            host.step(np.array([us[ids.index(aid)] for aid in host.ids]))
         if progress is not None and k % every == 0:
             progress(k, steps)
     if progress is not None:
@@ -205,4 +207,19 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             ex["link_stale"][i, s] = lk.stale
             ex["link_corrupt"][i, s] = lk.corrupt
     ex["link_age"] = ages
+    ex.update(extras)
+    for host in hosts:
+        host.close()
     return run
+
+
+def _record_extras(extras: dict[str, np.ndarray], samples: list, r: int, rows: int) -> None:
+    """The plants' own records (``Sample.extra``) of tick row ``r``, as ``(T, ...)`` arrays; the
+    rows of several plants are stacked along the vehicle axis where they have one."""
+    names = {name for s in samples for name in s.extra}
+    for name in names:
+        parts = [np.asarray(s.extra[name]) for s in samples if name in s.extra]
+        value = np.concatenate(parts) if len(parts) > 1 else parts[0]
+        if name not in extras:
+            extras[name] = np.full((rows, *value.shape), np.nan)
+        extras[name][r] = value

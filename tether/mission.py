@@ -150,7 +150,71 @@ class DoubleIntegrator(_Kind, tag="double_integrator"):
     """``p' = v, v' = u + d``, discretised exactly under a zero-order hold on ``u``."""
 
 
-PlantSpec = DoubleIntegrator
+class ThrustIntegrator(_Strict):
+    """An inner integral of the vertical acceleration error ``u_z - p''_z`` added to the vertical
+    command (the thrust integral of the Crazyflie's own velocity PID on z), clamped (anti-windup)."""
+
+    gain: float
+    """``k_i`` [1/s]: the integral corrects a constant pull at this rate."""
+    limit: float
+    """Bound of the correction [m/s^2]."""
+
+
+class PointMassPlant(_Kind, tag="point_mass"):
+    """A 3D point mass of ``mass`` whose ideal inner loop flies ``u`` exactly and cancels its own
+    weight (Remark 1 taken as true); a disturbance acts as the force ``mass * d``. Hosts the
+    payload options (``plant/vehicle.py``)."""
+
+    mass: float = 0.029
+    """[kg]; a Crazyflie 2.1 by default."""
+    feedforward_mass: float = 0.0
+    """The vehicle's share of a payload's mass [kg], added to the mass its thrust is computed for."""
+    integrator: ThrustIntegrator | None = None
+
+
+class QuadrotorPlant(_Kind, tag="quadrotor"):
+    """A Crazyflie 2.1-class quadrotor: rigid body (Eq. 1-3), Eq. 4 from ``u`` to thrust and
+    attitude, a 500 Hz attitude and rate PID, motors with limits (``plant/quadrotor.py``,
+    ``docs/quadrotor.md``); a disturbance acts as the force ``mass * d``."""
+
+    mass: float = 0.029
+    """[kg]."""
+    yaw: float = 0.0
+    """The yaw Eq. 4 holds [rad]."""
+    tilt_max: float = 20.0
+    """Eq. 4's tilt limit [deg]."""
+    feedforward_mass: float = 0.0
+    """The vehicle's share of a payload's mass [kg], added to the mass Eq. 4 uses."""
+    integrator: ThrustIntegrator | None = None
+
+
+PlantSpec = DoubleIntegrator | PointMassPlant | QuadrotorPlant
+
+
+class Cable(_Strict):
+    """One-sided spring-damper: pulls when stretched beyond ``length``, never pushes."""
+
+    length: float
+    """Rest length [m]."""
+    stiffness: float = 200.0
+    """[N/m]."""
+    damping: float = 0.3
+    """[N s/m]."""
+
+
+class Payload(_Strict):
+    """A point-mass payload hung from every vehicle on its own cable: one ``world`` process then
+    hosts every vehicle (``point_mass`` or ``quadrotor`` plants) and serves each on the same keys
+    as a single plant (``plant/payload.py``, ``docs/payload.md``)."""
+
+    mass: float
+    """[kg]."""
+    cable: Cable
+    p0: Vector | None = None
+    """Initial position [m]; omitted: on the floor under the vehicles' centroid when the mission
+    has a ``floor`` and the cables would be slack there, else hanging at rest below them."""
+    substep: float = 0.001
+    """Integration substep [s]: a whole fraction of the control period."""
 
 
 # --------------------------------------------------------------------------- agents, graph, law
@@ -223,6 +287,10 @@ class Mission(_Strict):
     """Network degradation per directed link j -> i (``docs/netem.md``); none: ideal links."""
     links: "LinkPolicy" = msgspec.field(default_factory=lambda: LinkPolicy())
     """What agents do with old neighbour data."""
+    payload: Payload | None = None
+    """A cable-suspended payload shared by every vehicle (3D only)."""
+    floor: float | None = None
+    """Height of the ground [m] (3D only): the payload rests on it until lifted."""
     description: str = ""
     assumed: list[str] = []
     """What the mission assumes that its source does not state (e.g. topology read off a figure)."""
@@ -702,6 +770,7 @@ def validate(m: Mission) -> Problems:
         out.append(("law.sigma", "is set but the benchmark law (Eq. 30) has no sigma; remove it, "
                                  "or use kind = \"sigma\""))
 
+    _validate_physics(m, out)
     if m.links.max_age <= 0:
         out.append(("links.max_age", f"is {m.links.max_age} s; the oldest usable sample age must be > 0 (e.g. 0.5)"))
     if m.netem is not None:
@@ -716,6 +785,54 @@ def validate(m: Mission) -> Problems:
                                  "that each of them hears the leader or an agent the leader reaches, e.g. "
                                  f"`{{ from = {m.leader.id}, to = {unreachable[0]} }}`"))
     return out
+
+
+def _validate_physics(m: Mission, out: Problems) -> None:
+    """Plants, payload and floor."""
+    physical = (PointMassPlant, QuadrotorPlant)
+    for k, a in enumerate(m.agents):
+        p = a.plant
+        where = f"agents[{k}].plant"
+        if isinstance(p, physical):
+            if m.dim != 3:
+                out.append((where, f"is a {p.__struct_config__.tag} in a {m.dim}D mission; these vehicles fly in 3D: "
+                                   "set `dim = 3` (and 3-vectors), or use `double_integrator`"))
+            if not p.mass > 0:
+                out.append((f"{where}.mass", f"is {p.mass} kg; give the vehicle's mass > 0, e.g. 0.029"))
+            if p.feedforward_mass < 0:
+                out.append((f"{where}.feedforward_mass", f"is {p.feedforward_mass} kg; use >= 0 (0: off)"))
+            if p.integrator is not None:
+                if not p.integrator.gain > 0:
+                    out.append((f"{where}.integrator.gain", f"is {p.integrator.gain}; use a gain > 0 [1/s], e.g. 2.0, "
+                                                            "or remove the integrator"))
+                if not p.integrator.limit > 0:
+                    out.append((f"{where}.integrator.limit", f"is {p.integrator.limit}; use a bound > 0 [m/s^2], e.g. 6.0"))
+        if isinstance(p, QuadrotorPlant) and not 0 < p.tilt_max < 90:
+            out.append((f"{where}.tilt_max", f"is {p.tilt_max} deg; use an angle in (0, 90), e.g. 20"))
+    if m.payload is not None:
+        pl = m.payload
+        if m.dim != 3:
+            out.append(("payload", f"needs a 3D mission (gravity acts along z); set `dim = 3`"))
+        for k, a in enumerate(m.agents):
+            if not isinstance(a.plant, physical):
+                out.append((f"agents[{k}].plant", f"is {a.plant.__struct_config__.tag} but a payload hangs from vehicles "
+                                                   "with mass; use `point_mass` or `quadrotor`"))
+        if not pl.mass > 0:
+            out.append(("payload.mass", f"is {pl.mass} kg; give the payload's mass > 0, e.g. 0.015"))
+        for name in ("length", "stiffness"):
+            if not getattr(pl.cable, name) > 0:
+                out.append((f"payload.cable.{name}", f"is {getattr(pl.cable, name)}; use a value > 0"))
+        if pl.cable.damping < 0:
+            out.append(("payload.cable.damping", f"is {pl.cable.damping}; use >= 0 [N s/m]"))
+        if m.dim == 3:
+            _check_vec(pl.p0, 3, "payload.p0", out)
+        if not pl.substep > 0 or (m.rate > 0 and not _whole_periods(1.0 / m.rate, 1.0 / pl.substep)):
+            out.append(("payload.substep", f"is {pl.substep} s; use a whole fraction of the control period "
+                                           f"{1.0 / m.rate if m.rate > 0 else float('nan'):g} s, e.g. 0.001"))
+        if pl.p0 is not None and m.floor is not None and len(pl.p0) == 3 and pl.p0[2] < m.floor:
+            out.append(("payload.p0", f"is below the floor ({m.floor} m); raise its z to >= {m.floor}"))
+    if m.floor is not None and m.dim != 3:
+        out.append(("floor", "needs a 3D mission; remove it or set `dim = 3`"))
 
 
 def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out: Problems) -> None:

@@ -199,7 +199,11 @@ class Node:
         self.token_log: list[tuple[str, bool]] = []
 
     # ------------------------------------------------------------------ declarations
-    def publisher(self, key: str, qos: tp.StreamQos | None = None) -> Publisher:
+    def hold(self, *declared: Any) -> None:
+        """Keep Zenoh declarations (tokens, queryables) until the node closes."""
+        self._declared.extend(declared)
+
+    def publisher(self, key: str, qos: tp.StreamQos | None = None, sender: int | None = None) -> Publisher:
         """A stamped publisher on ``key``. Real time: ``qos`` (default :data:`~tether.transport.STATE`,
         DROP: the newest supersedes). Lockstep: always :data:`~tether.transport.SYNC` (BLOCK),
         because a lost sample would stall the run: measured here, DROP state streams lost samples
@@ -208,7 +212,7 @@ class Node:
             qos = tp.SYNC
         pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
         self._declared.append(pub)
-        return Publisher(pub, self.args.node_id)
+        return Publisher(pub, self.args.node_id if sender is None else sender)
 
     def subscribe(self, pattern: str) -> None:
         """One subscription (one callback thread) for many inputs: samples on keys matching

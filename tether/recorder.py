@@ -49,8 +49,11 @@ class Recording:
         ex["late"] = np.full((T, n), np.nan)
         self.netem: list[dict] = []
         """Link decisions, when the mission logs them (written to ``netem.jsonl``)."""
+        if m.payload is not None:
+            ex["payload_p"], ex["payload_v"] = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
+            ex["tension"], ex["slack_events"] = np.full((T, n), np.nan), np.full((T, n), np.nan)
         self.count = np.zeros(T, dtype=np.int64)
-        self.expected = 1 + 2 * n
+        self.expected = 1 + 2 * n + (m.payload is not None)
         self.saved = False
 
     def leader(self, msg: wire.State) -> None:
@@ -64,6 +67,13 @@ class Recording:
             i, ex = self.col[msg.sender], self.run.extra
             ex["plant_p"][msg.k, i], ex["plant_v"][msg.k, i], ex["plant_a"][msg.k, i] = msg.p, msg.vel, msg.a
             self.run.d[msg.k, i] = msg.d
+            self.count[msg.k] += 1
+
+    def world(self, msg: wire.WorldState) -> None:
+        if 0 <= msg.k < len(self.count) and len(msg.tension) == self.mission.n == len(msg.slack_events):
+            ex = self.run.extra
+            ex["payload_p"][msg.k], ex["payload_v"][msg.k] = msg.p, msg.vel
+            ex["tension"][msg.k], ex["slack_events"][msg.k] = msg.tension, msg.slack_events
             self.count[msg.k] += 1
 
     def telemetry(self, msg: wire.Telemetry) -> None:
@@ -121,6 +131,9 @@ def make(out: Path):
             node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
                         subscribe=False, keep=False)
             producers += [("agent", aid), ("plant", aid)]
+        if m.payload is not None:
+            node.source(keys.topic("world", 0, "state"), wire.WorldState, 0, on_message=rec.world, keep=False)
+            producers.append(("world", 0))
         node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
         node.subscribe(f"tether/{keys.ns}/plant/*/state")
         ack = node.publisher(keys.topic("recorder", node.args.node_id, "ack"))

@@ -153,6 +153,19 @@ class Start(_Msg, tag="start"):
     epoch: float
 
 
+class WorldState(_Msg, tag="world_state"):
+    """A payload world's own state at t_k (for records; agents never use it)."""
+
+    p: list[float]
+    """Payload position [m]."""
+    vel: list[float]
+    """Payload velocity [m/s]."""
+    tension: list[float]
+    """Cable tension per vehicle, in the mission's agent order [N]."""
+    slack_events: list[int]
+    """Taut -> slack transitions per cable since the start."""
+
+
 class NetemSet(_Msg, tag="netem_set"):
     """Control: change emulated links during a run (``tether netem-set``). Each rule, as in the
     mission's ``[netem] rules``, applies to the links it matches from ``at`` on; its ``start`` is
@@ -164,7 +177,7 @@ class NetemSet(_Msg, tag="netem_set"):
     already past when it arrives takes effect at once (the receiving agent logs how late)."""
 
 
-Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet
+Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState
 
 _ENCODER = msgspec.msgpack.Encoder()
 _DECODER = msgspec.msgpack.Decoder(Message)
@@ -250,7 +263,7 @@ class Keys:
 
 # --------------------------------------------------------------------------- checked receive
 _VECTOR_FIELDS = {State: ("p", "vel", "a"), PlantState: ("p", "vel", "a"), Command: ("u",),
-                  Telemetry: ("p", "vel", "a", "u", "xi", "zeta", "kp", "kv")}
+                  Telemetry: ("p", "vel", "a", "u", "xi", "zeta", "kp", "kv"), WorldState: ("p", "vel")}
 
 
 @dataclass

@@ -1,0 +1,215 @@
+"""The plant protocol: whatever flies the agents' commands, one control period at a time. Pure.
+
+A :class:`Plant` hosts one or more vehicles (the agents ``ids``). At tick k it reports each
+vehicle's measurement (:meth:`Plant.state`: position, velocity, and the mean acceleration over
+the previous period, as the runtime's semantics require) and then advances one period with the
+commands of tick k held (:meth:`Plant.step`). The mission chooses the plant by name:
+
+==================  =======================================================================
+``double_integrator``  Eq. 5 discretised exactly (:mod:`plant.double_integrator`): the oracle.
+``point_mass``         a 3D point mass with an ideal inner loop (:class:`plant.vehicle.PointMass`).
+``quadrotor``          a Crazyflie 2.1-class rigid body with its 500 Hz inner loop
+                       (:class:`plant.quadrotor.Quadrotor`).
+``[payload]``          one :class:`PayloadPlant` hosting every vehicle and a cable-suspended
+                       payload (:class:`plant.payload.PayloadWorld`).
+==================  =======================================================================
+
+A mission disturbance ``d_i(t)`` [m/s^2] acts on a vehicle with mass as the force ``m d_i``,
+held over each period at its value at the period's midpoint (the double integrator integrates it
+exactly instead). :func:`build` makes the plants of a mission; the plant process and the
+in-process engine (:mod:`tether.lockstep`) both use it, so they fly the same arithmetic.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from plant import double_integrator
+from plant.disturbance import DisturbanceBank
+from tether import mission as ms
+
+
+@dataclass
+class Sample:
+    """What a plant reports at one tick, one row per vehicle (``ids`` order)."""
+
+    p: np.ndarray
+    """``(n, d)`` position [m]."""
+    v: np.ndarray
+    """``(n, d)`` velocity [m/s]."""
+    a: np.ndarray
+    """``(n, d)`` mean acceleration over the previous period [m/s^2] (zero at tick 0)."""
+    d: np.ndarray
+    """``(n, d)`` the disturbance acting [m/s^2]: the mission's at ``t_k``, or, with a payload, the
+    cable force over mass averaged over the previous period."""
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    """Plant-specific records (``payload_p``, ``tension``, ``attitude``, ...), see each plant."""
+
+
+@runtime_checkable
+class Plant(Protocol):
+    ids: tuple[int, ...]
+
+    def state(self) -> Sample:
+        """The measurement of the current tick."""
+
+    def step(self, u: np.ndarray) -> None:
+        """Advance one control period with ``u`` ``(n, d)`` [m/s^2] held."""
+
+    def close(self) -> None:
+        """Release what the plant holds (nothing for simulated ones)."""
+
+
+class DoubleIntegratorPlant:
+    """One exact double integrator per id, with the mission's disturbance models."""
+
+    def __init__(self, m: ms.Mission, ids: list[int]):
+        self.ids = tuple(ids)
+        self._dist = DisturbanceBank.from_mission(m, list(ids))
+        self._h = m.dt
+        self._k = 0
+        d = m.dim
+        self._p = [np.array(m.agent(i).p0, dtype=float) for i in ids]
+        self._v = [np.array(m.agent(i).v0 if m.agent(i).v0 is not None else [0.0] * d, dtype=float) for i in ids]
+        self._a = [np.zeros(d) for _ in ids]
+
+    def state(self) -> Sample:
+        return Sample(np.array(self._p), np.array(self._v), np.array(self._a), self._dist.value(self._k))
+
+    def step(self, u: np.ndarray) -> None:
+        dv, dp = self._dist.increments(self._k)
+        for r in range(len(self.ids)):  # row by row: the same arithmetic as one plant process
+            self._p[r], self._v[r], self._a[r] = double_integrator.step(self._p[r], self._v[r], u[r], dv[r], dp[r],
+                                                                        self._h)
+        self._k += 1
+
+    def close(self) -> None:
+        pass
+
+
+def _vehicle(m: ms.Mission, aid: int):
+    """The vehicle model of agent ``aid`` (``point_mass`` or ``quadrotor``)."""
+    a = m.agent(aid)
+    spec = a.plant
+    v0 = a.v0 if a.v0 is not None else [0.0, 0.0, 0.0]
+    if isinstance(spec, ms.PointMassPlant):
+        from plant.vehicle import Integrator, PointMass
+
+        integ = Integrator(spec.integrator.gain, spec.integrator.limit) if spec.integrator else None
+        return PointMass(spec.mass, a.p0, v0, spec.feedforward_mass, integ)
+    if isinstance(spec, ms.QuadrotorPlant):
+        from plant.quadrotor import Quadrotor, QuadrotorParams
+
+        prm = QuadrotorParams(mass=spec.mass, tilt_max=math.radians(spec.tilt_max),
+                              feedforward_mass=spec.feedforward_mass,
+                              z_integrator_gain=spec.integrator.gain if spec.integrator else 0.0,
+                              z_integrator_limit=spec.integrator.limit if spec.integrator else 2.0)
+        return Quadrotor(prm, np.array(a.p0, dtype=float), np.array(v0, dtype=float), spec.yaw)
+    raise ValueError(f"agent {aid}: plant {type(spec).__name__} is not a vehicle with mass")
+
+
+def _yaw(m: ms.Mission, aid: int) -> float:
+    spec = m.agent(aid).plant
+    return spec.yaw if isinstance(spec, ms.QuadrotorPlant) else 0.0
+
+
+def _attitude(veh) -> np.ndarray:
+    return np.array(veh.euler()) if hasattr(veh, "euler") else np.zeros(3)
+
+
+class VehiclePlant:
+    """Free-flying vehicles with mass (``point_mass``, ``quadrotor``), one per id; the mission's
+    disturbance acts on each as the force ``m d(t_k + h/2)``, held over the period."""
+
+    def __init__(self, m: ms.Mission, ids: list[int]):
+        self.ids = tuple(ids)
+        self._veh = [_vehicle(m, i) for i in ids]
+        self._yaw = [_yaw(m, i) for i in ids]
+        self._dist = DisturbanceBank.from_mission(m, list(ids))
+        self._h = m.dt
+        self._k = 0
+        self._a = np.zeros((len(ids), 3))
+
+    def state(self) -> Sample:
+        return Sample(np.array([v.p for v in self._veh]), np.array([v.v for v in self._veh]), self._a.copy(),
+                      self._dist.value(self._k), {"attitude": np.array([_attitude(v) for v in self._veh])})
+
+    def step(self, u: np.ndarray) -> None:
+        d = None if self._dist.is_zero else self._dist.value_at((self._k + 0.5) * self._h)
+        for r, veh in enumerate(self._veh):
+            veh.command(np.asarray(u[r], dtype=float), self._yaw[r])
+            veh.advance(self._h, None if d is None else veh.mass * d[r])
+            self._a[r] = veh.accel()
+        self._k += 1
+
+    def close(self) -> None:
+        pass
+
+
+class PayloadPlant:
+    """Every vehicle of the mission and one payload on cables (``[payload]``); records the payload's
+    position and velocity, the cable tensions and the slack events (taut -> slack) per cable."""
+
+    def __init__(self, m: ms.Mission, ids: list[int]):
+        from plant.payload import CableParams, PayloadWorld, hover_equilibrium
+
+        if sorted(ids) != sorted(m.agent_ids):
+            raise ValueError("a payload world hosts every vehicle of the mission")
+        pl = m.payload
+        self.ids = tuple(ids)
+        vehicles = [_vehicle(m, i) for i in ids]
+        self._yaw = [_yaw(m, i) for i in ids]
+        cable = CableParams(pl.cable.length, pl.cable.stiffness, pl.cable.damping)
+        p0 = np.array([veh.p for veh in vehicles])
+        if pl.p0 is not None:
+            start = np.array(pl.p0, dtype=float)
+        else:
+            below = p0.mean(axis=0)
+            if m.floor is not None:
+                below[2] = m.floor
+            if m.floor is not None and np.all(np.linalg.norm(p0 - below, axis=1) <= pl.cable.length):
+                start = below  # on the floor, cables slack
+            else:
+                start = hover_equilibrium(p0, pl.mass, cable).payload_p
+        self._dist = DisturbanceBank.from_mission(m, list(ids))
+        self.world = PayloadWorld(vehicles, pl.mass, start, None, cable, pl.substep, floor=m.floor)
+        self._h = m.dt
+        self._k = 0
+        self._a = np.zeros((len(ids), 3))
+        self._d = np.zeros((len(ids), 3))
+
+    def state(self) -> Sample:
+        w = self.world
+        extra = {"payload_p": w.payload_p, "payload_v": w.payload_v, "tension": w.tensions,
+                 "slack_events": w.slack_events.astype(float),
+                 "attitude": np.array([_attitude(v) for v in w.vehicles])}
+        return Sample(w.p, w.v, self._a.copy(), self._d.copy(), extra)
+
+    def step(self, u: np.ndarray) -> None:
+        w = self.world
+        for r in range(len(self.ids)):
+            w.command(r, u[r], self._yaw[r])
+        w.advance(self._h)
+        self._a = w.accel
+        self._d = w.implied_disturbance
+        self._k += 1
+
+    def close(self) -> None:
+        pass
+
+
+def build(m: ms.Mission, ids: list[int] | None = None) -> list[Plant]:
+    """The plants hosting agents ``ids`` (all by default): one :class:`PayloadPlant` for a payload
+    mission (which must host all of them), else one plant per agent."""
+    ids = m.agent_ids if ids is None else list(ids)
+    if m.payload is not None:
+        return [PayloadPlant(m, ids)]
+    out: list[Plant] = []
+    for aid in ids:
+        spec = m.agent(aid).plant
+        out.append(DoubleIntegratorPlant(m, [aid]) if isinstance(spec, ms.DoubleIntegrator) else VehiclePlant(m, [aid]))
+    return out
