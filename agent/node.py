@@ -33,8 +33,13 @@ async def run(node: Node) -> None:
     keys = node.keys
     state = node.publisher(keys.topic("agent", aid, "state"))
 
+    feed = m.law.feedforward
+    last_u = [0.0] * m.dim
+    """The command of the previous tick: what the agent shares as its acceleration with
+    ``feedforward = "commanded"`` (the plant's sample of tick k comes after the command of k-1)."""
+
     def relay(msg: wire.PlantState) -> None:
-        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=msg.a)
+        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=msg.a if feed == "measured" else last_u)
 
     plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
     node.watch("plant", aid, plant)
@@ -61,7 +66,8 @@ async def run(node: Node) -> None:
         own, *heard = await node.aligned([plant, *nbrs], k)
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
-        p, v, a = np.array(own.p), np.array(own.vel), np.array(own.a)
+        p, v = np.array(own.p), np.array(own.vel)
+        a = np.array(own.a if feed == "measured" else last_u)  # what this agent shares
         ages = []
         for n, msg in enumerate(heard):
             age = t - msg.t if msg is not None else math.nan
@@ -70,15 +76,18 @@ async def run(node: Node) -> None:
                                                              policy.max_age, policy.compensate)
             used[n] += ok
             ages.append(age)
+        if feed == "none":
+            nb_a[:] = 0.0
         u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
-        cmd.send(wire.Command, k, t, u=u.tolist())
+        last_u = u.tolist()
+        cmd.send(wire.Command, k, t, u=last_u)
         links = [wire.LinkStats(src=j, received=s.received_upto(k) if lockstep else s.received, used=used[n],
                                 stale=s.stale, age=ages[n], silent=s.silent_at(k))
                  for n, (j, s) in enumerate(zip(law.neighbours, nbrs))]
         decisions = [wire.LinkDecision(src=j, seq=d.seq, now=d.now, event=d.event, at=d.at)
                      for j, s in zip(law.neighbours, nbrs) if s.channel is not None
                      for d in s.channel.link.take_decisions()]
-        tele.send(wire.Telemetry, k, t, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u.tolist(), xi=xi.tolist(),
+        tele.send(wire.Telemetry, k, t, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=last_u, xi=xi.tolist(),
                   zeta=zeta.tolist(), kp=kp.tolist(), kv=kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=getattr(node.clock, "late", 0))
         kp, kv = kp_next, kv_next

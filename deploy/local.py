@@ -14,6 +14,19 @@ Network (``--network``):
 * ``mesh``: children are **peers**, each listening on its own free loopback port and meeting the
   others through the router's gossip; about N^2/2 links.
 
+Vehicles on another network (partition studies; a companion computer's on-board link): vehicle i's
+agent and plant can run under a command prefix, ``--wrap 3='ip netns exec uav3'`` (a network
+namespace; or ``taskset``, ``nice``, ``chrt``), and connect to another endpoint than the launcher's
+router, ``--vehicle-connect 3=tcp/127.0.0.1:7448`` (e.g. an on-board Zenoh router in that namespace,
+which links to the swarm through an endpoint the launcher's router also listens on, ``--listen
+tcp/10.231.0.1:7447``). Cutting that link (``ip link set ... down`` in the namespace) partitions the
+vehicle while its agent and plant keep talking on board: its neighbours see its liveliness token go
+after the lease (``--lease``) and come back once the on-board router has reconnected. A prefix must
+*exec* the command, not fork it (``ip netns exec``, ``nice``, ``taskset``, ``chrt`` do; ``sudo`` and
+``ssh`` do not): a child stops when its parent is not the launcher. (A ``[payload]`` mission's
+vehicles live in one world process: there only the agent is wrapped.) Tested with the ``star``
+network (``tests/test_partition.py``).
+
 Logs: every child's stderr goes to ``DIR/logs/<role>-<id>.log``. Exit status: 0 when every process
 ended well, 1 otherwise (the failing ones are named), 2 bad input, 130 interrupted.
 """
@@ -71,6 +84,12 @@ class LaunchOptions:
     handover_runtime: bool = True
     """Hand Zenoh's runtime threads over to one thread per child (ZENOH_RUNTIME), which measured
     here lowest CPU for many processes on few cores."""
+    wrap: dict[int, tuple[str, ...]] = field(default_factory=dict)
+    """Vehicle id -> command prefix under which its agent and plant run (e.g. ``("ip", "netns", "exec",
+    "uav3")``). The prefix must exec the command, not fork it (see the module docstring)."""
+    vehicle_connect: dict[int, str] = field(default_factory=dict)
+    """Vehicle id -> the Zenoh endpoint its agent and plant connect to instead of the launcher's router
+    (e.g. an on-board router that links to one of :attr:`listen`)."""
 
 
 @dataclass
@@ -108,6 +127,8 @@ class Launch:
 
     def members(self) -> list[tuple[str, int]]:
         m = self.mission
+        if m.payload is not None:  # one world hosts every vehicle and the payload
+            return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("world", 0), ("recorder", 0)]
         return [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")], ("recorder", 0)]
 
     def spawn(self, router: str) -> None:
@@ -127,11 +148,15 @@ class Launch:
                 cmd += ["--id", str(nid)]
             if role == "recorder":
                 cmd += ["--out", str(o.out)]
+            vehicle = role in ("agent", "plant")
+            endpoint = o.vehicle_connect.get(nid, router) if vehicle else router
             if o.network == "star":
-                cmd += ["--zenoh-mode", "client", "--connect", router]
+                cmd += ["--zenoh-mode", "client", "--connect", endpoint]
             else:
-                cmd += ["--zenoh-mode", "peer", "--connect", router,
+                cmd += ["--zenoh-mode", "peer", "--connect", endpoint,
                         "--listen", tp.loopback_endpoint(tp.free_tcp_port())]
+            if vehicle and nid in o.wrap:
+                cmd = [*o.wrap[nid], *cmd]
             path = logs / f"{role}-{nid}.log"
             with open(path, "wb") as fh:
                 proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
@@ -164,6 +189,23 @@ class Launch:
 
 class LaunchFailed(RuntimeError):
     pass
+
+
+def check_vehicle_options(mission: ms.Mission, opts: LaunchOptions) -> list[tuple[str, str]]:
+    """Every problem of the per-vehicle options (``--wrap``, ``--vehicle-connect``), as ``(option, message)``."""
+    out: list[tuple[str, str]] = []
+    ids = mission.agent_ids
+    for name, table in (("--wrap", opts.wrap), ("--vehicle-connect", opts.vehicle_connect)):
+        for nid in table:
+            if nid not in ids:
+                out.append((f"{name} {nid}", f"{nid} is not a vehicle (agent id) of this mission; use one of {ids}"))
+    for nid, prefix in opts.wrap.items():
+        if not prefix:
+            out.append((f"--wrap {nid}", "the prefix is empty; give a command, e.g. 'ip netns exec uav3'"))
+    for nid, endpoint in opts.vehicle_connect.items():
+        problems = tp.validate_settings(tp.ZenohSettings(mode="client", connect=(endpoint,)))
+        out += [(f"--vehicle-connect {nid}", msg) for _, msg in problems]
+    return out
 
 
 async def _watch_children(launch: Launch) -> None:
@@ -245,6 +287,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     from tether.node import load_mission
 
     m = load_mission(mission_path, opts.duration)
+    problems = check_vehicle_options(m, opts)
+    if problems:
+        raise ms.MissionError(f"tether run {mission_path}", problems)
     keys = wire.Keys(opts.ns or m.name)
     opts.out.mkdir(parents=True, exist_ok=True)
     launch = Launch(mission_path.resolve(), m, opts)

@@ -99,7 +99,7 @@ def _vehicle(m: ms.Mission, aid: int):
     if isinstance(spec, ms.PointMassPlant):
         from plant.vehicle import Integrator, PointMass
 
-        integ = Integrator(spec.integrator.gain, spec.integrator.limit) if spec.integrator else None
+        integ = Integrator(spec.integrator.gain, spec.integrator.limit, spec.integrator.axes) if spec.integrator else None
         return PointMass(spec.mass, a.p0, v0, spec.feedforward_mass, integ)
     if isinstance(spec, ms.QuadrotorPlant):
         from plant.quadrotor import Quadrotor, QuadrotorParams
@@ -107,7 +107,8 @@ def _vehicle(m: ms.Mission, aid: int):
         prm = QuadrotorParams(mass=spec.mass, tilt_max=math.radians(spec.tilt_max),
                               feedforward_mass=spec.feedforward_mass,
                               z_integrator_gain=spec.integrator.gain if spec.integrator else 0.0,
-                              z_integrator_limit=spec.integrator.limit if spec.integrator else 2.0)
+                              z_integrator_limit=spec.integrator.limit if spec.integrator else 2.0,
+                              integrator_axes=spec.integrator.axes if spec.integrator else "z")
         return Quadrotor(prm, np.array(a.p0, dtype=float), np.array(v0, dtype=float), spec.yaw)
     raise ValueError(f"agent {aid}: plant {type(spec).__name__} is not a vehicle with mass")
 

@@ -100,8 +100,13 @@ class Integrator:
 
     gain: float
     limit: float
+    axes: str = "z"
+    """``"z"`` (the vertical axis only, the default) or ``"xyz"`` (every axis, each with its own
+    integral, as the Crazyflie's velocity PIDs on x, y and z have)."""
 
     def __post_init__(self) -> None:
+        if self.axes not in ("z", "xyz"):
+            raise ValueError(f"integrator axes must be 'z' or 'xyz', not {self.axes!r}")
         if not (math.isfinite(self.gain) and self.gain > 0.0):
             raise ValueError(f"integrator gain must be finite and > 0 [1/s], not {self.gain!r}")
         if not (math.isfinite(self.limit) and self.limit > 0.0):
@@ -151,7 +156,8 @@ class PointMass:
         self.g = float(g)
         self.p = _vec3(p0, "p0")
         self.v = np.zeros(3) if v0 is None else _vec3(v0, "v0")
-        self.integral = 0.0
+        self._integral = np.zeros(3)
+        self._axes = () if integrator is None else ((2,) if integrator.axes == "z" else (0, 1, 2))
         self._u = np.zeros(3)
         self._yaw = 0.0
         self._a = np.zeros(3)
@@ -194,14 +200,20 @@ class PointMass:
             return
         v0 = self.v
         r = 1.0 + self._ff
-        dv_i, dp_i, self.integral = _integral_flow(
-            self.integral, (u[2] - a[2]) / r, self.integrator.gain * r, self.integrator.limit, dt)
-        # the integral enters the vertical axis as r * I
         self.p = self.p + dt * v0 + (0.5 * dt * dt) * a
         self.v = v0 + dt * a
-        self.p[2] += r * dp_i
-        self.v[2] += r * dv_i
+        for ax in self._axes:  # each integral enters its axis as r * I
+            dv_i, dp_i, self._integral[ax] = _integral_flow(
+                self._integral[ax], (u[ax] - a[ax]) / r, self.integrator.gain * r, self.integrator.limit, dt)
+            self.p[ax] += r * dp_i
+            self.v[ax] += r * dv_i
         self._a = (self.v - v0) / dt
+
+    @property
+    def integral(self) -> float | np.ndarray:
+        """The integrator's state ``I`` [m/s^2]: the vertical one (a number) for ``axes = "z"``,
+        all three otherwise (0 when off)."""
+        return float(self._integral[2]) if self._axes == (2,) else self._integral.copy()
 
 
 def _segment(i0: float, target: float, rate: float, t: float) -> tuple[float, float, float]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -163,6 +164,16 @@ def cmd_plant(args: argparse.Namespace) -> int:
     return _serve(args, "plant", args.id, node.run)
 
 
+def cmd_world(args: argparse.Namespace) -> int:
+    from plant import node
+
+    m = _load(args.mission)
+    if m.payload is None:
+        raise ms.MissionError(str(args.mission), [("payload", "is missing: a world hosts a [payload] mission's "
+                                                              "vehicles; run `tether plant --id I` per agent instead")])
+    return _serve(args, "world", 0, node.run_world)
+
+
 def cmd_recorder(args: argparse.Namespace) -> int:
     from tether import recorder
 
@@ -248,8 +259,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     opts = local.LaunchOptions(out=Path(args.out), clock=args.clock, network=args.network, window=args.window,
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
                                duration=args.duration, handover_runtime=not args.no_handover,
-                               listen=tuple(args.listen))
+                               listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
+                               vehicle_connect=dict(args.vehicle_connect))
     return asyncio.run(local.run(path, opts))
+
+
+def _vehicle_option(parse, example: str):
+    """An argparse type for ``ID=VALUE``: ``(int(ID), parse(VALUE))``."""
+    def convert(text: str):
+        nid, sep, value = text.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            return int(nid), parse(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not ID=VALUE, e.g. {example}") from None
+
+    return convert
 
 
 def _zenoh_options(p: argparse.ArgumentParser) -> None:
@@ -317,12 +343,23 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--listen", action="append", default=[],
                     help="another endpoint for the launcher's router, for tools that attach to the run "
                          "(tether netem-set, plain Zenoh clients); repeatable")
+    rn.add_argument("--lease", type=float, default=2.0,
+                    help="Zenoh link lease [s] of every process: a frozen or cut-off one is seen gone after it")
+    rn.add_argument("--wrap", action="append", default=[], metavar="ID=PREFIX",
+                    type=_vehicle_option(lambda v: tuple(shlex.split(v)), "3='ip netns exec uav3'"),
+                    help="run vehicle ID's agent and plant under a command prefix that execs it, e.g. "
+                         "3='ip netns exec uav3' (a network namespace); repeatable")
+    rn.add_argument("--vehicle-connect", action="append", default=[], metavar="ID=ENDPOINT",
+                    type=_vehicle_option(str, "3=tcp/127.0.0.1:7448"),
+                    help="vehicle ID's agent and plant connect to ENDPOINT (e.g. its on-board Zenoh router, "
+                         "linked to a --listen endpoint) instead of the launcher's router; repeatable")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.set_defaults(func=cmd_run)
 
     for role, fn, helptext in (("leader", cmd_leader, "the virtual leader's process"),
                                ("agent", cmd_agent, "one agent's process"),
                                ("plant", cmd_plant, "one simulated plant's process"),
+                               ("world", cmd_world, "a payload world's process: every vehicle and the payload"),
                                ("recorder", cmd_recorder, "the recorder's process")):
         rp = sub.add_parser(role, help=helptext)
         _process_options(rp)

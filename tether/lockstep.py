@@ -120,6 +120,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     senders = sorted({j for law in laws for j in law.neighbours})
 
     extras: dict[str, np.ndarray] = {}
+    feed = m.law.feedforward
+    u_prev = [np.zeros(d) for _ in ids]
     kp = [law.params.kp0.copy() for law in laws]
     kv = [law.params.kv0.copy() for law in laws]
     meta = {"mission": m.name, "source": "lockstep-inprocess", "law": m.law.kind, "rate": m.rate,
@@ -136,8 +138,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         # what each sender publishes at tick k: the leader's reference, each agent's relayed sample
         sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {
             lid: (t, np.asarray(lp, dtype=float), np.asarray(lv, dtype=float), np.asarray(la, dtype=float))}
+        shared = a if feed == "measured" else u_prev  # what each agent shares for the feed-forward
         for i, aid in enumerate(ids):
-            sent[aid] = (t, p[i], v[i], a[i])
+            sent[aid] = (t, p[i], v[i], shared[i])
         payloads = {}
         if net is not None:
             for j in senders:
@@ -161,11 +164,13 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                         sample, age = None, math.nan
                     else:
                         sample, age = lk.newest[1:], t - lk.newest[0]
-                nb_p[s], nb_v[s], nb_a[s], ok = neighbour_sample(p[i], v[i], a[i], law.deltas[s], sample, age,
+                nb_p[s], nb_v[s], nb_a[s], ok = neighbour_sample(p[i], v[i], shared[i], law.deltas[s], sample, age,
                                                                  policy.max_age, policy.compensate)
                 lk.used += ok
                 if keep:
                     ages[r, i, s] = age if ok else math.nan
+            if feed == "none":
+                nb_a[:] = 0.0
             u, xi, zeta, kp_next, kv_next = law.step(p[i], v[i], nb_p, nb_v, nb_a, kp[i], kv[i])
             us.append(u)
             worst = max(worst, abs(xi).max())
@@ -188,6 +193,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             break
         if k == steps:
             break
+        u_prev = us
         for host in hosts:
             host.step(np.array([us[ids.index(aid)] for aid in host.ids]))
         if progress is not None and k % every == 0:

@@ -151,13 +151,15 @@ class DoubleIntegrator(_Kind, tag="double_integrator"):
 
 
 class ThrustIntegrator(_Strict):
-    """An inner integral of the vertical acceleration error ``u_z - p''_z`` added to the vertical
-    command (the thrust integral of the Crazyflie's own velocity PID on z), clamped (anti-windup)."""
+    """An inner integral of the acceleration error ``u - p''`` (vertical by default) added to the
+    command (the integral of the Crazyflie's own velocity PIDs), clamped (anti-windup)."""
 
     gain: float
     """``k_i`` [1/s]: the integral corrects a constant pull at this rate."""
     limit: float
     """Bound of the correction [m/s^2]."""
+    axes: Literal["z", "xyz"] = "z"
+    """``z``: the vertical axis only; ``xyz``: every axis (the Crazyflie's velocity PIDs on x, y, z)."""
 
 
 class PointMassPlant(_Kind, tag="point_mass"):
@@ -252,15 +254,22 @@ class Law(_Strict):
     """Adaptation rate ``Gamma_v`` of Kv."""
     sigma: float | None = None
     """Leakage ``sigma`` of the sigma-modification [1/s]; required for ``sigma``, absent for ``benchmark``."""
+    feedforward: Literal["measured", "commanded", "none"] = "measured"
+    """What Eq. 17's ``sum_j a_ij vdot_j`` uses for an agent neighbour's ``vdot_j``: its measured
+    acceleration (the mean over the previous period; the paper's law as written), its command of
+    the previous tick (``vdot_j = u_j`` under Remark 1's two-loop assumption: immune to the inner
+    loop's lag), or nothing. The leader's term is always its reference acceleration, except with
+    ``none``, which drops the whole sum."""
 
 
 class LinkPolicy(_Strict):
     """What an agent does with its in-neighbours' samples (part of the law's implementation).
 
     Samples older than the newest held are never used (sequence numbers). A neighbour whose newest
-    sample is older than ``max_age`` (or that has sent none yet) is treated as in formation: it
-    contributes nothing to xi and zeta and the agent's own acceleration to the feed-forward, as if
-    its edge were absent but kappa_i kept (``docs/runtime.md``)."""
+    sample is older than ``max_age`` (or that has sent none yet) is treated as in formation and
+    not accelerating: it contributes nothing to xi, zeta or the feed-forward, as if its edge were
+    absent but kappa_i kept; an agent that hears nobody commands u = 0 and coasts
+    (:func:`agent.law.neighbour_sample`)."""
 
     max_age: float = 0.5
     """Oldest neighbour sample an agent uses [s]."""
