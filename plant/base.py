@@ -175,7 +175,7 @@ class PayloadPlant:
             if m.floor is not None and np.all(np.linalg.norm(p0 - below, axis=1) <= pl.cable.length):
                 start = below  # on the floor, cables slack
             else:
-                start = hover_equilibrium(p0, pl.mass, cable).payload_p
+                start = hover_equilibrium(p0, pl.mass, cable, tol=1e-9).payload_p
         self._dist = DisturbanceBank.from_mission(m, list(ids))
         self.world = PayloadWorld(vehicles, pl.mass, start, None, cable, pl.substep, floor=m.floor)
         self._h = m.dt

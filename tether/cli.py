@@ -73,6 +73,13 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     from tether import reproduce
 
     prog = Progress()
+    if args.what != "section4":
+        from tether import experiments
+
+        result = experiments.run_experiment(args.what, Path(args.out), duration=args.duration, progress=prog)
+        print((Path(args.out) / "report.md").read_text())
+        print("figures: " + ", ".join(result["figures"]))
+        return 0
     result = reproduce.section4(Path(args.out), duration=args.duration, continuous=args.continuous,
                                 progress=prog)
     print((Path(args.out) / "metrics.md").read_text())
@@ -317,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     r = sub.add_parser("reproduce", help="reproduce a result of the paper")
-    r.add_argument("what", choices=["section4"])
+    r.add_argument("what", choices=["section4", "exp1", "exp2"])
     r.add_argument("--out", required=True)
     r.add_argument("--duration", type=float, default=None, help="override the 1000 s horizon [s]")
     r.add_argument("--continuous", action="store_true", help="also run the continuous-time RK4 mode (slow)")

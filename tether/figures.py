@@ -177,3 +177,109 @@ def heatmaps(rows: list[dict], out_dir: str | Path, *, loss: list[float], delay:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def snapshots(run: Run, times: tuple[float, ...], path: str | Path, three_d: bool = False) -> Path:
+    """Figs. 7 and 10: the vehicles (triangles) and the leader (star) at ``times``, the formation's
+    polygon dashed; one panel per time in the x-y plane, or one 3D panel with every time."""
+    path = Path(path)
+    ks = [min(len(run.t) - 1, int(round(t / (run.t[1] - run.t[0])))) for t in times]
+    if three_d:
+        fig = plt.figure(figsize=(7.5, 6.5))
+        ax = fig.add_subplot(projection="3d")
+        sl = _decimate(run)
+        for i, aid in enumerate(run.agent_ids):
+            ax.plot(run.p[sl, i, 0], run.p[sl, i, 1], run.p[sl, i, 2], lw=0.7, label=f"agent {aid}")
+        ax.plot(run.leader_p[sl, 0], run.leader_p[sl, 1], run.leader_p[sl, 2], "k--", lw=0.8, label="leader")
+        if "payload_p" in run.extra:
+            pp = run.extra["payload_p"][sl]
+            ax.plot(pp[:, 0], pp[:, 1], pp[:, 2], color="tab:brown", lw=1.2, label="payload")
+        for k in ks:
+            ring = np.vstack([run.p[k], run.p[k, :1]])
+            ax.plot(ring[:, 0], ring[:, 1], ring[:, 2], "k:", lw=0.8)
+            ax.scatter(run.p[k, :, 0], run.p[k, :, 1], run.p[k, :, 2], marker="^", color="tab:blue")
+            ax.scatter(*run.leader_p[k], marker="*", s=80, color="tab:red")
+            ax.text(*run.leader_p[k], f" t={run.t[k]:.0f}s", fontsize=7)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        ax.legend(fontsize=7)
+    else:
+        fig, axs = plt.subplots(1, len(ks), figsize=(3.6 * len(ks), 3.8), squeeze=False)
+        lo = np.nanmin(np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]]), axis=0) - 0.3
+        hi = np.nanmax(np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]]), axis=0) + 0.3
+        for ax, k in zip(axs[0], ks):
+            order = _polygon(run.p[k, :, :2])
+            ring = np.vstack([run.p[k, order, :2], run.p[k, order[:1], :2]])
+            ax.plot(ring[:, 0], ring[:, 1], "k--", lw=0.8)
+            ax.plot(run.p[k, :, 0], run.p[k, :, 1], "^", ms=8, color="tab:blue")
+            for i, aid in enumerate(run.agent_ids):
+                ax.annotate(str(aid), run.p[k, i, :2], fontsize=7, xytext=(3, 3), textcoords="offset points")
+            ax.plot(run.leader_p[k, 0], run.leader_p[k, 1], "*", ms=12, color="tab:red")
+            ax.set_title(f"t = {run.t[k]:.0f} s", fontsize=9)
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+            ax.set_aspect("equal")
+            ax.grid(True, lw=0.3)
+            ax.set_xlabel("x [m]")
+        axs[0, 0].set_ylabel("y [m]")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def _polygon(xy: np.ndarray) -> np.ndarray:
+    """Indices ordering points around their centroid (to draw a formation's outline)."""
+    c = xy.mean(axis=0)
+    return np.argsort(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+
+
+def variants(runs: dict[str, Run], path: str | Path, offsets: np.ndarray, title: str = "") -> Path:
+    """One line per run: max_i ||xi_i|| and the tracking error max_i ||p_i - h_i - p_leader|| over time."""
+    path = Path(path)
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    for label, run in runs.items():
+        sl = _decimate(run)
+        a0.plot(run.t[sl], np.nanmax(metrics.xi_norm(run)[sl], axis=1), lw=0.9, label=label)
+        e = run.p - offsets[None] - run.leader_p[:, None, :]
+        a1.plot(run.t[sl], np.nanmax(np.linalg.norm(e[sl], axis=2), axis=1), lw=0.9, label=label)
+    a0.set_ylabel(r"max$_i\,\|\xi_i\|$ [m]")
+    a1.set_ylabel("tracking error [m]")
+    a1.set_xlabel("t [s]")
+    for a in (a0, a1):
+        a.set_yscale("log")
+        a.grid(True, lw=0.3, which="both")
+    a0.legend(fontsize=7)
+    if title:
+        a0.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def payload(run: Run, path: str | Path, mass: float) -> Path:
+    """The payload's path against the leader's, and the cable tensions against the weight share."""
+    path = Path(path)
+    ex = run.extra
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    sl = _decimate(run)
+    for k in range(3):
+        a0.plot(run.t[sl], ex["payload_p"][sl, k], lw=1.0, label=f"payload {AXES[k]}")
+        a0.plot(run.t[sl], run.leader_p[sl, k], "--", lw=0.8, color=f"C{k}", alpha=0.6, label=f"leader {AXES[k]}")
+    a0.set_ylabel("position [m]")
+    a0.legend(fontsize=7, ncol=3)
+    for i, aid in enumerate(run.agent_ids):
+        a1.plot(run.t[sl], ex["tension"][sl, i], lw=0.8, label=f"cable {aid}")
+    a1.axhline(mass * 9.81 / len(run.agent_ids), color="k", ls=":", lw=0.8, label="weight / N")
+    a1.set_ylabel("tension [N]")
+    a1.set_xlabel("t [s]")
+    a1.legend(fontsize=7, ncol=3)
+    for a in (a0, a1):
+        a.grid(True, lw=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
