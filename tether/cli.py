@@ -129,13 +129,27 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _node_args(args: argparse.Namespace, role: str, node_id: int):
+def _zenoh_settings(args: argparse.Namespace):
+    """The Zenoh settings of ``--zenoh-config FILE``, or of --zenoh-mode/--listen/--connect/--lease/
+    --connect-timeout. Raises SettingsError naming the field."""
     from tether import transport as tp
+
+    if args.zenoh_config is not None:
+        if args.listen or args.connect:
+            raise tp.SettingsError([("--zenoh-config", "is given with --listen/--connect; the file is "
+                                                       "the whole configuration: drop those, or drop --zenoh-config")])
+        settings = tp.ZenohSettings(config_file=args.zenoh_config)
+    else:
+        settings = tp.ZenohSettings(mode=args.zenoh_mode, listen=tuple(args.listen), connect=tuple(args.connect),
+                                    lease=args.lease, connect_timeout=args.connect_timeout)
+    tp.zenoh_config(settings)
+    return settings
+
+
+def _node_args(args: argparse.Namespace, role: str, node_id: int):
     from tether.node import NodeArgs
 
-    settings = tp.ZenohSettings(mode=args.zenoh_mode, listen=tuple(args.listen), connect=tuple(args.connect),
-                                lease=args.lease, connect_timeout=args.connect_timeout)
-    tp.zenoh_config(settings)  # raises SettingsError naming the field
+    settings = _zenoh_settings(args)
     return NodeArgs(mission_path=catalog.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
                     zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
                     duration=args.duration)
@@ -219,16 +233,13 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
 
     from netem.profile import ProfileError
     from tether import control
-    from tether import transport as tp
 
     try:
         profile = control.parse_profile(args.profile)
     except ProfileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    settings = tp.ZenohSettings(mode=args.zenoh_mode, listen=tuple(args.listen), connect=tuple(args.connect),
-                                lease=args.lease, connect_timeout=args.connect_timeout)
-    tp.zenoh_config(settings)
+    settings = _zenoh_settings(args)
     try:
         answers = asyncio.run(control.netem_set(settings, args.ns, control.rule_of(profile, args.src, args.dst),
                                                 args.at, args.timeout))
@@ -287,6 +298,9 @@ def _vehicle_option(parse, example: str):
 
 def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("zenoh")
+    g.add_argument("--zenoh-config", default=None, metavar="FILE",
+                   help="a Zenoh JSON5 configuration (from tether deploy-gen: mTLS, access control); "
+                        "replaces the options below")
     g.add_argument("--zenoh-mode", choices=["peer", "client", "router"], default="peer")
     g.add_argument("--listen", action="append", default=[], help="endpoint to listen on (repeatable)")
     g.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
@@ -402,6 +416,13 @@ def build_parser() -> argparse.ArgumentParser:
     nc.add_argument("--timeout", type=float, default=5.0, help="how long to wait for the agents' answers [s]")
     _zenoh_options(nc)
     nc.set_defaults(func=cmd_netem_set, zenoh_mode="client")
+
+    from deploy import gen as deploy_gen
+
+    dg = sub.add_parser("deploy-gen", help="companion computers: every host's Zenoh profiles, mTLS certificates, "
+                                           "access control and service units, from a mission")
+    deploy_gen.add_arguments(dg)
+    dg.set_defaults(func=deploy_gen.run_args)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file")
     pl.add_argument("run", help="a run.npz or the directory holding it")

@@ -78,7 +78,7 @@ TOKEN_ROOT = wire.TOKEN_ROOT
 class TlsFiles(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
     """Paths of TLS material, carried into ``transport/link/tls/*``. Used only by ``tls/`` endpoints.
 
-    Not yet exercised by a test with real certificates; the keys are those of zenoh 1.10's config.
+    The keys are those of zenoh 1.10's config; opened with real certificates (mTLS) in tests/test_deploy.py.
     """
 
     root_ca_certificate: str | None = None
@@ -130,6 +130,10 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_
     Zenoh's default, under which a client fails at once if its router is not up yet."""
     tls: TlsFiles | None = None
     """TLS files for ``tls/`` endpoints; ``None``: no TLS."""
+    config_file: str | None = None
+    """A complete Zenoh JSON5 configuration file (such as those ``tether deploy-gen`` writes, with TLS
+    and access control), read with ``zenoh.Config.from_file``. It is then the whole configuration:
+    every other field must keep its default."""
 
 
 class SettingsError(ValueError):
@@ -188,6 +192,8 @@ def validate_settings(s: ZenohSettings) -> list[tuple[str, str]]:
     (Zenoh silently turns a negative lease into 0 and truncates it to whole milliseconds).
     """
     out: list[tuple[str, str]] = []
+    if s.config_file is not None:
+        return _config_file_problems(s)
     if s.mode not in ("peer", "client", "router"):
         out.append(("mode", f"is {s.mode!r}; use 'peer', 'client' or 'router'"))
     for name, endpoints, listening in (("listen", s.listen, True), ("connect", s.connect, False)):
@@ -236,6 +242,19 @@ def validate_settings(s: ZenohSettings) -> list[tuple[str, str]]:
     return out
 
 
+def _config_file_problems(s: ZenohSettings) -> list[tuple[str, str]]:
+    """With ``config_file`` the file is the whole configuration: any other field set is a conflict."""
+    if not isinstance(s.config_file, str) or not s.config_file:
+        return [("config_file", f"is {s.config_file!r}; give the path of a Zenoh JSON5 file")]
+    defaults = ZenohSettings()
+    mixed = [f.name for f in msgspec.structs.fields(ZenohSettings)
+             if f.name != "config_file" and getattr(s, f.name) != getattr(defaults, f.name)]
+    if mixed:
+        return [("config_file", f"is given together with {', '.join(mixed)}; the file is the whole "
+                                "configuration: put those settings in the file, or drop config_file")]
+    return []
+
+
 def load_settings(raw: Mapping[str, Any]) -> ZenohSettings:
     """Settings from a mapping (a TOML table, say). Unknown or mistyped fields and invalid values raise
     :class:`SettingsError` naming the field."""
@@ -267,11 +286,18 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     ``scouting/multicast/enabled``, ``scouting/gossip/enabled``,
     ``scouting/gossip/autoconnect_strategy`` (and the multicast one), ``transport/link/tx/lease`` [ms],
     ``transport/link/tx/keep_alive``, ``scouting/delay`` [ms], ``connect/timeout_ms``, ``transport/link/tls/*``.
-    Does not block and opens nothing.
+    With ``config_file``, the configuration is that file as Zenoh reads it, and nothing is added.
+    Does not block and opens nothing (reads the file).
     """
     problems = validate_settings(settings)
     if problems:
         raise SettingsError(problems)
+    if settings.config_file is not None:
+        try:
+            return zenoh.Config.from_file(settings.config_file)
+        except (zenoh.ZError, OSError) as exc:
+            raise SettingsError([("config_file", f"{settings.config_file!r} is not a Zenoh configuration "
+                                                 f"Zenoh can read: {exc}")]) from None
     strategy = {"peer": {"to_router": "always", "to_peer": settings.peer_autoconnect}}
     entries: list[tuple[str, str, object]] = [
         ("mode", "mode", settings.mode),
@@ -364,10 +390,9 @@ class SessionScope:
             self._session = zenoh.open(self._config)
         except zenoh.ZError as exc:
             s = self._settings
-            raise TransportError(
-                f"cannot open a zenoh session (mode={s.mode}, listen={list(s.listen)}, "
-                f"connect={list(s.connect)}): {exc}"
-            ) from None
+            where = (f"config_file={s.config_file}" if s.config_file is not None
+                     else f"mode={s.mode}, listen={list(s.listen)}, connect={list(s.connect)}")
+            raise TransportError(f"cannot open a zenoh session ({where}): {exc}") from None
         return self._session
 
     def _close(self) -> None:

@@ -1,0 +1,175 @@
+"""Access-control rules from a mission: who may publish, subscribe and declare what. Pure.
+
+Each process has an identity, the common name (CN) of its certificate (``agent-3.<ns>``). Its
+:class:`Grant` lists exactly the keys the runtime's code uses for that role (``agent/node.py``,
+``plant/node.py``, ``leader/node.py``, ``tether/recorder.py``, ``tether/node.py``,
+``deploy/start.py``); :func:`access_control` turns the grants into Zenoh 1.x's ``access_control``
+section, which every listening node (the router; every peer in a peer network) enforces on each
+link, by the CN of the certificate the other side presented:
+
+* ``ingress`` rules say what a node may send: ``put`` (publish), ``declare_subscriber``,
+  ``liveliness_token``, ``declare_liveliness_subscriber``, and for ``tether netem-set`` (run-time
+  changes of the emulated network) the agents' ``declare_queryable`` and ``reply``, the control's
+  ``query`` and ``liveliness_query``;
+* ``egress`` rules say what it may be sent: ``put`` on the keys it may subscribe to,
+  ``liveliness_token`` of the processes it watches, queries to the agents and their replies to the
+  control, and the declarations of other nodes' subscribers and queryables (so that its publishers
+  and queries learn where to go).
+
+``default_permission`` is ``deny``: anything not listed (queries, deletes, any other key) is
+dropped. Zenoh allows a declaration when a rule's key expression *includes* the declared one
+(``nodes_including`` in zenoh's ``authorization.rs``), so wildcard subscriptions are granted with
+the very expression the code declares.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from tether import mission as ms
+from tether import wire
+
+
+
+@dataclass(frozen=True)
+class Grant:
+    """What one identity may do. Every field is a tuple of key expressions."""
+
+    name: str
+    """Process name (``agent-3``); its CN is ``<name>.<ns>``."""
+    publish: tuple[str, ...] = ()
+    """Keys it may put on."""
+    subscribe: tuple[str, ...] = ()
+    """Key expressions it may subscribe to, and on which puts are forwarded to it."""
+    tokens: tuple[str, ...] = ()
+    """Liveliness tokens it may declare."""
+    watch: tuple[str, ...] = ()
+    """Liveliness key expressions it may subscribe to."""
+    sees: tuple[str, ...] = ()
+    """Liveliness tokens whose (dis)appearance it is told about."""
+    serves: tuple[str, ...] = ()
+    """Queryables it may declare; it receives queries on, and may reply on, ``answers``."""
+    answers: tuple[str, ...] = ()
+    """Query key expressions it receives and replies on (a query's key may be a wildcard)."""
+    asks: tuple[str, ...] = ()
+    """Key expressions it may query (and receive replies on)."""
+    lists: tuple[str, ...] = ()
+    """Liveliness key expressions it may query (``liveliness().get``)."""
+
+
+def common_name(name: str, ns: str) -> str:
+    """Certificate CN of process ``name`` in namespace ``ns``: ``agent-3.section4``."""
+    return f"{name}.{ns}"
+
+
+def in_neighbours(m: ms.Mission, aid: int) -> list[int]:
+    """Nodes agent ``aid`` hears (edges ``from -> aid``), in file order."""
+    return [e.src for e in m.edges if e.dst == aid]
+
+
+def grants(m: ms.Mission, ns: str) -> list[Grant]:
+    """One grant per process of mission ``m`` in namespace ``ns``, plus the router and the control
+    (start) command. Lists exactly what the runtime declares for each role, nothing more."""
+    k = wire.Keys(ns)
+    lid = m.leader.id
+    every_token = k.tokens  # @tether/<ns>/**: what Node.watch and wait_for_tokens subscribe to
+    every_netem = f"tether/{ns}/agent/*/netem"  # what tether netem-set asks (tether/control.py)
+
+    def state_of(j: int) -> str:
+        return k.topic("leader" if j == lid else "agent", j, "state")
+
+    def token_of(j: int) -> str:
+        return k.token("leader" if j == lid else "agent", j)
+
+    out = [
+        Grant("router", publish=(k.everything,), subscribe=(k.everything,), tokens=(every_token,),
+              watch=(every_token,), sees=(every_token,), serves=(k.everything,), answers=(k.everything,),
+              asks=(k.everything,), lists=(every_token,)),
+        Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
+              subscribe=(k.start, k.tick), tokens=(k.token("leader", lid),)),
+        Grant("control-0", publish=(k.start, k.tick), subscribe=(k.acks,), watch=(every_token,), sees=(every_token,),
+              asks=(every_netem,), lists=(k.token("agent", "*"),)),
+        Grant("recorder-0", publish=(k.topic("recorder", 0, "ack"),),
+              subscribe=(k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
+                         f"tether/{ns}/plant/*/state", k.start),
+              tokens=(k.token("recorder", 0),), watch=(every_token,), sees=(every_token,)),
+    ]
+    for aid in m.agent_ids:
+        nbrs = in_neighbours(m, aid)
+        out.append(Grant(
+            f"agent-{aid}",
+            publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry")),
+            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start),
+            tokens=(k.token("agent", aid),),
+            watch=(every_token,),
+            sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
+            serves=(k.topic("agent", aid, "netem"),),  # Node.netem_control: run-time netem changes
+            answers=(k.topic("agent", aid, "netem"), every_netem),
+        ))
+        out.append(Grant(
+            f"plant-{aid}",
+            publish=(k.topic("plant", aid, "state"),),
+            subscribe=(k.topic("agent", aid, "cmd"), k.start),
+            tokens=(k.token("plant", aid),),
+            watch=(every_token,),
+            sees=(k.token("agent", aid),),
+        ))
+    return out
+
+
+def access_control(gs: list[Grant], ns: str) -> dict[str, Any]:
+    """Zenoh 1.x's ``access_control`` section for grants ``gs``: default deny, one subject per CN,
+    one policy per subject. Rules with nothing to allow are left out (Zenoh rejects empty lists)."""
+    k = wire.Keys(ns)
+    rules: list[dict[str, Any]] = [
+        # every node may be told who subscribes to what in this namespace (its publishers need it to
+        # send at all) and who watches which tokens; these declarations carry no data
+        _rule("declarations-out", ["declare_subscriber", "declare_queryable"], "egress", [k.everything]),
+        _rule("liveliness-interest-out", ["declare_liveliness_subscriber"], "egress", [k.tokens]),
+    ]
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for g in gs:
+        cn = common_name(g.name, ns)
+        mine = [
+            _rule(f"{g.name}:publish", ["put"], "ingress", g.publish),
+            _rule(f"{g.name}:subscribe", ["declare_subscriber"], "ingress", g.subscribe),
+            _rule(f"{g.name}:receive", ["put"], "egress", g.subscribe),
+            _rule(f"{g.name}:token", ["liveliness_token"], "ingress", g.tokens),
+            _rule(f"{g.name}:watch", ["declare_liveliness_subscriber"], "ingress", g.watch),
+            _rule(f"{g.name}:sees", ["liveliness_token"], "egress", g.sees),
+            _rule(f"{g.name}:serve", ["declare_queryable"], "ingress", g.serves),
+            _rule(f"{g.name}:queried", ["query"], "egress", g.answers),
+            _rule(f"{g.name}:reply", ["reply"], "ingress", g.answers),
+            _rule(f"{g.name}:ask", ["query"], "ingress", g.asks),
+            _rule(f"{g.name}:answered", ["reply"], "egress", g.asks),
+            _rule(f"{g.name}:list", ["liveliness_query"], "ingress", g.lists),
+        ]
+        mine = [r for r in mine if r["key_exprs"]]
+        rules += mine
+        subjects.append({"id": g.name, "cert_common_names": [cn]})
+        policies.append({"id": g.name, "rules": ["declarations-out", "liveliness-interest-out",
+                                                 *(r["id"] for r in mine)], "subjects": [g.name]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def _rule(rid: str, messages: list[str], flow: str, keys: tuple[str, ...] | list[str]) -> dict[str, Any]:
+    return {"id": rid, "messages": messages, "flows": [flow], "permission": "allow", "key_exprs": list(keys)}
+
+
+def describe(gs: list[Grant]) -> str:
+    """A Markdown table of the grants, for the generated guide."""
+    lines = ["| identity | may publish | may subscribe to | may declare token | told about tokens | queries |",
+             "|---|---|---|---|---|---|"]
+    for g in gs:
+        queries = [*(f"serves `{x}`" for x in g.serves), *(f"asks `{x}`" for x in g.asks),
+                   *(f"lists `{x}`" for x in g.lists)]
+        lines.append(f"| `{g.name}` | {_ks(g.publish)} | {_ks(g.subscribe)} | {_ks(g.tokens)} | {_ks(g.sees)} | "
+                     f"{'<br>'.join(queries) or '–'} |")
+    return "\n".join(lines)
+
+
+def _ks(keys: tuple[str, ...]) -> str:
+    return "<br>".join(f"`{x}`" for x in keys) if keys else "–"

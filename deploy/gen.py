@@ -1,0 +1,271 @@
+"""``tether deploy-gen MISSION --out DIR [--hosts hosts.toml] [--ca DIR]``: every host's files.
+
+From a mission and a hosts file (``deploy/hosts.py``), writes::
+
+    DIR/ca/ca.crt, ca.key          the deployment's CA (keep ca.key offline; it never goes to a host)
+    DIR/acl.json5                  the access-control section every listener enforces, for review
+    DIR/DEPLOY.md                  which directory goes to which host, and how to start the run
+    DIR/hosts/<host>/              copy to that host's config_dir (default /etc/tether):
+        mission.toml               the mission
+        <process>.json5            one Zenoh configuration per process on the host
+        tls/ca.crt, tls/<process>.crt, tls/<process>.key
+        systemd/tether-<process>.service
+
+Hosts: ``router`` (the Zenoh router, a Python session in router mode), ``leader`` (the virtual
+leader and the operator's start command ``control-0``), ``recorder``, and one ``agent-<i>`` per
+vehicle (agent i and its plant). Profiles: the router's (``mode: router``, listens), clients'
+(``network = "client"``: connect to the router only) or peers' (``network = "peer"``: listen on
+their host and connect to the router, which relays where there is no direct link). Every link is
+TLS 1.3 with client certificates (mTLS); ``transport/link/protocols`` is ``["tls"]``, so no
+process listens on or dials plain TCP; listeners enforce the access control of ``deploy/acl.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from deploy import acl, pki
+from deploy.hosts import HostsError, Placement, Plan, load, plan
+from tether import catalog
+from tether import mission as ms
+
+UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "control": "tether-start.service",
+         "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service"}
+"""Template of each role's systemd unit, in ``deploy/systemd/``."""
+
+
+@dataclass
+class Deployment:
+    """What :func:`generate` wrote."""
+
+    out: Path
+    plan: Plan
+    ca: pki.Ca
+    files: dict[str, list[Path]] = field(default_factory=dict)
+    """Files written per host directory."""
+
+    def host_dir(self, host: str) -> Path:
+        return self.out / "hosts" / host
+
+    def config(self, name: str) -> Path:
+        """The Zenoh configuration of process ``name`` (``router``, ``agent-3``, ...)."""
+        p = next(p for p in self.plan.placements if p.name == name)
+        return self.host_dir(p.host) / f"{name}.json5"
+
+
+class GenerateError(ValueError):
+    """The output directory cannot be written as asked; the message says why and what to do."""
+
+
+# --------------------------------------------------------------------------- Zenoh profiles
+def profile(p: Placement, pl: Plan, access: dict[str, Any]) -> dict[str, Any]:
+    """The Zenoh configuration (as a dict, JSON5-ready) of the process placed at ``p``.
+
+    Keys checked against zenoh 1.10's schema: ``mode``, ``listen/endpoints``, ``connect/endpoints``,
+    ``connect/timeout_ms``, ``scouting/multicast/enabled``, ``scouting/gossip/{enabled,
+    autoconnect_strategy}``, ``transport/link/protocols``, ``transport/link/tx/{lease, keep_alive}``,
+    ``transport/link/tls/{root_ca_certificate, listen_certificate, listen_private_key,
+    connect_certificate, connect_private_key, enable_mtls, verify_name_on_connect}``, ``access_control``.
+    """
+    h = pl.hosts
+    tls_dir = f"{pl.config_dir(p.host)}/tls"
+    tls: dict[str, Any] = {"root_ca_certificate": f"{tls_dir}/ca.crt", "enable_mtls": True,
+                           "verify_name_on_connect": True}
+    if p.listen is not None:
+        tls |= {"listen_certificate": f"{tls_dir}/{p.name}.crt", "listen_private_key": f"{tls_dir}/{p.name}.key"}
+    tls |= {"connect_certificate": f"{tls_dir}/{p.name}.crt", "connect_private_key": f"{tls_dir}/{p.name}.key"}
+    conf: dict[str, Any] = {"mode": p.mode, "listen": {"endpoints": [p.listen] if p.listen else []}}
+    if p.mode != "router":
+        conf["connect"] = {"endpoints": [pl.router.dial], "timeout_ms": round(h.connect_timeout * 1000)}
+    strategy = {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
+    conf["scouting"] = {"multicast": {"enabled": False},
+                        "gossip": {"enabled": True, "autoconnect_strategy": strategy}}
+    conf["transport"] = {"link": {"protocols": ["tls"], "tx": {"lease": round(h.lease * 1000), "keep_alive": 4},
+                                  "tls": tls}}
+    if p.listen is not None:
+        conf["access_control"] = access
+    return conf
+
+
+def _json5(header: list[str], body: dict[str, Any]) -> str:
+    return "".join(f"// {line}\n" for line in header) + json.dumps(body, indent=2) + "\n"
+
+
+# --------------------------------------------------------------------------- systemd units
+_PLACEHOLDER = re.compile(r"@([A-Z_]+)@")
+
+
+def unit(role: str, values: dict[str, str]) -> str:
+    """The role's unit template with every ``@NAME@`` filled from ``values``; a placeholder without
+    a value is an error (a template and the generator out of step)."""
+    text = (resources.files("deploy") / "systemd" / UNITS[role]).read_text()
+    missing = sorted({m for m in _PLACEHOLDER.findall(text) if m not in values})
+    if missing:
+        raise GenerateError(f"template {UNITS[role]} has placeholders the generator does not fill: {missing}")
+    return _PLACEHOLDER.sub(lambda mt: values[mt.group(1)], text)
+
+
+def unit_name(p: Placement) -> str:
+    return "tether-start.service" if p.role == "control" else f"tether-{p.name}.service"
+
+
+# --------------------------------------------------------------------------- generate
+def generate(mission: str | Path, out: str | Path, hosts: str | Path | None = None, ca: str | Path | None = None,
+             force: bool = False) -> Deployment:
+    """Write every host's configuration for ``mission`` into ``out`` (see the module docstring).
+
+    ``mission``: a mission file or a shipped mission's name. ``hosts``: a hosts file (``None``:
+    placeholder host names, client network). ``ca``: a directory with an existing ``ca.crt`` and
+    ``ca.key`` to sign with (certificate rotation); ``None`` creates a new CA in ``out/ca``.
+    ``force``: write into a non-empty ``out`` (files are overwritten, none is deleted; a CA already
+    in ``out/ca`` is never replaced: pass it as ``ca``).
+
+    Raises :class:`~tether.mission.MissionError`, :class:`~deploy.hosts.HostsError`,
+    :class:`~deploy.pki.PkiError` or :class:`GenerateError`, each naming the field or file at fault.
+    Blocks while openssl makes the keys (tens of milliseconds per process).
+    """
+    mission_path = catalog.resolve(str(mission))
+    m = ms.load(mission_path)
+    hosts_file = load(hosts) if hosts is not None else None
+    pl = plan(m, hosts_file, source=str(hosts) if hosts is not None else "<default hosts>")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise GenerateError(f"--out {out} is a file; give a directory")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise GenerateError(f"--out {out} is not empty; give a new directory, or --force to overwrite the files "
+                            "written there (with --ca to keep its CA)")
+    if ca is None and (out / "ca" / "ca.key").exists():
+        raise GenerateError(f"--out {out} already holds a CA ({out / 'ca'}); pass --ca {out / 'ca'} to sign with it "
+                            "(a new CA would orphan every certificate already on the hosts), or choose a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    authority = pki.load_ca(Path(ca)) if ca is not None else pki.make_ca(out / "ca", f"tether {pl.ns} CA",
+                                                                          pl.hosts.cert_days)
+    if ca is not None and Path(ca).resolve() != (out / "ca").resolve():
+        (out / "ca").mkdir(exist_ok=True)
+        shutil.copyfile(authority.cert, out / "ca" / "ca.crt")  # for reference; the key stays where it is
+
+    grants = acl.grants(m, pl.ns)
+    access = acl.access_control(grants, pl.ns)
+    (out / "acl.json5").write_text(_json5(
+        [f"access_control of deployment {pl.ns!r} (mission {m.name!r}), as every listener's profile holds it.",
+         "Identities are certificate CNs <process>.<ns>; see DEPLOY.md for what each may do."], access))
+
+    dep = Deployment(out, pl, authority)
+    mission_text = mission_path.read_bytes()
+    for host in pl.host_names:
+        hdir = dep.host_dir(host)
+        (hdir / "tls").mkdir(parents=True, exist_ok=True)
+        (hdir / "systemd").mkdir(exist_ok=True)
+        written = dep.files.setdefault(host, [])
+        shutil.copyfile(authority.cert, hdir / "tls" / "ca.crt")
+        written.append(hdir / "tls" / "ca.crt")
+        if host != "router":
+            (hdir / "mission.toml").write_bytes(mission_text)
+            written.append(hdir / "mission.toml")
+        for p in pl.on(host):
+            addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
+            cert, key = pki.issue(authority, hdir / "tls", p.name, p.common_name(pl.ns), addresses,
+                                  pl.hosts.cert_days)
+            conf = hdir / f"{p.name}.json5"
+            conf.write_text(_json5(
+                [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
+                 f"deployment {pl.ns!r}; written by tether deploy-gen.",
+                 f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
+                 + ("" if p.mode == "router" else f", connects to the router at {pl.router.dial}")],
+                profile(p, pl, access)))
+            svc = hdir / "systemd" / unit_name(p)
+            svc.write_text(unit(p.role, {
+                "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
+                "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
+                "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
+            }))
+            written += [cert, key, conf, svc]
+    (out / "DEPLOY.md").write_text(guide(dep, m, grants))
+    return dep
+
+
+def _bind_of(p: Placement) -> str | None:
+    if p.listen is None:
+        return None
+    host = p.listen.removeprefix("tls/").rsplit(":", 1)[0].strip("[]")
+    return None if host in ("0.0.0.0", "::") else host  # a wildcard bind names no host
+
+
+def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
+    """The generated DEPLOY.md: hosts, files, commands, and what the access control allows."""
+    pl = dep.plan
+    lines = [f"# Deployment of mission `{m.name}` (namespace `{pl.ns}`)", "",
+             f"Written by `tether deploy-gen`. Network: **{pl.hosts.network}**; every link is TLS 1.3 with client "
+             f"certificates (mTLS) signed by `ca/ca.crt`; certificates expire on "
+             f"{pki.expiry(dep.host_dir('router') / 'tls' / 'router.crt')}. "
+             "Keep `ca/ca.key` offline: it is not needed on any host. The guide is `docs/deploy.md`.", "",
+             "| host dir | address | processes | listens on | services |", "|---|---|---|---|---|"]
+    for host in pl.host_names:
+        ps = pl.on(host)
+        listens = ", ".join(p.listen for p in ps if p.listen) or "–"
+        lines.append(f"| `hosts/{host}/` → `{pl.config_dir(host)}` | {ps[0].address} | "
+                     f"{', '.join(p.name for p in ps)} | {listens} | {', '.join(unit_name(p) for p in ps)} |")
+    lines += ["", "## Install", "",
+              "On each host: copy `hosts/<host>/` to the directory above (owned by root, readable by user "
+              f"`{pl.hosts.user}`; the `*.key` files mode 0600 and owned by `{pl.hosts.user}`), install tether "
+              f"so that `{pl.hosts.tether}` and `{pl.hosts.python}` exist, then",
+              "", "```sh", f"sudo cp {pl.config_dir('<host>')}/systemd/*.service /etc/systemd/system/",
+              "sudo systemctl daemon-reload", "```", "", "## Run", "",
+              "1. router host: `sudo systemctl enable --now tether-router`",
+              "2. every other host: `sudo systemctl start tether-<process>` for each of its services "
+              "(each waits for the start)",
+              f"3. leader host: `sudo systemctl start tether-start` (or `{pl.hosts.python} -m deploy.start --mission "
+              f"{pl.config_dir('leader')}/mission.toml --ns {pl.ns} --zenoh-config {pl.config_dir('leader')}/control-0.json5`): "
+              "waits for every process's liveliness token, then announces tick 0 three seconds ahead",
+              f"4. the recorder writes `{pl.hosts.recorder.out if pl.hosts.recorder else '/var/lib/tether/runs'}/run.npz` "
+              "on its host; every process exits 0 after the last tick", "",
+              "## What each identity may do (access control, default deny)", "",
+              acl.describe(grants), "",
+              "Every identity may also be told of other processes' subscriptions in the namespace (its "
+              "publishers need them to send) and of liveliness interest; nothing else (no queries, no deletes, "
+              "no other key) passes a listener.", ""]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- command line
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``deploy-gen`` options, for ``tether deploy-gen`` and ``python -m deploy.gen``."""
+    p.add_argument("mission", help="mission file, or the name of a shipped mission")
+    p.add_argument("--out", required=True, help="output directory (new, or use --force)")
+    p.add_argument("--hosts", default=None, help="hosts file (TOML, docs/deploy.md); default: placeholder "
+                                                 "host names tether-router, tether-agent-<i>, ... and a client star")
+    p.add_argument("--ca", default=None, help="directory with an existing ca.crt and ca.key to sign with "
+                                              "(certificate rotation); default: a new CA in OUT/ca")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out (overwrites, deletes nothing)")
+
+
+def run_args(args: argparse.Namespace) -> int:
+    """Run ``deploy-gen`` from parsed arguments; prints errors and returns the exit status
+    (0 written, 2 bad input: mission, hosts file, CA or output directory)."""
+    try:
+        dep = generate(args.mission, args.out, hosts=args.hosts, ca=args.ca, force=args.force)
+    except (ms.MissionError, HostsError, pki.PkiError, GenerateError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for host in dep.plan.host_names:
+        print(f"hosts/{host}/ -> {dep.plan.config_dir(host)} ({', '.join(p.name for p in dep.plan.on(host))})")
+    print(f"wrote {dep.out} (read {dep.out / 'DEPLOY.md'})")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="tether deploy-gen", description=__doc__.splitlines()[0])
+    add_arguments(p)
+    return run_args(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,378 @@
+"""The hosts file of a companion-computer deployment: where every process of a mission runs.
+
+A strict, versioned TOML schema (msgspec, unknown fields are errors), checked against the mission
+by :func:`plan`, which returns one :class:`Placement` per process. Every error names the field by
+its path in the file (``agents[1].address``) and says how to fix it, as the mission file does.
+
+Without a hosts file (:func:`plan` with ``hosts=None``) every host gets a placeholder name
+(``tether-router``, ``tether-leader``, ``tether-recorder``, ``tether-agent-<i>``) that the site's
+DNS or ``/etc/hosts`` must resolve, and the network is a star of clients around the router.
+
+The format, field by field, is in ``docs/deploy.md``.
+"""
+
+from __future__ import annotations
+
+import difflib
+import ipaddress
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+
+from deploy import acl
+from tether import mission as ms
+from tether import wire
+
+HOSTS_VERSION = 1
+"""The hosts-file version this release reads."""
+
+Network = Literal["client", "peer"]
+
+
+class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+    pass
+
+
+class Host(_Strict):
+    """A machine that runs one or more of the mission's processes."""
+
+    address: str
+    """IP address or DNS name the other hosts dial (and that goes into the host's certificates)."""
+    port: int | None = None
+    """TLS port this host's listener uses (the router; every node in ``peer`` networks). Default: the
+    file's ``port`` (an agent host's plant listens on ``port + 1``)."""
+    bind: str | None = None
+    """Local address to listen on; default ``address`` (so that the advertised locator matches the
+    certificate's name)."""
+
+
+class AgentHost(Host, kw_only=True):
+    """The companion computer of one vehicle: agent ``id`` and its plant."""
+
+    id: int
+
+
+class RecorderHost(Host, kw_only=True):
+    out: str = "/var/lib/tether/runs"
+    """Directory the recorder writes ``run.npz`` into, on that host."""
+
+
+class HostsFile(_Strict):
+    version: int
+    network: Network = "client"
+    """``client``: every process is a client of the router (a star; only the router listens).
+    ``peer``: every process is a peer that listens on its host and also connects to the router,
+    which relays where two peers have no direct link (multi-hop)."""
+    ns: str | None = None
+    """Key namespace (``tether/<ns>/...``); default: the mission's name."""
+    port: int = 7447
+    """Default TLS port of every listener."""
+    lease: float = 2.0
+    """Zenoh link lease [s]: a frozen or partitioned process is seen gone after it."""
+    connect_timeout: float = 30.0
+    """How long a client retries its connection to the router at start [s] before failing (its
+    service then restarts it); a peer opens at once and keeps dialling in the background."""
+    cert_days: int = 365
+    """Validity of the certificates issued [days]."""
+    config_dir: str = "/etc/tether"
+    """Where each host's files live on that host; ``{host}`` is replaced by the host's name (useful
+    to try a whole deployment on one machine)."""
+    tether: str = "/opt/tether/venv/bin/tether"
+    """The ``tether`` command on the hosts."""
+    python: str = "/opt/tether/venv/bin/python"
+    """The Python that has tether installed on the hosts (runs the router and the start command)."""
+    user: str = "tether"
+    """Unix user the services run as."""
+    router: Host | None = None
+    leader: Host | None = None
+    """The ground station: the virtual leader and the operator's start command."""
+    recorder: RecorderHost | None = None
+    agents: list[AgentHost] | None = None
+    """One entry per agent of the mission (all of them), or none for placeholder names."""
+
+
+class HostsError(ValueError):
+    """A hosts file is not valid for the mission. ``problems`` holds ``(field, message-with-fix)`` pairs."""
+
+    def __init__(self, source: str, problems: list[tuple[str, str]]):
+        self.source = source
+        self.problems = problems
+        lines = [f"{source}: {len(problems)} problem(s)"]
+        lines += [f"  {field}: {msg}" for field, msg in problems]
+        super().__init__("\n".join(lines))
+
+
+# --------------------------------------------------------------------------- placements
+Role = Literal["router", "leader", "control", "recorder", "agent", "plant"]
+
+
+@dataclass(frozen=True)
+class Placement:
+    """One process of the deployment and where it runs."""
+
+    role: Role
+    node_id: int
+    host: str
+    """Name of the host directory (``router``, ``leader``, ``recorder``, ``agent-<i>``)."""
+    address: str
+    listen: str | None
+    """``tls/<bind>:<port>`` when this process listens, else ``None``."""
+    dial: str | None
+    """``tls/<address>:<port>``, the endpoint other hosts connect to when this process listens."""
+    mode: Literal["router", "peer", "client"]
+
+    @property
+    def name(self) -> str:
+        """File stem of this process's files: ``router``, ``agent-3``, ``control-0``..."""
+        return "router" if self.role == "router" else f"{self.role}-{self.node_id}"
+
+    def common_name(self, ns: str) -> str:
+        """The certificate's subject CN, which the access-control rules name: ``agent-3.<ns>``."""
+        return acl.common_name(self.name, ns)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything the generator needs besides the mission: the hosts file's values and the placements."""
+
+    ns: str
+    hosts: HostsFile
+    placements: tuple[Placement, ...]
+
+    @property
+    def router(self) -> Placement:
+        return next(p for p in self.placements if p.role == "router")
+
+    def on(self, host: str) -> list[Placement]:
+        return [p for p in self.placements if p.host == host]
+
+    @property
+    def host_names(self) -> list[str]:
+        return list(dict.fromkeys(p.host for p in self.placements))
+
+    def config_dir(self, host: str) -> str:
+        return self.hosts.config_dir.replace("{host}", host)
+
+
+# --------------------------------------------------------------------------- loading
+def loads(text: str | bytes, source: str = "<hosts>") -> HostsFile:
+    """Decode a hosts file from TOML text (types only; :func:`plan` checks it against a mission)."""
+    try:
+        raw = tomllib.loads(text.decode() if isinstance(text, bytes) else text)
+    except tomllib.TOMLDecodeError as exc:
+        raise HostsError(source, [("<file>", f"is not valid TOML: {exc}; fix the syntax there")]) from None
+    except UnicodeDecodeError:
+        raise HostsError(source, [("<file>", "is not UTF-8 text; save it as UTF-8")]) from None
+    version = raw.get("version")
+    if "version" not in raw:
+        raise HostsError(source, [("version", f"is missing; add `version = {HOSTS_VERSION}` as the first line")])
+    if type(version) is not int or version != HOSTS_VERSION:
+        raise HostsError(source, [("version", f"is {version!r} but this release reads version {HOSTS_VERSION}; "
+                                              f"set `version = {HOSTS_VERSION}` after checking docs/deploy.md")])
+    try:
+        return msgspec.convert(raw, type=HostsFile)
+    except msgspec.ValidationError as exc:
+        raise HostsError(source, [_field_of(str(exc))]) from None
+
+
+def load(path: str | Path) -> HostsFile:
+    path = Path(path)
+    try:
+        text = path.read_bytes()
+    except OSError as exc:
+        raise HostsError(str(path), [("<file>", f"cannot be read ({exc.strerror}); check the path")]) from None
+    return loads(text, source=str(path))
+
+
+_FIELDS = {
+    "": [f.encode_name for f in msgspec.structs.fields(HostsFile)],
+    "router": [f.encode_name for f in msgspec.structs.fields(Host)],
+    "leader": [f.encode_name for f in msgspec.structs.fields(Host)],
+    "recorder": [f.encode_name for f in msgspec.structs.fields(RecorderHost)],
+    "agents": [f.encode_name for f in msgspec.structs.fields(AgentHost)],
+}
+
+
+_NOUNS = {"int": "an integer", "float": "a number", "str": "a string", "bool": "a boolean", "array": "an array",
+          "object": "a table"}
+
+
+def _field_of(msg: str) -> tuple[str, str]:
+    """``(field path, message-with-fix)`` from a msgspec validation message."""
+    text, where = msg, ""
+    if " - at `$" in msg:
+        text, _, at = msg.partition(" - at `$")
+        where = at.rstrip("`").lstrip(".")
+    table = re.sub(r"\[\d+\]", "", where).split(".")[0] if where else ""
+    if text.startswith("Object contains unknown field") and text.count("`") >= 2:
+        name = text.split("`")[1]
+        known = _FIELDS.get(table, [])
+        close = difflib.get_close_matches(name, known, n=1)
+        fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
+        field = f"{where}.{name}" if where else name
+        return field, f"is not a known field; {fix} (the fields here are {', '.join(known)})"
+    if text.startswith("Object missing required field") and text.count("`") >= 2:
+        name = text.split("`")[1]
+        field = f"{where}.{name}" if where else name
+        example = {"address": '"192.168.1.11"', "id": "1"}.get(name, "...")
+        return field, f"is required; add `{name} = {example}` (see docs/deploy.md)"
+    if text.startswith("Expected `") and ", got `" in text:
+        want, got = text.split("`")[1].split(" | ")[0], text.split("`")[3]
+        example = {"int": "7447", "float": "2.0", "str": '"192.168.1.11"'}.get(want, "...")
+        quotes = " (no quotes)" if got == "str" and want in ("int", "float") else ""
+        name = where.split(".")[-1] if where else "<field>"
+        return where or "<file>", (f"is {_NOUNS.get(got, got)} but must be {_NOUNS.get(want, want)}; "
+                                   f"write e.g. `{name} = {example}`{quotes}")
+    if text.startswith("Invalid enum value") and where == "network":
+        return "network", f"{text[:1].lower() + text[1:]}; use \"client\" or \"peer\""
+    return where or "<file>", f"{text[:1].lower() + text[1:]}; see docs/deploy.md for this field's type"
+
+
+# --------------------------------------------------------------------------- checks
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def is_ip(address: str) -> bool:
+    try:
+        ipaddress.ip_address(address)
+    except ValueError:
+        return False
+    return True
+
+
+def _address_problem(value: object) -> str | None:
+    if not isinstance(value, str) or not value:
+        return f"is {value!r}; give an IP address or a DNS name, e.g. \"192.168.1.11\""
+    if is_ip(value) or _HOSTNAME.match(value):
+        return None
+    return (f"is {value!r}, neither an IP address nor a DNS name; write e.g. \"192.168.1.11\" or "
+            "\"uav1.local\" (no scheme, no port: the port has its own field)")
+
+
+def _endpoint(address: str, port: int) -> str:
+    host = f"[{address}]" if is_ip(address) and ":" in address else address
+    return f"tls/{host}:{port}"
+
+
+def _default_hosts(m: ms.Mission) -> HostsFile:
+    return HostsFile(
+        version=HOSTS_VERSION,
+        router=Host(address="tether-router"),
+        leader=Host(address="tether-leader"),
+        recorder=RecorderHost(address="tether-recorder"),
+        agents=[AgentHost(id=a, address=f"tether-agent-{a}") for a in m.agent_ids],
+    )
+
+
+def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>") -> Plan:
+    """Check ``hosts`` against mission ``m`` and place every process; raises :class:`HostsError`
+    listing every problem found. ``hosts=None`` uses placeholder host names and a star network."""
+    h = hosts if hosts is not None else _default_hosts(m)
+    out: list[tuple[str, str]] = []
+    if m.payload is not None:
+        raise HostsError(source, [("<mission> payload", "is set: a payload world simulates every vehicle and the "
+                                                        "cables in one process, which cannot be split over companion "
+                                                        "computers; deploy the mission without [payload] (the real "
+                                                        "vehicles carry the real payload)")])
+    ns = h.ns if h.ns is not None else m.name
+    try:
+        wire.Keys(ns)
+    except ValueError:
+        field = "ns" if h.ns is not None else "<mission name>"
+        out.append((field, f"is {ns!r}, not usable as a key chunk (no '/', '*', '$', '#', '?', '@' or spaces); "
+                           "set `ns = \"...\"` in the hosts file to a plain name"))
+    if not 1 <= h.port <= 65535:
+        out.append(("port", f"is {h.port}; a TLS port is 1 to 65535 (7447 is Zenoh's)"))
+    if not h.lease > 0:
+        out.append(("lease", f"is {h.lease} s; the link lease must be > 0 s (1-2 s suits flight)"))
+    if not h.connect_timeout > 0:
+        out.append(("connect_timeout", f"is {h.connect_timeout} s; give seconds > 0, e.g. 30.0"))
+    if not h.cert_days >= 1:
+        out.append(("cert_days", f"is {h.cert_days}; certificates must be valid for >= 1 day"))
+    for name in ("config_dir", "tether", "python"):
+        value = getattr(h, name)
+        if not value.startswith("/"):
+            out.append((name, f"is {value!r}; give an absolute path on the hosts (systemd needs one)"))
+    if not re.match(r"^[a-z_][a-z0-9_-]*$", h.user):
+        out.append(("user", f"is {h.user!r}; give a Unix user name, e.g. \"tether\""))
+    if h.recorder is not None and not h.recorder.out.startswith("/"):
+        out.append(("recorder.out", f"is {h.recorder.out!r}; give an absolute path on the recorder's host"))
+
+    defaults = _default_hosts(m)
+    router = h.router or defaults.router
+    leader = h.leader or defaults.leader
+    recorder = h.recorder or defaults.recorder
+    agents = h.agents if h.agents is not None else defaults.agents
+    assert router is not None and leader is not None and recorder is not None and agents is not None
+
+    listed: dict[int, int] = {}
+    for k, a in enumerate(agents):
+        if a.id in listed:
+            out.append((f"agents[{k}].id", f"is {a.id}, already listed as agents[{listed[a.id]}]; "
+                                           "list each agent once"))
+        elif a.id not in m.agent_ids:
+            out.append((f"agents[{k}].id", f"is {a.id}, not an agent of mission {m.name!r}; "
+                                           f"use one of {m.agent_ids}"))
+        listed.setdefault(a.id, k)
+    missing = [a for a in m.agent_ids if a not in listed]
+    if missing:
+        out.append(("agents", f"lacks agent{'s' if len(missing) > 1 else ''} {', '.join(map(str, missing))} of "
+                              f"mission {m.name!r}; add one [[agents]] table per agent, e.g. "
+                              f"`[[agents]] id = {missing[0]}, address = \"...\"`"))
+
+    tables: list[tuple[str, Host]] = [("router", router), ("leader", leader), ("recorder", recorder)]
+    tables += [(f"agents[{k}]", a) for k, a in enumerate(agents)]
+    for where, host in tables:
+        if (problem := _address_problem(host.address)) is not None:
+            out.append((f"{where}.address", problem))
+        if host.bind is not None and (problem := _address_problem(host.bind)) is not None:
+            out.append((f"{where}.bind", problem))
+        if host.port is not None and not 1 <= host.port <= (65534 if where.startswith("agents") else 65535):
+            out.append((f"{where}.port", f"is {host.port}; a TLS port is 1 to 65535 (an agent host's plant "
+                                         "takes port + 1)"))
+    if out:
+        raise HostsError(source, out)
+
+    peer = h.network == "peer"
+    placements: list[Placement] = []
+
+    def place(role: Role, nid: int, host: str, where: Host, port_offset: int, listens: bool,
+              mode: Literal["router", "peer", "client"]) -> None:
+        port = (where.port if where.port is not None else h.port) + port_offset
+        listen = _endpoint(where.bind or where.address, port) if listens else None
+        dial = _endpoint(where.address, port) if listens else None
+        placements.append(Placement(role, nid, host, where.address, listen, dial, mode))
+
+    place("router", 0, "router", router, 0, True, "router")
+    node_mode: Literal["peer", "client"] = "peer" if peer else "client"
+    place("leader", m.leader.id, "leader", leader, 0, peer, node_mode)
+    place("control", 0, "leader", leader, 0, False, "client")
+    place("recorder", 0, "recorder", recorder, 0, peer, node_mode)
+    by_id = {a.id: a for a in agents}
+    for aid in m.agent_ids:
+        place("agent", aid, f"agent-{aid}", by_id[aid], 0, peer, node_mode)
+        place("plant", aid, f"agent-{aid}", by_id[aid], 1, peer, node_mode)
+
+    # two listeners on one socket address would fail at start on the host: say so now
+    seen: dict[str, str] = {}
+    for p in placements:
+        if p.listen is None:
+            continue
+        if p.listen in seen:
+            out.append((_where(p, agents), f"listens on {p.listen} like {seen[p.listen]}; give one of them "
+                                           "another port or address"))
+        seen.setdefault(p.listen, p.name)
+    if out:
+        raise HostsError(source, out)
+    return Plan(ns=ns, hosts=h, placements=tuple(placements))
+
+
+def _where(p: Placement, agents: list[AgentHost]) -> str:
+    if p.role in ("agent", "plant"):
+        k = next(k for k, a in enumerate(agents) if a.id == p.node_id)
+        return f"agents[{k}].port"
+    return f"{p.host}.port"

@@ -1,0 +1,124 @@
+"""The deployment's certificates: one CA, and one key and certificate per process (mTLS).
+
+Made with the ``openssl`` command (OpenSSL >= 1.1.1; nothing to install in Python). Keys are
+ECDSA P-256 in PKCS#8 PEM, which Zenoh's TLS link (rustls) reads; certificates are X.509 v3:
+
+* the CA: ``basicConstraints = critical, CA:TRUE``, ``keyUsage = keyCertSign, cRLSign``;
+* a process: ``CN = <process>.<ns>`` (what the access-control rules name), ``CA:FALSE``,
+  ``extendedKeyUsage = serverAuth, clientAuth`` (one certificate to listen and to connect), and
+  subject alternative names for its host's address, which a connecting side checks against the
+  endpoint it dialled (``verify_name_on_connect``).
+
+Private keys are written with mode 0600. Blocks for the ``openssl`` runs (milliseconds each).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from deploy.hosts import is_ip
+
+
+class PkiError(RuntimeError):
+    """openssl is missing or failed; the message says which command and why."""
+
+
+@dataclass(frozen=True)
+class Ca:
+    cert: Path
+    key: Path
+
+
+def openssl() -> str:
+    """Path of the ``openssl`` command; :class:`PkiError` when there is none."""
+    path = shutil.which("openssl")
+    if path is None:
+        raise PkiError("the `openssl` command is not on PATH; install OpenSSL (e.g. `apt-get install openssl`) "
+                       "or pass --ca with an existing CA")
+    return path
+
+
+def _run(args: list[str], what: str) -> str:
+    try:
+        done = subprocess.run([openssl(), *args], capture_output=True, text=True, check=False, timeout=60)
+    except subprocess.TimeoutExpired:
+        raise PkiError(f"openssl timed out while {what}") from None
+    if done.returncode != 0:
+        raise PkiError(f"openssl failed while {what}: {done.stderr.strip() or done.stdout.strip()}")
+    return done.stdout
+
+
+def _private(path: Path) -> None:
+    os.chmod(path, 0o600)
+
+
+def make_ca(directory: Path, cn: str, days: int) -> Ca:
+    """Create a CA (``ca.crt``, ``ca.key``) in ``directory``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    ca = Ca(directory / "ca.crt", directory / "ca.key")
+    _run(["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+          "-keyout", str(ca.key), "-out", str(ca.cert), "-days", str(days), "-subj", f"/CN={cn}",
+          "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign",
+          "-addext", "subjectKeyIdentifier=hash"], f"creating the CA in {directory}")
+    _private(ca.key)
+    return ca
+
+
+def load_ca(directory: Path) -> Ca:
+    """An existing CA in ``directory`` (``ca.crt`` and ``ca.key``), checked to be a CA whose key
+    matches its certificate; :class:`PkiError` naming the problem otherwise."""
+    ca = Ca(directory / "ca.crt", directory / "ca.key")
+    for f in (ca.cert, ca.key):
+        if not f.is_file():
+            raise PkiError(f"--ca {directory}: {f.name} is missing; give the directory holding ca.crt and ca.key "
+                           "(the `ca/` directory of an earlier `tether deploy-gen` output)")
+    text = _run(["x509", "-in", str(ca.cert), "-noout", "-text"], f"reading {ca.cert}")
+    if "CA:TRUE" not in text:
+        raise PkiError(f"--ca {directory}: {ca.cert} is not a CA certificate (no CA:TRUE); give the CA's own files")
+    cert_pub = _run(["x509", "-in", str(ca.cert), "-noout", "-pubkey"], f"reading {ca.cert}")
+    key_pub = _run(["pkey", "-in", str(ca.key), "-pubout"], f"reading {ca.key}")
+    if cert_pub.strip() != key_pub.strip():
+        raise PkiError(f"--ca {directory}: ca.key is not the key of ca.crt; give the matching pair")
+    return ca
+
+
+def issue(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], days: int) -> tuple[Path, Path]:
+    """A key and a certificate for ``cn`` signed by ``ca``: ``<stem>.key`` and ``<stem>.crt`` in
+    ``directory``. ``addresses`` (IPs or DNS names) become the subject alternative names."""
+    directory.mkdir(parents=True, exist_ok=True)
+    key, cert = directory / f"{stem}.key", directory / f"{stem}.crt"
+    sans = ",".join(dict.fromkeys(f"IP:{a}" if is_ip(a) else f"DNS:{a}" for a in addresses))
+    ext = "\n".join([
+        "basicConstraints=critical,CA:FALSE",
+        "keyUsage=critical,digitalSignature",
+        "extendedKeyUsage=serverAuth,clientAuth",
+        "subjectKeyIdentifier=hash",
+        "authorityKeyIdentifier=keyid",
+        *([f"subjectAltName={sans}"] if sans else []),
+    ]) + "\n"
+    with tempfile.TemporaryDirectory() as tmp:
+        csr, extfile = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
+        extfile.write_text(ext)
+        _run(["req", "-new", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+              "-keyout", str(key), "-out", str(csr), "-subj", f"/CN={cn}"], f"making the key of {cn}")
+        _private(key)
+        _run(["x509", "-req", "-in", str(csr), "-CA", str(ca.cert), "-CAkey", str(ca.key),
+              "-set_serial", "0x" + secrets.token_hex(16), "-days", str(days), "-out", str(cert),
+              "-extfile", str(extfile)], f"signing the certificate of {cn}")
+    return cert, key
+
+
+def verify(ca_cert: Path, cert: Path) -> None:
+    """Check that ``cert`` chains to ``ca_cert`` (``openssl verify``); :class:`PkiError` otherwise."""
+    _run(["verify", "-CAfile", str(ca_cert), str(cert)], f"verifying {cert} against {ca_cert}")
+
+
+def expiry(cert: Path) -> str:
+    """The certificate's ``notAfter`` date as openssl prints it."""
+    return _run(["x509", "-in", str(cert), "-noout", "-enddate"], f"reading {cert}").strip().partition("=")[2]
