@@ -1,0 +1,106 @@
+"""Start software Crazyflies: ``python -m plant.cfsim --count 4 --base-port 19850``.
+
+Vehicle i listens on ``udp://HOST:(base-port + i)`` (cflib's UDP scan looks at 19850..19859) and
+starts at ``--p0`` number i, or, without ``--p0``, on the floor at ``(i * spacing, 0, 0)``. Every
+vehicle runs in this one process; for one process per vehicle, run the command once per vehicle
+with ``--count 1``, a different ``--base-port`` and ``--instance`` each.
+
+Once every port is bound, one line per vehicle (``cfsim <i> udp://HOST:PORT``) and then
+``cfsim ready`` are printed on stdout. SIGINT or SIGTERM stops it (exit 0); a port that cannot be
+bound ends it with exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import sys
+
+from plant.cfsim import server
+from plant.cfsim.firmware import FirmwareConfig
+
+log = logging.getLogger("tether.cfsim")
+
+
+def _p0(text: str) -> tuple[float, float, float]:
+    try:
+        parts = tuple(float(c) for c in text.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 3 or not all(math.isfinite(c) for c in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a position as X,Y,Z in metres, e.g. 0,0.5,0")
+    return parts  # type: ignore[return-value]
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m plant.cfsim", description=__doc__.split("\n")[0])
+    ap.add_argument("--count", type=int, default=1, help="number of vehicles (default 1)")
+    ap.add_argument("--base-port", type=int, default=19850, help="UDP port of vehicle 0 (default 19850)")
+    ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    ap.add_argument("--instance", type=int, default=0,
+                    help="index of the first vehicle, reported in param cfsim.instance (default 0)")
+    ap.add_argument("--p0", type=_p0, action="append", metavar="X,Y,Z",
+                    help="start position [m] of the next vehicle; give it once per vehicle")
+    ap.add_argument("--spacing", type=float, default=0.5,
+                    help="without --p0: vehicle i starts at (i * spacing, 0, 0) [m] (default 0.5)")
+    ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    args = ap.parse_args(argv)
+    if args.count < 1:
+        ap.error(f"--count {args.count}: give at least 1")
+    if not 1 <= args.base_port <= 65536 - args.count:
+        ap.error(f"--base-port {args.base_port}: ports {args.base_port}..{args.base_port + args.count - 1} "
+                 "must lie in 1..65535")
+    if args.p0 is not None and len(args.p0) != args.count:
+        ap.error(f"--p0 given {len(args.p0)} times for --count {args.count}: give it once per vehicle or not at all")
+    if args.p0 is None and not math.isfinite(args.spacing):
+        ap.error("--spacing must be a finite number of metres")
+    return args
+
+
+def config(args: argparse.Namespace) -> server.SimConfig:
+    starts = args.p0 or [(i * args.spacing, 0.0, 0.0) for i in range(args.count)]
+    return server.SimConfig(
+        vehicles=tuple(
+            server.VehicleConfig(port=args.base_port + i, p0=p0,
+                                 firmware=FirmwareConfig(instance=args.instance + i))
+            for i, p0 in enumerate(starts)
+        ),
+        host=args.host,
+    )
+
+
+def _announce(uris: list[tuple[int, str]]) -> None:
+    for i, uri in uris:
+        print(f"cfsim {i} {uri}")
+    print("cfsim ready", flush=True)
+
+
+async def _main(cfg: server.SimConfig) -> None:
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, task.cancel)
+    with contextlib.suppress(asyncio.CancelledError):
+        await server.run(cfg, on_ready=_announce)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s cfsim %(levelname)s %(message)s",
+                        stream=sys.stderr)
+    cfg = config(args)
+    try:
+        asyncio.run(_main(cfg))
+    except OSError as e:
+        log.error("cannot serve %s:%d..%d: %s", cfg.host, cfg.vehicles[0].port, cfg.vehicles[-1].port, e)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

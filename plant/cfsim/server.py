@@ -1,0 +1,150 @@
+"""The software Crazyflies' process adapter: one UDP endpoint per vehicle, one 100 Hz ticker for all.
+
+Each vehicle (:class:`plant.cfsim.firmware.Firmware` around a :class:`plant.quadrotor.Quadrotor`)
+listens on its own UDP port and answers cflib's ``udp://HOST:PORT`` link: every datagram is one
+CRTP packet, answered at once to the address it came from. Log packets go to the vehicle's
+*client*, the address that sent it the last packet, while that client has been heard from within
+``client_timeout`` (cflib pings ten times a second while it is connected), so that a vanished
+client does not keep a stream of log packets going.
+
+Simulated time follows the monotonic clock: one task wakes every 10 ms (a
+:class:`tether.clock.RealtimeClock`) and advances every vehicle by one control period, its 500 Hz
+attitude loop and 1 kHz rigid-body steps included. A wake-up that comes late runs the ticks it
+missed back to back; if it falls more than ``max_lag`` behind (a suspended or starved process), the
+missing time is skipped instead and counted in :attr:`Ticker.slips`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plant.cfsim import crtp
+from plant.cfsim.firmware import PERIOD, Firmware, FirmwareConfig
+from plant.quadrotor import Quadrotor, QuadrotorParams
+from tether.clock import RealtimeClock
+
+log = logging.getLogger("tether.cfsim")
+
+Address = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """One simulated vehicle: its UDP port, where it starts and its firmware settings."""
+
+    port: int
+    p0: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Start position [m; world frame, z up]; ``z = 0`` is the floor."""
+    yaw0: float = 0.0
+    """Start yaw [rad]."""
+    firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    vehicles: tuple[VehicleConfig, ...]
+    host: str = "127.0.0.1"
+    """Address every endpoint binds to."""
+    quadrotor: QuadrotorParams = field(default_factory=QuadrotorParams)
+    client_timeout: float = 2.0
+    """Log packets stop [s] after the client was last heard from."""
+    max_lag: float = 0.25
+    """Largest backlog [s] the ticker catches up on; beyond it simulated time skips."""
+
+
+class Endpoint(asyncio.DatagramProtocol):
+    """One vehicle's UDP endpoint. Datagrams are handled in the event loop's thread, in order."""
+
+    def __init__(self, fw: Firmware, client_timeout: float, monotonic: Callable[[], float]) -> None:
+        self.fw = fw
+        self.client: Address | None = None
+        self.transport: asyncio.DatagramTransport | None = None
+        self._client_timeout = client_timeout
+        self._monotonic = monotonic
+        self._last_heard = -float("inf")
+        self.received = 0
+        self.sent = 0
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]  # a datagram transport
+
+    def datagram_received(self, data: bytes, addr: Address) -> None:
+        self.received += 1
+        try:
+            pkt = crtp.decode(data)
+        except crtp.CrtpError:
+            self.fw.dropped += 1
+            return
+        self.client, self._last_heard = addr, self._monotonic()
+        for reply in self.fw.handle(pkt):
+            self._send(reply, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        log.debug("udp error on %s: %s", self.fw.cfg.instance, exc)
+
+    def publish(self, packets: list[crtp.Packet]) -> None:
+        """Send ``packets`` to the client, if it is still there."""
+        if not packets or self.client is None:
+            return
+        if self._monotonic() - self._last_heard > self._client_timeout:
+            return
+        for pk in packets:
+            self._send(pk, self.client)
+
+    def _send(self, pkt: crtp.Packet, addr: Address) -> None:
+        assert self.transport is not None
+        self.transport.sendto(crtp.encode(pkt), addr)
+        self.sent += 1
+
+
+@dataclass
+class Ticker:
+    """Advances every vehicle one control period per tick of a real-time clock."""
+
+    endpoints: list[Endpoint]
+    clock: RealtimeClock
+    max_lag: float
+    k: int = 0
+    slips: int = 0
+    """How often simulated time skipped ahead because the process fell too far behind."""
+
+    async def run(self) -> None:
+        """Tick forever (until cancelled)."""
+        while True:
+            self.k += 1
+            late = await self.clock.wait_for(self.k)
+            if late > self.max_lag:
+                self.clock.start += late
+                self.slips += 1
+                log.warning("fell %.3f s behind real time; skipped ahead", late)
+            for ep in self.endpoints:
+                ep.publish(ep.fw.tick())
+
+
+async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
+              on_ready: Callable[[list[tuple[int, str]]], None] | None = None) -> None:
+    """Serve every vehicle of ``cfg`` until cancelled. ``on_ready`` is called once every endpoint is
+    bound, with ``(instance, uri)`` pairs. Raises ``OSError`` if a port cannot be bound (nothing is
+    left open then)."""
+    loop = asyncio.get_running_loop()
+    endpoints: list[Endpoint] = []
+    try:
+        for v in cfg.vehicles:
+            quad = Quadrotor(cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
+            ep = Endpoint(Firmware(quad, v.firmware), cfg.client_timeout, monotonic)
+            await loop.create_datagram_endpoint(lambda ep=ep: ep, local_addr=(cfg.host, v.port))
+            endpoints.append(ep)
+        if on_ready is not None:
+            on_ready([(v.firmware.instance, f"udp://{cfg.host}:{v.port}") for v in cfg.vehicles])
+        ticker = Ticker(endpoints, RealtimeClock(PERIOD, monotonic(), monotonic), cfg.max_lag)
+        await ticker.run()
+    finally:
+        for ep in endpoints:
+            if ep.transport is not None:
+                ep.transport.close()
