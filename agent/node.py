@@ -60,12 +60,23 @@ async def run(node: Node) -> None:
     kp, kv = law.params.kp0.copy(), law.params.kv0.copy()
     used = [0] * len(nbrs)
     nb_p, nb_v, nb_a = (np.zeros((len(nbrs), d)) for _ in range(3))
+    holding = False
     for k in range(m.steps + 1):
         await node.tick(k)
         t = k * m.dt
         own, *heard = await node.aligned([plant, *nbrs], k)
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
+        if not lockstep and plant.silent_at(k):
+            # the vehicle is gone (its plant withdrew or died): hold, i.e. command nothing; its
+            # neighbours stop hearing this agent and count it out after max_age
+            if not holding:
+                log.warning("plant %d is silent at t = %.2f s: holding (no commands)", aid, t)
+            holding = True
+            continue
+        if holding:
+            log.warning("plant %d is back at t = %.2f s", aid, t)
+            holding = False
         p, v = np.array(own.p), np.array(own.vel)
         a = np.array(own.a if feed == "measured" else last_u)  # what this agent shares
         ages = []

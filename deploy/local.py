@@ -288,6 +288,10 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
 
     m = load_mission(mission_path, opts.duration)
     problems = check_vehicle_options(m, opts)
+    if opts.clock == "lockstep":
+        problems += [(f"agents[{k}].plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
+                                            "run with --clock realtime")
+                     for k, a in enumerate(m.agents) if isinstance(a.plant, ms.CrazyfliePlant)]
     if problems:
         raise ms.MissionError(f"tether run {mission_path}", problems)
     keys = wire.Keys(opts.ns or m.name)

@@ -203,14 +203,23 @@ class PayloadPlant:
         pass
 
 
-def build(m: ms.Mission, ids: list[int] | None = None) -> list[Plant]:
+def build(m: ms.Mission, ids: list[int] | None = None, live: bool = False) -> list[Plant]:
     """The plants hosting agents ``ids`` (all by default): one :class:`PayloadPlant` for a payload
-    mission (which must host all of them), else one plant per agent."""
+    mission (which must host all of them), else one plant per agent. ``live``: the caller runs in
+    real time (a plant process), so real vehicles (``crazyflie``) may be connected."""
     ids = m.agent_ids if ids is None else list(ids)
     if m.payload is not None:
         return [PayloadPlant(m, ids)]
     out: list[Plant] = []
     for aid in ids:
         spec = m.agent(aid).plant
+        if isinstance(spec, ms.CrazyfliePlant):
+            if not live:
+                raise ValueError(f"agent {aid}'s plant is a crazyflie, a real vehicle: it flies in real time "
+                                 "(tether run --clock realtime), not in a simulator")
+            from plant.crazyflie import CrazyfliePlant
+
+            out.append(CrazyfliePlant(m, [aid]))
+            continue
         out.append(DoubleIntegratorPlant(m, [aid]) if isinstance(spec, ms.DoubleIntegrator) else VehiclePlant(m, [aid]))
     return out

@@ -15,8 +15,10 @@ import logging
 import numpy as np
 
 from plant import base
+from plant.crazyflie import LinkLost
 from tether import transport as tp
 from tether import wire
+from tether import mission as ms
 from tether.node import Node
 
 log = logging.getLogger("tether")
@@ -34,7 +36,10 @@ async def run_world(node: Node) -> None:
 
 async def _host(node: Node, ids: list[int], world: bool) -> None:
     m, keys = node.mission, node.keys
-    (plant,) = base.build(m, ids)
+    live = node.args.clock == "realtime"
+    if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
+        raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
+    (plant,) = base.build(m, ids, live=live)
     h = m.dt
     cmds = []
     for aid in ids:
@@ -50,14 +55,22 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     try:
         for k in range(m.steps + 1):
             await node.tick(k)
-            if k > 0:
-                u = []
-                for src in cmds:
-                    msg = await node.sample(src, k - 1)
-                    u.append(np.array(msg.u) if msg is not None else zero)
-                plant.step(np.array(u))
+            try:
+                if k > 0:
+                    u = []
+                    for src in cmds:
+                        msg = await node.sample(src, k - 1)
+                        u.append(np.array(msg.u) if msg is not None else zero)
+                    plant.step(np.array(u))
+                s = plant.state()
+            except LinkLost as exc:
+                # say so (the agent sees its plant's token go and holds), keep out of the swarm's
+                # way until the mission's end, then fail
+                log.error("%s: withdrawing from the swarm", exc)
+                node.withdraw()
+                await node.tick(m.steps)
+                raise
             t = k * h
-            s = plant.state()
             for r, pub in enumerate(states):
                 pub.send(wire.PlantState, k, t, p=s.p[r].tolist(), vel=s.v[r].tolist(), a=s.a[r].tolist(),
                          d=s.d[r].tolist())

@@ -190,7 +190,34 @@ class QuadrotorPlant(_Kind, tag="quadrotor"):
     integrator: ThrustIntegrator | None = None
 
 
-PlantSpec = DoubleIntegrator | PointMassPlant | QuadrotorPlant
+class CrazyfliePlant(_Kind, tag="crazyflie"):
+    """A Crazyflie through cflib, real (``radio://``, ``usb://``) or the software one (``udp://``,
+    ``python -m plant.cfsim``); real time only (``plant/crazyflie.py``)."""
+
+    uri: str
+    """e.g. ``radio://0/80/2M/E7E7E7E701`` or ``udp://127.0.0.1:19850``."""
+    mode: Literal["attitude", "full_state"] = "attitude"
+    """``attitude``: Eq. 4 to ``send_setpoint`` (the paper's two loops); ``full_state``:
+    ``send_full_state_setpoint`` (the onboard position controller closes a loop of its own)."""
+    takeoff_height: float = 0.5
+    """Height the high-level commander takes off to before the run starts [m]."""
+    takeoff_time: float = 2.0
+    """[s]."""
+    land_time: float = 2.0
+    """[s]."""
+    connect_timeout: float = 10.0
+    """Give up connecting (and waiting for the first state estimate) after this long [s]."""
+    mass: float = 0.029
+    """The mass Eq. 4 uses [kg]."""
+    feedforward_mass: float = 0.0
+    """A payload share added to it [kg]."""
+    tilt_max: float = 20.0
+    """Eq. 4's tilt limit [deg]."""
+    yaw: float = 0.0
+    """The yaw Eq. 4 assumes [rad] (the vehicle's heading at take-off)."""
+
+
+PlantSpec = DoubleIntegrator | PointMassPlant | QuadrotorPlant | CrazyfliePlant
 
 
 class Cable(_Strict):
@@ -817,6 +844,23 @@ def _validate_physics(m: Mission, out: Problems) -> None:
                 if not p.integrator.limit > 0:
                     out.append((f"{where}.integrator.limit", f"is {p.integrator.limit}; use a bound > 0 [m/s^2], e.g. 6.0"))
         if isinstance(p, QuadrotorPlant) and not 0 < p.tilt_max < 90:
+            out.append((f"{where}.tilt_max", f"is {p.tilt_max} deg; use an angle in (0, 90), e.g. 20"))
+    for k, a in enumerate(m.agents):
+        p = a.plant
+        where = f"agents[{k}].plant"
+        if not isinstance(p, CrazyfliePlant):
+            continue
+        if m.dim != 3:
+            out.append((where, f"is a crazyflie in a {m.dim}D mission; set `dim = 3` (and 3-vectors)"))
+        if not p.uri.startswith(("radio://", "usb://", "udp://")):
+            out.append((f"{where}.uri", f"is {p.uri!r}; give a cflib URI: radio://0/80/2M/E7E7E7E701, usb://0 "
+                                        "or udp://127.0.0.1:19850 (the software Crazyflie)"))
+        for name in ("takeoff_height", "takeoff_time", "land_time", "connect_timeout", "mass"):
+            if not getattr(p, name) > 0:
+                out.append((f"{where}.{name}", f"is {getattr(p, name)}; use a value > 0"))
+        if p.feedforward_mass < 0:
+            out.append((f"{where}.feedforward_mass", f"is {p.feedforward_mass} kg; use >= 0 (0: off)"))
+        if not 0 < p.tilt_max < 90:
             out.append((f"{where}.tilt_max", f"is {p.tilt_max} deg; use an angle in (0, 90), e.g. 20"))
     if m.payload is not None:
         pl = m.payload

@@ -199,6 +199,13 @@ class Node:
         self.token_log: list[tuple[str, bool]] = []
 
     # ------------------------------------------------------------------ declarations
+    def withdraw(self) -> None:
+        """Withdraw this process's liveliness token (it is alive but out of the swarm: a plant whose
+        vehicle's link is lost)."""
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+
     def hold(self, *declared: Any) -> None:
         """Keep Zenoh declarations (tokens, queryables) until the node closes."""
         self._declared.extend(declared)

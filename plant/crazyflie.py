@@ -1,0 +1,219 @@
+"""A Crazyflie through cflib: a real vehicle (``radio://``, ``usb://``) or the software one
+(``udp://``, ``python -m plant.cfsim``). The :class:`plant.base.Plant` of ``plant = "crazyflie"``.
+
+Lifetime (every step bounded by a timeout; cflib's own ``open_link`` has none):
+
+1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
+   ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
+2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` and ``stateEstimate.ax/ay/az`` (world frame, in g) in
+   two blocks at 100 Hz, cflib's fastest (one block cannot hold nine floats: 26 bytes per packet).
+3. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
+4. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
+
+   * ``mode = "attitude"`` (default): Eq. 4 turns the agent's ``u`` into thrust, roll and pitch
+     (:func:`plant.quadrotor.eq4`, tilt limit, thrust limit) and ``send_setpoint(roll [deg],
+     pitch [deg], yawrate [deg/s], thrust [0..65535])`` carries them. The thrust map is the
+     firmware's battery-compensated one, ``pwm = T / (4 f_max) * 65535`` with ``f_max`` the motor
+     thrust limit (0.1125 N for a CF 2.1). cflib negates the pitch it sends and the firmware's RPYT
+     decoder negates it back from its legacy frame, so the right-handed angles of Eq. 4 go in as
+     they are: positive pitch accelerates towards +x, positive roll towards -y. The yaw rate sent is
+     0: the onboard attitude loop holds the yaw the vehicle took off with, which Eq. 4 takes to be
+     ``yaw``. This is the paper's architecture (Fig. 2): the formation law is the outer
+     loop, the vehicle's attitude controller the inner one, and nothing else closes a loop.
+   * ``mode = "full_state"``: ``send_full_state_setpoint`` with the state one period ahead under
+     ``u`` and ``u`` itself as the acceleration; the onboard position controller then adds its own
+     position and velocity feedback around the law's (a different closed loop from the paper's:
+     stiffer, but not Eq. 17 alone).
+
+5. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
+   with the high-level commander, wait until down (bounded), stop, close the link.
+
+A lost link (cflib's ``connection_lost``/``connection_failed``) raises :class:`LinkLost` from the
+next :meth:`CrazyfliePlant.state` or :meth:`CrazyfliePlant.step`; the plant process then withdraws
+its liveliness token, so its agent holds and its neighbours count it out.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from plant.base import Sample
+from plant.quadrotor import eq4
+from tether import mission as ms
+
+log = logging.getLogger("tether")
+
+G = 9.81
+MOTOR_THRUST_MAX = 0.1125
+"""Per-motor thrust at full command [N] (crazyflie-firmware THRUST_MAX, CF 2.1 propellers)."""
+LOG_PERIOD_MS = 10
+
+
+class LinkLost(RuntimeError):
+    """The vehicle's radio link is gone."""
+
+
+def thrust_to_pwm(thrust: float, f_max: float = MOTOR_THRUST_MAX) -> int:
+    """Collective thrust [N] -> the 16-bit ``send_setpoint`` thrust (the firmware's linear,
+    battery-compensated map), clamped to 0..65535."""
+    return int(min(max(round(thrust / (4.0 * f_max) * 65535.0), 0), 65535))
+
+
+def toc_cache() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    path = Path(base) / "tether" / "cf-toc"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+class CrazyfliePlant:
+    """One Crazyflie (see the module docstring). Real time only."""
+
+    def __init__(self, m: ms.Mission, ids: list[int]):
+        import cflib.crtp
+        from cflib.crazyflie import Crazyflie
+
+        if len(ids) != 1:
+            raise ValueError("a crazyflie plant flies one vehicle")
+        self.ids = tuple(ids)
+        self.agent = m.agent(ids[0])
+        self.spec: ms.CrazyfliePlant = self.agent.plant
+        self._h = m.dt
+        self._lock = threading.Lock()
+        self._pos = self._vel = self._acc = None
+        self._fresh = threading.Event()
+        self._lost: str | None = None
+        self._landed = False
+        cflib.crtp.init_drivers()
+        self.cf = Crazyflie(rw_cache=str(toc_cache()))
+        ready = threading.Event()
+        self.cf.fully_connected.add_callback(lambda uri: ready.set())
+        self.cf.connection_failed.add_callback(lambda uri, msg: self._on_lost(f"connection failed: {msg}", ready))
+        self.cf.connection_lost.add_callback(lambda uri, msg: self._on_lost(f"connection lost: {msg}", ready))
+        uri = self.spec.uri
+        log.info("crazyflie %d: connecting to %s", ids[0], uri)
+        self.cf.open_link(uri)
+        try:
+            if not ready.wait(self.spec.connect_timeout) or self._lost is not None:
+                raise ConnectionError(f"agents[{ids[0]}].plant.uri: {uri} did not connect within "
+                                      f"{self.spec.connect_timeout:g} s ({self._lost or 'no answer'}); check the "
+                                      "vehicle is on and the URI (radio channel, address, udp port)")
+            self._start_logs()
+            self._take_off()
+        except BaseException:
+            self.cf.close_link()
+            raise
+
+    # ------------------------------------------------------------------ link
+    def _on_lost(self, why: str, ready: threading.Event) -> None:
+        if self._lost is None:
+            self._lost = why
+            log.error("crazyflie %d: %s", self.ids[0], why)
+        ready.set()
+        self._fresh.set()
+
+    def _check(self) -> None:
+        if self._lost is not None:
+            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): {self._lost}")
+
+    def _start_logs(self) -> None:
+        from cflib.crazyflie.log import LogConfig
+
+        pv = LogConfig(name="tether_pv", period_in_ms=LOG_PERIOD_MS)
+        for n in ("x", "y", "z", "vx", "vy", "vz"):
+            pv.add_variable(f"stateEstimate.{n}", "float")
+        acc = LogConfig(name="tether_a", period_in_ms=LOG_PERIOD_MS)
+        for n in ("ax", "ay", "az"):
+            acc.add_variable(f"stateEstimate.{n}", "float")
+        pv.data_received_cb.add_callback(self._on_pv)
+        acc.data_received_cb.add_callback(self._on_acc)
+        for block in (pv, acc):
+            self.cf.log.add_config(block)
+            block.start()
+        if not self._fresh.wait(self.spec.connect_timeout) or self._pos is None:
+            self._check()
+            raise ConnectionError(f"agents[{self.ids[0]}].plant.uri: {self.spec.uri} sends no state estimate "
+                                  f"within {self.spec.connect_timeout:g} s; is a positioning system running?")
+
+    def _on_pv(self, timestamp: int, data: dict, block) -> None:
+        with self._lock:
+            self._pos = np.array([data[f"stateEstimate.{n}"] for n in ("x", "y", "z")], dtype=float)
+            self._vel = np.array([data[f"stateEstimate.{n}"] for n in ("vx", "vy", "vz")], dtype=float)
+        self._fresh.set()
+
+    def _on_acc(self, timestamp: int, data: dict, block) -> None:
+        with self._lock:
+            self._acc = G * np.array([data[f"stateEstimate.{n}"] for n in ("ax", "ay", "az")], dtype=float)
+
+    def _wait_until(self, ready, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not ready():
+            self._check()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"crazyflie {self.ids[0]}: {what} not done within {timeout:g} s")
+            self._fresh.clear()
+            self._fresh.wait(0.1)
+
+    def _take_off(self) -> None:
+        sp = self.spec
+        cmd = self.cf.commander
+        cmd.send_notify_setpoint_stop()  # a previous session's low-level setpoints would block the planner
+        cmd.send_setpoint(0.0, 0.0, 0.0, 0)  # unlock the RPYT thrust (locked at boot)
+        log.info("crazyflie %d: taking off to %.2f m", self.ids[0], sp.takeoff_height)
+        cmd.send_notify_setpoint_stop()
+        self.cf.high_level_commander.takeoff(sp.takeoff_height, sp.takeoff_time)
+        self._wait_until(lambda: self._pos is not None and self._pos[2] >= 0.9 * sp.takeoff_height,
+                         sp.takeoff_time + 5.0, "take-off")
+        log.info("crazyflie %d: airborne at %s", self.ids[0], np.round(self._pos, 3).tolist())
+
+    # ------------------------------------------------------------------ the protocol
+    def state(self) -> Sample:
+        self._check()
+        with self._lock:
+            p, v = self._pos.copy(), self._vel.copy()
+            a = self._acc.copy() if self._acc is not None else np.zeros(3)
+        return Sample(p[None], v[None], a[None], np.full((1, 3), np.nan))
+
+    def step(self, u: np.ndarray) -> None:
+        self._check()
+        sp = self.spec
+        u = np.asarray(u, dtype=float).reshape(-1)
+        if sp.mode == "full_state":
+            with self._lock:
+                p, v = self._pos.copy(), self._vel.copy()
+            h = self._h
+            self.cf.commander.send_full_state_setpoint(
+                (p + v * h + 0.5 * h * h * u).tolist(), (v + u * h).tolist(), u.tolist(),
+                [0.0, 0.0, math.sin(sp.yaw / 2.0), math.cos(sp.yaw / 2.0)], 0.0, 0.0, 0.0)
+            return
+        thrust, roll, pitch, _ = eq4(u, sp.yaw, sp.mass + sp.feedforward_mass, G, math.radians(sp.tilt_max),
+                                     4.0 * MOTOR_THRUST_MAX)
+        self.cf.commander.send_setpoint(math.degrees(roll), math.degrees(pitch), 0.0, thrust_to_pwm(thrust))
+
+    def close(self) -> None:
+        """Stop the setpoints and land (bounded waits), then close the link. Idempotent."""
+        if self._landed:
+            return
+        self._landed = True
+        try:
+            if self._lost is None:
+                sp = self.spec
+                cmd = self.cf.commander
+                cmd.send_notify_setpoint_stop()
+                log.info("crazyflie %d: landing", self.ids[0])
+                self.cf.high_level_commander.land(0.0, sp.land_time)
+                try:
+                    self._wait_until(lambda: self._pos is not None and self._pos[2] <= 0.05, sp.land_time + 5.0,
+                                     "landing")
+                except (TimeoutError, LinkLost) as exc:
+                    log.error("%s", exc)
+                self.cf.high_level_commander.stop()
+        finally:
+            self.cf.close_link()
