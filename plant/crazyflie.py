@@ -28,7 +28,8 @@ Lifetime (every step bounded by a timeout; cflib's own ``open_link`` has none):
 5. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
    with the high-level commander, wait until down (bounded), stop, close the link.
 
-A lost link (cflib's ``connection_lost``/``connection_failed``) raises :class:`LinkLost` from the
+A lost link (cflib's ``connection_lost``/``connection_failed``, or no state estimate for
+``STALE_AFTER``) raises :class:`LinkLost` from the
 next :meth:`CrazyfliePlant.state` or :meth:`CrazyfliePlant.step`; the plant process then withdraws
 its liveliness token, so its agent holds and its neighbours count it out.
 """
@@ -54,6 +55,9 @@ G = 9.81
 MOTOR_THRUST_MAX = 0.1125
 """Per-motor thrust at full command [N] (crazyflie-firmware THRUST_MAX, CF 2.1 propellers)."""
 LOG_PERIOD_MS = 10
+STALE_AFTER = 0.5
+"""A link whose state estimate has not come for this long [s] counts as lost (the firmware's own
+watchdog levels the vehicle out after as long without setpoints)."""
 
 
 class LinkLost(RuntimeError):
@@ -90,7 +94,10 @@ class CrazyfliePlant:
         self._pos = self._vel = self._acc = None
         self._fresh = threading.Event()
         self._lost: str | None = None
+        self._last_log = math.inf
         self._landed = False
+        self.final_position: np.ndarray | None = None
+        """Where the vehicle was when the link closed (after landing) [m]."""
         cflib.crtp.init_drivers()
         self.cf = Crazyflie(rw_cache=str(toc_cache()))
         ready = threading.Event()
@@ -143,6 +150,7 @@ class CrazyfliePlant:
                                   f"within {self.spec.connect_timeout:g} s; is a positioning system running?")
 
     def _on_pv(self, timestamp: int, data: dict, block) -> None:
+        self._last_log = time.monotonic()
         with self._lock:
             self._pos = np.array([data[f"stateEstimate.{n}"] for n in ("x", "y", "z")], dtype=float)
             self._vel = np.array([data[f"stateEstimate.{n}"] for n in ("vx", "vy", "vz")], dtype=float)
@@ -175,6 +183,9 @@ class CrazyfliePlant:
 
     # ------------------------------------------------------------------ the protocol
     def state(self) -> Sample:
+        quiet = time.monotonic() - self._last_log
+        if quiet > STALE_AFTER:
+            self._on_lost(f"no state estimate for {quiet:.2f} s", self._fresh)
         self._check()
         with self._lock:
             p, v = self._pos.copy(), self._vel.copy()
@@ -216,4 +227,6 @@ class CrazyfliePlant:
                     log.error("%s", exc)
                 self.cf.high_level_commander.stop()
         finally:
+            with self._lock:
+                self.final_position = None if self._pos is None else self._pos.copy()
             self.cf.close_link()

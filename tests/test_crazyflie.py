@@ -1,0 +1,161 @@
+"""The crazyflie plant with real cflib against software Crazyflies (``python -m plant.cfsim``) as
+real subprocesses: one vehicle driven directly, a 4-vehicle formation flown by ``tether run`` in
+real time, and a vehicle killed mid-flight."""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+pytest.importorskip("cflib.crtp")
+
+from tether import metrics  # noqa: E402
+from tether import mission as ms  # noqa: E402
+from tether.catalog import builtin_path  # noqa: E402
+from tether.runfile import Run  # noqa: E402
+
+BASE_PORT = 19880
+"""Ports 19880.. (the software Crazyflie's own tests use 19850..19854)."""
+START = [(0.6, 0.0, 0.0), (0.0, 0.6, 0.0), (0.0, -0.6, 0.0), (-0.6, 0.0, 0.0)]
+
+
+@contextlib.contextmanager
+def software_crazyflies(ports: list[int], starts: list[tuple[float, float, float]]):
+    """One cfsim process per vehicle (so that one can be killed alone); yields the processes."""
+    procs = []
+    try:
+        for port, p0 in zip(ports, starts):
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "plant.cfsim", "--count", "1", "--base-port", str(port), "--instance",
+                 str(port - BASE_PORT), "--p0=" + ",".join(map(str, p0))],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+        for proc in procs:
+            deadline = time.monotonic() + 30
+            for line in proc.stdout:
+                if line.startswith("cfsim ready"):
+                    break
+                assert time.monotonic() < deadline, "software Crazyflie did not start"
+            else:
+                raise AssertionError(f"software Crazyflie exited: {proc.stderr.read()[-2000:]}")
+        yield procs
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in procs:
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+def crazyflie_mission(tmp: Path, ports: list[int], duration: float) -> Path:
+    """Experiment 1's law, graph and diamond around a leader hovering at 1 m, then moving at
+    0.3 m/s along x from 6 s, flown by Crazyflies on ``ports``."""
+    m = ms.load(builtin_path("exp1"))
+    agents = [msgspec.structs.replace(a, p0=list(p0), plant=ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}",
+                                                                             takeoff_height=1.0))
+              for a, p0, port in zip(m.agents, START, ports)]
+    leader = msgspec.structs.replace(m.leader, p0=[0.0, 0.0, 1.0], profile=ms.VelocitySchedule(
+        segments=[ms.VelocitySegment(t=0.0, v=[0.0, 0.0, 0.0]), ms.VelocitySegment(t=6.0, v=[0.3, 0.0, 0.0])]))
+    m = msgspec.structs.replace(m, name="cf", agents=agents, leader=leader, duration=duration,
+                                links=msgspec.structs.replace(m.links, max_age=0.2))
+    assert not ms.validate(m), ms.validate(m)
+    path = tmp / "cf.toml"
+    path.write_text(ms.dumps(m))
+    return path
+
+
+def test_one_vehicle_takes_off_flies_its_command_and_lands() -> None:
+    from plant.crazyflie import CrazyfliePlant, LinkLost
+
+    port = BASE_PORT + 10
+    with software_crazyflies([port], [(0.0, 0.0, 0.0)]) as (proc,):
+        path_m = ms.load(builtin_path("exp1"))
+        spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.8)
+        m = msgspec.structs.replace(path_m, agents=[msgspec.structs.replace(a, plant=spec) for a in path_m.agents])
+        plant = CrazyfliePlant(m, [1])
+        try:
+            s = plant.state()
+            assert s.p.shape == (1, 3) and 0.7 <= s.p[0, 2] <= 1.0  # airborne at the take-off height
+            x0 = s.p[0, 0]
+            for _ in range(100):  # 1 s of u = +0.5 m/s^2 along x, vertical velocity braked
+                v = plant.state().v[0]
+                plant.step(np.array([[0.5, 0.0, -2.0 * v[2]]]))
+                time.sleep(0.01)
+            s = plant.state()
+            assert s.v[0, 0] > 0.3 and s.p[0, 0] > x0 + 0.1  # Eq. 4's signs: +x is +x
+            assert abs(s.a[0, 0] - 0.5) < 0.15  # the logged acceleration is the commanded one
+        finally:
+            plant.close()
+        assert plant.final_position is not None and plant.final_position[2] <= 0.05  # landed
+        proc.send_signal(signal.SIGTERM)
+    with pytest.raises(ConnectionError, match="did not connect"):
+        CrazyfliePlant(msgspec.structs.replace(m, agents=[msgspec.structs.replace(
+            a, plant=msgspec.structs.replace(spec, connect_timeout=1.0)) for a in m.agents]), [1])
+    assert issubclass(LinkLost, RuntimeError)
+
+
+def _run(path: Path, out: Path, extra: list[str] = ()) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(out), "--clock",
+                           "realtime", "--lease", "1", "--quiet", *extra], capture_output=True, text=True, timeout=180)
+
+
+def test_a_formation_of_software_crazyflies_flown_in_real_time(tmp_path: Path) -> None:
+    ports = [BASE_PORT + i for i in range(4)]
+    with software_crazyflies(ports, START):
+        path = crazyflie_mission(tmp_path, ports, 14.0)
+        r = _run(path, tmp_path / "run")
+        assert r.returncode == 0, r.stderr[-3000:]
+    run = Run.load(tmp_path / "run")
+    xn = metrics.xi_norm(run)
+    tail = run.t >= 11.0
+    assert np.nanmax(xn[tail]) < 0.1, np.nanmax(xn[tail])  # in formation, moving with the leader
+    assert np.nanmax(np.abs(run.v[tail, :, 0] - 0.3)) < 0.1
+    logs = (tmp_path / "run" / "logs")
+    for i in range(1, 5):
+        text = (logs / f"plant-{i}.log").read_text()
+        assert "airborne" in text and "landing" in text  # took off before the run, landed after it
+
+
+def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: Path) -> None:
+    ports = [BASE_PORT + 4 + i for i in range(4)]
+    with software_crazyflies(ports, START) as procs:
+        path = crazyflie_mission(tmp_path, ports, 14.0)
+        proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(tmp_path / "run"),
+                                 "--clock", "realtime", "--lease", "1", "--quiet"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            # kill vehicle 3 once the run has flown for a while: wait on its plant's log
+            log3 = tmp_path / "run" / "logs" / "plant-3.log"
+            deadline = time.monotonic() + 60
+            while not (log3.exists() and "airborne" in log3.read_text()):
+                assert time.monotonic() < deadline and proc.poll() is None, "vehicle 3 never took off"
+                time.sleep(0.1)
+            time.sleep(7.0)  # mission time: the run starts about a second after the last take-off
+            procs[2].kill()
+            _, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 1 and re.search(r"plant/3 +exit 1", err), err[-2000:]  # the launcher names the lost vehicle
+    logs = tmp_path / "run" / "logs"
+    assert re.search(r"connection lost|no state estimate", (logs / "plant-3.log").read_text())
+    assert "withdrawing from the swarm" in (logs / "plant-3.log").read_text()
+    assert "holding" in (logs / "agent-3.log").read_text()
+    run = Run.load(tmp_path / "run")
+    i3, i4 = list(run.agent_ids).index(3), list(run.agent_ids).index(4)
+    age = run.extra["link_age"][:, i4, 0]  # agent 4 hears only agent 3
+    assert np.nanmax(age[run.t >= 12.0]) > 0.2 or np.all(np.isnan(age[run.t >= 12.0]))
+    # the others fly on, in formation among themselves
+    others = [i for i in range(4) if i not in (i3, i4)]
+    assert np.all(np.isfinite(run.xi[run.t >= 12.0][:, others]))
