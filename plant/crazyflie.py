@@ -55,9 +55,9 @@ G = 9.81
 MOTOR_THRUST_MAX = 0.1125
 """Per-motor thrust at full command [N] (crazyflie-firmware THRUST_MAX, CF 2.1 propellers)."""
 LOG_PERIOD_MS = 10
-STALE_AFTER = 0.5
-"""A link whose state estimate has not come for this long [s] counts as lost (the firmware's own
-watchdog levels the vehicle out after as long without setpoints)."""
+STALE_AFTER = 1.0
+"""A link whose state estimate has not come for this long [s] counts as lost (100 log packets at
+100 Hz; a loaded host can delay a few tens of them)."""
 
 
 class LinkLost(RuntimeError):
