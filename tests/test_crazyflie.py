@@ -75,13 +75,13 @@ def crazyflie_mission(tmp: Path, ports: list[int], duration: float) -> Path:
     return path
 
 
-def test_one_vehicle_takes_off_flies_its_command_and_lands() -> None:
+@pytest.mark.parametrize("mode, port", [("attitude", BASE_PORT + 10), ("full_state", BASE_PORT + 11)])
+def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int) -> None:
     from plant.crazyflie import CrazyfliePlant, LinkLost
 
-    port = BASE_PORT + 10
     with software_crazyflies([port], [(0.0, 0.0, 0.0)]) as (proc,):
         path_m = ms.load(builtin_path("exp1"))
-        spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.8)
+        spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.8, mode=mode)
         m = msgspec.structs.replace(path_m, agents=[msgspec.structs.replace(a, plant=spec) for a in path_m.agents])
         plant = CrazyfliePlant(m, [1])
         try:
@@ -159,3 +159,27 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
     # the others fly on, in formation among themselves
     others = [i for i in range(4) if i not in (i3, i4)]
     assert np.all(np.isfinite(run.xi[run.t >= 12.0][:, others]))
+
+
+def test_ctrl_c_lands_every_vehicle(tmp_path: Path) -> None:
+    ports = [BASE_PORT + 20 + i for i in range(4)]
+    with software_crazyflies(ports, START):
+        path = crazyflie_mission(tmp_path, ports, 30.0)
+        proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(tmp_path / "run"),
+                                 "--clock", "realtime", "--lease", "1", "--quiet"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            logs = tmp_path / "run" / "logs"
+            deadline = time.monotonic() + 60
+            while "all 10 processes are up" not in (proc.stderr.readline() or ""):
+                assert time.monotonic() < deadline and proc.poll() is None, "the run never started"
+            time.sleep(3.0)  # flying in formation
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 130
+        for i in range(1, 5):
+            text = (logs / f"plant-{i}.log").read_text()
+            assert "landing" in text and "not done" not in text, text[-1500:]

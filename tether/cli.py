@@ -401,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
     sw.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess",
                     help="inprocess: the lockstep runtime's arithmetic in one process (equal bit for bit, "
-                         "~100x faster); runtime: real processes over Zenoh (tether run) for every point")
+                         "several times faster: bench/sweep_engine.py); runtime: real processes over Zenoh (tether run) for every point")
     sw.add_argument("--jobs", type=int, default=1, help="grid points run at once (processes)")
     sw.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
                     help="latency compensation on every agent (default: as the mission's [links] says)")

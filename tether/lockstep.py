@@ -18,8 +18,8 @@ the processes call, in the order they call them:
   :meth:`agent.law.AgentLaw.step` gives ``u_i``, the errors and the next gains.
 
 The result equals a ``tether run --clock lockstep`` of the same mission bit for bit (checked by
-``tests/test_lockstep.py`` against real processes under a degraded network), at about a hundred
-times its speed: it is what ``tether sweep`` runs by default. The reference simulator
+``tests/test_lockstep.py`` against real processes under a degraded network), several times faster
+(``bench/sweep_engine.py``): it is what ``tether sweep`` runs by default. The reference simulator
 (:mod:`tether.refsim`) has no network; with an ideal one all three agree.
 
 A run with a component of a formation error beyond every physical scale (``diverge_at``) or not
