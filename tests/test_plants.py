@@ -87,3 +87,30 @@ def test_the_payload_world_reports_its_cables() -> None:
     assert s.extra["tension"].shape == (m.n,) and s.extra["payload_p"].shape == (3,)
     np.testing.assert_array_equal(s.extra["tension"], 0.0)  # on the floor, cables slack
     assert s.extra["payload_p"][2] == m.floor
+
+
+def test_the_crazyflie_plant_keeps_the_contract() -> None:
+    """A live plant: the same interface and shapes, a reading that is the vehicle's own, and
+    closing (landing) that may be repeated. (Tick 0's zero acceleration and determinism are
+    properties of simulated plants only.)"""
+    pytest.importorskip("cflib.crtp")
+    from tests.test_crazyflie import BASE_PORT, software_crazyflies
+
+    port = BASE_PORT + 30
+    m = mission("quadrotor")
+    spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.6)
+    m = msgspec.structs.replace(m, agents=[msgspec.structs.replace(a, plant=spec) for a in m.agents])
+    with pytest.raises(ValueError, match="real vehicle"):
+        base.build(m)  # never inside a simulator
+    with software_crazyflies([port], [(0.0, 0.0, 0.0)]):
+        (plant,) = base.build(m, [1], live=True)
+        try:
+            assert isinstance(plant, base.Plant) and plant.ids == (1,)
+            s = plant.state()
+            for name in ("p", "v", "a"):
+                assert getattr(s, name).shape == (1, 3) and np.all(np.isfinite(getattr(s, name))), name
+            assert s.d.shape == (1, 3) and np.all(np.isnan(s.d))  # a real vehicle cannot know its disturbance
+            plant.step(np.zeros((1, 3)))
+        finally:
+            plant.close()
+            plant.close()
