@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from tether import lockstep
-from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.node import load_mission
 from tether.runfile import Run

@@ -27,7 +27,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ import numpy as np
 import pytest
 
 from tests import netns
+from tests.support import read, wait_until
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -66,25 +67,6 @@ cores, possibly beside other tests)."""
 
 
 # =========================================================================== helpers
-def wait_until(ready: Callable[[], Any], timeout: float, what: str, poll: float = 0.02) -> Any:
-    """Poll ``ready()`` until it returns something truthy (returned); fail naming ``what`` after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = ready()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"waited {timeout:g} s for {what}")
-        time.sleep(poll)
-
-
-def read(path: Path) -> str:
-    try:
-        return path.read_text(errors="replace")
-    except OSError:
-        return ""
-
-
 def log_time(line: str) -> float:
     """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
     stamp, ms_ = line[:23].split(",")

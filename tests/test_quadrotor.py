@@ -267,7 +267,6 @@ def test_integrator_matches_an_independent_numpy_reference() -> None:
     f = q.motor_thrusts
     hc, n = 0.002, 10
     h = hc / n
-    u_ext = np.concatenate([np.zeros(4), f_ext])
 
     def rhs(x: np.ndarray, f: np.ndarray, fc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return qr.newton_euler(0.0, x, np.concatenate([f, f_ext]), P), (fc - f) / P.motor_tau

@@ -43,6 +43,7 @@ import zenoh
 
 import tether
 import tether.wire
+from tests.support import read, wait_until
 from tether import refsim
 from tether import transport as tp
 from tether import wire
@@ -68,25 +69,6 @@ round-off should the two ever order a sum differently."""
 # =========================================================================== helpers
 def tether_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "tether.cli", *args]
-
-
-def wait_until(ready: Callable[[], Any], timeout: float, what: str, poll: float = 0.05) -> Any:
-    """Poll ``ready()`` until it returns something truthy (returned); fail naming ``what`` after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = ready()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"waited {timeout:g} s for {what}")
-        time.sleep(poll)
-
-
-def read(path: Path) -> str:
-    try:
-        return path.read_text(errors="replace")
-    except OSError:
-        return ""
 
 
 def cmdline(pid: int) -> list[str]:

@@ -865,7 +865,7 @@ def _validate_physics(m: Mission, out: Problems) -> None:
     if m.payload is not None:
         pl = m.payload
         if m.dim != 3:
-            out.append(("payload", f"needs a 3D mission (gravity acts along z); set `dim = 3`"))
+            out.append(("payload", "needs a 3D mission (gravity acts along z); set `dim = 3`"))
         for k, a in enumerate(m.agents):
             if not isinstance(a.plant, physical):
                 out.append((f"agents[{k}].plant", f"is {a.plant.__struct_config__.tag} but a payload hangs from vehicles "
