@@ -24,6 +24,13 @@ def start_run(tmp: Path, section: str, duration: float) -> tuple[subprocess.Pope
     proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(mission), "--out", str(tmp / "run"),
                              "--duration", str(duration), "--listen", endpoint, "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    for line in proc.stderr:  # every process up: the agents answer from now on
+        if "processes are up" in line:
+            break
+        assert time.monotonic() < deadline, "the run did not come up"
+    else:
+        raise AssertionError(f"the run ended before coming up (status {proc.wait()})")
     return proc, endpoint
 
 

@@ -13,6 +13,7 @@ import typing
 import msgspec
 import pytest
 
+from netem.profile import LinkRule
 from tether import wire
 from tether.wire import Keys, Receiver
 
@@ -34,11 +35,16 @@ SAMPLES: dict[type, wire.Message] = {
     wire.Tick: wire.Tick(sender=0, seq=4, k=40, t=0.4, grant=40),
     wire.Ack: wire.Ack(sender=0, seq=40, k=40, t=0.4, role="recorder"),
     wire.Start: wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=1.7e9),
+    wire.NetemSet: wire.NetemSet(sender=0, seq=0, k=0, t=0.0, at=12.5,
+                                 rules=[LinkRule(profile="wifi-lossy", src=2, dst=3)]),
+    wire.WorldState: wire.WorldState(sender=0, seq=7, k=7, t=0.07, p=[0.0, 0.1], vel=[0.0, 0.0],
+                                     tension=[0.05, 0.05, 0.0, 0.05], slack_events=[0, 1, 2, 0]),
 }
 """One message of every type, with the sender id its key would carry."""
 
 EXPECTED_TAGS = {wire.State: "state", wire.PlantState: "plant_state", wire.Command: "cmd",
-                 wire.Telemetry: "telemetry", wire.Tick: "tick", wire.Ack: "ack", wire.Start: "start"}
+                 wire.Telemetry: "telemetry", wire.Tick: "tick", wire.Ack: "ack", wire.Start: "start",
+                 wire.NetemSet: "netem_set", wire.WorldState: "world_state"}
 
 
 def same(a: wire.Message, b: wire.Message) -> bool:
