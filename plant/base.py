@@ -219,7 +219,7 @@ def build(m: ms.Mission, ids: list[int] | None = None, live: bool = False) -> li
                                  "(tether run --clock realtime), not in a simulator")
             from plant.crazyflie import CrazyfliePlant
 
-            out.append(CrazyfliePlant(m, [aid]))
+            out.append(CrazyfliePlant(m, [aid]).open())
             continue
         out.append(DoubleIntegratorPlant(m, [aid]) if isinstance(spec, ms.DoubleIntegrator) else VehiclePlant(m, [aid]))
     return out

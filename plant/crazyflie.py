@@ -1,7 +1,7 @@
 """A Crazyflie through cflib: a real vehicle (``radio://``, ``usb://``) or the software one
 (``udp://``, ``python -m plant.cfsim``). The :class:`plant.base.Plant` of ``plant = "crazyflie"``.
 
-Lifetime (every step bounded by a timeout; cflib's own ``open_link`` has none):
+Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout, cflib's own ``open_link`` has none):
 
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
@@ -81,9 +81,7 @@ class CrazyfliePlant:
     """One Crazyflie (see the module docstring). Real time only."""
 
     def __init__(self, m: ms.Mission, ids: list[int]):
-        import cflib.crtp
-        from cflib.crazyflie import Crazyflie
-
+        """No I/O: :meth:`open` connects and takes off."""
         if len(ids) != 1:
             raise ValueError("a crazyflie plant flies one vehicle")
         self.ids = tuple(ids)
@@ -98,6 +96,15 @@ class CrazyfliePlant:
         self._landed = False
         self.final_position: np.ndarray | None = None
         """Where the vehicle was when the link closed (after landing) [m]."""
+        self.cf = None
+
+    def open(self) -> "CrazyfliePlant":
+        """Connect, start the logs and take off (blocks until airborne; every wait bounded).
+        Raises ``ConnectionError`` naming the URI, or ``TimeoutError``; the link is closed then."""
+        import cflib.crtp
+        from cflib.crazyflie import Crazyflie
+
+        ids = self.ids
         cflib.crtp.init_drivers()
         self.cf = Crazyflie(rw_cache=str(toc_cache()))
         ready = threading.Event()
@@ -117,6 +124,7 @@ class CrazyfliePlant:
         except BaseException:
             self.cf.close_link()
             raise
+        return self
 
     # ------------------------------------------------------------------ link
     def _on_lost(self, why: str, ready: threading.Event) -> None:
@@ -210,7 +218,7 @@ class CrazyfliePlant:
 
     def close(self) -> None:
         """Stop the setpoints and land (bounded waits), then close the link. Idempotent."""
-        if self._landed:
+        if self._landed or self.cf is None:
             return
         self._landed = True
         try:

@@ -18,6 +18,7 @@ import pytest
 
 pytest.importorskip("cflib.crtp")
 
+from tests.support import read, wait_until  # noqa: E402
 from tether import metrics  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.catalog import builtin_path  # noqa: E402
@@ -83,7 +84,7 @@ def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int)
         path_m = ms.load(builtin_path("exp1"))
         spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.8, mode=mode)
         m = msgspec.structs.replace(path_m, agents=[msgspec.structs.replace(a, plant=spec) for a in path_m.agents])
-        plant = CrazyfliePlant(m, [1])
+        plant = CrazyfliePlant(m, [1]).open()
         try:
             s = plant.state()
             assert s.p.shape == (1, 3) and 0.7 <= s.p[0, 2] <= 1.0  # airborne at the take-off height
@@ -101,8 +102,14 @@ def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int)
         proc.send_signal(signal.SIGTERM)
     with pytest.raises(ConnectionError, match="did not connect"):
         CrazyfliePlant(msgspec.structs.replace(m, agents=[msgspec.structs.replace(
-            a, plant=msgspec.structs.replace(spec, connect_timeout=1.0)) for a in m.agents]), [1])
+            a, plant=msgspec.structs.replace(spec, connect_timeout=1.0)) for a in m.agents]), [1]).open()
     assert issubclass(LinkLost, RuntimeError)
+
+
+def tick0(log: Path) -> float | None:
+    """The run's tick-0 instant [s since the epoch] as a process logged it, once it has."""
+    found = re.search(r"real time: tick 0 at ([0-9.]+)", read(log))
+    return float(found.group(1)) if found else None
 
 
 def _run(path: Path, out: Path, extra: list[str] = ()) -> subprocess.CompletedProcess:
@@ -135,13 +142,9 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
                                  "--clock", "realtime", "--lease", "1", "--quiet"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            # kill vehicle 3 once the run has flown for a while: wait on its plant's log
-            log3 = tmp_path / "run" / "logs" / "plant-3.log"
-            deadline = time.monotonic() + 60
-            while not (log3.exists() and "airborne" in log3.read_text()):
-                assert time.monotonic() < deadline and proc.poll() is None, "vehicle 3 never took off"
-                time.sleep(0.1)
-            time.sleep(7.0)  # mission time: the run starts about a second after the last take-off
+            # kill vehicle 3 at 6 s of mission time (the run's tick 0 instant is in every process's log)
+            epoch = wait_until(lambda: tick0(tmp_path / "run" / "logs" / "plant-3.log"), 90, "the run's start")
+            wait_until(lambda: time.time() >= epoch + 6.0 or proc.poll() is not None, 30, "6 s of flight")
             procs[2].kill()
             _, err = proc.communicate(timeout=120)
         finally:
@@ -170,10 +173,8 @@ def test_ctrl_c_lands_every_vehicle(tmp_path: Path) -> None:
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             logs = tmp_path / "run" / "logs"
-            deadline = time.monotonic() + 60
-            while "all 10 processes are up" not in (proc.stderr.readline() or ""):
-                assert time.monotonic() < deadline and proc.poll() is None, "the run never started"
-            time.sleep(3.0)  # flying in formation
+            epoch = wait_until(lambda: tick0(logs / "plant-1.log"), 90, "the run's start")
+            wait_until(lambda: time.time() >= epoch + 3.0 or proc.poll() is not None, 30, "3 s of flight")
             proc.send_signal(signal.SIGINT)
             proc.communicate(timeout=60)
         finally:
