@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 
 import numpy as np
 
@@ -23,6 +24,8 @@ from tether.node import Node, Source
 log = logging.getLogger("tether")
 
 AGENT_PHASE = 0.5
+AGE_WINDOW = 500
+"""Ticks over which each link's age-of-information percentiles are taken (5 s at 100 Hz)."""
 """Real time: agents tick at ``epoch + (k + AGENT_PHASE) h``; plants and the leader at ``epoch + k h``."""
 
 
@@ -61,6 +64,8 @@ async def run(node: Node) -> None:
     used = [0] * len(nbrs)
     nb_p, nb_v, nb_a = (np.zeros((len(nbrs), d)) for _ in range(3))
     holding = False
+    windows = [deque(maxlen=AGE_WINDOW) for _ in nbrs]
+    """Per link, the ages of the samples used over the last AGE_WINDOW ticks."""
     for k in range(m.steps + 1):
         await node.tick(k)
         t = k * m.dt
@@ -79,7 +84,7 @@ async def run(node: Node) -> None:
             holding = False
         p, v = np.array(own.p), np.array(own.vel)
         a = np.array(own.a if feed == "measured" else last_u)  # what this agent shares
-        ages = []
+        ages, oks = [], []
         for n, msg in enumerate(heard):
             age = t - msg.t if msg is not None else math.nan
             sample = (np.array(msg.p), np.array(msg.vel), np.array(msg.a)) if msg is not None else None
@@ -87,14 +92,24 @@ async def run(node: Node) -> None:
                                                              policy.max_age, policy.compensate)
             used[n] += ok
             ages.append(age)
+            oks.append(ok)
         if feed == "none":
             nb_a[:] = 0.0
         u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
         last_u = u.tolist()
         cmd.send(wire.Command, k, t, u=last_u)
-        links = [wire.LinkStats(src=j, received=s.received_upto(k) if lockstep else s.received, used=used[n],
-                                stale=s.stale, age=ages[n], silent=s.silent_at(k))
-                 for n, (j, s) in enumerate(zip(law.neighbours, nbrs))]
+        links = []
+        for n, (j, s) in enumerate(zip(law.neighbours, nbrs)):
+            received = s.received_upto(k) if lockstep else s.received
+            if oks[n]:
+                windows[n].append(ages[n])
+            p50, p99 = np.percentile(windows[n], (50, 99)).tolist() if windows[n] else (math.nan, math.nan)
+            # samples j sent up to its newest received (lockstep: of ticks <= k; j sends one per tick)
+            sent = 0 if s.newest is None else (min(s.newest.seq, k) if lockstep else s.newest.seq) + 1
+            links.append(wire.LinkStats(
+                src=j, received=received, used=used[n], stale=s.stale, age=ages[n], silent=s.silent_at(k),
+                duplicates=s.duplicates, reordered=s.reordered, corrupt=s.corrupt,
+                delivery=(received - s.duplicates) / sent if sent else 0.0, age_p50=p50, age_p99=p99))
         decisions = [wire.LinkDecision(src=j, seq=d.seq, now=d.now, event=d.event, at=d.at)
                      for j, s in zip(law.neighbours, nbrs) if s.channel is not None
                      for d in s.channel.link.take_decisions()]

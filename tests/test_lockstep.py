@@ -60,7 +60,14 @@ def test_under_a_degraded_network_it_is_the_distributed_runtime_bit_for_bit(tmp_
     np.testing.assert_array_equal(got.extra["link_src"], want.extra["link_src"])
     slot = want.extra["link_src"] > 0
     np.testing.assert_array_equal(got.extra["link_received"][-1][slot], want.extra["link_received"][slot])
-    np.testing.assert_array_equal(got.extra["link_stale"][-1][slot], want.extra["link_stale"][slot])
+    for name in ("link_stale", "link_duplicates", "link_reordered", "link_corrupt", "link_used"):
+        np.testing.assert_array_equal(got.extra[name][-1][slot], want.extra[name][slot], err_msg=name)
+    np.testing.assert_array_equal(want.extra["link_duplicates"] + want.extra["link_reordered"], want.extra["link_stale"])
+    assert want.extra["link_duplicates"].sum() > 0 and want.extra["link_reordered"].sum() > 0
+    # the agents' own summaries: delivery ratio and age percentiles, consistent with the counts
+    delivery = got.extra["link_delivery"][-1][slot]
+    assert np.all((delivery > 0.5) & (delivery < 1.0)), delivery
+    assert np.all(got.extra["link_age_p99"][-1][slot] >= got.extra["link_age_p50"][-1][slot])
     used = np.isfinite(want.extra["link_age"])
     np.testing.assert_array_equal(got.extra["link_age"][used], want.extra["link_age"][used])
     assert want.extra["link_stale"].sum() > 0 and want.extra["link_corrupt"].sum() > 0

@@ -29,6 +29,7 @@ finite is stopped there: the rest of its samples are NaN and ``meta["diverged_at
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -41,6 +42,7 @@ from netem.profile import schedule
 from plant import base as plants
 from tether import wire
 from tether.mission import Mission
+from tether.node import RECENT_SEQS
 from tether.runfile import Run
 
 Progress = Callable[[int, int], None]
@@ -63,6 +65,9 @@ class _InLink:
     newest: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
     received: int = 0
     stale: int = 0
+    duplicates: int = 0
+    reordered: int = 0
+    recent: deque = field(default_factory=lambda: deque(maxlen=RECENT_SEQS))
     used: int = 0
     corrupt: int = 0
     ages: list[float] = field(default_factory=list)
@@ -80,8 +85,12 @@ class _InLink:
                 continue
             msg = wire.decode(copy.payload)
             self.received += 1
+            seen = msg.seq in self.recent
+            self.recent.append(msg.seq)
             if msg.k <= self.newest_k:
                 self.stale += 1
+                self.duplicates += seen
+                self.reordered += not seen
                 continue
             self.newest_k = msg.k
             self.newest = (msg.t, np.array(msg.p), np.array(msg.vel), np.array(msg.a))
@@ -93,7 +102,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     number of periods). ``record=False`` keeps only the last sample (and the link statistics).
 
     The returned run carries the runtime recorder's link statistics in ``extra``: ``link_src``,
-    ``link_received``, ``link_used``, ``link_stale``, ``link_corrupt`` (run totals, ``(N, width)``)
+    ``link_received``, ``link_used``, ``link_stale``, ``link_duplicates``, ``link_reordered``,
+    ``link_corrupt`` (run totals, ``(N, width)``)
     and ``link_age`` (``(T, N, width)``, NaN where nothing was usable)."""
     h, d = m.dt, m.dim
     steps = m.steps if duration is None else int(round(duration * m.rate))
@@ -203,7 +213,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
 
     ex = run.extra
     ex["link_src"] = np.zeros((n, width), dtype=np.int64)
-    for name in ("link_received", "link_used", "link_stale", "link_corrupt"):
+    for name in ("link_received", "link_used", "link_stale", "link_duplicates", "link_reordered", "link_corrupt"):
         ex[name] = np.zeros((n, width), dtype=np.int64)
     for i, row in enumerate(links):
         for s, lk in enumerate(row):
@@ -211,6 +221,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             ex["link_received"][i, s] = lk.received
             ex["link_used"][i, s] = lk.used
             ex["link_stale"][i, s] = lk.stale
+            ex["link_duplicates"][i, s] = lk.duplicates
+            ex["link_reordered"][i, s] = lk.reordered
             ex["link_corrupt"][i, s] = lk.corrupt
     ex["link_age"] = ages
     ex.update(extras)

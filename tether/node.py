@@ -22,6 +22,7 @@ import math
 import os
 import signal
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,11 @@ log = logging.getLogger("tether")
 
 FIFO_CAPACITY = 65536
 """Samples a process can hold between two drains before the oldest is dropped (and counted)."""
+
+
+RECENT_SEQS = 256
+"""Sequence numbers a source remembers to tell duplicates from reordered samples (a duplicate
+arriving more than this many samples late counts as reordered)."""
 
 
 class Stalled(RuntimeError):
@@ -78,6 +84,14 @@ class Source:
     received: int = 0
     stale: int = 0
     """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
+    duplicates: int = 0
+    """Stale samples whose sequence number had already been received (a second copy)."""
+    reordered: int = 0
+    """Stale samples seen for the first time (overtaken by a newer one on the way)."""
+    corrupt: int = 0
+    """Copies an emulated link corrupted (they fail the receiver's checksum and are dropped)."""
+    recent: deque = field(default_factory=lambda: deque(maxlen=RECENT_SEQS))
+    """The last sequence numbers received, to tell a duplicate from a reordered sample."""
     last: int = -1
     """The producer's last tick (the mission's), when known."""
     channel: "Channel | None" = None
@@ -107,8 +121,13 @@ class Source:
         self.received += 1
         if self.newest is not None and msg.seq <= self.newest.seq:
             self.stale += 1
+            if msg.seq in self.recent:
+                self.duplicates += 1
+            else:
+                self.reordered += 1
         else:
             self.newest = msg
+        self.recent.append(msg.seq)
         if self.keep:
             self.by_tick.setdefault(msg.k, msg)
         if self.on_message is not None:
@@ -391,6 +410,7 @@ class Node:
             for copy in src.channel.release(now):
                 if copy.corrupted:
                     self.receiver.drops["corrupt"] = self.receiver.drops.get("corrupt", 0) + 1
+                    src.corrupt += 1
                     continue
                 msg = self.receiver.accept(copy.payload, src.expect, src.sender)
                 if msg is not None:

@@ -42,7 +42,8 @@ class Recording:
         for name in ("plant_p", "plant_v", "plant_a"):
             ex[name] = np.full((T, n, d), np.nan)
         ex["link_src"] = np.zeros((n, width), dtype=np.int64)
-        for name in ("link_age", "link_received", "link_stale", "link_silent"):
+        for name in ("link_age", "link_received", "link_stale", "link_silent", "link_duplicates", "link_reordered",
+                     "link_corrupt", "link_delivery", "link_age_p50", "link_age_p99", "link_used"):
             ex[name] = np.full((T, n, width), np.nan)
         ex["drops"] = np.full((T, n), np.nan)
         ex["meas_age"] = np.full((T, n), np.nan)
@@ -89,6 +90,13 @@ class Recording:
             ex["link_received"][k, i, n] = link.received
             ex["link_stale"][k, i, n] = link.stale
             ex["link_silent"][k, i, n] = float(link.silent)
+            ex["link_used"][k, i, n] = link.used
+            ex["link_duplicates"][k, i, n] = link.duplicates
+            ex["link_reordered"][k, i, n] = link.reordered
+            ex["link_corrupt"][k, i, n] = link.corrupt
+            ex["link_delivery"][k, i, n] = link.delivery
+            ex["link_age_p50"][k, i, n] = link.age_p50
+            ex["link_age_p99"][k, i, n] = link.age_p99
         ex["drops"][k, i] = sum(msg.drops.values())
         ex["meas_age"][k, i] = msg.t - msg.meas_t
         for d in msg.netem:

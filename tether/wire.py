@@ -96,6 +96,18 @@ class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     """Age of j's sample at the moment of use at this tick: t_k - t_sample [s] (NaN if none)."""
     silent: bool
     """j's liveliness token is gone."""
+    duplicates: int = 0
+    """Samples received twice (part of ``stale``)."""
+    reordered: int = 0
+    """Samples that arrived after a newer one (the rest of ``stale``)."""
+    corrupt: int = 0
+    """Copies that failed the checksum (decode failures), dropped."""
+    delivery: float = 1.0
+    """Distinct samples received over samples j sent up to its newest received (1: none lost)."""
+    age_p50: float = 0.0
+    """Median age of the samples used over the last ``agent.node.AGE_WINDOW`` ticks [s] (NaN: none used)."""
+    age_p99: float = 0.0
+    """99th percentile of the same [s]."""
 
 
 class LinkDecision(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
