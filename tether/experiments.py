@@ -138,6 +138,7 @@ def summary(m: ms.Mission, run: Run) -> dict:
         r = run.p[-1] - ex["payload_p"][-1][None, :]
         vertical = ex["tension"][-1] * r[:, 2] / np.linalg.norm(r, axis=1)
         out["vertical_tension_sum_end_over_weight"] = float(np.nansum(vertical) / weight)
+        out["payload_on_floor_end"] = bool(m.floor is not None and ex["payload_p"][-1][2] <= m.floor + 1e-6)
     return out
 
 
@@ -247,12 +248,18 @@ def report(name: str, m: ms.Mission, table: dict[str, dict], runs: dict[str, Run
                   f"action, so the steady pull leaves the formation sagging and shrunk: tracking error "
                   f"{_f(plain['tracking_error_end_m'])} m at the end, ultimate bound {_f(plain['ultimate_bound_xi_m'])} m, "
                   f"payload {_f(plain['payload_error_m'])} m from its destination"
-                  + (" (still on the floor)" if math.isnan(plain['payload_lifted_at_s']) else "") + ".",
+                  + (" (never lifted)" if math.isnan(plain['payload_lifted_at_s']) else "")
+                  + (f"; it ends on the floor, which carries {_f(1 - plain['vertical_tension_sum_end_over_weight'])} "
+                     "of its weight: dragged along (the floor is frictionless here)"
+                     if plain["payload_on_floor_end"] else "") + ".",
                   ]
         for label in ("mass share only", "z integrator only", "xyz integrator only", "mission, measured feed-forward",
                       "mission on point masses"):
             r = table[label]
             lines.append(f"- {label}: tracking error at the end {_f(r['tracking_error_end_m'])} m, ultimate bound "
                          f"{_f(r['ultimate_bound_xi_m'])} m, payload {_f(r['payload_error_m'])} m from its destination"
+                         + (", on the floor at the end" if r["payload_on_floor_end"] else "")
+                         + (f", vehicles down to z = {_f(r['min_altitude_m'])} m (no ground contact is modelled for "
+                            "them)" if r["min_altitude_m"] < -0.01 else "")
                          + (", diverged" if r["diverged"] else "") + ".")
     return "\n".join(lines) + "\n"
