@@ -27,6 +27,7 @@ import math
 import os
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -202,7 +203,8 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
             if progress is not None:
                 progress(len(rows), total, "sweep")
     else:  # spawned workers: a Zenoh session (runtime engine) must never cross a fork
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"), initializer=_follow_parent,
+                                 initargs=(os.getpid(),)) as pool:
             futures = {pool.submit(run_point, texts[pt], engine, str(out / "points" / pt.name)): pt for pt in points}
             for fut in as_completed(futures):
                 pt = futures[fut]
@@ -224,6 +226,16 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
                              title=f"{m.name}: {meta['duration_s']:g} s, swarm-wide link impairment")
     (out / "sweep.md").write_text(report(ordered, meta, paths))
     return ordered
+
+
+def _follow_parent(pid: int) -> None:
+    """In a worker: exit as soon as the sweep that started it is gone (killed, not just interrupted)."""
+    def watch() -> None:
+        while os.getppid() == pid:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="follow-parent").start()
 
 
 def _csv(x: object) -> object:
