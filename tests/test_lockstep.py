@@ -83,7 +83,21 @@ def test_a_diverging_run_stops_and_says_when() -> None:
     assert at is not None and 0 < at < 20.0
     k = int(round(at * m.rate))
     assert np.all(np.isfinite(run.xi[: k + 1])) and np.all(np.isnan(run.xi[k + 1:]))
-    assert sweep.figures_of_merit(run)["diverged"]
+    assert sweep.figures_of_merit(run, m)["diverged"]
+
+
+def test_the_true_formation_error_is_eq8_from_positions_and_differs_under_delay() -> None:
+    from tether import graph, metrics
+
+    m = load_mission(builtin_path("section4"), 20.0)
+    offsets = np.array([a.offset for a in m.agents], dtype=float)
+    adjacency = graph.topology(m).adjacency
+    ideal = lockstep.simulate(m)
+    # with ideal links the agents' own xi is the true one
+    np.testing.assert_allclose(metrics.formation_error(ideal, adjacency, offsets), ideal.xi, atol=1e-12)
+    delayed = lockstep.simulate(sweep.point_mission(m, sweep.Point("sigma", 0.0, 200.0, 1.0)))
+    true = metrics.formation_error(delayed, adjacency, offsets)
+    assert np.abs(true - delayed.xi).max() > 0.1  # 200 ms old neighbour data: the agents see another xi
 
 
 def test_mission_files_round_trip_through_the_writer(tmp_path: Path) -> None:
@@ -117,7 +131,7 @@ def test_sweep_command_writes_the_table_maps_and_every_point(tmp_path: Path) -> 
     assert 0.4 < float(lossy["delivery_ratio"]) < 0.6
     # a cell re-run alone from its mission file gives the same figures
     point = out / "points" / "sigma-loss50-delay0-burst1" / "mission.toml"
-    again = sweep.figures_of_merit(lockstep.simulate(ms.load(point)))
+    again = sweep.figures_of_merit(lockstep.simulate(ms.load(point)), ms.load(point))
     assert float(lossy["ultimate_bound_m"]) == pytest.approx(again["ultimate_bound_m"], rel=1e-5)
     assert json.loads((out / "sweep.json").read_text())["meta"]["engine"] == "inprocess"
 

@@ -147,7 +147,7 @@ def heatmaps(rows: list[dict], out_dir: str | Path, *, loss: list[float], delay:
         gains = np.concatenate([g[1][np.isfinite(g[1])].ravel() for g in grids.values()] + [np.array([1.0])])
         for c, law in enumerate(laws):
             bound, gain, div = grids[law]
-            panels = ((bound, r"ultimate bound $\|\xi\|$ [m]", "viridis", norm, "{:.3g}"),
+            panels = ((bound, r"ultimate bound of the true $\|\xi\|$ [m]", "viridis", norm, "{:.3g}"),
                       (gain, r"peak gain max($K_p$, $K_v$)", "magma", None, "{:.3g}"),
                       (div, "diverged", "Reds", None, None))
             for r, (z, label, cmap, nrm, fmt) in enumerate(panels):

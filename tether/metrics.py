@@ -10,6 +10,8 @@ Definitions (also in ``docs/metrics.md``):
 * gain growth rate: least-squares slope of the agents' mean ``Kp`` (and ``Kv``) over the last half
   of the run [1/s]; about 0 when the gains are bounded, positive while they drift.
 * tracking error: ``max_i ||p_i - h_i - p_leader||`` over the tail [m] (needs the offsets).
+* true formation error: Eq. 8 from the recorded positions (:func:`formation_error`), against the
+  ``xi`` the agents computed from the neighbour data they had.
 """
 
 from __future__ import annotations
@@ -58,6 +60,18 @@ def tracking_error(run: Run, offsets: np.ndarray, tail: float = 0.1) -> float:
     """``max_i ||p_i - h_i - p_leader||`` over the tail [m]; ``offsets`` is ``(N, d)``."""
     e = run.p - offsets[None] - run.leader_p[:, None, :]
     return float(np.nanmax(np.linalg.norm(e, axis=2)[_tail(run, tail)]))
+
+
+def formation_error(run: Run, adjacency: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The true formation error ``xi_i = sum_j a_ij ((p_i - h_i) - (p_j - h_j))`` (Eq. 8) of every
+    agent at every tick, from the recorded positions, ``(T, N, d)``. It differs from the ``xi`` the
+    agents computed (``run.xi``) when they used old or substituted neighbour data (a degraded
+    network). ``adjacency`` is :attr:`tether.graph.Topology.adjacency` (leader last), ``offsets``
+    the agents' ``h_i`` ``(N, d)``."""
+    n = offsets.shape[0]
+    e = np.concatenate([run.p - offsets[None], run.leader_p[:, None, :]], axis=1)  # (T, N+1, d)
+    a = adjacency[:n]
+    return a.sum(axis=1)[None, :, None] * e[:, :n] - np.einsum("ij,tjd->tid", a, e)
 
 
 def summary(run: Run, tail: float = 0.1) -> dict[str, float]:
