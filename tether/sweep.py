@@ -140,7 +140,8 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         "kp_growth_per_s": s["kp_growth_per_s"],
         "kv_growth_per_s": s["kv_growth_per_s"],
         "max_xi_m": s["max_xi_m"],
-        "diverged": bool(s["diverged"] or run.meta.get("diverged_at") is not None),
+        "diverged": bool(s["diverged"] or run.meta.get("diverged_at") is not None
+                         or not true_max <= lockstep.DIVERGE_AT),
         "diverged_at_s": run.meta.get("diverged_at"),
     }
     src = ex.get("link_src")
