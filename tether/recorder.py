@@ -9,6 +9,7 @@ in both cases (a stopped run is marked ``complete = false``).
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 from pathlib import Path
@@ -20,6 +21,10 @@ from tether.node import Node
 from tether.runfile import Run
 
 log = logging.getLogger("tether")
+
+STOP_GRACE = 2.0
+"""Real time: when every producer has left before the last tick, how long to wait for this
+process's own stop signal before calling the run cut short [s]."""
 
 
 class Recording:
@@ -168,6 +173,14 @@ def make(out: Path):
         complete = bool(np.all(rec.count >= rec.expected))
         rec.save(complete=complete, drops=node.receiver.drops)
         if rec.count[last] == 0:
+            # the producers may have left because the run is being stopped (Ctrl-C): then this
+            # process's own stop follows within moments, and ends it as stopped, not failed
+            try:
+                async with asyncio.timeout(STOP_GRACE):
+                    await node.stop.wait()
+                    await asyncio.Event().wait()  # stopping: serve() cancels this task (exit 143)
+            except TimeoutError:
+                pass
             raise RuntimeError("every producer left before the last tick: the run was cut short "
                                f"(recorded {int(rec.count.sum())} of {rec.expected * len(rec.count)} samples)")
 
