@@ -148,3 +148,15 @@ def test_bad_grids_are_refused_before_anything_runs(tmp_path: Path, args: list[s
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_the_runtime_engine_gives_the_same_map(tmp_path: Path) -> None:
+    """``--engine runtime`` runs ``tether run`` for every point: the same figures as in process."""
+    m = load_mission(builtin_path("section4"))
+    grid = {"loss": [30.0], "delay": [0.0, 50.0], "burst": [1.0], "laws": ("sigma",), "duration": 2.0}
+    fast = sweep.sweep(m, tmp_path / "fast", **grid)
+    slow = sweep.sweep(m, tmp_path / "slow", engine="runtime", **grid)
+    for a, b in zip(fast, slow):
+        for key in ("ultimate_bound_m", "ultimate_bound_seen_m", "max_xi_true_m", "peak_gain", "final_kp_mean"):
+            assert a[key] == b[key], (key, a, b)
+        assert a["delivery_ratio"] == pytest.approx(b["delivery_ratio"], abs=0.02)
