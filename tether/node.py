@@ -314,7 +314,7 @@ class Node:
             for src, ch in sorted(channels.items()):
                 if rule.src not in (None, src):
                     continue
-                now = ch.last_offer
+                now = max(ch.last_offer, 0.0)  # before the first offer: from tick 0
                 at = msg.at if msg.at is not None else (
                     self.mission_time() if isinstance(self.clock, RealtimeClock) else now)
                 if at < now:
