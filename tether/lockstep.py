@@ -29,20 +29,17 @@ finite is stopped there: the rest of its samples are NaN and ``meta["diverged_at
 from __future__ import annotations
 
 import math
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from agent.law import AgentLaw, neighbour_sample
 from leader import profile
-from netem.channel import DeliveryQueue, Link, link_rng
-from netem.profile import schedule
 from plant import base as plants
 from tether import wire
 from tether.mission import Mission
-from tether.node import RECENT_SEQS
+from tether.node import Channel, Source
 from tether.runfile import Run
 
 Progress = Callable[[int, int], None]
@@ -53,47 +50,22 @@ DIVERGE_AT = 1e6
 
 @dataclass
 class _InLink:
-    """Agent i's view of in-neighbour j through one emulated link (``tether.node.Channel`` and the
-    part of ``Source`` the agent reads)."""
+    """Agent i's input from in-neighbour j: the runtime's own :class:`~tether.node.Source` (the
+    samples accepted, newest first, stale/duplicate/reordered counts) behind its
+    :class:`~tether.node.Channel` (the emulated link; None without ``[netem]``)."""
 
     src: int
-    link: Link | None
-    changes: list
-    queue: DeliveryQueue = field(default_factory=DeliveryQueue)
-    next_change: int = 1
-    newest_k: int = -1
-    newest: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
-    received: int = 0
-    stale: int = 0
-    duplicates: int = 0
-    reordered: int = 0
-    recent: deque = field(default_factory=lambda: deque(maxlen=RECENT_SEQS))
+    source: Source
+    channel: Channel | None
     used: int = 0
-    corrupt: int = 0
-    ages: list[float] = field(default_factory=list)
-
-    def send(self, now: float, payload: bytes) -> None:
-        while self.next_change < len(self.changes) and self.changes[self.next_change][0] <= now:
-            self.link.set_profile(self.changes[self.next_change][1])
-            self.next_change += 1
-        self.queue.push(self.link.offer(now, payload))
 
     def release(self, now: float) -> None:
-        for copy in self.queue.pop_due(now):
+        """Hand the copies the link delivers by ``now`` to the source, as ``Node.release`` does."""
+        for copy in self.channel.release(now):
             if copy.corrupted:  # fails its checksum at the receiver
-                self.corrupt += 1
+                self.source.corrupt += 1
                 continue
-            msg = wire.decode(copy.payload)
-            self.received += 1
-            seen = msg.seq in self.recent
-            self.recent.append(msg.seq)
-            if msg.k <= self.newest_k:
-                self.stale += 1
-                self.duplicates += seen
-                self.reordered += not seen
-                continue
-            self.newest_k = msg.k
-            self.newest = (msg.t, np.array(msg.p), np.array(msg.vel), np.array(msg.a))
+            self.source.offer(wire.decode(copy.payload))
 
 
 def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
@@ -119,10 +91,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     net = m.netem
 
     def in_link(j: int, i: int) -> _InLink:
-        if net is None:
-            return _InLink(j, None, [])
-        changes = schedule(net, j, i)
-        return _InLink(j, Link(changes[0][1], link_rng(m.seed, j, i)), changes)
+        source = Source(f"{j}->{i}", wire.State, j, keep=False)
+        return _InLink(j, source, None if net is None else Channel.of(m, j, i))
 
     links = [[in_link(j, i) for j in law.neighbours] for i, law in zip(ids, laws)]
     nb = [np.zeros((3, len(row), d)) for row in links]  # per agent: the neighbours' p, v, a
@@ -164,16 +134,18 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         for i, (law, row) in enumerate(zip(laws, links)):
             nb_p, nb_v, nb_a = nb[i]
             for s, lk in enumerate(row):
-                if lk.link is None:
+                if lk.channel is None:
                     sample, age = sent[lk.src][1:], 0.0
-                    lk.received += 1
+                    lk.source.received += 1
                 else:
-                    lk.send(t, payloads[lk.src])
+                    lk.channel.send(t, payloads[lk.src])
                     lk.release(t)
-                    if lk.newest is None:
+                    newest = lk.source.newest
+                    if newest is None:
                         sample, age = None, math.nan
                     else:
-                        sample, age = lk.newest[1:], t - lk.newest[0]
+                        sample = (np.array(newest.p), np.array(newest.vel), np.array(newest.a))
+                        age = t - newest.t
                 nb_p[s], nb_v[s], nb_a[s], ok = neighbour_sample(p[i], v[i], shared[i], law.deltas[s], sample, age,
                                                                  policy.max_age, policy.compensate)
                 lk.used += ok
@@ -218,12 +190,13 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     for i, row in enumerate(links):
         for s, lk in enumerate(row):
             ex["link_src"][i, s] = lk.src
-            ex["link_received"][i, s] = lk.received
+            src = lk.source
+            ex["link_received"][i, s] = src.received
             ex["link_used"][i, s] = lk.used
-            ex["link_stale"][i, s] = lk.stale
-            ex["link_duplicates"][i, s] = lk.duplicates
-            ex["link_reordered"][i, s] = lk.reordered
-            ex["link_corrupt"][i, s] = lk.corrupt
+            ex["link_stale"][i, s] = src.stale
+            ex["link_duplicates"][i, s] = src.duplicates
+            ex["link_reordered"][i, s] = src.reordered
+            ex["link_corrupt"][i, s] = src.corrupt
     ex["link_age"] = ages
     ex.update(extras)
     for host in hosts:

@@ -153,6 +153,13 @@ class Channel:
     queue: DeliveryQueue = field(default_factory=DeliveryQueue)
     _next: int = 1
 
+    @classmethod
+    def of(cls, m: ms.Mission, src: int, dst: int) -> "Channel":
+        """Link ``src -> dst`` of mission ``m``'s ``[netem]`` section: its profile schedule and
+        its generator ``link_rng(m.seed, src, dst)``."""
+        changes = schedule(m.netem, src, dst)
+        return cls(Link(changes[0][1], link_rng(m.seed, src, dst), log=m.netem.log), changes)
+
     def send(self, now: float, payload: bytes) -> None:
         while self._next < len(self.changes) and self.changes[self._next][0] <= now:
             self.link.set_profile(self.changes[self._next][1])
@@ -253,11 +260,8 @@ class Node:
         link ``sender -> node`` when it has a ``[netem]`` section (an ideal link delivers every sample
         at its own time: the run is then the same as without the section, bit for bit)."""
         src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep)
-        net = self.mission.netem
-        if link and net is not None and sender is not None:
-            changes = schedule(net, sender, self.args.node_id)
-            rng = link_rng(self.mission.seed, sender, self.args.node_id)
-            src.channel = Channel(Link(changes[0][1], rng, log=net.log), changes)
+        if link and self.mission.netem is not None and sender is not None:
+            src.channel = Channel.of(self.mission, sender, self.args.node_id)
         self.sources[key] = src
         if subscribe:
             self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
