@@ -46,14 +46,16 @@ from pathlib import Path
 import numpy as np
 
 from plant.base import Sample
-from plant.quadrotor import eq4
+from plant.cfsim import firmware
+from plant.quadrotor import QuadrotorParams, eq4
 from tether import mission as ms
 
 log = logging.getLogger("tether")
 
-G = 9.81
-MOTOR_THRUST_MAX = 0.1125
-"""Per-motor thrust at full command [N] (crazyflie-firmware THRUST_MAX, CF 2.1 propellers)."""
+_CF21 = QuadrotorParams()
+G = _CF21.g
+MOTOR_THRUST_MAX = _CF21.motor_thrust_max
+"""Per-motor thrust at full command [N] (a Crazyflie 2.1's, with its source in ``plant.quadrotor``)."""
 LOG_PERIOD_MS = 10
 STALE_AFTER = 1.0
 """A link whose state estimate has not come for this long [s] counts as lost (100 log packets at
@@ -65,9 +67,10 @@ class LinkLost(RuntimeError):
 
 
 def thrust_to_pwm(thrust: float, f_max: float = MOTOR_THRUST_MAX) -> int:
-    """Collective thrust [N] -> the 16-bit ``send_setpoint`` thrust (the firmware's linear,
-    battery-compensated map), clamped to 0..65535."""
-    return int(min(max(round(thrust / (4.0 * f_max) * 65535.0), 0), 65535))
+    """Collective thrust [N] -> the 16-bit ``send_setpoint`` thrust: the firmware's linear,
+    battery-compensated map (:func:`plant.cfsim.firmware.thrust_to_pwm`), rounded and clamped to
+    0..65535."""
+    return int(min(max(round(firmware.thrust_to_pwm(thrust, f_max)), 0), firmware.PWM_FULL))
 
 
 def toc_cache() -> Path:

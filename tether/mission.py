@@ -829,39 +829,31 @@ def _validate_physics(m: Mission, out: Problems) -> None:
     for k, a in enumerate(m.agents):
         p = a.plant
         where = f"agents[{k}].plant"
-        if isinstance(p, physical):
-            if m.dim != 3:
-                out.append((where, f"is a {p.__struct_config__.tag} in a {m.dim}D mission; these vehicles fly in 3D: "
-                                   "set `dim = 3` (and 3-vectors), or use `double_integrator`"))
-            if not p.mass > 0:
-                out.append((f"{where}.mass", f"is {p.mass} kg; give the vehicle's mass > 0, e.g. 0.029"))
-            if p.feedforward_mass < 0:
-                out.append((f"{where}.feedforward_mass", f"is {p.feedforward_mass} kg; use >= 0 (0: off)"))
-            if p.integrator is not None:
-                if not p.integrator.gain > 0:
-                    out.append((f"{where}.integrator.gain", f"is {p.integrator.gain}; use a gain > 0 [1/s], e.g. 2.0, "
-                                                            "or remove the integrator"))
-                if not p.integrator.limit > 0:
-                    out.append((f"{where}.integrator.limit", f"is {p.integrator.limit}; use a bound > 0 [m/s^2], e.g. 6.0"))
-        if isinstance(p, QuadrotorPlant) and not 0 < p.tilt_max < 90:
-            out.append((f"{where}.tilt_max", f"is {p.tilt_max} deg; use an angle in (0, 90), e.g. 20"))
-    for k, a in enumerate(m.agents):
-        p = a.plant
-        where = f"agents[{k}].plant"
-        if not isinstance(p, CrazyfliePlant):
+        if isinstance(p, DoubleIntegrator):
             continue
+        # every vehicle with mass: point mass, quadrotor, Crazyflie
         if m.dim != 3:
-            out.append((where, f"is a crazyflie in a {m.dim}D mission; set `dim = 3` (and 3-vectors)"))
-        if not p.uri.startswith(("radio://", "usb://", "udp://")):
-            out.append((f"{where}.uri", f"is {p.uri!r}; give a cflib URI: radio://0/80/2M/E7E7E7E701, usb://0 "
-                                        "or udp://127.0.0.1:19850 (the software Crazyflie)"))
-        for name in ("takeoff_height", "takeoff_time", "land_time", "connect_timeout", "mass"):
-            if not getattr(p, name) > 0:
-                out.append((f"{where}.{name}", f"is {getattr(p, name)}; use a value > 0"))
+            out.append((where, f"is a {p.__struct_config__.tag} in a {m.dim}D mission; these vehicles fly in 3D: "
+                               "set `dim = 3` (and 3-vectors), or use `double_integrator`"))
+        if not p.mass > 0:
+            out.append((f"{where}.mass", f"is {p.mass} kg; give the vehicle's mass > 0, e.g. 0.029"))
         if p.feedforward_mass < 0:
             out.append((f"{where}.feedforward_mass", f"is {p.feedforward_mass} kg; use >= 0 (0: off)"))
-        if not 0 < p.tilt_max < 90:
+        if not isinstance(p, PointMassPlant) and not 0 < p.tilt_max < 90:
             out.append((f"{where}.tilt_max", f"is {p.tilt_max} deg; use an angle in (0, 90), e.g. 20"))
+        if isinstance(p, physical) and p.integrator is not None:
+            if not p.integrator.gain > 0:
+                out.append((f"{where}.integrator.gain", f"is {p.integrator.gain}; use a gain > 0 [1/s], e.g. 2.0, "
+                                                        "or remove the integrator"))
+            if not p.integrator.limit > 0:
+                out.append((f"{where}.integrator.limit", f"is {p.integrator.limit}; use a bound > 0 [m/s^2], e.g. 6.0"))
+        if isinstance(p, CrazyfliePlant):
+            if not p.uri.startswith(("radio://", "usb://", "udp://")):
+                out.append((f"{where}.uri", f"is {p.uri!r}; give a cflib URI: radio://0/80/2M/E7E7E7E701, usb://0 "
+                                            "or udp://127.0.0.1:19850 (the software Crazyflie)"))
+            for name in ("takeoff_height", "takeoff_time", "land_time", "connect_timeout"):
+                if not getattr(p, name) > 0:
+                    out.append((f"{where}.{name}", f"is {getattr(p, name)}; use a value > 0"))
     if m.payload is not None:
         pl = m.payload
         if m.dim != 3:
