@@ -33,6 +33,7 @@ import msgspec
 import numpy as np
 
 from plant.payload import CableParams, hover_equilibrium
+from plant.vehicle import G
 from tether import figures, lockstep, metrics
 from tether import mission as ms
 from tether.catalog import builtin_path
@@ -98,7 +99,8 @@ def summary(m: ms.Mission, run: Run) -> dict:
     settle = float(run.t[0]) if len(above) == 0 else (float(run.t[above[-1] + 1]) if above[-1] + 1 < len(run.t)
                                                         else math.nan)
     err = run.p - offsets[None] - run.leader_p[:, None, :]
-    tail = slice(int(len(run.t) * 0.9), None)
+    tail = metrics.tail_slice(run, 0.1)
+    s = metrics.summary(run)
     # reached: within the band and staying there for HOLD_S (a zero crossing on the way is not it)
     ok = worst <= SETTLE_BAND
     hold = max(1, int(round(HOLD_S / (run.t[1] - run.t[0]))))
@@ -109,16 +111,12 @@ def summary(m: ms.Mission, run: Run) -> dict:
         "formation_reached_s": reached,
         "max_xi_after_reached_m": float(np.nanmax(worst[inside[0]:])) if len(inside) else math.nan,
         "settling_time_s": settle,
-        "ultimate_bound_xi_m": float(np.nanmax(xn[tail])),
-        "peak_kp": float(np.nanmax(run.kp)),
-        "peak_kv": float(np.nanmax(run.kv)),
-        "final_kp_mean": float(np.nanmean(run.kp[-1])),
-        "final_kv_mean": float(np.nanmean(run.kv[-1])),
+        **{key: s[key] for key in ("ultimate_bound_xi_m", "peak_kp", "peak_kv", "final_kp_mean", "final_kv_mean")},
         "tracking_error_end_m": float(np.nanmax(np.linalg.norm(err[-1], axis=1))),
-        "tracking_error_tail_m": float(np.nanmax(np.linalg.norm(err[tail], axis=2))),
+        "tracking_error_tail_m": metrics.tracking_error(run, offsets),
         "velocity_error_tail_mps": float(np.nanmax(np.linalg.norm(run.v[tail] - run.leader_v[tail, None, :], axis=2))),
         "min_altitude_m": float(np.nanmin(run.p[:, :, 2])) if run.p.shape[2] == 3 else math.nan,
-        "diverged": bool(run.meta.get("diverged_at") is not None or not np.all(np.isfinite(run.xi))),
+        "diverged": bool(s["diverged"] or run.meta.get("diverged_at") is not None),
     }
     ex = run.extra
     if "payload_p" in ex and m.payload is not None:
@@ -131,7 +129,7 @@ def summary(m: ms.Mission, run: Run) -> dict:
         out["payload_error_m"] = float(np.linalg.norm(ex["payload_p"][-1] - dest))
         lifted = np.nonzero(ex["payload_p"][:, 2] > (m.floor or 0.0) + 0.01)[0]
         out["payload_lifted_at_s"] = float(run.t[lifted[0]]) if len(lifted) else math.nan
-        weight = pl.mass * 9.81
+        weight = pl.mass * G
         out["payload_weight_N"] = weight
         out["max_tension_N"] = float(np.nanmax(ex["tension"]))
         out["slack_events"] = int(np.nansum(ex["slack_events"][-1]))

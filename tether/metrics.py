@@ -27,13 +27,14 @@ def xi_norm(run: Run) -> np.ndarray:
     return np.linalg.norm(run.xi, axis=2)
 
 
-def _tail(run: Run, tail: float) -> slice:
+def tail_slice(run: Run, tail: float) -> slice:
+    """The samples of the last ``tail`` fraction of the run."""
     n = len(run.t)
     return slice(min(n - 1, int(math.floor(n * (1.0 - tail)))), n)
 
 
 def ultimate_bound(run: Run, tail: float = 0.1) -> float:
-    return float(np.nanmax(xi_norm(run)[_tail(run, tail)]))
+    return float(np.nanmax(xi_norm(run)[tail_slice(run, tail)]))
 
 
 def settling_time(run: Run, tail: float = 0.1, settle_factor: float = 1.1) -> float:
@@ -59,7 +60,7 @@ def growth_rate(t: np.ndarray, k: np.ndarray) -> float:
 def tracking_error(run: Run, offsets: np.ndarray, tail: float = 0.1) -> float:
     """``max_i ||p_i - h_i - p_leader||`` over the tail [m]; ``offsets`` is ``(N, d)``."""
     e = run.p - offsets[None] - run.leader_p[:, None, :]
-    return float(np.nanmax(np.linalg.norm(e, axis=2)[_tail(run, tail)]))
+    return float(np.nanmax(np.linalg.norm(e, axis=2)[tail_slice(run, tail)]))
 
 
 def formation_error(run: Run, adjacency: np.ndarray, offsets: np.ndarray) -> np.ndarray:

@@ -123,8 +123,7 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         s = metrics.summary(run)
         true = np.linalg.norm(metrics.formation_error(run, graph.topology(m).adjacency,
                                                       np.array([a.offset for a in m.agents], dtype=float)), axis=2)
-        tail = slice(min(len(run.t) - 1, int(math.floor(len(run.t) * 0.9))), None)
-        true_bound = float(np.nanmax(true[tail]))
+        true_bound = float(np.nanmax(true[metrics.tail_slice(run, 0.1)]))
         true_max = float(np.nanmax(true))
     ex = run.extra
     row: dict[str, float | bool | None] = {
