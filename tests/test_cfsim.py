@@ -12,23 +12,19 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import queue
 import signal
 import struct
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 
 from plant.cfsim import crtp, firmware, toc
 from plant.quadrotor import Quadrotor, QuadrotorParams
+from tests.support import SoftwareCrazyflies, software_crazyflies
 
 cflib_crtp = pytest.importorskip("cflib.crtp")
 from cflib.crazyflie import Crazyflie  # noqa: E402
@@ -36,7 +32,6 @@ from cflib.crazyflie.log import LogConfig  # noqa: E402
 from cflib.crtp.udpdriver import UdpDriver  # noqa: E402
 from cflib.utils.encoding import compress_quaternion  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 BASE_PORT = 19850
 COUNT = 5
 PORT_CONNECT, PORT_LOG, PORT_HL, PORT_WATCHDOG, PORT_STOP = range(BASE_PORT, BASE_PORT + COUNT)
@@ -128,54 +123,15 @@ def test_watchdog_in_simulated_time() -> None:
 
 
 # =========================================================================== process helpers
-@dataclass
-class Sim:
-    proc: subprocess.Popen[str]
-    uris: dict[int, str]
-    stderr: list[str] = field(default_factory=list)
-
-
 @pytest.fixture(scope="module")
-def sim() -> Iterator[Sim]:
-    cmd = [sys.executable, "-m", "plant.cfsim", "--count", str(COUNT), "--base-port", str(BASE_PORT),
-           "--log-level", "WARNING"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    lines: queue.Queue[str | None] = queue.Queue()
-    sim = Sim(proc, {})
-
-    def pump(stream: Any, sink: Callable[[str], None]) -> None:
-        for line in stream:
-            sink(line.rstrip("\n"))
-        if stream is proc.stdout:
-            lines.put(None)
-
-    threads = [threading.Thread(target=pump, args=(proc.stdout, lines.put), daemon=True),
-               threading.Thread(target=pump, args=(proc.stderr, sim.stderr.append), daemon=True)]
-    for th in threads:
-        th.start()
-    try:
-        deadline = time.monotonic() + STARTUP
-        while True:
-            try:
-                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                pytest.fail(f"simulator not ready within {STARTUP:g} s; stderr: {sim.stderr}")
-            if line is None:
-                pytest.fail(f"simulator exited with {proc.wait()}; stderr: {sim.stderr}")
-            if line == "cfsim ready":
-                break
-            _, i, uri = line.split()
-            sim.uris[int(i)] = uri
+def sim() -> Iterator[SoftwareCrazyflies]:
+    with software_crazyflies(["--count", str(COUNT), "--base-port", str(BASE_PORT), "--log-level", "WARNING"],
+                             STARTUP) as sim:
         assert sim.uris == {i: f"udp://127.0.0.1:{BASE_PORT + i}" for i in range(COUNT)}
         cflib_crtp.init_drivers()
         yield sim
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=10) == 0, sim.stderr
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        sim.proc.send_signal(signal.SIGTERM)
+        assert sim.proc.wait(timeout=10) == 0, sim.stderr
 
 
 @contextlib.contextmanager
@@ -247,7 +203,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 # =========================================================================== against cflib
-def test_every_vehicle_answers_scan_connect_and_params(sim: Sim) -> None:
+def test_every_vehicle_answers_scan_connect_and_params(sim: SoftwareCrazyflies) -> None:
     found = {uri for uri, _ in UdpDriver().scan_interface()}
     assert {sim.uris[i] for i in range(COUNT)} <= found
     with connected(sim.uris[PORT_CONNECT - BASE_PORT]) as cf:
@@ -274,7 +230,7 @@ def test_every_vehicle_answers_scan_connect_and_params(sim: Sim) -> None:
         assert (cf1.param.get_value("cfsim.instance"), cf2.param.get_value("cfsim.instance")) == ("1", "2")
 
 
-def test_log_block_at_100_hz(sim: Sim) -> None:
+def test_log_block_at_100_hz(sim: SoftwareCrazyflies) -> None:
     names = [f"stateEstimate.{n}" for n in ("x", "y", "z", "vx", "vy", "vz")]
     with connected(sim.uris[PORT_LOG - BASE_PORT]) as cf:
         stream = LogStream(cf, names)
@@ -296,7 +252,7 @@ def test_log_block_at_100_hz(sim: Sim) -> None:
     assert np.all(steps == 10), steps  # firmware timestamps [ms]: one packet every 10 ms
 
 
-def test_high_level_take_off_and_land(sim: Sim) -> None:
+def test_high_level_take_off_and_land(sim: SoftwareCrazyflies) -> None:
     with connected(sim.uris[PORT_HL - BASE_PORT]) as cf:
         stream = LogStream(cf, ["stateEstimate.z", "stateEstimate.vz", "stabilizer.thrust", "supervisor.info"])
         stream.wait(lambda d: True, 5.0, "the first log packet")
@@ -323,7 +279,7 @@ def test_high_level_take_off_and_land(sim: Sim) -> None:
         assert not info & (1 << firmware.BIT_LOCKED) and info & (1 << firmware.BIT_CAN_FLY)
 
 
-def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: Sim) -> None:
+def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: SoftwareCrazyflies) -> None:
     with connected(sim.uris[PORT_WATCHDOG - BASE_PORT]) as cf:
         hover = int(cf.param.get_value("cfsim.hoverPwm"))
         att = LogStream(cf, ["stateEstimate.z", "stateEstimate.vz", "stateEstimate.roll", "stateEstimate.pitch",
@@ -378,7 +334,7 @@ def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: Sim) -> None:
         vel.wait(lambda d: int(d["supervisor.info"]) & (1 << firmware.BIT_LOCKED), 1.0, "the supervisor to lock")
 
 
-def test_stop_setpoint_thrust_lock_and_notify_stop(sim: Sim) -> None:
+def test_stop_setpoint_thrust_lock_and_notify_stop(sim: SoftwareCrazyflies) -> None:
     with connected(sim.uris[PORT_STOP - BASE_PORT]) as cf:
         hover = int(cf.param.get_value("cfsim.hoverPwm"))
         stream = LogStream(cf, ["stateEstimate.z", "stabilizer.thrust", "supervisor.info"])
@@ -409,7 +365,7 @@ def test_stop_setpoint_thrust_lock_and_notify_stop(sim: Sim) -> None:
 
 
 
-def test_generic_position_full_state_and_velocity_setpoints(sim: Sim) -> None:
+def test_generic_position_full_state_and_velocity_setpoints(sim: SoftwareCrazyflies) -> None:
     with connected(sim.uris[PORT_CONNECT - BASE_PORT]) as cf:
         stream = LogStream(cf, ["stateEstimate.x", "stateEstimate.y", "stateEstimate.z", "stateEstimate.vx",
                                 "stateEstimate.yaw"])

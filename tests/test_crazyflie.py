@@ -18,6 +18,7 @@ import pytest
 
 pytest.importorskip("cflib.crtp")
 
+from tests import support  # noqa: E402
 from tests.support import read, wait_until  # noqa: E402
 from tether import metrics  # noqa: E402
 from tether import mission as ms  # noqa: E402
@@ -31,32 +32,12 @@ START = [(0.6, 0.0, 0.0), (0.0, 0.6, 0.0), (0.0, -0.6, 0.0), (-0.6, 0.0, 0.0)]
 
 @contextlib.contextmanager
 def software_crazyflies(ports: list[int], starts: list[tuple[float, float, float]]):
-    """One cfsim process per vehicle (so that one can be killed alone); yields the processes."""
-    procs = []
-    try:
-        for port, p0 in zip(ports, starts):
-            procs.append(subprocess.Popen(
-                [sys.executable, "-m", "plant.cfsim", "--count", "1", "--base-port", str(port), "--instance",
-                 str(port - BASE_PORT), "--p0=" + ",".join(map(str, p0))],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-        for proc in procs:
-            deadline = time.monotonic() + 30
-            for line in proc.stdout:
-                if line.startswith("cfsim ready"):
-                    break
-                assert time.monotonic() < deadline, "software Crazyflie did not start"
-            else:
-                raise AssertionError(f"software Crazyflie exited: {proc.stderr.read()[-2000:]}")
-        yield procs
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+    """One software Crazyflie process per vehicle (so that one can be killed alone); yields the processes."""
+    with contextlib.ExitStack() as stack:
+        yield [stack.enter_context(support.software_crazyflies(
+                   ["--count", "1", "--base-port", str(port), "--instance", str(port - BASE_PORT),
+                    "--p0=" + ",".join(map(str, p0))])).proc
+               for port, p0 in zip(ports, starts)]
 
 
 def crazyflie_mission(tmp: Path, ports: list[int], duration: float) -> Path:
