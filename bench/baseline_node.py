@@ -17,7 +17,7 @@ process is also the memory and CPU floor of "a Python process that speaks Zenoh"
 Hand-off (like tether's): a subscriber callback runs on zenoh-python's per-subscriber thread and
 only appends ``(input, payload)`` to a deque; where the process must react to a sample (every
 input in lockstep, the agent's plant input in real time) it also wakes the asyncio loop (one
-``call_soon_threadsafe`` per burst, as ``tether.transport.Wakeup``). Otherwise the loop is
+``call_soon_threadsafe`` per burst, as ``tether.handoff.Wakeup``). Otherwise the loop is
 timer-driven and reads the newest payload per input at its tick.
 
 Lockstep per tick k (the dependency pattern of tether's roles):

@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.factories import build  # noqa: E402
-from tether import refsim  # noqa: E402
+from sim import refsim  # noqa: E402
 
 
 def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):

@@ -71,6 +71,7 @@ except ImportError:
     AGENT_PHASE = 0.0
 from tether import mission as ms  # noqa: E402
 from tether import catalog  # noqa: E402
+from tether import handoff  # noqa: E402
 from tether import transport as tp  # noqa: E402
 from tether import wire  # noqa: E402
 
@@ -553,7 +554,7 @@ def _reader(stream, q: queue.Queue) -> None:
 
 def _tether_cmd() -> list[str]:
     exe = Path(PY).parent / "tether"
-    return [str(exe)] if exe.exists() else [PY, "-m", "tether.cli"]
+    return [str(exe)] if exe.exists() else [PY, "-m", "cli"]
 
 
 def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, work: Path,
@@ -597,8 +598,8 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
                 res.startup_s = time.monotonic() - t_start
                 for c in children_of(p.pid):
                     args = cmdline(c)
-                    if "tether.cli" in args:
-                        role = args[args.index("tether.cli") + 1]
+                    if "cli" in args:
+                        role = args[args.index("cli") + 1]
                         nid = int(args[args.index("--id") + 1]) if "--id" in args else 0
                         res.procs.append(Proc(c, role, nid))
                 res.procs.append(Proc(p.pid, "launcher", 0))
@@ -813,7 +814,7 @@ def _med_dict(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
-    from tether import refsim
+    from sim import refsim
     from tether.node import load_mission
 
     path = catalog.resolve(a.mission)
@@ -1114,7 +1115,7 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     rows["  ... all(map(math.isfinite, v))"] = us(lambda: all(map(math.isfinite, vec)))
 
     async def wakeups() -> tuple[float, float, float]:
-        w, loop, ev, n = tp.Wakeup(), asyncio.get_running_loop(), asyncio.Event(), 20000
+        w, loop, ev, n = handoff.Wakeup(), asyncio.get_running_loop(), asyncio.Event(), 20000
         t0 = time.thread_time()
         for _ in range(n):
             w.notify()
@@ -1145,7 +1146,7 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
     """Run ``tether run`` (launcher in this process) with one child under cProfile and print where its
     time goes. ``who`` is ``role:id`` (``agent:1``, ``recorder:0``, ...). The child is started by the
     launcher exactly as usual but through ``bench/runtime.py _cprofile FILE`` instead of ``-m
-    tether.cli``: ``cProfile`` with ``time.thread_time`` as its timer, so the figures are CPU time of
+    cli.main``: ``cProfile`` with ``time.thread_time`` as its timer, so the figures are CPU time of
     the asyncio thread (time asleep in epoll counts as zero, Zenoh's and the callbacks' threads are
     not in it: see the per-thread CPU of the cases for those)."""
     import asyncio
@@ -1163,7 +1164,7 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
     real_popen = subprocess.Popen
 
     def popen(cmd, *args, **kwargs):
-        if "tether.cli" in cmd and cmd[cmd.index("tether.cli") + 1] == role and \
+        if "cli" in cmd and cmd[cmd.index("cli") + 1] == role and \
                 (role in ("leader", "recorder") or cmd[cmd.index("--id") + 1] == nid):
             i = cmd.index("-m")
             cmd = [*cmd[:i], __file__, "_cprofile", str(prof), *cmd[i + 2:]]
@@ -1184,12 +1185,12 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
 
 
 def cprofile_child(out: str, args: list[str]) -> int:
-    """``python bench/runtime.py _cprofile OUT <tether.cli args>``: run the CLI under cProfile timed by
+    """``python bench/runtime.py _cprofile OUT <cli.main args>``: run the CLI under cProfile timed by
     the main thread's CPU clock; stats are written to OUT when it returns (SIGTERM ends it normally)."""
     import cProfile
     import signal
 
-    from tether import cli
+    from cli import main as cli
 
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     prof = cProfile.Profile(time.thread_time)

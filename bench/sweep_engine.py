@@ -1,4 +1,4 @@
-"""How much faster the in-process lockstep engine (tether/lockstep.py, what ``tether sweep`` runs by
+"""How much faster the in-process lockstep engine (sim/lockstep.py, what ``tether sweep`` runs by
 default) is than the distributed lockstep runtime (``tether run``) on the same mission, and that the
 two still agree bit for bit. Prints medians of ``--repeats`` runs of each, measured in one go.
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tether import lockstep
+from sim import lockstep
 from tether.catalog import builtin_path
 from tether.node import load_mission
 from tether.runfile import Run
@@ -40,7 +40,7 @@ def main() -> int:
             inproc.append(time.perf_counter() - t0)
             out = Path(tmp) / f"run{r}"
             t0 = time.perf_counter()
-            done = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(out),
+            done = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out),
                                    "--duration", str(args.duration), "--quiet"], capture_output=True, text=True)
             runtime.append(time.perf_counter() - t0)
             if done.returncode != 0:

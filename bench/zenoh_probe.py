@@ -8,7 +8,7 @@ each payload starts with the sender's CLOCK_MONOTONIC time (system-wide on Linux
 processes). A subscriber process records, per sample:
 
 - ``callback``: time at the subscriber callback (on Zenoh's thread) minus send time;
-- ``loop``: time at which the asyncio task, woken through :class:`tether.transport.Wakeup`, takes the
+- ``loop``: time at which the asyncio task, woken through :class:`tether.handoff.Wakeup`, takes the
   sample from its :class:`LatestSlot`, minus send time: what a control tick would see.
 
 Topologies: ``p2p`` (subscriber peer listens, publisher peer connects) and ``star`` (a router session in
@@ -34,6 +34,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from tether import handoff  # noqa: E402
 from tether import transport as tp  # noqa: E402
 
 KEY = "tether/probe/agent/1/state"
@@ -51,7 +52,7 @@ def run_router(endpoint: str) -> None:
 class _Stamp:
     """Sink that stamps the callback time, then hands the sample to a LatestSlot."""
 
-    def __init__(self, slot: tp.LatestSlot[tuple[int, bytes]], out: list[int]):
+    def __init__(self, slot: handoff.LatestSlot[tuple[int, bytes]], out: list[int]):
         self.slot, self.out = slot, out
 
     def put(self, item: tp.Received) -> None:
@@ -65,8 +66,8 @@ async def run_sub(settings: tp.ZenohSettings, callback: str, seconds: float) -> 
     loop_lat: list[int] = []
     seqs: list[int] = []
     async with tp.open_session(settings) as session:
-        wakeup = tp.Wakeup()
-        slot: tp.LatestSlot[tuple[int, bytes]] = tp.LatestSlot(wakeup)
+        wakeup = handoff.Wakeup()
+        slot: handoff.LatestSlot[tuple[int, bytes]] = handoff.LatestSlot(wakeup)
         stamp = _Stamp(slot, cb_lat)
         if callback == "indirect":
             sub = tp.declare_subscriber(session, KEY, stamp)

@@ -2,7 +2,7 @@
 
 Each process has an identity, the common name (CN) of its certificate (``agent-3.<ns>``). Its
 :class:`Grant` lists exactly the keys the runtime's code uses for that role (``agent/node.py``,
-``plant/node.py``, ``leader/node.py``, ``tether/recorder.py``, ``tether/node.py``,
+``plant/node.py``, ``leader/node.py``, ``recorder/node.py``, ``tether/node.py``,
 ``deploy/start.py``); :func:`access_control` turns the grants into Zenoh 1.x's ``access_control``
 section, which every listening node (the router; every peer in a peer network) enforces on each
 link, by the CN of the certificate the other side presented:
@@ -74,7 +74,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
     k = wire.Keys(ns)
     lid = m.leader.id
     every_token = k.tokens  # @tether/<ns>/**: what Node.watch and wait_for_tokens subscribe to
-    every_netem = f"tether/{ns}/agent/*/netem"  # what tether netem-set asks (tether/control.py)
+    every_netem = f"tether/{ns}/agent/*/netem"  # what tether netem-set asks (netem/control.py)
 
     def state_of(j: int) -> str:
         return k.topic("leader" if j == lid else "agent", j, "state")

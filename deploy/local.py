@@ -46,6 +46,7 @@ from typing import Literal
 
 from tether import mission as ms
 from tether import transport as tp
+from tether import handoff
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
 from tether.progress import Progress
@@ -139,7 +140,7 @@ class Launch:
         if o.handover_runtime:
             env.setdefault("ZENOH_RUNTIME", HANDOVER)
         for role, nid in self.members():
-            cmd = [sys.executable, "-m", "tether.cli", role, "--mission", str(self.mission_path),
+            cmd = [sys.executable, "-m", "cli", role, "--mission", str(self.mission_path),
                    "--clock", o.clock, "--ns", self.keys.ns, "--parent-pid", str(os.getpid()),
                    "--stall-timeout", str(o.stall_timeout), "--lease", str(o.lease), "--log-level", o.log_level]
             if o.duration is not None:
@@ -223,8 +224,8 @@ async def _lockstep(launch: Launch, session, progress: Progress | None) -> None:
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
     src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=o.window)
-    wake = tp.Wakeup()
-    acks: tp.BoundedFifo[tp.Received] = tp.BoundedFifo(1 << 20, wake)
+    wake = handoff.Wakeup()
+    acks: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(1 << 20, wake)
     sub = tp.declare_subscriber(session, keys.acks, acks)
     pub = tp.declare_publisher(session, keys.tick, tp.SYNC)
     receiver = wire.Receiver(m.dim)

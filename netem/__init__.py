@@ -4,10 +4,10 @@ Kernel ``tc netem`` is not available here, could not be per link, and cannot run
 time; this package applies the same impairments to messages instead, on the receive side of each
 directed link ``j -> i``, inside the process that subscribes to ``j``:
 
-* :mod:`netem.profile` — :class:`~netem.profile.LinkProfile` (delay with jitter, distribution and
+* :mod:`tether.netprofile` — :class:`~tether.netprofile.LinkProfile` (delay with jitter, distribution and
   correlation; Bernoulli or Gilbert-Elliott loss; duplication; reordering; corruption; a rate limit
   with a queue; scheduled outages), its validation, named presets, and a proposed mission section
-  (:class:`~netem.profile.Network`) that picks and swaps profiles per link;
+  (:class:`~tether.netprofile.Network`) that picks and swaps profiles per link;
 * :mod:`netem.channel` — :class:`~netem.channel.Link`, one link's state and random streams:
   ``offer(now, payload) -> list[Delivery]``; :class:`~netem.channel.DeliveryQueue` to hold copies
   until due; :func:`~netem.channel.link_rng` to seed each link.

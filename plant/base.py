@@ -17,7 +17,7 @@ commands of tick k held (:meth:`Plant.step`). The mission chooses the plant by n
 A mission disturbance ``d_i(t)`` [m/s^2] acts on a vehicle with mass as the force ``m d_i``,
 held over each period at its value at the period's midpoint (the double integrator integrates it
 exactly instead). :func:`build` makes the plants of a mission; the plant process and the
-in-process engine (:mod:`tether.lockstep`) both use it, so they fly the same arithmetic.
+in-process engine (:mod:`sim.lockstep`) both use it, so they fly the same arithmetic.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ async def run_world(node: Node) -> None:
 
 async def _host(node: Node, ids: list[int], world: bool) -> None:
     m, keys = node.mission, node.keys
-    live = node.args.clock == "realtime"
+    live = not node.clock.lockstep
     if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
         raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
     (plant,) = base.build(m, ids, live=live)

@@ -20,7 +20,7 @@ pytest.importorskip("cflib.crtp")
 
 from tests import support  # noqa: E402
 from tests.support import read, wait_until  # noqa: E402
-from tether import metrics  # noqa: E402
+from sim import metrics  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.catalog import builtin_path  # noqa: E402
 from tether.runfile import Run  # noqa: E402
@@ -94,7 +94,7 @@ def tick0(log: Path) -> float | None:
 
 
 def _run(path: Path, out: Path, extra: list[str] = ()) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(out), "--clock",
+    return subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--clock",
                            "realtime", "--lease", "1", "--quiet", *extra], capture_output=True, text=True, timeout=180)
 
 
@@ -119,7 +119,7 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
     ports = [BASE_PORT + 4 + i for i in range(4)]
     with software_crazyflies(ports, START) as procs:
         path = crazyflie_mission(tmp_path, ports, 14.0)
-        proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(tmp_path / "run"),
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(path), "--out", str(tmp_path / "run"),
                                  "--clock", "realtime", "--lease", "1", "--quiet"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -149,7 +149,7 @@ def test_ctrl_c_lands_every_vehicle(tmp_path: Path) -> None:
     ports = [BASE_PORT + 20 + i for i in range(4)]
     with software_crazyflies(ports, START):
         path = crazyflie_mission(tmp_path, ports, 30.0)
-        proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(tmp_path / "run"),
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(path), "--out", str(tmp_path / "run"),
                                  "--clock", "realtime", "--lease", "1", "--quiet"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:

@@ -36,7 +36,7 @@ import zenoh
 
 from deploy import acl, gen, hosts, pki
 from deploy import start as start_cmd
-from tether import control
+from netem import control
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -314,7 +314,7 @@ def test_the_acl_grants_exactly_what_the_roles_declare(deployment: gen.Deploymen
 def test_units_run_the_entry_points_with_arguments_they_accept(deployment: gen.Deployment) -> None:
     from deploy import router as router_cli
     from deploy import start as start_cli
-    from tether import cli
+    from cli import main as cli
 
     units = sorted(deployment.out.glob("hosts/*/systemd/*.service"))
     assert len(units) == 10
@@ -570,7 +570,7 @@ def test_a_real_time_run_over_the_generated_deployment(running: gen.Deployment) 
         for u in sorted(deployment.out.glob("hosts/*/systemd/*.service")):
             argv = shlex.split(next(x for x in u.read_text().splitlines() if x.startswith("ExecStart="))[10:])
             if argv[0] == TETHER_ON_HOSTS:
-                argv = [sys.executable, "-m", "tether.cli", *argv[1:]]
+                argv = [sys.executable, "-m", "cli", *argv[1:]]
             elif argv[2] == "deploy.router":
                 continue  # running already
             else:

@@ -13,7 +13,7 @@ import pytest
 
 from agent.law import AgentLaw
 from leader import profile
-from tether import experiments, lockstep, metrics
+from sim import experiments, lockstep, metrics
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.runfile import Run
@@ -103,7 +103,7 @@ def test_experiment2_carries_the_payload_and_the_plain_law_sags() -> None:
 
 
 def _run(path: Path, out: Path, duration: float) -> Run:
-    r = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(out), "--duration",
+    r = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--duration",
                         str(duration), "--quiet"], capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr[-3000:]
     return Run.load(out)

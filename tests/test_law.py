@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from agent import law
-from tether import refsim
+from sim import refsim
 from tests.factories import random_mission
 
 

@@ -12,7 +12,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from tether import lockstep, refsim, sweep
+from sim import lockstep, refsim, sweep
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.node import load_mission
@@ -47,7 +47,7 @@ def test_without_a_network_it_is_the_reference_simulator_bit_for_bit() -> None:
 
 def test_under_a_degraded_network_it_is_the_distributed_runtime_bit_for_bit(tmp_path: Path) -> None:
     path = mission_with(tmp_path, "degraded", DEGRADED)
-    r = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(tmp_path / "run"),
+    r = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(tmp_path / "run"),
                         "--duration", "3", "--quiet"], capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, r.stderr[-3000:]
     got = Run.load(tmp_path / "run")
@@ -87,7 +87,8 @@ def test_a_diverging_run_stops_and_says_when() -> None:
 
 
 def test_the_true_formation_error_is_eq8_from_positions_and_differs_under_delay() -> None:
-    from tether import graph, metrics
+    from sim import metrics
+    from tether import graph
 
     m = load_mission(builtin_path("section4"), 20.0)
     offsets = np.array([a.offset for a in m.agents], dtype=float)
@@ -115,7 +116,7 @@ def test_grid_points_have_the_asked_for_loss_and_delay() -> None:
 
 def test_sweep_command_writes_the_table_maps_and_every_point(tmp_path: Path) -> None:
     out = tmp_path / "sweep"
-    r = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", "section4", "--out", str(out), "--loss", "0,50",
+    r = subprocess.run([sys.executable, "-m", "cli", "sweep", "section4", "--out", str(out), "--loss", "0,50",
                         "--delay", "0,100", "--burst", "1,4", "--duration", "4", "--jobs", "2"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -144,7 +145,7 @@ def test_sweep_command_writes_the_table_maps_and_every_point(tmp_path: Path) -> 
     (["--loss", "10,10"], "--loss: 10,10 repeats a value"),
 ])
 def test_bad_grids_are_refused_before_anything_runs(tmp_path: Path, args: list[str], message: str) -> None:
-    r = subprocess.run([sys.executable, "-m", "tether.cli", "sweep", "section4", "--out", str(tmp_path / "o"), *args],
+    r = subprocess.run([sys.executable, "-m", "cli", "sweep", "section4", "--out", str(tmp_path / "o"), *args],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from netem.channel import DROP_REASONS, Decision, Delivery, DeliveryQueue, Link, link_rng
-from netem.profile import (
+from tether.netprofile import (
     IDENTITY, PRESET_NOTES, PRESETS, Bernoulli, Corrupt, Delay, GilbertElliott, LinkProfile,
     LinkRule, Network, ProfileError, Rate, Reorder, convert, is_identity, mean_loss, preset,
     profile_at, schedule, validate, validate_network,

@@ -21,7 +21,7 @@ def start_run(tmp: Path, section: str, duration: float) -> tuple[subprocess.Pope
     mission = tmp / "m.toml"
     mission.write_text(builtin_path("section4").read_text() + section)
     endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    proc = subprocess.Popen([sys.executable, "-m", "tether.cli", "run", str(mission), "--out", str(tmp / "run"),
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(mission), "--out", str(tmp / "run"),
                              "--duration", str(duration), "--listen", endpoint, "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
@@ -35,7 +35,7 @@ def start_run(tmp: Path, section: str, duration: float) -> tuple[subprocess.Pope
 
 
 def netem_set(endpoint: str, *args: str, timeout: float = 20.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tether.cli", "netem-set", *args, "--ns", "section4",
+    return subprocess.run([sys.executable, "-m", "cli", "netem-set", *args, "--ns", "section4",
                            "--connect", endpoint, "--timeout", str(timeout)], capture_output=True, text=True,
                           timeout=60)
 

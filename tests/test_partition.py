@@ -184,7 +184,7 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
             assert router.poll() is None, read(router_log)
             with open(launcher_log, "wb") as fh:
                 launcher = subprocess.Popen(
-                    [sys.executable, "-m", "tether.cli", "run", str(mission(tmp_path)), "--out", str(out),
+                    [sys.executable, "-m", "cli", "run", str(mission(tmp_path)), "--out", str(out),
                      "--clock", "realtime", "--ns", key_ns, "--lease", str(LEASE), "--quiet",
                      "--listen", swarm_ep, "--listen", watch_ep,
                      "--wrap", f"{VEHICLE}={' '.join(ns.exec_prefix())}",

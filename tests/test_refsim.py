@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from tether import metrics, refsim
+from sim import metrics, refsim
 from tests.factories import one_agent, random_mission
 
 

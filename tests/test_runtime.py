@@ -44,8 +44,9 @@ import zenoh
 import tether
 import tether.wire
 from tests.support import read, wait_until
-from tether import refsim
+from sim import refsim
 from tether import transport as tp
+from tether import handoff
 from tether import wire
 from tether.node import load_mission
 from tether.runfile import SERIES, Run
@@ -68,7 +69,7 @@ round-off should the two ever order a sum differently."""
 
 # =========================================================================== helpers
 def tether_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "tether.cli", *args]
+    return [sys.executable, "-m", "cli", *args]
 
 
 def cmdline(pid: int) -> list[str]:
@@ -96,7 +97,7 @@ def children_of(launcher: int) -> dict[str, int]:
         argv = cmdline(int(entry.name))
         if "--parent-pid" not in argv or argv[argv.index("--parent-pid") + 1] != str(launcher):
             continue
-        role = argv[argv.index("tether.cli") + 1]
+        role = argv[argv.index("cli") + 1]
         node = {"leader": LEADER, "recorder": 0}.get(role)
         if node is None:
             node = int(argv[argv.index("--id") + 1])
@@ -388,8 +389,8 @@ async def test_an_agent_process_drops_and_counts_malformed_input_and_carries_on(
     steps = 10
     log = tmp_path / "agent-1.log"
     async with tp.open_session(tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0)) as session:
-        wakeup = tp.Wakeup()
-        heard: tp.BoundedFifo[tp.Received] = tp.BoundedFifo(4096, wakeup)
+        wakeup = handoff.Wakeup()
+        heard: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096, wakeup)
         sub = tp.declare_subscriber(session, f"tether/{ns}/agent/1/*", heard)
         with open(log, "wb") as fh:
             proc = subprocess.Popen(

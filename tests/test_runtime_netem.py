@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from agent.law import neighbour_sample
-from tether import refsim
+from sim import refsim
 from tether.catalog import builtin_path
 from tether.node import load_mission
 from tether.runfile import Run
@@ -21,7 +21,7 @@ SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv")
 
 
 def run(mission: Path, out: Path, duration: float = 3.0) -> Run:
-    r = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(mission), "--out", str(out),
+    r = subprocess.run([sys.executable, "-m", "cli", "run", str(mission), "--out", str(out),
                         "--duration", str(duration), "--quiet"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-3000:]
     return Run.load(out)

@@ -22,15 +22,8 @@ import pytest
 import zenoh
 
 from tether import transport as tp
-from tether.transport import (
-    BoundedFifo,
-    LatestSlot,
-    Received,
-    SettingsError,
-    TokenEvent,
-    Wakeup,
-    ZenohSettings,
-)
+from tether.handoff import BoundedFifo, LatestSlot, Wakeup
+from tether.transport import Received, SettingsError, TokenEvent, ZenohSettings
 
 WAIT = 5.0
 """Upper bound [s] on any wait for something that takes milliseconds on loopback."""

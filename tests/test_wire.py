@@ -13,7 +13,7 @@ import typing
 import msgspec
 import pytest
 
-from netem.profile import LinkRule
+from tether.netprofile import LinkRule
 from tether import wire
 from tether.wire import Keys, Receiver
 

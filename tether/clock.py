@@ -9,21 +9,50 @@ Every process runs ``for k in range(first, last + 1): await clock.wait_for(k); .
 * :class:`RealtimeClock` (what flies): tick k starts at ``epoch + k h`` on the process's own
   monotonic clock; inputs are the newest samples held.
 
-The wall clock is read only through an injected ``monotonic`` function (``time.monotonic`` in
-processes, a fake in tests).
+This module is the only one of a process that reads the wall or the monotonic clock, and only
+through functions injected into :class:`RealtimeClock` (the real ones by default, fakes in tests).
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Callable, Literal, Protocol
+from typing import Literal, Protocol
 
 ClockKind = Literal["lockstep", "realtime"]
 
+EPOCH_TOLERANCE = 3600.0
+"""A start instant further than this from the host's wall clock [s] is refused (the clocks of the
+launcher and this host disagree: NTP is not running, or the start message is not this run's)."""
+
+
+class ClockError(RuntimeError):
+    """The run's start instant cannot be mapped onto this host's clock; the message says why."""
+
 
 class Clock(Protocol):
+    """What a process ticks on. ``Node`` is given one; nothing else in a process reads time."""
+
     kind: ClockKind
+    late: int
+    """Ticks that started more than one period after their instant (0 in lockstep)."""
+
+    @property
+    def lockstep(self) -> bool:
+        """True when inputs are matched by tick index (sim time), False when by arrival (real time)."""
+        ...
+
+    def begin(self, epoch: float, phase: float = 0.0) -> None:
+        """The run starts: tick 0 is at wall-clock instant ``epoch`` [s since the Unix epoch]; this
+        process's tick k at ``epoch + (k + phase) h``. Raises :class:`ClockError`."""
+        ...
+
+    def now(self) -> float:
+        """Mission time [s since tick 0] (the emulated network's time base in real time; 0 in
+        lockstep and before :meth:`begin`, where the network runs on sample times instead)."""
+        ...
 
     async def wait_for(self, k: int) -> float:
         """Block until tick k may run; returns how late it starts [s] (0 in lockstep)."""
@@ -34,10 +63,12 @@ class LockstepClock:
     """Tick k runs once the source granted it. :meth:`grant` is called from the event loop."""
 
     kind: ClockKind = "lockstep"
+    lockstep = True
 
     def __init__(self) -> None:
         self._granted = -1
         self._changed = asyncio.Event()
+        self.late = 0
 
     @property
     def granted(self) -> int:
@@ -48,6 +79,12 @@ class LockstepClock:
             self._granted = k
             self._changed.set()
 
+    def begin(self, epoch: float, phase: float = 0.0) -> None:
+        """Sim time has no wall-clock instant: nothing to map."""
+
+    def now(self) -> float:
+        return 0.0
+
     async def wait_for(self, k: int) -> float:
         while self._granted < k:
             self._changed.clear()
@@ -56,26 +93,58 @@ class LockstepClock:
 
 
 class RealtimeClock:
-    """Tick k at ``start + k * period`` on ``monotonic`` (seconds)."""
+    """Tick k at ``start + k * period`` on ``monotonic`` (seconds).
+
+    ``monotonic``, ``wall`` (seconds since the Unix epoch) and ``sleep`` are injected: processes
+    use ``time.monotonic``, ``time.time`` and ``asyncio.sleep``; tests pass fakes."""
 
     kind: ClockKind = "realtime"
+    lockstep = False
 
-    def __init__(self, period: float, start: float, monotonic: Callable[[], float]) -> None:
+    def __init__(self, period: float, start: float = 0.0,
+                 monotonic: Callable[[], float] = time.monotonic,
+                 wall: Callable[[], float] = time.time,
+                 sleep: Callable[[float], Awaitable[None]] = asyncio.sleep) -> None:
         self.period = period
         self.start = start
+        """This process's tick 0 [s, on ``monotonic``] (the run's tick 0 plus the phase)."""
         self.monotonic = monotonic
+        self.wall = wall
+        self.sleep = sleep
+        self.origin: float | None = None
+        """The run's tick 0 [s, on ``monotonic``], once :meth:`begin` mapped it."""
         self.late = 0
         """Ticks that started more than one period after their instant."""
+
+    def begin(self, epoch: float, phase: float = 0.0) -> None:
+        offset = epoch - self.wall()
+        if not abs(offset) <= EPOCH_TOLERANCE:
+            raise ClockError(f"the start instant {epoch} is more than an hour from this host's clock; "
+                             "check the clocks (NTP) of the launcher and this host")
+        self.origin = self.monotonic() + offset
+        self.start = self.origin + phase * self.period
+
+    def now(self) -> float:
+        return self.monotonic() - self.origin if self.origin is not None else 0.0
 
     async def wait_for(self, k: int) -> float:
         due = self.start + k * self.period
         delay = due - self.monotonic()
         if delay > 0:
-            await asyncio.sleep(delay)
+            await self.sleep(delay)
         lateness = self.monotonic() - due
         if lateness > self.period:
             self.late += 1
         return max(0.0, lateness)
+
+
+def make(kind: ClockKind, period: float) -> LockstepClock | RealtimeClock:
+    """The clock of a process: the one place that turns a ``--clock`` choice into an object."""
+    if kind == "lockstep":
+        return LockstepClock()
+    if kind == "realtime":
+        return RealtimeClock(period)
+    raise ValueError(f"clock must be 'lockstep' or 'realtime', not {kind!r}")
 
 
 @dataclass

@@ -24,7 +24,7 @@ import msgspec
 import msgspec.inspect
 import msgspec.structs
 
-from netem.profile import Network, validate_network
+from tether.netprofile import Network, validate_network
 
 SCHEMA_VERSION = 1
 """The mission-file version this release reads."""
@@ -304,6 +304,74 @@ class LinkPolicy(_Strict):
     """Latency compensation: move each neighbour sample forward by its age with its own v and a."""
 
 
+class Geofence(_Strict):
+    """An axis-aligned box the vehicles must stay in [m; world frame]. In 3D its ``min`` z is the
+    floor of the flight volume."""
+
+    min: list[float]
+    max: list[float]
+    action: Literal["hold", "land", "estop"] = "land"
+    """What a vehicle does when its position leaves the box."""
+
+
+class Avoidance(_Strict):
+    """Decentralised collision avoidance after the law (``agent/avoid.py``): a safety filter on each
+    agent's command from the positions of the vehicles within ``sensing`` (heard on their state
+    keys, as a range sensor or a broadcast would give them), kept apart from the law's inputs."""
+
+    radius: float = 0.3
+    """Minimum distance between two vehicles' centres the filter keeps [m]."""
+    sensing: float = 2.0
+    """Vehicles closer than this are considered [m]."""
+    gain: float = 4.0
+    """Class-K gain of the barrier constraint h' >= -gain * h [1/s]."""
+
+
+class Safety(_Strict):
+    """What every agent's safety supervisor and every plant's command watchdog enforce
+    (``docs/safety.md``). The defaults are wide enough that no shipped mission reaches them while
+    nothing goes wrong (measured there), and tight enough to stop what is not flying any more."""
+
+    max_accel: float = 20.0
+    """Largest command norm that leaves an agent [m/s^2] (2 g; a Crazyflie 2.1 has about 1.9 g
+    of thrust): the law's command is scaled down to it (saturation after Eq. 17)."""
+    max_speed: float = 30.0
+    """Largest plausible speed of any vehicle or of the leader [m/s]: an own speed beyond it sends
+    the vehicle to HOLD, and a sample that moved further than this allows since the sender's
+    last accepted one is rejected as implausible."""
+    jump_margin: float = 1.0
+    """Slack on the plausible-jump bound [m] (noise, a restart)."""
+    future_window: int = 2
+    """Samples stamped more than this many ticks ahead of the receiver's own tick are rejected."""
+    max_formation_error: float = 50.0
+    """‖xi_i‖ beyond this [m] is divergence."""
+    gain_cap: float = 1000.0
+    """A gain beyond this is divergence."""
+    divergence_action: Literal["hold", "land", "estop"] = "land"
+    leader_timeout: float = 0.5
+    """An agent that hears the leader holds when its newest leader sample is older than this [s]
+    (or the leader's liveliness token is gone)."""
+    neighbour_timeout: float = 1.0
+    """An in-neighbour (agent) silent this long [s], or whose token is gone, is lost: its edge is
+    dropped and kappa_i re-normalised while the leader still reaches this agent, else HOLD."""
+    land_after: float = 2.0
+    """HOLD for a lost input turns into LAND after this long [s] if the input has not come back."""
+    land_speed: float = 0.3
+    """Descent rate in LAND [m/s] (3D)."""
+    ground: float = 0.0
+    """Height of the ground [m] (3D): LAND ends, and the vehicle disarms, there."""
+    hold_kp: float = 1.0
+    """HOLD's position gain [1/s^2]: u = -hold_kv v - hold_kp (p - p_hold), saturated."""
+    hold_kv: float = 2.0
+    """HOLD's velocity gain [1/s]."""
+    cmd_timeout: float = 0.5
+    """A plant with no valid command for this long [s] holds (brakes to zero velocity, level)."""
+    cmd_cutoff: float = 2.0
+    """A plant with no valid command for this long [s] lands (never just stops)."""
+    geofence: Geofence | None = None
+    avoid: Avoidance | None = None
+
+
 class Mission(_Strict):
     version: int
     name: str
@@ -323,6 +391,8 @@ class Mission(_Strict):
     """Network degradation per directed link j -> i (``docs/netem.md``); none: ideal links."""
     links: "LinkPolicy" = msgspec.field(default_factory=lambda: LinkPolicy())
     """What agents do with old neighbour data."""
+    safety: Safety = msgspec.field(default_factory=lambda: Safety())
+    """The failsafes every agent and plant enforce (``docs/safety.md``)."""
     payload: Payload | None = None
     """A cable-suspended payload shared by every vehicle (3D only)."""
     floor: float | None = None
@@ -811,6 +881,7 @@ def validate(m: Mission) -> Problems:
         out.append(("links.max_age", f"is {m.links.max_age} s; the oldest usable sample age must be > 0 (e.g. 0.5)"))
     if m.netem is not None:
         out.extend(validate_network(m.netem, set(seen) | {m.leader.id}, path="netem"))
+    _validate_safety(m, out)
 
     # Assumption 1 only makes sense on a graph whose ids are right
     if not any(f.startswith(("edges", "agents", "leader.id")) for f, _ in out):
@@ -821,6 +892,49 @@ def validate(m: Mission) -> Problems:
                                  "that each of them hears the leader or an agent the leader reaches, e.g. "
                                  f"`{{ from = {m.leader.id}, to = {unreachable[0]} }}`"))
     return out
+
+
+def _validate_safety(m: Mission, out: Problems) -> None:
+    """The ``[safety]`` section: positive limits, ordered timeouts, a box that is a box."""
+    sf = m.safety
+    positive = {"max_accel": "m/s^2", "max_speed": "m/s", "max_formation_error": "m", "leader_timeout": "s",
+                "neighbour_timeout": "s", "land_after": "s", "land_speed": "m/s", "hold_kp": "1/s^2",
+                "hold_kv": "1/s", "cmd_timeout": "s", "cmd_cutoff": "s"}
+    for name, unit in positive.items():
+        value = getattr(sf, name)
+        if not value > 0:
+            default = getattr(Safety(), name)
+            out.append((f"safety.{name}", f"is {value} {unit}; give a value > 0 (the default is {default!r})"))
+    if sf.jump_margin < 0:
+        out.append(("safety.jump_margin", f"is {sf.jump_margin} m; use >= 0"))
+    if sf.future_window < 0:
+        out.append(("safety.future_window", f"is {sf.future_window} ticks; use >= 0"))
+    if not sf.gain_cap > 1:
+        out.append(("safety.gain_cap", f"is {sf.gain_cap}; the gains start at >= 1, so use a cap > 1 (default 1000)"))
+    if sf.cmd_cutoff <= sf.cmd_timeout:
+        out.append(("safety.cmd_cutoff", f"is {sf.cmd_cutoff} s, not after cmd_timeout ({sf.cmd_timeout} s); "
+                                         "a plant holds first and lands later: make cmd_cutoff > cmd_timeout"))
+    if sf.geofence is not None:
+        g = sf.geofence
+        _check_vec(g.min, m.dim, "safety.geofence.min", out)
+        _check_vec(g.max, m.dim, "safety.geofence.max", out)
+        if len(g.min) == len(g.max) == m.dim:
+            for axis, (lo, hi) in enumerate(zip(g.min, g.max)):
+                if not lo < hi:
+                    out.append((f"safety.geofence.max[{axis}]", f"is {hi}, not above min[{axis}] = {lo}; "
+                                                                "give a box with min < max on every axis"))
+            for k, a in enumerate(m.agents):
+                if not all(lo <= x <= hi for x, lo, hi in zip(a.p0, g.min, g.max)):
+                    out.append((f"agents[{k}].p0", f"is {a.p0}, outside safety.geofence; start every vehicle "
+                                                   "inside the fence, or widen it"))
+    if sf.avoid is not None:
+        av = sf.avoid
+        for name in ("radius", "sensing", "gain"):
+            if not getattr(av, name) > 0:
+                out.append((f"safety.avoid.{name}", f"is {getattr(av, name)}; give a value > 0"))
+        if av.sensing <= av.radius:
+            out.append(("safety.avoid.sensing", f"is {av.sensing} m, not beyond radius ({av.radius} m); "
+                                                "the filter must see a vehicle before it is too close"))
 
 
 def _validate_physics(m: Mission, out: Problems) -> None:

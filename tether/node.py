@@ -16,37 +16,29 @@ drop-oldest, counted); decoding and checks run on the event loop (:class:`~tethe
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
-import math
 import os
 import signal
-import time
-from collections import deque
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import zenoh
 
-from netem.channel import DeliveryQueue, Link, link_rng
-from netem.profile import Network, resolve, schedule, validate_network
+from tether import handoff
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
-from tether.clock import ClockKind, LockstepClock, RealtimeClock
+from tether.clock import Clock, ClockError, ClockKind, LockstepClock
+from tether.clock import make as make_clock
+from tether.inputs import Link, Source
 
 log = logging.getLogger("tether")
 
 FIFO_CAPACITY = 65536
 """Samples a process can hold between two drains before the oldest is dropped (and counted)."""
-
-
-RECENT_SEQS = 256
-"""Sequence numbers a source remembers to tell duplicates from reordered samples (a duplicate
-arriving more than this many samples late counts as reordered)."""
 
 
 class Stalled(RuntimeError):
@@ -72,117 +64,6 @@ class NodeArgs:
     """Override the mission's duration [s] (a whole number of periods)."""
 
 
-@dataclass
-class Source:
-    """One input key: the samples accepted from it, by tick and newest, and what was seen."""
-
-    key: str
-    expect: type
-    sender: int | None
-    by_tick: dict[int, Any] = field(default_factory=dict)
-    newest: Any = None
-    received: int = 0
-    stale: int = 0
-    """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
-    duplicates: int = 0
-    """Stale samples whose sequence number had already been received (a second copy)."""
-    reordered: int = 0
-    """Stale samples seen for the first time (overtaken by a newer one on the way)."""
-    corrupt: int = 0
-    """Copies an emulated link corrupted (they fail the receiver's checksum and are dropped)."""
-    recent: deque = field(default_factory=lambda: deque(maxlen=RECENT_SEQS))
-    """The last sequence numbers received, to tell a duplicate from a reordered sample."""
-    last: int = -1
-    """The producer's last tick (the mission's), when known."""
-    channel: "Channel | None" = None
-    """The emulated network link this input arrives through (``[netem]``), if any."""
-    raw_k: int = -1
-    """Newest tick offered to the channel (what the sender has sent, before the network)."""
-    gone: bool = False
-    """Its producer's liveliness token is absent."""
-    on_message: Callable[[Any], None] | None = None
-    keep: bool = True
-    """Hold samples by tick for :meth:`Node.aligned`; False for inputs consumed by ``on_message``
-    alone (the recorder), which would otherwise hold every sample of the run."""
-
-    @property
-    def silent(self) -> bool:
-        """The producer is gone before its last tick (one that sent its last tick and left is not
-        silent, whatever order its last sample and its token's end arrive in)."""
-        return self.silent_at(self.last)
-
-    def silent_at(self, k: int) -> bool:
-        """Silent as far as tick ``k`` is concerned: gone without having delivered tick ``k``.
-        (In lockstep a tick runs only with its samples in, so this is never true there, and the
-        flag cannot depend on when the token's end happened to be seen.)"""
-        return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
-
-    def offer(self, msg: Any) -> None:
-        self.received += 1
-        if self.newest is not None and msg.seq <= self.newest.seq:
-            self.stale += 1
-            if msg.seq in self.recent:
-                self.duplicates += 1
-            else:
-                self.reordered += 1
-        else:
-            self.newest = msg
-        self.recent.append(msg.seq)
-        if self.keep:
-            self.by_tick.setdefault(msg.k, msg)
-        if self.on_message is not None:
-            self.on_message(msg)
-
-    def received_upto(self, k: int) -> int:
-        """Samples accepted whose tick is at most ``k`` (in lockstep, what tick k could have seen,
-        whatever arrived early)."""
-        return self.received - sum(1 for t in self.by_tick if t > k)
-
-    def forget_before(self, k: int) -> None:
-        for old in [t for t in self.by_tick if t < k]:
-            del self.by_tick[old]
-
-
-@dataclass
-class Channel:
-    """One directed link j -> i of the emulated network: the link model, its profile schedule, and
-    the copies in flight. Samples enter with :meth:`send` and leave with :meth:`release`."""
-
-    link: Link
-    changes: list[tuple[float, Any]]
-    queue: DeliveryQueue = field(default_factory=DeliveryQueue)
-    _next: int = 1
-
-    @classmethod
-    def of(cls, m: ms.Mission, src: int, dst: int) -> "Channel":
-        """Link ``src -> dst`` of mission ``m``'s ``[netem]`` section: its profile schedule and
-        its generator ``link_rng(m.seed, src, dst)``."""
-        changes = schedule(m.netem, src, dst)
-        return cls(Link(changes[0][1], link_rng(m.seed, src, dst), log=m.netem.log), changes)
-
-    def send(self, now: float, payload: bytes) -> None:
-        while self._next < len(self.changes) and self.changes[self._next][0] <= now:
-            self.link.set_profile(self.changes[self._next][1])
-            self._next += 1
-        self.queue.push(self.link.offer(now, payload))
-
-    def release(self, now: float) -> list[Any]:
-        return self.queue.pop_due(now)
-
-    @property
-    def last_offer(self) -> float:
-        """Time of the newest offer [s] (-inf before the first)."""
-        return self.link.last_offer
-
-    def change(self, at: float, profile: Any) -> None:
-        """Use ``profile`` for the offers from ``at`` on (one already past: from the next offer).
-        Changes asked for the same time apply in the order they were asked for."""
-        pending = self.changes[self._next:]
-        pending.append((at, profile))
-        pending.sort(key=lambda c: c[0])  # stable
-        self.changes[self._next:] = pending
-
-
 class Publisher:
     """A publisher that stamps sender, sequence number, tick and sample time on every message."""
 
@@ -198,29 +79,30 @@ class Publisher:
 
 
 class Node:
-    """A process's session, inputs, clock and lifetime; :func:`serve` makes one per process."""
+    """A process's session, inputs, clock and lifetime; :func:`serve` makes one per process.
 
-    def __init__(self, args: NodeArgs, mission: ms.Mission, session: zenoh.Session):
+    The node is given its :class:`~tether.clock.Clock` (lockstep or real time); it never reads the
+    time itself."""
+
+    def __init__(self, args: NodeArgs, mission: ms.Mission, session: zenoh.Session, clock: Clock):
         self.args = args
         self.mission = mission
         self.session = session
         self.keys = wire.Keys(args.ns or mission.name)
         self.receiver = wire.Receiver(mission.dim)
-        self.wakeup = tp.Wakeup()
-        self.fifo: tp.BoundedFifo[tp.Received] = tp.BoundedFifo(FIFO_CAPACITY, self.wakeup)
-        self.tokens: tp.BoundedFifo[tp.TokenEvent] = tp.BoundedFifo(4096, self.wakeup)
-        self.queries: tp.BoundedFifo[zenoh.Query] = tp.BoundedFifo(64, self.wakeup)
+        self.wakeup = handoff.Wakeup()
+        self.fifo: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY, self.wakeup)
+        self.tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(4096, self.wakeup)
+        self.queries: handoff.BoundedFifo[tuple[Callable[[zenoh.Query], None], zenoh.Query]] = \
+            handoff.BoundedFifo(64, self.wakeup)
         self.sources: dict[str, Source] = {}
         self._watched: dict[str, list[Source]] = {}
         self._declared: list[Any] = []
         self._token: Any = None
-        self.lockstep = LockstepClock()
-        self.clock: LockstepClock | RealtimeClock = self.lockstep
+        self.clock = clock
         self._start: Source | None = None
         self._paced = False
-        self._pump: asyncio.Task | None = None
-        self._epoch_mono: float | None = None
-        """Real time: tick 0's instant on this host's monotonic clock."""
+        self._pump: asyncio.Task[None] | None = None
         self.stop = asyncio.Event()
         self.token_log: list[tuple[str, bool]] = []
 
@@ -241,7 +123,7 @@ class Node:
         DROP: the newest supersedes). Lockstep: always :data:`~tether.transport.SYNC` (BLOCK),
         because a lost sample would stall the run: measured here, DROP state streams lost samples
         under load and stalled lockstep runs."""
-        if self.args.clock == "lockstep":
+        if self.clock.lockstep:
             qos = tp.SYNC
         pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
         self._declared.append(pub)
@@ -253,81 +135,39 @@ class Node:
         self._declared.append(tp.declare_subscriber(self.session, pattern, self.fifo))
 
     def source(self, key: str, expect: type, sender: int | None,
-               on_message: Callable[[Any], None] | None = None, link: bool = False,
+               on_message: Callable[[Any], None] | None = None, channel: Link | None = None,
                subscribe: bool = True, keep: bool = True) -> Source:
-        """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``link``: the
-        samples cross the network from ``sender`` to this node, through the mission's emulated
-        link ``sender -> node`` when it has a ``[netem]`` section (an ideal link delivers every sample
-        at its own time: the run is then the same as without the section, bit for bit)."""
-        src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep)
-        if link and self.mission.netem is not None and sender is not None:
-            src.channel = Channel.of(self.mission, sender, self.args.node_id)
+        """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``channel``: the
+        emulated link the samples cross from ``sender`` to this node (``[netem]``; built by the role
+        with :class:`netem.link.Channel`, so that only a mission with a ``[netem]`` section loads
+        the emulator; an ideal link delivers every sample at its own time: the run is then the
+        same as without the section, bit for bit)."""
+        src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep,
+                     channel=channel)
         self.sources[key] = src
         if subscribe:
             self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
         return src
 
-    def netem_control(self) -> None:
-        """Serve ``tether netem-set``: a query on ``tether/<ns>/<role>/<id>/netem`` carrying a
-        :class:`~tether.wire.NetemSet` changes this node's emulated in-links at run time, and is
-        answered with what changed (or why nothing did: a malformed message, invalid rules, or a
-        mission without a ``[netem]`` section, whose links bypass the emulator; those are also
-        counted as ``netem_invalid``)."""
-        key = self.keys.topic(self.args.role, self.args.node_id, "netem")
-        self._declared.append(self.session.declare_queryable(key, self.queries.put))
+    def queryable(self, key: str, handle: Callable[[zenoh.Query], None]) -> None:
+        """Answer queries on ``key`` with ``handle`` (called on the event loop, from :meth:`drain`;
+        Zenoh's thread only queues the query, at most 64 waiting: more are dropped, and their askers
+        time out). The query is released after ``handle`` returns; an asker that went away is
+        logged, not raised."""
+        self._declared.append(self.session.declare_queryable(key, lambda q: self.queries.put((handle, q))))
 
     def _serve_queries(self) -> None:
-        for query in self.queries.drain():
+        for handle, query in self.queries.drain():
             try:
-                payload = query.payload
-                msg = self.receiver.accept(payload.to_bytes() if payload is not None else b"", wire.NetemSet, 0)
-                if msg is None:
-                    query.reply_err("not a valid NetemSet message (see tether.wire); nothing changed")
-                    continue
-                try:
-                    done = self._apply_netem(msg)
-                except ValueError as exc:
-                    self.receiver.drops["netem_invalid"] = self.receiver.drops.get("netem_invalid", 0) + 1
-                    log.error("netem change refused: %s", exc)
-                    query.reply_err(f"{self.args.role} {self.args.node_id}: refused: {exc}")
-                    continue
-                query.reply(query.key_expr, json.dumps({"node": self.args.node_id, "changed": done}))
+                handle(query)
             except zenoh.ZError as exc:  # the asker is gone: nothing to answer
-                log.warning("netem change: could not answer: %s", exc)
+                log.warning("query on %s: could not answer: %s", query.key_expr, exc)
             finally:
                 query.drop()
 
-    def _apply_netem(self, msg: wire.NetemSet) -> list[dict]:
-        """Apply a change to the matching in-links; returns ``[{src, dst, at}]``. Raises ValueError."""
-        me = self.args.node_id
-        ids = [*self.mission.agent_ids, self.mission.leader.id]
-        problems = validate_network(Network(rules=tuple(msg.rules)), ids, path="rules")
-        if msg.at is not None and not (math.isfinite(msg.at) and msg.at >= 0):
-            problems.append(("at", f"is {msg.at}; give a mission time >= 0 [s], or none for 'now'"))
-        if self.mission.netem is None:
-            problems.append(("netem", "the mission has no [netem] section, so its links bypass the emulator; "
-                                      'add `[netem]` with `default = "ideal"` to change links at run time'))
-        if problems:
-            raise ValueError("; ".join(f"{f} {m}" for f, m in problems))
-        channels = {s.sender: s.channel for s in self.sources.values() if s.channel is not None}
-        done = []
-        for rule in msg.rules:
-            if rule.dst not in (None, me):
-                continue
-            prof = resolve(rule.profile)
-            for src, ch in sorted(channels.items()):
-                if rule.src not in (None, src):
-                    continue
-                now = max(ch.last_offer, 0.0)  # before the first offer: from tick 0
-                at = msg.at if msg.at is not None else (
-                    self.mission_time() if isinstance(self.clock, RealtimeClock) else now)
-                if at < now:
-                    log.warning("netem change of link %d -> %d for t = %.3f s arrived at t = %.3f s: "
-                                "applied from the next sample", src, me, at, now)
-                ch.change(at, prof)
-                done.append({"src": src, "dst": me, "at": max(at, now)})
-                log.info("link %d -> %d: profile changed from t = %.3f s", src, me, max(at, now))
-        return done
+    def count_drop(self, reason: str) -> None:
+        """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
+        self.receiver.drops[reason] = self.receiver.drops.get(reason, 0) + 1
 
     def watch(self, role: str, node_id: int, *sources: Source) -> None:
         """Mark ``sources`` silent while the token of ``role``/``node_id`` is absent."""
@@ -352,35 +192,33 @@ class Node:
         ``epoch + (k + phase) h``."""
         if self._watched:
             self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
-        self._paced = paced and self.args.clock == "lockstep"
-        if self._paced:
-            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: self.lockstep.grant(m.grant), keep=False)
+        clock = self.clock
+        self._paced = paced and isinstance(clock, LockstepClock)
+        if isinstance(clock, LockstepClock) and paced:
+            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
         self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
         await self.until(lambda: start.newest is not None, None, "the launcher's start message")
-        if self.args.clock == "realtime":
-            epoch = start.newest.epoch
-            mono = time.monotonic
-            if abs(epoch - time.time()) > 3600:
-                raise Stalled(f"the start instant {epoch} is more than an hour from this host's clock; "
-                              "check the clocks (NTP) of the launcher and this host")
-            h = self.mission.dt
-            self._epoch_mono = mono() + (epoch - time.time())
-            self.clock = RealtimeClock(h, self._epoch_mono + phase * h, mono)
+        epoch = start.newest.epoch
+        try:
+            self.clock.begin(epoch, phase)
+        except ClockError as exc:
+            raise Stalled(str(exc)) from None
+        if not self.clock.lockstep:
             self._pump = asyncio.create_task(self.pump())
-            log.info("real time: tick 0 at %.3f (in %.3f s), phase %.2f", epoch, epoch - time.time(), phase)
+            log.info("real time: tick 0 at %.3f, phase %.2f", epoch, phase)
 
     # ------------------------------------------------------------------ inputs
     def mission_time(self) -> float:
         """Real time: seconds since tick 0 on this host's monotonic clock (the emulated network's
-        time base). Lockstep: the emulated network runs on sample times instead."""
-        return time.monotonic() - self._epoch_mono if self._epoch_mono is not None else 0.0
+        time base). Lockstep: the emulated network runs on sample times instead (0 here)."""
+        return self.clock.now()
 
     def drain(self) -> None:
         """Decode every pending sample and token event (on the event loop). A sample that crosses
         an emulated link is offered to it (at its sample time in lockstep, at the current mission
         time in real time) and reaches its source when the link delivers it (:meth:`release`)."""
-        realtime = isinstance(self.clock, RealtimeClock)
+        realtime = not self.clock.lockstep
         for rec in self.fifo.drain():
             src = self.sources.get(rec.key)
             if src is None:
@@ -411,31 +249,26 @@ class Node:
         for src in (only,) if only is not None else self.sources.values():
             if src.channel is None:
                 continue
-            for copy in src.channel.release(now):
-                if copy.corrupted:
-                    self.receiver.drops["corrupt"] = self.receiver.drops.get("corrupt", 0) + 1
-                    src.corrupt += 1
-                    continue
-                msg = self.receiver.accept(copy.payload, src.expect, src.sender)
-                if msg is not None:
-                    src.offer(msg)
+            bad = src.deliver(now, lambda payload: self.receiver.accept(payload, src.expect, src.sender))
+            if bad:
+                self.receiver.drops["corrupt"] = self.receiver.drops.get("corrupt", 0) + bad
 
     def next_delivery(self) -> float | None:
         """The earliest time [s, mission time] an emulated link will deliver a copy, if any."""
-        times = [s.channel.queue.next_at for s in self.sources.values() if s.channel is not None]
+        times = [s.channel.next_at for s in self.sources.values() if s.channel is not None]
         times = [t for t in times if t is not None]
         return min(times) if times else None
 
     async def until(self, ready: Callable[[], bool], timeout: float | None, what: str) -> None:
         """Wait (draining inputs) until ``ready()``; :class:`Stalled` naming ``what`` after ``timeout``."""
         self.drain()
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while not ready():
-            left = None if deadline is None else deadline - time.monotonic()
-            if left is not None and left <= 0:
-                raise Stalled(f"waited {timeout:g} s for {what}")
-            await self.wakeup.wait(left)
-            self.drain()
+        try:
+            async with asyncio.timeout(timeout):
+                while not ready():
+                    await self.wakeup.wait(None)
+                    self.drain()
+        except TimeoutError:
+            raise Stalled(f"waited {timeout:g} s for {what}") from None
 
     async def sample(self, src: Source, k: int) -> Any:
         """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None)."""
@@ -449,7 +282,7 @@ class Node:
         hold, so that a tick never mixes, say, an own measurement of k-1 with neighbours' of k
         (which would show as a spurious formation error of about one period of motion); a source
         older than that (silent, or not started) gives its newest sample, or None."""
-        if self.args.clock == "lockstep":
+        if self.clock.lockstep:
             out = []
             for src in sources:
                 if src.channel is None:
@@ -483,9 +316,10 @@ class Node:
 
     async def tick(self, k: int) -> float:
         """Wait until tick ``k`` may run (draining inputs meanwhile); returns its lateness [s]."""
-        if self.args.clock == "lockstep":
+        clock = self.clock
+        if isinstance(clock, LockstepClock):
             if self._paced:
-                await self.until(lambda: self.lockstep.granted >= k, self.args.stall_timeout,
+                await self.until(lambda: clock.granted >= k, self.args.stall_timeout,
                                  f"the clock's grant of tick {k}")
             return 0.0
         late = await self.clock.wait_for(k)
@@ -535,12 +369,12 @@ EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_STOPPED = 0, 1, 2, 143
 
 
 async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
-                on_stop: Callable[[Node], None] | None = None) -> int:
+                on_stop: Callable[[Node], None] | None = None, clock: Clock | None = None) -> int:
     """Run one role until it finishes, fails, or is told to stop (SIGTERM/SIGINT, launcher gone).
 
     Returns the exit status: 0 finished, 1 failed (logged), 2 bad mission, 143 stopped by a
     signal. ``on_stop`` runs after a stop too (the recorder writes its file there). The session is
-    always closed.
+    always closed. ``clock``: the process's clock (default: the one ``args.clock`` names).
     """
     try:
         mission = load_mission(args.mission_path, args.duration)
@@ -550,7 +384,7 @@ async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
     loop = asyncio.get_running_loop()
     status = EXIT_OK
     async with tp.open_session(args.zenoh) as session:
-        node = Node(args, mission, session)
+        node = Node(args, mission, session, clock if clock is not None else make_clock(args.clock, mission.dt))
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, node.stop.set)
         watcher = asyncio.create_task(_watch_parent(args.parent_pid, node.stop)) if args.parent_pid else None

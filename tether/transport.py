@@ -21,38 +21,33 @@ Measured behaviour, verified config keys and the latency figures are in ``docs/z
 from __future__ import annotations
 
 import asyncio
-import collections
 import math
 import random
 import re
 import socket
-import threading
 from collections.abc import Iterable, Mapping
 from types import TracebackType
-from typing import Any, Generic, Literal, NamedTuple, Protocol, TypeVar
+from typing import Any, Literal, NamedTuple, TypeVar
 
 import msgspec
 import zenoh
 
 from tether import wire
+from tether.handoff import BoundedFifo, Sink, Wakeup
 
 __all__ = [
     "COMMAND",
     "STATE",
     "SYNC",
     "TELEMETRY",
-    "BoundedFifo",
-    "LatestSlot",
     "Received",
     "SessionScope",
     "SettingsError",
-    "Sink",
     "StreamQos",
     "TlsFiles",
     "TokenEvent",
     "TokensMissing",
     "TransportError",
-    "Wakeup",
     "ZenohSettings",
     "declare_publisher",
     "declare_subscriber",
@@ -420,192 +415,6 @@ def open_session(settings: ZenohSettings) -> SessionScope:
     Zenoh cannot open (address in use, router unreachable within ``connect_timeout``, ...).
     """
     return SessionScope(settings)
-
-
-# =========================================================================== hand-off sinks
-class Wakeup:
-    """Wakes one asyncio task from any thread, cheaply: many notifications coalesce into one wake-up.
-
-    ``notify()`` may be called from Zenoh's threads; it never blocks beyond a short lock and, at most
-    once per wake-up, schedules ``Event.set`` on the loop with ``call_soon_threadsafe``. ``wait()`` runs
-    on the loop. A notification that arrives after the loop has closed is ignored. Data written
-    before a ``notify()`` is visible to the task once ``wait()`` returns.
-    """
-
-    def __init__(self, loop: asyncio.AbstractEventLoop | None = None):
-        """Bind to ``loop`` (default: the running loop; then call from inside it)."""
-        self._loop = loop if loop is not None else asyncio.get_running_loop()
-        self._event = asyncio.Event()
-        self._lock = threading.Lock()
-        self._pending = False
-
-    def notify(self) -> None:
-        """Ask for a wake-up. Thread-safe, returns immediately."""
-        with self._lock:
-            if self._pending:
-                return
-            self._pending = True
-        try:
-            self._loop.call_soon_threadsafe(self._event.set)
-        except RuntimeError:  # the loop is closed: nobody is left to wake
-            pass
-
-    async def wait(self, timeout: float | None = None) -> bool:
-        """Sleep until notified (or ``timeout`` [s]); ``True`` if notified. Re-arms before returning."""
-        if not self._event.is_set():
-            if timeout is None:
-                await self._event.wait()
-            else:
-                try:
-                    async with asyncio.timeout(timeout):
-                        await self._event.wait()
-                except TimeoutError:
-                    return False
-        self._event.clear()
-        with self._lock:
-            self._pending = False
-        return True
-
-
-class Sink(Protocol[T]):
-    """Where a callback hands a value off. ``put`` is called on Zenoh's threads and must not block."""
-
-    def put(self, item: T, /) -> None: ...
-
-
-class LatestSlot(Generic[T]):
-    """The newest value, written by a callback thread and read by the control loop.
-
-    Overflow policy: **overwrite**. ``put`` replaces whatever is held; a value replaced before anyone
-    ``take``-s it is lost and counted in :attr:`overwritten`. Readers always see the newest value.
-    ``put`` is thread-safe and never blocks beyond a short lock; it notifies the optional
-    :class:`Wakeup`. Invariant: ``written == taken + overwritten + (1 if fresh else 0)``.
-    """
-
-    def __init__(self, wakeup: Wakeup | None = None):
-        self._lock = threading.Lock()
-        self._value: T | None = None
-        self._fresh = False
-        self._written = 0
-        self._taken = 0
-        self._overwritten = 0
-        self._wakeup = wakeup
-
-    def put(self, item: T, /) -> None:
-        """Store ``item`` as the newest value (any thread; returns immediately)."""
-        with self._lock:
-            if self._fresh:
-                self._overwritten += 1
-            self._value = item
-            self._fresh = True
-            self._written += 1
-        if self._wakeup is not None:
-            self._wakeup.notify()
-
-    def take(self) -> T | None:
-        """The newest value if it has not been taken yet, else ``None``. Marks it taken."""
-        with self._lock:
-            if not self._fresh:
-                return None
-            self._fresh = False
-            self._taken += 1
-            return self._value
-
-    def peek(self) -> T | None:
-        """The newest value, taken or not (``None`` before the first ``put``). Changes nothing."""
-        with self._lock:
-            return self._value
-
-    @property
-    def fresh(self) -> bool:
-        """Whether a value is waiting that has not been taken."""
-        return self._fresh
-
-    @property
-    def written(self) -> int:
-        """Values ever put."""
-        return self._written
-
-    @property
-    def taken(self) -> int:
-        """Values handed out by :meth:`take`."""
-        return self._taken
-
-    @property
-    def overwritten(self) -> int:
-        """Values replaced before being taken (lost to the overwrite policy)."""
-        return self._overwritten
-
-
-class BoundedFifo(Generic[T]):
-    """A bounded first-in-first-out queue, written by a callback thread and drained by the asyncio side.
-
-    Overflow policy: **drop the oldest**. When ``capacity`` items are queued, ``put`` discards the
-    oldest one to make room and counts it in :attr:`dropped`; ``put`` never blocks (beyond a short
-    lock), so a slow reader can never stall Zenoh's threads. Notifies the optional :class:`Wakeup`.
-    Invariant: ``written == popped + dropped + len(self)``.
-    """
-
-    def __init__(self, capacity: int, wakeup: Wakeup | None = None):
-        if not isinstance(capacity, int) or isinstance(capacity, bool) or capacity < 1:
-            raise ValueError(f"capacity is {capacity!r}; a BoundedFifo holds at least 1 item")
-        self._capacity = capacity
-        self._items: collections.deque[T] = collections.deque()
-        self._lock = threading.Lock()
-        self._written = 0
-        self._popped = 0
-        self._dropped = 0
-        self._wakeup = wakeup
-
-    def put(self, item: T, /) -> None:
-        """Append ``item``, dropping the oldest if full (any thread; returns immediately)."""
-        with self._lock:
-            if len(self._items) >= self._capacity:
-                self._items.popleft()
-                self._dropped += 1
-            self._items.append(item)
-            self._written += 1
-        if self._wakeup is not None:
-            self._wakeup.notify()
-
-    def pop(self) -> T | None:
-        """The oldest queued item, or ``None`` if empty."""
-        with self._lock:
-            if not self._items:
-                return None
-            self._popped += 1
-            return self._items.popleft()
-
-    def drain(self) -> list[T]:
-        """Every queued item, oldest first; empties the queue."""
-        with self._lock:
-            out = list(self._items)
-            self._items.clear()
-            self._popped += len(out)
-            return out
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    @property
-    def capacity(self) -> int:
-        """Most items held at once."""
-        return self._capacity
-
-    @property
-    def written(self) -> int:
-        """Items ever put."""
-        return self._written
-
-    @property
-    def popped(self) -> int:
-        """Items handed out by :meth:`pop` and :meth:`drain`."""
-        return self._popped
-
-    @property
-    def dropped(self) -> int:
-        """Items discarded by the drop-oldest policy."""
-        return self._dropped
 
 
 # =========================================================================== publish / subscribe

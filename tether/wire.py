@@ -10,6 +10,7 @@ Keys (one scheme, also in ``docs/runtime.md``)::
     tether/<ns>/clock/0/tick             Tick       lockstep: ticks up to ``grant`` may run
     tether/<ns>/<role>/<id>/ack          Ack        lockstep: ``<role> <id>`` has finished tick k
     tether/<ns>/control/0/start          Start      real time: the common start instant
+    tether/<ns>/control/0/safety         SafetyCommand  operator: land every vehicle, or stop every motor
     @tether/<ns>/<role>/<id>             liveliness token of every process (hermetic: ``**`` never matches ``@``)
 
 ``<ns>`` is the run's namespace (the mission name by default). Every message is a msgspec Struct
@@ -31,7 +32,7 @@ from typing import Literal
 
 import msgspec
 
-from netem.profile import LinkRule
+from tether.netprofile import LinkRule
 
 WIRE_VERSION = 1
 
@@ -75,6 +76,9 @@ class PlantState(_Msg, tag="plant_state"):
     a: list[float]
     d: list[float]
     """True disturbance d(t_k) [m/s^2]; NaN where the plant cannot know it (a real vehicle)."""
+    mode: int = 0
+    """The plant's command watchdog: 0 (FLYING) while it follows its agent, else HOLD, LAND, LANDED
+    or ESTOP (codes of :data:`MODES`)."""
 
 
 class Command(_Msg, tag="cmd"):
@@ -124,6 +128,30 @@ class LinkDecision(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     """Delivery time [s]; None for a drop."""
 
 
+MODES = ("FLYING", "HOLD", "LAND", "LANDED", "ESTOP")
+"""Safety modes by integer code (telemetry, plant states and run files store the code). An agent's
+supervisor is in one of them; a plant's command watchdog reports FLYING while it follows its
+agent's commands, HOLD or LAND when it has taken over, LANDED, and ESTOP once its motors are off."""
+FLYING, HOLD, LAND, LANDED, ESTOP = range(5)
+
+
+class SafetyEvent(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One mode change of a vehicle's supervisor or watchdog."""
+
+    k: int
+    """Tick of the change."""
+    t: float
+    """Its time [s; mission time]."""
+    vehicle: int
+    """The agent (= vehicle) id."""
+    src: int
+    """Mode before (a code of :data:`MODES`)."""
+    dst: int
+    """Mode after."""
+    reason: str
+    """Why, in a few words (``leader silent 0.52 s``, ``operator land``, ``geofence``, ...)."""
+
+
 class Telemetry(_Msg, tag="telemetry"):
     """Agent i's tick: what it measured, computed and saw."""
 
@@ -144,6 +172,12 @@ class Telemetry(_Msg, tag="telemetry"):
     late: int = 0
     """Real time: ticks that started more than one period late."""
     netem: list[LinkDecision] = []
+    mode: int = FLYING
+    """The safety supervisor's mode at this tick (a code of :data:`MODES`)."""
+    events: list[SafetyEvent] = []
+    """Mode changes since the previous telemetry message."""
+    gate: dict[str, int] = {}
+    """Samples the plausibility gate rejected since start, by reason (``future``, ``jump``, ...)."""
     """The emulated links' decisions since the previous tick (only with ``[netem] log = true``)."""
 
 
@@ -178,6 +212,15 @@ class WorldState(_Msg, tag="world_state"):
     """Taut -> slack transitions per cable since the start."""
 
 
+class SafetyCommand(_Msg, tag="safety"):
+    """Operator: ``land`` every vehicle (descend and disarm), or ``estop`` (motors off at once).
+    Published on ``tether/<ns>/control/0/safety`` by ``tether land`` / ``tether estop``; only the
+    operator identity may publish there under the generated access rules."""
+
+    action: Literal["land", "estop"]
+    reason: str = ""
+
+
 class NetemSet(_Msg, tag="netem_set"):
     """Control: change emulated links during a run (``tether netem-set``). Each rule, as in the
     mission's ``[netem] rules``, applies to the links it matches from ``at`` on; its ``start`` is
@@ -189,7 +232,7 @@ class NetemSet(_Msg, tag="netem_set"):
     already past when it arrives takes effect at once (the receiving agent logs how late)."""
 
 
-Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState
+Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState | SafetyCommand
 
 _ENCODER = msgspec.msgpack.Encoder()
 _DECODER = msgspec.msgpack.Decoder(Message)
@@ -256,6 +299,10 @@ class Keys:
     @property
     def netem(self) -> str:
         return self.topic("control", 0, "netem")
+
+    @property
+    def safety(self) -> str:
+        return self.topic("control", 0, "safety")
 
     @staticmethod
     def parse(key: str) -> tuple[str, int, str]:

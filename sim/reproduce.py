@@ -14,7 +14,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from tether import figures, metrics, refsim
+from sim import figures, metrics, refsim
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.runfile import Run

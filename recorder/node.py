@@ -38,7 +38,7 @@ class Recording:
         n, d, T = m.n, m.dim, m.steps + 1
         self.degree = {a.id: sum(1 for e in m.edges if e.dst == a.id) for a in m.agents}
         width = max(self.degree.values())
-        meta = {"mission": m.name, "source": f"runtime-{node.args.clock}", "law": m.law.kind, "rate": m.rate,
+        meta = {"mission": m.name, "source": f"runtime-{node.clock.kind}", "law": m.law.kind, "rate": m.rate,
                 "steps": m.steps, "seed": m.seed, "namespace": node.keys.ns,
                 "mission_text": node.args.mission_path.read_text()}
         self.run = Run.empty(T, m.agent_ids, d, meta)
@@ -157,7 +157,7 @@ def make(out: Path):
             node.watch(r, i)
         await node.ready()
         last = m.steps
-        if node.args.clock == "lockstep":
+        if node.clock.lockstep:
             for k in range(last + 1):
                 await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
                                  f"every sample of tick {k} (have {rec.count[k]} of {rec.expected})")

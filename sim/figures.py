@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from tether import metrics  # noqa: E402
+from sim import metrics  # noqa: E402
 from tether.runfile import Run  # noqa: E402
 
 AXES = "xyz"

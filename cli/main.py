@@ -49,8 +49,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from tether import figures, metrics, refsim
-    from tether.refsim import Setup
+    from sim import figures, metrics, refsim
+    from sim.refsim import Setup
 
     m = _load(args.mission)
     out = Path(args.out)
@@ -70,11 +70,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from tether import reproduce
+    from sim import reproduce
 
     prog = Progress()
     if args.what != "section4":
-        from tether import experiments
+        from sim import experiments
 
         result = experiments.run_experiment(args.what, Path(args.out), duration=args.duration, progress=prog)
         print((Path(args.out) / "report.md").read_text())
@@ -96,7 +96,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
     from deploy import local
-    from tether import figures, refsim
+    from sim import figures, refsim
     from tether.node import load_mission
     from tether.runfile import Run
 
@@ -118,7 +118,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from tether import figures
+    from sim import figures
     from tether.runfile import Run
 
     path = Path(args.run)
@@ -196,7 +196,7 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 
 def cmd_recorder(args: argparse.Namespace) -> int:
-    from tether import recorder
+    from recorder import node as recorder
 
     run, on_stop = recorder.make(Path(args.out))
     return _serve(args, "recorder", 0, run, on_stop)
@@ -209,7 +209,7 @@ def _check_id(args: argparse.Namespace) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from tether import sweep
+    from sim import sweep
 
     m = _load(args.mission)
     try:
@@ -231,8 +231,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def cmd_netem_set(args: argparse.Namespace) -> int:
     import asyncio
 
-    from netem.profile import ProfileError
-    from tether import control
+    from tether.netprofile import ProfileError
+    from netem import control
 
     try:
         profile = control.parse_profile(args.profile)

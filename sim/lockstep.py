@@ -12,15 +12,15 @@ the processes call, in the order they call them:
   number k; the leader publishes its profile at ``t_k`` the same way;
 * every in-link ``j -> i`` of a mission with a ``[netem]`` section is a :class:`netem.channel.Link`
   seeded with :func:`~netem.channel.link_rng`, offered j's encoded sample at its sample time and
-  following the link's profile schedule (``tether.node.Channel``); at tick k agent i takes the
+  following the link's profile schedule (:class:`netem.link.Channel`); at tick k agent i takes the
   newest sample its links have delivered by ``t_k`` (``Node.aligned``);
-* :func:`agent.law.neighbour_sample` applies the ``[links]`` policy, then
-  :meth:`agent.law.AgentLaw.step` gives ``u_i``, the errors and the next gains.
+* every agent runs the agent process's own tick, :meth:`agent.tick.AgentTick.step` (the
+  ``[links]`` policy, the feed-forward choice, the law and the next gains).
 
 The result equals a ``tether run --clock lockstep`` of the same mission bit for bit (checked by
 ``tests/test_lockstep.py`` against real processes under a degraded network), several times faster
 (``bench/sweep_engine.py``): it is what ``tether sweep`` runs by default. The reference simulator
-(:mod:`tether.refsim`) has no network; with an ideal one all three agree.
+(:mod:`sim.refsim`) has no network; with an ideal one all three agree.
 
 A run with a component of a formation error beyond every physical scale (``diverge_at``) or not
 finite is stopped there: the rest of its samples are NaN and ``meta["diverged_at"]`` says when.
@@ -30,17 +30,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from agent.law import AgentLaw, neighbour_sample
+from agent.tick import AgentTick, Heard
 from leader import profile
 from plant import base as plants
 from tether import wire
+from tether.inputs import Source
 from tether.mission import Mission
-from tether.node import Channel, Source
 from tether.runfile import Run
+
+if TYPE_CHECKING:
+    from netem.link import Channel
 
 Progress = Callable[[int, int], None]
 
@@ -50,22 +53,13 @@ DIVERGE_AT = 1e6
 
 @dataclass
 class _InLink:
-    """Agent i's input from in-neighbour j: the runtime's own :class:`~tether.node.Source` (the
+    """Agent i's input from in-neighbour j: the runtime's own :class:`~tether.inputs.Source` (the
     samples accepted, newest first, stale/duplicate/reordered counts) behind its
-    :class:`~tether.node.Channel` (the emulated link; None without ``[netem]``)."""
+    :class:`~netem.link.Channel` (the emulated link; None without ``[netem]``)."""
 
     src: int
     source: Source
-    channel: Channel | None
-    used: int = 0
-
-    def release(self, now: float) -> None:
-        """Hand the copies the link delivers by ``now`` to the source, as ``Node.release`` does."""
-        for copy in self.channel.release(now):
-            if copy.corrupted:  # fails its checksum at the receiver
-                self.source.corrupt += 1
-                continue
-            self.source.offer(wire.decode(copy.payload))
+    channel: "Channel | None"
 
 
 def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
@@ -83,27 +77,23 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     n = len(ids)
     lid = m.leader.id
     ref = profile.build(m.leader, d)
-    laws = [AgentLaw.from_mission(m, i) for i in ids]
+    ticks = [AgentTick.from_mission(m, i) for i in ids]
     hosts = plants.build(m)
     row_of = {aid: (h, r) for h in hosts for r, aid in enumerate(h.ids)}
     order = [row_of[aid] for aid in ids]
-    policy = m.links
     net = m.netem
+    if net is not None:
+        from netem.link import Channel  # only a mission with [netem] loads the emulator
 
     def in_link(j: int, i: int) -> _InLink:
-        source = Source(f"{j}->{i}", wire.State, j, keep=False)
-        return _InLink(j, source, None if net is None else Channel.of(m, j, i))
+        channel = None if net is None else Channel.of(m, j, i)
+        return _InLink(j, Source(f"{j}->{i}", wire.State, j, keep=False, channel=channel), channel)
 
-    links = [[in_link(j, i) for j in law.neighbours] for i, law in zip(ids, laws)]
-    nb = [np.zeros((3, len(row), d)) for row in links]  # per agent: the neighbours' p, v, a
+    links = [[in_link(j, i) for j in tk.law.neighbours] for i, tk in zip(ids, ticks)]
     width = max((len(row) for row in links), default=0)
-    senders = sorted({j for law in laws for j in law.neighbours})
+    senders = sorted({j for tk in ticks for j in tk.law.neighbours})
 
     extras: dict[str, np.ndarray] = {}
-    feed = m.law.feedforward
-    u_prev = [np.zeros(d) for _ in ids]
-    kp = [law.params.kp0.copy() for law in laws]
-    kv = [law.params.kv0.copy() for law in laws]
     meta = {"mission": m.name, "source": "lockstep-inprocess", "law": m.law.kind, "rate": m.rate,
             "steps": steps, "seed": m.seed, "diverged_at": None}
     run = Run.empty(steps + 1 if record else 1, ids, d, meta)
@@ -118,9 +108,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         # what each sender publishes at tick k: the leader's reference, each agent's relayed sample
         sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {
             lid: (t, np.asarray(lp, dtype=float), np.asarray(lv, dtype=float), np.asarray(la, dtype=float))}
-        shared = a if feed == "measured" else u_prev  # what each agent shares for the feed-forward
-        for i, aid in enumerate(ids):
-            sent[aid] = (t, p[i], v[i], shared[i])
+        for i, aid in enumerate(ids):  # what each agent shares for the feed-forward
+            sent[aid] = (t, p[i], v[i], ticks[i].shared(a[i]))
         payloads = {}
         if net is not None:
             for j in senders:
@@ -131,36 +120,26 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         keep = record or k == steps
         us = []
         worst = 0.0
-        for i, (law, row) in enumerate(zip(laws, links)):
-            nb_p, nb_v, nb_a = nb[i]
-            for s, lk in enumerate(row):
+        for i, (tk, row) in enumerate(zip(ticks, links)):
+            heard: list[Heard | None] = []
+            for lk in row:
                 if lk.channel is None:
-                    sample, age = sent[lk.src][1:], 0.0
+                    heard.append(sent[lk.src])
                     lk.source.received += 1
-                else:
-                    lk.channel.send(t, payloads[lk.src])
-                    lk.release(t)
-                    newest = lk.source.newest
-                    if newest is None:
-                        sample, age = None, math.nan
-                    else:
-                        sample = (np.array(newest.p), np.array(newest.vel), np.array(newest.a))
-                        age = t - newest.t
-                nb_p[s], nb_v[s], nb_a[s], ok = neighbour_sample(p[i], v[i], shared[i], law.deltas[s], sample, age,
-                                                                 policy.max_age, policy.compensate)
-                lk.used += ok
-                if keep:
-                    ages[r, i, s] = age if ok else math.nan
-            if feed == "none":
-                nb_a[:] = 0.0
-            u, xi, zeta, kp_next, kv_next = law.step(p[i], v[i], nb_p, nb_v, nb_a, kp[i], kv[i])
-            us.append(u)
-            worst = max(worst, abs(xi).max())
+                    continue
+                lk.channel.send(t, payloads[lk.src])
+                lk.source.deliver(t, wire.decode)  # a corrupted copy fails its checksum, counted
+                newest = lk.source.newest
+                heard.append(None if newest is None else
+                             (newest.t, np.array(newest.p), np.array(newest.vel), np.array(newest.a)))
+            out = tk.step(t, p[i], v[i], a[i], heard)
+            us.append(out.u)
+            worst = max(worst, abs(out.xi).max())
             if keep:
-                run.p[r, i], run.v[r, i], run.a[r, i], run.u[r, i] = p[i], v[i], a[i], u
-                run.xi[r, i], run.zeta[r, i], run.kp[r, i], run.kv[r, i] = xi, zeta, kp[i], kv[i]
+                ages[r, i, :len(row)] = [age if ok else math.nan for age, ok in zip(out.ages, out.used)]
+                run.p[r, i], run.v[r, i], run.a[r, i], run.u[r, i] = p[i], v[i], a[i], out.u
+                run.xi[r, i], run.zeta[r, i], run.kp[r, i], run.kv[r, i] = out.xi, out.zeta, out.kp, out.kv
                 run.d[r, i] = dist[i]
-            kp[i], kv[i] = kp_next, kv_next
         if keep:
             run.t[r] = t
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp, lv, la
@@ -175,7 +154,6 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             break
         if k == steps:
             break
-        u_prev = us
         for host in hosts:
             host.step(np.array([us[ids.index(aid)] for aid in host.ids]))
         if progress is not None and k % every == 0:
@@ -187,12 +165,12 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     ex["link_src"] = np.zeros((n, width), dtype=np.int64)
     for name in ("link_received", "link_used", "link_stale", "link_duplicates", "link_reordered", "link_corrupt"):
         ex[name] = np.zeros((n, width), dtype=np.int64)
-    for i, row in enumerate(links):
+    for i, (tk, row) in enumerate(zip(ticks, links)):
         for s, lk in enumerate(row):
             ex["link_src"][i, s] = lk.src
             src = lk.source
             ex["link_received"][i, s] = src.received
-            ex["link_used"][i, s] = lk.used
+            ex["link_used"][i, s] = tk.used[s]
             ex["link_stale"][i, s] = src.stale
             ex["link_duplicates"][i, s] = src.duplicates
             ex["link_reordered"][i, s] = src.reordered

@@ -2,7 +2,7 @@
 
 Each experiment runs its shipped mission (``tether/missions/exp1.toml``, ``exp2.toml``) and the
 variants that test what the paper assumes, under the lockstep semantics in one process
-(:mod:`tether.lockstep`, equal to the distributed runtime bit for bit), and writes figures like the
+(:mod:`sim.lockstep`, equal to the distributed runtime bit for bit), and writes figures like the
 paper's, the runs, ``metrics.json`` and ``report.md``. Every sentence of the report that states a
 result is computed from the runs; nothing here knows what the paper's figures look like.
 
@@ -34,7 +34,7 @@ import numpy as np
 
 from plant.payload import CableParams, hover_equilibrium
 from plant.vehicle import G
-from tether import figures, lockstep, metrics
+from sim import figures, lockstep, metrics
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.runfile import Run

@@ -9,14 +9,14 @@ the leader's included) of
   ``good_loss = 0``, whose stationary loss ratio is ``p / (p + r) = L``.
 
 Each point runs under the lockstep semantics (delays in simulated time, reproducible for the
-mission's seed) either in one process (``engine = "inprocess"``: :mod:`tether.lockstep`, equal to
+mission's seed) either in one process (``engine = "inprocess"``: :mod:`sim.lockstep`, equal to
 the runtime bit for bit) or as real processes over Zenoh (``engine = "runtime"``: ``tether run``).
 The mission file of every point is written beside the results, so any cell can be re-run alone.
 
 Figures of merit (``docs/metrics.md``): the ultimate bound of the *true* formation error
 ``||xi||`` (Eq. 8 from the vehicles' positions) over the last 10 % of the run, and of the ``xi`` the
 agents computed from the (old, lost, substituted) data they had; the peak gain ``max(Kp, Kv)``, the gains' growth rate over the second half, divergence (the
-formation error non-finite or beyond :data:`tether.lockstep.DIVERGE_AT`), and what the links did
+formation error non-finite or beyond :data:`sim.lockstep.DIVERGE_AT`), and what the links did
 (delivery ratio, age of the neighbour data used, p50 and p99).
 """
 
@@ -40,10 +40,11 @@ from typing import Callable, Literal
 import msgspec
 import numpy as np
 
-from netem.profile import Bernoulli, Delay, GilbertElliott, LinkProfile, Network
-from tether import graph, lockstep, metrics
+from tether.netprofile import Bernoulli, Delay, GilbertElliott, LinkProfile, Network
+from tether import graph
+from sim import lockstep, metrics
 from tether import mission as ms
-from tether.reproduce import with_law
+from sim.reproduce import with_law
 from tether.runfile import Run
 
 Engine = Literal["inprocess", "runtime"]
@@ -167,7 +168,7 @@ def run_point(mission_text: str, engine: Engine, workdir: str | None) -> dict:
     else:
         out = Path(workdir)
         path = out / "mission.toml"
-        r = subprocess.run([sys.executable, "-m", "tether.cli", "run", str(path), "--out", str(out), "--quiet"],
+        r = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--quiet"],
                            capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"tether run {path} failed with status {r.returncode}: {r.stderr[-2000:]}")
@@ -189,7 +190,7 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
           progress: Callable[[int, int, str], None] | None = None) -> list[dict]:
     """Run the grid, write ``sweep.csv``, ``sweep.json``, ``sweep.md``, the heatmaps and every
     point's mission file under ``out``; returns the rows (in grid order)."""
-    from tether import figures
+    from sim import figures
 
     if engine not in ("inprocess", "runtime"):
         raise SweepError(f"--engine: {engine!r} is not an engine; use inprocess or runtime")

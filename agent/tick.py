@@ -1,0 +1,123 @@
+"""One tick of agent i around the law, pure: no I/O, no Zenoh, no clock.
+
+The agent process (``agent/node.py``) and the in-process engine (``sim/lockstep.py``) both run
+:meth:`AgentTick.step`, so they cannot differ in what they do with a sample:
+
+* the feed-forward choice (``[law] feedforward``): what the agent shares as its acceleration
+  (:meth:`AgentTick.shared`) and whether the neighbours' accelerations enter Eq. 17 at all;
+* the neighbour-sample policy (``[links]``, :func:`agent.law.neighbour_sample`): a sample older
+  than ``max_age``, or none, stands for "in formation, not accelerating"; latency compensation;
+* the law step (:meth:`agent.law.AgentLaw.step`) with the gains ``K(t_k)``, then the exact gain
+  update for the next tick;
+* the per-link statistics the tick itself knows: samples used, and the ages of the samples used
+  over the last :data:`AGE_WINDOW` ticks (their percentiles are computed only when asked).
+
+The reference simulator (``sim/refsim.py``) keeps its vectorised form of the same arithmetic and
+is tested equal to both.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.law import AgentLaw, neighbour_sample
+from tether.mission import LinkPolicy, Mission
+
+AGE_WINDOW = 500
+"""Ticks over which each link's age-of-information percentiles are taken (5 s at 100 Hz)."""
+
+Heard = tuple[float, np.ndarray, np.ndarray, np.ndarray]
+"""An in-neighbour's newest sample as the tick takes it: ``(t_j [s], p_j [m], v_j [m/s], a_j [m/s^2])``."""
+
+
+@dataclass(frozen=True)
+class TickResult:
+    """What one tick computed.
+
+    Attributes:
+        u: the command for this tick [m/s^2; world frame], ``(d,)``.
+        xi, zeta: the errors (Eq. 8, 9), ``(d,)``.
+        kp, kv: the gains used for ``u`` (``K(t_k)``), ``(d,)``.
+        ages: per in-neighbour, the age of its newest sample [s] (NaN: none held).
+        used: per in-neighbour, whether its sample was used (else it was substituted).
+    """
+
+    u: np.ndarray
+    xi: np.ndarray
+    zeta: np.ndarray
+    kp: np.ndarray
+    kv: np.ndarray
+    ages: list[float]
+    used: list[bool]
+
+
+class AgentTick:
+    """Agent i's state between ticks (gains, previous command, link statistics) and its tick."""
+
+    def __init__(self, law: AgentLaw, policy: LinkPolicy, feedforward: str, dim: int,
+                 age_window: int = AGE_WINDOW) -> None:
+        self.law = law
+        self.policy = policy
+        self.feedforward = feedforward
+        self.kp = law.params.kp0.copy()
+        self.kv = law.params.kv0.copy()
+        self.last_u = np.zeros(dim)
+        """The command of the previous tick: what the agent shares as its acceleration with
+        ``feedforward = "commanded"`` (the plant's sample of tick k comes after the command of k-1)."""
+        m = len(law.neighbours)
+        self.used = [0] * m
+        """Per in-neighbour, samples used so far."""
+        self.windows: list[deque[float]] = [deque(maxlen=age_window) for _ in range(m)]
+        """Per in-neighbour, the ages of the samples used over the last ``age_window`` ticks."""
+        self._nb = np.zeros((3, m, dim))
+
+    @classmethod
+    def from_mission(cls, m: Mission, agent_id: int) -> "AgentTick":
+        return cls(AgentLaw.from_mission(m, agent_id), m.links, m.law.feedforward, m.dim)
+
+    def shared(self, measured: np.ndarray) -> np.ndarray:
+        """The acceleration this agent shares with its out-neighbours for their feed-forward: its
+        measured one (``feedforward = "measured"``), else its previous command."""
+        return measured if self.feedforward == "measured" else self.last_u
+
+    def step(self, t: float, p: np.ndarray, v: np.ndarray, a_measured: np.ndarray,
+             heard: Sequence[Heard | None]) -> TickResult:
+        """Tick at time ``t`` [s] with the own sample ``p, v, a_measured`` and, per in-neighbour
+        in ``law.neighbours`` order, its newest sample (or None). Advances the gains."""
+        law, policy = self.law, self.policy
+        a = self.shared(a_measured)
+        nb_p, nb_v, nb_a = self._nb
+        ages: list[float] = []
+        oks: list[bool] = []
+        for n, sample in enumerate(heard):
+            if sample is None:
+                age, got = math.nan, None
+            else:
+                age, got = t - sample[0], sample[1:]
+            nb_p[n], nb_v[n], nb_a[n], ok = neighbour_sample(p, v, a, law.deltas[n], got, age,
+                                                             policy.max_age, policy.compensate)
+            self.used[n] += ok
+            if ok:
+                self.windows[n].append(age)
+            ages.append(age)
+            oks.append(ok)
+        if self.feedforward == "none":
+            nb_a[:] = 0.0
+        u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, self.kp, self.kv)
+        out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks)
+        self.kp, self.kv, self.last_u = kp_next, kv_next, u
+        return out
+
+    def age_percentiles(self, n: int) -> tuple[float, float]:
+        """Median and 99th percentile [s] of the ages of in-neighbour ``n``'s samples used over the
+        window (NaN before any was used)."""
+        w = self.windows[n]
+        if not w:
+            return math.nan, math.nan
+        p50, p99 = np.percentile(w, (50, 99)).tolist()
+        return p50, p99

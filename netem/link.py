@@ -1,0 +1,59 @@
+"""One emulated link ``j -> i`` as a process's input sees it: the link model, its profile
+schedule, and the copies in flight (the :class:`tether.inputs.Link` the core's inputs sit behind).
+
+Used by the agent process and by the in-process engine alike, so both emulate the same link.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from netem.channel import Delivery, DeliveryQueue, Link, link_rng
+from tether import mission as ms
+from tether.netprofile import schedule
+
+
+@dataclass
+class Channel:
+    """One directed link j -> i of the emulated network. Samples enter with :meth:`send` and leave
+    with :meth:`release`."""
+
+    link: Link
+    changes: list[tuple[float, Any]]
+    queue: DeliveryQueue = field(default_factory=DeliveryQueue)
+    _next: int = 1
+
+    @classmethod
+    def of(cls, m: ms.Mission, src: int, dst: int) -> "Channel":
+        """Link ``src -> dst`` of mission ``m``'s ``[netem]`` section: its profile schedule and
+        its generator ``link_rng(m.seed, src, dst)``."""
+        assert m.netem is not None, "Channel.of needs a mission with a [netem] section"
+        changes = schedule(m.netem, src, dst)
+        return cls(Link(changes[0][1], link_rng(m.seed, src, dst), log=m.netem.log), changes)
+
+    def send(self, now: float, payload: bytes) -> None:
+        while self._next < len(self.changes) and self.changes[self._next][0] <= now:
+            self.link.set_profile(self.changes[self._next][1])
+            self._next += 1
+        self.queue.push(self.link.offer(now, payload))
+
+    def release(self, now: float) -> list[Delivery]:
+        return self.queue.pop_due(now)
+
+    @property
+    def next_at(self) -> float | None:
+        return self.queue.next_at
+
+    @property
+    def last_offer(self) -> float:
+        """Time of the newest offer [s] (-inf before the first)."""
+        return self.link.last_offer
+
+    def change(self, at: float, profile: Any) -> None:
+        """Use ``profile`` for the offers from ``at`` on (one already past: from the next offer).
+        Changes asked for the same time apply in the order they were asked for."""
+        pending = self.changes[self._next:]
+        pending.append((at, profile))
+        pending.sort(key=lambda c: c[0])  # stable
+        self.changes[self._next:] = pending

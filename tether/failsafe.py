@@ -1,0 +1,65 @@
+"""The failsafe command laws every agent's supervisor and every plant's watchdog fly. Pure.
+
+They live in the core because both sides of the command link need them: an agent in HOLD or LAND
+commands them itself, and a plant whose agent has gone silent flies the very same laws on its own
+measurement (``docs/safety.md``). Vectors are ``(d,)`` [SI units; world frame]; in 3D the last axis
+is up.
+
+* :func:`saturate` — the command scaled down to a norm of at most ``max_accel``; a command that is
+  not finite becomes None (the caller must fail safe, never pass it on);
+* :func:`hold` — brake to zero velocity and keep the position where HOLD began:
+  ``u = -kv v - kp (p - p_hold)``, saturated;
+* :func:`land` — hold horizontally and descend at ``land_speed`` to ``ground`` (3D; in 2D there
+  is no up, so LAND is HOLD until the vehicle is still);
+* :func:`landed` — on the ground (3D) or still (2D), slow enough to disarm.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+STILL = 0.05
+"""A vehicle slower than this [m/s] counts as still (2D LAND ends, a landing has settled)."""
+TOUCHDOWN = 0.02
+"""A 3D vehicle within this height of the ground [m] has touched down."""
+
+
+def saturate(u: np.ndarray, max_accel: float) -> np.ndarray | None:
+    """``u`` scaled down to norm ``max_accel`` where it exceeds it; None if ``u`` is not finite."""
+    if not np.all(np.isfinite(u)):
+        return None
+    norm = math.sqrt(float(u @ u))
+    if norm <= max_accel:
+        return u
+    return u * (max_accel / norm)
+
+
+def hold(p: np.ndarray, v: np.ndarray, p_hold: np.ndarray, kp: float, kv: float, max_accel: float) -> np.ndarray:
+    """HOLD's command: brake to zero velocity and return to ``p_hold``, at most ``max_accel``.
+    Non-finite measurements give a zero command (nothing better is known)."""
+    u = saturate(-kv * v - kp * (p - p_hold), max_accel)
+    return np.zeros_like(p) if u is None else u
+
+
+def land(p: np.ndarray, v: np.ndarray, p_hold: np.ndarray, kp: float, kv: float, max_accel: float,
+         land_speed: float, ground: float) -> np.ndarray:
+    """LAND's command: HOLD horizontally; in 3D descend at ``land_speed``, slowing in the last
+    ``land_speed / kv`` metres so as to settle onto ``ground`` (vertical velocity tracking)."""
+    if p.shape[0] < 3:
+        return hold(p, v, p_hold, kp, kv, max_accel)
+    u = -kv * v - kp * (p - p_hold)
+    height = float(p[-1] - ground)
+    v_want = -min(land_speed, max(height, 0.0) * kv)
+    u[-1] = kv * (v_want - v[-1])
+    out = saturate(u, max_accel)
+    return np.zeros_like(p) if out is None else out
+
+
+def landed(p: np.ndarray, v: np.ndarray, ground: float) -> bool:
+    """On the ground and settled (3D), or still (2D)."""
+    speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
+    if p.shape[0] < 3:
+        return speed < STILL
+    return bool(p[-1] - ground <= TOUCHDOWN) and speed < 2 * STILL

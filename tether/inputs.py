@@ -1,0 +1,133 @@
+"""A process's inputs, without Zenoh: the samples accepted from one key, and what was seen of them.
+
+A :class:`Source` is fed decoded, checked messages (:meth:`Source.offer`); it keeps them by tick
+and the newest, and counts what arrived stale (duplicated or reordered) and what an emulated link
+corrupted. When the mission emulates the network, a source sits behind a :class:`Link` (the
+receive side of one directed link ``j -> i``, implemented by :class:`netem.link.Channel`); the
+core knows only this protocol, so a process without ``[netem]`` never loads the emulator.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+RECENT_SEQS = 256
+"""Sequence numbers a source remembers to tell duplicates from reordered samples (a duplicate
+arriving more than this many samples late counts as reordered)."""
+
+
+class Copy(Protocol):
+    """One copy a link delivers: its bytes, and whether the link corrupted it."""
+
+    payload: bytes
+    corrupted: bool
+
+
+class Link(Protocol):
+    """The receive side of one emulated link: copies enter with :meth:`send` at the current
+    network time [s] and leave with :meth:`release` when due."""
+
+    def send(self, now: float, payload: bytes) -> None: ...
+
+    def release(self, now: float) -> Sequence[Copy]: ...
+
+    @property
+    def next_at(self) -> float | None:
+        """When the next copy is due [s], if any is in flight."""
+        ...
+
+    @property
+    def last_offer(self) -> float:
+        """Time of the newest offer [s] (-inf before the first)."""
+        ...
+
+
+@dataclass
+class Source:
+    """One input key: the samples accepted from it, by tick and newest, and what was seen."""
+
+    key: str
+    expect: type
+    sender: int | None
+    by_tick: dict[int, Any] = field(default_factory=dict)
+    newest: Any = None
+    received: int = 0
+    stale: int = 0
+    """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
+    duplicates: int = 0
+    """Stale samples whose sequence number had already been received (a second copy)."""
+    reordered: int = 0
+    """Stale samples seen for the first time (overtaken by a newer one on the way)."""
+    corrupt: int = 0
+    """Copies an emulated link corrupted (they fail the receiver's checksum and are dropped)."""
+    recent: deque[int] = field(default_factory=lambda: deque(maxlen=RECENT_SEQS))
+    """The last sequence numbers received, to tell a duplicate from a reordered sample."""
+    last: int = -1
+    """The producer's last tick (the mission's), when known."""
+    channel: Link | None = None
+    """The emulated network link this input arrives through (``[netem]``), if any."""
+    raw_k: int = -1
+    """Newest tick offered to the channel (what the sender has sent, before the network)."""
+    gone: bool = False
+    """Its producer's liveliness token is absent."""
+    on_message: Callable[[Any], None] | None = None
+    keep: bool = True
+    """Hold samples by tick for :meth:`tether.node.Node.aligned`; False for inputs consumed by
+    ``on_message`` alone (the recorder), which would otherwise hold every sample of the run."""
+
+    @property
+    def silent(self) -> bool:
+        """The producer is gone before its last tick (one that sent its last tick and left is not
+        silent, whatever order its last sample and its token's end arrive in)."""
+        return self.silent_at(self.last)
+
+    def silent_at(self, k: int) -> bool:
+        """Silent as far as tick ``k`` is concerned: gone without having delivered tick ``k``.
+        (In lockstep a tick runs only with its samples in, so this is never true there, and the
+        flag cannot depend on when the token's end happened to be seen.)"""
+        return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
+
+    def offer(self, msg: Any) -> None:
+        self.received += 1
+        if self.newest is not None and msg.seq <= self.newest.seq:
+            self.stale += 1
+            if msg.seq in self.recent:
+                self.duplicates += 1
+            else:
+                self.reordered += 1
+        else:
+            self.newest = msg
+        self.recent.append(msg.seq)
+        if self.keep:
+            self.by_tick.setdefault(msg.k, msg)
+        if self.on_message is not None:
+            self.on_message(msg)
+
+    def received_upto(self, k: int) -> int:
+        """Samples accepted whose tick is at most ``k`` (in lockstep, what tick k could have seen,
+        whatever arrived early)."""
+        return self.received - sum(1 for t in self.by_tick if t > k)
+
+    def forget_before(self, k: int) -> None:
+        for old in [t for t in self.by_tick if t < k]:
+            del self.by_tick[old]
+
+    def deliver(self, now: float, decode: Callable[[bytes], Any | None]) -> int:
+        """Hand the copies this source's link delivers by ``now`` to it; a corrupted copy fails its
+        checksum at the receiver and is counted, not decoded. ``decode`` returns None for a copy
+        the receiver rejects. Returns the number of corrupted copies."""
+        if self.channel is None:
+            return 0
+        bad = 0
+        for copy in self.channel.release(now):
+            if copy.corrupted:
+                self.corrupt += 1
+                bad += 1
+                continue
+            msg = decode(copy.payload)
+            if msg is not None:
+                self.offer(msg)
+        return bad
