@@ -148,6 +148,13 @@ class AgentLaw:
         params = LawParams.from_mission(m)
         return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt), h_i - h_nb)
 
+    def without(self, lost: frozenset[int]) -> "AgentLaw":
+        """The law with the edges from the ``lost`` in-neighbours dropped and kappa_i re-normalised
+        over the others (their rows stay, with weight 0, so samples keep the same order)."""
+        w = np.array([0.0 if j in lost else wt for j, wt in zip(self.neighbours, self.weights)])
+        return AgentLaw(self.agent_id, self.neighbours, w, float(w.sum()), w @ self.deltas, self.params,
+                        self.gains, self.deltas)
+
     def step(
         self,
         p: np.ndarray,

@@ -14,6 +14,8 @@ import logging
 
 import numpy as np
 
+from agent.gate import Gate, merged
+from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from netem import control as netem_control
 from tether import transport as tp
@@ -38,7 +40,27 @@ async def run(node: Node) -> None:
     def relay(msg: wire.PlantState) -> None:
         state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist())
 
+    sf = m.safety
+    initial = {a.id: list(a.p0) for a in m.agents} | {m.leader.id: list(m.leader.p0)}
+    gates: list[Gate] = []
+
+    def gate(sender: int) -> Gate:
+        g = Gate(m.dt, sf.max_speed, sf.jump_margin, initial[sender],
+                 future_window=sf.future_window, now=None if node.clock.lockstep else node.mission_time)
+        gates.append(g)
+        return g
+
+    operator: list[str] = []
+    """The operator's orders received (``land``, ``estop``), in order."""
+
+    def order(msg: wire.SafetyCommand) -> None:
+        if msg.action not in operator:
+            log.warning("operator: %s (%s)", msg.action, msg.reason or "no reason given")
+            operator.append(msg.action)
+
+    node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
     plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
+    plant.admit = gate(aid).check
     node.watch("plant", aid, plant)
     if m.netem is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
@@ -48,6 +70,7 @@ async def run(node: Node) -> None:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
         src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel)
+        src.admit = gate(j).check
         node.watch(role, j, src)
         nbrs.append(src)
         if channel is not None:
@@ -59,6 +82,7 @@ async def run(node: Node) -> None:
 
     lockstep = node.clock.lockstep
     holding = False
+    neighbours = set(law.neighbours)
     for k in range(m.steps + 1):
         await node.tick(k)
         t = k * m.dt
@@ -77,9 +101,21 @@ async def run(node: Node) -> None:
             holding = False
         heard: list[Heard | None] = [
             None if msg is None else (msg.t, np.array(msg.p), np.array(msg.vel), np.array(msg.a)) for msg in got]
-        out = tick.step(t, np.array(own.p), np.array(own.vel), np.array(own.a), heard)
+        if lockstep or k == m.steps:
+            # lockstep: a tick waits for its inputs, so nothing can be silent; the last tick:
+            # the others may already have finished and left
+            status = Status(operator=_order(operator))
+        else:
+            # an agent that left after its last tick is not lost; only the last ticks can see that
+            others = node.gone("agent") - neighbours - {aid} if k < m.steps - 1 else set()
+            status = Status(gone=[s.silent_at(k) for s in nbrs], others_gone=frozenset(others),
+                            operator=_order(operator))
+        out = tick.step(k, t, np.array(own.p), np.array(own.vel), np.array(own.a), heard, status)
         u = out.u.tolist()
-        cmd.send(wire.Command, k, t, u=u)
+        cmd.send(wire.Command, k, t, u=u, mode=out.mode)
+        events = tick.supervisor.take_events()
+        for ev in events:
+            log.warning("safety: t = %.2f s: %s -> %s: %s", ev.t, wire.MODES[ev.src], wire.MODES[ev.dst], ev.reason)
         links = []
         for n, (j, s) in enumerate(zip(law.neighbours, nbrs)):
             received = s.received_upto(k) if lockstep else s.received
@@ -94,4 +130,10 @@ async def run(node: Node) -> None:
                      for j, ch in channels for d in ch.link.take_decisions()]
         tele.send(wire.Telemetry, k, t, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u,
                   xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
-                  drops=dict(node.receiver.drops), late=node.clock.late)
+                  drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
+                  gate=merged(gates))
+
+
+def _order(orders: list[str]) -> str | None:
+    """The operator's standing order: estop beats land."""
+    return "estop" if "estop" in orders else "land" if "land" in orders else None

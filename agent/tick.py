@@ -10,7 +10,10 @@ The agent process (``agent/node.py``) and the in-process engine (``sim/lockstep.
 * the law step (:meth:`agent.law.AgentLaw.step`) with the gains ``K(t_k)``, then the exact gain
   update for the next tick;
 * the per-link statistics the tick itself knows: samples used, and the ages of the samples used
-  over the last :data:`AGE_WINDOW` ticks (their percentiles are computed only when asked).
+  over the last :data:`AGE_WINDOW` ticks (their percentiles are computed only when asked);
+* the safety supervisor (:class:`agent.safety.Supervisor`): lost in-neighbours dropped with
+  kappa_i re-normalised, the mode, and the command that leaves the agent (saturated; HOLD, LAND,
+  LANDED or ESTOP when something is wrong). The gains advance only while FLYING.
 
 The reference simulator (``sim/refsim.py``) keeps its vectorised form of the same arithmetic and
 is tested equal to both.
@@ -26,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.law import AgentLaw, neighbour_sample
+from agent.safety import NOMINAL, Status, Supervisor
 from tether.mission import LinkPolicy, Mission
 
 AGE_WINDOW = 500
@@ -40,7 +44,8 @@ class TickResult:
     """What one tick computed.
 
     Attributes:
-        u: the command for this tick [m/s^2; world frame], ``(d,)``.
+        u: the command that leaves the agent at this tick [m/s^2; world frame], ``(d,)``
+            (the supervisor's: the law's saturated while FLYING).
         xi, zeta: the errors (Eq. 8, 9), ``(d,)``.
         kp, kv: the gains used for ``u`` (``K(t_k)``), ``(d,)``.
         ages: per in-neighbour, the age of its newest sample [s] (NaN: none held).
@@ -54,14 +59,18 @@ class TickResult:
     kv: np.ndarray
     ages: list[float]
     used: list[bool]
+    mode: int
+    """The supervisor's mode after this tick (a code of :data:`tether.wire.MODES`)."""
 
 
 class AgentTick:
     """Agent i's state between ticks (gains, previous command, link statistics) and its tick."""
 
     def __init__(self, law: AgentLaw, policy: LinkPolicy, feedforward: str, dim: int,
-                 age_window: int = AGE_WINDOW) -> None:
+                 supervisor: Supervisor, age_window: int = AGE_WINDOW) -> None:
         self.law = law
+        self.supervisor = supervisor
+        self._laws: dict[frozenset[int], AgentLaw] = {frozenset(): law}
         self.policy = policy
         self.feedforward = feedforward
         self.kp = law.params.kp0.copy()
@@ -78,22 +87,26 @@ class AgentTick:
 
     @classmethod
     def from_mission(cls, m: Mission, agent_id: int) -> "AgentTick":
-        return cls(AgentLaw.from_mission(m, agent_id), m.links, m.law.feedforward, m.dim)
+        law = AgentLaw.from_mission(m, agent_id)
+        return cls(law, m.links, m.law.feedforward, m.dim, Supervisor(m, agent_id, law.neighbours))
 
     def shared(self, measured: np.ndarray) -> np.ndarray:
         """The acceleration this agent shares with its out-neighbours for their feed-forward: its
         measured one (``feedforward = "measured"``), else its previous command."""
         return measured if self.feedforward == "measured" else self.last_u
 
-    def step(self, t: float, p: np.ndarray, v: np.ndarray, a_measured: np.ndarray,
-             heard: Sequence[Heard | None]) -> TickResult:
-        """Tick at time ``t`` [s] with the own sample ``p, v, a_measured`` and, per in-neighbour
-        in ``law.neighbours`` order, its newest sample (or None). Advances the gains."""
-        law, policy = self.law, self.policy
+    def step(self, k: int, t: float, p: np.ndarray, v: np.ndarray, a_measured: np.ndarray,
+             heard: Sequence[Heard | None], status: Status = NOMINAL) -> TickResult:
+        """Tick ``k`` at time ``t`` [s] with the own sample ``p, v, a_measured`` and, per
+        in-neighbour in ``law.neighbours`` order, its newest sample (or None); ``status`` is what
+        the process knows of its inputs' liveliness and the operator. Advances the gains while
+        FLYING."""
+        policy = self.policy
         a = self.shared(a_measured)
         nb_p, nb_v, nb_a = self._nb
         ages: list[float] = []
         oks: list[bool] = []
+        law = self.law
         for n, sample in enumerate(heard):
             if sample is None:
                 age, got = math.nan, None
@@ -108,9 +121,17 @@ class AgentTick:
             oks.append(ok)
         if self.feedforward == "none":
             nb_a[:] = 0.0
-        u, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, self.kp, self.kv)
-        out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks)
-        self.kp, self.kv, self.last_u = kp_next, kv_next, u
+        sup = self.supervisor
+        lost, reachable, leader_silent = sup.links(k, t, ages, status)
+        law = self._laws.get(lost)
+        if law is None:
+            law = self._laws[lost] = self.law.without(lost)
+        u_law, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, self.kp, self.kv)
+        u = sup.command(k, t, p, v, u_law, xi, self.kp, self.kv, reachable, leader_silent, status)
+        out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks, sup.mode)
+        if sup.flying:
+            self.kp, self.kv = kp_next, kv_next
+        self.last_u = u
         return out
 
     def age_percentiles(self, n: int) -> tuple[float, float]:

@@ -22,8 +22,10 @@ The result equals a ``tether run --clock lockstep`` of the same mission bit for 
 (``bench/sweep_engine.py``): it is what ``tether sweep`` runs by default. The reference simulator
 (:mod:`sim.refsim`) has no network; with an ideal one all three agree.
 
-A run with a component of a formation error beyond every physical scale (``diverge_at``) or not
-finite is stopped there: the rest of its samples are NaN and ``meta["diverged_at"]`` says when.
+A run in which an agent's safety supervisor catches a divergence (``[safety]``: the formation error,
+a gain or the command past its bound), or with a component of a formation error beyond every
+physical scale (``diverge_at``) or not finite, is stopped there: the rest of its samples are NaN and
+``meta["diverged_at"]`` says when.
 """
 
 from __future__ import annotations
@@ -132,7 +134,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 newest = lk.source.newest
                 heard.append(None if newest is None else
                              (newest.t, np.array(newest.p), np.array(newest.vel), np.array(newest.a)))
-            out = tk.step(t, p[i], v[i], a[i], heard)
+            out = tk.step(k, t, p[i], v[i], a[i], heard)
             us.append(out.u)
             worst = max(worst, abs(out.xi).max())
             if keep:
@@ -144,7 +146,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             run.t[r] = t
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp, lv, la
             _record_extras(extras, [samples[id(host)] for host in hosts], r, steps + 1 if record else 1)
-        if not (worst <= diverge_at):  # also catches NaN
+        caught = any(tk.supervisor.diverged is not None for tk in ticks)
+        if caught or not (worst <= diverge_at):  # also catches NaN
             run.meta["diverged_at"] = t
             if record:
                 for name in ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d"):

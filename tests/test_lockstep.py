@@ -77,13 +77,27 @@ def test_a_diverging_run_stops_and_says_when() -> None:
     base = load_mission(builtin_path("section4"), 20.0)
     # 300 ms of delay in a loop with gains of 40 that never come down (the benchmark): unstable
     law = msgspec.structs.replace(base.law, kp0=40.0, kv0=40.0)
-    m = sweep.point_mission(msgspec.structs.replace(base, law=law), sweep.Point("benchmark", 0.0, 300.0, 1.0))
+    # without saturation (a vehicle that could accelerate without bound): the error grows until
+    # the supervisor's divergence bound catches it
+    unbounded = msgspec.structs.replace(base.safety, max_accel=1e12, max_speed=1e12)
+    m = sweep.point_mission(msgspec.structs.replace(base, law=law, safety=unbounded),
+                            sweep.Point("benchmark", 0.0, 300.0, 1.0))
     run = lockstep.simulate(m)
     at = run.meta["diverged_at"]
     assert at is not None and 0 < at < 20.0
     k = int(round(at * m.rate))
     assert np.all(np.isfinite(run.xi[: k + 1])) and np.all(np.isnan(run.xi[k + 1:]))
     assert sweep.figures_of_merit(run, m)["diverged"]
+
+
+def test_saturation_keeps_the_same_unstable_loop_within_max_accel() -> None:
+    base = load_mission(builtin_path("section4"), 20.0)
+    law = msgspec.structs.replace(base.law, kp0=40.0, kv0=40.0)
+    m = sweep.point_mission(msgspec.structs.replace(base, law=law), sweep.Point("benchmark", 0.0, 300.0, 1.0))
+    run = lockstep.simulate(m)
+    norms = np.linalg.norm(run.u, axis=-1)
+    assert np.all(np.isfinite(run.u)) and norms.max() <= m.safety.max_accel * (1 + 1e-12)
+    assert norms.max() > 0.99 * m.safety.max_accel  # it was needed
 
 
 def test_the_true_formation_error_is_eq8_from_positions_and_differs_under_delay() -> None:

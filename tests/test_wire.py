@@ -31,7 +31,9 @@ SAMPLES: dict[type, wire.Message] = {
     wire.Command: wire.Command(sender=4, seq=99, k=99, t=0.99, u=[-1.5, 3.0]),
     wire.Telemetry: wire.Telemetry(sender=1, seq=12, k=12, t=0.12, meas_t=0.12, p=[1.0, 2.0], vel=[3.0, 4.0], a=[5.0, 6.0],
                                    u=[7.0, 8.0], xi=[0.1, -0.1], zeta=[0.2, -0.2], kp=[1.5, 1.25], kv=[2.0, 1.0],
-                                   links=LINKS, drops={"malformed": 2, "sender": 1}, late=3),
+                                   links=LINKS, drops={"malformed": 2, "sender": 1}, late=3, mode=wire.HOLD,
+                                   events=[wire.SafetyEvent(k=11, t=0.11, vehicle=1, src=wire.FLYING, dst=wire.HOLD,
+                                                            reason="leader silent")], gate={"jump": 1}),
     wire.Tick: wire.Tick(sender=0, seq=4, k=40, t=0.4, grant=40),
     wire.Ack: wire.Ack(sender=0, seq=40, k=40, t=0.4, role="recorder"),
     wire.Start: wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=1.7e9),
@@ -39,12 +41,13 @@ SAMPLES: dict[type, wire.Message] = {
                                  rules=[LinkRule(profile="wifi-lossy", src=2, dst=3)]),
     wire.WorldState: wire.WorldState(sender=0, seq=7, k=7, t=0.07, p=[0.0, 0.1], vel=[0.0, 0.0],
                                      tension=[0.05, 0.05, 0.0, 0.05], slack_events=[0, 1, 2, 0]),
+    wire.SafetyCommand: wire.SafetyCommand(sender=0, seq=2, k=0, t=0.0, action="land", reason="test"),
 }
 """One message of every type, with the sender id its key would carry."""
 
 EXPECTED_TAGS = {wire.State: "state", wire.PlantState: "plant_state", wire.Command: "cmd",
                  wire.Telemetry: "telemetry", wire.Tick: "tick", wire.Ack: "ack", wire.Start: "start",
-                 wire.NetemSet: "netem_set", wire.WorldState: "world_state"}
+                 wire.NetemSet: "netem_set", wire.WorldState: "world_state", wire.SafetyCommand: "safety"}
 
 
 def same(a: wire.Message, b: wire.Message) -> bool:

@@ -74,6 +74,11 @@ class Source:
     gone: bool = False
     """Its producer's liveliness token is absent."""
     on_message: Callable[[Any], None] | None = None
+    admit: Callable[[Any], str | None] | None = None
+    """The plausibility gate: returns why a decoded sample cannot be true (it is then dropped
+    before it is stored or counted as received), or None to accept it."""
+    rejected: int = 0
+    """Samples the gate rejected."""
     keep: bool = True
     """Hold samples by tick for :meth:`tether.node.Node.aligned`; False for inputs consumed by
     ``on_message`` alone (the recorder), which would otherwise hold every sample of the run."""
@@ -91,6 +96,9 @@ class Source:
         return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
 
     def offer(self, msg: Any) -> None:
+        if self.admit is not None and self.admit(msg) is not None:
+            self.rejected += 1
+            return
         self.received += 1
         if self.newest is not None and msg.seq <= self.newest.seq:
             self.stale += 1

@@ -105,6 +105,8 @@ class Node:
         self._pump: asyncio.Task[None] | None = None
         self.stop = asyncio.Event()
         self.token_log: list[tuple[str, bool]] = []
+        self.alive: dict[str, bool] = {}
+        """Liveliness seen so far, by token key: True while present, False once gone."""
 
     # ------------------------------------------------------------------ declarations
     def withdraw(self) -> None:
@@ -168,6 +170,16 @@ class Node:
     def count_drop(self, reason: str) -> None:
         """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
         self.receiver.drops[reason] = self.receiver.drops.get(reason, 0) + 1
+
+    def gone(self, role: str) -> set[int]:
+        """Ids of ``role`` whose liveliness token was seen and is gone now."""
+        out = set()
+        for key, up in self.alive.items():
+            if not up:
+                r, nid = wire.Keys.parse_token(key)
+                if r == role:
+                    out.add(nid)
+        return out
 
     def watch(self, role: str, node_id: int, *sources: Source) -> None:
         """Mark ``sources`` silent while the token of ``role``/``node_id`` is absent."""
@@ -236,6 +248,7 @@ class Node:
         self._serve_queries()
         for ev in self.tokens.drain():
             self.token_log.append((ev.key, ev.alive))
+            self.alive[ev.key] = ev.alive
             for src in self._watched.get(ev.key, ()):
                 was_gone, src.gone = src.gone, not ev.alive
                 if ev.alive and was_gone:

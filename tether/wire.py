@@ -84,6 +84,9 @@ class PlantState(_Msg, tag="plant_state"):
 class Command(_Msg, tag="cmd"):
     u: list[float]
     """Commanded acceleration u_i(t_k) [m/s^2; world frame], held until the next command."""
+    mode: int = 0
+    """The agent's safety mode (a code of :data:`MODES`): a plant rests on LANDED and cuts its
+    motors on ESTOP, whatever ``u`` says."""
 
 
 class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

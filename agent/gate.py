@@ -1,0 +1,80 @@
+"""The plausibility gate in front of the law. Pure: no I/O, no clock.
+
+Every sample an agent takes in (its plant's, each in-neighbour's, the leader's) has already been
+decoded and checked by :class:`tether.wire.Receiver` (version, type, sender id, sizes, finite
+numbers). The gate then asks whether it could be true, and rejects, with a counted reason:
+
+* ``stamp`` — its time is not its tick's (``|t - k h| > h/2``): every sender stamps ``t = k h``;
+* ``future`` — (real time only) its time is more than ``future_window`` periods ahead of the
+  receiver's clock (mission time), so it cannot have been measured yet. The receiver's clock, not
+  its loop's progress, is the reference: a receiver that runs late must not reject what is on
+  time. (In lockstep the clock source lets senders run up to its window ahead, so there is no such
+  bound; the jump rule still holds);
+* ``jump`` — its position is further from the sender's last accepted sample than the sender could
+  have moved since: ``|p - p_ref| > max_speed |t - t_ref| + jump_margin``; before any accepted
+  sample the reference is the sender's initial position from the mission at t = 0;
+* ``speed`` — its velocity is beyond ``max_speed``.
+
+A rejected sample is never stored, so a forged sample for an upcoming tick cannot shadow the real
+one (a :class:`tether.inputs.Source` keeps the first sample of each tick): to be stored it must be
+where the sender really could be. A forgery that passes is, by construction, within reach of the
+truth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from collections.abc import Callable
+from typing import Any
+
+REASONS = ("stamp", "future", "jump", "speed")
+
+
+@dataclass
+class Gate:
+    """The gate of one input (one sender). ``check(msg)`` returns a reason to reject, or None and
+    takes ``msg`` as the new reference."""
+
+    period: float
+    max_speed: float
+    margin: float
+    p_ref: list[float]
+    """The sender's last accepted position [m] (its mission p0 until one is accepted)."""
+    t_ref: float = 0.0
+    future_window: int | None = None
+    """Real time: the most periods a sample may be ahead of ``now()``; None: no such bound (lockstep)."""
+    now: Callable[[], float] | None = None
+    """Real time: the receiver's mission time [s] (its clock)."""
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def check(self, msg: Any) -> str | None:
+        reason = self._reason(msg)
+        if reason is None:
+            self.p_ref, self.t_ref = list(msg.p), msg.t
+        else:
+            self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        return reason
+
+    def _reason(self, msg: Any) -> str | None:
+        h = self.period
+        if not abs(msg.t - msg.k * h) <= 0.5 * h:
+            return "stamp"
+        if self.now is not None and self.future_window is not None \
+                and msg.t > self.now() + self.future_window * h:
+            return "future"
+        reach = self.max_speed * abs(msg.t - self.t_ref) + self.margin
+        if not math.dist(msg.p, self.p_ref) <= reach:
+            return "jump"
+        if not math.hypot(*msg.vel) <= self.max_speed:
+            return "speed"
+        return None
+
+
+def merged(gates: list[Gate]) -> dict[str, int]:
+    """Rejections of several gates, summed by reason."""
+    out: dict[str, int] = {}
+    for g in gates:
+        for reason, n in g.rejected.items():
+            out[reason] = out.get(reason, 0) + n
+    return out

@@ -1,0 +1,276 @@
+"""The safety supervisor of one agent. Pure: no I/O, no clock; ``docs/safety.md`` is its manual.
+
+Commands leave an agent only through :meth:`Supervisor.command`. Modes (codes in
+:data:`tether.wire.MODES`), each change an event ``(tick, vehicle, from, to, reason)``:
+
+=========  =====================================================================================
+FLYING     the law's command (Eq. 17), saturated to ``max_accel``
+HOLD       brake to zero velocity and keep the position where HOLD began (:func:`tether.failsafe.hold`)
+LAND       hold horizontally, descend at ``land_speed`` to ``ground`` (:func:`tether.failsafe.land`)
+LANDED     on the ground and still: a zero command, the plant rests (disarmed)
+ESTOP      motors off: a zero command the plant obeys by cutting thrust (terminal)
+=========  =====================================================================================
+
+Transitions:
+
+* FLYING → HOLD: the leader (for an agent that hears it) is silent for ``leader_timeout``; an
+  in-neighbour is lost and the leader no longer reaches this agent in the surviving graph; the
+  own speed is beyond ``max_speed`` (latched); the plant is silent.
+* HOLD → FLYING: the cause is gone (the leader is heard again, the graph reaches this agent
+  again, the plant is back), unless it was latched.
+* HOLD → LAND: the cause has lasted ``land_after``.
+* FLYING/HOLD → LAND (or the configured action): the operator's ``land``; divergence
+  (‖ξ‖ > ``max_formation_error``, a gain beyond ``gain_cap``, a non-finite command); a predicted
+  geofence breach (the position plus the braking distance outside the box).
+* LAND → LANDED: touched down and still (:func:`tether.failsafe.landed`).
+* any → ESTOP: the operator's ``estop`` (or ``estop`` as the configured action).
+
+Losing an in-neighbour (its liveliness token gone, or silent for ``neighbour_timeout``) is not a
+mode change while the leader still reaches this agent through the survivors (Assumption 1 on the
+surviving graph, recomputed from the mission's graph and the liveliness this agent sees): the edge
+is dropped and κ_i re-normalised over the remaining in-neighbours (an event records it); when the
+neighbour is back, the edge is restored.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from tether import failsafe
+from tether.mission import Mission, Safety
+from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES, SafetyEvent
+
+
+def reaches(out_edges: dict[int, list[int]], root: int, target: int, removed: Iterable[int] = ()) -> bool:
+    """Whether ``root`` has a directed path to ``target`` in the graph without the ``removed`` nodes."""
+    gone = set(removed)
+    if root in gone or target in gone:
+        return False
+    seen, frontier = {root}, [root]
+    while frontier:
+        node = frontier.pop()
+        if node == target:
+            return True
+        for nxt in out_edges.get(node, ()):
+            if nxt not in seen and nxt not in gone:
+                seen.add(nxt)
+                frontier.append(nxt)
+    return False
+
+
+@dataclass(frozen=True)
+class Status:
+    """What the agent process knows of its inputs at a tick, beyond the samples themselves.
+
+    Attributes:
+        gone: per in-neighbour (``law.neighbours`` order), its liveliness token is gone before it
+            delivered this tick (real time; never in lockstep, where a tick waits for its inputs).
+        others_gone: other agents whose tokens are gone (for the reachability of this agent).
+        operator: the operator's last order, ``"land"``, ``"estop"`` or None.
+    """
+
+    gone: Sequence[bool] = ()
+    others_gone: frozenset[int] = frozenset()
+    operator: str | None = None
+
+
+NOMINAL = Status()
+
+
+class Supervisor:
+    """Agent ``agent_id``'s supervisor: its mode, why, and the events so far."""
+
+    def __init__(self, m: Mission, agent_id: int, neighbours: Sequence[int]) -> None:
+        self.cfg: Safety = m.safety
+        self.agent_id = agent_id
+        self.neighbours = tuple(neighbours)
+        self.leader = m.leader.id
+        self.hears_leader = self.leader in self.neighbours
+        self.out_edges: dict[int, list[int]] = {}
+        for e in m.edges:
+            self.out_edges.setdefault(e.src, []).append(e.dst)
+        self.mode = FLYING
+        self.cause = ""
+        """Why the vehicle holds: ``speed``, ``plant``, ``leader``, ``unreachable`` or a latched reason."""
+        self.latched = False
+        self.missing: frozenset[int] = frozenset()
+        """In-neighbours (agents) lost at the last tick, reachable or not."""
+        self.since = 0.0
+        """When the current mode (or HOLD's cause) began [s]."""
+        self.p_hold: np.ndarray | None = None
+        self.lost: frozenset[int] = frozenset()
+        """In-neighbours (agents) whose edges are dropped."""
+        self.events: list[SafetyEvent] = []
+        """Every event so far."""
+        self.diverged: SafetyEvent | None = None
+        """The first divergence caught (the law's error, gains or command past their bounds)."""
+        self._new: list[SafetyEvent] = []
+
+    # ------------------------------------------------------------------ inputs
+    def links(self, k: int, t: float, ages: Sequence[float], status: Status) -> tuple[frozenset[int], bool, bool]:
+        """Which in-neighbours are lost, whether the leader still reaches this agent, and whether the
+        leader is silent (for an agent that hears it). Records edge drops and restorations."""
+        cfg = self.cfg
+        lost = set()
+        leader_silent = False
+        for n, j in enumerate(self.neighbours):
+            age = ages[n] if n < len(ages) else math.nan
+            gone = bool(status.gone[n]) if n < len(status.gone) else False
+            never = math.isnan(age)
+            if j == self.leader:
+                leader_silent = gone or (age > cfg.leader_timeout) or (never and t > cfg.leader_timeout)
+                continue
+            if gone or age > cfg.neighbour_timeout or (never and t > cfg.neighbour_timeout):
+                lost.add(j)
+        self.missing = frozenset(lost)
+        removed = lost | set(status.others_gone)
+        reachable = not removed or reaches(self.out_edges, self.leader, self.agent_id, removed)
+        new = frozenset(lost) if reachable else frozenset()
+        if new != self.lost:
+            dropped, back = sorted(new - self.lost), sorted(self.lost - new)
+            words = []
+            if dropped:
+                words.append(f"neighbour{'s' if len(dropped) > 1 else ''} {', '.join(map(str, dropped))} lost: "
+                             "edge dropped, kappa re-normalised")
+            if back:
+                words.append(f"neighbour{'s' if len(back) > 1 else ''} {', '.join(map(str, back))} back: edge restored")
+            self._event(k, t, self.mode, "; ".join(words))
+            self.lost = new
+        return self.lost, reachable, leader_silent
+
+    # ------------------------------------------------------------------ decision
+    def command(self, k: int, t: float, p: np.ndarray, v: np.ndarray, u: np.ndarray, xi: np.ndarray,
+                kp: np.ndarray, kv: np.ndarray, reachable: bool, leader_silent: bool,
+                status: Status = NOMINAL, plant_silent: bool = False) -> np.ndarray:
+        """The command that leaves the agent at tick k (finite, norm <= ``max_accel``), given the
+        law's ``u`` and errors. Moves the mode; the law's gains should advance only while the mode
+        is FLYING (:attr:`flying`)."""
+        cfg = self.cfg
+        if self.mode in (LANDED, ESTOP):
+            if self.mode == LANDED and status.operator == "estop":
+                self._go(k, t, ESTOP, "operator estop", p)
+            return np.zeros_like(p)
+        # orders and hard limits, strongest first
+        if status.operator == "estop":
+            self._go(k, t, ESTOP, "operator estop", p)
+            return np.zeros_like(p)
+        if status.operator == "land" and self.mode != LAND:
+            self._go(k, t, LAND, "operator land", p)
+        if self.mode == FLYING or self.mode == HOLD:
+            why = self._diverged(u, xi, kp, kv)
+            if why is not None:
+                self._act(k, t, cfg.divergence_action, why, p)
+                if self.diverged is None:
+                    self.diverged = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=FLYING, dst=self.mode, reason=why)
+            elif (breach := self._fence_breach(p, v)) is not None:
+                self._act(k, t, cfg.geofence.action if cfg.geofence is not None else "land", breach, p)
+        if self.mode == ESTOP:
+            return np.zeros_like(p)
+        if self.mode in (FLYING, HOLD):
+            cause, why = "", ""
+            speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
+            if speed > cfg.max_speed:
+                cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
+            elif plant_silent:
+                cause, why = "plant", "plant silent"
+            elif leader_silent and self.hears_leader:
+                cause, why = "leader", "leader silent"
+            elif not reachable:
+                cause = "unreachable"
+                why = (f"neighbour{'s' if len(self.missing) > 1 else ''} {', '.join(map(str, sorted(self.missing)))} "
+                       "lost and the leader no longer reaches this agent")
+            if self.mode == FLYING and cause:
+                self._go(k, t, HOLD, why, p)
+                self.cause, self.latched = cause, cause == "speed"
+            elif self.mode == HOLD and not self.latched and cause and cause != self.cause:
+                self.cause = cause  # another reason keeps it holding; the clock to LAND runs on
+            elif self.mode == HOLD:
+                if not cause and not self.latched:
+                    self._go(k, t, FLYING, f"{self.cause} recovered", p)
+                elif t - self.since >= cfg.land_after:
+                    self._go(k, t, LAND, f"held for {cfg.land_after:g} s ({self.cause})", p)
+        if self.mode == FLYING:
+            out = failsafe.saturate(u, cfg.max_accel)
+            if out is not None:
+                return out
+            self._act(k, t, cfg.divergence_action, "divergence: non-finite command", p)
+            if self.diverged is None:
+                self.diverged = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=FLYING, dst=self.mode,
+                                            reason="divergence: non-finite command")
+            if self.mode == ESTOP:
+                return np.zeros_like(p)
+        assert self.p_hold is not None
+        if self.mode == HOLD:
+            return failsafe.hold(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel)
+        # LAND
+        if failsafe.landed(p, v, cfg.ground):
+            self._go(k, t, LANDED, "touched down", p)
+            return np.zeros_like(p)
+        return failsafe.land(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
+
+    @property
+    def flying(self) -> bool:
+        return self.mode == FLYING
+
+    def take_events(self) -> list[SafetyEvent]:
+        """The events since the last call (for telemetry)."""
+        out, self._new = self._new, []
+        return out
+
+    # ------------------------------------------------------------------ helpers
+    def _diverged(self, u: np.ndarray, xi: np.ndarray, kp: np.ndarray, kv: np.ndarray) -> str | None:
+        cfg = self.cfg
+        err = math.sqrt(float(xi @ xi)) if np.all(np.isfinite(xi)) else math.inf
+        if not err <= cfg.max_formation_error:
+            return f"divergence: |xi| {err:.3g} m beyond {cfg.max_formation_error:g} m"
+        top = max(float(kp.max()), float(kv.max()))
+        if not top <= cfg.gain_cap:
+            return f"divergence: gain {top:.3g} beyond gain_cap {cfg.gain_cap:g}"
+        if not np.all(np.isfinite(u)):
+            return "divergence: non-finite command"
+        return None
+
+    def _fence_breach(self, p: np.ndarray, v: np.ndarray) -> str | None:
+        fence = self.cfg.geofence
+        if fence is None:
+            return None
+        cfg = self.cfg
+        speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
+        # where the vehicle would stop if it braked now: HOLD's brake settles within about
+        # 1/hold_kv seconds of travel at the current speed, more if saturated
+        reach = speed / cfg.hold_kv + speed * speed / (2.0 * cfg.max_accel)
+        ahead = p + (v / speed) * reach if speed > 0 and math.isfinite(reach) else p
+        for where in (p, ahead):
+            if not all(lo <= x <= hi for x, lo, hi in zip(where, fence.min, fence.max)):
+                return "geofence: " + ("outside" if where is p else "would leave the box braking from here")
+        return None
+
+    def _act(self, k: int, t: float, action: str, why: str, p: np.ndarray) -> None:
+        target = {"hold": HOLD, "land": LAND, "estop": ESTOP}[action]
+        if target == HOLD:
+            self.latched = True
+            self.cause = why.split(":")[0]
+        if self.mode != target:
+            self._go(k, t, target, why, p)
+
+    def _go(self, k: int, t: float, mode: int, why: str, p: np.ndarray) -> None:
+        if mode == self.mode:
+            return
+        if mode in (HOLD, LAND) and (self.p_hold is None or self.mode == FLYING):
+            self.p_hold = np.array(p, dtype=float) if np.all(np.isfinite(p)) else np.zeros_like(p)
+        self._event(k, t, mode, why)
+        self.mode = mode
+        self.since = t
+
+    def _event(self, k: int, t: float, mode: int, why: str) -> None:
+        ev = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=self.mode, dst=mode, reason=why)
+        self.events.append(ev)
+        self._new.append(ev)
+
+
+def mode_name(code: int) -> str:
+    return MODES[code] if 0 <= code < len(MODES) else f"mode {code}"

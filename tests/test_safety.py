@@ -1,0 +1,269 @@
+"""The safety layer, pure: every supervisor transition, the plausibility gate, kappa re-normalisation,
+the failsafe command laws. No processes here (the real-process faults are in test_faults.py)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from agent.gate import Gate
+from agent.safety import Status, Supervisor, reaches
+from agent.tick import AgentTick
+from tests.factories import build
+from tether import failsafe, wire
+from tether.inputs import Source
+from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED
+
+H = 0.01
+
+
+def mission(safety: dict[str, Any] | None = None, dim: int = 3) -> Any:
+    """A ring 1 -> 2 -> 3 -> 1 with the leader (4) heard by 1 and 3, so that losing 1 leaves 2
+    unreachable from the leader, while losing 2 leaves 3 reachable (it hears the leader)."""
+    z = [1.0] if dim == 3 else []
+    raw: dict[str, Any] = {
+        "version": 1, "name": "ring", "dim": dim, "rate": 100.0, "duration": 20.0,
+        "law": {"kind": "sigma", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05, "sigma": 0.1},
+        "leader": {"id": 4, "p0": [0.0, 0.0, *z]},
+        "agents": [{"id": i, "p0": [float(i), 0.0, *z], "offset": [float(i), 0.0, *([0.0] if dim == 3 else [])]}
+                   for i in (1, 2, 3)],
+        "edges": [{"from": 4, "to": 1}, {"from": 1, "to": 2}, {"from": 2, "to": 3}, {"from": 3, "to": 1},
+                  {"from": 4, "to": 3}],
+    }
+    if safety is not None:
+        raw["safety"] = safety
+    return build(raw)
+
+
+def step(sup: Supervisor, k: int, *, p=None, v=None, u=None, xi=None, kp=None, kv=None, reachable=True,
+         leader_silent=False, status: Status = Status()) -> np.ndarray:
+    d = 3
+    p = np.array([0.0, 0.0, 1.0]) if p is None else np.asarray(p, float)
+    v = np.zeros(d) if v is None else np.asarray(v, float)
+    u = np.array([0.1, 0.0, 0.0]) if u is None else np.asarray(u, float)
+    xi = np.zeros(d) if xi is None else np.asarray(xi, float)
+    kp = np.ones(d) if kp is None else np.asarray(kp, float)
+    kv = np.ones(d) if kv is None else np.asarray(kv, float)
+    out = sup.command(k, k * H, p, v, u, xi, kp, kv, reachable, leader_silent, status)
+    assert np.all(np.isfinite(out)) and np.linalg.norm(out) <= sup.cfg.max_accel * (1 + 1e-12)
+    return out
+
+
+# --------------------------------------------------------------------------- FLYING and limits
+def test_flying_passes_the_law_through_untouched_below_the_limit() -> None:
+    sup = Supervisor(mission(), 1, (3, 4))
+    u = np.array([0.3, -0.2, 0.1])
+    out = sup.command(0, 0.0, np.zeros(3), np.zeros(3), u, np.zeros(3), np.ones(3), np.ones(3), True, False)
+    assert out is u and sup.mode == FLYING and sup.events == []
+
+
+def test_saturation_keeps_the_direction_and_caps_the_norm() -> None:
+    sup = Supervisor(mission({"max_accel": 5.0}), 1, (3, 4))
+    out = step(sup, 0, u=[30.0, 40.0, 0.0])
+    np.testing.assert_allclose(out, [3.0, 4.0, 0.0], rtol=0, atol=1e-12)
+    assert sup.mode == FLYING
+
+
+@pytest.mark.parametrize("what, kwargs", [
+    ("non-finite command", {"u": [math.nan, 0.0, 0.0]}),
+    ("infinite command", {"u": [math.inf, 0.0, 0.0]}),
+    ("formation error", {"xi": [60.0, 0.0, 0.0]}),
+    ("gain", {"kp": [1.0, 2000.0, 1.0]}),
+])
+def test_divergence_lands_and_never_passes_the_value_on(what: str, kwargs: dict) -> None:
+    sup = Supervisor(mission(), 1, (3, 4))
+    step(sup, 0, **kwargs)
+    assert sup.mode == LAND, what
+    assert sup.events[-1].reason.startswith("divergence") and sup.diverged is not None
+
+
+def test_divergence_action_estop_cuts_at_once() -> None:
+    sup = Supervisor(mission({"divergence_action": "estop"}), 1, (3, 4))
+    out = step(sup, 0, xi=[100.0, 0.0, 0.0])
+    assert sup.mode == ESTOP and not out.any()
+    step(sup, 1)  # terminal
+    assert sup.mode == ESTOP
+
+
+def test_overspeed_holds_latched_then_lands() -> None:
+    sup = Supervisor(mission({"max_speed": 5.0, "land_after": 1.0}), 1, (3, 4))
+    step(sup, 0, v=[6.0, 0.0, 0.0])
+    assert sup.mode == HOLD
+    step(sup, 1, v=[1.0, 0.0, 0.0])  # slower again: still holding (latched)
+    assert sup.mode == HOLD
+    step(sup, 100, v=[0.0, 0.0, 0.0])
+    assert sup.mode == LAND
+
+
+# --------------------------------------------------------------------------- lost inputs
+def test_leader_silence_holds_recovers_and_lands_when_it_lasts() -> None:
+    sup = Supervisor(mission({"land_after": 2.0}), 1, (3, 4))
+    step(sup, 0)
+    out = step(sup, 1, p=[1.0, 0.0, 1.0], v=[2.0, 0.0, 0.0], leader_silent=True)
+    assert sup.mode == HOLD and out[0] < 0  # braking against the motion
+    step(sup, 2, leader_silent=False)
+    assert sup.mode == FLYING and sup.events[-1].reason == "leader recovered"
+    step(sup, 10, leader_silent=True)
+    step(sup, 10 + 199, leader_silent=True)
+    assert sup.mode == HOLD
+    step(sup, 10 + 200, leader_silent=True)
+    assert sup.mode == LAND
+    step(sup, 400, leader_silent=False)  # LAND does not go back
+    assert sup.mode == LAND
+
+
+def test_links_time_out_a_silent_leader_and_lost_neighbours() -> None:
+    m = mission()
+    sup = Supervisor(m, 1, (3, 4))
+    lost, reachable, leader_silent = sup.links(10, 0.1, [0.0, 0.0], Status())
+    assert (lost, reachable, leader_silent) == (frozenset(), True, False)
+    _, _, leader_silent = sup.links(60, 0.6, [0.0, m.safety.leader_timeout + 0.01], Status())
+    assert leader_silent
+    _, _, leader_silent = sup.links(61, 0.61, [0.0, 0.0], Status(gone=[False, True]))
+    assert leader_silent  # token gone
+
+
+def test_a_lost_neighbour_is_dropped_with_kappa_renormalised_while_the_leader_reaches() -> None:
+    m = mission()
+    tick = AgentTick.from_mission(m, 3)  # hears 2 and the leader
+    assert tick.law.neighbours == (2, 4) and tick.law.kappa == 2.0
+    heard = [(0.0, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3)), (0.0, np.array([0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))]
+    p = np.array([3.0, 0.0, 1.0])
+    tick.step(0, 0.0, p, np.zeros(3), np.zeros(3), heard)
+    out = tick.step(1, 0.01, p, np.zeros(3), np.zeros(3), heard, Status(gone=[True, False]))
+    assert out.mode == FLYING
+    assert tick.supervisor.lost == {2} and "edge dropped" in tick.supervisor.events[-1].reason
+    law = tick._laws[frozenset({2})]
+    assert law.kappa == 1.0 and law.weights.tolist() == [0.0, 1.0]
+    # only the leader's term is left: agent 3 at its slot (leader + offset 3) has zero error
+    np.testing.assert_allclose(out.xi, [0.0, 0.0, 0.0], atol=1e-12)
+    out = tick.step(2, 0.02, p, np.zeros(3), np.zeros(3), heard, Status())
+    assert tick.supervisor.lost == frozenset() and "restored" in tick.supervisor.events[-1].reason
+
+
+def test_a_lost_neighbour_without_another_path_from_the_leader_holds_then_lands() -> None:
+    m = mission({"land_after": 1.0})
+    tick = AgentTick.from_mission(m, 2)  # hears only 1
+    heard = [(0.0, np.array([1.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))]
+    p = np.array([2.0, 0.0, 1.0])
+    out = tick.step(0, 0.0, p, np.zeros(3), np.zeros(3), heard, Status(gone=[True]))
+    assert out.mode == HOLD and "no longer reaches" in tick.supervisor.events[-1].reason
+    kp = tick.kp.copy()
+    for k in range(1, 101):
+        out = tick.step(k, k * H, p, np.zeros(3), np.zeros(3), heard, Status(gone=[True]))
+    assert out.mode == LAND
+    np.testing.assert_array_equal(tick.kp, kp)  # gains frozen while not flying
+
+
+def test_reachability_is_assumption_1_on_the_surviving_graph() -> None:
+    out = {4: [1, 3], 1: [2], 2: [3], 3: [1]}
+    assert reaches(out, 4, 2) and reaches(out, 4, 3, removed={2}) and reaches(out, 4, 1, removed={3})
+    assert not reaches(out, 4, 2, removed={1}) and not reaches(out, 4, 1, removed={4})
+
+
+# --------------------------------------------------------------------------- operator, fence, landing
+def test_operator_land_then_landed_on_the_ground() -> None:
+    sup = Supervisor(mission(), 1, (3, 4))
+    step(sup, 0)
+    out = step(sup, 1, p=[0.0, 0.0, 1.0], status=Status(operator="land"))
+    assert sup.mode == LAND and out[2] < 0  # descending
+    step(sup, 2, p=[0.0, 0.0, 0.01], v=[0.0, 0.0, -0.01], status=Status(operator="land"))
+    assert sup.mode == LANDED
+    assert not step(sup, 3, status=Status(operator="land")).any()
+    step(sup, 4, status=Status(operator="estop"))
+    assert sup.mode == ESTOP
+
+
+def test_operator_estop_is_terminal() -> None:
+    sup = Supervisor(mission(), 1, (3, 4))
+    assert not step(sup, 0, status=Status(operator="estop")).any()
+    assert sup.mode == ESTOP
+    assert not step(sup, 1).any() and sup.mode == ESTOP
+
+
+def test_geofence_breach_outside_and_predicted() -> None:
+    fence = {"geofence": {"min": [-10.0, -10.0, 0.0], "max": [10.0, 10.0, 5.0], "action": "hold"}}
+    sup = Supervisor(mission(fence), 1, (3, 4))
+    step(sup, 0, p=[5.0, 0.0, 1.0], v=[1.0, 0.0, 0.0])
+    assert sup.mode == FLYING
+    step(sup, 1, p=[9.0, 0.0, 1.0], v=[4.0, 0.0, 0.0])  # would not stop inside the box
+    assert sup.mode == HOLD and "would leave" in sup.events[-1].reason
+    sup = Supervisor(mission(fence), 1, (3, 4))
+    step(sup, 0, p=[11.0, 0.0, 1.0])
+    assert sup.mode == HOLD and "outside" in sup.events[-1].reason
+
+
+def test_every_event_names_tick_vehicle_modes_and_reason() -> None:
+    sup = Supervisor(mission(), 2, (1,))
+    step(sup, 7, status=Status(operator="land"))
+    (ev,) = sup.take_events()
+    assert (ev.k, ev.vehicle, ev.src, ev.dst, ev.reason) == (7, 2, FLYING, LAND, "operator land")
+    assert sup.take_events() == []
+
+
+# --------------------------------------------------------------------------- failsafe laws
+def test_hold_brakes_a_double_integrator_to_rest_near_where_it_began() -> None:
+    cfg = mission().safety
+    p, v = np.array([0.0, 0.0, 1.0]), np.array([3.0, -1.0, 0.5])
+    start = p.copy()
+    for _ in range(2000):
+        u = failsafe.hold(p, v, start, cfg.hold_kp, cfg.hold_kv, cfg.max_accel)
+        assert np.linalg.norm(u) <= cfg.max_accel + 1e-12
+        p, v = p + v * H + 0.5 * u * H * H, v + u * H
+    assert np.linalg.norm(v) < 1e-3 and np.linalg.norm(p - start) < 1e-2
+
+
+def test_land_descends_at_the_set_rate_and_settles_on_the_ground() -> None:
+    cfg = mission().safety
+    p, v = np.array([0.0, 0.0, 2.0]), np.zeros(3)
+    start = p.copy()
+    rates = []
+    for _ in range(4000):
+        if failsafe.landed(p, v, cfg.ground):
+            break
+        u = failsafe.land(p, v, start, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
+        p, v = p + v * H + 0.5 * u * H * H, v + u * H
+        rates.append(v[2])
+        assert p[2] > cfg.ground - 0.01  # never through the ground
+    assert failsafe.landed(p, v, cfg.ground)
+    assert min(rates) >= -cfg.land_speed * 1.05
+
+
+def test_saturate_refuses_non_finite() -> None:
+    assert failsafe.saturate(np.array([math.nan, 0.0]), 1.0) is None
+    np.testing.assert_allclose(failsafe.saturate(np.array([3.0, 4.0]), 1.0), [0.6, 0.8])
+
+
+# --------------------------------------------------------------------------- the gate
+def state(k: int, p: list[float], vel: list[float] | None = None, t: float | None = None) -> wire.State:
+    return wire.State(sender=4, seq=k, k=k, t=k * H if t is None else t, p=p, vel=vel or [0.0, 0.0, 0.0],
+                      a=[0.0, 0.0, 0.0])
+
+
+def test_gate_rejects_each_reason_and_moves_its_reference_only_on_accept() -> None:
+    clock = [0.0]
+    g = Gate(H, max_speed=10.0, margin=0.5, p_ref=[0.0, 0.0, 1.0], future_window=2, now=lambda: clock[0])
+    assert g.check(state(0, [0.1, 0.0, 1.0])) is None
+    assert g.check(state(1, [0.1, 0.0, 1.0], t=0.5)) == "stamp"
+    assert g.check(state(5, [0.1, 0.0, 1.0])) == "future"
+    assert g.check(state(1, [1e6, 0.0, 1.0])) == "jump"
+    assert g.check(state(2, [0.2, 0.0, 1.0], vel=[50.0, 0.0, 0.0])) == "speed"
+    clock[0] = 0.02
+    assert g.check(state(2, [0.2, 0.0, 1.0])) is None
+    assert g.rejected == {"stamp": 1, "future": 1, "jump": 1, "speed": 1}
+    assert g.p_ref == [0.2, 0.0, 1.0]
+
+
+def test_a_forged_sample_for_a_coming_tick_never_shadows_the_real_one() -> None:
+    """A Source keeps the first sample of each tick; the forgery comes first, far away."""
+    g = Gate(H, max_speed=30.0, margin=1.0, p_ref=[0.0, 0.0, 1.0])
+    src = Source("leader", wire.State, 4, admit=g.check)
+    src.offer(state(0, [0.0, 0.0, 1.0]))
+    src.offer(state(3, [1e6, 0.0, 1.0]))  # forged for tick 3, before tick 3 is real
+    for k in (1, 2, 3):
+        src.offer(state(k, [0.01 * k, 0.0, 1.0]))
+    assert src.by_tick[3].p == [0.03, 0.0, 1.0]
+    assert src.rejected == 1 and src.received == 4 and g.rejected == {"jump": 1}
