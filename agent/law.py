@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tether.graph import in_neighbours
 from tether.mission import Mission, per_axis
 
 
@@ -138,9 +139,9 @@ class AgentLaw:
         me = m.agent(agent_id)
         offsets = {a.id: np.array(a.offset, dtype=float) for a in m.agents}
         offsets[m.leader.id] = np.zeros(m.dim)
-        ins = sorted((m.index_of(e.src), e.src, e.weight) for e in m.edges if e.dst == agent_id)
-        nbrs = tuple(src for _, src, _ in ins)
-        w = np.array([wt for _, _, wt in ins], dtype=float)
+        ins = in_neighbours(m, agent_id)
+        nbrs = tuple(src for src, _ in ins)
+        w = np.array([wt for _, wt in ins], dtype=float)
         h_i = np.array(me.offset, dtype=float)
         kappa = float(w.sum())
         h_nb = np.array([offsets[j] for j in nbrs])

@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from tether import graph
 from tether import mission as ms
 from tether import wire
 
@@ -63,11 +64,6 @@ def common_name(name: str, ns: str) -> str:
     return f"{name}.{ns}"
 
 
-def in_neighbours(m: ms.Mission, aid: int) -> list[int]:
-    """Nodes agent ``aid`` hears (edges ``from -> aid``), in file order."""
-    return [e.src for e in m.edges if e.dst == aid]
-
-
 def grants(m: ms.Mission, ns: str) -> list[Grant]:
     """One grant per process of mission ``m`` in namespace ``ns``, plus the router and the control
     (start) command. Lists exactly what the runtime declares for each role, nothing more."""
@@ -96,7 +92,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
               tokens=(k.token("recorder", 0),), watch=(every_token,), sees=(every_token,)),
     ]
     for aid in m.agent_ids:
-        nbrs = in_neighbours(m, aid)
+        nbrs = [j for j, _ in graph.in_neighbours(m, aid)]  # the keys the agent subscribes to
         out.append(Grant(
             f"agent-{aid}",
             publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry")),

@@ -26,6 +26,7 @@ import msgspec
 from deploy import acl
 from tether import mission as ms
 from tether import wire
+from tether.schema import Problems, SchemaError, Strict, read_issue
 
 HOSTS_VERSION = 1
 """The hosts-file version this release reads."""
@@ -33,11 +34,7 @@ HOSTS_VERSION = 1
 Network = Literal["client", "peer"]
 
 
-class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
-    pass
-
-
-class Host(_Strict):
+class Host(Strict):
     """A machine that runs one or more of the mission's processes."""
 
     address: str
@@ -61,7 +58,7 @@ class RecorderHost(Host, kw_only=True):
     """Directory the recorder writes ``run.npz`` into, on that host."""
 
 
-class HostsFile(_Strict):
+class HostsFile(Strict):
     version: int
     network: Network = "client"
     """``client``: every process is a client of the router (a star; only the router listens).
@@ -95,15 +92,8 @@ class HostsFile(_Strict):
     """One entry per agent of the mission (all of them), or none for placeholder names."""
 
 
-class HostsError(ValueError):
+class HostsError(SchemaError):
     """A hosts file is not valid for the mission. ``problems`` holds ``(field, message-with-fix)`` pairs."""
-
-    def __init__(self, source: str, problems: list[tuple[str, str]]):
-        self.source = source
-        self.problems = problems
-        lines = [f"{source}: {len(problems)} problem(s)"]
-        lines += [f"  {field}: {msg}" for field, msg in problems]
-        super().__init__("\n".join(lines))
 
 
 # --------------------------------------------------------------------------- placements
@@ -176,7 +166,7 @@ def loads(text: str | bytes, source: str = "<hosts>") -> HostsFile:
     try:
         return msgspec.convert(raw, type=HostsFile)
     except msgspec.ValidationError as exc:
-        raise HostsError(source, [_field_of(str(exc))]) from None
+        raise HostsError(source, [_field_of(exc)]) from None
 
 
 def load(path: str | Path) -> HostsFile:
@@ -201,35 +191,29 @@ _NOUNS = {"int": "an integer", "float": "a number", "str": "a string", "bool": "
           "object": "a table"}
 
 
-def _field_of(msg: str) -> tuple[str, str]:
-    """``(field path, message-with-fix)`` from a msgspec validation message."""
-    text, where = msg, ""
-    if " - at `$" in msg:
-        text, _, at = msg.partition(" - at `$")
-        where = at.rstrip("`").lstrip(".")
+def _field_of(exc: msgspec.ValidationError) -> tuple[str, str]:
+    """``(field path, message-with-fix)`` from a msgspec validation error."""
+    issue = read_issue(exc)
+    where = issue.where
     table = re.sub(r"\[\d+\]", "", where).split(".")[0] if where else ""
-    if text.startswith("Object contains unknown field") and text.count("`") >= 2:
-        name = text.split("`")[1]
+    if issue.kind == "unknown_field" and issue.name is not None:
         known = _FIELDS.get(table, [])
-        close = difflib.get_close_matches(name, known, n=1)
+        close = difflib.get_close_matches(issue.name, known, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
-        field = f"{where}.{name}" if where else name
-        return field, f"is not a known field; {fix} (the fields here are {', '.join(known)})"
-    if text.startswith("Object missing required field") and text.count("`") >= 2:
-        name = text.split("`")[1]
-        field = f"{where}.{name}" if where else name
-        example = {"address": '"192.168.1.11"', "id": "1"}.get(name, "...")
-        return field, f"is required; add `{name} = {example}` (see docs/deploy.md)"
-    if text.startswith("Expected `") and ", got `" in text:
-        want, got = text.split("`")[1].split(" | ")[0], text.split("`")[3]
+        return issue.field, f"is not a known field; {fix} (the fields here are {', '.join(known)})"
+    if issue.kind == "missing_field" and issue.name is not None:
+        example = {"address": '"192.168.1.11"', "id": "1"}.get(issue.name, "...")
+        return issue.field, f"is required; add `{issue.name} = {example}` (see docs/deploy.md)"
+    if issue.kind == "wrong_type" and issue.got is not None:
+        want, got = issue.expected[0], issue.got
         example = {"int": "7447", "float": "2.0", "str": '"192.168.1.11"'}.get(want, "...")
         quotes = " (no quotes)" if got == "str" and want in ("int", "float") else ""
         name = where.split(".")[-1] if where else "<field>"
         return where or "<file>", (f"is {_NOUNS.get(got, got)} but must be {_NOUNS.get(want, want)}; "
                                    f"write e.g. `{name} = {example}`{quotes}")
-    if text.startswith("Invalid enum value") and where == "network":
-        return "network", f"{text[:1].lower() + text[1:]}; use \"client\" or \"peer\""
-    return where or "<file>", f"{text[:1].lower() + text[1:]}; see docs/deploy.md for this field's type"
+    if issue.kind == "invalid_value" and issue.value is not None and where == "network":
+        return "network", f"{issue.sentence}; use \"client\" or \"peer\""
+    return where or "<file>", f"{issue.sentence}; see docs/deploy.md for this field's type"
 
 
 # --------------------------------------------------------------------------- checks
@@ -272,7 +256,7 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
     """Check ``hosts`` against mission ``m`` and place every process; raises :class:`HostsError`
     listing every problem found. ``hosts=None`` uses placeholder host names and a star network."""
     h = hosts if hosts is not None else _default_hosts(m)
-    out: list[tuple[str, str]] = []
+    out: Problems = []
     if m.payload is not None:
         raise HostsError(source, [("<mission> payload", "is set: a payload world simulates every vehicle and the "
                                                         "cables in one process, which cannot be split over companion "

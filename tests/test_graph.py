@@ -43,3 +43,16 @@ def test_topology_edges_sorted_and_kappa() -> None:
     np.testing.assert_allclose(np.bincount(topo.dst, topo.weight, minlength=m.n), topo.kappa)
     for e in m.edges:
         assert topo.adjacency[m.index_of(e.dst), m.index_of(e.src)] == e.weight
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_in_neighbours_are_the_topology_rows_in_row_order(seed: int) -> None:
+    m = random_mission(np.random.default_rng(seed), 8)
+    topo = graph.topology(m)
+    ids = [*m.agent_ids, m.leader.id]
+    for i, aid in enumerate(m.agent_ids):
+        ins = graph.in_neighbours(m, aid)
+        assert [m.index_of(j) for j, _ in ins] == list(topo.src[topo.dst == i])  # ascending rows
+        assert [w for _, w in ins] == list(topo.weight[topo.dst == i])
+        assert {j for j, _ in ins} <= set(ids)
+    assert graph.in_neighbours(m, m.leader.id) == []

@@ -42,6 +42,14 @@ class Topology:
         return self.adjacency.shape[0] - 1
 
 
+def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
+    """The nodes agent ``agent_id`` hears, as ``(node id, a_ij)`` pairs in row order
+    (:meth:`Mission.index_of`: agents in file order, the leader last), the order
+    ``agent.law.AgentLaw`` sums its neighbours in. Empty for an id that hears nobody."""
+    ins = sorted((m.index_of(e.src), e.src, e.weight) for e in m.edges if e.dst == agent_id)
+    return [(src, weight) for _, src, weight in ins]
+
+
 def topology(m: Mission) -> Topology:
     """Build the :class:`Topology` of a validated mission."""
     n = m.n

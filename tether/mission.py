@@ -1,9 +1,10 @@
-"""Mission files: a strict, versioned TOML schema and the checks a control engineer expects.
+"""Mission files: a strict, versioned TOML schema, its decoding with fixes, and its writing.
 
-A mission file is decoded into :class:`Mission` with msgspec (unknown fields are errors), then
-:func:`validate` checks what a type cannot say: the graph (Assumption 1, self-loops, weights, ids),
-dimensions, the law's parameters, and finiteness. Every error names the field by its path in the
-file (``agents[2].offset``) and says how to fix it, as ``"<what is wrong>; <how to fix it>"``.
+A mission file is decoded into :class:`Mission` with msgspec (unknown fields are errors; the bases
+and the error come from :mod:`tether.schema`), then :func:`validate` (:mod:`tether.checks`) checks
+what a type cannot say: the graph (Assumption 1, self-loops, weights, ids), dimensions, the law's
+parameters, and finiteness. Every error names the field by its path in the file
+(``agents[2].offset``) and says how to fix it, as ``"<what is wrong>; <how to fix it>"``.
 :func:`load` does both and returns a :class:`Mission`; it raises :class:`MissionError` listing every
 problem found, not only the first (a type error stops decoding, so it is reported alone).
 
@@ -15,16 +16,15 @@ from __future__ import annotations
 import difflib
 import json
 import math
-import re
 import tomllib
 from pathlib import Path
 from typing import Literal
 
 import msgspec
 import msgspec.inspect
-import msgspec.structs
 
-from tether.netprofile import Network, validate_network
+from tether.netprofile import Network
+from tether.schema import KeyPath, Kind, Problems, SchemaError, Strict, read_issue
 
 SCHEMA_VERSION = 1
 """The mission-file version this release reads."""
@@ -36,16 +36,8 @@ PerAxis = float | list[float]
 """One value for every axis, or a list of ``dim`` values (x, y[, z])."""
 
 
-class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
-    """Base of every mission struct: unknown fields are errors, instances are immutable."""
-
-
-class _Kind(_Strict, tag_field="kind"):
-    """Base of the members of a tagged union, told apart by their ``kind`` field."""
-
-
 # --------------------------------------------------------------------------- leader profiles
-class ExpAccel(_Kind, tag="exp_accel"):
+class ExpAccel(Kind, tag="exp_accel"):
     """Leader acceleration ``a_ref(t) = a0 * exp(-decay * t)`` per axis (Section 4: a0 = [1, 0], decay = 0.1)."""
 
     a0: Vector
@@ -54,7 +46,7 @@ class ExpAccel(_Kind, tag="exp_accel"):
     """Decay rate [1/s]; 0 gives a constant acceleration."""
 
 
-class VelocitySegment(_Strict):
+class VelocitySegment(Strict):
     """From ``t`` on, the leader's velocity is ``v`` (reached after the profile's ``ramp``)."""
 
     t: float
@@ -63,7 +55,7 @@ class VelocitySegment(_Strict):
     """Velocity [m/s; world frame]."""
 
 
-class VelocitySchedule(_Kind, tag="velocity_schedule"):
+class VelocitySchedule(Kind, tag="velocity_schedule"):
     """Piecewise-constant velocity (Eq. 31, Eq. 32), optionally with linear ramps between segments."""
 
     segments: list[VelocitySegment]
@@ -72,7 +64,7 @@ class VelocitySchedule(_Kind, tag="velocity_schedule"):
     reported as 0)."""
 
 
-class Waypoint(_Strict):
+class Waypoint(Strict):
     """The leader is at ``p`` at time ``t`` with zero velocity and acceleration."""
 
     t: float
@@ -81,21 +73,21 @@ class Waypoint(_Strict):
     """Position [m; world frame]."""
 
 
-class Waypoints(_Kind, tag="waypoints"):
+class Waypoints(Kind, tag="waypoints"):
     """Minimum-jerk (quintic) segments between timed waypoints; the first waypoint's time must be 0
     and its position the leader's ``p0``. After the last waypoint the leader holds position."""
 
     points: list[Waypoint]
 
 
-class Hold(_Kind, tag="hold"):
+class Hold(Kind, tag="hold"):
     """The leader keeps its initial velocity forever (zero acceleration)."""
 
 
 Profile = ExpAccel | VelocitySchedule | Waypoints | Hold
 
 
-class Leader(_Strict):
+class Leader(Strict):
     """The virtual leader (node N+1 in the paper): an exo-system that hears nobody."""
 
     id: int
@@ -109,11 +101,11 @@ class Leader(_Strict):
 
 
 # --------------------------------------------------------------------------- disturbances
-class NoDisturbance(_Kind, tag="none"):
+class NoDisturbance(Kind, tag="none"):
     """``d = 0``."""
 
 
-class Sinusoid(_Kind, tag="sinusoid"):
+class Sinusoid(Kind, tag="sinusoid"):
     """``d_k(t) = amplitude_k * sin(omega_k * t + phase_k)`` per axis k (Section 4's disturbances;
     a cosine is ``phase = pi/2``)."""
 
@@ -125,14 +117,14 @@ class Sinusoid(_Kind, tag="sinusoid"):
     """Phase [rad]; zeros when omitted."""
 
 
-class Constant(_Kind, tag="constant"):
+class Constant(Kind, tag="constant"):
     """``d = value`` for all time."""
 
     value: Vector
     """[m/s^2; world frame]."""
 
 
-class BoundedRandom(_Kind, tag="bounded_random"):
+class BoundedRandom(Kind, tag="bounded_random"):
     """Piecewise-constant random disturbance, uniform in the box ``|d_k| <= bound_k``, redrawn every
     ``hold`` seconds from a generator seeded by the mission seed and the agent id."""
 
@@ -146,11 +138,11 @@ Disturbance = NoDisturbance | Sinusoid | Constant | BoundedRandom
 
 
 # --------------------------------------------------------------------------- plants
-class DoubleIntegrator(_Kind, tag="double_integrator"):
+class DoubleIntegrator(Kind, tag="double_integrator"):
     """``p' = v, v' = u + d``, discretised exactly under a zero-order hold on ``u``."""
 
 
-class ThrustIntegrator(_Strict):
+class ThrustIntegrator(Strict):
     """An inner integral of the acceleration error ``u - p''`` (vertical by default) added to the
     command (the integral of the Crazyflie's own velocity PIDs), clamped (anti-windup)."""
 
@@ -162,7 +154,7 @@ class ThrustIntegrator(_Strict):
     """``z``: the vertical axis only; ``xyz``: every axis (the Crazyflie's velocity PIDs on x, y, z)."""
 
 
-class PointMassPlant(_Kind, tag="point_mass"):
+class PointMassPlant(Kind, tag="point_mass"):
     """A 3D point mass of ``mass`` whose ideal inner loop flies ``u`` exactly and cancels its own
     weight (Remark 1 taken as true); a disturbance acts as the force ``mass * d``. Hosts the
     payload options (``plant/vehicle.py``)."""
@@ -174,7 +166,7 @@ class PointMassPlant(_Kind, tag="point_mass"):
     integrator: ThrustIntegrator | None = None
 
 
-class QuadrotorPlant(_Kind, tag="quadrotor"):
+class QuadrotorPlant(Kind, tag="quadrotor"):
     """A Crazyflie 2.1-class quadrotor: rigid body (Eq. 1-3), Eq. 4 from ``u`` to thrust and
     attitude, a 500 Hz attitude and rate PID, motors with limits (``plant/quadrotor.py``,
     ``docs/quadrotor.md``); a disturbance acts as the force ``mass * d``."""
@@ -190,7 +182,7 @@ class QuadrotorPlant(_Kind, tag="quadrotor"):
     integrator: ThrustIntegrator | None = None
 
 
-class CrazyfliePlant(_Kind, tag="crazyflie"):
+class CrazyfliePlant(Kind, tag="crazyflie"):
     """A Crazyflie through cflib, real (``radio://``, ``usb://``) or the software one (``udp://``,
     ``python -m plant.cfsim``); real time only (``plant/crazyflie.py``)."""
 
@@ -220,7 +212,7 @@ class CrazyfliePlant(_Kind, tag="crazyflie"):
 PlantSpec = DoubleIntegrator | PointMassPlant | QuadrotorPlant | CrazyfliePlant
 
 
-class Cable(_Strict):
+class Cable(Strict):
     """One-sided spring-damper: pulls when stretched beyond ``length``, never pushes."""
 
     length: float
@@ -231,7 +223,7 @@ class Cable(_Strict):
     """[N s/m]."""
 
 
-class Payload(_Strict):
+class Payload(Strict):
     """A point-mass payload hung from every vehicle on its own cable: one ``world`` process then
     hosts every vehicle (``point_mass`` or ``quadrotor`` plants) and serves each on the same keys
     as a single plant (``plant/payload.py``, ``docs/payload.md``)."""
@@ -247,7 +239,7 @@ class Payload(_Strict):
 
 
 # --------------------------------------------------------------------------- agents, graph, law
-class Agent(_Strict):
+class Agent(Strict):
     id: int
     p0: Vector
     """Initial position [m; world frame]."""
@@ -259,7 +251,7 @@ class Agent(_Strict):
     disturbance: Disturbance = NoDisturbance()
 
 
-class Edge(_Strict):
+class Edge(Strict):
     """``src -> dst``: agent ``dst`` hears ``src`` with weight ``a_{dst,src} > 0``."""
 
     src: int = msgspec.field(name="from")
@@ -267,7 +259,7 @@ class Edge(_Strict):
     weight: float = 1.0
 
 
-class Law(_Strict):
+class Law(Strict):
     """Eq. 17 (``kind = "sigma"``) or the benchmark Eq. 30 (``kind = "benchmark"``, no ``sigma``)."""
 
     kind: Literal["sigma", "benchmark"]
@@ -289,7 +281,7 @@ class Law(_Strict):
     ``none``, which drops the whole sum."""
 
 
-class LinkPolicy(_Strict):
+class LinkPolicy(Strict):
     """What an agent does with its in-neighbours' samples (part of the law's implementation).
 
     Samples older than the newest held are never used (sequence numbers). A neighbour whose newest
@@ -304,7 +296,7 @@ class LinkPolicy(_Strict):
     """Latency compensation: move each neighbour sample forward by its age with its own v and a."""
 
 
-class Geofence(_Strict):
+class Geofence(Strict):
     """An axis-aligned box the vehicles must stay in [m; world frame]. In 3D its ``min`` z is the
     floor of the flight volume."""
 
@@ -314,7 +306,7 @@ class Geofence(_Strict):
     """What a vehicle does when its position leaves the box."""
 
 
-class Avoidance(_Strict):
+class Avoidance(Strict):
     """Decentralised collision avoidance after the law (``agent/avoid.py``): a safety filter on each
     agent's command from the positions of the vehicles within ``sensing`` (heard on their state
     keys, as a range sensor or a broadcast would give them), kept apart from the law's inputs."""
@@ -327,7 +319,7 @@ class Avoidance(_Strict):
     """Class-K gain of the barrier constraint h' >= -gain * h [1/s]."""
 
 
-class Safety(_Strict):
+class Safety(Strict):
     """What every agent's safety supervisor and every plant's command watchdog enforce
     (``docs/safety.md``). The defaults are wide enough that no shipped mission reaches them while
     nothing goes wrong (measured there), and tight enough to stop what is not flying any more."""
@@ -372,7 +364,7 @@ class Safety(_Strict):
     avoid: Avoidance | None = None
 
 
-class Mission(_Strict):
+class Mission(Strict):
     version: int
     name: str
     dim: Literal[2, 3]
@@ -434,19 +426,12 @@ class Mission(_Strict):
 
 
 # --------------------------------------------------------------------------- errors
-class MissionError(ValueError):
+class MissionError(SchemaError):
     """A mission file is not valid. ``problems`` holds one ``(field, message)`` pair per problem.
 
     ``field`` is the path of the offending value in the file (``agents[2].offset``, ``law.kp0[1]``),
     ``"<file>"`` for the file as a whole. Every message reads ``"<what is wrong>; <how to fix it>"``.
     """
-
-    def __init__(self, source: str, problems: list[tuple[str, str]]):
-        self.source = source
-        self.problems = problems
-        lines = [f"{source}: {len(problems)} problem(s)"]
-        lines += [f"  {field}: {msg}" for field, msg in problems]
-        super().__init__("\n".join(lines))
 
 
 # --------------------------------------------------------------------------- decoding
@@ -475,7 +460,7 @@ def loads(text: str | bytes, source: str = "<mission>") -> Mission:
     try:
         mission = msgspec.convert(raw, type=Mission)
     except msgspec.ValidationError as exc:
-        raise MissionError(source, [_field_of(str(exc), raw)]) from None
+        raise MissionError(source, [_field_of(exc, raw)]) from None
     problems = validate(mission)
     if problems:
         raise MissionError(source, problems)
@@ -501,60 +486,50 @@ _GOT_NOUNS = {"str": "a string", "float": "a number", "int": "an integer", "bool
               "time": "a time"}
 """msgspec's names of the TOML value types, as a mission author calls them."""
 
-_KeyPath = list[str | int]
-"""A field path split into names and indices: ``agents[0].p0`` is ``["agents", 0, "p0"]``."""
-
-
-def _field_of(msg: str, raw: object = None) -> tuple[str, str]:
-    """Turn a msgspec validation message into ``(field path, message-with-fix)``.
+def _field_of(msg: str | msgspec.ValidationError, raw: object = None) -> tuple[str, str]:
+    """Turn a msgspec validation error into ``(field path, message-with-fix)``.
 
     ``msg`` reads like ``"Expected `float`, got `str` - at `$.agents[0].p0`"``. ``raw`` is the
     decoded TOML document: it tells which member of a tagged union a path is in (from its ``kind``),
     so that the message can list that member's fields, and which ``dim`` to use in examples.
     """
-    text, where = msg, ""
-    if " - at `$" in msg:
-        text, _, at = msg.partition(" - at `$")
-        where = at.rstrip("`").lstrip(".")
-    path = _tokens(where)
-    dim = raw.get("dim") if isinstance(raw, dict) and raw.get("dim") in (2, 3) else 3
-    if text.startswith("Object contains unknown field") and text.count("`") >= 2:
-        name = text.split("`")[1]
+    issue = read_issue(msg)
+    path, where = issue.path, issue.where
+    dim: int = raw["dim"] if isinstance(raw, dict) and raw.get("dim") in (2, 3) else 3
+    if issue.kind == "unknown_field" and issue.name is not None:
         known = _field_names(_type_at(path, raw))
-        close = difflib.get_close_matches(name, known, n=1)
+        close = difflib.get_close_matches(issue.name, known, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
         listing = (f"the fields here are {', '.join(known)}" if len(known) > 1
                    else f"this table takes only `{known[0]}`" if known else "this table takes no fields")
-        return _join(where, name), f"is not a known field; {fix} ({listing})"
-    if text.startswith("Object missing required field") and text.count("`") >= 2:
-        name = text.split("`")[1]
-        field = _join(where, name)
-        t = _type_at([*path, name], raw)
+        return issue.field, f"is not a known field; {fix} ({listing})"
+    if issue.kind == "missing_field" and issue.name is not None:
+        name, field = issue.name, issue.field
+        t = _type_at((*path, name), raw)
         if t is None:
             return field, "is required; add it (see docs/mission.md)"
         if isinstance(t, msgspec.inspect.LiteralType):
             return field, f"is required; add `{name} = ...` set to {_choices(t.values)}"
         return field, f"is required; {_add(t, name, where, dim)}"
     t = _type_at(path, raw)
-    if text.startswith(("Invalid value", "Invalid enum value")) and isinstance(t, msgspec.inspect.LiteralType):
+    if issue.kind == "invalid_value" and issue.value is not None and isinstance(t, msgspec.inspect.LiteralType):
         value = _toml(_value_at(path, raw))
         noun = _KIND_NOUNS.get(str(path[-2])) if len(path) >= 2 and path[-1] == "kind" else None
         what = f"is {value}, not a {noun} kind" if noun else f"is {value}"
         return where or "<file>", f"{what}; use {_choices(t.values)}"
-    if text.startswith("Expected `") and ", got `" in text and t is not None:
-        got = text.split("`")[3]
+    if issue.kind == "wrong_type" and issue.got is not None and t is not None:
+        got = issue.got
         got_noun = _GOT_NOUNS.get(got, f"`{got}`")
         if isinstance(t, msgspec.inspect.LiteralType):
             return where or "<file>", f"is {got_noun}; use {_choices(t.values)}"
         want = _noun(t)
-        name = path[-1] if path and isinstance(path[-1], str) else None
+        key = path[-1] if path and isinstance(path[-1], str) else None
         example = _example(t, dim)
-        sample = f"`{name} = {example}`" if name else f"`{example}`"
+        sample = f"`{key} = {example}`" if key else f"`{example}`"
         numeric = isinstance(t, (msgspec.inspect.FloatType, msgspec.inspect.IntType))
         quotes = " (no quotes)" if got == "str" and numeric else ""
         return where or "<file>", f"is {got_noun} but must be {want}; write {want}{quotes}, e.g. {sample}"
-    plain = text[:1].lower() + text[1:]
-    return where or "<file>", f"{plain}; see docs/mission.md for this field's type"
+    return where or "<file>", f"{issue.sentence}; see docs/mission.md for this field's type"
 
 
 def _add(t: msgspec.inspect.Type, name: str, where: str, dim: int) -> str:
@@ -564,15 +539,6 @@ def _add(t: msgspec.inspect.Type, name: str, where: str, dim: int) -> str:
     if not where and isinstance(t, msgspec.inspect.ListType) and isinstance(t.item_type, msgspec.inspect.StructType):
         return f"add one [[{name}]] table per item (see docs/mission.md)"
     return f"add it ({_noun(t)}), e.g. `{name} = {_example(t, dim)}`"
-
-
-def _tokens(where: str) -> _KeyPath:
-    """``"agents[0].p0"`` -> ``["agents", 0, "p0"]``."""
-    return [int(idx) if idx else name for name, idx in re.findall(r"([^.\[\]]+)|\[(\d+)\]", where)]
-
-
-def _join(where: str, name: str) -> str:
-    return f"{where}.{name}" if where else name
 
 
 def _members(t: msgspec.inspect.Type) -> list[msgspec.inspect.Type]:
@@ -604,7 +570,7 @@ def _resolve(t: msgspec.inspect.Type, value: object) -> msgspec.inspect.Type:
     return t
 
 
-def _type_at(path: _KeyPath, raw: object) -> msgspec.inspect.Type | None:
+def _type_at(path: KeyPath, raw: object) -> msgspec.inspect.Type | None:
     """The schema type of the value at ``path`` (a union member when the file selects one), or None.
 
     A tagged union's ``kind`` field comes back as a ``LiteralType`` of every kind of the union.
@@ -631,7 +597,7 @@ def _type_at(path: _KeyPath, raw: object) -> msgspec.inspect.Type | None:
     return _resolve(t, value)
 
 
-def _value_at(path: _KeyPath, raw: object) -> object:
+def _value_at(path: KeyPath, raw: object) -> object:
     value = raw
     for tok in path:
         if isinstance(tok, int) and isinstance(value, list) and tok < len(value):
@@ -713,369 +679,27 @@ def _choices(values: tuple[object, ...] | list[object]) -> str:
     return f"one of {', '.join(shown[:-1])} or {shown[-1]}"
 
 
-# --------------------------------------------------------------------------- validation
-Problems = list[tuple[str, str]]
-"""``(field path, "<what is wrong>; <how to fix it>")`` pairs."""
-
-
-def _finite_tree(obj: object, path: str, out: Problems) -> None:
-    """Report every NaN/Inf number anywhere in the mission."""
-    if isinstance(obj, float):
-        if not math.isfinite(obj):
-            out.append((path, f"is {obj}; write a finite number (NaN and infinity are not allowed)"))
-    elif isinstance(obj, list):
-        for k, item in enumerate(obj):
-            _finite_tree(item, f"{path}[{k}]", out)
-    elif isinstance(obj, msgspec.Struct):
-        for name in obj.__struct_fields__:
-            enc = _encoded_name(type(obj), name)
-            _finite_tree(getattr(obj, name), f"{path}.{enc}" if path else enc, out)
-
-
-def _encoded_name(cls: type, name: str) -> str:
-    """The name a struct field has in the file (``Edge.src`` is ``from``)."""
-    for f in msgspec.structs.fields(cls):
-        if f.name == name:
-            return f.encode_name
-    return name
-
-
-def _axes(dim: int) -> str:
-    return "x, y" if dim == 2 else "x, y, z"
-
-
-def _check_vec(v: list[float] | None, dim: int, path: str, out: Problems) -> None:
-    if v is not None and len(v) != dim:
-        out.append((path, f"has {len(v)} component(s) but the mission has dim = {dim}; "
-                          f"give {dim} components ({_axes(dim)})"))
-
-
-def _check_per_axis(v: PerAxis, dim: int, path: str, out: Problems) -> None:
-    if isinstance(v, list):
-        _check_vec(v, dim, path, out)
-
-
-def _whole_periods(x: float, rate: float) -> bool:
-    """Whether ``x`` seconds is a whole number of control periods at ``rate`` Hz."""
-    return abs(x * rate - round(x * rate)) <= 1e-6
-
-
-def _nearest_periods(x: float, rate: float) -> float:
-    """The nearest positive whole number of control periods to ``x`` seconds, in seconds."""
-    return max(1, round(x * rate)) / rate
-
-
-def _and(items: list[int]) -> str:
-    """``[3]`` -> ``"3"``, ``[3, 4]`` -> ``"3 and 4"``, ``[2, 3, 4]`` -> ``"2, 3 and 4"``."""
-    words = [str(i) for i in items]
-    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} and {words[-1]}"
-
-
+# --------------------------------------------------------------------------- semantics
 def per_axis(v: PerAxis, dim: int) -> list[float]:
     """Expand a :data:`PerAxis` value to ``dim`` components (a list is returned as floats, unchanged
-    in length: :func:`validate` checks it has ``dim``)."""
+    in length: :func:`tether.checks.validate` checks it has ``dim``)."""
     return [float(v)] * dim if not isinstance(v, list) else [float(x) for x in v]
 
 
+
 def validate(m: Mission) -> Problems:
-    """Every semantic problem of a decoded mission, as ``(field, message-with-fix)`` pairs.
+    """Every semantic problem of a decoded mission: :func:`tether.checks.validate` (kept here for its
+    many callers)."""
+    from tether import checks  # checks imports this module's types
 
-    Non-finite numbers are reported alone (later checks compare numbers, and NaN would only add
-    confusing follow-ups); Assumption 1 is checked only once the ids and edges are otherwise right.
-    """
-    out: Problems = []
-    _finite_tree(m, "", out)
-    if out:
-        return out
-    d = m.dim
-
-    if m.rate <= 0:
-        out.append(("rate", f"is {m.rate} Hz; set a control rate > 0, e.g. `rate = 100.0`"))
-    if m.duration <= 0:
-        out.append(("duration", f"is {m.duration} s; set a duration > 0"))
-    elif m.rate > 0 and not _whole_periods(m.duration, m.rate):
-        out.append(("duration", f"is {m.duration} s, not a whole number of control periods at {m.rate} Hz; "
-                                f"make duration * rate an integer, e.g. "
-                                f"`duration = {_nearest_periods(m.duration, m.rate)!r}`"))
-    if m.seed < 0:
-        out.append(("seed", f"is {m.seed}; use a seed >= 0 (random generators take non-negative seeds)"))
-
-    # ids
-    if not m.agents:
-        out.append(("agents", "is empty; declare at least one [[agents]] table"))
-    seen: dict[int, int] = {}
-    for k, a in enumerate(m.agents):
-        if a.id <= 0:
-            out.append((f"agents[{k}].id", f"is {a.id}; use a positive integer id"))
-        if a.id in seen:
-            out.append((f"agents[{k}].id", f"is {a.id}, the id of agents[{seen[a.id]}]; give every agent its own id"))
-        seen.setdefault(a.id, k)
-        if a.id == m.leader.id:
-            out.append((f"agents[{k}].id", f"is {a.id}, the leader's id; give the agent and the leader "
-                                           "different ids"))
-        _check_vec(a.p0, d, f"agents[{k}].p0", out)
-        _check_vec(a.v0, d, f"agents[{k}].v0", out)
-        _check_vec(a.offset, d, f"agents[{k}].offset", out)
-        _validate_disturbance(a.disturbance, d, m.rate, f"agents[{k}].disturbance", out)
-    if m.leader.id <= 0:
-        out.append(("leader.id", f"is {m.leader.id}; use a positive integer id"))
-    _check_vec(m.leader.p0, d, "leader.p0", out)
-    _check_vec(m.leader.v0, d, "leader.v0", out)
-    _validate_profile(m, out)
-
-    # edges
-    nodes = sorted(set(seen) | {m.leader.id})
-    pairs: dict[tuple[int, int], int] = {}
-    for k, e in enumerate(m.edges):
-        where = f"edges[{k}]"
-        if e.src not in nodes:
-            out.append((f"{where}.from", f"is {e.src}, which is neither an agent nor the leader; "
-                                         f"use one of the ids {nodes}"))
-        if e.dst not in nodes:
-            out.append((f"{where}.to", f"is {e.dst}, which is neither an agent nor the leader; "
-                                       f"use one of the ids {nodes}"))
-        if e.dst == m.leader.id and e.src != e.dst:
-            out.append((f"{where}.to", f"is {e.dst}, the virtual leader, which hears nobody (Eq. 6); "
-                                       f"remove the edge or reverse it (`from = {e.dst}, to = {e.src}`)"))
-        if e.src == e.dst:
-            out.append((where, f"is a self-loop on {e.src} (a_ii = 0 by definition); remove it"))
-        if e.weight <= 0:
-            out.append((f"{where}.weight", f"is {e.weight} but an edge has a_ij > 0; give a positive weight, "
-                                           "or remove the edge for a_ij = 0"))
-        key = (e.src, e.dst)
-        if key in pairs:
-            out.append((where, f"repeats edges[{pairs[key]}] ({e.src} -> {e.dst}); merge them into one edge "
-                               "with one weight"))
-        pairs.setdefault(key, k)
-
-    # law
-    law = m.law
-    _check_per_axis(law.kp0, d, "law.kp0", out)
-    _check_per_axis(law.kv0, d, "law.kv0", out)
-    floor = 1.0 if law.kind == "sigma" else 0.0
-    why = ("Theorem 1 needs K(0) >= 1 for the sigma law" if law.kind == "sigma"
-           else "Eq. 30 needs K(0) >= 0")
-    for name, val in (("kp0", law.kp0), ("kv0", law.kv0)):
-        values = val if isinstance(val, list) else [val]
-        for k, x in enumerate(values):
-            if x < floor:
-                field = f"law.{name}" + (f"[{k}]" if isinstance(val, list) else "")
-                out.append((field, f"is {x}, below {floor:g} ({why}); raise it to >= {floor:g}"))
-    for name in ("gamma_p", "gamma_v"):
-        value = getattr(law, name)
-        if value <= 0:
-            out.append((f"law.{name}", f"is {value}; set an adaptation rate > 0, e.g. `{name} = 0.05`"))
-    if law.kind == "sigma":
-        if law.sigma is None:
-            out.append(("law.sigma", "is missing but the sigma law (Eq. 17) needs it; add e.g. `sigma = 1.0`, "
-                                     "or use kind = \"benchmark\""))
-        elif law.sigma <= 0:
-            out.append(("law.sigma", f"is {law.sigma} but Theorem 1 needs sigma > 0; set e.g. `sigma = 1.0`, "
-                                     "or use kind = \"benchmark\" for a law without leakage"))
-    elif law.sigma is not None:
-        out.append(("law.sigma", "is set but the benchmark law (Eq. 30) has no sigma; remove it, "
-                                 "or use kind = \"sigma\""))
-
-    _validate_physics(m, out)
-    if m.links.max_age <= 0:
-        out.append(("links.max_age", f"is {m.links.max_age} s; the oldest usable sample age must be > 0 (e.g. 0.5)"))
-    if m.netem is not None:
-        out.extend(validate_network(m.netem, set(seen) | {m.leader.id}, path="netem"))
-    _validate_safety(m, out)
-
-    # Assumption 1 only makes sense on a graph whose ids are right
-    if not any(f.startswith(("edges", "agents", "leader.id")) for f, _ in out):
-        unreachable = unreachable_agents(m)
-        if unreachable:
-            out.append(("edges", f"break Assumption 1: the leader ({m.leader.id}) has no directed path to "
-                                 f"agent{'s' if len(unreachable) > 1 else ''} {_and(unreachable)}; add edges so "
-                                 "that each of them hears the leader or an agent the leader reaches, e.g. "
-                                 f"`{{ from = {m.leader.id}, to = {unreachable[0]} }}`"))
-    return out
-
-
-def _validate_safety(m: Mission, out: Problems) -> None:
-    """The ``[safety]`` section: positive limits, ordered timeouts, a box that is a box."""
-    sf = m.safety
-    positive = {"max_accel": "m/s^2", "max_speed": "m/s", "max_formation_error": "m", "leader_timeout": "s",
-                "neighbour_timeout": "s", "land_after": "s", "land_speed": "m/s", "hold_kp": "1/s^2",
-                "hold_kv": "1/s", "cmd_timeout": "s", "cmd_cutoff": "s"}
-    for name, unit in positive.items():
-        value = getattr(sf, name)
-        if not value > 0:
-            default = getattr(Safety(), name)
-            out.append((f"safety.{name}", f"is {value} {unit}; give a value > 0 (the default is {default!r})"))
-    if sf.jump_margin < 0:
-        out.append(("safety.jump_margin", f"is {sf.jump_margin} m; use >= 0"))
-    if sf.future_window < 0:
-        out.append(("safety.future_window", f"is {sf.future_window} ticks; use >= 0"))
-    if not sf.gain_cap > 1:
-        out.append(("safety.gain_cap", f"is {sf.gain_cap}; the gains start at >= 1, so use a cap > 1 (default 1000)"))
-    if sf.cmd_cutoff <= sf.cmd_timeout:
-        out.append(("safety.cmd_cutoff", f"is {sf.cmd_cutoff} s, not after cmd_timeout ({sf.cmd_timeout} s); "
-                                         "a plant holds first and lands later: make cmd_cutoff > cmd_timeout"))
-    if sf.geofence is not None:
-        g = sf.geofence
-        _check_vec(g.min, m.dim, "safety.geofence.min", out)
-        _check_vec(g.max, m.dim, "safety.geofence.max", out)
-        if len(g.min) == len(g.max) == m.dim:
-            for axis, (lo, hi) in enumerate(zip(g.min, g.max)):
-                if not lo < hi:
-                    out.append((f"safety.geofence.max[{axis}]", f"is {hi}, not above min[{axis}] = {lo}; "
-                                                                "give a box with min < max on every axis"))
-            for k, a in enumerate(m.agents):
-                if not all(lo <= x <= hi for x, lo, hi in zip(a.p0, g.min, g.max)):
-                    out.append((f"agents[{k}].p0", f"is {a.p0}, outside safety.geofence; start every vehicle "
-                                                   "inside the fence, or widen it"))
-    if sf.avoid is not None:
-        av = sf.avoid
-        for name in ("radius", "sensing", "gain"):
-            if not getattr(av, name) > 0:
-                out.append((f"safety.avoid.{name}", f"is {getattr(av, name)}; give a value > 0"))
-        if av.sensing <= av.radius:
-            out.append(("safety.avoid.sensing", f"is {av.sensing} m, not beyond radius ({av.radius} m); "
-                                                "the filter must see a vehicle before it is too close"))
-
-
-def _validate_physics(m: Mission, out: Problems) -> None:
-    """Plants, payload and floor."""
-    physical = (PointMassPlant, QuadrotorPlant)
-    for k, a in enumerate(m.agents):
-        p = a.plant
-        where = f"agents[{k}].plant"
-        if isinstance(p, DoubleIntegrator):
-            continue
-        # every vehicle with mass: point mass, quadrotor, Crazyflie
-        if m.dim != 3:
-            out.append((where, f"is a {p.__struct_config__.tag} in a {m.dim}D mission; these vehicles fly in 3D: "
-                               "set `dim = 3` (and 3-vectors), or use `double_integrator`"))
-        if not p.mass > 0:
-            out.append((f"{where}.mass", f"is {p.mass} kg; give the vehicle's mass > 0, e.g. 0.029"))
-        if p.feedforward_mass < 0:
-            out.append((f"{where}.feedforward_mass", f"is {p.feedforward_mass} kg; use >= 0 (0: off)"))
-        if not isinstance(p, PointMassPlant) and not 0 < p.tilt_max < 90:
-            out.append((f"{where}.tilt_max", f"is {p.tilt_max} deg; use an angle in (0, 90), e.g. 20"))
-        if isinstance(p, physical) and p.integrator is not None:
-            if not p.integrator.gain > 0:
-                out.append((f"{where}.integrator.gain", f"is {p.integrator.gain}; use a gain > 0 [1/s], e.g. 2.0, "
-                                                        "or remove the integrator"))
-            if not p.integrator.limit > 0:
-                out.append((f"{where}.integrator.limit", f"is {p.integrator.limit}; use a bound > 0 [m/s^2], e.g. 6.0"))
-        if isinstance(p, CrazyfliePlant):
-            if not p.uri.startswith(("radio://", "usb://", "udp://")):
-                out.append((f"{where}.uri", f"is {p.uri!r}; give a cflib URI: radio://0/80/2M/E7E7E7E701, usb://0 "
-                                            "or udp://127.0.0.1:19850 (the software Crazyflie)"))
-            for name in ("takeoff_height", "takeoff_time", "land_time", "connect_timeout"):
-                if not getattr(p, name) > 0:
-                    out.append((f"{where}.{name}", f"is {getattr(p, name)}; use a value > 0"))
-    if m.payload is not None:
-        pl = m.payload
-        if m.dim != 3:
-            out.append(("payload", "needs a 3D mission (gravity acts along z); set `dim = 3`"))
-        for k, a in enumerate(m.agents):
-            if not isinstance(a.plant, physical):
-                out.append((f"agents[{k}].plant", f"is {a.plant.__struct_config__.tag} but a payload hangs from vehicles "
-                                                   "with mass; use `point_mass` or `quadrotor`"))
-        if not pl.mass > 0:
-            out.append(("payload.mass", f"is {pl.mass} kg; give the payload's mass > 0, e.g. 0.015"))
-        for name in ("length", "stiffness"):
-            if not getattr(pl.cable, name) > 0:
-                out.append((f"payload.cable.{name}", f"is {getattr(pl.cable, name)}; use a value > 0"))
-        if pl.cable.damping < 0:
-            out.append(("payload.cable.damping", f"is {pl.cable.damping}; use >= 0 [N s/m]"))
-        if m.dim == 3:
-            _check_vec(pl.p0, 3, "payload.p0", out)
-        if not pl.substep > 0 or (m.rate > 0 and not _whole_periods(1.0 / m.rate, 1.0 / pl.substep)):
-            out.append(("payload.substep", f"is {pl.substep} s; use a whole fraction of the control period "
-                                           f"{1.0 / m.rate if m.rate > 0 else float('nan'):g} s, e.g. 0.001"))
-        if pl.p0 is not None and m.floor is not None and len(pl.p0) == 3 and pl.p0[2] < m.floor:
-            out.append(("payload.p0", f"is below the floor ({m.floor} m); raise its z to >= {m.floor}"))
-    if m.floor is not None and m.dim != 3:
-        out.append(("floor", "needs a 3D mission; remove it or set `dim = 3`"))
-
-
-def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out: Problems) -> None:
-    if isinstance(dist, Sinusoid):
-        for name in ("amplitude", "omega", "phase"):
-            _check_vec(getattr(dist, name), d, f"{path}.{name}", out)
-    elif isinstance(dist, Constant):
-        _check_vec(dist.value, d, f"{path}.value", out)
-    elif isinstance(dist, BoundedRandom):
-        _check_per_axis(dist.bound, d, f"{path}.bound", out)
-        if any(b < 0 for b in per_axis(dist.bound, d)):
-            out.append((f"{path}.bound", f"is {dist.bound} but a bound is a magnitude; give values >= 0"))
-        if dist.hold <= 0:
-            out.append((f"{path}.hold", f"is {dist.hold} s; set a redraw period > 0 s, a whole number of "
-                                        "control periods"))
-        elif rate > 0 and not _whole_periods(dist.hold, rate):
-            out.append((f"{path}.hold", f"is {dist.hold} s, not a whole number of control periods at {rate} Hz; "
-                                        f"make hold * rate an integer, e.g. "
-                                        f"`hold = {_nearest_periods(dist.hold, rate)!r}`"))
-
-
-def _validate_profile(m: Mission, out: Problems) -> None:
-    prof, d, path = m.leader.profile, m.dim, "leader.profile"
-    v0 = m.leader.v0
-    if isinstance(prof, ExpAccel):
-        _check_vec(prof.a0, d, f"{path}.a0", out)
-        if prof.decay < 0:
-            out.append((f"{path}.decay", f"is {prof.decay} 1/s; set a decay rate >= 0 (0 keeps a0 constant)"))
-    elif isinstance(prof, VelocitySchedule):
-        segs = prof.segments
-        if not segs:
-            out.append((f"{path}.segments", "is empty; give at least one segment, the first at t = 0"))
-        else:
-            if segs[0].t != 0:
-                out.append((f"{path}.segments[0].t", f"is {segs[0].t} s; set it to 0 (the first segment gives "
-                                                     "the velocity from the start)"))
-            if v0 is not None and len(v0) == d and len(segs[0].v) == d and list(v0) != list(segs[0].v):
-                out.append(("leader.v0", f"is {v0} but the velocity schedule starts at segments[0].v = "
-                                         f"{segs[0].v}; remove leader.v0 (the schedule sets the velocity) "
-                                         "or make them equal"))
-        for k, seg in enumerate(segs):
-            _check_vec(seg.v, d, f"{path}.segments[{k}].v", out)
-            if k and seg.t < segs[k - 1].t + prof.ramp:
-                out.append((f"{path}.segments[{k}].t", f"is {seg.t} s, earlier than the previous segment's t + ramp "
-                                                       f"({segs[k - 1].t + prof.ramp} s); sort the segments by t "
-                                                       "or shorten the ramp"))
-        if prof.ramp < 0:
-            out.append((f"{path}.ramp", f"is {prof.ramp} s; set a ramp >= 0 (0 is a step)"))
-    elif isinstance(prof, Waypoints):
-        pts = prof.points
-        if len(pts) < 2:
-            out.append((f"{path}.points", f"has {len(pts)} waypoint(s); give at least two, the first at t = 0 "
-                                          "and leader.p0"))
-        else:
-            if pts[0].t != 0:
-                out.append((f"{path}.points[0].t", f"is {pts[0].t} s; set it to 0 (the leader starts at its "
-                                                   "first waypoint)"))
-            if len(pts[0].p) == d and len(m.leader.p0) == d and list(pts[0].p) != list(m.leader.p0):
-                out.append((f"{path}.points[0].p", f"is {pts[0].p} but leader.p0 is {m.leader.p0}; make them "
-                                                   "equal (the leader starts at its first waypoint)"))
-        if v0 is not None and any(x != 0 for x in v0):
-            out.append(("leader.v0", f"is {v0} but a waypoints profile starts at rest; remove leader.v0 "
-                                     "or set it to zeros"))
-        for k, pt in enumerate(pts):
-            _check_vec(pt.p, d, f"{path}.points[{k}].p", out)
-            if k and pt.t <= pts[k - 1].t:
-                out.append((f"{path}.points[{k}].t", f"is {pt.t} s, not later than points[{k - 1}].t = "
-                                                     f"{pts[k - 1].t} s; give strictly increasing times"))
+    return checks.validate(m)
 
 
 def unreachable_agents(m: Mission) -> list[int]:
-    """Agents with no directed path from the leader (Assumption 1 holds iff this is empty)."""
-    out_edges: dict[int, list[int]] = {}
-    for e in m.edges:
-        out_edges.setdefault(e.src, []).append(e.dst)
-    reached = {m.leader.id}
-    frontier = [m.leader.id]
-    while frontier:
-        node = frontier.pop()
-        for nxt in out_edges.get(node, []):
-            if nxt not in reached:
-                reached.add(nxt)
-                frontier.append(nxt)
-    return [a.id for a in m.agents if a.id not in reached]
+    """Agents with no directed path from the leader: :func:`tether.checks.unreachable_agents`."""
+    from tether import checks
+
+    return checks.unreachable_agents(m)
 
 
 # --------------------------------------------------------------------------- encode

@@ -25,17 +25,7 @@ from typing import Literal
 import msgspec
 import msgspec.structs
 
-Problems = list[tuple[str, str]]
-"""``(field path, "<what is wrong>; <how to fix it>")`` pairs."""
-
-
-class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
-    """Base of every netem struct: unknown fields are errors, instances are immutable."""
-
-
-class _Kind(_Strict, tag_field="kind"):
-    """Base of the members of a tagged union, told apart by their ``kind`` field."""
-
+from tether.schema import Kind, Problems, SchemaError, Strict, join, read_issue
 
 # --------------------------------------------------------------------------- delay
 Distribution = Literal["uniform", "normal", "pareto"]
@@ -44,7 +34,7 @@ standard deviation ``jitter``, ``pareto`` (shape 3, shifted to mean 0, standard 
 ``jitter``; bounded below by ``-jitter/sqrt(3)``, heavy upper tail)."""
 
 
-class Delay(_Strict):
+class Delay(Strict):
     """Propagation delay of every copy: ``max(0, constant + jitter * Z)``, ``Z`` of mean 0 drawn
     from ``distribution``; successive ``Z`` are correlated by ``correlation`` (``docs/netem.md``)."""
 
@@ -60,14 +50,14 @@ class Delay(_Strict):
 
 
 # --------------------------------------------------------------------------- loss
-class Bernoulli(_Kind, tag="bernoulli"):
+class Bernoulli(Kind, tag="bernoulli"):
     """Each message is lost independently with probability ``p``."""
 
     p: float = 0.0
     """Loss probability, in [0, 1]."""
 
 
-class GilbertElliott(_Kind, tag="gilbert_elliott"):
+class GilbertElliott(Kind, tag="gilbert_elliott"):
     """Two-state Markov loss (netem ``loss gemodel p r 1-h 1-k``): in state G a message is lost with
     probability ``good_loss`` (= 1-k), in state B with ``bad_loss`` (= 1-h); after each message the
     state moves G -> B with probability ``p`` and B -> G with probability ``r``. Starts in G."""
@@ -92,7 +82,7 @@ Loss = Bernoulli | GilbertElliott
 
 
 # --------------------------------------------------------------------------- the others
-class Reorder(_Strict):
+class Reorder(Strict):
     """netem ``reorder p gap g``: a message is *eligible* once ``gap - 1`` messages have taken the
     delay line since the last reordered one; an eligible message skips the delay line with
     probability ``p`` (it is delivered as soon as it is serialised), overtaking earlier messages
@@ -105,7 +95,7 @@ class Reorder(_Strict):
     eligible (``gap 5`` with ``p = 1`` reorders messages 5, 10, 15, ...)."""
 
 
-class Corrupt(_Strict):
+class Corrupt(Strict):
     """With probability ``p`` a copy has ``bytes`` distinct bytes of its payload XORed with random
     non-zero masks (so each of them differs). An empty payload is delivered unchanged."""
 
@@ -115,7 +105,7 @@ class Corrupt(_Strict):
     """Bytes flipped in a corrupted copy (fewer if the payload is shorter), >= 1."""
 
 
-class Rate(_Strict):
+class Rate(Strict):
     """A FIFO transmitter of ``bytes_per_s``: a copy of ``len(payload) + overhead`` bytes waits for
     the copies ahead of it, then takes ``size / bytes_per_s`` to serialise; the propagation delay
     comes after. ``bytes_per_s = 0`` is no limit."""
@@ -134,7 +124,7 @@ Outage = tuple[float, float]
 ``end`` may be ``inf`` (the link never comes back)."""
 
 
-class LinkProfile(_Strict):
+class LinkProfile(Strict):
     """Everything one directed link does to its messages. ``LinkProfile()`` is the identity."""
 
     delay: Delay = Delay()
@@ -177,23 +167,12 @@ def mean_loss(loss: Loss) -> float:
 
 
 # --------------------------------------------------------------------------- errors
-class ProfileError(ValueError):
+class ProfileError(SchemaError):
     """A link profile (or a network section) is not valid. ``problems`` holds ``(field, message)``
     pairs, each message reading ``"<what is wrong>; <how to fix it>"``."""
 
-    def __init__(self, source: str, problems: Problems):
-        self.source = source
-        self.problems = problems
-        lines = [f"{source}: {len(problems)} problem(s)"]
-        lines += [f"  {field}: {msg}" for field, msg in problems]
-        super().__init__("\n".join(lines))
-
 
 # --------------------------------------------------------------------------- validation
-def _join(path: str, name: str) -> str:
-    return f"{path}.{name}" if path else name
-
-
 def _finite(value: float, field: str, out: Problems) -> bool:
     if not math.isfinite(value):
         out.append((field, f"is {value}; give a finite number"))
@@ -219,7 +198,7 @@ def validate(profile: LinkProfile, path: str = "") -> Problems:
     out: Problems = []
 
     def f(name: str) -> str:
-        return _join(path, name)
+        return join(path, name)
 
     d = profile.delay
     _non_negative(d.constant, f("delay.constant"), "s", out, "0 is no delay")
@@ -303,24 +282,22 @@ _FIELD_NAMES = _all_field_names()
 
 
 def _from_validation_error(exc: msgspec.ValidationError, path: str) -> tuple[str, str]:
-    """Turn msgspec's ``"<text> - at `$.a.b`"`` into ``(field, message-with-fix)``."""
-    text, _, at = str(exc).partition(" - at `$")
-    inner = _join(path, at.rstrip("`").lstrip(".")) if at else path
+    """Turn msgspec's error at ``$.a.b`` of a profile found at ``path`` into ``(field, message-with-fix)``."""
+    issue = read_issue(exc)
+    inner = join(path, issue.where) if issue.where else path
     where = inner or "<profile>"
-    if text.startswith("Object contains unknown field") and text.count("`") >= 2:
-        name = text.split("`")[1]
-        close = difflib.get_close_matches(name, _FIELD_NAMES, n=1)
+    if issue.kind == "unknown_field" and issue.name is not None:
+        close = difflib.get_close_matches(issue.name, _FIELD_NAMES, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
-        return _join(inner, name), f"is not a known field; {fix} (see docs/netem.md)"
-    if text.startswith("Object missing required field `kind`"):
-        return _join(inner, "kind"), ("is missing; say which loss model this is, `kind = \"bernoulli\"` or "
-                                      "`kind = \"gilbert_elliott\"`")
-    if text.startswith(("Invalid value", "Invalid enum value")) and where.endswith("kind"):
+        return join(inner, issue.name), f"is not a known field; {fix} (see docs/netem.md)"
+    if issue.kind == "missing_field" and issue.name == "kind":
+        return join(inner, "kind"), ("is missing; say which loss model this is, `kind = \"bernoulli\"` or "
+                                     "`kind = \"gilbert_elliott\"`")
+    if issue.kind == "invalid_value" and issue.value is not None and where.endswith("kind"):
         return where, "is not a loss model; use \"bernoulli\" or \"gilbert_elliott\""
-    if text.startswith(("Invalid value", "Invalid enum value")) and where.endswith("distribution"):
+    if issue.kind == "invalid_value" and issue.value is not None and where.endswith("distribution"):
         return where, "is not a jitter distribution; use \"uniform\", \"normal\" or \"pareto\""
-    plain = text[:1].lower() + text[1:]
-    return where, f"{plain}; see docs/netem.md for this field's type"
+    return where, f"{issue.sentence}; see docs/netem.md for this field's type"
 
 
 def convert(raw: object, source: str = "<profile>", path: str = "") -> LinkProfile:
@@ -404,7 +381,7 @@ def _not_a_preset(name: str) -> str:
 
 
 # --------------------------------------------------------------------------- network section
-class LinkRule(_Strict):
+class LinkRule(Strict):
     """From ``start`` on, the links matching ``from``/``to`` use ``profile``."""
 
     profile: str | LinkProfile
@@ -417,7 +394,7 @@ class LinkRule(_Strict):
     """When the rule takes effect [s; mission time]."""
 
 
-class Network(_Strict):
+class Network(Strict):
     """A proposed mission section: ``default`` for every link, overridden by ``rules``.
 
     At mission time ``t`` a link ``j -> i`` uses the profile of the matching rule with the latest
@@ -448,9 +425,9 @@ def validate_network(net: Network, node_ids: Collection[int] | None = None, path
         else:
             out.extend(validate(p, where))
 
-    check(net.default, _join(path, "default"))
+    check(net.default, join(path, "default"))
     for k, rule in enumerate(net.rules):
-        where = _join(path, f"rules[{k}]")
+        where = join(path, f"rules[{k}]")
         check(rule.profile, f"{where}.profile")
         if not math.isfinite(rule.start) or rule.start < 0:
             out.append((f"{where}.start", f"is {rule.start} s; give a start >= 0 [s; mission time]"))

@@ -34,6 +34,7 @@ import zenoh
 
 from tether import wire
 from tether.handoff import BoundedFifo, Sink, Wakeup
+from tether.schema import Problems, SchemaError, Strict, read_issue
 
 __all__ = [
     "COMMAND",
@@ -70,7 +71,7 @@ TOKEN_ROOT = wire.TOKEN_ROOT
 
 
 # =========================================================================== settings
-class TlsFiles(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+class TlsFiles(Strict):
     """Paths of TLS material, carried into ``transport/link/tls/*``. Used only by ``tls/`` endpoints.
 
     The keys are those of zenoh 1.10's config; opened with real certificates (mTLS) in tests/test_deploy.py.
@@ -90,7 +91,7 @@ class TlsFiles(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=
     """Require client certificates on listeners (mutual TLS)."""
 
 
-class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+class ZenohSettings(Strict):
     """How one process joins the Zenoh network. Immutable; turned into a ``zenoh.Config`` by :func:`zenoh_config`.
 
     The defaults isolate a process: multicast scouting is off and nothing is listened on or
@@ -131,14 +132,12 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_
     every other field must keep its default."""
 
 
-class SettingsError(ValueError):
-    """Settings are not valid. ``problems`` holds one ``(field, message)`` pair per problem."""
+class SettingsError(SchemaError):
+    """Settings are not valid. ``problems`` holds one ``(field, message)`` pair per problem; the
+    source is always ``zenoh settings``."""
 
-    def __init__(self, problems: list[tuple[str, str]]):
-        self.problems = problems
-        lines = [f"zenoh settings: {len(problems)} problem(s)"]
-        lines += [f"  {field}: {msg}" for field, msg in problems]
-        super().__init__("\n".join(lines))
+    def __init__(self, problems: Problems):
+        super().__init__("zenoh settings", problems)
 
 
 class TransportError(RuntimeError):
@@ -179,14 +178,14 @@ def _positive_seconds(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
 
 
-def validate_settings(s: ZenohSettings) -> list[tuple[str, str]]:
+def validate_settings(s: ZenohSettings) -> Problems:
     """Every problem of ``s``, as ``(field, message-with-fix)`` pairs; empty when valid.
 
     Checks what Zenoh checks late or not at all: mode, endpoint syntax and ports, that a client has
     somewhere to connect, that a router names its listeners, and positive lease and keep-alive
     (Zenoh silently turns a negative lease into 0 and truncates it to whole milliseconds).
     """
-    out: list[tuple[str, str]] = []
+    out: Problems = []
     if s.config_file is not None:
         return _config_file_problems(s)
     if s.mode not in ("peer", "client", "router"):
@@ -237,7 +236,7 @@ def validate_settings(s: ZenohSettings) -> list[tuple[str, str]]:
     return out
 
 
-def _config_file_problems(s: ZenohSettings) -> list[tuple[str, str]]:
+def _config_file_problems(s: ZenohSettings) -> Problems:
     """With ``config_file`` the file is the whole configuration: any other field set is a conflict."""
     if not isinstance(s.config_file, str) or not s.config_file:
         return [("config_file", f"is {s.config_file!r}; give the path of a Zenoh JSON5 file")]
@@ -256,14 +255,8 @@ def load_settings(raw: Mapping[str, Any]) -> ZenohSettings:
     try:
         s = msgspec.convert(raw, ZenohSettings)
     except msgspec.ValidationError as exc:
-        msg = str(exc)
-        field = "<settings>"
-        if " - at `$" in msg:
-            msg, _, at = msg.partition(" - at `$")
-            field = at.rstrip("`").lstrip(".") or field
-        elif "unknown field" in msg:
-            field = msg.partition("`")[2].partition("`")[0] or field
-        raise SettingsError([(field, msg)]) from None
+        issue = read_issue(exc)
+        raise SettingsError([(issue.field or "<settings>", issue.text)]) from None
     problems = validate_settings(s)
     if problems:
         raise SettingsError(problems)
