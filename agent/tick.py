@@ -28,9 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.avoid import filter_command
 from agent.law import AgentLaw, neighbour_sample
 from agent.safety import NOMINAL, Status, Supervisor
+from tether import failsafe
 from tether.mission import LinkPolicy, Mission
+from tether.wire import HOLD, LAND
 
 AGE_WINDOW = 500
 """Ticks over which each link's age-of-information percentiles are taken (5 s at 100 Hz)."""
@@ -96,11 +99,13 @@ class AgentTick:
         return measured if self.feedforward == "measured" else self.last_u
 
     def step(self, k: int, t: float, p: np.ndarray, v: np.ndarray, a_measured: np.ndarray,
-             heard: Sequence[Heard | None], status: Status = NOMINAL) -> TickResult:
+             heard: Sequence[Heard | None], status: Status = NOMINAL,
+             near: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> TickResult:
         """Tick ``k`` at time ``t`` [s] with the own sample ``p, v, a_measured`` and, per
         in-neighbour in ``law.neighbours`` order, its newest sample (or None); ``status`` is what
-        the process knows of its inputs' liveliness and the operator. Advances the gains while
-        FLYING."""
+        the process knows of its inputs' liveliness and the operator; ``near``, the positions and
+        velocities of other vehicles that collision avoidance (``[safety.avoid]``) may hear,
+        kept apart from the law's inputs. Advances the gains while FLYING."""
         policy = self.policy
         a = self.shared(a_measured)
         nb_p, nb_v, nb_a = self._nb
@@ -128,6 +133,11 @@ class AgentTick:
             law = self._laws[lost] = self.law.without(lost)
         u_law, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, self.kp, self.kv)
         u = sup.command(k, t, p, v, u_law, xi, self.kp, self.kv, reachable, leader_silent, status)
+        av = sup.cfg.avoid
+        if av is not None and near and (sup.flying or sup.mode in (HOLD, LAND)):
+            safe = failsafe.saturate(filter_command(u, p, v, near, av.radius, av.sensing, av.gain, av.brake),
+                                     sup.cfg.max_accel)
+            u = u if safe is None else safe
         out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks, sup.mode)
         if sup.flying:
             self.kp, self.kv = kp_next, kv_next

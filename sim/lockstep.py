@@ -96,6 +96,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     senders = sorted({j for tk in ticks for j in tk.law.neighbours})
 
     extras: dict[str, np.ndarray] = {}
+    avoid = m.safety.avoid is not None  # every vehicle hears the others' states (range sensing)
     meta = {"mission": m.name, "source": "lockstep-inprocess", "law": m.law.kind, "rate": m.rate,
             "steps": steps, "seed": m.seed, "diverged_at": None}
     run = Run.empty(steps + 1 if record else 1, ids, d, meta)
@@ -134,7 +135,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 newest = lk.source.newest
                 heard.append(None if newest is None else
                              (newest.t, np.array(newest.p), np.array(newest.vel), np.array(newest.a)))
-            out = tk.step(k, t, p[i], v[i], a[i], heard)
+            near = [(p[j], v[j]) for j in range(n) if j != i] if avoid else ()
+            out = tk.step(k, t, p[i], v[i], a[i], heard, near=near)
             us.append(out.u)
             worst = max(worst, abs(out.xi).max())
             if keep:

@@ -244,9 +244,12 @@ def _validate_safety(m: Mission, out: Problems) -> None:
                                                    "inside the fence, or widen it"))
     if sf.avoid is not None:
         av = sf.avoid
-        for name in ("radius", "sensing", "gain"):
+        for name in ("radius", "sensing", "gain", "brake"):
             if not getattr(av, name) > 0:
                 out.append((f"safety.avoid.{name}", f"is {getattr(av, name)}; give a value > 0"))
+        if av.brake > sf.max_accel:
+            out.append(("safety.avoid.brake", f"is {av.brake} m/s^2, beyond max_accel ({sf.max_accel} m/s^2); "
+                                              "a vehicle cannot brake harder than it may accelerate"))
         if av.sensing <= av.radius:
             out.append(("safety.avoid.sensing", f"is {av.sensing} m, not beyond radius ({av.radius} m); "
                                                 "the filter must see a vehicle before it is too close"))

@@ -315,8 +315,10 @@ class Avoidance(Strict):
     """Minimum distance between two vehicles' centres the filter keeps [m]."""
     sensing: float = 2.0
     """Vehicles closer than this are considered [m]."""
-    gain: float = 4.0
-    """Class-K gain of the barrier constraint h' >= -gain * h [1/s]."""
+    gain: float = 1.0
+    """Class-K gain of the barrier constraint ``h' >= -gain h^3`` (Wang, Ames & Egerstedt 2017)."""
+    brake: float = 2.0
+    """Braking capacity each vehicle is assumed to keep for avoidance [m/s^2] (below max_accel)."""
 
 
 class Safety(Strict):
