@@ -57,7 +57,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     prog = Progress()
     run = refsim.simulate(m, args.mode, duration=args.duration, substeps=args.substeps,
                           progress=lambda k, n: prog(k, n, m.name))
-    run.meta["mission_text"] = catalog.resolve(args.mission).read_text()
+    run.meta.mission_text = catalog.resolve(args.mission).read_text()
     run.save(out / "run.npz")
     summary = metrics.summary(run)
     summary["tracking_error_m"] = metrics.tracking_error(run, Setup.of(m).offsets[: m.n])
