@@ -323,6 +323,19 @@ def test_lockstep_run_is_complete_and_every_process_ended_well(lockstep: tuple[F
     assert rec.meta.recorder_drops == DropCounts()
 
 
+def test_lockstep_run_records_every_safety_mode_and_no_event(lockstep: tuple[Finished, Finished]) -> None:
+    """No supervisor intervened: every agent tick's mode and every plant's watchdog mode is FLYING
+    (0, not -1: every sample was heard), with no mode change and no gate rejection."""
+    rec = Run.load(lockstep[0].out)
+    shape = (501, len(AGENTS))
+    assert rec.safety.safety_mode.shape == rec.safety.plant_mode.shape == shape
+    assert np.all(rec.safety.safety_mode == wire.FLYING)
+    assert np.all(rec.safety.plant_mode == wire.FLYING)
+    assert rec.safety.events == []
+    assert rec.safety.gate_counts is not None and rec.safety.gate_counts.shape == (len(AGENTS), 0)
+    assert rec.meta.modes == wire.MODES
+
+
 def test_lockstep_run_equals_the_reference_simulator(lockstep: tuple[Finished, Finished]) -> None:
     """The most important test: the distributed runtime in lockstep is the reference simulator."""
     run = Run.load(lockstep[0].out)
