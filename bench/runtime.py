@@ -18,7 +18,7 @@ client) and ``ZENOH_RUNTIME`` handover as ``tether run``, but with trivial work.
    simulator, and CPU per tick by role and thread kind (asyncio main / callback / Zenoh runtime).
 2. ``scale``: real time at 50 Hz, N = 4, 8, 16 (32 if 16 holds) agents on a ring
    (``bench/missions.py``), stepping up until a size does not hold; late ticks from the run file's
-   ``extra["late"]``; total CPU of every process (launcher/router included) from
+   ``runtime.late``; total CPU of every process (launcher/router included) from
    ``/proc/<pid>/stat`` over the mission window, beside the baseline's at the same N.
 3. ``latency``: real time, N = 8, 100 Hz. A probe process (a Zenoh client of the same router)
    subscribes to every plant's and agent's state key and to the start message, and stamps each
@@ -28,7 +28,7 @@ client) and ``ZENOH_RUNTIME`` handover as ``tether run``, but with trivial work.
    i's sample k minus arrival of that sample (one hop more, through the agent's receive path and
    back out; no clock assumption). The baseline's payload also carries its send time (put ->
    callback alone). Plus the share of relays arriving after a phase of the period, and
-   ``extra["link_age"]``/``extra["meas_age"]``.
+   ``links.age``/``runtime.meas_age``.
 4. ``cpu``: CPU, VmRSS, PSS and USS per agent process, tether vs baseline, from the real-time runs
    of cases 2 and 3 that held their rate and were not disturbed (or one N = 8, 50 Hz pair).
 
@@ -72,6 +72,7 @@ except ImportError:
 from tether import mission as ms  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether import handoff  # noqa: E402
+from tether import runfile  # noqa: E402
 from tether import transport as tp  # noqa: E402
 from tether import wire  # noqa: E402
 
@@ -628,8 +629,8 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
     run_file = out / "run.npz"
     if run_file.exists():
         with np.load(run_file) as z:
-            meta = json.loads(str(z["meta"]))
-            res.complete = f"{meta.get('samples_recorded')}/{meta.get('samples_expected')}"
+            meta = runfile.decode_meta(str(z["meta"]))
+            res.complete = f"{meta.samples_recorded}/{meta.samples_expected}"
             late = z["late"] if "late" in z.files else None
             if late is not None and clock == "realtime":
                 per_agent = np.nanmax(np.where(np.isfinite(late), late, -1), axis=0)
@@ -1013,8 +1014,8 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
     say("     relayed samples arriving after phase x period (a neighbour ticking at that phase misses them), "
         "tether / baseline: " + ", ".join(f"{ph}: {100 * mm['tether_after_phase'][ph]:.2f} / "
                                           f"{100 * mm['baseline_after_phase'][ph]:.2f} %" for ph in mm["tether_after_phase"]))
-    say(f"     neighbour data age at use (extra['link_age']) {age[0]:.1f} / {age[1]:.1f} ms; own measurement age "
-        f"(extra['meas_age']) {meas[0]:.1f} / {meas[1]:.1f} ms; agent ticks using older-than-current samples "
+    say(f"     neighbour data age at use (links.age) {age[0]:.1f} / {age[1]:.1f} ms; own measurement age "
+        f"(runtime.meas_age) {meas[0]:.1f} / {meas[1]:.1f} ms; agent ticks using older-than-current samples "
         f"{stale:.2f} %; period {1e3 / rate:.1f} ms, agents tick at phase {AGENT_PHASE:g}")
     report["latency"] = {"n": n, "rate": rate, "duration": a.latency_duration, "runs": rows, "median": mm,
                          "link_age_ms": age, "meas_age_ms": meas, "stale_ticks_pct": stale,

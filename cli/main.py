@@ -57,7 +57,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     prog = Progress()
     run = refsim.simulate(m, args.mode, duration=args.duration, substeps=args.substeps,
                           progress=lambda k, n: prog(k, n, m.name))
-    run.meta["mission_text"] = catalog.resolve(args.mission).read_text()
+    run.meta.mission_text = catalog.resolve(args.mission).read_text()
     run.save(out / "run.npz")
     summary = metrics.summary(run)
     summary["tracking_error_m"] = metrics.tracking_error(run, Setup.of(m).offsets[: m.n])
@@ -424,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     deploy_gen.add_arguments(dg)
     dg.set_defaults(func=deploy_gen.run_args)
 
-    pl = sub.add_parser("plot", help="draw a run's figures from its run file")
+    pl = sub.add_parser("plot", help="draw a run's figures from its run file (safety mode changes marked)")
     pl.add_argument("run", help="a run.npz or the directory holding it")
     pl.add_argument("--out", default=None)
     pl.set_defaults(func=cmd_plot)

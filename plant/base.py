@@ -23,7 +23,7 @@ in-process engine (:mod:`sim.lockstep`) both use it, so they fly the same arithm
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -46,8 +46,34 @@ class Sample:
     d: np.ndarray
     """``(n, d)`` the disturbance acting [m/s^2]: the mission's at ``t_k``, or, with a payload, the
     cable force over mass averaged over the previous period."""
-    extra: dict[str, np.ndarray] = field(default_factory=dict)
-    """Plant-specific records (``payload_p``, ``tension``, ``attitude``, ...), see each plant."""
+    attitude: np.ndarray | None = None
+    """``(n, 3)`` roll, pitch, yaw [rad] of vehicles with mass; None for a plant without attitude."""
+    payload: "PayloadSample | None" = None
+    """A payload world's own state (:class:`PayloadPlant`); None otherwise."""
+
+    @property
+    def extra(self) -> dict[str, np.ndarray]:
+        """The payload record by its wire/run-file names (``payload_p``, ``payload_v``, ``tension``,
+        ``slack_events``): what ``plant/node.py`` publishes as a ``WorldState``. New code reads
+        :attr:`payload` instead."""
+        pl = self.payload
+        if pl is None:
+            return {}
+        return {"payload_p": pl.p, "payload_v": pl.v, "tension": pl.tension, "slack_events": pl.slack_events}
+
+
+@dataclass(frozen=True)
+class PayloadSample:
+    """A cable-suspended payload at one tick."""
+
+    p: np.ndarray
+    """``(3,)`` payload position [m; world frame]."""
+    v: np.ndarray
+    """``(3,)`` payload velocity [m/s; world frame]."""
+    tension: np.ndarray
+    """``(n,)`` cable tension per vehicle [N] (``ids`` order)."""
+    slack_events: np.ndarray
+    """``(n,)`` int: taut -> slack transitions per cable since the start."""
 
 
 @runtime_checkable
@@ -137,7 +163,7 @@ class VehiclePlant:
 
     def state(self) -> Sample:
         return Sample(np.array([v.p for v in self._veh]), np.array([v.v for v in self._veh]), self._a.copy(),
-                      self._dist.value(self._k), {"attitude": np.array([_attitude(v) for v in self._veh])})
+                      self._dist.value(self._k), attitude=np.array([_attitude(v) for v in self._veh]))
 
     def step(self, u: np.ndarray) -> None:
         d = None if self._dist.is_zero else self._dist.value_at((self._k + 0.5) * self._h)
@@ -185,10 +211,9 @@ class PayloadPlant:
 
     def state(self) -> Sample:
         w = self.world
-        extra = {"payload_p": w.payload_p, "payload_v": w.payload_v, "tension": w.tensions,
-                 "slack_events": w.slack_events.astype(float),
-                 "attitude": np.array([_attitude(v) for v in w.vehicles])}
-        return Sample(w.p, w.v, self._a.copy(), self._d.copy(), extra)
+        payload = PayloadSample(w.payload_p, w.payload_v, w.tensions, w.slack_events)
+        return Sample(w.p, w.v, self._a.copy(), self._d.copy(), attitude=np.array([_attitude(v) for v in w.vehicles]),
+                      payload=payload)
 
     def step(self, u: np.ndarray) -> None:
         w = self.world

@@ -18,7 +18,7 @@ import numpy as np
 
 from tether import wire
 from tether.node import Node
-from tether.runfile import Run
+from tether.runfile import DropCounts, Links, Run, RunMeta, RuntimeRecord
 
 log = logging.getLogger("tether")
 
@@ -38,26 +38,23 @@ class Recording:
         n, d, T = m.n, m.dim, m.steps + 1
         self.degree = {a.id: sum(1 for e in m.edges if e.dst == a.id) for a in m.agents}
         width = max(self.degree.values())
-        meta = {"mission": m.name, "source": f"runtime-{node.clock.kind}", "law": m.law.kind, "rate": m.rate,
-                "steps": m.steps, "seed": m.seed, "namespace": node.keys.ns,
-                "mission_text": node.args.mission_path.read_text()}
+        meta = RunMeta(mission=m.name, source=f"runtime-{node.clock.kind}", law=m.law.kind, rate=m.rate,
+                       steps=m.steps, seed=m.seed, namespace=node.keys.ns,
+                       mission_text=node.args.mission_path.read_text())
         self.run = Run.empty(T, m.agent_ids, d, meta)
         self.run.t[:] = np.arange(T) * m.dt
-        ex = self.run.extra
-        for name in ("plant_p", "plant_v", "plant_a"):
-            ex[name] = np.full((T, n, d), np.nan)
-        ex["link_src"] = np.zeros((n, width), dtype=np.int64)
-        for name in ("link_age", "link_received", "link_stale", "link_silent", "link_duplicates", "link_reordered",
-                     "link_corrupt", "link_delivery", "link_age_p50", "link_age_p99", "link_used"):
-            ex[name] = np.full((T, n, width), np.nan)
-        ex["drops"] = np.full((T, n), np.nan)
-        ex["meas_age"] = np.full((T, n), np.nan)
-        ex["late"] = np.full((T, n), np.nan)
+        self.run.runtime = RuntimeRecord.empty(T, n, d)
+        self.run.links = Links.empty(T, n, width)
         self.netem: list[dict] = []
         """Link decisions, when the mission logs them (written to ``netem.jsonl``)."""
         if m.payload is not None:
-            ex["payload_p"], ex["payload_v"] = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
-            ex["tension"], ex["slack_events"] = np.full((T, n), np.nan), np.full((T, n), np.nan)
+            pl = self.run.plant
+            pl.payload_p, pl.payload_v = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
+            pl.tension, pl.slack_events = np.full((T, n), np.nan), np.full((T, n), np.nan)
+        self.events: list[wire.SafetyEvent] = []
+        """Mode changes, as the agents' telemetry reports them."""
+        self.gate: list[tuple[int, dict[str, int]]] = [(-1, {}) for _ in range(n)]
+        """Per agent: the newest telemetry's tick and its gate rejections since start, by reason."""
         self.count = np.zeros(T, dtype=np.int64)
         self.expected = 1 + 2 * n + (m.payload is not None)
         self.saved = False
@@ -70,51 +67,62 @@ class Recording:
 
     def plant(self, msg: wire.PlantState) -> None:
         if 0 <= msg.k < len(self.count):
-            i, ex = self.col[msg.sender], self.run.extra
-            ex["plant_p"][msg.k, i], ex["plant_v"][msg.k, i], ex["plant_a"][msg.k, i] = msg.p, msg.vel, msg.a
+            i, rt = self.col[msg.sender], self.run.runtime
+            rt.plant_p[msg.k, i], rt.plant_v[msg.k, i], rt.plant_a[msg.k, i] = msg.p, msg.vel, msg.a
             self.run.d[msg.k, i] = msg.d
+            self.run.safety.plant_mode[msg.k, i] = msg.mode
             self.count[msg.k] += 1
 
     def world(self, msg: wire.WorldState) -> None:
         if 0 <= msg.k < len(self.count) and len(msg.tension) == self.mission.n == len(msg.slack_events):
-            ex = self.run.extra
-            ex["payload_p"][msg.k], ex["payload_v"][msg.k] = msg.p, msg.vel
-            ex["tension"][msg.k], ex["slack_events"][msg.k] = msg.tension, msg.slack_events
+            pl = self.run.plant
+            pl.payload_p[msg.k], pl.payload_v[msg.k] = msg.p, msg.vel
+            pl.tension[msg.k], pl.slack_events[msg.k] = msg.tension, msg.slack_events
             self.count[msg.k] += 1
 
     def telemetry(self, msg: wire.Telemetry) -> None:
         k = msg.k
         if not 0 <= k < len(self.count):
             return
-        i, r, ex = self.col[msg.sender], self.run, self.run.extra
+        i, r, lk, rt = self.col[msg.sender], self.run, self.run.links, self.run.runtime
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
-        for n, link in enumerate(msg.links[: ex["link_src"].shape[1]]):
-            ex["link_src"][i, n] = link.src
-            ex["link_age"][k, i, n] = link.age
-            ex["link_received"][k, i, n] = link.received
-            ex["link_stale"][k, i, n] = link.stale
-            ex["link_silent"][k, i, n] = float(link.silent)
-            ex["link_used"][k, i, n] = link.used
-            ex["link_duplicates"][k, i, n] = link.duplicates
-            ex["link_reordered"][k, i, n] = link.reordered
-            ex["link_corrupt"][k, i, n] = link.corrupt
-            ex["link_delivery"][k, i, n] = link.delivery
-            ex["link_age_p50"][k, i, n] = link.age_p50
-            ex["link_age_p99"][k, i, n] = link.age_p99
-        ex["drops"][k, i] = sum(msg.drops.values())
-        ex["meas_age"][k, i] = msg.t - msg.meas_t
+        for n, link in enumerate(msg.links[: lk.src.shape[1]]):
+            lk.src[i, n] = link.src
+            lk.age[k, i, n] = link.age
+            lk.received[k, i, n] = link.received
+            lk.stale[k, i, n] = link.stale
+            lk.silent[k, i, n] = float(link.silent)
+            lk.used[k, i, n] = link.used
+            lk.duplicates[k, i, n] = link.duplicates
+            lk.reordered[k, i, n] = link.reordered
+            lk.corrupt[k, i, n] = link.corrupt
+            lk.delivery[k, i, n] = link.delivery
+            lk.age_p50[k, i, n] = link.age_p50
+            lk.age_p99[k, i, n] = link.age_p99
+        rt.drops[k, i] = sum(msg.drops.values())
+        rt.meas_age[k, i] = msg.t - msg.meas_t
+        r.safety.safety_mode[k, i] = msg.mode
+        self.events.extend(msg.events)
+        if k > self.gate[i][0]:
+            self.gate[i] = (k, dict(msg.gate))
         for d in msg.netem:
             self.netem.append({"dst": msg.sender, "src": d.src, "seq": d.seq, "now": d.now, "event": d.event,
                                "at": d.at})
-        ex["late"][k, i] = msg.late
+        rt.late[k, i] = msg.late
         self.count[k] += 1
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
-        self.run.meta["complete"] = complete
-        self.run.meta["recorder_drops"] = json.loads(json.dumps(drops))
-        self.run.meta["samples_recorded"] = int(self.count.sum())
-        self.run.meta["samples_expected"] = int(self.expected * len(self.count))
+        meta, safety = self.run.meta, self.run.safety
+        meta.complete = complete
+        meta.recorder_drops = DropCounts.of(drops)
+        meta.samples_recorded = int(self.count.sum())
+        meta.samples_expected = int(self.expected * len(self.count))
+        safety.events = sorted(self.events, key=lambda e: (e.k, e.vehicle, e.t))
+        reasons = sorted({r for _, gate in self.gate for r in gate})
+        safety.gate_reasons = np.array(reasons, dtype=str)
+        safety.gate_counts = np.array([[gate[r] if r in gate else 0 for r in reasons] for _, gate in self.gate],
+                                      dtype=np.int64).reshape(len(self.gate), len(reasons))
         path = self.run.save(self.out / "run.npz")
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))

@@ -116,27 +116,27 @@ def summary(m: ms.Mission, run: Run) -> dict:
         "tracking_error_tail_m": metrics.tracking_error(run, offsets),
         "velocity_error_tail_mps": float(np.nanmax(np.linalg.norm(run.v[tail] - run.leader_v[tail, None, :], axis=2))),
         "min_altitude_m": float(np.nanmin(run.p[:, :, 2])) if run.p.shape[2] == 3 else math.nan,
-        "diverged": bool(s["diverged"] or run.meta.get("diverged_at") is not None),
+        "diverged": bool(s["diverged"] or run.meta.diverged_at is not None),
     }
-    ex = run.extra
-    if "payload_p" in ex and m.payload is not None:
+    rec = run.plant
+    if rec.payload_p is not None and rec.tension is not None and rec.slack_events is not None and m.payload is not None:
         pl = m.payload
         cable = CableParams(pl.cable.length, pl.cable.stiffness, pl.cable.damping)
         slots = run.leader_p[-1][None, :] + offsets
         dest = hover_equilibrium(slots, pl.mass, cable, tol=1e-9).payload_p
         out["payload_destination"] = dest.tolist()
-        out["payload_final"] = ex["payload_p"][-1].tolist()
-        out["payload_error_m"] = float(np.linalg.norm(ex["payload_p"][-1] - dest))
-        lifted = np.nonzero(ex["payload_p"][:, 2] > (m.floor or 0.0) + 0.01)[0]
+        out["payload_final"] = rec.payload_p[-1].tolist()
+        out["payload_error_m"] = float(np.linalg.norm(rec.payload_p[-1] - dest))
+        lifted = np.nonzero(rec.payload_p[:, 2] > (m.floor or 0.0) + 0.01)[0]
         out["payload_lifted_at_s"] = float(run.t[lifted[0]]) if len(lifted) else math.nan
         weight = pl.mass * G
         out["payload_weight_N"] = weight
-        out["max_tension_N"] = float(np.nanmax(ex["tension"]))
-        out["slack_events"] = int(np.nansum(ex["slack_events"][-1]))
-        r = run.p[-1] - ex["payload_p"][-1][None, :]
-        vertical = ex["tension"][-1] * r[:, 2] / np.linalg.norm(r, axis=1)
+        out["max_tension_N"] = float(np.nanmax(rec.tension))
+        out["slack_events"] = int(np.nansum(rec.slack_events[-1]))
+        r = run.p[-1] - rec.payload_p[-1][None, :]
+        vertical = rec.tension[-1] * r[:, 2] / np.linalg.norm(r, axis=1)
         out["vertical_tension_sum_end_over_weight"] = float(np.nansum(vertical) / weight)
-        out["payload_on_floor_end"] = bool(m.floor is not None and ex["payload_p"][-1][2] <= m.floor + 1e-6)
+        out["payload_on_floor_end"] = bool(m.floor is not None and rec.payload_p[-1][2] <= m.floor + 1e-6)
     return out
 
 
@@ -153,7 +153,7 @@ def run_experiment(name: str, out: Path, duration: float | None = None, progress
     for label, mv in variants.items():
         run = lockstep.simulate(mv, progress=(lambda k, n, label=label: progress(k, n, label[:20])) if progress else None)
         key = _slug(label)
-        run.meta["mission_text"] = ms.dumps(mv)
+        run.meta.mission_text = ms.dumps(mv)
         run.save(out / key / "run.npz")
         runs[label] = run
         table[label] = summary(mv, run)

@@ -39,6 +39,7 @@ def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
                 ax[1, c].plot(t, run.kp[sl, i, k], lw=0.8, label=f"{aid}{AXES[k]}")
                 ax[2, c].plot(t, run.kv[sl, i, k], lw=0.8, label=f"{aid}{AXES[k]}")
         ax[0, c].set_title(label)
+        mark_events(run, ax[:, c])
         ax[0, c].set_ylabel(r"$\|\xi_i\|$ [m]")
         ax[1, c].set_ylabel(r"$K_p$")
         ax[2, c].set_ylabel(r"$K_v$")
@@ -56,13 +57,25 @@ def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
     return path
 
 
+def mark_events(run: Run, axes) -> None:
+    """A vertical line on each of ``axes`` (time-series panels) per safety event of ``run``, labelled
+    on the first with the vehicle and its new mode; nothing when the run has none."""
+    axes = list(np.ravel(axes))
+    modes = run.meta.modes
+    for e in run.safety.events:
+        name = modes[e.dst] if 0 <= e.dst < len(modes) else str(e.dst)
+        for a in axes:
+            a.axvline(e.t, color="tab:red", ls="-.", lw=0.7, alpha=0.7)
+        axes[0].annotate(f"{e.vehicle}: {name}", (e.t, 1.0), xycoords=("data", "axes fraction"), rotation=90,
+                         fontsize=6, color="tab:red", va="top", ha="right")
+
+
 def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None) -> list[Path]:
     """Per-run figures: errors and gains (``errors_gains.png``), velocities against the leader's
     (``velocities.png``) and the path in the x-y plane with formation snapshots (``xy.png``)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths = [comparison({run.meta.get("law", "run"): run}, out / "errors_gains.png",
-                        title=str(run.meta.get("mission", "")))]
+    paths = [comparison({run.meta.law: run}, out / "errors_gains.png", title=run.meta.mission)]
 
     sl = _decimate(run)
     dim = run.v.shape[2]
@@ -73,6 +86,7 @@ def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None)
         ax[k, 0].plot(run.t[sl], run.leader_v[sl, k], "k--", lw=1.0, label="leader")
         ax[k, 0].set_ylabel(f"$v_{AXES[k]}$ [m/s]")
         ax[k, 0].grid(True, lw=0.3)
+    mark_events(run, ax[:, 0])
     ax[0, 0].legend(fontsize=7, ncol=3)
     ax[-1, 0].set_xlabel("t [s]")
     fig.tight_layout()
@@ -191,8 +205,8 @@ def snapshots(run: Run, times: tuple[float, ...], path: str | Path, three_d: boo
         for i, aid in enumerate(run.agent_ids):
             ax.plot(run.p[sl, i, 0], run.p[sl, i, 1], run.p[sl, i, 2], lw=0.7, label=f"agent {aid}")
         ax.plot(run.leader_p[sl, 0], run.leader_p[sl, 1], run.leader_p[sl, 2], "k--", lw=0.8, label="leader")
-        if "payload_p" in run.extra:
-            pp = run.extra["payload_p"][sl]
+        if run.plant.payload_p is not None:
+            pp = run.plant.payload_p[sl]
             ax.plot(pp[:, 0], pp[:, 1], pp[:, 2], color="tab:brown", lw=1.2, label="payload")
         for k in ks:
             ring = np.vstack([run.p[k], run.p[k, :1]])
@@ -263,17 +277,20 @@ def variants(runs: dict[str, Run], path: str | Path, offsets: np.ndarray, title:
 def payload(run: Run, path: str | Path, mass: float) -> Path:
     """The payload's path against the leader's, and the cable tensions against the weight share."""
     path = Path(path)
-    ex = run.extra
+    rec = run.plant
+    if rec.payload_p is None or rec.tension is None:
+        raise ValueError("the run has no payload record")
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     sl = _decimate(run)
     for k in range(3):
-        a0.plot(run.t[sl], ex["payload_p"][sl, k], lw=1.0, label=f"payload {AXES[k]}")
+        a0.plot(run.t[sl], rec.payload_p[sl, k], lw=1.0, label=f"payload {AXES[k]}")
         a0.plot(run.t[sl], run.leader_p[sl, k], "--", lw=0.8, color=f"C{k}", alpha=0.6, label=f"leader {AXES[k]}")
     a0.set_ylabel("position [m]")
     a0.legend(fontsize=7, ncol=3)
     for i, aid in enumerate(run.agent_ids):
-        a1.plot(run.t[sl], ex["tension"][sl, i], lw=0.8, label=f"cable {aid}")
+        a1.plot(run.t[sl], rec.tension[sl, i], lw=0.8, label=f"cable {aid}")
     a1.axhline(mass * 9.81 / len(run.agent_ids), color="k", ls=":", lw=0.8, label="weight / N")
+    mark_events(run, (a0, a1))
     a1.set_ylabel("tension [N]")
     a1.set_xlabel("t [s]")
     a1.legend(fontsize=7, ncol=3)

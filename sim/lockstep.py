@@ -25,7 +25,7 @@ The result equals a ``tether run --clock lockstep`` of the same mission bit for 
 A run in which an agent's safety supervisor catches a divergence (``[safety]``: the formation error,
 a gain or the command past its bound), or with a component of a formation error beyond every
 physical scale (``diverge_at``) or not finite, is stopped there: the rest of its samples are NaN and
-``meta["diverged_at"]`` says when.
+``meta.diverged_at`` says when.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from plant import base as plants
 from tether import wire
 from tether.inputs import Source
 from tether.mission import Mission
-from tether.runfile import Run
+from tether.runfile import Links, PlantRecord, Run, RunMeta
 
 if TYPE_CHECKING:
     from netem.link import Channel
@@ -69,10 +69,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     """Run ``m`` as the lockstep runtime would. ``duration`` overrides the mission's (a whole
     number of periods). ``record=False`` keeps only the last sample (and the link statistics).
 
-    The returned run carries the runtime recorder's link statistics in ``extra``: ``link_src``,
-    ``link_received``, ``link_used``, ``link_stale``, ``link_duplicates``, ``link_reordered``,
-    ``link_corrupt`` (run totals, ``(N, width)``)
-    and ``link_age`` (``(T, N, width)``, NaN where nothing was usable)."""
+    The returned run carries the runtime recorder's link statistics in ``links``
+    (:class:`~tether.runfile.Links`): ``src``, ``received``, ``used``, ``stale``, ``duplicates``,
+    ``reordered``, ``corrupt`` (run totals, ``(N, width)``) and ``age`` (``(T, N, width)``, NaN where
+    nothing was usable); the plants' own records in ``plant``; the safety modes in ``safety``."""
     h, d = m.dt, m.dim
     steps = m.steps if duration is None else int(round(duration * m.rate))
     ids = m.agent_ids
@@ -95,10 +95,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     width = max((len(row) for row in links), default=0)
     senders = sorted({j for tk in ticks for j in tk.law.neighbours})
 
-    extras: dict[str, np.ndarray] = {}
     avoid = m.safety.avoid is not None  # every vehicle hears the others' states (range sensing)
-    meta = {"mission": m.name, "source": "lockstep-inprocess", "law": m.law.kind, "rate": m.rate,
-            "steps": steps, "seed": m.seed, "diverged_at": None}
+    meta = RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
+                   seed=m.seed)
     run = Run.empty(steps + 1 if record else 1, ids, d, meta)
     ages = np.full((steps + 1 if record else 1, n, width), np.nan)
     every = max(1, steps // 100)
@@ -144,13 +143,17 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 run.p[r, i], run.v[r, i], run.a[r, i], run.u[r, i] = p[i], v[i], a[i], out.u
                 run.xi[r, i], run.zeta[r, i], run.kp[r, i], run.kv[r, i] = out.xi, out.zeta, out.kp, out.kv
                 run.d[r, i] = dist[i]
+                # the one place this engine records a safety mode: the agent's supervisor, and the
+                # plant's command watchdog (the in-process plants follow every command)
+                run.safety.safety_mode[r, i] = out.mode
+                run.safety.plant_mode[r, i] = wire.FLYING
         if keep:
             run.t[r] = t
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp, lv, la
-            _record_extras(extras, [samples[id(host)] for host in hosts], r, steps + 1 if record else 1)
+            _record_plants(run.plant, samples, order, r, steps + 1 if record else 1)
         caught = any(tk.supervisor.diverged is not None for tk in ticks)
         if caught or not (worst <= diverge_at):  # also catches NaN
-            run.meta["diverged_at"] = t
+            run.meta.diverged_at = t
             if record:
                 for name in ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d"):
                     getattr(run, name)[k + 1:] = np.nan
@@ -165,35 +168,42 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             progress(k, steps)
     if progress is not None:
         progress(steps, steps)
+    run.safety.events = sorted((ev for tk in ticks for ev in tk.supervisor.events), key=lambda e: (e.k, e.vehicle))
 
-    ex = run.extra
-    ex["link_src"] = np.zeros((n, width), dtype=np.int64)
-    for name in ("link_received", "link_used", "link_stale", "link_duplicates", "link_reordered", "link_corrupt"):
-        ex[name] = np.zeros((n, width), dtype=np.int64)
+    counts = {name: np.zeros((n, width), dtype=np.int64)
+              for name in ("src", "received", "used", "stale", "duplicates", "reordered", "corrupt")}
     for i, (tk, row) in enumerate(zip(ticks, links)):
         for s, lk in enumerate(row):
-            ex["link_src"][i, s] = lk.src
             src = lk.source
-            ex["link_received"][i, s] = src.received
-            ex["link_used"][i, s] = tk.used[s]
-            ex["link_stale"][i, s] = src.stale
-            ex["link_duplicates"][i, s] = src.duplicates
-            ex["link_reordered"][i, s] = src.reordered
-            ex["link_corrupt"][i, s] = src.corrupt
-    ex["link_age"] = ages
-    ex.update(extras)
+            counts["src"][i, s] = lk.src
+            counts["received"][i, s] = src.received
+            counts["used"][i, s] = tk.used[s]
+            counts["stale"][i, s] = src.stale
+            counts["duplicates"][i, s] = src.duplicates
+            counts["reordered"][i, s] = src.reordered
+            counts["corrupt"][i, s] = src.corrupt
+    run.links = Links(age=ages, **counts)
     for host in hosts:
         host.close()
     return run
 
 
-def _record_extras(extras: dict[str, np.ndarray], samples: list, r: int, rows: int) -> None:
-    """The plants' own records (``Sample.extra``) of tick row ``r``, as ``(T, ...)`` arrays; the
-    rows of several plants are stacked along the vehicle axis where they have one."""
-    names = {name for s in samples for name in s.extra}
-    for name in names:
-        parts = [np.asarray(s.extra[name]) for s in samples if name in s.extra]
-        value = np.concatenate(parts) if len(parts) > 1 else parts[0]
-        if name not in extras:
-            extras[name] = np.full((rows, *value.shape), np.nan)
-        extras[name][r] = value
+def _record_plants(rec: PlantRecord, samples: dict[int, plants.Sample], order: list, r: int, rows: int) -> None:
+    """The plants' own records of tick row ``r`` into ``rec``, as ``(T, ...)`` arrays. ``samples``:
+    each host's sample by ``id(host)``; ``order``: agent i's (host, row). A vehicle whose plant has
+    no attitude reads NaN there."""
+    n = len(order)
+    if any(s.attitude is not None for s in samples.values()):
+        if rec.attitude is None:
+            rec.attitude = np.full((rows, n, 3), np.nan)
+        for i, (host, row) in enumerate(order):
+            att = samples[id(host)].attitude
+            if att is not None:
+                rec.attitude[r, i] = att[row]
+    worlds = [s.payload for s in samples.values() if s.payload is not None]
+    if worlds:  # a payload world hosts every vehicle, in the mission's order
+        pl = worlds[0]
+        if rec.payload_p is None:
+            rec.payload_p, rec.payload_v = np.full((rows, 3), np.nan), np.full((rows, 3), np.nan)
+            rec.tension, rec.slack_events = np.full((rows, n), np.nan), np.full((rows, n), np.nan)
+        rec.payload_p[r], rec.payload_v[r], rec.tension[r], rec.slack_events[r] = pl.p, pl.v, pl.tension, pl.slack_events

@@ -28,15 +28,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Literal
 
+import msgspec
 import numpy as np
 
 from agent import law
 from leader import profile
 from plant import double_integrator
 from plant.disturbance import DisturbanceBank
-from tether import graph
+from tether import graph, wire
 from tether.mission import Mission
-from tether.runfile import Run
+from tether.runfile import Run, RunMeta
 
 Mode = Literal["discrete", "continuous"]
 Progress = Callable[[int, int], None]
@@ -88,8 +89,8 @@ def simulate(
     """
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
-    meta = {"mission": m.name, "source": f"reference-{mode}", "law": m.law.kind, "rate": m.rate,
-            "steps": steps, "seed": m.seed}
+    meta = RunMeta(mission=m.name, source=f"reference-{mode}", law=m.law.kind, rate=m.rate, steps=steps,
+                   seed=m.seed)
     if mode == "discrete":
         return _discrete(s, steps, record, progress, meta)
     if mode == "continuous":
@@ -97,7 +98,7 @@ def simulate(
     raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
 
 
-def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: dict) -> Run:
+def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
     m, topo, prm = s.mission, s.topo, s.params
     n, d, h = m.n, m.dim, m.dt
     # full-shape kappa and weights: numpy is several times slower broadcasting (N, 1) over (N, d)
@@ -118,7 +119,7 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     gamma = np.repeat(np.array([prm.gamma_p, prm.gamma_v])[:, None, None], n, axis=1).repeat(d, axis=2)
     err = np.empty((2, n, d))  # [xi, zeta]
     zero_d = s.dist.is_zero
-    run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta)
+    run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     every = max(1, steps // 100)
     nsum = graph.neighbour_sums
 
@@ -148,7 +149,7 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     return run
 
 
-def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: dict) -> Run:
+def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
     m, topo, prm = s.mission, s.topo, s.params
     if m.law.feedforward != "measured":
         raise ValueError(f"law.feedforward = {m.law.feedforward!r}: the continuous mode feeds forward the exact "
@@ -159,7 +160,7 @@ def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Pro
     a_lead = topo.adjacency[:n, n][:, None]
     l1, _ = graph.partition(topo.adjacency)
     l1_inv = np.linalg.inv(l1)
-    meta = dict(meta, substeps=substeps)
+    meta = msgspec.structs.replace(meta, substeps=substeps)
 
     def rhs(t: float, y: np.ndarray) -> tuple[np.ndarray, dict]:
         p, v, kp, kv = y
@@ -176,7 +177,7 @@ def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Pro
         return dy, {"xi": xi, "zeta": zeta, "vdot": vdot, "d": dist, "lead": (lp, lv, la)}
 
     y = np.stack([s.p0, s.v0, np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]).astype(float)
-    run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta)
+    run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     every = max(1, steps // 100)
     for k in range(steps + 1):
         t = k * h

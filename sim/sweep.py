@@ -126,7 +126,6 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
                                                       np.array([a.offset for a in m.agents], dtype=float)), axis=2)
         true_bound = float(np.nanmax(true[metrics.tail_slice(run, 0.1)]))
         true_max = float(np.nanmax(true))
-    ex = run.extra
     row: dict[str, float | bool | None] = {
         "ultimate_bound_m": true_bound,
         "max_xi_true_m": true_max,
@@ -140,19 +139,16 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         "kp_growth_per_s": s["kp_growth_per_s"],
         "kv_growth_per_s": s["kv_growth_per_s"],
         "max_xi_m": s["max_xi_m"],
-        "diverged": bool(s["diverged"] or run.meta.get("diverged_at") is not None
+        "diverged": bool(s["diverged"] or run.meta.diverged_at is not None
                          or not true_max <= lockstep.DIVERGE_AT),
-        "diverged_at_s": run.meta.get("diverged_at"),
+        "diverged_at_s": run.meta.diverged_at,
     }
-    src = ex.get("link_src")
-    if src is not None and "link_age" in ex:
+    if run.links is not None:
         ticks = len(run.t)
-        mask = src > 0
-        received = ex.get("link_received")
-        if received is not None and received.ndim == 3:  # recorded: cumulative per tick
-            received = received[-1]
-        row["delivery_ratio"] = float(received[mask].sum() / (mask.sum() * ticks)) if received is not None else math.nan
-        age = ex["link_age"][:, mask]
+        mask = run.links.src > 0
+        received = run.links.final(run.links.received)  # recorded: cumulative per tick
+        row["delivery_ratio"] = float(received[mask].sum() / (mask.sum() * ticks))
+        age = run.links.age[:, mask]
         age = age[np.isfinite(age)]
         row["age_p50_ms"] = float(np.percentile(age, 50) * 1e3) if age.size else math.nan
         row["age_p99_ms"] = float(np.percentile(age, 99) * 1e3) if age.size else math.nan

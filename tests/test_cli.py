@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tether.runfile import Run
+from tether.runfile import Links, Run, RunMeta
 
 BAD = """version = 1
 name = "bad"
@@ -68,7 +68,7 @@ def test_simulate_writes_a_run_metrics_and_figures(tmp_path: Path) -> None:
     r = tether("simulate", "section4", "--out", str(tmp_path), "--duration", "5")
     assert r.returncode == 0, r.stderr
     run = Run.load(tmp_path / "run.npz")
-    assert run.p.shape == (501, 4, 2) and run.meta["source"] == "reference-discrete"
+    assert run.p.shape == (501, 4, 2) and run.meta.source == "reference-discrete"
     assert np.all(np.isfinite(run.kp))
     assert json.loads((tmp_path / "metrics.json").read_text())["peak_kp"] >= 1.0
     for name in ("errors_gains.png", "velocities.png", "xy.png"):
@@ -90,13 +90,14 @@ def test_reproduce_section4_short(tmp_path: Path) -> None:
 
 
 def test_run_file_round_trip(tmp_path: Path) -> None:
-    run = Run.empty(3, [4, 7], 3, {"mission": "x"})
+    run = Run.empty(3, [4, 7], 3, RunMeta(mission="x", source="reference-discrete", law="sigma", rate=10.0, steps=2))
     run.t[:] = [0.0, 0.1, 0.2]
     run.p[:] = np.arange(18.0).reshape(3, 2, 3)
-    run.extra["link_delivery"] = np.ones((3, 2))
+    run.links = Links.empty(3, 2, 1)
+    run.links.delivery[:] = 1.0
     run.save(tmp_path / "r" / "run.npz")
     back = Run.load(tmp_path / "r")
     np.testing.assert_array_equal(back.p, run.p)
     np.testing.assert_array_equal(back.agent_ids, [4, 7])
-    assert back.meta["mission"] == "x" and back.meta["format_version"] == 1
-    np.testing.assert_array_equal(back.extra["link_delivery"], 1.0)
+    assert back.meta.mission == "x" and back.meta.format_version == 2
+    np.testing.assert_array_equal(back.links.delivery, 1.0)

@@ -138,7 +138,7 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
     assert "holding" in (logs / "agent-3.log").read_text()
     run = Run.load(tmp_path / "run")
     i3, i4 = list(run.agent_ids).index(3), list(run.agent_ids).index(4)
-    age = run.extra["link_age"][:, i4, 0]  # agent 4 hears only agent 3
+    age = run.links.age[:, i4, 0]  # agent 4 hears only agent 3
     assert np.nanmax(age[run.t >= 12.0]) > 0.2 or np.all(np.isnan(age[run.t >= 12.0]))
     # the others fly on, in formation among themselves
     others = [i for i in range(4) if i not in (i3, i4)]

@@ -57,20 +57,20 @@ def test_under_a_degraded_network_it_is_the_distributed_runtime_bit_for_bit(tmp_
     for name in SERIES:
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
     # the same links, the same samples received and the same ages of what was used
-    np.testing.assert_array_equal(got.extra["link_src"], want.extra["link_src"])
-    slot = want.extra["link_src"] > 0
-    np.testing.assert_array_equal(got.extra["link_received"][-1][slot], want.extra["link_received"][slot])
-    for name in ("link_stale", "link_duplicates", "link_reordered", "link_corrupt", "link_used"):
-        np.testing.assert_array_equal(got.extra[name][-1][slot], want.extra[name][slot], err_msg=name)
-    np.testing.assert_array_equal(want.extra["link_duplicates"] + want.extra["link_reordered"], want.extra["link_stale"])
-    assert want.extra["link_duplicates"].sum() > 0 and want.extra["link_reordered"].sum() > 0
+    np.testing.assert_array_equal(got.links.src, want.links.src)
+    slot = want.links.src > 0
+    np.testing.assert_array_equal(got.links.received[-1][slot], want.links.received[slot])
+    for name in ("stale", "duplicates", "reordered", "corrupt", "used"):
+        np.testing.assert_array_equal(getattr(got.links, name)[-1][slot], getattr(want.links, name)[slot], err_msg=name)
+    np.testing.assert_array_equal(want.links.duplicates + want.links.reordered, want.links.stale)
+    assert want.links.duplicates.sum() > 0 and want.links.reordered.sum() > 0
     # the agents' own summaries: delivery ratio and age percentiles, consistent with the counts
-    delivery = got.extra["link_delivery"][-1][slot]
+    delivery = got.links.delivery[-1][slot]
     assert np.all((delivery > 0.5) & (delivery < 1.0)), delivery
-    assert np.all(got.extra["link_age_p99"][-1][slot] >= got.extra["link_age_p50"][-1][slot])
-    used = np.isfinite(want.extra["link_age"])
-    np.testing.assert_array_equal(got.extra["link_age"][used], want.extra["link_age"][used])
-    assert want.extra["link_stale"].sum() > 0 and want.extra["link_corrupt"].sum() > 0
+    assert np.all(got.links.age_p99[-1][slot] >= got.links.age_p50[-1][slot])
+    used = np.isfinite(want.links.age)
+    np.testing.assert_array_equal(got.links.age[used], want.links.age[used])
+    assert want.links.stale.sum() > 0 and want.links.corrupt.sum() > 0
 
 
 def test_a_diverging_run_stops_and_says_when() -> None:
@@ -83,7 +83,7 @@ def test_a_diverging_run_stops_and_says_when() -> None:
     m = sweep.point_mission(msgspec.structs.replace(base, law=law, safety=unbounded),
                             sweep.Point("benchmark", 0.0, 300.0, 1.0))
     run = lockstep.simulate(m)
-    at = run.meta["diverged_at"]
+    at = run.meta.diverged_at
     assert at is not None and 0 < at < 20.0
     k = int(round(at * m.rate))
     assert np.all(np.isfinite(run.xi[: k + 1])) and np.all(np.isnan(run.xi[k + 1:]))

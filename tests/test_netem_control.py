@@ -60,7 +60,7 @@ def test_a_link_cut_by_control_message_takes_effect_at_the_asked_time(tmp_path: 
         finish(proc)
     run = Run.load(tmp_path / "run")
     i = list(run.agent_ids).index(3)
-    received = run.extra["link_received"][:, i, 0]
+    received = run.links.received[:, i, 0]
     t = run.t
     # every sample of 2 up to t = 20 s arrived (ideal link), none after
     assert received[np.searchsorted(t, 19.99)] == np.searchsorted(t, 19.99) + 1
@@ -70,7 +70,7 @@ def test_a_link_cut_by_control_message_takes_effect_at_the_asked_time(tmp_path: 
     assert np.all(np.abs(run.xi[(t > 19.0) & (t < 20.0), i]).max() > 1e-6)
     # the other agents' links are untouched
     j = list(run.agent_ids).index(2)
-    assert run.extra["link_received"][-1, j, 0] == len(t)
+    assert run.links.received[-1, j, 0] == len(t)
 
 
 def test_invalid_changes_are_refused_by_the_agents_and_change_nothing(tmp_path: Path) -> None:
@@ -86,8 +86,8 @@ def test_invalid_changes_are_refused_by_the_agents_and_change_nothing(tmp_path: 
     finally:
         finish(proc)
     run = Run.load(tmp_path / "run")
-    src = run.extra["link_src"]
-    received = run.extra["link_received"][-1]
+    src = run.links.src
+    received = run.links.received[-1]
     np.testing.assert_array_equal(received[src > 0], len(run.t))  # nothing changed
 
 

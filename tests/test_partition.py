@@ -257,10 +257,10 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
         t, h = run.t, run.t[1] - run.t[0]
         ids = list(run.agent_ids)
         i2, i3, i4 = ids.index(IN_NEIGHBOUR), ids.index(VEHICLE), ids.index(OUT_NEIGHBOUR)
-        n43 = list(run.extra["link_src"][i4]).index(VEHICLE)
-        silent = run.extra["link_silent"][:, i4, n43]
-        age = run.extra["link_age"][:, i4, n43]
-        received = run.extra["link_received"][:, i4, n43]
+        n43 = list(run.links.src[i4]).index(VEHICLE)
+        silent = run.links.silent[:, i4, n43]
+        age = run.links.age[:, i4, n43]
+        received = run.links.received[:, i4, n43]
         xi3, xi4 = np.linalg.norm(run.xi[:, i3], axis=1), np.linalg.norm(run.xi[:, i4], axis=1)
         max_age = plan.links.max_age
 
@@ -291,7 +291,7 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
         assert used[again[-1]] - used[again[0]] >= 0.95 * (again[-1] - again[0]), "used counts each tick again"
         # ... while the recorder, on the swarm's side of the cut, hears nothing from vehicle 3
         dark = during(t_cut + LEASE + 0.5, t_restore)
-        assert np.all(np.isnan(run.xi[dark, i3, 0])) and np.all(np.isnan(run.extra["plant_p"][dark, i3, 0]))
+        assert np.all(np.isnan(run.xi[dark, i3, 0])) and np.all(np.isnan(run.runtime.plant_p[dark, i3, 0]))
 
         # vehicle 3 rejoins the formation
         rejoined = during(t_back + REJOIN_WITHIN, DURATION)
@@ -306,7 +306,7 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
         on = np.flatnonzero(silent == 1)
         back_in_run = t[(t > t_restore) & ~np.isnan(xi3)][0]
         offsets = np.array([a.offset for a in plan.agents])
-        p = run.extra["plant_p"] - offsets[None]
+        p = run.runtime.plant_p - offsets[None]
         pair32 = np.linalg.norm(p[:, i3] - p[:, i2], axis=1)
         track = np.linalg.norm(p - run.leader_p[:, None], axis=2)
         inside = (log_time(inside_gone) - epoch - t_cut, log_time(inside_back) - epoch - t_restore)

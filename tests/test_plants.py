@@ -84,9 +84,9 @@ def test_the_payload_world_reports_its_cables() -> None:
     m = mission("payload")
     (world,) = base.build(m)
     s = world.state()
-    assert s.extra["tension"].shape == (m.n,) and s.extra["payload_p"].shape == (3,)
-    np.testing.assert_array_equal(s.extra["tension"], 0.0)  # on the floor, cables slack
-    assert s.extra["payload_p"][2] == m.floor
+    assert s.payload.tension.shape == (m.n,) and s.payload.p.shape == (3,)
+    np.testing.assert_array_equal(s.payload.tension, 0.0)  # on the floor, cables slack
+    assert s.payload.p[2] == m.floor
 
 
 def test_the_crazyflie_plant_keeps_the_contract() -> None:

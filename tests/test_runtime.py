@@ -49,7 +49,7 @@ from tether import transport as tp
 from tether import handoff
 from tether import wire
 from tether.node import load_mission
-from tether.runfile import SERIES, Run
+from tether.runfile import SERIES, DropCounts, Run
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION4 = Path(tether.__file__).resolve().parent / "missions" / "section4.toml"
@@ -317,10 +317,23 @@ def test_lockstep_run_is_complete_and_every_process_ended_well(lockstep: tuple[F
         assert (run.out / "logs" / name).is_file(), name
     assert exit_statuses(run.launcher_log) == {n: 0 for n in CHILDREN}
     rec = Run.load(run.out)
-    assert rec.meta["complete"] is True
-    assert rec.meta["source"] == "runtime-lockstep"
-    assert rec.meta["samples_recorded"] == rec.meta["samples_expected"] == (1 + 2 * len(AGENTS)) * 501
-    assert rec.meta["recorder_drops"] == {}
+    assert rec.meta.complete is True
+    assert rec.meta.source == "runtime-lockstep"
+    assert rec.meta.samples_recorded == rec.meta.samples_expected == (1 + 2 * len(AGENTS)) * 501
+    assert rec.meta.recorder_drops == DropCounts()
+
+
+def test_lockstep_run_records_every_safety_mode_and_no_event(lockstep: tuple[Finished, Finished]) -> None:
+    """No supervisor intervened: every agent tick's mode and every plant's watchdog mode is FLYING
+    (0, not -1: every sample was heard), with no mode change and no gate rejection."""
+    rec = Run.load(lockstep[0].out)
+    shape = (501, len(AGENTS))
+    assert rec.safety.safety_mode.shape == rec.safety.plant_mode.shape == shape
+    assert np.all(rec.safety.safety_mode == wire.FLYING)
+    assert np.all(rec.safety.plant_mode == wire.FLYING)
+    assert rec.safety.events == []
+    assert rec.safety.gate_counts is not None and rec.safety.gate_counts.shape == (len(AGENTS), 0)
+    assert rec.meta.modes == wire.MODES
 
 
 def test_lockstep_run_equals_the_reference_simulator(lockstep: tuple[Finished, Finished]) -> None:
@@ -333,7 +346,7 @@ def test_lockstep_run_equals_the_reference_simulator(lockstep: tuple[Finished, F
     pairs = {name: (getattr(run, name), getattr(ref, name)) for name in SERIES}
     pairs.update({name: (getattr(run, name), getattr(ref, name)) for name in ("leader_p", "leader_v", "leader_a")})
     for name in ("p", "v", "a"):  # what the plants measured, as the recorder heard it from them
-        pairs[f"plant_{name}"] = (run.extra[f"plant_{name}"], getattr(ref, name))
+        pairs[f"plant_{name}"] = (getattr(run.runtime, f"plant_{name}"), getattr(ref, name))
     worst = {}
     for name, (got, want) in pairs.items():
         assert got.shape == want.shape, name
@@ -536,9 +549,9 @@ def test_ctrl_c_stops_every_process_within_seconds_and_keeps_a_partial_run(inter
     assert statuses.pop("recorder/0") in (0, 143)
     assert statuses == {n: 143 for n in CHILDREN if n != "recorder/0"}
     rec = Run.load(run.out)
-    assert rec.meta["complete"] is False
-    assert rec.meta["source"] == "runtime-realtime"
-    assert 0 < rec.meta["samples_recorded"] < rec.meta["samples_expected"]
+    assert rec.meta.complete is False
+    assert rec.meta.source == "runtime-realtime"
+    assert 0 < rec.meta.samples_recorded < rec.meta.samples_expected
     # the second of run waited for before SIGINT is in the file (real-time streams may drop a sample)
     assert np.isfinite(rec.leader_p).all(axis=1).sum() >= 90
 
@@ -564,10 +577,10 @@ def test_malformed_input_in_a_live_run_is_dropped_counted_and_crashes_nothing(in
         assert "Traceback" not in run.child_log(name) and "ERROR" not in run.child_log(name), name
     rec = Run.load(run.out)
     total = sum(interrupted.expected_drops.values())
-    drops = rec.extra["drops"]  # (T, N): agent i's drops since start, as of each tick
+    drops = rec.runtime.drops  # (T, N): agent i's drops since start, as of each tick
     assert np.nanmax(drops[:, 0]) == total
     assert np.nanmax(drops[:, 1:]) == 0  # nothing was sent to the others
-    assert rec.meta["recorder_drops"] == interrupted.recorder_expected
+    assert rec.meta.recorder_drops == DropCounts.of(interrupted.recorder_expected)
 
 
 # =========================================================================== real time, one agent killed
@@ -644,7 +657,7 @@ def physical_envelope(run: Run, since: float) -> float:
     state of one and the same tick: the formation as it was, not as the agents perceived it."""
     setup = refsim.Setup.of(load_mission(SECTION4, float(run.t[-1])))
     recent = np.nonzero(run.t >= since - 1e-9)[0]
-    p = run.extra["plant_p"] if "plant_p" in run.extra else run.p
+    p = run.runtime.plant_p if run.runtime is not None else run.p
     kappa = setup.topo.kappa[:, None]
     xi = np.array([kappa * p[k] - refsim.neighbour_sums(setup.topo, np.vstack([p[k], run.leader_p[k]]))
                    - setup.sum_wdelta for k in recent])
@@ -670,7 +683,7 @@ def test_realtime_run_ends_well_and_records_most_ticks(realtime: Finished) -> No
     assert realtime.status == 0, realtime.launcher_log
     assert exit_statuses(realtime.launcher_log) == {n: 0 for n in CHILDREN}
     rt = Run.load(realtime.out)
-    assert rt.meta["source"] == "runtime-realtime"
+    assert rt.meta.source == "runtime-realtime"
     recorded = np.isfinite(rt.xi).all(axis=-1).mean()
     assert recorded > 0.9, f"only {recorded:.1%} of agent ticks recorded"
 
@@ -680,9 +693,9 @@ def test_realtime_telemetry_is_stamped_with_the_time_of_its_measurement(realtime
     is the plant's sample of tick k - age/h, exactly, and with agents ticking half a period after
     their plants the age is 0 (the tick-k sample) nearly always."""
     rt = Run.load(realtime.out)
-    h = 1.0 / rt.meta["rate"]
-    age = rt.extra["meas_age"]
-    plant_p = rt.extra["plant_p"]
+    h = 1.0 / rt.meta.rate
+    age = rt.runtime.meas_age
+    plant_p = rt.runtime.plant_p
     ok = np.isfinite(age)
     lag = np.rint(np.where(ok, age, 0.0) / h).astype(int)
     assert np.all(np.abs(age[ok] - lag[ok] * h) < 1e-9)

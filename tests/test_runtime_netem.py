@@ -54,22 +54,22 @@ def test_a_degraded_network_is_deterministic_for_a_seed_and_changes_the_run(tmp_
     assert "deliver" in events and "drop:loss" in events
     end = a.t[-1]
     for i, aid in enumerate(a.agent_ids):
-        for n, src in enumerate(a.extra["link_src"][i]):
+        for n, src in enumerate(a.links.src[i]):
             if src == 0:
                 continue
             due = [d for d in decisions if d["dst"] == aid and d["src"] == src and d["at"] is not None
                    and d["at"] <= end + 1e-9 and "corrupt" not in d["event"]]
-            assert a.extra["link_received"][-1, i, n] == len(due), (aid, src)
+            assert a.links.received[-1, i, n] == len(due), (aid, src)
     for name in (*SERIES, "link_age", "link_received", "link_stale"):
-        x = getattr(a, name) if name in SERIES else a.extra[name]
-        y = getattr(b, name) if name in SERIES else b.extra[name]
+        x = a.arrays()[name]
+        y = b.arrays()[name]
         np.testing.assert_array_equal(x, y, err_msg=name)
     ref = refsim.simulate(load_mission(builtin_path("section4"), 3.0))
     assert np.abs(a.p - ref.p).max() > 1e-6  # the network did something
-    age = a.extra["link_age"][np.isfinite(a.extra["link_age"])]
+    age = a.links.age[np.isfinite(a.links.age)]
     assert age.max() >= 0.01  # delayed and lost samples are older than a period
     # received samples per link are fewer than the ticks sent (about 9 % of them are lost in bursts)
-    received = a.extra["link_received"][-1]
+    received = a.links.received[-1]
     assert np.nanmax(received) < len(a.t)
 
 
@@ -79,14 +79,14 @@ def test_an_outage_makes_an_agent_treat_its_neighbour_as_in_formation(tmp_path: 
                          '[links]\nmax_age = 0.2\n[netem]\nrules = [{ to = 3, profile = { outages = [[1.0, 2.0]] } }]\n')
     r = run(mission, tmp_path / "outage")
     i = list(r.agent_ids).index(3)
-    age = r.extra["link_age"][:, i, 0]
+    age = r.links.age[:, i, 0]
     t = r.t
     assert np.all(age[t < 1.0] == 0.0)
     inside = (t >= 1.3) & (t < 2.0)
     assert np.all(age[inside] > 0.2)  # the newest sample held is older than max_age...
     # ... so agent 3 counts agent 2 as in formation: its xi is kappa (p_3 - h_3) - (p_3 - delta_32 - h_2) = 0
     np.testing.assert_allclose(r.xi[inside, i], 0.0, atol=1e-12)
-    used = r.extra["link_received"][:, i, 0]
+    used = r.links.received[:, i, 0]
     assert np.all(np.diff(used[inside]) == 0)  # nothing arrives during the outage
     assert np.all(age[t >= 2.05] == 0.0)  # and it is back after it
 

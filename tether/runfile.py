@@ -1,6 +1,6 @@
-"""Run files: one ``run.npz`` per run, written by the reference simulator and by the runtime's recorder.
-
-Layout (every array float64 unless said; T samples, N agents, d dimensions; SI units, world frame):
+"""Run files: one ``run.npz`` per run, written by the reference simulator, the in-process engine and
+the runtime's recorder. The layout is documented in ``docs/runfile.md``; in short (float64 unless
+said; T samples, N agents, d dimensions; SI units, world frame):
 
 =================  ===========  ====================================================================
 ``t``              (T,)         sample time t_k = k h [s]
@@ -12,11 +12,16 @@ Layout (every array float64 unless said; T samples, N agents, d dimensions; SI u
 ``kp`` ``kv``      (T, N, d)    gains used for u at t_k
 ``d``              (T, N, d)    disturbance d(t_k) [m/s^2] (NaN where the recorder cannot know it)
 ``leader_p/v/a``   (T, d)       the virtual leader's state at t_k
-``meta``           () str       JSON: mission name and text, source, law, rate, version
+``safety_mode``    (T, N) int   the agent's safety supervisor mode at t_k (code of ``meta.modes``; -1: no sample)
+``plant_mode``     (T, N) int   the plant's command watchdog mode at t_k (same codes; -1: no sample)
+``meta``           () str       JSON of :class:`RunMeta` (``format_version`` 2)
 =================  ===========  ====================================================================
 
-Optional arrays (present in runtime recordings): ``link_*`` per-agent link statistics, documented
-in ``docs/runfile.md``. A run file opens with nothing but numpy: ``numpy.load("run.npz")``.
+The optional groups are typed containers, each with the arrays of its npz names: :class:`Links`
+(``link_*``), :class:`RuntimeRecord` (``plant_p`` ... ``late``), :class:`PlantRecord` (``payload_p``,
+``tension``, ``attitude`` ...) and :class:`SafetyRecord` (the mode columns, ``event_*``,
+``gate_*``). A run file opens with nothing but numpy: ``numpy.load("run.npz")``. Files of format
+version 1 (before the safety record) still load: their modes read -1 (no sample), with no events.
 """
 
 from __future__ import annotations
@@ -24,11 +29,208 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal, Mapping
 
+import msgspec
 import numpy as np
 
-FORMAT_VERSION = 1
+from tether.wire import MODES, SafetyEvent
+
+FORMAT_VERSION = 2
+READS = (1, 2)
+"""Format versions :meth:`Run.load` reads (a version-1 file is upgraded on load)."""
 SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d")
+BASE = ("t", "agent_ids", *SERIES, "leader_p", "leader_v", "leader_a")
+NO_SAMPLE = -1
+"""The mode code of a (tick, vehicle) with no sample."""
+
+Source = Literal["reference-discrete", "reference-continuous", "lockstep-inprocess", "runtime-lockstep",
+                 "runtime-realtime"]
+
+
+class DropCounts(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """Messages a process dropped, by reason (:class:`tether.wire.Receiver`'s reasons, then the node's)."""
+
+    malformed: int = 0
+    """Not msgpack, or not a known message."""
+    version: int = 0
+    """Another wire version."""
+    type: int = 0
+    """A message of the wrong type for its key."""
+    sender: int = 0
+    """Sender id differs from the key's."""
+    size: int = 0
+    """A vector of the wrong dimension."""
+    nonfinite: int = 0
+    """NaN or Inf where a number must be finite."""
+    corrupt: int = 0
+    """Copies an emulated link corrupted (checksum failures)."""
+    netem_invalid: int = 0
+    """Invalid netem control messages."""
+    other: dict[str, int] = {}
+    """Reasons this version does not name, kept rather than lost."""
+
+    @classmethod
+    def of(cls, counts: Mapping[str, int]) -> "DropCounts":
+        """From a ``reason -> count`` mapping (``Receiver.drops``)."""
+        named = {f for f in cls.__struct_fields__ if f != "other"}
+        return cls(**{r: int(c) for r, c in counts.items() if r in named},
+                   other={r: int(c) for r, c in counts.items() if r not in named})
+
+    def total(self) -> int:
+        return sum(getattr(self, f) for f in self.__struct_fields__ if f != "other") + sum(self.other.values())
+
+
+class RunMeta(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """A run's metadata (the ``meta`` JSON string of ``run.npz``)."""
+
+    mission: str
+    """The mission's name."""
+    source: Source
+    """Which engine wrote the run."""
+    law: str
+    """``sigma`` or ``benchmark``."""
+    rate: float
+    """Control rate [Hz]."""
+    steps: int
+    """Ticks after tick 0 (T = steps + 1 when every tick is recorded)."""
+    seed: int = 0
+    """The mission's seed."""
+    format_version: int = FORMAT_VERSION
+    modes: tuple[str, ...] = MODES
+    """Safety mode names by integer code (``safety_mode``, ``plant_mode``, ``event_src/dst``)."""
+    mission_text: str | None = None
+    """The mission file's text (TOML)."""
+    substeps: int | None = None
+    """``reference-continuous``: RK4 substeps per control period."""
+    diverged_at: float | None = None
+    """In-process engine: when the run diverged and was stopped [s]; None if it did not."""
+    namespace: str | None = None
+    """Runtime: the run's Zenoh namespace."""
+    complete: bool | None = None
+    """Runtime: every sample of every tick was recorded."""
+    samples_recorded: int | None = None
+    samples_expected: int | None = None
+    recorder_drops: DropCounts | None = None
+    """Runtime: messages the recorder dropped."""
+
+
+class Links(msgspec.Struct, kw_only=True):
+    """Per-agent in-link statistics (npz ``link_<field>``); D = largest in-degree.
+
+    The recorder stores per-tick counts ``(T, N, D)``; the in-process engine run totals ``(N, D)``
+    int64 for the counts (``age`` is per tick in both). :meth:`final` gives the totals of either."""
+
+    src: np.ndarray
+    """``(N, D)`` int64: agent i's in-neighbours in link order (0 = unused slot)."""
+    age: np.ndarray
+    """``(T, N, D)``: age of j's sample when used at t_k [s] (NaN: none usable)."""
+    received: np.ndarray
+    """Samples accepted from j so far."""
+    used: np.ndarray
+    """Ticks so far at which j's sample was used."""
+    stale: np.ndarray
+    """Samples not newer than the newest held (= duplicates + reordered)."""
+    duplicates: np.ndarray
+    reordered: np.ndarray
+    corrupt: np.ndarray
+    """Copies the emulated link corrupted, dropped."""
+    silent: np.ndarray | None = None
+    """Recorder ``(T, N, D)``: 1 while j's liveliness token is gone."""
+    delivery: np.ndarray | None = None
+    """Recorder ``(T, N, D)``: distinct samples received over samples j sent up to its newest received."""
+    age_p50: np.ndarray | None = None
+    """Recorder ``(T, N, D)``: median age of the samples used over the last 500 ticks [s]."""
+    age_p99: np.ndarray | None = None
+    """Recorder ``(T, N, D)``: 99th percentile of the same [s]."""
+
+    @staticmethod
+    def final(counts: np.ndarray) -> np.ndarray:
+        """Run totals ``(N, D)`` of a count: the last tick's of a per-tick one, else itself."""
+        return counts[-1] if counts.ndim == 3 else counts
+
+    @classmethod
+    def empty(cls, samples: int, n: int, width: int) -> "Links":
+        """The recorder's per-tick statistics, NaN (``src`` 0) until filled."""
+        per_tick = {f: np.full((samples, n, width), np.nan) for f in cls.__struct_fields__ if f != "src"}
+        return cls(src=np.zeros((n, width), dtype=np.int64), **per_tick)
+
+
+class RuntimeRecord(msgspec.Struct, kw_only=True):
+    """What only the runtime's recorder hears (npz names = field names)."""
+
+    plant_p: np.ndarray
+    """``(T, N, d)`` each plant's own position measurement of tick k [m]."""
+    plant_v: np.ndarray
+    """``(T, N, d)`` [m/s]."""
+    plant_a: np.ndarray
+    """``(T, N, d)`` [m/s^2]."""
+    drops: np.ndarray
+    """``(T, N)`` messages agent i dropped so far (all reasons)."""
+    meas_age: np.ndarray
+    """``(T, N)`` age of agent i's own measurement when used at t_k [s]."""
+    late: np.ndarray
+    """``(T, N)`` real time: ticks of agent i that started more than a period late, so far."""
+
+    @classmethod
+    def empty(cls, samples: int, n: int, dim: int) -> "RuntimeRecord":
+        return cls(**{f: np.full((samples, n, dim), np.nan) for f in ("plant_p", "plant_v", "plant_a")},
+                   **{f: np.full((samples, n), np.nan) for f in ("drops", "meas_age", "late")})
+
+
+class PlantRecord(msgspec.Struct, kw_only=True):
+    """The plants' own records, each present only where the plant makes it (npz names = field names)."""
+
+    attitude: np.ndarray | None = None
+    """``(T, N, 3)`` roll, pitch, yaw [rad] of vehicles with mass (NaN for a vehicle without)."""
+    payload_p: np.ndarray | None = None
+    """``(T, 3)`` payload position [m]."""
+    payload_v: np.ndarray | None = None
+    """``(T, 3)`` payload velocity [m/s]."""
+    tension: np.ndarray | None = None
+    """``(T, N)`` cable tension per vehicle [N]."""
+    slack_events: np.ndarray | None = None
+    """``(T, N)`` taut -> slack transitions per cable since the start (float, NaN where missing)."""
+
+
+EVENT_FIELDS = ("k", "t", "vehicle", "src", "dst", "reason")
+""":class:`~tether.wire.SafetyEvent`'s fields, stored as arrays ``event_<field>`` of length E."""
+
+
+class SafetyRecord(msgspec.Struct, kw_only=True):
+    """Safety modes, mode changes and plausibility-gate rejections."""
+
+    safety_mode: np.ndarray
+    """``(T, N)`` int64: agent i's supervisor mode at t_k (code of ``RunMeta.modes``; -1: no sample)."""
+    plant_mode: np.ndarray
+    """``(T, N)`` int64: agent i's plant's command watchdog mode at t_k (-1: no sample)."""
+    events: list[SafetyEvent] = []
+    """Mode changes, in order of (k, vehicle) (npz ``event_k`` ... ``event_reason``)."""
+    gate_reasons: np.ndarray | None = None
+    """``(R,)`` str: the gate's rejection reasons."""
+    gate_counts: np.ndarray | None = None
+    """``(N, R)`` int64: samples agent i's gate rejected over the run, by reason."""
+
+    @classmethod
+    def empty(cls, samples: int, n: int, mode: int = NO_SAMPLE) -> "SafetyRecord":
+        return cls(safety_mode=np.full((samples, n), mode, dtype=np.int64),
+                   plant_mode=np.full((samples, n), mode, dtype=np.int64))
+
+
+def _arrays_of(group: msgspec.Struct | None, prefix: str = "") -> dict[str, np.ndarray]:
+    if group is None:
+        return {}
+    return {prefix + f: getattr(group, f) for f in group.__struct_fields__
+            if f != "events" and getattr(group, f) is not None}
+
+
+_GROUPS: dict[str, tuple[type, str]] = {"links": (Links, "link_"), "runtime": (RuntimeRecord, ""),
+                                        "plant": (PlantRecord, ""), "safety": (SafetyRecord, "")}
+"""Run attribute -> (container, npz prefix of its fields)."""
+
+
+class _Version(msgspec.Struct):
+    format_version: int = 1
 
 
 @dataclass
@@ -47,11 +249,15 @@ class Run:
     leader_p: np.ndarray
     leader_v: np.ndarray
     leader_a: np.ndarray
-    meta: dict = field(default_factory=dict)
-    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: RunMeta
+    safety: SafetyRecord
+    links: Links | None = None
+    runtime: RuntimeRecord | None = None
+    plant: PlantRecord = field(default_factory=PlantRecord)
 
     @classmethod
-    def empty(cls, samples: int, agent_ids: list[int], dim: int, meta: dict) -> "Run":
+    def empty(cls, samples: int, agent_ids: list[int], dim: int, meta: RunMeta, mode: int = NO_SAMPLE) -> "Run":
+        """NaN series; both mode columns filled with ``mode`` (an engine without a supervisor passes FLYING)."""
         n = len(agent_ids)
         series = {name: np.full((samples, n, dim), np.nan) for name in SERIES}
         return cls(
@@ -60,30 +266,89 @@ class Run:
             leader_p=np.full((samples, dim), np.nan),
             leader_v=np.full((samples, dim), np.nan),
             leader_a=np.full((samples, dim), np.nan),
-            meta=dict(meta),
+            meta=msgspec.structs.replace(meta),
+            safety=SafetyRecord.empty(samples, n, mode),
             **series,
         )
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every array of the run under its npz name (as :meth:`save` writes them)."""
+        out = {name: getattr(self, name) for name in BASE}
+        for attr, (_, prefix) in _GROUPS.items():
+            out.update(_arrays_of(getattr(self, attr), prefix))
+        ev = self.safety.events
+        for f in EVENT_FIELDS:
+            values = [getattr(e, f) for e in ev]
+            out[f"event_{f}"] = (np.array(values, dtype=str) if f == "reason" else
+                                 np.array(values, dtype=float if f == "t" else np.int64))
+        return out
 
     def save(self, path: str | Path) -> Path:
         """Write ``path`` (a ``.npz``) atomically; returns it."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        arrays = {name: getattr(self, name) for name in ("t", "agent_ids", *SERIES, "leader_p", "leader_v", "leader_a")}
-        arrays.update(self.extra)
-        meta = dict(self.meta, format_version=FORMAT_VERSION)
+        meta = msgspec.json.encode(msgspec.structs.replace(self.meta, format_version=FORMAT_VERSION)).decode()
         tmp = path.with_name(path.name + ".part")
         with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, meta=np.array(json.dumps(meta)), **arrays)
+            np.savez_compressed(fh, meta=np.array(meta), **self.arrays())
         tmp.replace(path)
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> "Run":
+        """Read a run file (``path`` or ``path/run.npz``) of a version in :data:`READS`.
+
+        Raises ValueError naming the version for another one, and naming any array or metadata
+        field this version does not know."""
         path = Path(path)
         if path.is_dir():
             path = path / "run.npz"
         with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            known = {"t", "agent_ids", *SERIES, "leader_p", "leader_v", "leader_a", "meta"}
-            extra = {k: z[k] for k in z.files if k not in known}
-            return cls(meta=meta, extra=extra, **{k: z[k] for k in known - {"meta"}})
+            text = str(z["meta"])
+            version = msgspec.json.decode(text, type=_Version).format_version
+            if version not in READS:
+                raise ValueError(f"{path}: run file format version {version}; this tether reads versions "
+                                 f"{', '.join(map(str, READS))}")
+            try:
+                meta = decode_meta(text)
+            except msgspec.ValidationError as exc:
+                raise ValueError(f"{path}: run file metadata (format version {version}): {exc}") from None
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+        base = {k: arrays.pop(k) for k in BASE}
+        events = _events({f: arrays.pop(f"event_{f}") for f in EVENT_FIELDS if f"event_{f}" in arrays})
+        groups = {}
+        for attr, (kind, prefix) in _GROUPS.items():
+            fields = {f: arrays.pop(prefix + f) for f in kind.__struct_fields__ if prefix + f in arrays}
+            if attr == "safety" and version == 1:
+                samples, n = len(base["t"]), len(base["agent_ids"])
+                fields = {"safety_mode": np.full((samples, n), NO_SAMPLE, dtype=np.int64),
+                          "plant_mode": np.full((samples, n), NO_SAMPLE, dtype=np.int64)}
+            if attr == "safety":
+                fields["events"] = events
+            if fields or attr == "plant":
+                try:
+                    groups[attr] = kind(**fields)
+                except TypeError as exc:
+                    raise ValueError(f"{path}: incomplete {kind.__name__} arrays: {exc}") from None
+        if arrays:
+            raise ValueError(f"{path}: arrays unknown to run file format version {version}: {', '.join(sorted(arrays))}")
+        return cls(meta=meta, **groups, **base)
+
+
+def decode_meta(text: str) -> RunMeta:
+    """A run file's ``meta`` string as :class:`RunMeta`, for a file of any version in :data:`READS`."""
+    version = msgspec.json.decode(text, type=_Version).format_version
+    if version == 1:  # recorder_drops was a plain reason -> count object
+        raw = json.loads(text)
+        drops = raw.pop("recorder_drops", None)
+        if drops is not None:
+            raw["recorder_drops"] = msgspec.to_builtins(DropCounts.of(drops))
+        return msgspec.convert(raw, RunMeta)
+    return msgspec.json.decode(text, type=RunMeta)
+
+
+def _events(cols: dict[str, np.ndarray]) -> list[SafetyEvent]:
+    if not cols:
+        return []
+    return [SafetyEvent(k=int(k), t=float(t), vehicle=int(veh), src=int(s), dst=int(d), reason=str(why))
+            for k, t, veh, s, d, why in zip(*(cols[f] for f in EVENT_FIELDS))]

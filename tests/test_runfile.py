@@ -1,0 +1,147 @@
+"""Run files: every typed record written and read back, numpy alone can read them, version 1 still loads."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tether import wire
+from tether.runfile import (FORMAT_VERSION, NO_SAMPLE, DropCounts, Links, PlantRecord, Run, RunMeta,
+                            RuntimeRecord)
+
+T, IDS, DIM = 4, [3, 5, 8], 3
+
+
+def _meta(**kw) -> RunMeta:
+    return RunMeta(mission="m", source="runtime-realtime", law="sigma", rate=50.0, steps=T - 1, seed=7, **kw)
+
+
+def _full_run() -> Run:
+    """A run with every record filled with distinct values."""
+    rng = np.random.default_rng(1)
+    run = Run.empty(T, IDS, DIM, _meta(mission_text="name = 'm'\n", namespace="ns", complete=False,
+                                       samples_recorded=20, samples_expected=28,
+                                       recorder_drops=DropCounts.of({"malformed": 2, "size": 1, "new_reason": 4})))
+    n = len(IDS)
+    run.t[:] = np.arange(T) / 50.0
+    for name in ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d"):
+        getattr(run, name)[:] = rng.normal(size=(T, n, DIM))
+    run.leader_p[:] = rng.normal(size=(T, DIM))
+    run.links = Links.empty(T, n, 2)
+    run.links.src[:] = [[0, 5], [3, 0], [3, 5]]
+    for f in Links.__struct_fields__[1:]:
+        getattr(run.links, f)[:] = rng.integers(0, 9, size=(T, n, 2))
+    run.runtime = RuntimeRecord.empty(T, n, DIM)
+    run.runtime.plant_p[:] = rng.normal(size=(T, n, DIM))
+    run.runtime.drops[:] = 1.0
+    run.plant = PlantRecord(payload_p=rng.normal(size=(T, 3)), payload_v=rng.normal(size=(T, 3)),
+                            tension=rng.random(size=(T, n)), slack_events=np.zeros((T, n)),
+                            attitude=rng.normal(size=(T, n, 3)))
+    s = run.safety
+    s.safety_mode[:] = wire.FLYING
+    s.safety_mode[2:, 1] = wire.HOLD
+    s.safety_mode[3, 2] = NO_SAMPLE
+    s.plant_mode[:] = wire.FLYING
+    s.plant_mode[3, 1] = wire.LAND
+    s.events = [wire.SafetyEvent(k=2, t=0.04, vehicle=5, src=wire.FLYING, dst=wire.HOLD, reason="leader silent 0.5 s"),
+                wire.SafetyEvent(k=3, t=0.06, vehicle=8, src=wire.FLYING, dst=wire.ESTOP, reason="operator")]
+    s.gate_reasons = np.array(["future", "jump"])
+    s.gate_counts = np.array([[0, 1], [2, 0], [0, 0]], dtype=np.int64)
+    return run
+
+
+def test_every_typed_record_round_trips(tmp_path: Path) -> None:
+    run = _full_run()
+    run.save(tmp_path / "run.npz")
+    back = Run.load(tmp_path)
+    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 2
+    assert back.meta.recorder_drops == DropCounts(malformed=2, size=1, other={"new_reason": 4})
+    assert back.meta.recorder_drops.total() == 7
+    assert back.meta.modes == wire.MODES
+    assert back.safety.events == run.safety.events
+    for name, want in run.arrays().items():
+        got = back.arrays()[name]
+        assert got.dtype == want.dtype or got.dtype.kind == want.dtype.kind == "U", name
+        np.testing.assert_array_equal(got, want, err_msg=name)
+    assert back.safety.safety_mode.dtype == np.int64 and back.safety.safety_mode[3, 2] == NO_SAMPLE
+    np.testing.assert_array_equal(back.safety.gate_counts, [[0, 1], [2, 0], [0, 0]])
+    assert list(back.safety.gate_reasons) == ["future", "jump"]
+
+
+def test_numpy_alone_reads_the_file_and_names_the_modes(tmp_path: Path) -> None:
+    _full_run().save(tmp_path / "run.npz")
+    with np.load(tmp_path / "run.npz", allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+        assert meta["format_version"] == 2 and meta["recorder_drops"]["malformed"] == 2
+        names = [meta["modes"][c] for c in z["event_dst"]]
+        assert names == ["HOLD", "ESTOP"] and list(z["event_vehicle"]) == [5, 8]
+        assert list(z["event_reason"]) == ["leader silent 0.5 s", "operator"]
+        assert meta["modes"][z["safety_mode"][3, 1]] == "HOLD"
+        assert z["link_src"].shape == (3, 2) and z["tension"].shape == (T, 3)
+
+
+def test_a_run_without_events_or_optional_records(tmp_path: Path) -> None:
+    run = Run.empty(T, IDS, 2, _meta(), mode=wire.FLYING)
+    run.save(tmp_path / "run.npz")
+    back = Run.load(tmp_path)
+    assert back.safety.events == [] and back.links is None and back.runtime is None
+    assert back.plant == PlantRecord()
+    assert np.all(back.safety.safety_mode == wire.FLYING) and np.all(back.safety.plant_mode == wire.FLYING)
+    assert back.meta.diverged_at is None and back.meta.recorder_drops is None
+
+
+def test_a_version_1_file_still_loads(tmp_path: Path) -> None:
+    """Written as format version 1 did: meta a plain JSON object, drops a reason -> count object."""
+    run = _full_run()
+    arrays = {k: v for k, v in run.arrays().items()
+              if not k.startswith(("event_", "gate_")) and k not in ("safety_mode", "plant_mode")}
+    meta = {"mission": "m", "source": "runtime-lockstep", "law": "sigma", "rate": 50.0, "steps": 3, "seed": 0,
+            "namespace": "ns", "mission_text": "x", "complete": True, "recorder_drops": {"size": 3},
+            "samples_recorded": 28, "samples_expected": 28, "format_version": 1}
+    np.savez_compressed(tmp_path / "run.npz", meta=np.array(json.dumps(meta)), **arrays)
+    back = Run.load(tmp_path)
+    assert back.meta.format_version == 1 and back.meta.recorder_drops == DropCounts(size=3)
+    assert back.meta.complete is True
+    assert np.all(back.safety.safety_mode == NO_SAMPLE) and back.safety.events == []
+    np.testing.assert_array_equal(back.plant.tension, run.plant.tension)
+    np.testing.assert_array_equal(back.links.received, run.links.received)
+
+
+def test_another_version_or_an_unknown_array_is_an_error_that_names_it(tmp_path: Path) -> None:
+    run = Run.empty(T, IDS, 2, _meta())
+    arrays = run.arrays()
+    np.savez(tmp_path / "v3.npz", meta=np.array(json.dumps({"format_version": 3})), **arrays)
+    with pytest.raises(ValueError, match="format version 3"):
+        Run.load(tmp_path / "v3.npz")
+    run.save(tmp_path / "ok.npz")
+    with np.load(tmp_path / "ok.npz") as z:
+        np.savez(tmp_path / "typo.npz", **{k: z[k] for k in z.files}, link_recieved=np.zeros(1))
+    with pytest.raises(ValueError, match="link_recieved"):
+        Run.load(tmp_path / "typo.npz")
+    meta = json.loads(str(np.load(tmp_path / "ok.npz")["meta"])) | {"complet": True}
+    np.savez(tmp_path / "meta.npz", meta=np.array(json.dumps(meta)), **arrays)
+    with pytest.raises(ValueError, match="complet"):
+        Run.load(tmp_path / "meta.npz")
+
+
+def test_figures_mark_mode_changes_only_when_there_are_events(tmp_path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    from sim import figures
+
+    run = _full_run()
+    fig, axes = plt.subplots(2, 1)
+    figures.mark_events(run, axes)
+    assert [len(a.lines) for a in axes] == [2, 2]
+    assert sorted(t.get_text() for t in axes[0].texts) == ["5: HOLD", "8: ESTOP"]
+    run.safety.events = []
+    fig, axes = plt.subplots(2, 1)
+    figures.mark_events(run, axes)
+    assert [len(a.lines) for a in axes] == [0, 0] and not axes[0].texts
+    plt.close("all")
+    run = _full_run()
+    paths = figures.run_panels(run, tmp_path)
+    assert all(p.stat().st_size > 10_000 for p in paths)
