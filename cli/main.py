@@ -1,6 +1,8 @@
 """The ``tether`` command. Parses argv and mission files, then calls the library; nothing else.
 
-Exit status: 0 success, 1 a run failed, 2 bad input (mission file or arguments), 130 interrupted.
+Exit status: 0 success, 1 a run failed, 2 bad input (mission file or arguments), 130 interrupted;
+``tether run`` also 3 (a failsafe fired or a value diverged) and 4 (a process died or froze in a
+real-time run): ``deploy/local.py``.
 """
 
 from __future__ import annotations

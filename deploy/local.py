@@ -345,13 +345,15 @@ async def _lockstep(launch: Launch, session, progress: Progress | None, sup: Sup
     seq = 0
     granted = -1
 
-    def grant() -> None:
+    def grant(again: bool = False) -> None:
+        """Grant what may run; ``again``: repeat the current grant (idempotent), for a process that
+        lost it with its link (a freeze or partition longer than the lease)."""
         nonlocal seq, granted
         g = src.grant
         hold = sup.injector.next_tick()
         if hold is not None:  # a fault at tick K: nobody runs past K until it has fired
             g = min(g, max(hold, src.done))
-        if g == granted:
+        if g == granted and not again:
             return
         granted = g
         pub.put(wire.encode(wire.Tick(sender=0, seq=seq, k=g, t=g * m.dt, grant=g)))
@@ -373,6 +375,8 @@ async def _lockstep(launch: Launch, session, progress: Progress | None, sup: Sup
                 grant()
             sup.injector.fire_due(-1.0)  # ends of freezes and partitions
             if not await wake.wait(0.1):
+                if time.monotonic() - last_progress > 0.5:
+                    grant(again=True)
                 frozen = any(x.fired is not None and x.ended is None and x.fault.duration is not None
                              for x in sup.injector.firings)
                 if frozen:
