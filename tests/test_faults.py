@@ -5,8 +5,8 @@ scouting off, explicit ``tcp/127.0.0.1`` ports picked free, one namespace per ru
 condition with a timeout:
 
 * ``faulted`` — a real-time Section 4 run with ``--fault kill:agent/2@3 --fault freeze:agent/4@3+4``
-  that a test process joins: it subscribes to the control key and runs ``tether land`` (the order
-  arrives, decoded with the schema alone), then the faults fire; the launcher reports the kill and
+  that a test process joins: once the faults have fired it subscribes to the control key and runs
+  ``tether land`` (the order arrives, decoded with the schema alone); the launcher reports the kill and
   the freeze, keeps the others running, records when each fault fired, and exits 4;
 * bad ``--fault`` values exit 2 before anything starts: no process, no file.
 """
@@ -136,6 +136,9 @@ def faulted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Faulted]:
             client.subscribe(keys.safety)
             client.subscribe(f"tether/{ns}/plant/*/state")
             wait_until(lambda: _matched(client, keys.safety), WAIT, "the test's subscriber to reach the router")
+            # order the land once both faults have fired: a swarm whose supervisors obey it must not
+            # have landed (and ended the run) before them
+            wait_until(lambda: run.launcher_log.count(" fired at t = ") >= 2, STARTUP, "both faults to fire")
             land = subprocess.run(tether_cmd("land", "--ns", ns, "--connect", attach, "--reason", "test"),
                                   cwd=REPO, capture_output=True, text=True, timeout=60)
             _, order = client.next_matching(lambda k, m: k == keys.safety, WAIT, "the land order")
