@@ -1,6 +1,8 @@
 """The ``tether`` command. Parses argv and mission files, then calls the library; nothing else.
 
-Exit status: 0 success, 1 a run failed, 2 bad input (mission file or arguments), 130 interrupted.
+Exit status: 0 success, 1 a run failed, 2 bad input (mission file or arguments), 130 interrupted;
+``tether run`` also 3 (a failsafe fired or a value diverged) and 4 (a process died or froze in a
+real-time run): ``deploy/local.py``.
 """
 
 from __future__ import annotations
@@ -263,6 +265,37 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
     return 0 if ok else 1
 
 
+def cmd_safety(args: argparse.Namespace) -> int:
+    """``tether land`` / ``tether estop``: one operator order to every vehicle of a running swarm."""
+    import asyncio
+
+    from deploy import operator
+    from tether import transport as tp
+    from tether import wire
+
+    try:
+        wire.Keys(args.ns)
+    except ValueError as exc:
+        print(f"error: --ns: {exc}", file=sys.stderr)
+        return 2
+    if not args.timeout > 0:
+        print(f"error: --timeout is {args.timeout}; give seconds > 0", file=sys.stderr)
+        return 2
+    if args.zenoh_config is None and not args.connect:
+        print("error: --connect is missing: give the run's router endpoint (e.g. --connect tcp/127.0.0.1:7447, "
+              "one that tether run --listen opened) or --zenoh-config FILE", file=sys.stderr)
+        return 2
+    settings = _zenoh_settings(args)
+    try:
+        msg = asyncio.run(operator.send(settings, args.ns, args.action, args.reason, args.timeout))
+    except (operator.Unreachable, operator.NobodyListens, tp.TransportError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"sent {msg.action} (order {msg.seq}) to namespace {args.ns!r} on {wire.Keys(args.ns).safety}, "
+          f"{operator.REPEATS} copies over {operator.SPREAD:g} s")
+    return 0
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import asyncio
     import logging
@@ -272,13 +305,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s launcher: %(message)s")
     from tether.node import load_mission
 
+    from deploy import faults
+
     path = catalog.resolve(args.mission)
     load_mission(path, args.duration)
+    try:
+        injected = tuple(faults.parse(text) for text in args.fault)
+    except faults.FaultError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     opts = local.LaunchOptions(out=Path(args.out), clock=args.clock, network=args.network, window=args.window,
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
                                duration=args.duration, handover_runtime=not args.no_handover,
                                listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
-                               vehicle_connect=dict(args.vehicle_connect))
+                               vehicle_connect=dict(args.vehicle_connect), faults=injected)
     return asyncio.run(local.run(path, opts))
 
 
@@ -374,6 +414,10 @@ def build_parser() -> argparse.ArgumentParser:
                     type=_vehicle_option(str, "3=tcp/127.0.0.1:7448"),
                     help="vehicle ID's agent and plant connect to ENDPOINT (e.g. its on-board Zenoh router, "
                          "linked to a --listen endpoint) instead of the launcher's router; repeatable")
+    rn.add_argument("--fault", action="append", default=[], metavar="KIND:TARGET@T[+D]",
+                    help="inject a fault at mission time T [s]: kill:agent/2@10 (SIGKILL), freeze:leader@5+3 "
+                         "(SIGSTOP, SIGCONT D s later), partition:agent/3@8+2 (its link cut for D s), "
+                         "forge:leader@12 (one far-off sample on its state key); repeatable (deploy/faults.py)")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.set_defaults(func=cmd_run)
 
@@ -416,6 +460,16 @@ def build_parser() -> argparse.ArgumentParser:
     nc.add_argument("--timeout", type=float, default=5.0, help="how long to wait for the agents' answers [s]")
     _zenoh_options(nc)
     nc.set_defaults(func=cmd_netem_set, zenoh_mode="client")
+
+    for action, helptext in (("land", "land every vehicle of a running swarm (operator order on the control key)"),
+                             ("estop", "stop every motor of a running swarm at once (operator order)")):
+        op = sub.add_parser(action, help=helptext)
+        op.add_argument("--ns", required=True, help="the run's namespace: its mission's name unless the run was given --ns")
+        op.add_argument("--reason", default="", help="why, recorded with the vehicles' mode change")
+        op.add_argument("--timeout", type=float, default=5.0,
+                        help="how long to wait for a router and a subscriber of the control key [s]")
+        _zenoh_options(op)
+        op.set_defaults(func=cmd_safety, action=action, zenoh_mode="client", connect_timeout=5.0)
 
     from deploy import gen as deploy_gen
 

@@ -7,6 +7,8 @@ Each process has an identity, the common name (CN) of its certificate (``agent-3
 section, which every listening node (the router; every peer in a peer network) enforces on each
 link, by the CN of the certificate the other side presented:
 
+* the operator's stop orders (``tether land``, ``tether estop``) are published by ``control-0``
+  alone, on ``tether/<ns>/control/0/safety``, which every agent and plant may subscribe to;
 * ``ingress`` rules say what a node may send: ``put`` (publish), ``declare_subscriber``,
   ``liveliness_token``, ``declare_liveliness_subscriber``, and for ``tether netem-set`` (run-time
   changes of the emulated network) the agents' ``declare_queryable`` and ``reply``, the control's
@@ -66,7 +68,11 @@ def common_name(name: str, ns: str) -> str:
 
 def grants(m: ms.Mission, ns: str) -> list[Grant]:
     """One grant per process of mission ``m`` in namespace ``ns``, plus the router and the control
-    (start) command. Lists exactly what the runtime declares for each role, nothing more."""
+    (start) command. Lists exactly what the runtime declares for each role, nothing more.
+
+    The control key ``tether/<ns>/control/0/safety`` (``tether land``/``tether estop``) is the
+    operator's alone: only ``control-0`` (on the leader host, the ground station) may publish on
+    it; every agent (its safety supervisor) and every plant (its command watchdog) may subscribe."""
     k = wire.Keys(ns)
     lid = m.leader.id
     every_token = k.tokens  # @tether/<ns>/**: what Node.watch and wait_for_tokens subscribe to
@@ -84,7 +90,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
               asks=(k.everything,), lists=(every_token,)),
         Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
               subscribe=(k.start, k.tick), tokens=(k.token("leader", lid),)),
-        Grant("control-0", publish=(k.start, k.tick), subscribe=(k.acks,), watch=(every_token,), sees=(every_token,),
+        Grant("control-0", publish=(k.start, k.tick, k.safety), subscribe=(k.acks,), watch=(every_token,), sees=(every_token,),
               asks=(every_netem,), lists=(k.token("agent", "*"),)),
         Grant("recorder-0", publish=(k.topic("recorder", 0, "ack"),),
               subscribe=(k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
@@ -96,7 +102,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
         out.append(Grant(
             f"agent-{aid}",
             publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry")),
-            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start),
+            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
@@ -106,7 +112,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
         out.append(Grant(
             f"plant-{aid}",
             publish=(k.topic("plant", aid, "state"),),
-            subscribe=(k.topic("agent", aid, "cmd"), k.start),
+            subscribe=(k.topic("agent", aid, "cmd"), k.start, k.safety),
             tokens=(k.token("plant", aid),),
             watch=(every_token,),
             sees=(k.token("agent", aid),),

@@ -226,7 +226,10 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
               f"{pl.config_dir('leader')}/mission.toml --ns {pl.ns} --zenoh-config {pl.config_dir('leader')}/control-0.json5`): "
               "waits for every process's liveliness token, then announces tick 0 three seconds ahead",
               f"4. the recorder writes `{pl.hosts.recorder.out if pl.hosts.recorder else '/var/lib/tether/runs'}/run.npz` "
-              "on its host; every process exits 0 after the last tick", "",
+              "on its host; every process exits 0 after the last tick",
+              f"5. to stop the swarm, on the leader host: `{pl.hosts.tether} land --ns {pl.ns} --zenoh-config "
+              f"{pl.config_dir('leader')}/control-0.json5` (every vehicle lands), or `{pl.hosts.tether} estop ...` "
+              "(every motor off at once); only this identity may publish that order", "",
               "## What each identity may do (access control, default deny)", "",
               acl.describe(grants), "",
               "Every identity may also be told of other processes' subscriptions in the namespace (its "

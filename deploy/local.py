@@ -27,13 +27,37 @@ after the lease (``--lease``) and come back once the on-board router has reconne
 vehicles live in one world process: there only the agent is wrapped.) Tested with the ``star``
 network (``tests/test_partition.py``).
 
-Logs: every child's stderr goes to ``DIR/logs/<role>-<id>.log``. Exit status: 0 when every process
-ended well, 1 otherwise (the failing ones are named), 2 bad input, 130 interrupted.
+Failures (real time): a process that dies, or freezes (its liveliness token vanishes while its
+process still exists), is reported once (who, when, what) and the others keep running: the recording
+goes on until every surviving vehicle reports LANDED or ESTOP (``Telemetry.mode``,
+``PlantState.mode``), the mission ends, or a bound passes (``safety.land_after +
+safety.cmd_cutoff`` + the descent + 3 s after the first failure), and then the survivors are
+stopped. In lockstep a dead process stalls the tick clock: the run is stopped then, naming it.
+The first Ctrl-C of a real-time run publishes ``land`` on the control key
+(``tether/<ns>/control/0/safety``), waits for every vehicle to report LANDED (bounded by the descent
++ 3 s; 2 s when no vehicle leaves FLYING at all), then stops everything; a second Ctrl-C stops
+everything at once. Faults can be injected (``--fault``; ``deploy/faults.py``, ``deploy/inject.py``);
+``DIR/faults.json`` records when each fired and ``DIR/events.json`` every event reported.
+
+Logs: every child's stderr goes to ``DIR/logs/<role>-<id>.log``. At the end one line is logged per
+event (who, when, what, why). Exit status (:data:`EXIT_OK` ...):
+
+* 0 — clean: every process ran to the end, no failsafe fired, nothing diverged;
+* 1 — the run failed: a process did not come up, a lockstep run stalled or lost a process, or a
+  process ended badly where no failure was reported (the failing ones are named);
+* 2 — bad input (mission, options, ``--fault``), before anything starts;
+* 3 — a failsafe fired (a mode other than FLYING in an agent's telemetry or a plant's state) or a
+  value diverged (``|xi|`` beyond ``safety.max_formation_error``, a gain beyond ``safety.gain_cap``),
+  every process still running;
+* 4 — in real time, a process died, froze (or was cut off) or never started; the others ran on
+  (takes precedence over 3);
+* 130 — interrupted (Ctrl-C, SIGTERM), whatever else happened.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import os
 import signal
@@ -44,6 +68,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from deploy import faults as faults_mod
+from deploy import inject
+from deploy.faults import Fault
+from deploy.inject import describe_exit
+from deploy.relay import Relay
 from tether import mission as ms
 from tether import transport as tp
 from tether import handoff
@@ -91,6 +120,14 @@ class LaunchOptions:
     vehicle_connect: dict[int, str] = field(default_factory=dict)
     """Vehicle id -> the Zenoh endpoint its agent and plant connect to instead of the launcher's router
     (e.g. an on-board router that links to one of :attr:`listen`)."""
+    faults: tuple[Fault, ...] = ()
+    """Faults to inject (``--fault``; ``deploy/faults.py``, ``deploy/inject.py``)."""
+    settle_timeout: float | None = None
+    """Real time: after the first failure, how long the survivors get to land before they are
+    stopped [s]; None: ``safety.land_after + safety.cmd_cutoff`` + the descent + 3 s."""
+    land_timeout: float | None = None
+    """Real time: after the first Ctrl-C's land order, how long to wait for LANDED [s]; None: the
+    descent from the highest start at ``safety.land_speed`` + 3 s."""
 
 
 @dataclass
@@ -121,6 +158,8 @@ class Launch:
     mission: ms.Mission
     opts: LaunchOptions
     children: list[Child] = field(default_factory=list)
+    relays: dict[tuple[str, int], Relay] = field(default_factory=dict)
+    """Processes whose link to the router goes through a relay (partition faults)."""
 
     @property
     def keys(self) -> wire.Keys:
@@ -151,6 +190,8 @@ class Launch:
                 cmd += ["--out", str(o.out)]
             vehicle = role in ("agent", "plant")
             endpoint = o.vehicle_connect.get(nid, router) if vehicle else router
+            if (role, nid) in self.relays:
+                endpoint = self.relays[role, nid].endpoint
             if o.network == "star":
                 cmd += ["--zenoh-mode", "client", "--connect", endpoint]
             else:
@@ -178,6 +219,7 @@ class Launch:
         live = [c for c in self.children if c.proc.poll() is None]
         for c in live:
             c.proc.send_signal(signal.SIGTERM)
+            c.proc.send_signal(signal.SIGCONT)  # a frozen process must run to handle its SIGTERM
         deadline = time.monotonic() + grace
         for c in live:
             try:
@@ -190,6 +232,10 @@ class Launch:
 
 class LaunchFailed(RuntimeError):
     pass
+
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
+"""Exit statuses of ``tether run`` (see the module docstring)."""
 
 
 def check_vehicle_options(mission: ms.Mission, opts: LaunchOptions) -> list[tuple[str, str]]:
@@ -209,17 +255,84 @@ def check_vehicle_options(mission: ms.Mission, opts: LaunchOptions) -> list[tupl
     return out
 
 
-async def _watch_children(launch: Launch) -> None:
-    """Raise :class:`LaunchFailed` as soon as a child ends badly. (Ending well early is normal:
-    in lockstep the leader finishes up to ``window`` ticks before the others.)"""
-    while True:
-        for c in launch.poll():
-            if c.status != 0:
-                raise LaunchFailed(f"{c.name} exited with status {c.status}; its log ends:\n{c.tail()}")
-        await asyncio.sleep(0.2)
+def check_faults(mission: ms.Mission, opts: LaunchOptions, members: list[tuple[str, int]]) -> list[tuple[str, str]]:
+    """Every problem of ``--fault`` for this launch, as ``(option, message)``."""
+    out = faults_mod.check(list(opts.faults), mission, members)
+    for f in opts.faults:
+        if f.kind != "partition":
+            continue
+        arg = f"--fault {f.text}"
+        role, nid = f.member(mission)
+        if opts.network != "star":
+            out.append((arg, "a partition cuts a process's link to the launcher's router, and in a mesh peers "
+                             "link directly: run with --network star"))
+        if role in ("agent", "plant") and (nid in opts.vehicle_connect or nid in opts.wrap):
+            out.append((arg, f"vehicle {nid} has --vehicle-connect/--wrap: partition it with its own network "
+                             "(e.g. ip link in its namespace), or drop those options"))
+    return out
 
 
-async def _lockstep(launch: Launch, session, progress: Progress | None) -> None:
+def _settle_bound(m: ms.Mission) -> float:
+    """After the first failure, how long [s] the survivors get to hold and land before the run is
+    stopped: the supervisor's hold-then-land delay, the plants' command cut-off, the descent from
+    the highest start at the landing speed, and 3 s to spare."""
+    sf = m.safety
+    descent = 0.0
+    if m.dim == 3:
+        descent = max(a.p0[-1] - sf.ground for a in m.agents) / sf.land_speed
+    return sf.land_after + sf.cmd_cutoff + max(0.0, descent) + 3.0
+
+
+def _land_bound(m: ms.Mission) -> float:
+    """After an operator's land (first Ctrl-C), how long [s] to wait for every vehicle to report
+    LANDED: the descent from the highest start at the landing speed and 3 s to spare."""
+    sf = m.safety
+    descent = 0.0
+    if m.dim == 3:
+        descent = max(a.p0[-1] - sf.ground for a in m.agents) / sf.land_speed
+    return max(0.0, descent) + 3.0
+
+
+OBEY_TIMEOUT = 2.0
+"""After the launcher's land order, stop at once if no vehicle has left FLYING by then [s]."""
+EXIT_GRACE = 30.0
+"""Real time: how long after the last tick the children get to exit on their own [s]."""
+
+
+@dataclass
+class Supervision:
+    """What the launcher saw during a run (filled by the loops below)."""
+
+    monitor: inject.Monitor
+    injector: inject.Injector
+    stopped_by_us: bool = False
+    """The launcher stopped the survivors (their 143s are not failures)."""
+    epoch: float | None = None
+    done_tick: int = -1
+
+    def mission_time(self, m: ms.Mission) -> float | None:
+        if self.epoch is not None:
+            return time.time() - self.epoch
+        return self.done_tick * m.dt if self.done_tick >= 0 else None
+
+
+def _check_children(launch: Launch, sup: Supervision, lockstep: bool) -> None:
+    """Report every child that ended badly (once); in lockstep that stops the run."""
+    for c in launch.poll():
+        if c.status == 0:
+            continue  # ending well early is normal: in lockstep the leader finishes up to `window` ticks first
+        why = describe_exit(c.status)
+        fault = next((x.fault.text for x in sup.injector.firings
+                      if x.fired is not None and x.fault.member(launch.mission) == (c.role, c.node_id)), None)
+        if fault is not None:
+            why += f" (--fault {fault})"
+        sup.monitor.report(c.name, "died", why)
+        if lockstep:
+            raise LaunchFailed(f"{c.name} {why}: a lockstep run cannot go on without it; its log ends:\n{c.tail()}")
+        log.warning("%s: the others carry on; its log ends:\n%s", c.name, c.tail())
+
+
+async def _lockstep(launch: Launch, session, progress: Progress | None, sup: Supervision) -> None:
     m, o, keys = launch.mission, launch.opts, launch.keys
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
@@ -230,10 +343,19 @@ async def _lockstep(launch: Launch, session, progress: Progress | None) -> None:
     pub = tp.declare_publisher(session, keys.tick, tp.SYNC)
     receiver = wire.Receiver(m.dim)
     seq = 0
+    granted = -1
 
-    def grant() -> None:
-        nonlocal seq
+    def grant(again: bool = False) -> None:
+        """Grant what may run; ``again``: repeat the current grant (idempotent), for a process that
+        lost it with its link (a freeze or partition longer than the lease)."""
+        nonlocal seq, granted
         g = src.grant
+        hold = sup.injector.next_tick()
+        if hold is not None:  # a fault at tick K: nobody runs past K until it has fired
+            g = min(g, max(hold, src.done))
+        if g == granted and not again:
+            return
+        granted = g
         pub.put(wire.encode(wire.Tick(sender=0, seq=seq, k=g, t=g * m.dt, grant=g)))
         seq += 1
 
@@ -244,8 +366,22 @@ async def _lockstep(launch: Launch, session, progress: Progress | None) -> None:
         grant()
         last_progress = time.monotonic()
         while not src.finished:
-            if not await wake.wait(1.0):
-                if time.monotonic() - last_progress > o.stall_timeout:
+            _check_children(launch, sup, lockstep=True)
+            sup.monitor.poll()
+            sup.done_tick = src.done
+            hold = sup.injector.next_tick()
+            if hold is not None and src.done >= hold:
+                sup.injector.fire_due(hold * m.dt)
+                grant()
+            sup.injector.fire_due(-1.0)  # ends of freezes and partitions
+            if not await wake.wait(0.1):
+                if time.monotonic() - last_progress > 0.5:
+                    grant(again=True)
+                frozen = any(x.fired is not None and x.ended is None and x.fault.duration is not None
+                             for x in sup.injector.firings)
+                if frozen:
+                    last_progress = time.monotonic()
+                elif time.monotonic() - last_progress > o.stall_timeout:
                     raise LaunchFailed(f"lockstep stalled at tick {src.done + 1}: no acknowledgement from "
                                        + ", ".join(f"{r}/{i}" for r, i in src.missing()))
                 continue
@@ -260,6 +396,7 @@ async def _lockstep(launch: Launch, session, progress: Progress | None) -> None:
                 moved |= src.ack(role, nid, msg.k)
             if moved:
                 last_progress = time.monotonic()
+                sup.done_tick = src.done
                 grant()
                 if progress is not None:
                     progress(src.done, m.steps, f"{m.name} lockstep")
@@ -268,19 +405,115 @@ async def _lockstep(launch: Launch, session, progress: Progress | None) -> None:
         pub.undeclare()
 
 
-async def _realtime(launch: Launch, session, progress: Progress | None) -> None:
+async def _realtime(launch: Launch, session, progress: Progress | None, sup: Supervision,
+                    interrupted: asyncio.Event) -> bool:
+    """Run a real-time mission to its end, or until the survivors of a failure have settled (or
+    were given their bound), or until interrupted. Returns True when interrupted."""
     m, o, keys = launch.mission, launch.opts, launch.keys
     pub = tp.declare_publisher(session, keys.start, tp.SYNC)
     epoch = time.time() + o.start_lead
     pub.put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=epoch)))
     pub.undeclare()
+    sup.epoch = epoch
+    mon, inj = sup.monitor, sup.injector
     end = epoch + m.duration
-    while time.time() < end:
+    settle_by: float | None = None
+    start_checked = False
+    settle = o.settle_timeout if o.settle_timeout is not None else _settle_bound(m)
+
+    def live() -> set[str]:
+        return {c.name for c in launch.children if c.proc.poll() is None}
+
+    while True:
+        now = time.time()
+        _check_children(launch, sup, lockstep=False)
+        mon.poll()
+        inj.fire_due(now - epoch)
+        if not start_checked and now > epoch + STARTED_WITHIN:
+            start_checked = True
+            for c in launch.children:
+                if c.role != "recorder" and c.name not in mon.heard and c.proc.poll() is None:
+                    mon.report(c.name, "silent", f"no sample heard {STARTED_WITHIN:g} s after tick 0: "
+                                                 "it did not start (see its log)")
+        if interrupted.is_set():
+            return True
+        if all(c.status is not None for c in launch.children):
+            break
+        trouble = [e for e in mon.events if e.what in inject.LOST or e.what in inject.FAILSAFE]
+        if trouble and settle_by is None and now < end:
+            settle_by = min(now + settle, end + EXIT_GRACE)
+            log.warning("%s: the survivors carry on; the run ends when every vehicle has landed, at the "
+                        "mission's end, or in %.1f s at the latest", trouble[0].line().strip(), settle_by - now)
+        if settle_by is not None and now < end and mon.vehicles_settled(live()):
+            log.info("every surviving vehicle has landed or stopped: ending the run")
+            sup.stopped_by_us = True
+            break
+        if settle_by is not None and now >= settle_by:
+            log.warning("the survivors had %.1f s after the first failure: stopping them", settle)
+            sup.stopped_by_us = True
+            break
+        if now > end + EXIT_GRACE:
+            names = ", ".join(sorted(live()))
+            mon.report("launcher", "silent", f"{names} still running {EXIT_GRACE:g} s after the last tick")
+            sup.stopped_by_us = True
+            break
         if progress is not None:
-            progress(int(max(0.0, time.time() - epoch) * m.rate), m.steps, f"{m.name} real time")
-        await asyncio.sleep(min(0.5, max(0.01, end - time.time())))
+            progress(min(m.steps, int(max(0.0, now - epoch) * m.rate)), m.steps, f"{m.name} real time")
+        try:
+            due = inj.next_due(time.time() - epoch)
+            await asyncio.wait_for(interrupted.wait(), timeout=0.05 if due is None else min(0.05, due))
+        except TimeoutError:
+            pass
     if progress is not None:
         progress(m.steps, m.steps, f"{m.name} real time")
+    return False
+
+
+STARTED_WITHIN = 5.0
+"""Real time: a process not heard this long after tick 0 is reported as not started [s]."""
+
+
+async def _land_then_stop(launch: Launch, session, sup: Supervision) -> None:
+    """First Ctrl-C in real time: order every vehicle to land, wait (bounded) for LANDED, return.
+    (A second Ctrl-C stops everything at once: :func:`run` cancels this.)"""
+    from deploy import operator
+
+    m = launch.mission
+    mon = sup.monitor
+    bound = launch.opts.land_timeout if launch.opts.land_timeout is not None else _land_bound(m)
+    log.warning("interrupted: ordering every vehicle to land (Ctrl-C again to stop at once; waiting %.1f s at "
+                "most)", bound)
+    sender = asyncio.create_task(operator.publish(session, launch.keys.ns, operator.order("land", "launcher: Ctrl-C"),
+                                                  wait=0.5))
+    t0 = time.monotonic()
+    try:
+        while True:
+            mon.poll()
+            sup.injector.fire_due(time.time() - sup.epoch if sup.epoch else -1.0)
+            alive = {c.name for c in launch.children if c.proc.poll() is None}
+            waited = time.monotonic() - t0
+            if mon.vehicles_settled(alive):
+                log.info("every vehicle reports LANDED or ESTOP after %.1f s: stopping", waited)
+                return
+            if waited > OBEY_TIMEOUT and sender.done() and not mon.any_obeying(alive):
+                log.warning("no vehicle left FLYING within %.1f s of the land order (no supervisor obeys it): "
+                            "stopping", OBEY_TIMEOUT)
+                return
+            if waited > bound:
+                log.warning("not every vehicle landed within %.1f s: stopping", bound)
+                return
+            await asyncio.sleep(0.05)
+    finally:
+        if not sender.done():
+            sender.cancel()
+
+
+def _exit_status(events: list[inject.Event]) -> int:
+    if any(e.what in inject.LOST for e in events):
+        return EXIT_LOST
+    if any(e.what in inject.FAILSAFE for e in events):
+        return EXIT_FAILSAFE
+    return EXIT_OK
 
 
 async def run(mission_path: Path, opts: LaunchOptions) -> int:
@@ -288,7 +521,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     from tether.node import load_mission
 
     m = load_mission(mission_path, opts.duration)
-    problems = check_vehicle_options(m, opts)
+    launch = Launch(mission_path.resolve(), m, opts)
+    problems = check_vehicle_options(m, opts) + check_faults(m, opts, launch.members())
     if opts.clock == "lockstep":
         problems += [(f"agents[{k}].plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")
@@ -296,69 +530,123 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     if problems:
         raise ms.MissionError(f"tether run {mission_path}", problems)
     keys = wire.Keys(opts.ns or m.name)
-    opts.out.mkdir(parents=True, exist_ok=True)
-    launch = Launch(mission_path.resolve(), m, opts)
     router = tp.loopback_endpoint(tp.free_tcp_port())
     settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
+    opts.out.mkdir(parents=True, exist_ok=True)
     progress = Progress() if opts.progress else None
-    stop = asyncio.Event()
+    sigints = 0
+    first_sigint = asyncio.Event()
+    terminate = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    status = 0
+
+    def on_sigint() -> None:
+        nonlocal sigints
+        sigints += 1
+        first_sigint.set()
+        if opts.clock == "lockstep" or sigints > 1:
+            if sigints > 1:
+                log.warning("interrupted again: stopping every process at once")
+            terminate.set()
+
+    loop.add_signal_handler(signal.SIGINT, on_sigint)
+    loop.add_signal_handler(signal.SIGTERM, terminate.set)
+    status = EXIT_OK
+    interrupted = False
     t0 = time.monotonic()
+    sup: Supervision | None = None
     try:
         async with tp.open_session(settings) as session:
             log.info("router listening on %s (namespace %s)", ", ".join(settings.listen), keys.ns)
+            port = int(router.rsplit(":", 1)[1])
+            for f in opts.faults:
+                if f.kind == "partition" and f.member(m) not in launch.relays:
+                    launch.relays[f.member(m)] = await Relay.start(("127.0.0.1", port))
             launch.spawn(router)
-            watcher = asyncio.create_task(_watch_children(launch))
-            stopper = asyncio.create_task(stop.wait())
+            members = launch.members()
+            monitor = inject.Monitor(session, m, keys, members, lambda: sup.mission_time(m) if sup else None,
+                                     forge_agents=any(f.kind == "forge" and f.role == "agent" for f in opts.faults))
+            pids = {(c.role, c.node_id): c.proc.pid for c in launch.children}
+            monitor.proc_alive = lambda name: any(c.name == name and c.proc.poll() is None for c in launch.children)
+            sup = Supervision(monitor, inject.Injector(opts.faults, m, keys, session, pids, launch.relays, monitor))
 
-            async def body() -> None:
-                tokens = [keys.token(r, i) for r, i in launch.members()]
+            async def body() -> bool:
+                tokens = [keys.token(r, i) for r, i in members]
                 await tp.wait_for_tokens(session, tokens, opts.startup_timeout)
                 log.info("all %d processes are up after %.1f s", len(tokens), time.monotonic() - t0)
                 t1 = time.monotonic()
                 if opts.clock == "lockstep":
-                    await _lockstep(launch, session, progress)
+                    await _lockstep(launch, session, progress, sup)
                 else:
-                    await _realtime(launch, session, progress)
+                    if await _realtime(launch, session, progress, sup, first_sigint):
+                        await _land_then_stop(launch, session, sup)
+                        return True
+                    if sup.stopped_by_us:
+                        return False
                 log.info("ran %g s of mission time in %.2f s of wall time", m.duration, time.monotonic() - t1)
+                deadline = time.monotonic() + EXIT_GRACE
                 while any(c.proc.poll() is None for c in launch.children):
+                    if time.monotonic() > deadline:
+                        sup.monitor.report("launcher", "silent", "some processes did not exit after the last tick")
+                        break
                     await asyncio.sleep(0.05)
+                return False
 
             work = asyncio.create_task(body())
+            stopper = asyncio.create_task(terminate.wait())
             try:
-                done, _ = await asyncio.wait({work, watcher, stopper}, return_when=asyncio.FIRST_COMPLETED)
+                done, _ = await asyncio.wait({work, stopper}, return_when=asyncio.FIRST_COMPLETED)
                 if stopper in done:
                     log.warning("interrupted: stopping every process")
-                    status = 130
-                elif watcher in done:
-                    watcher.result()
+                    interrupted = True
                 else:
-                    work.result()
+                    interrupted = work.result()
             except LaunchFailed as exc:
                 log.error("%s", exc)
-                status = 1
+                status = EXIT_FAILED
                 log.info("stopping the others in %.1f s", opts.failure_grace)
                 await asyncio.sleep(opts.failure_grace)
             except tp.TokensMissing as exc:
                 log.error("%s", exc)
-                status = 1
+                status = EXIT_FAILED
             finally:
-                for task in (work, watcher, stopper):
+                for task in (work, stopper):
                     task.cancel()
+                sup.injector.close()
+                sup.monitor.close()
                 launch.terminate()
+                for relay in launch.relays.values():
+                    await relay.close()
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
-    bad = [c for c in launch.children if c.status not in (0,)]
+        loop.remove_signal_handler(signal.SIGINT)
+        loop.remove_signal_handler(signal.SIGTERM)
     for c in launch.children:
         log.info("%-12s exit %s", c.name, c.status)
-    if status == 0 and bad:
-        status = 1
-        log.error("failed: %s", ", ".join(f"{c.name} ({c.status})" for c in bad))
-    if status == 0:
-        log.info("run recorded in %s", opts.out / "run.npz")
+    events = sup.monitor.events if sup is not None else []
+    if sup is not None:
+        if opts.faults:
+            (opts.out / "faults.json").write_text(json.dumps(sup.injector.records(), indent=2) + "\n")
+        (opts.out / "events.json").write_text(json.dumps([e.to_json() for e in events], indent=2) + "\n")
+    if interrupted:
+        status = EXIT_INTERRUPTED
+    elif status == EXIT_OK:
+        status = _exit_status(events)
+        reported = {e.who for e in events if e.what == "died"}
+        stopped = (143, -signal.SIGTERM, -signal.SIGKILL) if sup is not None and sup.stopped_by_us else ()
+        bad = [c for c in launch.children if c.status not in (0, *stopped) and c.name not in reported]
+        if bad:
+            status = EXIT_FAILED
+            log.error("failed: %s", ", ".join(f"{c.name} ({c.status})" for c in bad))
+    shown = [e for e in events if e.what != "back"]
+    if shown:
+        log.warning("%d event(s) in this run (who, when, what, why):", len(shown))
+        for e in shown:
+            log.warning("  %s", e.line())
+    if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST):
+        log.info("run recorded in %s (exit status %d: %s)", opts.out / "run.npz", status, MEANING[status])
     return status
+
+
+MEANING = {EXIT_OK: "clean", EXIT_FAILED: "the run failed", EXIT_BAD_INPUT: "bad input",
+           EXIT_FAILSAFE: "a failsafe fired or a value diverged", EXIT_LOST: "a process died or froze",
+           EXIT_INTERRUPTED: "interrupted"}

@@ -14,6 +14,9 @@ protection is removed (so that they can fail):
   ``state`` keys never reach the processes that legitimately subscribe to them, it cannot
   eavesdrop on them, and it cannot fake plant 3's liveliness token — through the router and
   directly to a listening peer;
+* a session holding an agent's certificate cannot order a land or an e-stop: its puts on the
+  control key ``control/0/safety`` never reach the agents and plants that subscribe to it, while
+  the operator's (``control-0``) do;
 * plain TCP is refused where TLS is required.
 """
 
@@ -297,12 +300,13 @@ def test_the_acl_grants_exactly_what_the_roles_declare(deployment: gen.Deploymen
     a2 = g["agent-2"]
     assert a2.publish == ("tether/trio/agent/2/state", "tether/trio/agent/2/cmd", "tether/trio/agent/2/telemetry")
     assert set(a2.subscribe) == {"tether/trio/plant/2/state", "tether/trio/agent/1/state",
-                                 "tether/trio/control/0/start"}
+                                 "tether/trio/control/0/start", "tether/trio/control/0/safety"}
     assert set(a2.sees) == {"@tether/trio/plant/2", "@tether/trio/agent/1"}
     assert a2.tokens == ("@tether/trio/agent/2",)
     assert set(g["agent-1"].subscribe) >= {"tether/trio/leader/4/state", "tether/trio/agent/3/state"}
     assert g["plant-3"].publish == ("tether/trio/plant/3/state",)
-    assert set(g["plant-3"].subscribe) == {"tether/trio/agent/3/cmd", "tether/trio/control/0/start"}
+    assert set(g["plant-3"].subscribe) == {"tether/trio/agent/3/cmd", "tether/trio/control/0/start",
+                                           "tether/trio/control/0/safety"}
     # no agent or plant may publish outside its own keys
     for name, grant in g.items():
         role, _, nid = name.partition("-")
@@ -455,6 +459,54 @@ def test_agent_2_cannot_move_agent_3_through_the_router(deployment: gen.Deployme
         cmds, states, overheard, tokens = attack(deployment, connect__endpoints=[f"tls/127.0.0.1:{port}"])
     assert evil in cmds and legit <= set(overheard) and any(s not in (b"state 0", b"state 1") for s in states)
     assert (KEYS.token("plant", 3), True) in tokens
+
+
+def order(action: str, reason: str) -> bytes:
+    return wire.encode(wire.SafetyCommand(sender=0, seq=0, k=0, t=0.0, action=action, reason=reason))
+
+
+def order_attack(dep: gen.Deployment, **json5: object) -> tuple[list[bytes], list[bytes]]:
+    """Agent 2's identity publishes land and e-stop orders on the control key, then the operator
+    (``control-0``) publishes its own; returns what plant 3 and agent 1 received there."""
+    forged = [order("estop", "agent 2 says so"), order("land", "agent 2 says so")]
+    with open_as(dep, "plant-3", **json5) as plant3, open_as(dep, "agent-1", **json5) as agent1, \
+            open_as(dep, "agent-3", **json5) as agent3, open_as(dep, "agent-2", **json5) as evil, \
+            open_as(dep, "control-0", **json5) as operator:
+        at_plant, at_agent, fence = Inbox(), Inbox(), Inbox()
+        plant3.declare_subscriber(KEYS.safety, at_plant.put)
+        agent1.declare_subscriber(KEYS.safety, at_agent.put)
+        agent3.declare_subscriber(KEYS.topic("agent", 2, "state"), fence.put)
+        bad = evil.declare_publisher(KEYS.safety)
+        own_state = evil.declare_publisher(KEYS.topic("agent", 2, "state"))
+        good = operator.declare_publisher(KEYS.safety)
+        for pub in (bad, own_state, good):
+            wait_matching(pub)
+        for rnd in range(2):
+            for payload in forged * 5:
+                bad.put(payload)
+            own_state.put(f"fence {rnd}".encode())  # on the attacker's link, after its orders
+            fence.wait_for(f"fence {rnd}".encode())
+            good.put(order("land", f"operator {rnd}"))
+            at_plant.wait_for(order("land", f"operator {rnd}"))
+            at_agent.wait_for(order("land", f"operator {rnd}"))
+        return at_plant.items, at_agent.items
+
+
+def test_only_the_operator_can_order_a_land_or_an_estop(deployment: gen.Deployment, router: str) -> None:
+    legit = [order("land", "operator 0"), order("land", "operator 1")]
+    at_plant, at_agent = order_attack(deployment)
+    assert at_plant == legit and at_agent == legit
+    g = {x.name: x for x in acl.grants(ms.load(deployment.host_dir("agent-1") / "mission.toml"), "trio")}
+    assert [name for name, grant in g.items() if KEYS.safety in grant.publish] == ["control-0"]
+    assert all(KEYS.safety in grant.subscribe for name, grant in g.items() if name.startswith(("agent-", "plant-")))
+
+    # counter-check: through a router with the same profile but no access control, the forged orders arrive
+    port = tp.free_tcp_port()
+    open_router = config_of(deployment, "router", access_control__enabled=False,
+                            listen__endpoints=[f"tls/127.0.0.1:{port}"])
+    with zenoh.open(open_router):
+        at_plant, at_agent = order_attack(deployment, connect__endpoints=[f"tls/127.0.0.1:{port}"])
+    assert order("estop", "agent 2 says so") in at_plant and order("land", "agent 2 says so") in at_agent
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,235 @@
+"""Fault injection (``tether run --fault``), the launcher's failure reports, and ``tether land``.
+
+The parser is pure and tested on its own. The rest are real processes on loopback (multicast
+scouting off, explicit ``tcp/127.0.0.1`` ports picked free, one namespace per run), waited on by
+condition with a timeout:
+
+* ``faulted`` — a real-time Section 4 run with ``--fault kill:agent/2@3 --fault freeze:agent/4@3+4``
+  that a test process joins: once the faults have fired it subscribes to the control key and runs
+  ``tether land`` (the order arrives, decoded with the schema alone); the launcher reports the kill and
+  the freeze, keeps the others running, records when each fault fired, and exits 4;
+* bad ``--fault`` values exit 2 before anything starts: no process, no file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deploy import faults
+from tests.support import wait_until
+from tests.test_runtime import (REPO, STARTUP, WAIT, Launched, PlainClient, exit_statuses, launch, processes_naming,
+                                tether_cmd, wait_for_realtime_start)
+from tether import transport as tp
+from tether import wire
+from tether.node import load_mission
+from tether.runfile import Run
+
+SECTION4 = "section4"
+
+
+# =========================================================================== the parser (pure)
+@pytest.mark.parametrize("text, kind, target, at, duration", [
+    ("kill:agent/2@10", "kill", "agent/2", 10.0, None),
+    ("freeze:leader@5+3", "freeze", "leader", 5.0, 3.0),
+    ("partition:agent/3@8+2", "partition", "agent/3", 8.0, 2.0),
+    ("forge:leader@12", "forge", "leader", 12.0, None),
+    ("forge:plant/1@0.5", "forge", "plant/1", 0.5, None),
+    ("kill:recorder@0", "kill", "recorder", 0.0, None),
+])
+def test_parse_reads_every_kind(text: str, kind: str, target: str, at: float, duration: float | None) -> None:
+    f = faults.parse(text)
+    assert (f.kind, f.target, f.at, f.duration, f.text) == (kind, target, at, duration, text)
+
+
+@pytest.mark.parametrize("text, says", [
+    ("explode:agent/2@1", "unknown kind 'explode'"),
+    ("kill agent/2", "KIND:TARGET@T"),
+    ("kill:agent/2", "has no time"),
+    ("kill:robot/2@1", "unknown process 'robot/2'"),
+    ("kill:agent@1", "agent/<id>"),
+    ("kill:agent/x@1", "no integer id"),
+    ("kill:agent/2@-1", "finite number of seconds >= 0"),
+    ("kill:agent/2@nan", "finite number of seconds >= 0"),
+    ("kill:agent/2@inf", "finite number of seconds >= 0"),
+    ("kill:agent/2@soon", "not a number of seconds"),
+    ("freeze:leader@5", "needs a duration"),
+    ("partition:agent/3@8+0", "duration is 0"),
+    ("kill:agent/2@1+2", "takes no duration"),
+    ("forge:recorder@1", "publishes no state"),
+])
+def test_parse_errors_name_the_argument_and_the_fix(text: str, says: str) -> None:
+    with pytest.raises(faults.FaultError) as err:
+        faults.parse(text)
+    assert f"--fault {text!r}" in str(err.value) and says in str(err.value)
+
+
+def test_check_names_unknown_processes_and_times_beyond_the_run() -> None:
+    m = load_mission(Path(__file__).resolve().parents[1] / "tether" / "missions" / "section4.toml", 10.0)
+    members = [("leader", 5), *[(r, a) for a in (1, 2, 3, 4) for r in ("agent", "plant")], ("recorder", 0)]
+    problems = faults.check([faults.parse("kill:agent/9@1"), faults.parse("kill:leader@11"),
+                             faults.parse("freeze:leader/5@2+1")], m, members)
+    assert [arg for arg, _ in problems] == ["--fault kill:agent/9@1", "--fault kill:leader@11"]
+    assert "no process agent/9" in problems[0][1] and "agent/1" in problems[0][1]
+    assert "after the run's end (10 s)" in problems[1][1]
+
+
+# =========================================================================== bad input: nothing starts
+@pytest.mark.parametrize("fault, says", [
+    ("explode:agent/2@1", "unknown kind"),
+    ("kill:agent/9@1", "no process agent/9"),
+    ("kill:agent/2@-3", ">= 0"),
+    ("kill:agent/2@nan", ">= 0"),
+    ("kill:agent/2@99", "after the run's end"),
+    ("partition:agent/2@1+1", "--network star"),  # with --network mesh below
+])
+def test_bad_faults_exit_2_before_anything_starts(tmp_path: Path, fault: str, says: str) -> None:
+    ns = f"badfault-{os.getpid()}"
+    out = tmp_path / "out"
+    extra = ["--network", "mesh"] if "partition" in fault else []
+    r = subprocess.run(tether_cmd("run", SECTION4, "--out", str(out), "--ns", ns, "--clock", "realtime",
+                                  "--duration", "5", "--quiet", "--fault", fault, *extra),
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert "--fault" in r.stderr and says in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+    assert not out.exists() or not any(out.iterdir())  # no run directory content
+    assert processes_naming(ns) == []  # and no process was started
+    assert "router listening" not in r.stderr
+
+
+# =========================================================================== a run with faults, and tether land
+@dataclass
+class Faulted:
+    run: Launched
+    land: subprocess.CompletedProcess
+    order: wire.SafetyCommand
+    launcher_alive_at_land: bool
+    modes_after_land: set[int]
+
+
+KILL_AT, FREEZE_AT, FREEZE_FOR = 3.0, 3.0, 4.0
+
+
+@pytest.fixture(scope="module")
+def faulted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Faulted]:
+    ns = f"faulted-{os.getpid()}"
+    port = tp.free_tcp_port()
+    attach = tp.loopback_endpoint(port)
+    with launch(tmp_path_factory.mktemp("faulted"), ns, "--clock", "realtime", "--duration", "40",
+                "--listen", attach, "--fault", f"kill:agent/2@{KILL_AT:g}",
+                "--fault", f"freeze:agent/4@{FREEZE_AT:g}+{FREEZE_FOR:g}") as run:
+        wait_for_realtime_start(run)
+        client = PlainClient(attach)
+        try:
+            keys = wire.Keys(ns)
+            client.subscribe(keys.safety)
+            client.subscribe(f"tether/{ns}/plant/*/state")
+            wait_until(lambda: _matched(client, keys.safety), WAIT, "the test's subscriber to reach the router")
+            # order the land once both faults have fired: a swarm whose supervisors obey it must not
+            # have landed (and ended the run) before them
+            wait_until(lambda: run.launcher_log.count(" fired at t = ") >= 2, STARTUP, "both faults to fire")
+            land = subprocess.run(tether_cmd("land", "--ns", ns, "--connect", attach, "--reason", "test"),
+                                  cwd=REPO, capture_output=True, text=True, timeout=60)
+            _, order = client.next_matching(lambda k, m: k == keys.safety, WAIT, "the land order")
+            alive = run.proc.poll() is None
+            modes: set[int] = set()
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline:  # what the plants report just after the order
+                _, msg = client.next_matching(lambda k, m: isinstance(m, wire.PlantState), WAIT, "a plant state")
+                modes.add(msg.mode)
+        finally:
+            client.close()
+        run.wait(STARTUP + 60)
+        yield Faulted(run, land, order, alive, modes)
+
+
+def _matched(client: PlainClient, key: str) -> bool:
+    pub = client.session.declare_publisher(key)
+    try:
+        return bool(pub.matching_status.matching)
+    finally:
+        pub.undeclare()
+
+
+def test_tether_land_reaches_a_running_swarm(faulted: Faulted) -> None:
+    assert faulted.land.returncode == 0, faulted.land.stderr
+    assert "sent land" in faulted.land.stdout
+    order = faulted.order
+    assert isinstance(order, wire.SafetyCommand)
+    assert (order.action, order.reason, order.sender) == ("land", "test", 0)
+    assert faulted.launcher_alive_at_land
+
+
+def test_a_killed_agent_is_reported_and_the_run_exits_4(faulted: Faulted) -> None:
+    run = faulted.run
+    assert run.status == 4, run.launcher_log
+    assert re.search(r"agent/2 +died: killed by SIGKILL \(--fault kill:agent/2@3\)", run.launcher_log), run.launcher_log
+    assert exit_statuses(run.launcher_log)["agent/2"] == -9
+    assert "exit status 4: a process died or froze" in run.launcher_log
+
+
+def test_faults_json_says_when_each_fault_fired_within_a_tick(faulted: Faulted) -> None:
+    records = {r["fault"]: r for r in json.loads((faulted.run.out / "faults.json").read_text())}
+    assert set(records) == {f"kill:agent/2@{KILL_AT:g}", f"freeze:agent/4@{FREEZE_AT:g}+{FREEZE_FOR:g}"}
+    for r in records.values():
+        print(f"\n{r['fault']}: asked {r['at']} s, fired {r['fired']:.4f} s")
+        assert 0.0 <= r["fired"] - r["at"] <= 0.01 + 1e-9, r  # one tick of the 100 Hz mission
+    freeze = records[f"freeze:agent/4@{FREEZE_AT:g}+{FREEZE_FOR:g}"]
+    assert freeze["kind"] == "freeze" and freeze["target"] == "agent/4"
+    assert freeze["ended"] - freeze["fired"] == pytest.approx(FREEZE_FOR, abs=0.1)
+
+
+def test_a_frozen_agent_is_reported_as_a_freeze(faulted: Faulted) -> None:
+    log = faulted.run.launcher_log
+    line = re.search(r"t = +([0-9.]+) s +agent/4 +froze: its liveliness token is gone", log)
+    assert line, log
+    assert FREEZE_AT < float(line[1]) < FREEZE_AT + FREEZE_FOR
+    events = json.loads((faulted.run.out / "events.json").read_text())
+    assert {(e["who"], e["what"]) for e in events} >= {("agent/2", "died"), ("agent/4", "froze"),
+                                                        ("agent/2", "fault"), ("agent/4", "fault")}
+
+
+def test_the_others_ran_on_after_the_kill(faulted: Faulted) -> None:
+    run = faulted.run
+    statuses = exit_statuses(run.launcher_log)
+    assert set(statuses) == {"leader/5", "recorder/0", *[f"{r}/{i}" for i in (1, 2, 3, 4) for r in ("agent", "plant")]}
+    assert all(s in (0, 143) for n, s in statuses.items() if n != "agent/2"), statuses
+    rec = Run.load(run.out)
+    col = {int(a): i for i, a in enumerate(rec.agent_ids)}
+    after = rec.t >= KILL_AT + 2.0
+    for aid in (1, 3):  # recorded on, well after the kill
+        assert np.isfinite(rec.xi[after, col[aid]]).all(axis=-1).sum() >= 150, aid
+    assert not np.isfinite(rec.xi[rec.t >= KILL_AT + 0.5, col[2]]).any()  # and agent 2 did not
+    assert math.isfinite(rec.leader_p[after][0, 0])
+
+
+# =========================================================================== tether land / estop: errors
+def test_tether_estop_without_a_router_exits_1_saying_so() -> None:
+    nowhere = tp.loopback_endpoint(tp.free_tcp_port())
+    r = subprocess.run(tether_cmd("estop", "--ns", "nobody", "--connect", nowhere, "--connect-timeout", "1"),
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, r.stderr
+    assert "error:" in r.stderr and nowhere in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("args, names", [
+    (["--ns", "a/b", "--connect", "tcp/127.0.0.1:7447"], "--ns"),
+    (["--ns", "x"], "--connect"),
+    (["--ns", "x", "--connect", "tcp/127.0.0.1:7447", "--timeout", "0"], "--timeout"),
+    (["--ns", "x", "--connect", "127.0.0.1:7447"], "connect"),
+])
+def test_tether_land_bad_input_exits_2_naming_the_argument(args: list[str], names: str) -> None:
+    r = subprocess.run(tether_cmd("land", *args), cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    assert names in r.stderr and "Traceback" not in r.stderr
