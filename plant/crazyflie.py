@@ -83,7 +83,7 @@ RELINK_AFTER = 4.0
 frozen simulator) before it is closed and reopened."""
 RECONNECT_ATTEMPTS = 4
 """Reconnections tried before the plant gives the vehicle up."""
-RECONNECT_BACKOFF = 0.5
+RECONNECT_BACKOFF = 0.25
 """Pause before the second attempt [s]; doubled before each further one."""
 
 

@@ -132,5 +132,6 @@ async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
             ex = s.extra
             payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
-    if recovering is not None:
+    if recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()
+        raise LinkLost(f"crazyflie {ids[0]} ({plant.spec.uri}): the link was still down at the mission's end")
