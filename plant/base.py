@@ -231,7 +231,9 @@ class PayloadPlant:
 def build(m: ms.Mission, ids: list[int] | None = None, live: bool = False) -> list[Plant]:
     """The plants hosting agents ``ids`` (all by default): one :class:`PayloadPlant` for a payload
     mission (which must host all of them), else one plant per agent. ``live``: the caller runs in
-    real time (a plant process), so real vehicles (``crazyflie``) may be connected."""
+    real time (a plant process), so real vehicles (``crazyflie``) may be built; they are returned
+    unconnected, for the caller to :meth:`~plant.crazyflie.CrazyfliePlant.open` (it blocks: the
+    plant process runs it in a thread)."""
     ids = m.agent_ids if ids is None else list(ids)
     if m.payload is not None:
         return [PayloadPlant(m, ids)]
@@ -244,7 +246,7 @@ def build(m: ms.Mission, ids: list[int] | None = None, live: bool = False) -> li
                                  "(tether run --clock realtime), not in a simulator")
             from plant.crazyflie import CrazyfliePlant
 
-            out.append(CrazyfliePlant(m, [aid]).open())
+            out.append(CrazyfliePlant(m, [aid]))  # not connected: the caller opens it (blocking)
             continue
         out.append(DoubleIntegratorPlant(m, [aid]) if isinstance(spec, ms.DoubleIntegrator) else VehiclePlant(m, [aid]))
     return out

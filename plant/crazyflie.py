@@ -26,12 +26,30 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
      stiffer, but not Eq. 17 alone).
 
 5. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
-   with the high-level commander, wait until down (bounded), stop, close the link.
+   with the high-level commander, wait until down (bounded), stop, close the link. A vehicle its
+   watchdog already landed (LANDED) or stopped (ESTOP) is not flown again.
 
-A lost link (cflib's ``connection_lost``/``connection_failed``, or no state estimate for
-``STALE_AFTER``) raises :class:`LinkLost` from the
-next :meth:`CrazyfliePlant.state` or :meth:`CrazyfliePlant.step`; the plant process then withdraws
-its liveliness token, so its agent holds and its neighbours count it out.
+The plant's command watchdog (:mod:`plant.watchdog`, run by the plant process) decides what each
+setpoint carries: the agent's command (FLYING), or the watchdog's own HOLD and LAND commands, flown
+through the same Eq. 4 (or full-state) setpoints while the agent is silent; in LANDED (touched
+down) and ESTOP (operator) :meth:`CrazyfliePlant.step` sends ``send_stop_setpoint`` every tick:
+motors off, and the firmware's 2 s watchdog stays fed, so it never locks a vehicle in the air.
+
+**A link that goes quiet** (no state estimate for ``STALE_AFTER``) or **is lost** (cflib's
+``connection_lost``/``connection_failed``) makes :meth:`CrazyfliePlant.state` raise
+:class:`LinkLost`; the plant has no measurement then, so the watchdog holds and nothing new is
+sent. On entering that state the plant asks the vehicle, best effort, to hold its last position
+on its own (``send_notify_setpoint_stop`` + high-level ``go_to``: the onboard position
+controller, which needs no link, instead of the firmware levelling out and cutting the motors
+after 2 s). :meth:`CrazyfliePlant.recover` (a coroutine: every blocking cflib call runs in a
+thread) waits ``RELINK_AFTER`` for a quiet link to speak again, then closes it and reconnects with
+backoff (``RECONNECT_ATTEMPTS``, ``RECONNECT_BACKOFF`` doubled each time; every attempt logged).
+Once the state estimate is back the watchdog flies the agent again if the agent has resumed, and
+lands the vehicle otherwise. If every attempt fails, the plant process withdraws its liveliness
+token (its agent holds, its neighbours count it out) and fails at the mission's end.
+
+Closing a link that may still reach the vehicle never goes through cflib's ``close_link`` alone:
+that sends ``send_setpoint(0, 0, 0, 0)``, zero thrust, which would drop a vehicle in flight.
 """
 
 from __future__ import annotations
@@ -58,8 +76,15 @@ MOTOR_THRUST_MAX = _CF21.motor_thrust_max
 """Per-motor thrust at full command [N] (a Crazyflie 2.1's, with its source in ``plant.quadrotor``)."""
 LOG_PERIOD_MS = 10
 STALE_AFTER = 1.0
-"""A link whose state estimate has not come for this long [s] counts as lost (100 log packets at
+"""A link whose state estimate has not come for this long [s] counts as down (100 log packets at
 100 Hz; a loaded host can delay a few tens of them)."""
+RELINK_AFTER = 4.0
+"""A down link that cflib still holds open is given this long [s] to speak again (a radio fade, a
+frozen simulator) before it is closed and reopened."""
+RECONNECT_ATTEMPTS = 4
+"""Reconnections tried before the plant gives the vehicle up."""
+RECONNECT_BACKOFF = 0.25
+"""Pause before the second attempt [s]; doubled before each further one."""
 
 
 class LinkLost(RuntimeError):
@@ -95,8 +120,12 @@ class CrazyfliePlant:
         self._pos = self._vel = self._acc = None
         self._fresh = threading.Event()
         self._lost: str | None = None
-        self._last_log = math.inf
+        self._last_log = -math.inf
         self._landed = False
+        self._stopped = False
+        """Motors commanded off (LANDED or ESTOP): never flown again."""
+        self._blind = False
+        """The link went down and the vehicle was asked to hold on its own."""
         self.final_position: np.ndarray | None = None
         """Where the vehicle was when the link closed (after landing) [m]."""
         self.cf = None
@@ -104,33 +133,45 @@ class CrazyfliePlant:
     def open(self) -> "CrazyfliePlant":
         """Connect, start the logs and take off (blocks until airborne; every wait bounded).
         Raises ``ConnectionError`` naming the URI, or ``TimeoutError``; the link is closed then."""
-        import cflib.crtp
-        from cflib.crazyflie import Crazyflie
-
-        ids = self.ids
-        cflib.crtp.init_drivers()
-        self.cf = Crazyflie(rw_cache=str(toc_cache()))
-        ready = threading.Event()
-        self.cf.fully_connected.add_callback(lambda uri: ready.set())
-        self.cf.connection_failed.add_callback(lambda uri, msg: self._on_lost(f"connection failed: {msg}", ready))
-        self.cf.connection_lost.add_callback(lambda uri, msg: self._on_lost(f"connection lost: {msg}", ready))
-        uri = self.spec.uri
-        log.info("crazyflie %d: connecting to %s", ids[0], uri)
-        self.cf.open_link(uri)
+        self._connect()
         try:
-            if not ready.wait(self.spec.connect_timeout) or self._lost is not None:
-                raise ConnectionError(f"agents[{ids[0]}].plant.uri: {uri} did not connect within "
-                                      f"{self.spec.connect_timeout:g} s ({self._lost or 'no answer'}); check the "
-                                      "vehicle is on and the URI (radio channel, address, udp port)")
-            self._start_logs()
             self._take_off()
         except BaseException:
             self.cf.close_link()
             raise
         return self
 
+    def _connect(self) -> None:
+        """Open the link and start the logs (blocks, bounded by ``connect_timeout`` twice). Raises
+        ``ConnectionError`` naming the URI; the link is closed then."""
+        import cflib.crtp
+        from cflib.crazyflie import Crazyflie
+
+        ids = self.ids
+        cflib.crtp.init_drivers()
+        cf = Crazyflie(rw_cache=str(toc_cache()))
+        ready = threading.Event()
+        cf.fully_connected.add_callback(lambda uri: ready.set())
+        cf.connection_failed.add_callback(lambda uri, msg: self._on_lost(cf, f"connection failed: {msg}", ready))
+        cf.connection_lost.add_callback(lambda uri, msg: self._on_lost(cf, f"connection lost: {msg}", ready))
+        self.cf, self._lost = cf, None
+        uri = self.spec.uri
+        log.info("crazyflie %d: connecting to %s", ids[0], uri)
+        cf.open_link(uri)
+        try:
+            if not ready.wait(self.spec.connect_timeout) or self._lost is not None:
+                raise ConnectionError(f"agents[{ids[0]}].plant.uri: {uri} did not connect within "
+                                      f"{self.spec.connect_timeout:g} s ({self._lost or 'no answer'}); check the "
+                                      "vehicle is on and the URI (radio channel, address, udp port)")
+            self._start_logs()
+        except BaseException:
+            _drop_link(cf)
+            raise
+
     # ------------------------------------------------------------------ link
-    def _on_lost(self, why: str, ready: threading.Event) -> None:
+    def _on_lost(self, cf, why: str, ready: threading.Event) -> None:
+        if cf is not self.cf:
+            return  # a closed link's late news
         if self._lost is None:
             self._lost = why
             log.error("crazyflie %d: %s", self.ids[0], why)
@@ -152,13 +193,24 @@ class CrazyfliePlant:
             acc.add_variable(f"stateEstimate.{n}", "float")
         pv.data_received_cb.add_callback(self._on_pv)
         acc.data_received_cb.add_callback(self._on_acc)
+        since = time.monotonic()
+        self._fresh.clear()
         for block in (pv, acc):
             self.cf.log.add_config(block)
             block.start()
-        if not self._fresh.wait(self.spec.connect_timeout) or self._pos is None:
+        if not self._wait_fresh(since, self.spec.connect_timeout):
             self._check()
             raise ConnectionError(f"agents[{self.ids[0]}].plant.uri: {self.spec.uri} sends no state estimate "
                                   f"within {self.spec.connect_timeout:g} s; is a positioning system running?")
+
+    def _wait_fresh(self, since: float, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not (self._last_log > since and self._pos is not None):
+            if self._lost is not None or time.monotonic() > deadline:
+                return False
+            self._fresh.clear()
+            self._fresh.wait(0.05)
+        return True
 
     def _on_pv(self, timestamp: int, data: dict, block) -> None:
         self._last_log = time.monotonic()
@@ -193,18 +245,91 @@ class CrazyfliePlant:
         log.info("crazyflie %d: airborne at %s", self.ids[0], np.round(self._pos, 3).tolist())
 
     # ------------------------------------------------------------------ the protocol
+    # ------------------------------------------------------------------ link health
+    def healthy(self) -> bool:
+        """The link is up and the state estimate fresh (not older than ``STALE_AFTER``)."""
+        return self._lost is None and time.monotonic() - self._last_log <= STALE_AFTER
+
+    def _down(self) -> str:
+        if self._lost is not None:
+            return self._lost
+        return f"no state estimate for {time.monotonic() - self._last_log:.2f} s"
+
+    def hold_blind(self) -> None:
+        """Best effort, once per outage: ask the vehicle to hold its last known position with its
+        own position controller (the high-level commander), which needs no link. Returns at once."""
+        if self._blind or self._stopped or self.cf is None or self.cf.link is None or self._pos is None:
+            return
+        self._blind = True
+        with self._lock:
+            p = self._pos.copy()
+        log.warning("crazyflie %d: link down (%s); asking the vehicle to hold %s on its own", self.ids[0],
+                    self._down(), np.round(p, 2).tolist())
+        self.cf.commander.send_notify_setpoint_stop()
+        self.cf.high_level_commander.go_to(float(p[0]), float(p[1]), float(p[2]), self.spec.yaw, 1.0)
+
+    async def recover(self) -> bool:
+        """Bring a down link back (see the module docstring); True once the state estimate is fresh
+        again, False when every reconnection failed. Never blocks the event loop."""
+        import asyncio
+
+        uid = self.ids[0]
+        self.hold_blind()
+        deadline = time.monotonic() + RELINK_AFTER
+        while self._lost is None and not self.healthy() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+        if self.healthy():
+            log.warning("crazyflie %d: link back by itself", uid)
+            self._blind = False
+            return True
+        pause = RECONNECT_BACKOFF
+        for attempt in range(1, RECONNECT_ATTEMPTS + 1):
+            log.warning("crazyflie %d: reconnecting to %s (attempt %d of %d; %s)", uid, self.spec.uri, attempt,
+                        RECONNECT_ATTEMPTS, self._down())
+            try:
+                await asyncio.to_thread(self._reconnect)
+            except (ConnectionError, TimeoutError, OSError, LinkLost) as exc:
+                log.error("crazyflie %d: attempt %d failed: %s", uid, attempt, exc)
+            else:
+                log.warning("crazyflie %d: reconnected (attempt %d)", uid, attempt)
+                self._blind = False
+                return True
+            if attempt < RECONNECT_ATTEMPTS:
+                await asyncio.sleep(pause)
+                pause *= 2.0
+        self._lost = self._lost or "reconnection failed"
+        log.error("crazyflie %d: gave up after %d reconnection attempts", uid, RECONNECT_ATTEMPTS)
+        return False
+
+    def _reconnect(self) -> None:
+        """Close the present link without a zero-thrust setpoint and connect again (blocks, bounded)."""
+        _drop_link(self.cf)
+        self._connect()
+
     def state(self) -> Sample:
-        quiet = time.monotonic() - self._last_log
-        if quiet > STALE_AFTER:
-            self._on_lost(f"no state estimate for {quiet:.2f} s", self._fresh)
-        self._check()
+        """The newest state estimate; raises :class:`LinkLost` while the link is down."""
+        if not self.healthy():
+            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): {self._down()}")
         with self._lock:
             p, v = self._pos.copy(), self._vel.copy()
             a = self._acc.copy() if self._acc is not None else np.zeros(3)
         return Sample(p[None], v[None], a[None], np.full((1, 3), np.nan))
 
-    def step(self, u: np.ndarray) -> None:
-        self._check()
+    def step(self, u: np.ndarray, modes: list[int] | None = None) -> None:
+        """Send the setpoint of the coming period (returns at once): ``u`` ``(1, 3)`` [m/s^2] in
+        FLYING, HOLD and LAND (``modes``, one watchdog mode code; None: FLYING); motors off in
+        LANDED and ESTOP. Nothing is sent while the link is down (:meth:`recover`)."""
+        from tether.wire import ESTOP, LANDED
+
+        if not self.healthy():
+            return
+        mode = modes[0] if modes is not None else 0
+        if mode in (LANDED, ESTOP) or self._stopped:
+            if not self._stopped:
+                log.warning("crazyflie %d: motors off (%s)", self.ids[0], "landed" if mode == LANDED else "e-stop")
+            self._stopped = True
+            self.cf.commander.send_stop_setpoint()
+            return
         sp = self.spec
         u = np.asarray(u, dtype=float).reshape(-1)
         if sp.mode == "full_state":
@@ -220,12 +345,18 @@ class CrazyfliePlant:
         self.cf.commander.send_setpoint(math.degrees(roll), math.degrees(pitch), 0.0, thrust_to_pwm(thrust))
 
     def close(self) -> None:
-        """Stop the setpoints and land (bounded waits), then close the link. Idempotent."""
+        """Stop the setpoints and land (bounded waits), then close the link. Blocks (the plant
+        process runs it in a thread). Idempotent. A vehicle whose motors are off stays down; one
+        whose link is down cannot be landed (logged)."""
         if self._landed or self.cf is None:
             return
         self._landed = True
         try:
-            if self._lost is None:
+            if self._stopped:
+                log.info("crazyflie %d: on the ground, motors off", self.ids[0])
+            elif not self.healthy():
+                log.error("crazyflie %d: cannot land: %s", self.ids[0], self._down())
+            else:
                 sp = self.spec
                 cmd = self.cf.commander
                 cmd.send_notify_setpoint_stop()
@@ -240,4 +371,20 @@ class CrazyfliePlant:
         finally:
             with self._lock:
                 self.final_position = None if self._pos is None else self._pos.copy()
-            self.cf.close_link()
+            if self._stopped or self.healthy():
+                self.cf.close_link()  # its zero-thrust setpoint is harmless on the ground
+            else:
+                _drop_link(self.cf)
+
+
+def _drop_link(cf) -> None:
+    """Close ``cf``'s link without cflib's parting ``send_setpoint(0, 0, 0, 0)`` (zero thrust: it
+    would cut the motors of a vehicle in flight the moment it is heard) and stop its threads."""
+    link = cf.link
+    if link is not None:
+        cf.link = None
+        try:
+            link.close()
+        except Exception as exc:  # a driver that fails closing a dead link: nothing left to do
+            log.debug("closing a dead link: %s", exc)
+    cf.close_link()

@@ -1,21 +1,34 @@
-"""A simulated plant's process (``plant``: one vehicle) or a world's (``world``: every vehicle of
-a ``[payload]`` mission and the payload), around :func:`plant.base.build`.
+"""A plant's process (``plant``: one vehicle) or a world's (``world``: every vehicle of a
+``[payload]`` mission and the payload), around :func:`plant.base.build` and one command watchdog
+per vehicle (:mod:`plant.watchdog`).
 
-Tick k: advance ``[t_{k-1}, t_k]`` with each vehicle's command of tick k-1 (lockstep: exactly
-that one; real time: the newest held, zero before the first), then publish each vehicle's
-measurement of tick k on its own ``plant/<id>/state`` key, stamped with its id. A world also
-declares each vehicle's ``plant`` liveliness token and publishes the payload's state on
-``world/0/state``: agents cannot tell a world from single plants.
+Tick k: advance ``[t_{k-1}, t_k]`` with what each vehicle's watchdog decides from its agent's
+command of tick k-1 (lockstep: exactly that one, which always arrives, so the watchdog only acts on
+the operator; real time: the newest held, whose age is ``t_k`` minus its stamp, and one for a tick
+beyond the plant's own is not valid), the operator's last :class:`~tether.wire.SafetyCommand` (on
+``control/0/safety``, sender 0, obeyed at the next tick) and the vehicle's measurement of tick k-1;
+then publish each vehicle's measurement of tick k with its watchdog's mode on its own
+``plant/<id>/state`` key, stamped with its id. Every mode change is logged with its reason. What
+LANDED and ESTOP do to a simulated vehicle is :class:`plant.rest.Resting`'s; a Crazyflie does it
+itself. A world also declares each vehicle's ``plant`` liveliness token and publishes the
+payload's state on ``world/0/state``: agents cannot tell a world from single plants.
+
+A Crazyflie's blocking cflib calls (connect and take-off, landing and close) run in a thread; a
+Crazyflie whose link goes down publishes nothing until it is back (:meth:`~plant.crazyflie.CrazyfliePlant.recover`
+runs meanwhile, as a task), and one that cannot be brought back withdraws from the swarm.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 
 import numpy as np
 
 from plant import base
-from plant.crazyflie import LinkLost
+from plant.crazyflie import CrazyfliePlant, LinkLost
+from plant.rest import Resting
+from plant.watchdog import Watchdog
 from tether import transport as tp
 from tether import wire
 from tether import mission as ms
@@ -40,43 +53,85 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
         raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
     (plant,) = base.build(m, ids, live=live)
+    if isinstance(plant, CrazyfliePlant):
+        await asyncio.to_thread(plant.open)  # connect and take off: seconds, off the event loop
+        vehicle = plant
+    else:
+        vehicle = Resting(plant, m.dim, m.safety.ground)
+    try:
+        await _fly(node, ids, world, vehicle)
+    finally:
+        if isinstance(plant, CrazyfliePlant):
+            await asyncio.to_thread(plant.close)  # lands: seconds
+        else:
+            plant.close()
+
+
+async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
+    m, keys = node.mission, node.keys
     h = m.dt
     cmds = []
     for aid in ids:
         src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid)
         node.watch("agent", aid, src)
         cmds.append(src)
+    operator: list[str | None] = [None]
+
+    def on_safety(msg: wire.SafetyCommand) -> None:
+        if operator[0] != "estop":  # an e-stop is final
+            log.warning("operator: %s%s", msg.action, f" ({msg.reason})" if msg.reason else "")
+            operator[0] = msg.action
+
+    node.source(keys.safety, wire.SafetyCommand, 0, on_message=on_safety, keep=False)
     states = [node.publisher(keys.topic("plant", aid, "state"), sender=aid) for aid in ids]
     payload = node.publisher(keys.topic("world", 0, "state")) if world else None
     if world:  # each hosted vehicle is a plant to the agents, the recorder and the launcher
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
+    dogs = [Watchdog(m.safety, m.dim) for _ in ids]
     await node.ready()
-    zero = np.zeros(m.dim)
-    try:
-        for k in range(m.steps + 1):
-            await node.tick(k)
-            try:
-                if k > 0:
-                    u = []
-                    for src in cmds:
-                        msg = await node.sample(src, k - 1)
-                        u.append(np.array(msg.u) if msg is not None else zero)
-                    plant.step(np.array(u))
-                s = plant.state()
-            except LinkLost as exc:
+    recovering: asyncio.Task[bool] | None = None
+    s: base.Sample | None = None
+    for k in range(m.steps + 1):
+        await node.tick(k)
+        t = k * h
+        if k > 0:
+            u, modes = [], []
+            for aid, src, dog in zip(ids, cmds, dogs):
+                msg = await node.sample(src, k - 1)
+                if msg is not None:
+                    dog.offer(msg.u, msg.t, msg.k, k)
+                r = ids.index(aid)
+                d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
+                for ev in d.events:
+                    log.warning("vehicle %d: %s", aid, ev)
+                u.append(d.u)
+                modes.append(d.mode)
+            plant.step(np.array(u), modes)
+        try:
+            s = plant.state()
+        except LinkLost as exc:
+            s = None
+            if recovering is None:
+                log.error("%s", exc)
+                recovering = asyncio.create_task(plant.recover())
+        if recovering is not None and recovering.done():
+            if not recovering.result():
                 # say so (the agent sees its plant's token go and holds), keep out of the swarm's
                 # way until the mission's end, then fail
-                log.error("%s: withdrawing from the swarm", exc)
+                log.error("%s: withdrawing from the swarm", plant.spec.uri)
                 node.withdraw()
                 await node.tick(m.steps)
-                raise
-            t = k * h
-            for r, pub in enumerate(states):
-                pub.send(wire.PlantState, k, t, p=s.p[r].tolist(), vel=s.v[r].tolist(), a=s.a[r].tolist(),
-                         d=s.d[r].tolist())
-            if payload is not None:
-                ex = s.extra
-                payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
-                             tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
-    finally:
-        plant.close()
+                raise LinkLost(f"crazyflie {ids[0]} ({plant.spec.uri}): the link did not come back")
+            recovering = None
+        if s is None:
+            continue  # nothing measured: nothing to publish
+        for r, pub in enumerate(states):
+            pub.send(wire.PlantState, k, t, p=s.p[r].tolist(), vel=s.v[r].tolist(), a=s.a[r].tolist(),
+                     d=s.d[r].tolist(), mode=dogs[r].mode)
+        if payload is not None:
+            ex = s.extra
+            payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
+                         tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
+    if recovering is not None:  # the mission ended with the link still down: the vehicle is lost
+        recovering.cancel()
+        raise LinkLost(f"crazyflie {ids[0]} ({plant.spec.uri}): the link was still down at the mission's end")

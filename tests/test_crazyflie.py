@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("cflib.crtp")
 
-from tests import support  # noqa: E402
+from tests import factories, support  # noqa: E402
 from tests.support import read, wait_until  # noqa: E402
 from sim import metrics  # noqa: E402
 from tether import mission as ms  # noqa: E402
@@ -165,3 +165,57 @@ def test_ctrl_c_lands_every_vehicle(tmp_path: Path) -> None:
         for i in range(1, 5):
             text = (logs / f"plant-{i}.log").read_text()
             assert "landing" in text and "not done" not in text, text[-1500:]
+
+
+def test_a_frozen_vehicle_link_is_recovered_and_the_vehicle_never_falls(tmp_path: Path) -> None:
+    """SIGSTOP the software Crazyflie for 3 s mid-flight, then SIGCONT: the plant must not give
+    up; it gets the link back, flies on, and lands the vehicle at the end. Judged on the simulator's
+    own record of the vehicle (``--trace``): never locked, never a free fall, motors off on the ground."""
+    port = BASE_PORT + 40  # (test_plants uses BASE_PORT + 30)
+    trace = tmp_path / "trace.txt"
+    m = factories.build({
+        "version": 1, "name": "cffreeze", "dim": 3, "rate": 50.0, "duration": 14.0,
+        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
+        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
+        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
+                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}", "takeoff_height": 1.0}}],
+        "edges": [{"from": 2, "to": 1, "weight": 1.0}]})
+    path = tmp_path / "cffreeze.toml"
+    path.write_text(ms.dumps(m))
+    out = tmp_path / "run"
+    with support.software_crazyflies(["--count", "1", "--base-port", str(port), "--instance", "40",
+                                      "--p0=0,0,0", "--trace", str(trace)]) as sim:
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--clock",
+                                 "realtime", "--lease", "1", "--quiet"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            epoch = wait_until(lambda: tick0(out / "logs" / "plant-1.log"), 90, "the run's start")
+            wait_until(lambda: time.time() >= epoch + 4.0 or proc.poll() is not None, 30, "4 s of flight")
+            sim.proc.send_signal(signal.SIGSTOP)
+            frozen = time.monotonic()
+            wait_until(lambda: time.monotonic() >= frozen + 3.0, 10, "3 s frozen")
+            sim.proc.send_signal(signal.SIGCONT)
+            _, err = proc.communicate(timeout=120)
+        finally:
+            sim.proc.send_signal(signal.SIGCONT)
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 0, err[-3000:]
+    log = (out / "logs" / "plant-1.log").read_text()
+    assert re.search(r"link back by itself|reconnected", log), log[-3000:]
+    rows = np.loadtxt(trace, dtype=object)
+    z = rows[:, 4].astype(float)
+    vz = rows[:, 7].astype(float)
+    thrust = rows[:, 8].astype(float)
+    sup = rows[:, 9].astype(str)
+    weight = 0.029 * 9.81
+    assert "locked" not in set(sup), "the firmware's watchdog cut the motors"
+    airborne = z > 0.1
+    assert airborne.sum() > 500  # it flew (> 5 s above 10 cm)
+    assert np.min(thrust[airborne]) > 0.3 * weight, "motors (nearly) off in the air"
+    assert np.min(vz) > -2.0, f"fell at {np.min(vz):.2f} m/s"  # the landing peaks at 1.2; a free fall from 1 m: 4.4
+    assert z[-1] <= 0.05 and thrust[-1] < 0.01 * weight  # landed, motors off (spinning down)
+    run = Run.load(out)
+    flew = np.isfinite(run.p[:, 0, 2])
+    assert np.nanmax(run.p[run.t >= 9.0, 0, 2]) > 0.8  # flying again after the freeze
+    assert flew.mean() > 0.6

@@ -104,6 +104,7 @@ def test_the_crazyflie_plant_keeps_the_contract() -> None:
         base.build(m)  # never inside a simulator
     with software_crazyflies([port], [(0.0, 0.0, 0.0)]):
         (plant,) = base.build(m, [1], live=True)
+        plant.open()  # build leaves a real vehicle unconnected (opening blocks)
         try:
             assert isinstance(plant, base.Plant) and plant.ids == (1,)
             s = plant.state()

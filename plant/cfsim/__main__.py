@@ -47,6 +47,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="start position [m] of the next vehicle; give it once per vehicle")
     ap.add_argument("--spacing", type=float, default=0.5,
                     help="without --p0: vehicle i starts at (i * spacing, 0, 0) [m] (default 0.5)")
+    ap.add_argument("--trace", default=None, metavar="FILE",
+                    help="record every vehicle's true state per 10 ms tick in FILE (k instance x y z vx vy vz "
+                         "thrust supervisor)")
     ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = ap.parse_args(argv)
     if args.count < 1:
@@ -70,6 +73,7 @@ def config(args: argparse.Namespace) -> server.SimConfig:
             for i, p0 in enumerate(starts)
         ),
         host=args.host,
+        trace=args.trace,
     )
 
 

@@ -21,6 +21,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TextIO
 
 import numpy as np
 
@@ -56,6 +57,8 @@ class SimConfig:
     """Log packets stop [s] after the client was last heard from."""
     max_lag: float = 0.25
     """Largest backlog [s] the ticker catches up on; beyond it simulated time skips."""
+    trace: str | None = None
+    """File to record every vehicle's true state in, one line per vehicle and tick (see :class:`Ticker`)."""
 
 
 class Endpoint(asyncio.DatagramProtocol):
@@ -113,6 +116,10 @@ class Ticker:
     k: int = 0
     slips: int = 0
     """How often simulated time skipped ahead because the process fell too far behind."""
+    trace: TextIO | None = None
+    """Where to record, after each tick, ``k instance x y z vx vy vz thrust supervisor`` per vehicle:
+    tick, position [m] and velocity [m/s] (world frame), collective motor thrust [N] and the
+    supervisor's state (``plant.cfsim.firmware.SupState`` value)."""
 
     async def run(self) -> None:
         """Tick forever (until cancelled)."""
@@ -125,6 +132,11 @@ class Ticker:
                 log.warning("fell %.3f s behind real time; skipped ahead", late)
             for ep in self.endpoints:
                 ep.publish(ep.fw.tick())
+                if self.trace is not None:
+                    fw = ep.fw
+                    q = fw.quad
+                    self.trace.write(f"{fw.k} {fw.cfg.instance} {' '.join(f'{c:.5f}' for c in (*q.p, *q.v))} "
+                                     f"{float(q.motor_thrusts.sum()):.5f} {fw.supervisor_state.value}\n")
 
 
 async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
@@ -134,6 +146,7 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
     left open then)."""
     loop = asyncio.get_running_loop()
     endpoints: list[Endpoint] = []
+    trace: TextIO | None = None
     try:
         for v in cfg.vehicles:
             quad = Quadrotor(cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
@@ -142,9 +155,12 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
             endpoints.append(ep)
         if on_ready is not None:
             on_ready([(v.firmware.instance, f"udp://{cfg.host}:{v.port}") for v in cfg.vehicles])
-        ticker = Ticker(endpoints, RealtimeClock(PERIOD, monotonic(), monotonic), cfg.max_lag)
+        trace = open(cfg.trace, "w", encoding="utf-8") if cfg.trace else None  # noqa: SIM115 (closed below)
+        ticker = Ticker(endpoints, RealtimeClock(PERIOD, monotonic(), monotonic), cfg.max_lag, trace=trace)
         await ticker.run()
     finally:
+        if trace is not None:
+            trace.close()
         for ep in endpoints:
             if ep.transport is not None:
                 ep.transport.close()

@@ -1,0 +1,100 @@
+"""What a simulated vehicle does once its watchdog says LANDED or ESTOP: ground contact and motors
+off, which the plant models themselves do not have. Pure.
+
+:class:`Resting` wraps any :class:`plant.base.Plant` and takes the watchdog's modes with each
+step (``docs/watchdog.md``):
+
+=========  ==================================================================================
+FLYING,    the command is passed through untouched: while every vehicle flies, the wrapper is
+HOLD       transparent, bit for bit (the plant process and the in-process engine then fly the
+           same arithmetic)
+LAND       the command is passed through; 3D: a vehicle that reaches ``ground`` rests there
+           (the landing law may overshoot it by millimetres; the ground does not let it)
+LANDED     the vehicle rests where it touched down: its reported position is frozen there
+           (3D: not below ``ground``), its velocity and acceleration are zero
+ESTOP      motors off. 3D: the vehicle falls, commanded ``u = (0, 0, -g)`` (what lost thrust
+           is: the double integrator falls at g, a quadrotor's Eq. 4 gives zero thrust), until
+           it reaches ``ground``, where it rests (position clamped to the ground, velocity zero).
+           2D: no vertical axis, so it stops where it is.
+=========  ==================================================================================
+
+A resting vehicle's model is still stepped (with a zero command) but no longer reported: the
+ground holds the vehicle, not the model. In a payload world the cables' pull on a resting vehicle
+is ignored (it is on the ground), while the payload still feels the model's vehicle: a limitation
+of this first ground model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from plant.base import Plant, Sample
+from plant.vehicle import G
+from tether.wire import ESTOP, LAND, LANDED
+
+
+class Resting:
+    """``inner`` with ground contact and motors-off for LANDED and ESTOP vehicles (module docstring)."""
+
+    def __init__(self, inner: Plant, dim: int, ground: float, g: float = G):
+        self.inner = inner
+        self.ids = inner.ids
+        self._dim = dim
+        self._ground = ground
+        self._g = g
+        self._rest: dict[int, np.ndarray] = {}
+        """Row -> rest position [m]."""
+
+    def resting(self, row: int) -> bool:
+        """Vehicle ``row`` is at rest on the ground (or stopped, 2D)."""
+        return row in self._rest
+
+    def _settle(self, row: int, p: np.ndarray) -> None:
+        p = np.array(p, dtype=float)
+        if self._dim == 3:
+            p[-1] = max(p[-1], self._ground)
+        self._rest[row] = p
+
+    def state(self) -> Sample:
+        s = self.inner.state()
+        if not self._rest:
+            return s
+        p, v, a = s.p.copy(), s.v.copy(), s.a.copy()
+        for row, rest in self._rest.items():
+            p[row], v[row], a[row] = rest, 0.0, 0.0
+        return Sample(p, v, a, s.d, s.extra)
+
+    def step(self, u: np.ndarray, modes: Sequence[int] | None = None) -> None:
+        """Advance one period with ``u`` ``(n, d)`` [m/s^2] for vehicles in FLYING, HOLD or LAND and
+        what LANDED and ESTOP mean for the others (``modes``: one code of
+        :data:`tether.wire.MODES` per vehicle; None: all flying)."""
+        if modes is None or all(mode not in (LAND, LANDED, ESTOP) for mode in modes):
+            if not self._rest:
+                self.inner.step(u)
+                return
+        u = np.array(u, dtype=float)
+        falling: list[int] = []
+        now = self.inner.state()
+        for row, mode in enumerate(modes if modes is not None else [0] * len(self.ids)):
+            if row in self._rest:
+                u[row] = 0.0
+            elif mode == LANDED or (mode == ESTOP and (self._dim < 3 or now.p[row, -1] <= self._ground)):
+                self._settle(row, now.p[row])
+                u[row] = 0.0
+            elif mode == ESTOP:
+                u[row] = 0.0
+                u[row, -1] = -self._g
+                falling.append(row)
+            elif mode == LAND and self._dim == 3:
+                falling.append(row)  # descending onto the ground: contact stops it there
+        self.inner.step(u)
+        if falling:
+            after = self.inner.state()
+            for row in falling:
+                if after.p[row, -1] <= self._ground:
+                    self._settle(row, after.p[row])
+
+    def close(self) -> None:
+        self.inner.close()
