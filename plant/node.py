@@ -99,7 +99,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
             for aid, src, dog in zip(ids, cmds, dogs):
                 msg = await node.sample(src, k - 1)
                 if msg is not None:
-                    dog.offer(msg.u, msg.t, msg.k, k)
+                    dog.offer(msg.u, msg.t, msg.k, k, msg.mode)
                 r = ids.index(aid)
                 d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
                 for ev in d.events:

@@ -13,6 +13,8 @@ after the cut-off a vehicle lands instead of falling (``docs/watchdog.md``)::
       +--------- a valid command comes back -----+
     operator "land":  FLYING/HOLD -> LAND at once, never back to FLYING
     operator "estop": any mode -> ESTOP at once (motors off), terminal
+    the agent's own command says LANDED (its supervisor has landed it) -> LANDED (rest, disarmed);
+      ESTOP -> ESTOP (motors off)
     no own measurement (a real vehicle's link is down): FLYING -> HOLD; once it is back,
       -> FLYING if a valid command is fresh (the agent has resumed), else -> LAND at once
 
@@ -90,6 +92,8 @@ class Watchdog:
     _t: float = -math.inf
     _seq: tuple[int, float] | None = None
     _operator_land: bool = False
+    _agent_mode: int = FLYING
+    """The mode the newest valid command carries (its agent's supervisor's)."""
     _blind: bool = False
     """HOLD began, or went on, without a measurement."""
 
@@ -109,9 +113,10 @@ class Watchdog:
     def _reject(self, reason: str) -> None:
         self.invalid[reason] = self.invalid.get(reason, 0) + 1
 
-    def offer(self, u: np.ndarray | list[float] | None, stamp: float, k: int, k_now: int) -> bool:
+    def offer(self, u: np.ndarray | list[float] | None, stamp: float, k: int, k_now: int,
+              mode: int = FLYING) -> bool:
         """Consider the newest command: ``u`` [m/s^2] stamped ``stamp`` [s] for tick ``k``, seen at
-        the plant's tick ``k_now``. Returns whether it is valid (and so the newest valid one). The
+        the plant's tick ``k_now``, with its agent's supervisor ``mode``. Returns whether it is valid (and so the newest valid one). The
         same command offered again is neither counted nor taken twice."""
         if u is None:
             return False
@@ -133,7 +138,7 @@ class Watchdog:
             return False
         if stamp < self._t:
             return False  # older than the newest valid command (reordered)
-        self._u, self._t = u, stamp
+        self._u, self._t, self._agent_mode = u, stamp, mode
         return True
 
     def step(self, t: float, p: np.ndarray | None, v: np.ndarray | None, operator: str | None = None) -> Decision:
@@ -151,6 +156,10 @@ class Watchdog:
         measured = p is not None and v is not None
         if operator == "estop":
             go(ESTOP, "operator estop")
+        elif self._agent_mode == ESTOP:
+            go(ESTOP, "agent estop")
+        elif self._agent_mode == LANDED and self.mode != LANDED and self.age(t) <= s.cmd_timeout:
+            go(LANDED, "agent landed")
         elif operator == "land" and not self._operator_land:
             self._operator_land = True
             if self.mode in (FLYING, HOLD):

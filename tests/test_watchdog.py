@@ -212,3 +212,15 @@ def test_landed_rests_where_it_touched_down_and_2d_estop_stops() -> None:
     veh2.step(np.zeros((1, 2)), [ESTOP])
     veh2.step(np.zeros((1, 2)), [ESTOP])
     assert np.array_equal(veh2.state().p, p0) and not np.any(veh2.state().v)
+
+
+@pytest.mark.parametrize("agent_mode, want", [(LANDED, LANDED), (ESTOP, ESTOP)])
+def test_the_agents_supervisor_mode_rides_on_its_command(agent_mode: int, want: int) -> None:
+    """An agent whose supervisor has landed (or stopped) its vehicle says so in its command: the
+    plant rests (or cuts its motors) at once, without waiting for its own timeouts."""
+    dog = Watchdog(SAFETY, 3)
+    assert dog.offer([0.0, 0.0, 0.0], 0.0, 0, 1, FLYING)
+    assert dog.step(H, np.zeros(3), np.zeros(3)).mode == FLYING
+    assert dog.offer([0.0, 0.0, 0.0], H, 1, 2, agent_mode)
+    d = dog.step(2 * H, np.zeros(3), np.zeros(3))
+    assert d.mode == want and not d.u.any() and d.events[-1].reason.startswith("agent")
