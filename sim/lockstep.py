@@ -39,6 +39,7 @@ import numpy as np
 from agent.tick import AgentTick, Heard
 from leader import profile
 from plant import base as plants
+from plant.rest import Resting
 from tether import wire
 from tether.inputs import Source
 from tether.mission import Mission
@@ -80,7 +81,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     lid = m.leader.id
     ref = profile.build(m.leader, d)
     ticks = [AgentTick.from_mission(m, i) for i in ids]
-    hosts = plants.build(m)
+    # each plant rests on the ground or cuts its motors when its agent's supervisor says so, as the
+    # plant process's watchdog does (transparent while every vehicle flies)
+    hosts = [Resting(host, d, m.safety.ground) for host in plants.build(m)]
     row_of = {aid: (h, r) for h in hosts for r, aid in enumerate(h.ids)}
     order = [row_of[aid] for aid in ids]
     net = m.netem
@@ -144,9 +147,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 run.xi[r, i], run.zeta[r, i], run.kp[r, i], run.kv[r, i] = out.xi, out.zeta, out.kp, out.kv
                 run.d[r, i] = dist[i]
                 # the one place this engine records a safety mode: the agent's supervisor, and the
-                # plant's command watchdog (the in-process plants follow every command)
+                # plant's command watchdog (the in-process plants follow every command, and rest or
+                # cut their motors with their agent, as Command.mode makes the plant process do)
                 run.safety.safety_mode[r, i] = out.mode
-                run.safety.plant_mode[r, i] = wire.FLYING
+                run.safety.plant_mode[r, i] = out.mode if out.mode in (wire.LANDED, wire.ESTOP) else wire.FLYING
         if keep:
             run.t[r] = t
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp, lv, la
@@ -163,7 +167,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         if k == steps:
             break
         for host in hosts:
-            host.step(np.array([us[ids.index(aid)] for aid in host.ids]))
+            rows = [ids.index(aid) for aid in host.ids]
+            host.step(np.array([us[i] for i in rows]), [ticks[i].supervisor.mode for i in rows])
         if progress is not None and k % every == 0:
             progress(k, steps)
     if progress is not None:
