@@ -30,9 +30,7 @@ network (``tests/test_partition.py``).
 Failures (real time): a process that dies, or freezes (its liveliness token vanishes while its
 process still exists), is reported once (who, when, what) and the others keep running: the recording
 goes on until every surviving vehicle reports LANDED or ESTOP (``Telemetry.mode``,
-``PlantState.mode``), the mission ends, or a bound passes (``safety.land_after +
-safety.cmd_cutoff`` + the descent + 3 s after the first failure), and then the survivors are
-stopped. In lockstep a dead process stalls the tick clock: the run is stopped then, naming it.
+``PlantState.mode``) or the mission ends (``LaunchOptions.settle_timeout`` can bound it further). In lockstep a dead process stalls the tick clock: the run is stopped then, naming it.
 The first Ctrl-C of a real-time run publishes ``land`` on the control key
 (``tether/<ns>/control/0/safety``), waits for every vehicle to report LANDED (bounded by the descent
 + 3 s; 2 s when no vehicle leaves FLYING at all), then stops everything; a second Ctrl-C stops
@@ -123,8 +121,9 @@ class LaunchOptions:
     faults: tuple[Fault, ...] = ()
     """Faults to inject (``--fault``; ``deploy/faults.py``, ``deploy/inject.py``)."""
     settle_timeout: float | None = None
-    """Real time: after the first failure, how long the survivors get to land before they are
-    stopped [s]; None: ``safety.land_after + safety.cmd_cutoff`` + the descent + 3 s."""
+    """Real time: after the first failure, how long the survivors get before they are stopped [s];
+    None: until every vehicle has landed or the mission ends (a failsafe that recovers, e.g. an
+    agent starved of CPU for half a second, does not cut the run short)."""
     land_timeout: float | None = None
     """Real time: after the first Ctrl-C's land order, how long to wait for LANDED [s]; None: the
     descent from the highest start at ``safety.land_speed`` + 3 s."""
@@ -272,17 +271,6 @@ def check_faults(mission: ms.Mission, opts: LaunchOptions, members: list[tuple[s
     return out
 
 
-def _settle_bound(m: ms.Mission) -> float:
-    """After the first failure, how long [s] the survivors get to hold and land before the run is
-    stopped: the supervisor's hold-then-land delay, the plants' command cut-off, the descent from
-    the highest start at the landing speed, and 3 s to spare."""
-    sf = m.safety
-    descent = 0.0
-    if m.dim == 3:
-        descent = max(a.p0[-1] - sf.ground for a in m.agents) / sf.land_speed
-    return sf.land_after + sf.cmd_cutoff + max(0.0, descent) + 3.0
-
-
 def _land_bound(m: ms.Mission) -> float:
     """After an operator's land (first Ctrl-C), how long [s] to wait for every vehicle to report
     LANDED: the descent from the highest start at the landing speed and 3 s to spare."""
@@ -419,7 +407,7 @@ async def _realtime(launch: Launch, session, progress: Progress | None, sup: Sup
     end = epoch + m.duration
     settle_by: float | None = None
     start_checked = False
-    settle = o.settle_timeout if o.settle_timeout is not None else _settle_bound(m)
+    settle = o.settle_timeout
 
     def live() -> set[str]:
         return {c.name for c in launch.children if c.proc.poll() is None}
@@ -441,14 +429,16 @@ async def _realtime(launch: Launch, session, progress: Progress | None, sup: Sup
             break
         trouble = [e for e in mon.events if e.what in inject.LOST or e.what in inject.FAILSAFE]
         if trouble and settle_by is None and now < end:
-            settle_by = min(now + settle, end + EXIT_GRACE)
-            log.warning("%s: the survivors carry on; the run ends when every vehicle has landed, at the "
-                        "mission's end, or in %.1f s at the latest", trouble[0].line().strip(), settle_by - now)
+            # a transient failsafe (an agent starved of CPU for half a second) must not cut the run
+            # short: the survivors fly on to the mission's end unless they have all settled
+            settle_by = min(now + settle, end + EXIT_GRACE) if settle is not None else end + EXIT_GRACE
+            log.warning("%s: the survivors carry on; the run ends when every vehicle has landed or at the "
+                        "mission's end (in %.1f s at the latest)", trouble[0].line().strip(), settle_by - now)
         if settle_by is not None and now < end and mon.vehicles_settled(live()):
             log.info("every surviving vehicle has landed or stopped: ending the run")
             sup.stopped_by_us = True
             break
-        if settle_by is not None and now >= settle_by:
+        if settle is not None and settle_by is not None and now >= settle_by:
             log.warning("the survivors had %.1f s after the first failure: stopping them", settle)
             sup.stopped_by_us = True
             break

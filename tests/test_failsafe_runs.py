@@ -119,3 +119,37 @@ def test_a_forged_far_leader_sample_is_rejected_and_changes_no_command(tmp_path:
     assert np.all(jumps >= 1), jumps
     assert not run.safety.events
     assert np.nanmax(np.abs(run.u)) < 5.0 and np.nanmax(np.linalg.norm(run.xi, axis=-1)) < 2.0
+
+
+def test_a_frozen_leader_holds_those_that_hear_it_and_they_fly_on_when_it_is_back(tmp_path: Path) -> None:
+    r, run, out = fly(tmp_path, f"freeze:leader@{FAULT_AT}+1.5")
+    assert r.returncode == 4, r.stderr[-3000:]  # a process froze
+    fired = json.loads((out / "faults.json").read_text())[0]["fired"]
+    h = 1.0 / run.meta.rate
+    k0 = int(round(fired / h))
+    for vehicle in (1, 3):  # they hear the leader
+        c = column(run, vehicle)
+        hold = first_tick(run.safety.safety_mode[:, c], {HOLD}, k0)
+        assert hold is not None and (hold - k0) * h < 0.5 + 0.2, (vehicle, hold, k0)  # leader_timeout
+        back = first_tick(run.safety.safety_mode[:, c], {FLYING}, hold)
+        assert back is not None, f"agent {vehicle} did not fly on after the leader came back"
+        assert not any(e.vehicle == vehicle and e.dst in (LAND, LANDED) for e in run.safety.events)
+    # nobody strayed while the leader was away
+    assert run.runtime is not None
+    xi = np.linalg.norm(run.xi[k0:], axis=-1)
+    assert np.nanmax(xi) < 1.0
+
+
+def test_a_partitioned_agent_is_dropped_by_those_who_can_do_without_and_its_plant_lands(tmp_path: Path) -> None:
+    r, run, out = fly(tmp_path, f"partition:agent/2@{FAULT_AT}+3")
+    assert r.returncode == 4, r.stderr[-3000:]  # a process was cut off
+    fired = json.loads((out / "faults.json").read_text())[0]["fired"]
+    h = 1.0 / run.meta.rate
+    k0 = int(round(fired / h))
+    drops = [e for e in run.safety.events if e.vehicle == 3 and "edge dropped" in e.reason]
+    assert drops and drops[0].t - fired < 1.0 + 1.5, drops  # neighbour_timeout (or the lease)
+    c2 = column(run, 2)
+    hold = first_tick(run.safety.plant_mode[:, c2], {HOLD, LAND, LANDED}, k0)
+    assert hold is not None and (hold - k0) * h <= 0.5 + 3 * h  # cmd_timeout: its agent's commands stopped
+    assert first_tick(run.safety.plant_mode[:, c2], {LAND, LANDED}, hold) is not None  # cut beyond cmd_cutoff
+    assert min_separation(run, slice(k0, None)) > 0.3

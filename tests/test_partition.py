@@ -84,10 +84,13 @@ def first_line(text: str, pattern: str, after: float = -math.inf) -> str | None:
 def mission(tmp: Path) -> Path:
     """Section 4 as shipped (its disturbances included), for ``DURATION`` seconds. While cut off,
     agents 3 and 4 hear nobody: each counts its neighbour in formation and not accelerating
-    (``agent.law.neighbour_sample``), commands ``u = 0`` and coasts under its disturbance, so
-    there is something to recover from."""
+    (``agent.law.neighbour_sample``), and once the neighbour is lost (``safety.neighbour_timeout``)
+    and the leader no longer reaches it, its supervisor holds. ``land_after`` is set beyond the
+    run here so that they hold through the cut and rejoin after it (with the default 2 s they
+    would land, which ``tests/test_failsafe_runs.py`` shows)."""
     m = ms.load(builtin_path("section4"))
-    m = msgspec.structs.replace(m, name="partition", duration=DURATION)
+    m = msgspec.structs.replace(m, name="partition", duration=DURATION,
+                                safety=msgspec.structs.replace(m.safety, land_after=10 * DURATION))
     assert not ms.validate(m)
     path = tmp / "partition.toml"
     path.write_text(ms.dumps(m))
@@ -229,7 +232,8 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
             # --------------------------------------------------------------- the end: everyone ended well
             status = launcher.wait(DURATION + 60.0)
             text = read(launcher_log)
-            assert status == 0, text[-4000:]
+            assert status == 4, text[-4000:]  # a process was cut off: the documented status
+            assert re.search(rf"agent/{OUT_NEIGHBOUR} +failsafe: mode FLYING -> HOLD", text), text[-4000:]
             exits = dict(re.findall(r"launcher: (\S+/\d+)\s+exit (-?\d+)", text))
             assert len(exits) == 10 and set(exits.values()) == {"0"}, exits
             seen = telemetry.snapshot()
