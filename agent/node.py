@@ -3,24 +3,30 @@
 Its plant's measurement is relayed as agent i's state (what its out-neighbours use) as soon as it
 arrives, stamped with the measurement's own tick and sample time. Tick k: take the plant's
 measurement of tick k and each in-neighbour's state of tick k (lockstep: exactly those; real
-time: the newest held), run :meth:`agent.law.AgentLaw.step`, publish the command to its plant and
-telemetry. In real time the agent ticks half a period after its plant and the leader
+time: the newest held), run the agent's tick (:meth:`agent.tick.AgentTick.step`: the law, then the
+safety supervisor, then collision avoidance when the mission asks for it), publish the command to
+its plant and telemetry. Every sample passes the plausibility gate (:mod:`agent.gate`) before it is
+stored; the operator's orders arrive on ``control/0/safety``. In real time the agent ticks half a period after its plant and the leader
 (``AGENT_PHASE``), so that the tick-k samples are usually in by then.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from agent.gate import Gate, merged
 from agent.safety import Status
 from agent.tick import AgentTick, Heard
+from leader import profile
 from netem import control as netem_control
 from tether import transport as tp
 from tether import wire
 from tether.inputs import Source
+from tether.mission import CrazyfliePlant, Mission
 from tether.node import Node
 
 log = logging.getLogger("tether")
@@ -41,14 +47,22 @@ async def run(node: Node) -> None:
         state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist())
 
     sf = m.safety
-    initial = {a.id: list(a.p0) for a in m.agents} | {m.leader.id: list(m.leader.p0)}
+    initial = _initial_positions(m)
     gates: list[Gate] = []
 
-    def gate(sender: int) -> Gate:
+    def gate(sender: int) -> Callable[[Any], str | None]:
         g = Gate(m.dt, sf.max_speed, sf.jump_margin, initial[sender],
                  future_window=sf.future_window, now=None if node.clock.lockstep else node.mission_time)
         gates.append(g)
-        return g
+
+        def admit(msg: Any) -> str | None:
+            why = g.check(msg)
+            if why is not None and g.rejected[why] in (1, 10, 100, 1000):  # say so, without flooding the log
+                log.warning("gate: sample of %d for tick %d rejected (%s), %d so far", sender, msg.k, why,
+                            g.rejected[why])
+            return why
+
+        return admit
 
     operator: list[str] = []
     """The operator's orders received (``land``, ``estop``), in order."""
@@ -60,7 +74,7 @@ async def run(node: Node) -> None:
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
     plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
-    plant.admit = gate(aid).check
+    plant.admit = gate(aid)
     node.watch("plant", aid, plant)
     if m.netem is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
@@ -70,7 +84,7 @@ async def run(node: Node) -> None:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
         src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel)
-        src.admit = gate(j).check
+        src.admit = gate(j)
         node.watch(role, j, src)
         nbrs.append(src)
         if channel is not None:
@@ -83,7 +97,7 @@ async def run(node: Node) -> None:
         for j in m.agent_ids:
             if j != aid and j not in law.neighbours:
                 src = node.source(keys.topic("agent", j, "state"), wire.State, j)
-                src.admit = gate(j).check
+                src.admit = gate(j)
                 proximity.append(src)
     vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]
     netem_control.serve(node)
@@ -149,6 +163,19 @@ async def run(node: Node) -> None:
                   xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
                   gate=merged(gates))
+
+
+def _initial_positions(m: Mission) -> dict[int, list[float]]:
+    """Where each sender is at t = 0, the plausibility gate's first reference: an agent's ``p0``
+    (raised by its take-off height for a Crazyflie, which takes off before tick 0), the leader's
+    profile at 0 (its first waypoint when it has waypoints)."""
+    out = {m.leader.id: profile.build(m.leader, m.dim)(0.0)[0].tolist()}
+    for a in m.agents:
+        p = list(a.p0)
+        if isinstance(a.plant, CrazyfliePlant):
+            p[-1] += a.plant.takeoff_height
+        out[a.id] = p
+    return out
 
 
 def _order(orders: list[str]) -> str | None:
