@@ -62,9 +62,11 @@ def main() -> None:
     def law_only(k: int) -> None:
         law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
 
+    fresh = AgentTick.from_mission(m, aid)  # the full tick on its own state
+
     def full_tick(k: int) -> None:
         t = k * h
-        tick.step(k, t, p, v, a, [(t, hp, hv, ha) for _, hp, hv, ha in heard], NOMINAL)
+        fresh.step(k, t, p, v, a, [(t, hp, hv, ha) for _, hp, hv, ha in heard], NOMINAL)
 
     gate = Gate(h, m.safety.max_speed, m.safety.jump_margin, p.tolist())
     msgs = [wire.State(sender=1, seq=k, k=k, t=k * h, p=p.tolist(), vel=v.tolist(), a=a.tolist()) for k in range(256)]
@@ -79,8 +81,8 @@ def main() -> None:
         filter_command(np.ones(d), p, v, near, 0.3, 2.0, 1.0, 2.0)
 
     for n in range(nb):
-        for _ in range(500):
-            tick.windows[n].append(0.0)
+        for j in range(500):
+            tick._remember(n, 0.001 * (j % 37))
 
     def percentiles(k: int) -> None:
         for n in range(nb):
