@@ -132,9 +132,8 @@ class AgentTick:
             nb_a[:] = 0.0
         sup = self.supervisor
         lost, reachable, leader_silent = sup.links(k, t, ages, status)
-        law = self._laws.get(lost)
-        if law is None:
-            law = self._laws[lost] = self.law.without(lost)
+        cached = self._laws.get(lost)
+        law = cached if cached is not None else self._laws.setdefault(lost, self.law.without(lost))
         u_law, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, self.kp, self.kv)
         u = sup.command(k, t, p, v, u_law, xi, self.kp, self.kv, reachable, leader_silent, status)
         av = sup.cfg.avoid

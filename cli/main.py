@@ -9,13 +9,22 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 import sys
+from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 from tether import catalog
 from tether import mission as ms
 from tether.progress import Progress
+
+if TYPE_CHECKING:  # each subcommand imports what it runs
+    from tether.node import Node, NodeArgs
+    from tether.transport import ZenohSettings
+
+T = TypeVar("T")
 
 
 def _load(arg: str) -> ms.Mission:
@@ -131,7 +140,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _zenoh_settings(args: argparse.Namespace):
+def _zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
     """The Zenoh settings of ``--zenoh-config FILE``, or of --zenoh-mode/--listen/--connect/--lease/
     --connect-timeout. Raises SettingsError naming the field."""
     from tether import transport as tp
@@ -148,16 +157,17 @@ def _zenoh_settings(args: argparse.Namespace):
     return settings
 
 
-def _node_args(args: argparse.Namespace, role: str, node_id: int):
+def _node_args(args: argparse.Namespace, role: str, node_id: int) -> NodeArgs:
     from tether.node import NodeArgs
 
     settings = _zenoh_settings(args)
     return NodeArgs(mission_path=catalog.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
                     zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
-                    duration=args.duration)
+                    duration=args.duration, start_timeout=args.start_timeout)
 
 
-def _serve(args: argparse.Namespace, role: str, node_id: int, body, on_stop=None) -> int:
+def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[Node], Awaitable[None]],
+           on_stop: Callable[[Node], None] | None = None) -> int:
     import asyncio
 
     from tether.node import serve, setup_logging
@@ -322,9 +332,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     return asyncio.run(local.run(path, opts))
 
 
-def _vehicle_option(parse, example: str):
+def _vehicle_option(parse: Callable[[str], T], example: str) -> Callable[[str], tuple[int, T]]:
     """An argparse type for ``ID=VALUE``: ``(int(ID), parse(VALUE))``."""
-    def convert(text: str):
+    def convert(text: str) -> tuple[int, T]:
         nid, sep, value = text.partition("=")
         try:
             if not sep:
@@ -348,12 +358,26 @@ def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
 
 
+def _positive_seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a number of seconds > 0, e.g. 120")
+    return value
+
+
 def _process_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mission", required=True)
     p.add_argument("--clock", choices=["lockstep", "realtime"], default="realtime")
     p.add_argument("--ns", default=None, help="key namespace (default: the mission name)")
     p.add_argument("--stall-timeout", type=float, default=30.0, help="lockstep: fail after waiting this long [s]")
     p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is gone")
+    p.add_argument("--start-timeout", type=_positive_seconds, default=None,
+                   help="fail (exit 1) when the start message has not come this long after the process is "
+                        "ready [s]; default: wait for ever (a service waiting for its operator's start)")
     p.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
     p.add_argument("--log-level", default="INFO")
     _zenoh_options(p)

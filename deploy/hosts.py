@@ -34,7 +34,7 @@ HOSTS_VERSION = 1
 Network = Literal["client", "peer"]
 
 
-class Host(Strict):
+class Host(Strict, frozen=True):
     """A machine that runs one or more of the mission's processes."""
 
     address: str
@@ -47,18 +47,18 @@ class Host(Strict):
     certificate's name)."""
 
 
-class AgentHost(Host, kw_only=True):
+class AgentHost(Host, kw_only=True, frozen=True):
     """The companion computer of one vehicle: agent ``id`` and its plant."""
 
     id: int
 
 
-class RecorderHost(Host, kw_only=True):
+class RecorderHost(Host, kw_only=True, frozen=True):
     out: str = "/var/lib/tether/runs"
     """Directory the recorder writes ``run.npz`` into, on that host."""
 
 
-class HostsFile(Strict):
+class HostsFile(Strict, frozen=True):
     version: int
     network: Network = "client"
     """``client``: every process is a client of the router (a star; only the router listens).

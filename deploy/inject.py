@@ -158,8 +158,8 @@ class Monitor:
             self.heard.add(name)
             if topic == "state":
                 self.newest[rec.key] = rec.payload
-            mode = getattr(msg, "mode", None)
             if isinstance(msg, wire.Telemetry) or isinstance(msg, wire.PlantState):
+                mode = msg.mode
                 before = self.modes.get(name, wire.FLYING)
                 self.modes[name] = mode
                 if mode != before:
@@ -265,7 +265,7 @@ class Injector:
                                                             f"(asked {x.fault.at:g} s)", t=now)
         wall = time.monotonic()
         for x in self.firings:
-            if x.fired_wall is not None and x.ended is None and x.fault.duration is not None \
+            if x.fired is not None and x.fired_wall is not None and x.ended is None and x.fault.duration is not None \
                     and wall >= x.fired_wall + x.fault.duration:
                 self._end(x)
                 x.ended = x.fired + (wall - x.fired_wall)
@@ -316,7 +316,7 @@ class Injector:
         fields["k"] += 1
         fields["t"] = fields["k"] * m.dt
         fields["p"] = [p + FORGE_OFFSET for p in fields["p"]]
-        msg = msgspec.msgpack.decode(msgspec.msgpack.encode(fields), type=wire.Message)  # well-formed, checked
+        msg = msgspec.msgpack.decode(msgspec.msgpack.encode(fields), type=wire.State | wire.PlantState)  # checked
         self._pubs[key].put(wire.encode(msg))
         x.detail.update({"key": key, "sender": msg.sender, "seq": msg.seq, "k": msg.k, "p": list(msg.p)})
 

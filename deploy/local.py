@@ -66,6 +66,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import zenoh
+
 from deploy import faults as faults_mod
 from deploy import inject
 from deploy.faults import Fault
@@ -93,6 +95,10 @@ class LaunchOptions:
     ns: str | None = None
     startup_timeout: float = 60.0
     """How long to wait for every liveliness token [s]."""
+    start_timeout: float = 120.0
+    """Each child's ``--start-timeout``: a child that has not heard the start this long after it
+    declared its token fails (exit 1) instead of waiting for ever [s]. Longer than
+    ``startup_timeout``, so that only a launcher that is gone or stuck triggers it."""
     stall_timeout: float = 30.0
     """Lockstep: fail when no tick completes for this long [s]."""
     start_lead: float = 1.0
@@ -180,7 +186,8 @@ class Launch:
         for role, nid in self.members():
             cmd = [sys.executable, "-m", "cli", role, "--mission", str(self.mission_path),
                    "--clock", o.clock, "--ns", self.keys.ns, "--parent-pid", str(os.getpid()),
-                   "--stall-timeout", str(o.stall_timeout), "--lease", str(o.lease), "--log-level", o.log_level]
+                   "--stall-timeout", str(o.stall_timeout), "--start-timeout", repr(o.start_timeout),
+                   "--lease", str(o.lease), "--log-level", o.log_level]
             if o.duration is not None:
                 cmd += ["--duration", repr(o.duration)]
             if role in ("agent", "plant"):
@@ -307,7 +314,7 @@ class Supervision:
 def _check_children(launch: Launch, sup: Supervision, lockstep: bool) -> None:
     """Report every child that ended badly (once); in lockstep that stops the run."""
     for c in launch.poll():
-        if c.status == 0:
+        if c.status is None or c.status == 0:
             continue  # ending well early is normal: in lockstep the leader finishes up to `window` ticks first
         why = describe_exit(c.status)
         fault = next((x.fault.text for x in sup.injector.firings
@@ -320,7 +327,7 @@ def _check_children(launch: Launch, sup: Supervision, lockstep: bool) -> None:
         log.warning("%s: the others carry on; its log ends:\n%s", c.name, c.tail())
 
 
-async def _lockstep(launch: Launch, session, progress: Progress | None, sup: Supervision) -> None:
+async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress | None, sup: Supervision) -> None:
     m, o, keys = launch.mission, launch.opts, launch.keys
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
@@ -393,7 +400,7 @@ async def _lockstep(launch: Launch, session, progress: Progress | None, sup: Sup
         pub.undeclare()
 
 
-async def _realtime(launch: Launch, session, progress: Progress | None, sup: Supervision,
+async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress | None, sup: Supervision,
                     interrupted: asyncio.Event) -> bool:
     """Run a real-time mission to its end, or until the survivors of a failure have settled (or
     were given their bound), or until interrupted. Returns True when interrupted."""
@@ -463,7 +470,7 @@ STARTED_WITHIN = 5.0
 """Real time: a process not heard this long after tick 0 is reported as not started [s]."""
 
 
-async def _land_then_stop(launch: Launch, session, sup: Supervision) -> None:
+async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervision) -> None:
     """First Ctrl-C in real time: order every vehicle to land, wait (bounded) for LANDED, return.
     (A second Ctrl-C stops everything at once: :func:`run` cancels this.)"""
     from deploy import operator

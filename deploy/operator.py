@@ -65,14 +65,14 @@ async def publish(session: zenoh.Session, ns: str, msg: wire.SafetyCommand, wait
             await tp.wait_for_subscribers(pub, wait)
         except TimeoutError:
             pass
-        matched = bool(pub.matching_status.matching)
+        matched = tp.has_subscribers(pub)
         payload = wire.encode(msg)
         gap = spread / max(1, repeats - 1)
         for n in range(repeats):
             pub.put(payload)
             if n < repeats - 1:
                 await asyncio.sleep(gap)
-        matched |= bool(pub.matching_status.matching)
+        matched |= tp.has_subscribers(pub)
         await asyncio.sleep(0.1)  # let the last copy leave before the publisher goes
     finally:
         pub.undeclare()

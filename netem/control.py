@@ -76,7 +76,7 @@ async def netem_set(settings: tp.ZenohSettings, ns: str, rule: LinkRule, at: flo
             if reply.ok is not None:
                 body = json.loads(reply.ok.payload.to_bytes())
                 answers.append(Answer(body["node"], body["changed"]))
-            else:
+            elif reply.err is not None:
                 answers.append(Answer(None, [], reply.err.payload.to_string()))
         present = agents_up()
     missing = [i for i in present if i not in {a.node for a in answers} and rule.dst in (None, i)]

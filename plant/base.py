@@ -24,13 +24,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
 from plant import double_integrator
 from plant.disturbance import DisturbanceBank
 from tether import mission as ms
+
+if TYPE_CHECKING:  # loaded only by the plants that use them
+    from plant.quadrotor import Quadrotor
+    from plant.vehicle import PointMass, Vehicle
 
 
 @dataclass
@@ -117,7 +121,7 @@ class DoubleIntegratorPlant:
         pass
 
 
-def _vehicle(m: ms.Mission, aid: int):
+def _vehicle(m: ms.Mission, aid: int) -> PointMass | Quadrotor:
     """The vehicle model of agent ``aid`` (``point_mass`` or ``quadrotor``)."""
     a = m.agent(aid)
     spec = a.plant
@@ -144,7 +148,7 @@ def _yaw(m: ms.Mission, aid: int) -> float:
     return spec.yaw if isinstance(spec, ms.QuadrotorPlant) else 0.0
 
 
-def _attitude(veh) -> np.ndarray:
+def _attitude(veh: Vehicle) -> np.ndarray:
     return np.array(veh.euler()) if hasattr(veh, "euler") else np.zeros(3)
 
 
@@ -187,6 +191,8 @@ class PayloadPlant:
         if sorted(ids) != sorted(m.agent_ids):
             raise ValueError("a payload world hosts every vehicle of the mission")
         pl = m.payload
+        if pl is None:
+            raise ValueError("a payload world needs the mission's [payload] section")
         self.ids = tuple(ids)
         vehicles = [_vehicle(m, i) for i in ids]
         self._yaw = [_yaw(m, i) for i in ids]

@@ -59,6 +59,8 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -114,10 +116,17 @@ class CrazyfliePlant:
             raise ValueError("a crazyflie plant flies one vehicle")
         self.ids = tuple(ids)
         self.agent = m.agent(ids[0])
-        self.spec: ms.CrazyfliePlant = self.agent.plant
+        if not isinstance(self.agent.plant, ms.CrazyfliePlant):
+            raise ValueError(f"agent {ids[0]} does not fly a crazyflie plant")
+        self.spec = self.agent.plant
         self._h = m.dt
         self._lock = threading.Lock()
-        self._pos = self._vel = self._acc = None
+        self._pos: np.ndarray | None = None
+        """Newest position estimate [m; world frame], written by cflib's log thread under ``_lock``."""
+        self._vel: np.ndarray | None = None
+        """Newest velocity estimate [m/s; world frame]."""
+        self._acc: np.ndarray | None = None
+        """Newest acceleration estimate [m/s^2; world frame]."""
         self._fresh = threading.Event()
         self._lost: str | None = None
         self._last_log = -math.inf
@@ -128,7 +137,8 @@ class CrazyfliePlant:
         """The link went down and the vehicle was asked to hold on its own."""
         self.final_position: np.ndarray | None = None
         """Where the vehicle was when the link closed (after landing) [m]."""
-        self.cf = None
+        self.cf: Any = None
+        """``cflib.crazyflie.Crazyflie`` once :meth:`_connect` ran (cflib ships no type information)."""
 
     def open(self) -> "CrazyfliePlant":
         """Connect, start the logs and take off (blocks until airborne; every wait bounded).
@@ -169,7 +179,7 @@ class CrazyfliePlant:
             raise
 
     # ------------------------------------------------------------------ link
-    def _on_lost(self, cf, why: str, ready: threading.Event) -> None:
+    def _on_lost(self, cf: Any, why: str, ready: threading.Event) -> None:
         if cf is not self.cf:
             return  # a closed link's late news
         if self._lost is None:
@@ -212,18 +222,18 @@ class CrazyfliePlant:
             self._fresh.wait(0.05)
         return True
 
-    def _on_pv(self, timestamp: int, data: dict, block) -> None:
+    def _on_pv(self, timestamp: int, data: dict[str, float], block: Any) -> None:
         self._last_log = time.monotonic()
         with self._lock:
             self._pos = np.array([data[f"stateEstimate.{n}"] for n in ("x", "y", "z")], dtype=float)
             self._vel = np.array([data[f"stateEstimate.{n}"] for n in ("vx", "vy", "vz")], dtype=float)
         self._fresh.set()
 
-    def _on_acc(self, timestamp: int, data: dict, block) -> None:
+    def _on_acc(self, timestamp: int, data: dict[str, float], block: Any) -> None:
         with self._lock:
             self._acc = G * np.array([data[f"stateEstimate.{n}"] for n in ("ax", "ay", "az")], dtype=float)
 
-    def _wait_until(self, ready, timeout: float, what: str) -> None:
+    def _wait_until(self, ready: Callable[[], bool], timeout: float, what: str) -> None:
         deadline = time.monotonic() + timeout
         while not ready():
             self._check()
@@ -242,7 +252,18 @@ class CrazyfliePlant:
         self.cf.high_level_commander.takeoff(sp.takeoff_height, sp.takeoff_time)
         self._wait_until(lambda: self._pos is not None and self._pos[2] >= 0.9 * sp.takeoff_height,
                          sp.takeoff_time + 5.0, "take-off")
-        log.info("crazyflie %d: airborne at %s", self.ids[0], np.round(self._pos, 3).tolist())
+        log.info("crazyflie %d: airborne at %s", self.ids[0], np.round(self._position(), 3).tolist())
+
+    def _position(self) -> np.ndarray:
+        """A copy of the newest position estimate; LinkLost if none came yet."""
+        if self._pos is None:
+            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): no state estimate yet")
+        return self._pos.copy()
+
+    def _velocity(self) -> np.ndarray:
+        if self._vel is None:
+            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): no state estimate yet")
+        return self._vel.copy()
 
     # ------------------------------------------------------------------ the protocol
     # ------------------------------------------------------------------ link health
@@ -311,7 +332,7 @@ class CrazyfliePlant:
         if not self.healthy():
             raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): {self._down()}")
         with self._lock:
-            p, v = self._pos.copy(), self._vel.copy()
+            p, v = self._position(), self._velocity()
             a = self._acc.copy() if self._acc is not None else np.zeros(3)
         return Sample(p[None], v[None], a[None], np.full((1, 3), np.nan))
 
@@ -334,7 +355,7 @@ class CrazyfliePlant:
         u = np.asarray(u, dtype=float).reshape(-1)
         if sp.mode == "full_state":
             with self._lock:
-                p, v = self._pos.copy(), self._vel.copy()
+                p, v = self._position(), self._velocity()
             h = self._h
             self.cf.commander.send_full_state_setpoint(
                 (p + v * h + 0.5 * h * h * u).tolist(), (v + u * h).tolist(), u.tolist(),
@@ -377,7 +398,7 @@ class CrazyfliePlant:
                 _drop_link(self.cf)
 
 
-def _drop_link(cf) -> None:
+def _drop_link(cf: Any) -> None:
     """Close ``cf``'s link without cflib's parting ``send_setpoint(0, 0, 0, 0)`` (zero thrust: it
     would cut the motors of a vehicle in flight the moment it is heard) and stop its threads."""
     link = cf.link

@@ -16,7 +16,7 @@ number of control periods), so their increments are exact too.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -42,6 +42,15 @@ class DisturbanceBank:
     phase: np.ndarray
     table: np.ndarray
     hold_ticks: np.ndarray
+    # derived in __post_init__ (not arguments): the sinusoids' increment coefficients and which
+    # models are present
+    _cv_s: np.ndarray = field(init=False, repr=False, compare=False)
+    _cv_c: np.ndarray = field(init=False, repr=False, compare=False)
+    _cp_s: np.ndarray = field(init=False, repr=False, compare=False)
+    _cp_c: np.ndarray = field(init=False, repr=False, compare=False)
+    _has_sine: bool = field(init=False, repr=False, compare=False)
+    _has_random: bool = field(init=False, repr=False, compare=False)
+    _has_const: bool = field(init=False, repr=False, compare=False)
 
     @classmethod
     def from_mission(cls, m: ms.Mission, agent_ids: list[int] | None = None) -> "DisturbanceBank":

@@ -55,7 +55,7 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     (plant,) = base.build(m, ids, live=live)
     if isinstance(plant, CrazyfliePlant):
         await asyncio.to_thread(plant.open)  # connect and take off: seconds, off the event loop
-        vehicle = plant
+        vehicle: Resting | CrazyfliePlant = plant
     else:
         vehicle = Resting(plant, m.dim, m.safety.ground)
     try:
@@ -67,7 +67,7 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
             plant.close()
 
 
-async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
+async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | CrazyfliePlant) -> None:
     m, keys = node.mission, node.keys
     h = m.dt
     cmds = []
@@ -89,6 +89,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
     dogs = [Watchdog(m.safety, m.dim) for _ in ids]
     await node.ready()
+    cf = plant if isinstance(plant, CrazyfliePlant) else None
+    """The real vehicle, the only plant whose link can be lost (LinkLost)."""
     recovering: asyncio.Task[bool] | None = None
     s: base.Sample | None = None
     for k in range(m.steps + 1):
@@ -110,18 +112,20 @@ async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
         try:
             s = plant.state()
         except LinkLost as exc:
+            if cf is None:
+                raise
             s = None
             if recovering is None:
                 log.error("%s", exc)
-                recovering = asyncio.create_task(plant.recover())
-        if recovering is not None and recovering.done():
+                recovering = asyncio.create_task(cf.recover())
+        if cf is not None and recovering is not None and recovering.done():
             if not recovering.result():
                 # say so (the agent sees its plant's token go and holds), keep out of the swarm's
                 # way until the mission's end, then fail
-                log.error("%s: withdrawing from the swarm", plant.spec.uri)
+                log.error("%s: withdrawing from the swarm", cf.spec.uri)
                 node.withdraw()
                 await node.tick(m.steps)
-                raise LinkLost(f"crazyflie {ids[0]} ({plant.spec.uri}): the link did not come back")
+                raise LinkLost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link did not come back")
             recovering = None
         if s is None:
             continue  # nothing measured: nothing to publish
@@ -132,6 +136,6 @@ async def _fly(node: Node, ids: list[int], world: bool, plant) -> None:
             ex = s.extra
             payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
-    if recovering is not None:  # the mission ended with the link still down: the vehicle is lost
+    if cf is not None and recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()
-        raise LinkLost(f"crazyflie {ids[0]} ({plant.spec.uri}): the link was still down at the mission's end")
+        raise LinkLost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")

@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from collections.abc import Sequence
 from typing import Callable, Literal
 
 import numpy as np
@@ -337,7 +338,7 @@ def wrap_angle(a: float) -> float:
 
 
 # ------------------------------------------------------------------------------------- Eq. 4
-def eq4(u: np.ndarray, yaw: float, mass: float, g: float, tilt_max: float,
+def eq4(u: np.ndarray | Sequence[float], yaw: float, mass: float, g: float, tilt_max: float,
         thrust_max: float) -> tuple[float, float, float, bool]:
     """Eq. 4 with saturation: the thrust and attitude that give the world acceleration ``u``.
 
@@ -746,8 +747,9 @@ class Quadrotor:
         p = self.params
         lim = p.z_integrator_limit / p.z_integrator_gain
         if self._v_tick is not None:
-            self._ii = tuple(min(max(i + (ut - (vn - vt) / h) * h, -lim), lim)
-                             for i, ut, vn, vt in zip(self._ii, self._u_tick, v, self._v_tick))
+            ix, iy, iz = (min(max(i + (ut - (vn - vt) / h) * h, -lim), lim)
+                          for i, ut, vn, vt in zip(self._ii, self._u_tick, v, self._v_tick))
+            self._ii = (ix, iy, iz)
         self._v_tick, self._u_tick = v, u
         k = p.z_integrator_gain
         return u[0] + k * self._ii[0], u[1] + k * self._ii[1], u[2] + k * self._ii[2]

@@ -64,7 +64,7 @@ class Resting:
         p, v, a = s.p.copy(), s.v.copy(), s.a.copy()
         for row, rest in self._rest.items():
             p[row], v[row], a[row] = rest, 0.0, 0.0
-        return Sample(p, v, a, s.d, s.extra)
+        return Sample(p, v, a, s.d, s.attitude, s.payload)
 
     def step(self, u: np.ndarray, modes: Sequence[int] | None = None) -> None:
         """Advance one period with ``u`` ``(n, d)`` [m/s^2] for vehicles in FLYING, HOLD or LAND and

@@ -68,9 +68,14 @@ class Vehicle(Protocol):
         v: centre-of-mass velocity, shape ``(3,)`` [m/s; world frame].
     """
 
-    mass: float
-    p: np.ndarray
-    v: np.ndarray
+    @property
+    def mass(self) -> float: ...
+
+    @property
+    def p(self) -> np.ndarray: ...
+
+    @property
+    def v(self) -> np.ndarray: ...
 
     def command(self, u: np.ndarray, yaw: float = 0.0) -> None:
         """Set the desired acceleration ``u`` ``(3,)`` [m/s^2; world frame] and yaw [rad], held until

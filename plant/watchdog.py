@@ -192,14 +192,15 @@ class Watchdog:
             go(LANDED, "on the ground" if self.dim == 3 else "still")
         zero = np.zeros(self.dim)
         if self.mode == FLYING:
-            u = failsafe.saturate(self._u, s.max_accel)
+            u = failsafe.saturate(self._u, s.max_accel) if self._u is not None else None
             u = zero if u is None else u
         elif self.mode in (HOLD, LAND) and measured:
             pa, va = np.asarray(p, dtype=float), np.asarray(v, dtype=float)
+            at = self.p_hold if self.p_hold is not None else pa  # set just above when measured
             if self.mode == HOLD:
-                u = failsafe.hold(pa, va, self.p_hold, s.hold_kp, s.hold_kv, s.max_accel)
+                u = failsafe.hold(pa, va, at, s.hold_kp, s.hold_kv, s.max_accel)
             else:
-                u = failsafe.land(pa, va, self.p_hold, s.hold_kp, s.hold_kv, s.max_accel, s.land_speed, s.ground)
+                u = failsafe.land(pa, va, at, s.hold_kp, s.hold_kv, s.max_accel, s.land_speed, s.ground)
         else:
             u = zero
         return Decision(self.mode, u, tuple(events))

@@ -12,13 +12,14 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import numpy as np
 
 from tether import wire
 from tether.node import Node
-from tether.runfile import DropCounts, Links, Run, RunMeta, RuntimeRecord
+from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
 log = logging.getLogger("tether")
 
@@ -38,19 +39,30 @@ class Recording:
         n, d, T = m.n, m.dim, m.steps + 1
         self.degree = {a.id: sum(1 for e in m.edges if e.dst == a.id) for a in m.agents}
         width = max(self.degree.values())
-        meta = RunMeta(mission=m.name, source=f"runtime-{node.clock.kind}", law=m.law.kind, rate=m.rate,
+        source: Source = "runtime-lockstep" if node.clock.lockstep else "runtime-realtime"
+        meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate,
                        steps=m.steps, seed=m.seed, namespace=node.keys.ns,
                        mission_text=node.args.mission_path.read_text())
         self.run = Run.empty(T, m.agent_ids, d, meta)
         self.run.t[:] = np.arange(T) * m.dt
-        self.run.runtime = RuntimeRecord.empty(T, n, d)
-        self.run.links = Links.empty(T, n, width)
+        self.rt = self.run.runtime = RuntimeRecord.empty(T, n, d)
+        """The run's runtime record (``run.runtime``, never None here)."""
+        self.lk = self.run.links = Links.empty(T, n, width)
+        """The run's link statistics (``run.links``, never None here)."""
+        silent, delivery, p50, p99 = self.lk.silent, self.lk.delivery, self.lk.age_p50, self.lk.age_p99
+        if silent is None or delivery is None or p50 is None or p99 is None:
+            raise AssertionError("Links.empty fills every per-tick field")
+        self.silent, self.delivery, self.age_p50, self.age_p99 = silent, delivery, p50, p99
+        """The link series that are optional in a run file but always recorded here."""
         self.netem: list[dict] = []
         """Link decisions, when the mission logs them (written to ``netem.jsonl``)."""
+        self.world_series: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The payload's series in ``run.plant`` (position, velocity, tension, slack events), when there is one."""
         if m.payload is not None:
-            pl = self.run.plant
-            pl.payload_p, pl.payload_v = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
-            pl.tension, pl.slack_events = np.full((T, n), np.nan), np.full((T, n), np.nan)
+            pp, pv = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
+            tension, slack = np.full((T, n), np.nan), np.full((T, n), np.nan)
+            self.run.plant = PlantRecord(payload_p=pp, payload_v=pv, tension=tension, slack_events=slack)
+            self.world_series = pp, pv, tension, slack
         self.events: list[wire.SafetyEvent] = []
         """Mode changes, as the agents' telemetry reports them."""
         self.gate: list[tuple[int, dict[str, int]]] = [(-1, {}) for _ in range(n)]
@@ -67,24 +79,26 @@ class Recording:
 
     def plant(self, msg: wire.PlantState) -> None:
         if 0 <= msg.k < len(self.count):
-            i, rt = self.col[msg.sender], self.run.runtime
+            i, rt = self.col[msg.sender], self.rt
             rt.plant_p[msg.k, i], rt.plant_v[msg.k, i], rt.plant_a[msg.k, i] = msg.p, msg.vel, msg.a
             self.run.d[msg.k, i] = msg.d
             self.run.safety.plant_mode[msg.k, i] = msg.mode
             self.count[msg.k] += 1
 
     def world(self, msg: wire.WorldState) -> None:
-        if 0 <= msg.k < len(self.count) and len(msg.tension) == self.mission.n == len(msg.slack_events):
-            pl = self.run.plant
-            pl.payload_p[msg.k], pl.payload_v[msg.k] = msg.p, msg.vel
-            pl.tension[msg.k], pl.slack_events[msg.k] = msg.tension, msg.slack_events
+        series = self.world_series
+        if (series is not None and 0 <= msg.k < len(self.count)
+                and len(msg.tension) == self.mission.n == len(msg.slack_events)):
+            pp, pv, tension, slack = series
+            pp[msg.k], pv[msg.k] = msg.p, msg.vel
+            tension[msg.k], slack[msg.k] = msg.tension, msg.slack_events
             self.count[msg.k] += 1
 
     def telemetry(self, msg: wire.Telemetry) -> None:
         k = msg.k
         if not 0 <= k < len(self.count):
             return
-        i, r, lk, rt = self.col[msg.sender], self.run, self.run.links, self.run.runtime
+        i, r, lk, rt = self.col[msg.sender], self.run, self.lk, self.rt
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
         for n, link in enumerate(msg.links[: lk.src.shape[1]]):
@@ -92,14 +106,14 @@ class Recording:
             lk.age[k, i, n] = link.age
             lk.received[k, i, n] = link.received
             lk.stale[k, i, n] = link.stale
-            lk.silent[k, i, n] = float(link.silent)
+            self.silent[k, i, n] = float(link.silent)
             lk.used[k, i, n] = link.used
             lk.duplicates[k, i, n] = link.duplicates
             lk.reordered[k, i, n] = link.reordered
             lk.corrupt[k, i, n] = link.corrupt
-            lk.delivery[k, i, n] = link.delivery
-            lk.age_p50[k, i, n] = link.age_p50
-            lk.age_p99[k, i, n] = link.age_p99
+            self.delivery[k, i, n] = link.delivery
+            self.age_p50[k, i, n] = link.age_p50
+            self.age_p99[k, i, n] = link.age_p99
         rt.drops[k, i] = sum(msg.drops.values())
         rt.meas_age[k, i] = msg.t - msg.meas_t
         r.safety.safety_mode[k, i] = msg.mode
@@ -133,7 +147,7 @@ class Recording:
         return path
 
 
-def make(out: Path):
+def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node], None]]:
     """The recorder role writing to ``out``, and its stop hook (writes a partial file)."""
     holder: dict[str, Recording] = {}
 

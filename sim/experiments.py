@@ -37,6 +37,7 @@ from plant.vehicle import G
 from sim import figures, lockstep, metrics
 from tether import mission as ms
 from tether.catalog import builtin_path
+from tether.progress import labelled
 from tether.runfile import Run
 
 Progress = Callable[[int, int, str], None]
@@ -47,12 +48,19 @@ HOLD_S = 1.0
 """Formation reached: max_i ||xi_i|| within :data:`SETTLE_BAND` for at least this long [s]."""
 
 
-def _law(m: ms.Mission, **changes) -> ms.Mission:
+def _law(m: ms.Mission, **changes: object) -> ms.Mission:
     return msgspec.structs.replace(m, law=msgspec.structs.replace(m.law, **changes))
 
 
 def _plants(m: ms.Mission, make: Callable[[ms.Agent], object]) -> ms.Mission:
     return msgspec.structs.replace(m, agents=[msgspec.structs.replace(a, plant=make(a)) for a in m.agents])
+
+
+def _massive(a: ms.Agent) -> ms.QuadrotorPlant | ms.PointMassPlant:
+    """Agent ``a``'s vehicle with mass (Experiment 2's variants change its feed-forward and integrator)."""
+    if not isinstance(a.plant, (ms.QuadrotorPlant, ms.PointMassPlant)):
+        raise ValueError(f"agent {a.id}: Experiment 2's variants need a quadrotor or point-mass plant")
+    return a.plant
 
 
 def exp1_variants(m: ms.Mission) -> dict[str, ms.Mission]:
@@ -68,7 +76,7 @@ def exp1_variants(m: ms.Mission) -> dict[str, ms.Mission]:
 def exp2_variants(m: ms.Mission) -> dict[str, ms.Mission]:
     def inner(ff: bool, integ: str | None) -> Callable[[ms.Agent], object]:
         def make(a: ms.Agent) -> object:
-            p = a.plant
+            p = _massive(a)
             base = p.integrator
             new = None if integ is None else msgspec.structs.replace(
                 base or ms.ThrustIntegrator(gain=2.0, limit=6.0), axes=integ)
@@ -76,7 +84,7 @@ def exp2_variants(m: ms.Mission) -> dict[str, ms.Mission]:
         return make
 
     def point_mass(a: ms.Agent) -> object:
-        p = a.plant
+        p = _massive(a)
         return ms.PointMassPlant(mass=p.mass, feedforward_mass=p.feedforward_mass, integrator=p.integrator)
 
     return {
@@ -151,7 +159,7 @@ def run_experiment(name: str, out: Path, duration: float | None = None, progress
     runs: dict[str, Run] = {}
     table: dict[str, dict] = {}
     for label, mv in variants.items():
-        run = lockstep.simulate(mv, progress=(lambda k, n, label=label: progress(k, n, label[:20])) if progress else None)
+        run = lockstep.simulate(mv, progress=labelled(progress, label[:20]) if progress else None)
         key = _slug(label)
         run.meta.mission_text = ms.dumps(mv)
         run.save(out / key / "run.npz")
@@ -160,12 +168,12 @@ def run_experiment(name: str, out: Path, duration: float | None = None, progress
     first = next(iter(runs))
     offsets = np.array([a.offset for a in m.agents], dtype=float)
     paths = figures.run_panels(runs[first], out, offsets)
-    times = (0.0, 5.0, 15.0, 25.0) if name == "exp1" else (0.0, 5.0, 15.0)
+    times: tuple[float, ...] = (0.0, 5.0, 15.0, 25.0) if name == "exp1" else (0.0, 5.0, 15.0)
     times = tuple(t for t in times if t <= m.duration + 1e-9)
     paths.append(figures.snapshots(runs[first], times, out / "snapshots.png", three_d=name == "exp2"))
     paths.append(figures.variants({k: r for k, r in runs.items()}, out / "variants.png", offsets,
                                   title=f"{m.name}: variants"))
-    if name == "exp2":
+    if name == "exp2" and m.payload is not None:
         paths.append(figures.payload(runs[first], out / "payload.png", m.payload.mass))
     (out / "metrics.json").write_text(json.dumps(table, indent=2))
     (out / "report.md").write_text(report(name, m, table, runs, paths))
@@ -232,7 +240,7 @@ def report(name: str, m: ms.Mission, table: dict[str, dict], runs: dict[str, Run
                   "two-loop assumption breaks on this mission: not in the references, which are gentle, but in "
                   "what Eq. 17 feeds forward. A first-order-lag model of the inner loop reproduces it from a lag "
                   "of about 0.1-0.15 s on (tests/test_experiments.py).", ""]
-    else:
+    elif m.payload is not None:
         plain = table["plain law (payload as a disturbance only)"]
         lines += ["", "## The payload's weight", "",
                   f"- Payload {m.payload.mass * 1e3:g} g ({_f(s['payload_weight_N'])} N), lifted off the floor at "

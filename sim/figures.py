@@ -6,7 +6,9 @@ the paths it wrote.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -16,6 +18,9 @@ import numpy as np  # noqa: E402
 
 from sim import metrics  # noqa: E402
 from tether.runfile import Run  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 AXES = "xyz"
 
@@ -57,10 +62,10 @@ def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
     return path
 
 
-def mark_events(run: Run, axes) -> None:
+def mark_events(run: Run, axes: Iterable[Axes]) -> None:
     """A vertical line on each of ``axes`` (time-series panels) per safety event of ``run``, labelled
     on the first with the vehicle and its new mode; nothing when the run has none."""
-    axes = list(np.ravel(axes))
+    axes = list(axes)
     modes = run.meta.modes
     for e in run.safety.events:
         name = modes[e.dst] if 0 <= e.dst < len(modes) else str(e.dst)

@@ -208,7 +208,8 @@ def _record_plants(rec: PlantRecord, samples: dict[int, plants.Sample], order: l
     worlds = [s.payload for s in samples.values() if s.payload is not None]
     if worlds:  # a payload world hosts every vehicle, in the mission's order
         pl = worlds[0]
-        if rec.payload_p is None:
-            rec.payload_p, rec.payload_v = np.full((rows, 3), np.nan), np.full((rows, 3), np.nan)
-            rec.tension, rec.slack_events = np.full((rows, n), np.nan), np.full((rows, n), np.nan)
-        rec.payload_p[r], rec.payload_v[r], rec.tension[r], rec.slack_events[r] = pl.p, pl.v, pl.tension, pl.slack_events
+        pp, pv, tension, slack = rec.payload_p, rec.payload_v, rec.tension, rec.slack_events
+        if pp is None or pv is None or tension is None or slack is None:
+            pp, pv = rec.payload_p, rec.payload_v = np.full((rows, 3), np.nan), np.full((rows, 3), np.nan)
+            tension, slack = rec.tension, rec.slack_events = np.full((rows, n), np.nan), np.full((rows, n), np.nan)
+        pp[r], pv[r], tension[r], slack[r] = pl.p, pl.v, pl.tension, pl.slack_events

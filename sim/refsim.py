@@ -37,7 +37,7 @@ from plant import double_integrator
 from plant.disturbance import DisturbanceBank
 from tether import graph, wire
 from tether.mission import Mission
-from tether.runfile import Run, RunMeta
+from tether.runfile import Run, RunMeta, Source
 
 Mode = Literal["discrete", "continuous"]
 Progress = Callable[[int, int], None]
@@ -89,7 +89,8 @@ def simulate(
     """
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
-    meta = RunMeta(mission=m.name, source=f"reference-{mode}", law=m.law.kind, rate=m.rate, steps=steps,
+    source: Source = "reference-discrete" if mode == "discrete" else "reference-continuous"
+    meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate, steps=steps,
                    seed=m.seed)
     if mode == "discrete":
         return _discrete(s, steps, record, progress, meta)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
@@ -17,6 +18,7 @@ import numpy as np
 from sim import figures, metrics, refsim
 from tether import mission as ms
 from tether.catalog import builtin_path
+from tether.progress import labelled
 from tether.runfile import Run
 
 
@@ -33,19 +35,19 @@ def with_law(m: ms.Mission, kind: str) -> ms.Mission:
 
 
 def section4(out: Path, duration: float | None = None, continuous: bool = False,
-             progress: refsim.Progress | None = None, mission: ms.Mission | None = None) -> dict:
+             progress: Callable[[int, int, str], None] | None = None, mission: ms.Mission | None = None) -> dict:
     """Run Section 4 with both laws; write runs, ``fig4.png``, ``metrics.json`` and ``metrics.md``."""
     m = mission if mission is not None else ms.load(builtin_path("section4"))
     out.mkdir(parents=True, exist_ok=True)
     laws = {"sigma": m, "benchmark": with_law(m, "benchmark")}
-    modes = ["discrete"] + (["continuous"] if continuous else [])
+    modes: list[refsim.Mode] = ["discrete", "continuous"] if continuous else ["discrete"]
     runs: dict[str, Run] = {}
     table: dict[str, dict] = {}
     for mode in modes:
         for kind, mk in laws.items():
             key = f"{kind}-{mode}"
             run = refsim.simulate(mk, mode, duration=duration,
-                                  progress=(lambda k, n, key=key: progress(k, n, key)) if progress else None)
+                                  progress=labelled(progress, key) if progress else None)
             run.save(out / key / "run.npz")
             runs[key] = run
             table[key] = metrics.summary(run)

@@ -31,6 +31,7 @@ import sys
 import threading
 import time
 import warnings
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
@@ -90,6 +91,7 @@ def parse_list(text: str, option: str, lo: float, hi: float, unit: str, hi_open:
 def link_profile(loss_pct: float, delay_ms: float, burst: float, jitter_ms: float = 0.0) -> LinkProfile:
     """The profile of every link at one grid point (see the module docstring)."""
     loss_ratio = loss_pct / 100.0
+    loss: Bernoulli | GilbertElliott
     if burst <= 1.0 or loss_ratio == 0.0:
         loss = Bernoulli(p=loss_ratio)
     else:
@@ -162,6 +164,8 @@ def run_point(mission_text: str, engine: Engine, workdir: str | None) -> dict:
     if engine == "inprocess":
         run = lockstep.simulate(m)
     else:
+        if workdir is None:
+            raise ValueError("the runtime engine needs a work directory")
         out = Path(workdir)
         path = out / "mission.toml"
         r = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--quiet"],
@@ -180,7 +184,7 @@ COLUMNS = ("law", "loss_pct", "delay_ms", "burst", "ultimate_bound_m", "ultimate
            "diverged", "diverged_at_s", "delivery_ratio", "age_p50_ms", "age_p99_ms", "wall_s")
 
 
-def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], burst: list[float] = (1.0,),
+def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], burst: Sequence[float] = (1.0,),
           laws: tuple[str, ...] = LAWS, jitter_ms: float = 0.0, duration: float | None = None,
           engine: Engine = "inprocess", jobs: int = 1, compensate: bool | None = None,
           progress: Callable[[int, int, str], None] | None = None) -> list[dict]:

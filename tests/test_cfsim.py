@@ -26,6 +26,8 @@ from plant.cfsim import crtp, firmware, toc
 from plant.quadrotor import Quadrotor, QuadrotorParams
 from tests.support import SoftwareCrazyflies, software_crazyflies
 
+pytestmark = pytest.mark.slow  # software Crazyflies over real UDP sockets, flown for seconds
+
 cflib_crtp = pytest.importorskip("cflib.crtp")
 from cflib.crazyflie import Crazyflie  # noqa: E402
 from cflib.crazyflie.log import LogConfig  # noqa: E402

@@ -25,6 +25,8 @@ from tether import mission as ms  # noqa: E402
 from tether.catalog import builtin_path  # noqa: E402
 from tether.runfile import Run  # noqa: E402
 
+pytestmark = pytest.mark.slow  # real-time runs of every process flying software Crazyflies
+
 BASE_PORT = 19880
 """Ports 19880.. (the software Crazyflie's own tests use 19850..19854)."""
 START = [(0.6, 0.0, 0.0), (0.0, 0.6, 0.0), (0.0, -0.6, 0.0), (-0.6, 0.0, 0.0)]

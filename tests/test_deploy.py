@@ -337,6 +337,7 @@ def test_units_run_the_entry_points_with_arguments_they_accept(deployment: gen.D
 
 
 # --------------------------------------------------------------------------- mTLS
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_a_generated_client_profile_links_to_the_router_with_mtls(deployment: gen.Deployment, router: str) -> None:
     with open_as(deployment, "plant-3") as plant3, open_as(deployment, "agent-3") as agent3:
         assert [str(z) for z in agent3.info.routers_zid()] == [router]
@@ -348,6 +349,7 @@ def test_a_generated_client_profile_links_to_the_router_with_mtls(deployment: ge
         inbox.wait_for(cmd(3, [0.5, -0.5]))
 
 
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_no_link_without_a_certificate_of_the_deployment_ca(deployment: gen.Deployment, router: str,
                                                             tmp_path: Path) -> None:
     tls = deployment.host_dir("agent-3") / "tls"
@@ -374,6 +376,7 @@ def test_no_link_without_a_certificate_of_the_deployment_ca(deployment: gen.Depl
         assert [str(z) for z in s.info.routers_zid()] == [router]
 
 
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_plain_tcp_is_refused(deployment: gen.Deployment, router: str) -> None:
     endpoint = deployment.plan.router.dial
     assert endpoint is not None and endpoint.startswith("tls/")
@@ -440,6 +443,7 @@ def attack(dep: gen.Deployment, **json5: object) -> tuple[list[bytes], list[byte
         return cmds.items, states.items, overheard.items, tokens_before
 
 
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_agent_2_cannot_move_agent_3_through_the_router(deployment: gen.Deployment, router: str,
                                                         tmp_path: Path) -> None:
     evil = cmd(3, [9.9, 9.9])
@@ -492,6 +496,7 @@ def order_attack(dep: gen.Deployment, **json5: object) -> tuple[list[bytes], lis
         return at_plant.items, at_agent.items
 
 
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_only_the_operator_can_order_a_land_or_an_estop(deployment: gen.Deployment, router: str) -> None:
     legit = [order("land", "operator 0"), order("land", "operator 1")]
     at_plant, at_agent = order_attack(deployment)
@@ -524,6 +529,7 @@ def peer_deployment(tmp_path_factory: pytest.TempPathFactory, mission_file: Path
     return gen.generate(mission_file, out, hosts=write_hosts(root / "hosts.toml", out, body), ca=deployment.out / "ca")
 
 
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_a_listening_peer_enforces_the_acl_on_direct_links(peer_deployment: gen.Deployment) -> None:
     """Peer network: agent 2's identity dials plant 3 directly (no router on the path); plant 3's own
     access control drops its command, and takes agent 3's."""
@@ -554,6 +560,7 @@ def test_a_listening_peer_enforces_the_acl_on_direct_links(peer_deployment: gen.
 
 
 # --------------------------------------------------------------------------- rotation
+@pytest.mark.slow  # deploy security: a real mTLS router and clients
 def test_rotated_certificates_from_the_same_ca_link_without_restarting_the_router(
         deployment: gen.Deployment, router: str, mission_file: Path, client_hosts: str, tmp_path: Path) -> None:
     out2 = tmp_path / "rotated"
@@ -608,6 +615,7 @@ def running(request: pytest.FixtureRequest) -> Iterator[gen.Deployment]:
         assert stop(proc) == 0, (dep.out / "router.log").read_text()
 
 
+@pytest.mark.slow  # every process of the deployment, in real time
 def test_a_real_time_run_over_the_generated_deployment(running: gen.Deployment) -> None:
     """Every role started from its unit's ExecStart line (tether and the router's Python replaced by
     this interpreter), mTLS and access control on: the run ends well, the agents' netem-set control

@@ -18,6 +18,8 @@ from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.runfile import Run
 
+pytestmark = pytest.mark.slow  # Experiments 1 and 2: long simulations, and real-process runs
+
 
 def offsets(m: ms.Mission) -> np.ndarray:
     return np.array([a.offset for a in m.agents], dtype=float)

@@ -35,6 +35,8 @@ from tether import wire
 from tether.node import load_mission
 from tether.runfile import Run
 
+pytestmark = pytest.mark.slow  # real-time runs of every process with injected faults
+
 SECTION4 = "section4"
 
 

@@ -45,6 +45,7 @@ def test_without_a_network_it_is_the_reference_simulator_bit_for_bit() -> None:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
 
+@pytest.mark.slow  # real processes
 def test_under_a_degraded_network_it_is_the_distributed_runtime_bit_for_bit(tmp_path: Path) -> None:
     path = mission_with(tmp_path, "degraded", DEGRADED)
     r = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(tmp_path / "run"),
@@ -128,6 +129,7 @@ def test_grid_points_have_the_asked_for_loss_and_delay() -> None:
     assert sweep.link_profile(10.0, 0.0, 1.0).loss.p == pytest.approx(0.1)
 
 
+@pytest.mark.slow  # a sweep
 def test_sweep_command_writes_the_table_maps_and_every_point(tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     r = subprocess.run([sys.executable, "-m", "cli", "sweep", "section4", "--out", str(out), "--loss", "0,50",
@@ -165,6 +167,7 @@ def test_bad_grids_are_refused_before_anything_runs(tmp_path: Path, args: list[s
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow  # a sweep run by real processes
 def test_the_runtime_engine_gives_the_same_map(tmp_path: Path) -> None:
     """``--engine runtime`` runs ``tether run`` for every point: the same figures as in process."""
     m = load_mission(builtin_path("section4"))

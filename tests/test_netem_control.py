@@ -10,10 +10,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tether import transport as tp
 from tether.catalog import builtin_path
 from tether.runfile import Run
+
+pytestmark = pytest.mark.slow  # real-time runs of every process, changed by control messages
 
 NETEM = '\n[netem]\ndefault = "ideal"\n'
 

@@ -43,6 +43,8 @@ from tether import wire
 from tether.catalog import builtin_path
 from tether.runfile import Run
 
+pytestmark = pytest.mark.slow  # real-time runs of every process with network partitions
+
 REPO = Path(__file__).resolve().parents[1]
 
 VEHICLE, IN_NEIGHBOUR, OUT_NEIGHBOUR = 3, 2, 4

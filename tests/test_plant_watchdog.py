@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zenoh
 
 from tests import factories
@@ -19,6 +20,8 @@ from tests.support import wait_until
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
+
+pytestmark = pytest.mark.slow  # real plant processes left without commands for seconds
 
 RATE = 50.0
 H = 1.0 / RATE

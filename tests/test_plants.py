@@ -89,6 +89,7 @@ def test_the_payload_world_reports_its_cables() -> None:
     assert s.payload.p[2] == m.floor
 
 
+@pytest.mark.slow  # a software Crazyflie
 def test_the_crazyflie_plant_keeps_the_contract() -> None:
     """A live plant: the same interface and shapes, a reading that is the vehicle's own, and
     closing (landing) that may be repeated. (Tick 0's zero acceleration and determinism are

@@ -21,6 +21,11 @@ def _closed_form_z(t: np.ndarray, z0: np.ndarray, v0: np.ndarray, d: np.ndarray)
     return z, zd
 
 
+def seeds(n: int, fast: int = 2) -> list[object]:
+    """Seeds ``0 .. n-1``; all but the first ``fast`` are ``slow`` (the fast lane samples each property)."""
+    return [*range(fast), *(pytest.param(s, marks=pytest.mark.slow) for s in range(fast, n))]
+
+
 @pytest.mark.parametrize("weight", [1.0, 2.5])
 def test_continuous_mode_matches_closed_form_linear_case(weight: float) -> None:
     # Gamma tiny and K(0) = 1: gains stay 1 to ~1e-12, the loop is z'' + z' + z = d exactly
@@ -55,7 +60,7 @@ def test_discrete_mode_is_the_exact_zoh_recursion_and_converges_at_first_order()
     assert 1.7 < errs[0] / errs[1] < 2.3 and 1.7 < errs[1] / errs[2] < 2.3
 
 
-@pytest.mark.parametrize("mode", ["discrete", "continuous"])
+@pytest.mark.parametrize("mode", ["discrete", pytest.param("continuous", marks=pytest.mark.slow)])
 def test_adaptive_equilibrium_under_constant_disturbance(mode: str) -> None:
     """With constant d the sigma law settles at xi* = kappa d / Kp*, Kv* = 1, where Kp* solves
     Kp^3 - Kp^2 - Gamma kappa^2 d^2 / sigma = 0 (per axis)."""
@@ -105,7 +110,7 @@ def test_sigma_law_gains_stay_at_least_one_and_within_the_invariant_bound(seed: 
         assert np.all(k[1:] <= bound[:-1] + 1e-12)
 
 
-@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("seed", seeds(8))
 def test_formation_is_reached_without_disturbance(seed: int) -> None:
     rng = np.random.default_rng(1000 + seed)
     profile = {"kind": "velocity_schedule", "ramp": 2.0,
@@ -118,7 +123,7 @@ def test_formation_is_reached_without_disturbance(seed: int) -> None:
     np.testing.assert_allclose(run.v[-1], np.broadcast_to(run.leader_v[-1], run.v[-1].shape), rtol=0, atol=1e-3)
 
 
-@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("seed", seeds(8))
 def test_ultimate_boundedness_under_bounded_disturbance(seed: int) -> None:
     rng = np.random.default_rng(2000 + seed)
     m = random_mission(rng, int(rng.integers(2, 7)), disturbance="bounded_random", d0=0.5, duration=200.0)

@@ -51,6 +51,8 @@ from tether import wire
 from tether.node import load_mission
 from tether.runfile import SERIES, DropCounts, Run
 
+pytestmark = pytest.mark.slow  # every role its own process over Zenoh, in lockstep and in real time
+
 REPO = Path(__file__).resolve().parents[1]
 SECTION4 = Path(tether.__file__).resolve().parent / "missions" / "section4.toml"
 AGENTS, LEADER = (1, 2, 3, 4), 5

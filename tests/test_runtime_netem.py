@@ -17,6 +17,8 @@ from tether.catalog import builtin_path
 from tether.node import load_mission
 from tether.runfile import Run
 
+pytestmark = pytest.mark.slow  # every role its own process over an emulated network
+
 SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv")
 
 

@@ -16,6 +16,7 @@ import threading
 from typing import Generic, Protocol, TypeVar
 
 T = TypeVar("T")
+T_contra = TypeVar("T_contra", contravariant=True)
 
 
 # =========================================================================== hand-off sinks
@@ -63,10 +64,10 @@ class Wakeup:
         return True
 
 
-class Sink(Protocol[T]):
+class Sink(Protocol[T_contra]):
     """Where a callback hands a value off. ``put`` is called on Zenoh's threads and must not block."""
 
-    def put(self, item: T, /) -> None: ...
+    def put(self, item: T_contra, /) -> None: ...
 
 
 class LatestSlot(Generic[T]):

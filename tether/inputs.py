@@ -20,10 +20,13 @@ arriving more than this many samples late counts as reordered)."""
 
 
 class Copy(Protocol):
-    """One copy a link delivers: its bytes, and whether the link corrupted it."""
+    """One copy a link delivers: its bytes, and whether the link corrupted it (read-only)."""
 
-    payload: bytes
-    corrupted: bool
+    @property
+    def payload(self) -> bytes: ...
+
+    @property
+    def corrupted(self) -> bool: ...
 
 
 class Link(Protocol):

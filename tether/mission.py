@@ -37,7 +37,7 @@ PerAxis = float | list[float]
 
 
 # --------------------------------------------------------------------------- leader profiles
-class ExpAccel(Kind, tag="exp_accel"):
+class ExpAccel(Kind, tag="exp_accel", frozen=True):
     """Leader acceleration ``a_ref(t) = a0 * exp(-decay * t)`` per axis (Section 4: a0 = [1, 0], decay = 0.1)."""
 
     a0: Vector
@@ -46,7 +46,7 @@ class ExpAccel(Kind, tag="exp_accel"):
     """Decay rate [1/s]; 0 gives a constant acceleration."""
 
 
-class VelocitySegment(Strict):
+class VelocitySegment(Strict, frozen=True):
     """From ``t`` on, the leader's velocity is ``v`` (reached after the profile's ``ramp``)."""
 
     t: float
@@ -55,7 +55,7 @@ class VelocitySegment(Strict):
     """Velocity [m/s; world frame]."""
 
 
-class VelocitySchedule(Kind, tag="velocity_schedule"):
+class VelocitySchedule(Kind, tag="velocity_schedule", frozen=True):
     """Piecewise-constant velocity (Eq. 31, Eq. 32), optionally with linear ramps between segments."""
 
     segments: list[VelocitySegment]
@@ -64,7 +64,7 @@ class VelocitySchedule(Kind, tag="velocity_schedule"):
     reported as 0)."""
 
 
-class Waypoint(Strict):
+class Waypoint(Strict, frozen=True):
     """The leader is at ``p`` at time ``t`` with zero velocity and acceleration."""
 
     t: float
@@ -73,21 +73,21 @@ class Waypoint(Strict):
     """Position [m; world frame]."""
 
 
-class Waypoints(Kind, tag="waypoints"):
+class Waypoints(Kind, tag="waypoints", frozen=True):
     """Minimum-jerk (quintic) segments between timed waypoints; the first waypoint's time must be 0
     and its position the leader's ``p0``. After the last waypoint the leader holds position."""
 
     points: list[Waypoint]
 
 
-class Hold(Kind, tag="hold"):
+class Hold(Kind, tag="hold", frozen=True):
     """The leader keeps its initial velocity forever (zero acceleration)."""
 
 
 Profile = ExpAccel | VelocitySchedule | Waypoints | Hold
 
 
-class Leader(Strict):
+class Leader(Strict, frozen=True):
     """The virtual leader (node N+1 in the paper): an exo-system that hears nobody."""
 
     id: int
@@ -101,11 +101,11 @@ class Leader(Strict):
 
 
 # --------------------------------------------------------------------------- disturbances
-class NoDisturbance(Kind, tag="none"):
+class NoDisturbance(Kind, tag="none", frozen=True):
     """``d = 0``."""
 
 
-class Sinusoid(Kind, tag="sinusoid"):
+class Sinusoid(Kind, tag="sinusoid", frozen=True):
     """``d_k(t) = amplitude_k * sin(omega_k * t + phase_k)`` per axis k (Section 4's disturbances;
     a cosine is ``phase = pi/2``)."""
 
@@ -117,14 +117,14 @@ class Sinusoid(Kind, tag="sinusoid"):
     """Phase [rad]; zeros when omitted."""
 
 
-class Constant(Kind, tag="constant"):
+class Constant(Kind, tag="constant", frozen=True):
     """``d = value`` for all time."""
 
     value: Vector
     """[m/s^2; world frame]."""
 
 
-class BoundedRandom(Kind, tag="bounded_random"):
+class BoundedRandom(Kind, tag="bounded_random", frozen=True):
     """Piecewise-constant random disturbance, uniform in the box ``|d_k| <= bound_k``, redrawn every
     ``hold`` seconds from a generator seeded by the mission seed and the agent id."""
 
@@ -138,11 +138,11 @@ Disturbance = NoDisturbance | Sinusoid | Constant | BoundedRandom
 
 
 # --------------------------------------------------------------------------- plants
-class DoubleIntegrator(Kind, tag="double_integrator"):
+class DoubleIntegrator(Kind, tag="double_integrator", frozen=True):
     """``p' = v, v' = u + d``, discretised exactly under a zero-order hold on ``u``."""
 
 
-class ThrustIntegrator(Strict):
+class ThrustIntegrator(Strict, frozen=True):
     """An inner integral of the acceleration error ``u - p''`` (vertical by default) added to the
     command (the integral of the Crazyflie's own velocity PIDs), clamped (anti-windup)."""
 
@@ -154,7 +154,7 @@ class ThrustIntegrator(Strict):
     """``z``: the vertical axis only; ``xyz``: every axis (the Crazyflie's velocity PIDs on x, y, z)."""
 
 
-class PointMassPlant(Kind, tag="point_mass"):
+class PointMassPlant(Kind, tag="point_mass", frozen=True):
     """A 3D point mass of ``mass`` whose ideal inner loop flies ``u`` exactly and cancels its own
     weight (Remark 1 taken as true); a disturbance acts as the force ``mass * d``. Hosts the
     payload options (``plant/vehicle.py``)."""
@@ -166,7 +166,7 @@ class PointMassPlant(Kind, tag="point_mass"):
     integrator: ThrustIntegrator | None = None
 
 
-class QuadrotorPlant(Kind, tag="quadrotor"):
+class QuadrotorPlant(Kind, tag="quadrotor", frozen=True):
     """A Crazyflie 2.1-class quadrotor: rigid body (Eq. 1-3), Eq. 4 from ``u`` to thrust and
     attitude, a 500 Hz attitude and rate PID, motors with limits (``plant/quadrotor.py``,
     ``docs/quadrotor.md``); a disturbance acts as the force ``mass * d``."""
@@ -182,7 +182,7 @@ class QuadrotorPlant(Kind, tag="quadrotor"):
     integrator: ThrustIntegrator | None = None
 
 
-class CrazyfliePlant(Kind, tag="crazyflie"):
+class CrazyfliePlant(Kind, tag="crazyflie", frozen=True):
     """A Crazyflie through cflib, real (``radio://``, ``usb://``) or the software one (``udp://``,
     ``python -m plant.cfsim``); real time only (``plant/crazyflie.py``)."""
 
@@ -212,7 +212,7 @@ class CrazyfliePlant(Kind, tag="crazyflie"):
 PlantSpec = DoubleIntegrator | PointMassPlant | QuadrotorPlant | CrazyfliePlant
 
 
-class Cable(Strict):
+class Cable(Strict, frozen=True):
     """One-sided spring-damper: pulls when stretched beyond ``length``, never pushes."""
 
     length: float
@@ -223,7 +223,7 @@ class Cable(Strict):
     """[N s/m]."""
 
 
-class Payload(Strict):
+class Payload(Strict, frozen=True):
     """A point-mass payload hung from every vehicle on its own cable: one ``world`` process then
     hosts every vehicle (``point_mass`` or ``quadrotor`` plants) and serves each on the same keys
     as a single plant (``plant/payload.py``, ``docs/payload.md``)."""
@@ -239,7 +239,7 @@ class Payload(Strict):
 
 
 # --------------------------------------------------------------------------- agents, graph, law
-class Agent(Strict):
+class Agent(Strict, frozen=True):
     id: int
     p0: Vector
     """Initial position [m; world frame]."""
@@ -251,7 +251,7 @@ class Agent(Strict):
     disturbance: Disturbance = NoDisturbance()
 
 
-class Edge(Strict):
+class Edge(Strict, frozen=True):
     """``src -> dst``: agent ``dst`` hears ``src`` with weight ``a_{dst,src} > 0``."""
 
     src: int = msgspec.field(name="from")
@@ -259,7 +259,7 @@ class Edge(Strict):
     weight: float = 1.0
 
 
-class Law(Strict):
+class Law(Strict, frozen=True):
     """Eq. 17 (``kind = "sigma"``) or the benchmark Eq. 30 (``kind = "benchmark"``, no ``sigma``)."""
 
     kind: Literal["sigma", "benchmark"]
@@ -281,7 +281,7 @@ class Law(Strict):
     ``none``, which drops the whole sum."""
 
 
-class LinkPolicy(Strict):
+class LinkPolicy(Strict, frozen=True):
     """What an agent does with its in-neighbours' samples (part of the law's implementation).
 
     Samples older than the newest held are never used (sequence numbers). A neighbour whose newest
@@ -296,7 +296,7 @@ class LinkPolicy(Strict):
     """Latency compensation: move each neighbour sample forward by its age with its own v and a."""
 
 
-class Geofence(Strict):
+class Geofence(Strict, frozen=True):
     """An axis-aligned box the vehicles must stay in [m; world frame]. In 3D its ``min`` z is the
     floor of the flight volume."""
 
@@ -306,7 +306,7 @@ class Geofence(Strict):
     """What a vehicle does when its position leaves the box."""
 
 
-class Avoidance(Strict):
+class Avoidance(Strict, frozen=True):
     """Decentralised collision avoidance after the law (``agent/avoid.py``): a safety filter on each
     agent's command from the positions of the vehicles within ``sensing`` (heard on their state
     keys, as a range sensor or a broadcast would give them), kept apart from the law's inputs."""
@@ -321,7 +321,7 @@ class Avoidance(Strict):
     """Braking capacity each vehicle is assumed to keep for avoidance [m/s^2] (below max_accel)."""
 
 
-class Safety(Strict):
+class Safety(Strict, frozen=True):
     """What every agent's safety supervisor and every plant's command watchdog enforce
     (``docs/safety.md``). The defaults are wide enough that no shipped mission reaches them while
     nothing goes wrong (measured there), and tight enough to stop what is not flying any more."""
@@ -366,7 +366,7 @@ class Safety(Strict):
     avoid: Avoidance | None = None
 
 
-class Mission(Strict):
+class Mission(Strict, frozen=True):
     version: int
     name: str
     dim: Literal[2, 3]
@@ -553,9 +553,8 @@ def _members(t: msgspec.inspect.Type) -> list[msgspec.inspect.Type]:
 def _tags(t: msgspec.inspect.Type) -> tuple[str, ...]:
     """The ``kind`` values of a tagged union (or of one tagged struct); empty if ``t`` is not tagged."""
     members = _members(t)
-    if all(isinstance(m, msgspec.inspect.StructType) and m.tag_field for m in members):
-        return tuple(str(m.tag) for m in members)
-    return ()
+    tags = tuple(str(m.tag) for m in members if isinstance(m, msgspec.inspect.StructType) and m.tag_field)
+    return tags if len(tags) == len(members) else ()
 
 
 def _resolve(t: msgspec.inspect.Type, value: object) -> msgspec.inspect.Type:

@@ -34,7 +34,7 @@ standard deviation ``jitter``, ``pareto`` (shape 3, shifted to mean 0, standard 
 ``jitter``; bounded below by ``-jitter/sqrt(3)``, heavy upper tail)."""
 
 
-class Delay(Strict):
+class Delay(Strict, frozen=True):
     """Propagation delay of every copy: ``max(0, constant + jitter * Z)``, ``Z`` of mean 0 drawn
     from ``distribution``; successive ``Z`` are correlated by ``correlation`` (``docs/netem.md``)."""
 
@@ -50,14 +50,14 @@ class Delay(Strict):
 
 
 # --------------------------------------------------------------------------- loss
-class Bernoulli(Kind, tag="bernoulli"):
+class Bernoulli(Kind, tag="bernoulli", frozen=True):
     """Each message is lost independently with probability ``p``."""
 
     p: float = 0.0
     """Loss probability, in [0, 1]."""
 
 
-class GilbertElliott(Kind, tag="gilbert_elliott"):
+class GilbertElliott(Kind, tag="gilbert_elliott", frozen=True):
     """Two-state Markov loss (netem ``loss gemodel p r 1-h 1-k``): in state G a message is lost with
     probability ``good_loss`` (= 1-k), in state B with ``bad_loss`` (= 1-h); after each message the
     state moves G -> B with probability ``p`` and B -> G with probability ``r``. Starts in G."""
@@ -82,7 +82,7 @@ Loss = Bernoulli | GilbertElliott
 
 
 # --------------------------------------------------------------------------- the others
-class Reorder(Strict):
+class Reorder(Strict, frozen=True):
     """netem ``reorder p gap g``: a message is *eligible* once ``gap - 1`` messages have taken the
     delay line since the last reordered one; an eligible message skips the delay line with
     probability ``p`` (it is delivered as soon as it is serialised), overtaking earlier messages
@@ -95,7 +95,7 @@ class Reorder(Strict):
     eligible (``gap 5`` with ``p = 1`` reorders messages 5, 10, 15, ...)."""
 
 
-class Corrupt(Strict):
+class Corrupt(Strict, frozen=True):
     """With probability ``p`` a copy has ``bytes`` distinct bytes of its payload XORed with random
     non-zero masks (so each of them differs). An empty payload is delivered unchanged."""
 
@@ -105,7 +105,7 @@ class Corrupt(Strict):
     """Bytes flipped in a corrupted copy (fewer if the payload is shorter), >= 1."""
 
 
-class Rate(Strict):
+class Rate(Strict, frozen=True):
     """A FIFO transmitter of ``bytes_per_s``: a copy of ``len(payload) + overhead`` bytes waits for
     the copies ahead of it, then takes ``size / bytes_per_s`` to serialise; the propagation delay
     comes after. ``bytes_per_s = 0`` is no limit."""
@@ -124,7 +124,7 @@ Outage = tuple[float, float]
 ``end`` may be ``inf`` (the link never comes back)."""
 
 
-class LinkProfile(Strict):
+class LinkProfile(Strict, frozen=True):
     """Everything one directed link does to its messages. ``LinkProfile()`` is the identity."""
 
     delay: Delay = Delay()
@@ -381,7 +381,7 @@ def _not_a_preset(name: str) -> str:
 
 
 # --------------------------------------------------------------------------- network section
-class LinkRule(Strict):
+class LinkRule(Strict, frozen=True):
     """From ``start`` on, the links matching ``from``/``to`` use ``profile``."""
 
     profile: str | LinkProfile
@@ -394,7 +394,7 @@ class LinkRule(Strict):
     """When the rule takes effect [s; mission time]."""
 
 
-class Network(Strict):
+class Network(Strict, frozen=True):
     """A proposed mission section: ``default`` for every link, overridden by ``rules``.
 
     At mission time ``t`` a link ``j -> i`` uses the profile of the matching rule with the latest

@@ -62,6 +62,9 @@ class NodeArgs:
     """Stop when this process (the launcher) is gone."""
     duration: float | None = None
     """Override the mission's duration [s] (a whole number of periods)."""
+    start_timeout: float | None = None
+    """Give up (exit 1) when the start message has not come this long after :meth:`Node.ready`
+    declared liveliness [s]; None waits for ever (a service waiting for its operator's start)."""
 
 
 class Publisher:
@@ -102,7 +105,9 @@ class Node:
         self.clock = clock
         self._start: Source | None = None
         self._paced = False
-        self._pump: asyncio.Task[None] | None = None
+        self.tasks: asyncio.TaskGroup | None = None
+        """The task group that owns this process's tasks (set by :func:`serve`); :meth:`ready`
+        starts the real-time input pump in it, so that the pump ends with the process's work."""
         self.stop = asyncio.Event()
         self.token_log: list[tuple[str, bool]] = []
         self.alive: dict[str, bool] = {}
@@ -210,14 +215,17 @@ class Node:
             self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
         self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
-        await self.until(lambda: start.newest is not None, None, "the launcher's start message")
+        await self.until(lambda: start.newest is not None, self.args.start_timeout,
+                         "the launcher's start message (--start-timeout)")
         epoch = start.newest.epoch
         try:
             self.clock.begin(epoch, phase)
         except ClockError as exc:
             raise Stalled(str(exc)) from None
         if not self.clock.lockstep:
-            self._pump = asyncio.create_task(self.pump())
+            if self.tasks is None:
+                raise RuntimeError("Node.ready: real time needs serve()'s task group for the input pump")
+            self.tasks.create_task(self.pump(), name="input pump")
             log.info("real time: tick 0 at %.3f, phase %.2f", epoch, phase)
 
     # ------------------------------------------------------------------ inputs
@@ -268,8 +276,7 @@ class Node:
 
     def next_delivery(self) -> float | None:
         """The earliest time [s, mission time] an emulated link will deliver a copy, if any."""
-        times = [s.channel.next_at for s in self.sources.values() if s.channel is not None]
-        times = [t for t in times if t is not None]
+        times = [t for s in self.sources.values() if s.channel is not None and (t := s.channel.next_at) is not None]
         return min(times) if times else None
 
     async def until(self, ready: Callable[[], bool], timeout: float | None, what: str) -> None:
@@ -340,8 +347,6 @@ class Node:
         return late
 
     def close(self) -> None:
-        if self._pump is not None:
-            self._pump.cancel()
         for obj in reversed(self._declared):
             try:
                 obj.undeclare()
@@ -381,6 +386,10 @@ async def _watch_parent(pid: int, stop: asyncio.Event) -> None:
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_STOPPED = 0, 1, 2, 143
 
 
+class _Over(Exception):
+    """Raised by a task of :func:`serve`'s group to end the group (the outcome is already noted)."""
+
+
 async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
                 on_stop: Callable[[Node], None] | None = None, clock: Clock | None = None) -> int:
     """Run one role until it finishes, fails, or is told to stop (SIGTERM/SIGINT, launcher gone).
@@ -395,39 +404,65 @@ async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
         log.error("%s", exc)
         return EXIT_BAD_INPUT
     loop = asyncio.get_running_loop()
-    status = EXIT_OK
     async with tp.open_session(args.zenoh) as session:
         node = Node(args, mission, session, clock if clock is not None else make_clock(args.clock, mission.dt))
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, node.stop.set)
-        watcher = asyncio.create_task(_watch_parent(args.parent_pid, node.stop)) if args.parent_pid else None
-        work = asyncio.create_task(role(node))
-        stopper = asyncio.create_task(node.stop.wait())
         try:
-            await asyncio.wait({work, stopper}, return_when=asyncio.FIRST_COMPLETED)
-            if not work.done():
-                work.cancel()
-                status = EXIT_STOPPED
-            try:
-                await work
-            except asyncio.CancelledError:
-                pass
-            except Stalled as exc:
-                log.error("stalled: %s", exc)
-                status = EXIT_FAILED
-            except Exception:
-                log.exception("failed")
-                status = EXIT_FAILED
+            status = await _run_tasks(node, role)
             if on_stop is not None:
                 on_stop(node)
         finally:
-            stopper.cancel()
-            if watcher is not None:
-                watcher.cancel()
             node.close()
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.remove_signal_handler(sig)
     return status
+
+
+async def _run_tasks(node: Node, role: Callable[[Node], Awaitable[None]]) -> int:
+    """The process's tasks in one :class:`asyncio.TaskGroup`: the role's work, the stop watcher,
+    the launcher watcher (``parent_pid``) and, from :meth:`Node.ready` in real time, the input
+    pump. The first of the work and the stop to end ends the group, cancelling the rest. Returns
+    the exit status: 1 if the work (or another task) failed, else 143 if the stop came first,
+    else 0."""
+    failed = stopped = work_done = False
+
+    async def work() -> None:
+        nonlocal failed, work_done
+        try:
+            await role(node)
+        except Stalled as exc:
+            log.error("stalled: %s", exc)
+            failed = True
+        except Exception:
+            log.exception("failed")
+            failed = True
+        finally:
+            work_done = True
+        raise _Over
+
+    async def watch_stop() -> None:
+        nonlocal stopped
+        await node.stop.wait()
+        stopped = not work_done
+        raise _Over
+
+    try:
+        async with asyncio.TaskGroup() as tasks:
+            node.tasks = tasks
+            tasks.create_task(work(), name=f"{node.args.role} {node.args.node_id}")
+            tasks.create_task(watch_stop(), name="stop watcher")
+            if node.args.parent_pid:
+                tasks.create_task(_watch_parent(node.args.parent_pid, node.stop), name="launcher watcher")
+    except* _Over:
+        pass
+    except* Exception as group:
+        for exc in group.exceptions:
+            log.error("failed", exc_info=exc)
+        failed = True
+    finally:
+        node.tasks = None
+    return EXIT_FAILED if failed else EXIT_STOPPED if stopped else EXIT_OK
 
 
 def setup_logging(role: str, node_id: int, level: str = "INFO") -> None:

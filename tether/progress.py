@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 
 
 class Progress:
@@ -22,3 +23,8 @@ class Progress:
         elif pct // 10 != self.last.get(label, -1):
             self.last[label] = pct // 10
             sys.stderr.write(f"{label} {pct}%\n")
+
+
+def labelled(progress: Callable[[int, int, str], None], label: str) -> Callable[[int, int], None]:
+    """``progress`` reporting under ``label``: the ``(k, n)`` form the engines call."""
+    return lambda k, n: progress(k, n, label)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Mapping
+from typing import Any, Literal, Mapping
 
 import msgspec
 import numpy as np
@@ -224,7 +224,7 @@ def _arrays_of(group: msgspec.Struct | None, prefix: str = "") -> dict[str, np.n
             if f != "events" and getattr(group, f) is not None}
 
 
-_GROUPS: dict[str, tuple[type, str]] = {"links": (Links, "link_"), "runtime": (RuntimeRecord, ""),
+_GROUPS: dict[str, tuple[type[msgspec.Struct], str]] = {"links": (Links, "link_"), "runtime": (RuntimeRecord, ""),
                                         "plant": (PlantRecord, ""), "safety": (SafetyRecord, "")}
 """Run attribute -> (container, npz prefix of its fields)."""
 
@@ -259,16 +259,20 @@ class Run:
     def empty(cls, samples: int, agent_ids: list[int], dim: int, meta: RunMeta, mode: int = NO_SAMPLE) -> "Run":
         """NaN series; both mode columns filled with ``mode`` (an engine without a supervisor passes FLYING)."""
         n = len(agent_ids)
-        series = {name: np.full((samples, n, dim), np.nan) for name in SERIES}
+
+        def series() -> np.ndarray:  # one of SERIES
+            return np.full((samples, n, dim), np.nan)
+
         return cls(
             t=np.full(samples, np.nan),
             agent_ids=np.array(agent_ids, dtype=np.int64),
+            p=series(), v=series(), a=series(), u=series(), xi=series(), zeta=series(), kp=series(), kv=series(),
+            d=series(),
             leader_p=np.full((samples, dim), np.nan),
             leader_v=np.full((samples, dim), np.nan),
             leader_a=np.full((samples, dim), np.nan),
             meta=msgspec.structs.replace(meta),
             safety=SafetyRecord.empty(samples, n, mode),
-            **series,
         )
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -290,7 +294,8 @@ class Run:
         meta = msgspec.json.encode(msgspec.structs.replace(self.meta, format_version=FORMAT_VERSION)).decode()
         tmp = path.with_name(path.name + ".part")
         with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, meta=np.array(meta), **self.arrays())
+            # numpy's stub lets ** reach the keyword allow_pickle; no array is named so
+            np.savez_compressed(fh, meta=np.array(meta), **self.arrays())  # type: ignore[arg-type]
         tmp.replace(path)
         return path
 
@@ -316,7 +321,7 @@ class Run:
             arrays = {k: z[k] for k in z.files if k != "meta"}
         base = {k: arrays.pop(k) for k in BASE}
         events = _events({f: arrays.pop(f"event_{f}") for f in EVENT_FIELDS if f"event_{f}" in arrays})
-        groups = {}
+        groups: dict[str, Any] = {}  # each built and checked by its own kind(**fields)
         for attr, (kind, prefix) in _GROUPS.items():
             fields = {f: arrays.pop(prefix + f) for f in kind.__struct_fields__ if prefix + f in arrays}
             if attr == "safety" and version == 1:

@@ -37,10 +37,11 @@ mapping, which msgspec does not name, is the token ``"[...]"``."""
 
 class Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
     """Base of every schema struct: unknown fields are errors, instances are immutable (both are
-    inherited; ``kw_only`` is not)."""
+    inherited; ``kw_only`` is not). Subclasses restate ``frozen=True``: msgspec inherits it, but a
+    type checker reading ``dataclass_transform`` (PEP 681) does not, and would call them mutable."""
 
 
-class Kind(Strict, tag_field="kind"):
+class Kind(Strict, tag_field="kind", frozen=True):
     """Base of the members of a tagged union, told apart by their ``kind`` field."""
 
 

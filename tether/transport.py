@@ -71,7 +71,7 @@ TOKEN_ROOT = wire.TOKEN_ROOT
 
 
 # =========================================================================== settings
-class TlsFiles(Strict):
+class TlsFiles(Strict, frozen=True):
     """Paths of TLS material, carried into ``transport/link/tls/*``. Used only by ``tls/`` endpoints.
 
     The keys are those of zenoh 1.10's config; opened with real certificates (mTLS) in tests/test_deploy.py.
@@ -91,7 +91,7 @@ class TlsFiles(Strict):
     """Require client certificates on listeners (mutual TLS)."""
 
 
-class ZenohSettings(Strict):
+class ZenohSettings(Strict, frozen=True):
     """How one process joins the Zenoh network. Immutable; turned into a ``zenoh.Config`` by :func:`zenoh_config`.
 
     The defaults isolate a process: multicast scouting is off and nothing is listened on or
@@ -468,6 +468,12 @@ def declare_subscriber(session: zenoh.Session, key_expr: str, sink: Sink[Receive
     return session.declare_subscriber(key_expr, on_sample)
 
 
+def has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches ``publisher`` now (does not block)."""
+    # zenoh-python 1.10's stub types ``matching_status`` as bool; at run time it is a MatchingStatus
+    return bool(publisher.matching_status.matching)  # type: ignore[attr-defined]
+
+
 async def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float) -> None:
     """Return once at least one subscriber matches ``publisher``; ``TimeoutError`` after ``timeout`` [s].
 
@@ -479,7 +485,7 @@ async def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float) -> No
     listener = publisher.declare_matching_listener(lambda _status: wakeup.notify())
     try:
         async with asyncio.timeout(timeout):
-            while not publisher.matching_status.matching:
+            while not has_subscribers(publisher):
                 await wakeup.wait()
     except TimeoutError:
         raise TimeoutError(f"no subscriber matched {publisher.key_expr} within {timeout} s") from None

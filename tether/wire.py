@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, TypeVar
 
 import msgspec
 
@@ -56,7 +56,7 @@ class _Msg(msgspec.Struct, tag_field="type", forbid_unknown_fields=True, frozen=
     """Sample time t_k = k h [s]."""
 
 
-class State(_Msg, tag="state"):
+class State(_Msg, tag="state", frozen=True):
     """A node's state as its neighbours use it."""
 
     p: list[float]
@@ -68,7 +68,7 @@ class State(_Msg, tag="state"):
     acceleration over the previous period."""
 
 
-class PlantState(_Msg, tag="plant_state"):
+class PlantState(_Msg, tag="plant_state", frozen=True):
     """A plant's measurement at t_k, and the disturbance it applied (for records, not for agents)."""
 
     p: list[float]
@@ -81,7 +81,7 @@ class PlantState(_Msg, tag="plant_state"):
     or ESTOP (codes of :data:`MODES`)."""
 
 
-class Command(_Msg, tag="cmd"):
+class Command(_Msg, tag="cmd", frozen=True):
     u: list[float]
     """Commanded acceleration u_i(t_k) [m/s^2; world frame], held until the next command."""
     mode: int = 0
@@ -155,7 +155,7 @@ class SafetyEvent(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     """Why, in a few words (``leader silent 0.52 s``, ``operator land``, ``geofence``, ...)."""
 
 
-class Telemetry(_Msg, tag="telemetry"):
+class Telemetry(_Msg, tag="telemetry", frozen=True):
     """Agent i's tick: what it measured, computed and saw."""
 
     meas_t: float
@@ -184,25 +184,25 @@ class Telemetry(_Msg, tag="telemetry"):
     """The emulated links' decisions since the previous tick (only with ``[netem] log = true``)."""
 
 
-class Tick(_Msg, tag="tick"):
+class Tick(_Msg, tag="tick", frozen=True):
     """Lockstep: every process may run ticks up to and including ``grant``."""
 
     grant: int
 
 
-class Ack(_Msg, tag="ack"):
+class Ack(_Msg, tag="ack", frozen=True):
     """Lockstep: the sender has finished tick k."""
 
     role: str
 
 
-class Start(_Msg, tag="start"):
+class Start(_Msg, tag="start", frozen=True):
     """Real time: tick 0 is at ``epoch`` [s since the Unix epoch, UTC]; tick k at epoch + k h."""
 
     epoch: float
 
 
-class WorldState(_Msg, tag="world_state"):
+class WorldState(_Msg, tag="world_state", frozen=True):
     """A payload world's own state at t_k (for records; agents never use it)."""
 
     p: list[float]
@@ -215,7 +215,7 @@ class WorldState(_Msg, tag="world_state"):
     """Taut -> slack transitions per cable since the start."""
 
 
-class SafetyCommand(_Msg, tag="safety"):
+class SafetyCommand(_Msg, tag="safety", frozen=True):
     """Operator: ``land`` every vehicle (descend and disarm), or ``estop`` (motors off at once).
     Published on ``tether/<ns>/control/0/safety`` by ``tether land`` / ``tether estop``; only the
     operator identity may publish there under the generated access rules."""
@@ -224,7 +224,7 @@ class SafetyCommand(_Msg, tag="safety"):
     reason: str = ""
 
 
-class NetemSet(_Msg, tag="netem_set"):
+class NetemSet(_Msg, tag="netem_set", frozen=True):
     """Control: change emulated links during a run (``tether netem-set``). Each rule, as in the
     mission's ``[netem] rules``, applies to the links it matches from ``at`` on; its ``start`` is
     ignored (``at`` says when)."""
@@ -236,6 +236,7 @@ class NetemSet(_Msg, tag="netem_set"):
 
 
 Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState | SafetyCommand
+M = TypeVar("M", bound=Message)
 
 _ENCODER = msgspec.msgpack.Encoder()
 _DECODER = msgspec.msgpack.Decoder(Message)
@@ -344,7 +345,7 @@ class Receiver:
     def _drop(self, reason: str) -> None:
         self.drops[reason] = self.drops.get(reason, 0) + 1
 
-    def accept(self, payload: bytes, expect: type, sender: int | None) -> Message | None:
+    def accept(self, payload: bytes, expect: type[M], sender: int | None) -> M | None:
         try:
             msg = _DECODER.decode(payload)
         except (msgspec.DecodeError, msgspec.ValidationError):

@@ -33,7 +33,7 @@ def _p0(text: str) -> tuple[float, float, float]:
         parts = ()
     if len(parts) != 3 or not all(math.isfinite(c) for c in parts):
         raise argparse.ArgumentTypeError(f"{text!r}: give a position as X,Y,Z in metres, e.g. 0,0.5,0")
-    return parts  # type: ignore[return-value]
+    return parts
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

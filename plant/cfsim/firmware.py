@@ -49,7 +49,7 @@ import enum
 import errno
 import math
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -112,6 +112,16 @@ class Attitude:
     roll: float
     pitch: float
     yaw_rate: float
+
+
+Vec3 = tuple[float, float, float]
+"""A 3-vector [world frame] as the firmware's setpoints hold it."""
+
+
+def vec3(xs: Iterable[float]) -> Vec3:
+    """``xs`` (exactly three numbers) as a :data:`Vec3`; ValueError otherwise."""
+    x, y, z = xs
+    return (float(x), float(y), float(z))
 
 
 @dataclass(frozen=True, slots=True)
@@ -190,10 +200,10 @@ class Segment:
             s, ds, dds = smoothstep7(tau)
         d = [b - a for a, b in zip(self.p0, self.p1)]
         T = self.duration
-        pos = tuple(a + di * s for a, di in zip(self.p0, d))
-        vel = tuple(di * ds / T for di in d)
-        acc = tuple(di * dds / (T * T) for di in d)
-        return Track(pos, vel, acc, self.yaw0 + (self.yaw1 - self.yaw0) * s)  # type: ignore[arg-type]
+        pos = vec3(a + di * s for a, di in zip(self.p0, d))
+        vel = vec3(di * ds / T for di in d)
+        acc = vec3(di * dds / (T * T) for di in d)
+        return Track(pos, vel, acc, self.yaw0 + (self.yaw1 - self.yaw0) * s)
 
 
 class HlState(enum.Enum):
@@ -306,7 +316,7 @@ class Firmware:
         # high-level commander
         self._hl = HlState.IDLE
         self._segment: Segment | None = None
-        self._hl_pos = tuple(float(c) for c in quad.p)
+        self._hl_pos = vec3(quad.p)
         self._hl_yaw = quad.euler()[2]
         # supervisor
         self._sup = SupState.READY
@@ -641,7 +651,7 @@ class Firmware:
             mm = [c / 1000.0 for c in v[1:10]]
             qx, qy, qz, qw = decompress_quaternion(v[10])
             yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-            sp = Track(tuple(mm[0:3]), tuple(mm[3:6]), tuple(mm[6:9]), yaw)  # type: ignore[arg-type]
+            sp = Track(tuple(mm[0:3]), tuple(mm[3:6]), tuple(mm[6:9]), yaw)
         else:
             self.ignored += 1
             return []
@@ -660,7 +670,7 @@ class Firmware:
 
     def _relax_priority(self) -> None:
         """``commanderRelaxPriority``: the high-level commander takes over from the present state."""
-        self._hl_pos = tuple(float(c) for c in self.quad.p)
+        self._hl_pos = vec3(self.quad.p)
         self._hl_yaw = self.quad.euler()[2]
         self._priority = Priority.HIGH_LEVEL
 
@@ -695,7 +705,7 @@ class Firmware:
             goal_yaw = self._hl_yaw if use_current else yaw
             start = self._hl_pos
             end = (start[0], start[1], float(height))
-            self._segment = Segment(t, float(duration), start, end, self._hl_yaw,  # type: ignore[arg-type]
+            self._segment = Segment(t, float(duration), start, end, self._hl_yaw,
                                     self._hl_yaw + wrap_angle(goal_yaw - self._hl_yaw))
             self._hl = HlState.FLYING if cmd == HL_TAKEOFF_2 else HlState.LANDING
             return 0
@@ -709,9 +719,9 @@ class Firmware:
                 start, yaw0 = ev.pos, ev.yaw
             goal = (x, y, z)
             if relative:
-                goal = tuple(a + b for a, b in zip(start, goal))  # type: ignore[assignment]
+                goal = vec3(a + b for a, b in zip(start, goal))
                 yaw += yaw0
-            self._segment = Segment(t, float(duration), start, goal, yaw0,  # type: ignore[arg-type]
+            self._segment = Segment(t, float(duration), start, goal, yaw0,
                                     yaw0 + wrap_angle(yaw - yaw0), bool(linear))
             self._hl = HlState.FLYING
             return 0
@@ -738,7 +748,7 @@ class Firmware:
         # 1. high-level commander
         if self.can_fly:
             if self._hl is HlState.IDLE:
-                self._hl_pos = tuple(float(c) for c in quad.p)
+                self._hl_pos = vec3(quad.p)
                 self._hl_yaw = quad.euler()[2]
                 self._set_setpoint(OFF, Priority.HIGH_LEVEL)
             else:
@@ -857,12 +867,13 @@ class Firmware:
         stamp = struct.pack("<I", now & 0xFFFFFF)[:3]
         out = []
         for b in due:
-            if b.period_ms == 0:
+            period = b.period_ms  # due blocks are started: not None
+            if period is None or period == 0:
                 b.period_ms = None
             else:
-                b.next_due_ms += b.period_ms
+                b.next_due_ms += period
                 if b.next_due_ms <= now:
-                    b.next_due_ms = now + b.period_ms
+                    b.next_due_ms = now + period
             body = b"".join(toc.pack_value(ct, values[i]) for i, ct in b.ops)
             out.append(Packet(Port.LOG, crtp.LOG_DATA_CHANNEL, bytes((b.ident,)) + stamp + body))
         return out

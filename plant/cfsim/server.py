@@ -17,6 +17,7 @@ missing time is skipped instead and counted in :attr:`Ticker.slips`.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections.abc import Callable
@@ -139,6 +140,11 @@ class Ticker:
                                      f"{float(q.motor_thrusts.sum()):.5f} {fw.supervisor_state.value}\n")
 
 
+def _same(ep: Endpoint) -> Endpoint:
+    """The protocol factory of one vehicle's datagram endpoint: always its own ``ep``."""
+    return ep
+
+
 async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
               on_ready: Callable[[list[tuple[int, str]]], None] | None = None) -> None:
     """Serve every vehicle of ``cfg`` until cancelled. ``on_ready`` is called once every endpoint is
@@ -151,7 +157,7 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
         for v in cfg.vehicles:
             quad = Quadrotor(cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
             ep = Endpoint(Firmware(quad, v.firmware), cfg.client_timeout, monotonic)
-            await loop.create_datagram_endpoint(lambda ep=ep: ep, local_addr=(cfg.host, v.port))
+            await loop.create_datagram_endpoint(functools.partial(_same, ep), local_addr=(cfg.host, v.port))
             endpoints.append(ep)
         if on_ready is not None:
             on_ready([(v.firmware.instance, f"udp://{cfg.host}:{v.port}") for v in cfg.vehicles])

@@ -1,0 +1,49 @@
+"""Each process imports only what it uses (docs/architecture.md, "The rule").
+
+A role's process loads its role, the core and their libraries: no study or engine (``sim``), no
+plotting (``matplotlib``) and, for a mission without ``[netem]``, no network emulator
+(``netem.channel``, ``netem.link``: the agent imports them inside the function that builds a
+``[netem]`` mission's links). Each module is imported in a fresh interpreter under
+``python -X importtime``, whose report names every module the import loaded.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import pytest
+
+FORBIDDEN = re.compile(r"^(sim|matplotlib|netem\.channel|netem\.link)(\.|$)")
+"""Modules no process of a mission without ``[netem]`` may load at import."""
+
+ENTRY_POINTS = ["agent.node", "leader.node", "plant.node", "recorder.node", "tether.node", "cli.main"]
+"""The process adapters, the scaffold they share, and the command every process is started by."""
+
+
+def loaded_modules(module: str) -> list[str]:
+    """Every module ``import module`` loads in a fresh interpreter, from ``-X importtime``'s report."""
+    r = subprocess.run([sys.executable, "-X", "importtime", "-c", f"import {module}"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, f"import {module} failed:\n{r.stderr[-2000:]}"
+    names = []
+    for line in r.stderr.splitlines():
+        if line.startswith("import time:") and "|" in line:
+            names.append(line.rsplit("|", 1)[1].strip())
+    assert names, f"no -X importtime report for {module}:\n{r.stderr[-2000:]}"
+    return names
+
+
+@pytest.mark.parametrize("module", ENTRY_POINTS)
+def test_a_process_loads_no_study_no_plotting_and_no_emulator(module: str) -> None:
+    names = loaded_modules(module)
+    assert module in names
+    bad = sorted({n for n in names if FORBIDDEN.match(n)})
+    assert not bad, f"import {module} loads {', '.join(bad)}; import them inside the function that needs them"
+
+
+def test_the_check_itself_sees_a_forbidden_import() -> None:
+    """The report parsing is not vacuous: the figures load matplotlib, an emulated link its channel."""
+    assert "matplotlib" in loaded_modules("sim.figures")
+    assert "netem.channel" in loaded_modules("netem.link")

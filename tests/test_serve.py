@@ -1,0 +1,152 @@
+"""A process's lifetime: ``tether.node.serve`` runs its tasks in one task group and maps how they
+end to the exit status (0 finished, 1 failed, 2 bad mission, 143 stopped), leaving no task behind;
+a process that never hears the start gives up after ``--start-timeout``.
+
+The in-process cases open a real, isolated Zenoh session (a peer listening on loopback only).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import pytest
+
+from tether import catalog
+from tether import transport as tp
+from tether import wire
+from tether.clock import ClockKind
+from tether.node import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, EXIT_STOPPED, Node, NodeArgs, serve
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def node_args(ns: str, clock: ClockKind = "lockstep", mission: Path | None = None) -> NodeArgs:
+    settings = tp.ZenohSettings(mode="peer", listen=(tp.loopback_endpoint(tp.free_tcp_port()),), scouting_delay=0.0)
+    return NodeArgs(mission_path=mission or catalog.resolve("section4"), role="leader", node_id=5,
+                    clock=clock, zenoh=settings, ns=ns)
+
+
+def others() -> set[asyncio.Task[object]]:
+    return {t for t in asyncio.all_tasks() if t is not asyncio.current_task()}
+
+
+async def serve_checked(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
+                        on_stop: Callable[[Node], None] | None = None) -> int:
+    before = others()
+    status = await serve(args, role, on_stop)
+    assert others() - before == set(), "serve() left tasks behind"
+    return status
+
+
+@pytest.mark.asyncio
+async def test_a_role_that_finishes_exits_0_and_runs_in_the_task_group() -> None:
+    seen: list[bool] = []
+
+    async def role(node: Node) -> None:
+        seen.append(node.tasks is not None)
+
+    assert await serve_checked(node_args("serve-ok"), role) == EXIT_OK
+    assert seen == [True]
+
+
+@pytest.mark.asyncio
+async def test_a_role_that_raises_exits_1_and_on_stop_still_runs() -> None:
+    stopped: list[int] = []
+
+    async def role(node: Node) -> None:
+        raise RuntimeError("boom")
+
+    status = await serve_checked(node_args("serve-fail"), role, lambda node: stopped.append(1))
+    assert status == EXIT_FAILED
+    assert stopped == [1]
+
+
+@pytest.mark.asyncio
+async def test_a_stop_cancels_the_role_and_exits_143() -> None:
+    cancelled: list[bool] = []
+
+    async def role(node: Node) -> None:
+        node.stop.set()  # as SIGTERM's handler does
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            cancelled.append(True)
+            raise
+
+    assert await serve_checked(node_args("serve-stop"), role) == EXIT_STOPPED
+    assert cancelled == [True]
+
+
+@pytest.mark.asyncio
+async def test_a_role_failing_while_being_stopped_exits_1() -> None:
+    async def role(node: Node) -> None:
+        node.stop.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            raise RuntimeError("cleanup failed") from None
+
+    assert await serve_checked(node_args("serve-stop-fail"), role) == EXIT_FAILED
+
+
+@pytest.mark.asyncio
+async def test_a_bad_mission_exits_2(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("name = ")
+
+    async def role(node: Node) -> None:
+        raise AssertionError("a bad mission runs no role")
+
+    assert await serve_checked(node_args("serve-bad", mission=bad), role) == EXIT_BAD_INPUT
+
+
+@pytest.mark.asyncio
+async def test_the_real_time_input_pump_is_owned_by_the_group_and_ends_with_the_role() -> None:
+    pumps: list[asyncio.Task[object]] = []
+
+    async def role(node: Node) -> None:
+        start = node.publisher(node.keys.start, sender=0)
+
+        async def announce() -> None:  # the launcher's part: repeat the start until it is heard
+            while True:
+                start.send(wire.Start, 0, 0.0, epoch=time.time() + 0.05)
+                await asyncio.sleep(0.05)
+
+        announcer = asyncio.create_task(announce())
+        try:
+            async with asyncio.timeout(20):
+                await node.ready()
+        finally:
+            announcer.cancel()
+        pumps.extend(t for t in asyncio.all_tasks() if t.get_name() == "input pump")
+        assert len(pumps) == 1 and not pumps[0].done()
+
+    assert await serve_checked(node_args("serve-pump", clock="realtime"), role) == EXIT_OK
+    assert len(pumps) == 1 and pumps[0].cancelled()
+
+
+def test_a_process_that_never_hears_the_start_fails_after_its_start_timeout() -> None:
+    """No launcher: the process is ready, no start comes, it gives up with exit 1 naming the wait."""
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "cli", "leader", "--mission", "section4", "--clock", "realtime",
+                        "--ns", "start-timeout", "--zenoh-mode", "peer", "--listen", endpoint,
+                        "--start-timeout", "1.5"],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    took = time.monotonic() - t0
+    assert r.returncode == 1, r.stderr
+    assert "waited 1.5 s for the launcher's start message (--start-timeout)" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+    assert took >= 1.5
+
+
+def test_the_start_timeout_must_be_a_positive_number_of_seconds() -> None:
+    r = subprocess.run([sys.executable, "-m", "cli", "leader", "--mission", "section4", "--start-timeout", "0"],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "--start-timeout" in r.stderr and "seconds > 0" in r.stderr
