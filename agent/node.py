@@ -136,7 +136,7 @@ async def run(node: Node) -> None:
             gone = node.gone("agent") - neighbours - {aid} if k < m.steps - 1 else set()
             status = Status(gone=[s.silent_at(k) for s in nbrs], others_gone=frozenset(gone),
                             operator=_order(operator))
-        near = ()
+        near: list[tuple[np.ndarray, np.ndarray]] = []
         if avoid:
             seen = [got[n] for n in vehicles] + far
             near = [(np.array(msg.p), np.array(msg.vel)) for msg in seen
