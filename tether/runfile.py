@@ -288,14 +288,18 @@ class Run:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write ``path`` (a ``.npz``) atomically; returns it."""
+        """Write ``path`` (a ``.npz``, uncompressed) atomically; returns it.
+
+        Uncompressed on purpose: for Section 4's 1000 s run, compression saved 24 % of the bytes
+        (53 MB against 70 MB) for 40 times the time (5.9 s against 0.15 s, medians of 3 on a loaded
+        2-core machine); a user waits for the file at the end of every run."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = msgspec.json.encode(msgspec.structs.replace(self.meta, format_version=FORMAT_VERSION)).decode()
         tmp = path.with_name(path.name + ".part")
         with open(tmp, "wb") as fh:
             # numpy's stub lets ** reach the keyword allow_pickle; no array is named so
-            np.savez_compressed(fh, meta=np.array(meta), **self.arrays())  # type: ignore[arg-type]
+            np.savez(fh, meta=np.array(meta), **self.arrays())  # type: ignore[arg-type]
         tmp.replace(path)
         return path
 
