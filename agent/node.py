@@ -75,6 +75,17 @@ async def run(node: Node) -> None:
         nbrs.append(src)
         if channel is not None:
             channels.append((j, channel))
+    # collision avoidance hears every other vehicle's state, apart from the law's inputs (a range
+    # sensor or a local broadcast would give it these); a formation neighbour's is the law's own sample
+    avoid = m.safety.avoid is not None
+    proximity: list[Source] = []
+    if avoid:
+        for j in m.agent_ids:
+            if j != aid and j not in law.neighbours:
+                src = node.source(keys.topic("agent", j, "state"), wire.State, j)
+                src.admit = gate(j).check
+                proximity.append(src)
+    vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]
     netem_control.serve(node)
     cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND)
     tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY)
@@ -86,7 +97,8 @@ async def run(node: Node) -> None:
     for k in range(m.steps + 1):
         await node.tick(k)
         t = k * m.dt
-        own, *got = await node.aligned([plant, *nbrs], k)
+        own, *got = await node.aligned([plant, *nbrs, *proximity], k)
+        got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
         if not lockstep and plant.silent_at(k):
@@ -107,10 +119,15 @@ async def run(node: Node) -> None:
             status = Status(operator=_order(operator))
         else:
             # an agent that left after its last tick is not lost; only the last ticks can see that
-            others = node.gone("agent") - neighbours - {aid} if k < m.steps - 1 else set()
-            status = Status(gone=[s.silent_at(k) for s in nbrs], others_gone=frozenset(others),
+            gone = node.gone("agent") - neighbours - {aid} if k < m.steps - 1 else set()
+            status = Status(gone=[s.silent_at(k) for s in nbrs], others_gone=frozenset(gone),
                             operator=_order(operator))
-        out = tick.step(k, t, np.array(own.p), np.array(own.vel), np.array(own.a), heard, status)
+        near = ()
+        if avoid:
+            seen = [got[n] for n in vehicles] + far
+            near = [(np.array(msg.p), np.array(msg.vel)) for msg in seen
+                    if msg is not None and t - msg.t <= m.links.max_age]
+        out = tick.step(k, t, np.array(own.p), np.array(own.vel), np.array(own.a), heard, status, near)
         u = out.u.tolist()
         cmd.send(wire.Command, k, t, u=u, mode=out.mode)
         events = tick.supervisor.take_events()

@@ -267,3 +267,39 @@ def test_a_forged_sample_for_a_coming_tick_never_shadows_the_real_one() -> None:
         src.offer(state(k, [0.01 * k, 0.0, 1.0]))
     assert src.by_tick[3].p == [0.03, 0.0, 1.0]
     assert src.rejected == 1 and src.received == 4 and g.rejected == {"jump": 1}
+
+
+# --------------------------------------------------------------------------- collision avoidance
+def _min_pair(p: np.ndarray) -> float:
+    n = p.shape[1]
+    return min(float(np.linalg.norm(p[:, i] - p[:, j], axis=-1).min()) for i in range(n) for j in range(i + 1, n))
+
+
+def test_the_swap_collides_without_the_filter_and_keeps_apart_with_it() -> None:
+    import msgspec
+
+    from sim import lockstep
+    from tether.catalog import builtin_path
+    from tether.node import load_mission
+
+    m = load_mission(builtin_path("swap"))
+    assert m.safety.avoid is not None
+    bare = msgspec.structs.replace(m, safety=msgspec.structs.replace(m.safety, avoid=None))
+    with_filter, without = lockstep.simulate(m), lockstep.simulate(bare)
+    assert _min_pair(without.p) < 0.1  # they would collide
+    assert _min_pair(with_filter.p) >= m.safety.avoid.radius * 0.95
+    # and the formation is reached once past
+    assert np.linalg.norm(with_filter.xi[-100:], axis=-1).max() < 0.01
+    assert np.all(np.isfinite(with_filter.u)) and np.linalg.norm(with_filter.u, axis=-1).max() <= m.safety.max_accel
+
+
+def test_the_filter_returns_the_law_untouched_when_nobody_is_near() -> None:
+    from agent.avoid import filter_command
+
+    u = np.array([1.0, 0.0, 0.0])
+    far = [(np.array([10.0, 0.0, 0.0]), np.zeros(3))]
+    assert filter_command(u, np.zeros(3), np.zeros(3), far, 0.3, 2.0, 1.0, 2.0) is u
+    # head-on at 1 m, closing at 2 m/s: the filter brakes along the line between them
+    near = [(np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]))]
+    out = filter_command(u, np.zeros(3), np.array([1.0, 0.0, 0.0]), near, 0.3, 2.0, 1.0, 2.0)
+    assert out[0] < u[0]

@@ -46,14 +46,14 @@ def hold(p: np.ndarray, v: np.ndarray, p_hold: np.ndarray, kp: float, kv: float,
 def land(p: np.ndarray, v: np.ndarray, p_hold: np.ndarray, kp: float, kv: float, max_accel: float,
          land_speed: float, ground: float) -> np.ndarray:
     """LAND's command: HOLD horizontally; in 3D descend at ``land_speed``, slowing in the last
-    ``4 land_speed / kv`` metres so as to settle onto ``ground`` (vertical velocity tracking)."""
+    ``2 land_speed / kv`` metres and touching down at :data:`STILL` (vertical velocity tracking)."""
     if p.shape[0] < 3:
         return hold(p, v, p_hold, kp, kv, max_accel)
     u = -kv * v - kp * (p - p_hold)
     height = float(p[-1] - ground)
-    # the last metres: v_want = -(kv/4) height makes z'' = -kv (kv/4) z - kv z' critically damped,
-    # so the vehicle settles onto the ground without passing through it
-    v_want = -min(land_speed, max(height, 0.0) * 0.25 * kv)
+    # the last metres: v_want = -(kv/2) height (damping ratio 0.7 with the velocity loop), down to a
+    # touch-down speed of STILL, so the vehicle reaches the ground in finite time and slowly
+    v_want = -min(land_speed, max(STILL, max(height, 0.0) * 0.5 * kv))
     u[-1] = kv * (v_want - v[-1])
     out = saturate(u, max_accel)
     return np.zeros_like(p) if out is None else out
