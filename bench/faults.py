@@ -33,7 +33,8 @@ that fired at 8.001 s):
 * ``xi_surv`` [m]: the true formation error (Eq. 8, ``xi_i = sum_j a_ij ((p_i - h_i) - (p_j - h_j))``,
   leader included, offsets h_i) from the plants' own positions (``plant_p``) over the *surviving*
   graph: at each tick only the vehicles whose agent and plant are both FLYING count, edges from the
-  others are removed (as the agents' kappa re-normalisation does). Largest ``||xi_i||`` of a survivor
+  others are removed (as the agents' kappa re-normalisation does; a leader whose sample of the tick
+  the recorder lacks counts as gone, and an agent left with no in-edge has xi = 0). Largest ``||xi_i||`` of a survivor
   from t_f to the end of the analysed window; in brackets the same over the 3 s before t_f.
 * ``drift`` [m]: for every stretch in which a vehicle's agent or plant is in HOLD or LAND, the largest
   horizontal distance of the vehicle from where it was at the start of that stretch.
@@ -327,21 +328,19 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
         & np.all(np.isfinite(P), axis=2)
 
     def xi_max(k0: int, k1: int) -> float:
-        best = 0.0
+        best = math.nan
         for k in range(max(0, k0), min(T, k1 + 1)):
             e = np.concatenate([P[k] - offsets, run.leader_p[k][None]], axis=0)
-            if not np.all(np.isfinite(e[-1])):
-                continue
-            keep = np.append(surv[k], True)
+            keep = np.append(surv[k], bool(np.all(np.isfinite(e[-1]))))  # a silent leader is no survivor
             a = A[:n] * keep[None, :]
             xi = a.sum(axis=1)[:, None] * e[:n] - a @ np.nan_to_num(e)
             norms = np.linalg.norm(xi, axis=1)
             norms = norms[surv[k] & np.isfinite(norms)]
             if norms.size:
-                best = max(best, float(norms.max()))
+                best = float(norms.max()) if math.isnan(best) else max(best, float(norms.max()))
         return best
 
-    out["xi_surv"] = xi_max(k_f, k_end)
+    out["xi_surv"] = xi_max(k_f, k_end)  # NaN: no survivor after the fault
     out["xi_before"] = xi_max(k_f - int(3 / h), k_f - 1)
     held = np.isin(run.safety.safety_mode, (wire.HOLD, wire.LAND)) | np.isin(run.safety.plant_mode, (wire.HOLD, wire.LAND))
     drift = 0.0
@@ -486,7 +485,7 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
         exits = ",".join(str(r["exit"]) for r in rs)
         lines.append(
             f"| {cell} | {len(rs)} | {pair([r['detect'] for r in rs])} | {action} | {pair([r['safe'] for r in rs])} | "
-            f"{fmt(max(r['xi_surv'] for r in rs))} ({fmt(max(r['xi_before'] for r in rs))}) | "
+            f"{fmt(pct([r['xi_surv'] for r in rs], 100))} ({fmt(pct([r['xi_before'] for r in rs], 100))}) | "
             f"{fmt(max(r['drift'] for r in rs), digits=3)} | {fmt(min(r['sep'] for r in rs))} | "
             f"{fmt(max(r['fence'] for r in rs), digits=3)} | "
             f"{fmt(max(r['open_loop'] for r in rs))} ({fmt(pct([r['dog_age'] for r in rs], 100))}) | {forged} | {exits} |")
@@ -546,7 +545,12 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     cells = args.cells if args.cells is not None else list(DEFAULT_CELLS)
     print(f"# bench/faults.py  {time.strftime('%Y-%m-%d %H:%M:%S')}  runs in {work}", flush=True)
-    print(f"# load before: {os.getloadavg()}", flush=True)
+    try:
+        rev = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"], capture_output=True,
+                             text=True, check=False).stdout.strip()
+    except OSError:
+        rev = "?"
+    print(f"# code {rev}; {os.cpu_count()} cores; load before: {os.getloadavg()}", flush=True)
     report: dict[str, Any] = {"cells": {}, "latency": {}, "load_before": os.getloadavg(), "argv": sys.argv[1:]}
     rows: dict[str, list[dict[str, Any]]] = {}
     if not args.no_faults:
