@@ -24,6 +24,9 @@ that fired at 8.001 s):
   agents' supervisor events (``run.safety.events``: mode changes and kappa re-normalisations) and the
   plants' watchdog mode changes (plant logs). For a forge (which by design moves no mode),
   ``detect`` is the first telemetry tick, heard by the tap, whose gate rejection count rose, minus t_f.
+  A frozen agent's or plant's own events stamped before the freeze ended are left out of every
+  figure: after SIGCONT it runs its missed ticks in a burst, so their tick times are not when they
+  ran (a frozen plant's watchdog "holds at 8.50 s" at about 11 s of wall time).
 * ``action``: per vehicle, the modes its agent (``a3``) and its plant (``p3``) went through after t_f
   (F FLYING, H HOLD, L LAND, LD LANDED, E ESTOP; ``a3:k`` = agent 3 dropped an edge and re-normalised
   kappa; ``+k`` restored it), union over repetitions.
@@ -283,9 +286,10 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
     ids = [int(i) for i in run.agent_ids]
     col = {v: c for c, v in enumerate(ids)}
     T, n = run.safety.safety_mode.shape
-    fired = None
+    fired = ended = None
     if fault is not None and (res.out / "faults.json").exists():
-        fired = json.loads((res.out / "faults.json").read_text())[0]["fired"]
+        rec = json.loads((res.out / "faults.json").read_text())[0]
+        fired, ended = rec["fired"], rec.get("ended")
     epoch = res.tap.epoch
     t_end = m.duration
     if res.stop_wall is not None and epoch is not None:
@@ -301,6 +305,14 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
     pl_ev = plant_events(res.out)
     after = lambda evs: [e for e in evs if e[0] >= f - h / 2 and e[0] <= t_end]  # noqa: E731
     a_after, p_after = after(agent_ev), after(pl_ev)
+    if fault is not None and fault.startswith("freeze:") and ended is not None:
+        # a frozen agent or plant runs its missed ticks in a burst after SIGCONT: its own events of
+        # those ticks carry tick times at which it was not running, so they are not detections
+        role, _, vid = fault.split(":", 1)[1].split("@")[0].partition("/")
+        if role == "agent":
+            a_after = [e for e in a_after if not (e[1] == int(vid) and e[0] < ended)]
+        elif role == "plant":
+            p_after = [e for e in p_after if not (e[1] == int(vid) and e[0] < ended)]
     both = sorted([(e[0], "a", *e[1:]) for e in a_after] + [(e[0], "p", *e[1:]) for e in p_after])
     out["detect"] = both[0][0] - f if both and fired is not None else math.nan
     actions: dict[str, list[str]] = {}
