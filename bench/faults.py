@@ -30,9 +30,13 @@ that fired at 8.001 s):
 * ``action``: per vehicle, the modes its agent (``a3``) and its plant (``p3``) went through after t_f
   (F FLYING, H HOLD, L LAND, LD LANDED, E ESTOP; ``a3:k`` = agent 3 dropped an edge and re-normalised
   kappa; ``+k`` restored it), union over repetitions.
-* ``safe`` [s]: for every vehicle whose agent or plant left FLYING after t_f, the first such instant;
-  the largest of those minus t_f (the time until every vehicle that stops has at least begun to hold
-  or land). Vehicles that only re-normalised kappa keep flying by design and are not counted.
+* ``safe`` [s]: for every vehicle whose agent or plant left FLYING after t_f and had not come back
+  to FLYING by the end of the window (it stopped for good), the first instant it left FLYING; the
+  largest of those minus t_f (the time until every vehicle that stops has at least begun to hold or
+  land). Vehicles that only re-normalised kappa keep flying by design and are not counted; vehicles
+  that held and came back (the end of a freeze, or a plant whose agent was starved of CPU for
+  cmd_timeout on a loaded machine) are not counted either, but listed as ``transient`` in the
+  per-run lines (``H>F`` in ``action``).
 * ``xi_surv`` [m]: the true formation error (Eq. 8, ``xi_i = sum_j a_ij ((p_i - h_i) - (p_j - h_j))``,
   leader included, offsets h_i) from the plants' own positions (``plant_p``) over the *surviving*
   graph: at each tick only the vehicles whose agent and plant are both FLYING count, edges from the
@@ -198,6 +202,31 @@ class Tap:
         return out
 
 
+class SavedTap:
+    """What :func:`analyse` needs of a :class:`Tap`, read back from ``tap.json`` (``--reanalyse``)."""
+
+    def __init__(self, data: dict[str, Any]):
+        self.epoch = data["epoch"]
+        self.order_put = data.get("order_put")
+        self._rows = data["rows"]
+
+    def decoded(self) -> list[tuple[float, str, int, Any]]:
+        out = []
+        for wall, kind, vid, k, t, mode, gate in self._rows:
+            msg = argparse.Namespace(k=k, t=t, mode=mode, gate=gate)
+            out.append((wall, kind, vid, msg))
+        return out
+
+
+def save_tap(tap: Tap, out: Path) -> None:
+    """``tap.json``: wall arrival, stream, id, k, t, mode and gate totals of every message heard."""
+    rows = []
+    for wall, kind, vid, msg in tap.decoded():
+        rows.append((wall, kind, vid, msg.k, msg.t, getattr(msg, "mode", None),
+                     dict(msg.gate) if kind == "agent/telemetry" else None))
+    (out / "tap.json").write_text(json.dumps({"epoch": tap.epoch, "order_put": tap.order_put, "rows": rows}))
+
+
 # =========================================================================== one run
 @dataclass
 class RunResult:
@@ -255,6 +284,9 @@ def launch(out: Path, duration: float, faults: list[str], order: tuple[str, floa
             p.wait()
         th.join(5)
         tap.close()
+    if out.exists():
+        save_tap(tap, out)
+        (out / "launcher.log").write_text("".join(f"{w:.3f} {line}\n" for w, line in lines))
     return RunResult(out, p.returncode, tap, stop_wall[0] if stop_wall else None, lines)
 
 
@@ -325,11 +357,19 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
         actions.setdefault(tag, []).append(word)
     out["action"] = {tag: ">".join(words) for tag, words in sorted(actions.items())}
     stopped: dict[int, float] = {}
+    last: dict[tuple[str, int], int] = {}
+    for t, who, vid, src, dst, why in both:
+        if src != dst:
+            last[who, vid] = dst
     for t, who, vid, src, dst, why in both:
         if src != dst and dst != wire.FLYING and vid not in stopped:
             stopped[vid] = t
+    for_good = {v for (who, v), mode in last.items() if mode != wire.FLYING}
+    transient = sorted(set(stopped) - for_good)
+    stopped = {v: t for v, t in stopped.items() if v in for_good}
     out["safe"] = max(stopped.values()) - f if stopped and fired is not None else math.nan
     out["stopped"] = sorted(stopped)
+    out["transient"] = transient
 
     # ------------------------------------------------------------ positions
     P = run.runtime.plant_p if run.runtime is not None else run.p
@@ -535,6 +575,36 @@ def cli_latency(action: str, duration: float, at: float, work: Path) -> float:
         p.wait(120)
 
 
+def reanalyse(work: Path, cells: list[str] | None) -> int:
+    """Print the table and the latency section again from the runs kept in ``work``."""
+    rows: dict[str, list[dict[str, Any]]] = {}
+    lat: dict[str, list[dict[str, Any]]] = {}
+    for out in sorted(work.iterdir()):
+        if not (out / "tap.json").exists() or not (out / "run.npz").exists():
+            continue
+        tap = SavedTap(json.loads((out / "tap.json").read_text()))
+        log = (out / "launcher.log").read_text().splitlines() if (out / "launcher.log").exists() else []
+        stop = next((float(line.split(" ", 1)[0]) for line in log
+                     if any(x in line for x in STOP_LINES) and "launcher:" in line), None)
+        status = next((int(m.group(1)) for line in log if (m := re.search(r"exit status (\d+)", line))), -1)
+        res = RunResult(out, status, tap, stop)  # type: ignore[arg-type]
+        if out.name.startswith("order-"):
+            action = out.name.split("-")[1]
+            lat.setdefault(action, []).append(latency(res, action))
+            continue
+        fault = json.loads((out / "faults.json").read_text())[0]["fault"] if (out / "faults.json").exists() else None
+        cell = fault.split("@")[0] if fault else "none"
+        if cells is not None and cell not in cells:
+            continue
+        rows.setdefault(cell, []).append(analyse(res, fault))
+    order = {c: n for n, c in enumerate(DEFAULT_CELLS)}
+    print(table(dict(sorted(rows.items(), key=lambda kv: order.get(kv[0], 99)))))
+    if lat:
+        print()
+        print(latency_table(lat))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cells", nargs="*", default=None, help=f"KIND:TARGET cells (default: {' '.join(DEFAULT_CELLS)})")
@@ -550,7 +620,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cli-latency", action="store_true", help="also time the tether estop / land commands")
     ap.add_argument("--work", default=None, help="directory for the runs (default: a temporary one, kept)")
     ap.add_argument("--json", default=None, help="write every figure of every run here")
+    ap.add_argument("--reanalyse", default=None, metavar="WORK",
+                    help="no runs: analyse again the runs kept in WORK (their tap.json, run.npz, logs)")
     args = ap.parse_args(argv)
+    if args.reanalyse:
+        return reanalyse(Path(args.reanalyse), args.cells)
     reps = 1 if args.quick else args.reps
     lreps = 2 if args.quick else args.latency_reps
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="tether-faults-"))
@@ -588,7 +662,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.setdefault(cell, []).append(r)
                 report["cells"].setdefault(cell, []).append(r)
                 print(f"{cell} rep {rep}: exit {r['exit']} detect {fmt(r['detect'])} s safe {fmt(r['safe'])} s "
-                      f"action {r['action']} open-loop {fmt(r['open_loop'])} s (dog {fmt(r['dog_age'])}) "
+                      f"action {r['action']} transient {r['transient']} open-loop {fmt(r['open_loop'])} s (dog {fmt(r['dog_age'])}) "
                       f"xi {fmt(r['xi_surv'])} sep {fmt(r['sep'])} fence {fmt(r['fence'], digits=3)} "
                       f"gate {r['gate']} du {fmt(r['du_near'])}/{fmt(r['du_before'])} rec {r['recorded_forged']} "
                       f"[{r['wall']:.0f} s wall, load {r['load']:.2f}]", flush=True)
