@@ -41,7 +41,7 @@ that fired at 8.001 s):
   leader included, offsets h_i) from the plants' own positions (``plant_p``) over the *surviving*
   graph: at each tick only the vehicles whose agent and plant are both FLYING count, edges from the
   others are removed (as the agents' kappa re-normalisation does; a leader whose sample of the tick
-  the recorder lacks counts as gone, and an agent left with no in-edge has xi = 0). Largest ``||xi_i||`` of a survivor
+  the recorder lacks counts as gone; a survivor left with no surviving in-edge is left out). Largest ``||xi_i||`` of a survivor
   from t_f to the end of the analysed window; in brackets the same over the 3 s before t_f.
 * ``drift`` [m]: for every stretch in which a vehicle's agent or plant is in HOLD or LAND, the largest
   horizontal distance of the vehicle from where it was at the start of that stretch.
@@ -387,7 +387,7 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
             a = A[:n] * keep[None, :]
             xi = a.sum(axis=1)[:, None] * e[:n] - a @ np.nan_to_num(e)
             norms = np.linalg.norm(xi, axis=1)
-            norms = norms[surv[k] & np.isfinite(norms)]
+            norms = norms[surv[k] & np.isfinite(norms) & (a.sum(axis=1) > 0)]  # no in-edge left: undefined
             if norms.size:
                 best = float(norms.max()) if math.isnan(best) else max(best, float(norms.max()))
         return best
