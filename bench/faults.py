@@ -123,7 +123,7 @@ CODE = {wire.FLYING: "F", wire.HOLD: "H", wire.LAND: "L", wire.LANDED: "LD", wir
 NAME_TO_CODE = {name: i for i, name in enumerate(wire.MODES)}
 PLANT_EVENT = re.compile(r"vehicle (\d+): (\w+) -> (\w+) at ([-\d.]+) s: (.*)$")
 AGE_IN = re.compile(r"no valid command for ([\d.]+) s")
-STOP_LINES = ("stopping them", "ending the run", "ran ", "interrupted")
+STOP_LINES = ("the survivors had", "ending the run", "s of mission time in", "interrupted")
 
 
 def free_port() -> int:
