@@ -129,7 +129,8 @@ class Monitor:
         ]
         if forge_agents:  # an agent's state is only needed to forge it
             self._subs.append(tp.declare_subscriber(session, f"tether/{ns}/agent/*/state", self.fifo))
-        self._vanished: dict[str, float] = {}
+        self._vanished: dict[str, tuple[float, float | None]] = {}
+        """Tokens gone, not yet confirmed: name -> (monotonic time, mission time) of the loss."""
         self.proc_alive: Callable[[str], bool] = lambda name: True
 
     def close(self) -> None:
@@ -184,18 +185,26 @@ class Monitor:
             was = self.alive_token.get(name)
             self.alive_token[name] = ev.alive
             if was and not ev.alive:
-                self._vanished[name] = time.monotonic()
-            elif ev.alive and self._vanished.pop(name, None) is None and was is False:
+                self._vanished[name] = (time.monotonic(), self.mission_time())
+            elif ev.alive and was is False:
+                pending = self._vanished.pop(name, None)
+                if pending is not None and self.proc_alive(name):
+                    # back within CONFIRM: a process that is ending never gets its token back, so this
+                    # one was lost for a while (a freeze or a cut-off about as long as the lease)
+                    t = pending[1]
+                    if t is None or t < self.mission.duration:
+                        self.report(name, "froze", "its liveliness token was gone for a while as its process "
+                                                   "ran on (stopped, cut off, or hung)", t=t)
                 self.report(name, "back", "its liveliness token is back")
         now = time.monotonic()
-        for name, since in list(self._vanished.items()):
+        for name, (since, t_gone) in list(self._vanished.items()):
             if now - since < self.CONFIRM:
                 continue
             del self._vanished[name]
-            t = self.mission_time()
+            t = t_gone
             if self.proc_alive(name) and not self.alive_token.get(name) and (t is None or t < self.mission.duration):
                 self.report(name, "froze", "its liveliness token is gone while its process still runs "
-                                           "(stopped, cut off, or hung)", t=t - self.CONFIRM if t else t)
+                                           "(stopped, cut off, or hung)", t=t)
             elif self.alive_token.get(name):
                 self.report(name, "back", "its liveliness token is back")
 

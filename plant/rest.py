@@ -5,11 +5,13 @@ off, which the plant models themselves do not have. Pure.
 step (``docs/watchdog.md``):
 
 =========  ==================================================================================
-FLYING,    the command is passed through untouched: while every vehicle flies, the wrapper is
+FLYING,    the command is passed through untouched: while every vehicle flies above the ground, the wrapper is
 HOLD       transparent, bit for bit (the plant process and the in-process engine then fly the
            same arithmetic)
 LAND       the command is passed through; 3D: a vehicle that reaches ``ground`` rests there
-           (the landing law may overshoot it by millimetres; the ground does not let it)
+           (the landing law may overshoot it by millimetres; the ground does not let it).
+           3D, any mode: a vehicle that goes below ``ground`` rests there too (its agent's
+           supervisor may be landing it while the watchdog still says FLYING)
 LANDED     the vehicle rests where it touched down: its reported position is frozen there
            (3D: not below ``ground``), its velocity and acceleration are zero
 ESTOP      motors off. 3D: the vehicle falls, commanded ``u = (0, 0, -g)`` (what lost thrust
@@ -73,6 +75,7 @@ class Resting:
         if modes is None or all(mode not in (LAND, LANDED, ESTOP) for mode in modes):
             if not self._rest:
                 self.inner.step(u)
+                self._contact(())
                 return
         u = np.array(u, dtype=float)
         falling: list[int] = []
@@ -90,11 +93,22 @@ class Resting:
             elif mode == LAND and self._dim == 3:
                 falling.append(row)  # descending onto the ground: contact stops it there
         self.inner.step(u)
-        if falling:
-            after = self.inner.state()
-            for row in falling:
-                if after.p[row, -1] <= self._ground:
-                    self._settle(row, after.p[row])
+        self._contact(falling)
+
+    def _contact(self, falling: Sequence[int]) -> None:
+        """3D ground contact after a step: a vehicle descending in LAND or ESTOP (``falling``)
+        rests once it reaches the ground; any other vehicle rests if it went *through* it (an
+        agent's supervisor lands it while its watchdog still says FLYING, or it is flown into the
+        floor): the ground does not let a vehicle below it, whoever commands the descent."""
+        if self._dim < 3:
+            return
+        after = self.inner.state()
+        for row in range(len(self.ids)):
+            if row in self._rest:
+                continue
+            z = after.p[row, -1]
+            if z < self._ground or (row in falling and z <= self._ground):
+                self._settle(row, after.p[row])
 
     def close(self) -> None:
         self.inner.close()

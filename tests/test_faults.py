@@ -235,3 +235,41 @@ def test_tether_land_bad_input_exits_2_naming_the_argument(args: list[str], name
     r = subprocess.run(tether_cmd("land", *args), cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, r.stderr
     assert names in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_token_back_within_the_confirmation_delay_is_still_reported_as_a_freeze() -> None:
+    """A freeze (or cut-off) about as long as the lease: the token goes and comes back within
+    Monitor.CONFIRM while the process ran on. Measured before the fix (bench/faults.py,
+    freeze:agent/1@8+3 with the 2 s lease): no 'froze' event, exit status 3 instead of 4."""
+    from deploy import inject
+
+    m = load_mission(REPO / "tether" / "missions" / "failsafe.toml", None)
+    keys = wire.Keys("failsafe")
+    members = [("leader", 5), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")], ("recorder", 0)]
+    clock = [9.0]
+    import asyncio
+
+    async def main() -> None:
+        with tp.open_session(tp.ZenohSettings(listen=(tp.loopback_endpoint(tp.free_tcp_port()),))) as session:
+            mon = inject.Monitor(session, m, keys, members, lambda: clock[0])
+            try:
+                mon.proc_alive = lambda name: True
+                mon.token_events.put(tp.TokenEvent(keys.token("agent", 1), True))
+                mon.poll()
+                mon.token_events.put(tp.TokenEvent(keys.token("agent", 1), False))
+                mon.poll()
+                clock[0] = 9.5
+                mon.token_events.put(tp.TokenEvent(keys.token("agent", 1), True))
+                mon.poll()
+                got = [(e.who, e.what, e.t) for e in mon.events]
+                assert ("agent/1", "froze", 9.0) in got and ("agent/1", "back", 9.5) in got
+                # a process that ends withdraws its token for good: not a freeze
+                mon.proc_alive = lambda name: name != "agent/2"
+                mon.token_events.put(tp.TokenEvent(keys.token("agent", 2), True))
+                mon.token_events.put(tp.TokenEvent(keys.token("agent", 2), False))
+                mon.poll()
+                assert not [e for e in mon.events if e.who == "agent/2"]
+            finally:
+                mon.close()
+
+    asyncio.run(main())

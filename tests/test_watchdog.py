@@ -224,3 +224,19 @@ def test_the_agents_supervisor_mode_rides_on_its_command(agent_mode: int, want: 
     assert dog.offer([0.0, 0.0, 0.0], H, 1, 2, agent_mode)
     d = dog.step(2 * H, np.zeros(3), np.zeros(3))
     assert d.mode == want and not d.u.any() and d.events[-1].reason.startswith("agent")
+
+
+def test_the_ground_stops_a_vehicle_its_agent_lands_while_the_watchdog_says_flying() -> None:
+    """An agent's supervisor lands its vehicle with the plant's watchdog in FLYING (it follows the
+    agent's LAND commands): the ground must stop the vehicle all the same (measured before the fix:
+    8 cm below the ground, bench/faults.py freeze:agent/1)."""
+    m = one_vehicle(3, [0.5, 0.0, 0.05], [0.0, 0.0, -0.6])
+    (inner,) = base.build(m)
+    veh = Resting(inner, 3, 0.0)
+    zs = []
+    for _ in range(50):
+        veh.step(np.array([[0.0, 0.0, 0.5]]), [FLYING])  # braking too late to stop above the ground
+        zs.append(veh.state().p[0, 2])
+    assert min(zs) >= 0.0 and veh.resting(0)
+    s = veh.state()
+    assert s.p[0, 2] == 0.0 and not np.any(s.v)
