@@ -44,7 +44,8 @@ async def run(node: Node) -> None:
     state = node.publisher(keys.topic("agent", aid, "state"))
 
     def relay(msg: wire.PlantState) -> None:
-        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist())
+        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist(),
+                   mode=tick.supervisor.mode)
 
     sf = m.safety
     initial = _initial_positions(m)
@@ -115,27 +116,26 @@ async def run(node: Node) -> None:
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
-        if not lockstep and plant.silent_at(k):
-            # the vehicle is gone (its plant withdrew or died): hold, i.e. command nothing; its
-            # neighbours stop hearing this agent and count it out after max_age
-            if not holding:
-                log.warning("plant %d is silent at t = %.2f s: holding (no commands)", aid, t)
-            holding = True
-            continue
-        if holding:
-            log.warning("plant %d is back at t = %.2f s", aid, t)
-            holding = False
+        # the vehicle is gone (its plant withdrew or died) or its measurements stopped: the
+        # supervisor holds on the last one it had (its plant's own watchdog holds the vehicle too);
+        # the agent relays nothing meanwhile, so its neighbours count it out
+        plant_silent = not lockstep and k < m.steps and (plant.silent_at(k) or t - own.t > sf.cmd_timeout)
+        if plant_silent != holding:
+            log.warning("plant %d is %s at t = %.2f s", aid, "silent" if plant_silent else "back", t)
+            holding = plant_silent
         heard: list[Heard | None] = [
             None if msg is None else (msg.t, np.array(msg.p), np.array(msg.vel), np.array(msg.a)) for msg in got]
+        stopped = [msg is not None and msg.mode != wire.FLYING for msg in got]
         if lockstep or k == m.steps:
             # lockstep: a tick waits for its inputs, so nothing can be silent; the last tick:
             # the others may already have finished and left
-            status = Status(operator=_order(operator))
+            status = Status(stopped=stopped, operator=_order(operator), plant_mode=own.mode)
         else:
-            # an agent that left after its last tick is not lost; only the last ticks can see that
-            gone = node.gone("agent") - neighbours - {aid} if k < m.steps - 1 else set()
-            status = Status(gone=[s.silent_at(k) for s in nbrs], others_gone=frozenset(gone),
-                            operator=_order(operator))
+            # an agent that left after its last tick is not lost; only the last ticks can see that;
+            # a gone leader reaches nobody
+            gone = (node.gone("agent") - neighbours - {aid}) | node.gone("leader") if k < m.steps - 1 else set()
+            status = Status(gone=[s.silent_at(k) for s in nbrs], stopped=stopped, others_gone=frozenset(gone),
+                            operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode)
         near: list[tuple[np.ndarray, np.ndarray]] = []
         if avoid:
             seen = [got[n] for n in vehicles] + far

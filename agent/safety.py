@@ -69,13 +69,22 @@ class Status:
     Attributes:
         gone: per in-neighbour (``law.neighbours`` order), its liveliness token is gone before it
             delivered this tick (real time; never in lockstep, where a tick waits for its inputs).
-        others_gone: other agents whose tokens are gone (for the reachability of this agent).
+        stopped: per in-neighbour, its newest sample says it is not FLYING (it holds, lands or has
+            stopped: no longer one to follow).
+        others_gone: other nodes (agents, or the leader) whose tokens are gone, for the
+            reachability of this agent: a gone leader reaches nobody.
         operator: the operator's last order, ``"land"``, ``"estop"`` or None.
+        plant_silent: no fresh measurement from the own plant (its token is gone, or its newest
+            sample is older than ``cmd_timeout``).
+        plant_mode: the own plant's watchdog mode (a plant that has taken over to land is followed).
     """
 
     gone: Sequence[bool] = ()
+    stopped: Sequence[bool] = ()
     others_gone: frozenset[int] = frozenset()
     operator: str | None = None
+    plant_silent: bool = False
+    plant_mode: int = FLYING
 
 
 NOMINAL = Status()
@@ -120,11 +129,12 @@ class Supervisor:
         for n, j in enumerate(self.neighbours):
             age = ages[n] if n < len(ages) else math.nan
             gone = bool(status.gone[n]) if n < len(status.gone) else False
+            stopped = bool(status.stopped[n]) if n < len(status.stopped) else False
             never = math.isnan(age)
             if j == self.leader:
                 leader_silent = gone or (age > cfg.leader_timeout) or (never and t > cfg.leader_timeout)
                 continue
-            if gone or age > cfg.neighbour_timeout or (never and t > cfg.neighbour_timeout):
+            if gone or stopped or age > cfg.neighbour_timeout or (never and t > cfg.neighbour_timeout):
                 lost.add(j)
         self.missing = frozenset(lost)
         removed = lost | set(status.others_gone)
@@ -145,7 +155,7 @@ class Supervisor:
     # ------------------------------------------------------------------ decision
     def command(self, k: int, t: float, p: np.ndarray, v: np.ndarray, u: np.ndarray, xi: np.ndarray,
                 kp: np.ndarray, kv: np.ndarray, reachable: bool, leader_silent: bool,
-                status: Status = NOMINAL, plant_silent: bool = False) -> np.ndarray:
+                status: Status = NOMINAL) -> np.ndarray:
         """The command that leaves the agent at tick k (finite, norm <= ``max_accel``), given the
         law's ``u`` and errors. Moves the mode; the law's gains should advance only while the mode
         is FLYING (:attr:`flying`)."""
@@ -160,6 +170,12 @@ class Supervisor:
             return np.zeros_like(p)
         if status.operator == "land" and self.mode != LAND:
             self._go(k, t, LAND, "operator land", p)
+        if status.plant_mode == ESTOP:
+            self._go(k, t, ESTOP, "plant stopped its motors", p)
+            return np.zeros_like(p)
+        if status.plant_mode in (LAND, LANDED) and self.mode in (FLYING, HOLD):
+            # the plant's watchdog has taken over to land (it never flies again): follow it down
+            self._go(k, t, LAND, "plant landing (its watchdog took over)", p)
         if self.mode == FLYING or self.mode == HOLD:
             why = self._diverged(u, xi, kp, kv)
             if why is not None:
@@ -175,7 +191,7 @@ class Supervisor:
             speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
             if speed > cfg.max_speed:
                 cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
-            elif plant_silent:
+            elif status.plant_silent:
                 cause, why = "plant", "plant silent"
             elif leader_silent and self.hears_leader:
                 cause, why = "leader", "leader silent"

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from leader import profile
 from plant import base as plants
@@ -113,23 +114,27 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         # what each sender publishes at tick k: the leader's reference, each agent's relayed sample
         sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {
             lid: (t, np.asarray(lp, dtype=float), np.asarray(lv, dtype=float), np.asarray(la, dtype=float))}
+        modes = {lid: wire.FLYING}  # each sender's mode, as its state message carries it
         for i, aid in enumerate(ids):  # what each agent shares for the feed-forward
             sent[aid] = (t, p[i], v[i], ticks[i].shared(a[i]))
+            modes[aid] = ticks[i].supervisor.mode
         payloads = {}
         if net is not None:
             for j in senders:
                 tj, pj, vj, aj = sent[j]
                 payloads[j] = wire.encode(wire.State(sender=j, seq=k, k=k, t=tj, p=pj.tolist(),
-                                                     vel=vj.tolist(), a=aj.tolist()))
+                                                     vel=vj.tolist(), a=aj.tolist(), mode=modes[j]))
         r = k if record else 0
         keep = record or k == steps
         us = []
         worst = 0.0
         for i, (tk, row) in enumerate(zip(ticks, links)):
             heard: list[Heard | None] = []
+            stopped: list[bool] = []
             for lk in row:
                 if lk.channel is None:
                     heard.append(sent[lk.src])
+                    stopped.append(modes[lk.src] != wire.FLYING)
                     lk.source.received += 1
                     continue
                 lk.channel.send(t, payloads[lk.src])
@@ -137,8 +142,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 newest = lk.source.newest
                 heard.append(None if newest is None else
                              (newest.t, np.array(newest.p), np.array(newest.vel), np.array(newest.a)))
+                stopped.append(newest is not None and newest.mode != wire.FLYING)
             near = [(p[j], v[j]) for j in range(n) if j != i] if avoid else ()
-            out = tk.step(k, t, p[i], v[i], a[i], heard, near=near)
+            out = tk.step(k, t, p[i], v[i], a[i], heard, Status(stopped=stopped), near=near)
             us.append(out.u)
             worst = max(worst, abs(out.xi).max())
             if keep:

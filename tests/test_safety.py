@@ -303,3 +303,35 @@ def test_the_filter_returns_the_law_untouched_when_nobody_is_near() -> None:
     near = [(np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]))]
     out = filter_command(u, np.zeros(3), np.array([1.0, 0.0, 0.0]), near, 0.3, 2.0, 1.0, 2.0)
     assert out[0] < u[0]
+
+
+# --------------------------------------------------------------------------- what the fault table found
+def test_a_neighbour_that_stopped_flying_is_no_longer_followed() -> None:
+    m = mission()
+    tick = AgentTick.from_mission(m, 3)  # hears 2 and the leader
+    heard = [(0.0, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3)), (0.0, np.array([0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))]
+    p = np.array([3.0, 0.0, 1.0])
+    out = tick.step(0, 0.0, p, np.zeros(3), np.zeros(3), heard, Status(stopped=[True, False]))
+    assert out.mode == FLYING and tick.supervisor.lost == {2}  # 2 is landing: dropped, kappa re-normalised
+    tick2 = AgentTick.from_mission(m, 2)  # hears only 1
+    out = tick2.step(0, 0.0, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3), heard[:1], Status(stopped=[True]))
+    assert out.mode == HOLD
+
+
+def test_a_gone_leader_reaches_nobody() -> None:
+    tick = AgentTick.from_mission(mission(), 2)  # does not hear the leader
+    heard = [(0.0, np.array([1.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))]
+    out = tick.step(0, 0.0, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3), heard, Status(others_gone=frozenset({4})))
+    assert out.mode == HOLD
+
+
+def test_the_agent_follows_its_plant_watchdog_down_and_holds_while_the_plant_is_silent() -> None:
+    sup = Supervisor(mission(), 1, (3, 4))
+    step(sup, 0, status=Status(plant_silent=True))
+    assert sup.mode == HOLD and sup.events[-1].reason == "plant silent"
+    step(sup, 1, status=Status())
+    assert sup.mode == FLYING and sup.events[-1].reason == "plant recovered"
+    step(sup, 2, status=Status(plant_mode=LAND))
+    assert sup.mode == LAND and "watchdog" in sup.events[-1].reason
+    sup = Supervisor(mission(), 1, (3, 4))
+    assert not step(sup, 0, status=Status(plant_mode=wire.ESTOP)).any() and sup.mode == ESTOP

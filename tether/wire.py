@@ -66,6 +66,9 @@ class State(_Msg, tag="state", frozen=True):
     a: list[float]
     """Acceleration [m/s^2; world frame]: the leader's reference, or a vehicle's measured mean
     acceleration over the previous period."""
+    mode: int = 0
+    """The sender's safety mode (a code of :data:`MODES`; the leader's is always FLYING): a
+    neighbour that holds, lands or has stopped is no longer one to follow."""
 
 
 class PlantState(_Msg, tag="plant_state", frozen=True):
