@@ -308,13 +308,12 @@ class View:
             prims = {"spheres": [fm.SpherePrimitive(pose=self._pose(pp), size=self.psize, color=self.payload_colour)]}
             if L.tension:
                 pts, cols = [], []
-                top = self._v3(pp)
+                top = fm.Point3(x=_f(pp[0]), y=_f(pp[1]), z=_f(pp[2]))
                 for i in range(L.n):
                     rgba = tension_colour(r["tension"][i], L.nominal_tension)
                     c = fm.Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
                     q = r["p"][i]
-                    pts += [fm.Point3(x=_f(q[0]), y=_f(q[1]), z=_f(q[2])),
-                            fm.Point3(x=top.x, y=top.y, z=top.z)]
+                    pts += [fm.Point3(x=_f(q[0]), y=_f(q[1]), z=_f(q[2])), top]
                     cols += [c, c]
                 prims["lines"] = [fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineList,
                                                    pose=fm.Pose(orientation=self.ident), thickness=2.0,
