@@ -528,3 +528,34 @@ class Live:
 
 
 __all__ = ["EPOCH_NS", "SCENE_RATE", "Layout", "Live", "View", "scene_every", "stamp", "write_mcap"]
+
+
+def layout(agent_ids: Sequence[int] = (1, 2, 3, 4), dim: int = 2) -> str:
+    """The Foxglove layout of ``docs/foxglove/tether.json`` for these agents: the 3D scene
+    (world frame), ||xi_i||, Kp and Kv plots, the safety events and the run's log."""
+    import foxglove.layouts as fl
+
+    def plot(title: str, paths: list[tuple[str, str]]) -> fl.PlotPanel:
+        return fl.PlotPanel(title=title, config=fl.PlotConfig(
+            paths=[fl.PlotSeries(value=v, label=lab, timestamp_method="receiveTime") for v, lab in paths],
+            show_legend=True, legend_display="floating"))
+
+    ids = list(agent_ids)
+    axes = "xyz"
+    three_d = fl.ThreeDeePanel(title="formation", config=fl.ThreeDeeConfig(
+        follow_tf="world", topics={"/scene": fl.BaseRendererSceneUpdateTopicSettings(visible=True)}))
+    plots = fl.SplitContainer(direction="column", items=[
+        fl.SplitItem(content=plot("||xi_i|| [m]", [(f"/agent/{a}.xi_norm", f"agent {a}") for a in ids])),
+        fl.SplitItem(content=plot("Kp", [(f"/agent/{a}.kp[{j}]", f"{a}{axes[j]}") for a in ids for j in range(dim)])),
+        fl.SplitItem(content=plot("Kv", [(f"/agent/{a}.kv[{j}]", f"{a}{axes[j]}") for a in ids for j in range(dim)])),
+        fl.SplitItem(content=plot("safety mode", [(f"/agent/{a}.safety_mode", f"agent {a}") for a in ids])),
+    ])
+    logs = fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(content=fl.LogPanel(title="safety events", config=fl.LogConfig(topic_to_render="/safety"))),
+        fl.SplitItem(content=fl.LogPanel(title="run log", config=fl.LogConfig(topic_to_render="/log"))),
+    ])
+    left = fl.SplitContainer(direction="column", items=[fl.SplitItem(proportion=3, content=three_d),
+                                                         fl.SplitItem(proportion=1, content=logs)])
+    root = fl.SplitContainer(direction="row", items=[fl.SplitItem(proportion=3, content=left),
+                                                     fl.SplitItem(proportion=2, content=plots)])
+    return fl.Layout(content=root).to_json()

@@ -252,3 +252,14 @@ def test_progress_lines_show_rate_and_eta() -> None:
     assert lines[0] == "section4 0% (0/1000)"
     assert lines[5] == "section4 50% (500/1000) 100/s ETA 5s"
     assert lines[-1] == "section4 100% (1000/1000) 100/s elapsed 10s"
+
+
+def test_the_shipped_layout_is_the_generated_one() -> None:
+    """``docs/foxglove/tether.json`` is ``recorder.viz.layout()`` (Section 4's agents); regenerate it
+    with ``python -c "from recorder import viz; print(viz.layout())"`` after changing either."""
+    shipped = json.loads((REPO / "docs" / "foxglove" / "tether.json").read_text())
+    assert shipped == json.loads(viz.layout())
+    panels = json.dumps(shipped)
+    for want in ('"panelType": "ThreeDee"', '"panelType": "Plot"', '"panelType": "Log"', "/agent/1.xi_norm",
+                 "/agent/4.kv[1]", '"/safety"'):
+        assert want in panels
