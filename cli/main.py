@@ -12,6 +12,7 @@ import json
 import math
 import shlex
 import sys
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
@@ -66,17 +67,34 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     m = _load(args.mission)
     out = Path(args.out)
     prog = Progress()
-    run = refsim.simulate(m, args.mode, duration=args.duration, substeps=args.substeps,
-                          progress=lambda k, n: prog(k, n, m.name))
+    live = None
+    if args.live is not None:  # the live view (docs/foxglove.md): needs the viz extra
+        from recorder import viz
+
+        live = viz.Live(port=args.live, speed=args.speed, mission=m, scene_rate=args.scene_rate)
+        print(f"live view: ws://127.0.0.1:{live.port} (Foxglove: Open connection, Foxglove WebSocket)", flush=True)
+    try:
+        run = refsim.simulate(m, args.mode, duration=args.duration, substeps=args.substeps,
+                              progress=lambda k, n: prog(k, n, m.name), on_tick=live.tick if live else None)
+        if live is not None:
+            live.finish(run)
+    finally:
+        if live is not None:
+            live.close()
     run.meta.mission_text = catalog.resolve(args.mission).read_text()
     run.save(out / "run.npz")
+    mcap = None
+    if not args.no_mcap:
+        from recorder.export import mcap_beside
+
+        mcap = mcap_beside(run, m, out / "run.npz", scene_rate=args.scene_rate)
     summary = metrics.summary(run)
     summary["tracking_error_m"] = metrics.tracking_error(run, Setup.of(m).offsets[: m.n])
     (out / "metrics.json").write_text(json.dumps(summary, indent=2))
     if not args.no_figures:
         figures.run_panels(run, out)
     print(json.dumps(summary, indent=2))
-    print(f"wrote {out / 'run.npz'}")
+    print(f"wrote {out / 'run.npz'}" + (f" and {mcap}" if mcap else ""))
     return 0
 
 
@@ -137,6 +155,20 @@ def cmd_plot(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else (path if path.is_dir() else path.parent)
     for p in figures.run_panels(run, out):
         print(f"wrote {p}")
+    return 0
+
+
+def cmd_mcap(args: argparse.Namespace) -> int:
+    from recorder import viz
+    from tether.runfile import Run
+
+    path = Path(args.run)
+    run = Run.load(path)
+    npz = path / "run.npz" if path.is_dir() else path
+    out = Path(args.out) if args.out else npz.with_suffix(".mcap")
+    t0 = time.perf_counter()
+    viz.write_mcap(run, None, out, scene_rate=viz.SCENE_RATE if args.scene_rate is None else args.scene_rate)
+    print(f"wrote {out} ({len(run.t)} ticks, {len(run.agent_ids)} agents) in {time.perf_counter() - t0:.2f} s")
     return 0
 
 
@@ -399,6 +431,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
     s.add_argument("--substeps", type=int, default=10, help="RK4 steps per control period (continuous mode)")
     s.add_argument("--no-figures", action="store_true")
+    s.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
+    s.add_argument("--scene-rate", type=float, default=None, metavar="HZ",
+                   help="rate of the 3D scene in run.mcap and the live view (default 25; 0: every tick)")
+    s.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                   help="serve the run over the Foxglove WebSocket protocol while it goes on (default port 8765)")
+    s.add_argument("--speed", type=float, default=1.0,
+                   help="with --live: mission seconds per wall second (default 1: real time; 0: as fast as it goes)")
     s.set_defaults(func=cmd_simulate)
 
     r = sub.add_parser("reproduce", help="reproduce a result of the paper")
@@ -501,6 +540,13 @@ def build_parser() -> argparse.ArgumentParser:
                                            "access control and service units, from a mission")
     deploy_gen.add_arguments(dg)
     dg.set_defaults(func=deploy_gen.run_args)
+
+    mc = sub.add_parser("mcap", help="write a run's Foxglove file (run.mcap) from its run file")
+    mc.add_argument("run", help="a run.npz or the directory holding it")
+    mc.add_argument("--out", default=None, help="the MCAP file (default: run.mcap beside run.npz)")
+    mc.add_argument("--scene-rate", type=float, default=None, metavar="HZ",
+                    help="rate of the 3D scene (default 25; 0: every tick)")
+    mc.set_defaults(func=cmd_mcap)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file (safety mode changes marked)")
     pl.add_argument("run", help="a run.npz or the directory holding it")

@@ -4,7 +4,8 @@ It subscribes to the leader's state, every agent's telemetry and every plant's s
 :class:`~tether.runfile.Run` indexed by tick. In lockstep it acknowledges tick k once it holds
 every sample of k, so the clock never runs ahead of what is recorded. In real time it records
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
-in both cases (a stopped run is marked ``complete = false``).
+in both cases (a stopped run is marked ``complete = false``), with ``run.mcap`` beside it when the
+Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recorder.export import mcap_beside
 from tether import wire
 from tether.node import Node
 from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
@@ -138,6 +140,10 @@ class Recording:
         safety.gate_counts = np.array([[gate[r] if r in gate else 0 for r in reasons] for _, gate in self.gate],
                                       dtype=np.int64).reshape(len(self.gate), len(reasons))
         path = self.run.save(self.out / "run.npz")
+        try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
+            mcap_beside(self.run, self.mission, path)
+        except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
+            log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
             lines = "".join(json.dumps(d) + "\n" for d in self.netem)

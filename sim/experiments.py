@@ -34,6 +34,7 @@ import numpy as np
 
 from plant.payload import CableParams, hover_equilibrium
 from plant.vehicle import G
+from recorder.export import mcap_beside
 from sim import figures, lockstep, metrics
 from tether import mission as ms
 from tether.catalog import builtin_path
@@ -163,6 +164,7 @@ def run_experiment(name: str, out: Path, duration: float | None = None, progress
         key = _slug(label)
         run.meta.mission_text = ms.dumps(mv)
         run.save(out / key / "run.npz")
+        mcap_beside(run, mv, out / key / "run.npz")
         runs[label] = run
         table[label] = summary(mv, run)
     first = next(iter(runs))

@@ -41,6 +41,8 @@ from tether.runfile import Run, RunMeta, Source
 
 Mode = Literal["discrete", "continuous"]
 Progress = Callable[[int, int], None]
+OnTick = Callable[[Run, int], None]
+"""Called with the run being filled and the index of the sample just recorded (live views)."""
 
 
 @dataclass(frozen=True)
@@ -81,11 +83,13 @@ def simulate(
     record: bool = True,
     substeps: int = 10,
     progress: Progress | None = None,
+    on_tick: OnTick | None = None,
 ) -> Run:
     """Run a mission in one process. ``duration`` overrides the mission's (a whole number of periods).
 
     Returns a :class:`~tether.runfile.Run` with one sample per control tick (``steps + 1``
-    samples); with ``record=False`` only the final sample is kept (for benchmarks).
+    samples); with ``record=False`` only the final sample is kept (for benchmarks). ``on_tick`` is
+    called after each recorded sample with the run and the sample's index (``--live``).
     """
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
@@ -93,13 +97,14 @@ def simulate(
     meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate, steps=steps,
                    seed=m.seed)
     if mode == "discrete":
-        return _discrete(s, steps, record, progress, meta)
+        return _discrete(s, steps, record, progress, meta, on_tick)
     if mode == "continuous":
-        return _continuous(s, steps, substeps, record, progress, meta)
+        return _continuous(s, steps, substeps, record, progress, meta, on_tick)
     raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
 
 
-def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
+def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta,
+              on_tick: OnTick | None = None) -> Run:
     m, topo, prm = s.mission, s.topo, s.params
     n, d, h = m.n, m.dim, m.dt
     # full-shape kappa and weights: numpy is several times slower broadcasting (N, 1) over (N, d)
@@ -137,6 +142,8 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
             run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = xi, zeta, kp, kv
             run.d[r] = 0.0 if zero_d else s.dist.value(k)
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp[k], lv[k], la[k]
+            if on_tick is not None:
+                on_tick(run, r)
         if k == steps:
             break
         gains = law.gain_update(gains, err, gamma, gs)  # Kp and Kv in one call
@@ -150,7 +157,8 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     return run
 
 
-def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
+def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta,
+                on_tick: OnTick | None = None) -> Run:
     m, topo, prm = s.mission, s.topo, s.params
     if m.law.feedforward != "measured":
         raise ValueError(f"law.feedforward = {m.law.feedforward!r}: the continuous mode feeds forward the exact "
@@ -191,6 +199,8 @@ def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Pro
             run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = aux["xi"], aux["zeta"], y[2], y[3]
             run.d[r] = aux["d"]
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = aux["lead"]
+            if on_tick is not None:
+                on_tick(run, r)
         if k == steps:
             break
         for j in range(substeps):

@@ -15,6 +15,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from recorder.export import mcap_beside
 from sim import figures, metrics, refsim
 from tether import mission as ms
 from tether.catalog import builtin_path
@@ -48,7 +49,9 @@ def section4(out: Path, duration: float | None = None, continuous: bool = False,
             key = f"{kind}-{mode}"
             run = refsim.simulate(mk, mode, duration=duration,
                                   progress=labelled(progress, key) if progress else None)
+            run.meta.mission_text = ms.dumps(mk)
             run.save(out / key / "run.npz")
+            mcap_beside(run, mk, out / key / "run.npz")
             runs[key] = run
             table[key] = metrics.summary(run)
     labels = {"sigma": "sigma-modification (Eq. 17)", "benchmark": "benchmark (Eq. 30)"}

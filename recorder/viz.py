@@ -1,0 +1,567 @@
+"""The Foxglove view of a run: ``run.mcap`` beside ``run.npz``, and the live view (``--live``).
+
+One converter for every producer: :func:`write_mcap` turns a finished :class:`~tether.runfile.Run`
+into an MCAP file through the Foxglove SDK (``foxglove-sdk``, the ``viz`` extra); :class:`Live`
+serves the same channels over the Foxglove WebSocket protocol while a run is being filled. Both log
+through one :class:`View`, so a file and a live session carry the same topics, schemas and values.
+The channels (``docs/foxglove.md``):
+
+=====================  ======================  =========================================================
+``/scene``             foxglove.SceneUpdate    vehicles (coloured by safety mode), the leader, the
+                                               formation slots (leader + offset), payload and cables
+                                               (coloured by tension), the geofence box
+``/tf``                foxglove.FrameTransforms  world -> ``agent_<id>`` (attitude when recorded),
+                                               ``leader``, ``payload``
+``/agent/<id>``        tether.Agent (JSON)     per tick: ||xi||, xi, zeta, Kp, Kv, u, p, v, d, modes,
+                                               links (age, delivery) and the runtime's own columns
+``/leader``            tether.Leader (JSON)    the leader's p, v, a
+``/payload``           tether.Payload (JSON)   payload p, v, cable tensions, slack events ([payload])
+``/safety``            foxglove.Log            every safety mode change
+``/log``               foxglove.Log            the run's notes: what ran, divergence, gate rejections
+=====================  ======================  =========================================================
+
+Time: the log time (and every header stamp) of a sample of mission time t is ``EPOCH_NS + t`` in
+nanoseconds, so Foxglove's "seconds" clock reads 1000000000 + t. Mission time is the sample time
+``t_k = k h`` of the run file (the simulator's and the lockstep clock's time; in real time the tick's
+sample time). Time series are written at every tick; the 3D scene (``/scene``, ``/tf``) at up to
+``scene_rate`` Hz (:data:`SCENE_RATE`; 0: every tick).
+
+Only the recorder, ``sim`` and ``cli`` import this module; agents, leaders and plants never do.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import msgspec
+import numpy as np
+
+import foxglove
+from foxglove import channels as fch
+from foxglove import messages as fm
+from foxglove.mcap import MCAPWriteOptions
+
+from tether import mission as ms
+from tether.runfile import NO_SAMPLE, Run
+from tether.wire import SafetyEvent
+
+EPOCH_NS = 1_000_000_000 * 10**9
+"""Log time of mission time 0 [ns]: 2001-09-09T01:46:40Z, i.e. 1e9 s after the Unix epoch."""
+SCENE_RATE = 25.0
+"""Default rate of the 3D scene in a file [Hz] (time series are always at every tick)."""
+GRAVITY = 9.81
+
+MODE_COLOURS = {
+    0: (0.20, 0.75, 0.30),  # FLYING: green
+    1: (0.95, 0.75, 0.10),  # HOLD: amber
+    2: (0.95, 0.45, 0.10),  # LAND: orange
+    3: (0.55, 0.55, 0.55),  # LANDED: grey
+    4: (0.90, 0.10, 0.10),  # ESTOP: red
+}
+NO_SAMPLE_COLOUR = (0.25, 0.25, 0.25)
+LEADER_COLOUR = (0.20, 0.45, 0.95)
+SLOT_COLOUR = (0.20, 0.45, 0.95)
+PAYLOAD_COLOUR = (0.60, 0.35, 0.15)
+FENCE_COLOUR = (0.90, 0.20, 0.20)
+
+
+def stamp(t: float) -> int:
+    """The log time [ns] of mission time ``t`` [s]."""
+    return EPOCH_NS + int(round(t * 1e9))
+
+
+def _ts(ns: int) -> fm.Timestamp:
+    return fm.Timestamp(ns // 10**9, ns % 10**9)
+
+
+def _colour(rgb: Sequence[float], a: float = 1.0) -> fm.Color:
+    return fm.Color(r=rgb[0], g=rgb[1], b=rgb[2], a=a)
+
+
+def tension_colour(tension: float, nominal: float) -> tuple[float, float, float, float]:
+    """A cable's colour: grey when slack (or unknown), green at no load rising through yellow to
+    red at twice the nominal share ``nominal`` of the payload's weight and beyond."""
+    if not math.isfinite(tension) or tension <= 0.0:
+        return (0.6, 0.6, 0.6, 0.6)
+    x = min(1.0, tension / (2.0 * nominal)) if nominal > 0 else 1.0
+    return (min(1.0, 2.0 * x), min(1.0, 2.0 * (1.0 - x)), 0.1, 1.0)
+
+
+def quaternions(rpy: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw ``(..., 3)`` [rad] (Z-Y-X) as quaternions ``(..., 4)`` (x, y, z, w);
+    identity where NaN."""
+    r, p, y = (0.5 * rpy[..., i] for i in range(3))
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    q = np.stack([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                  cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy], axis=-1)
+    bad = ~np.all(np.isfinite(q), axis=-1)
+    q[bad] = (0.0, 0.0, 0.0, 1.0)
+    return q
+
+
+def _vec_schema(title: str, dim: int) -> dict:
+    return {"type": "array", "items": {"type": ["number", "null"]}, "minItems": dim, "maxItems": dim,
+            "description": title}
+
+
+def _num(desc: str) -> dict:
+    return {"type": ["number", "null"], "description": desc}
+
+
+class Layout:
+    """What a run's view is made of: its agents, dimension, offsets, and which groups it has."""
+
+    def __init__(self, run: Run, mission: ms.Mission | None):
+        self.ids = [int(a) for a in run.agent_ids]
+        self.n, self.dim = len(self.ids), run.p.shape[2]
+        self.modes = tuple(run.meta.modes)
+        self.offsets = np.zeros((self.n, 3))
+        self.fence = None
+        self.nominal_tension = 0.0
+        if mission is not None:
+            by_id = {a.id: a for a in mission.agents}
+            for i, aid in enumerate(self.ids):
+                if aid in by_id:
+                    self.offsets[i, : self.dim] = by_id[aid].offset
+            self.fence = mission.safety.geofence
+            if mission.payload is not None:
+                self.nominal_tension = mission.payload.mass * GRAVITY / max(self.n, 1)
+        pl = run.plant
+        self.payload = pl.payload_p is not None
+        self.tension = pl.tension is not None
+        self.attitude = pl.attitude is not None
+        lk = run.links
+        self.link_src = None if lk is None else [[int(s) for s in row] for row in lk.src]
+        self.link_delivery = lk is not None and lk.delivery is not None
+        self.runtime = run.runtime is not None
+
+    def agent_schema(self) -> dict:
+        d = self.dim
+        props = {
+            "t": {"type": "number", "description": "mission time [s]"},
+            "k": {"type": "integer", "description": "tick"},
+            "xi_norm": _num("||xi_i|| [m]"),
+            "xi": _vec_schema("formation error xi_i [m] (Eq. 8)", d),
+            "zeta": _vec_schema("velocity error zeta_i [m/s] (Eq. 9)", d),
+            "kp": _vec_schema("gain Kp", d),
+            "kv": _vec_schema("gain Kv", d),
+            "u": _vec_schema("command u_i [m/s^2]", d),
+            "p": _vec_schema("position [m]", d),
+            "v": _vec_schema("velocity [m/s]", d),
+            "d": _vec_schema("disturbance [m/s^2] (null where unknown)", d),
+            "safety_mode": {"type": "integer", "description": "supervisor mode code (-1: no sample)"},
+            "safety_mode_name": {"type": "string"},
+            "plant_mode": {"type": "integer", "description": "plant watchdog mode code (-1: no sample)"},
+        }
+        if self.link_src is not None:
+            link = {"src": {"type": "integer"}, "age": _num("age of j's sample when used [s]")}
+            if self.link_delivery:
+                link["delivery"] = _num("distinct samples received / sent, so far")
+            props["links"] = {"type": "array", "items": {"type": "object", "properties": link}}
+        if self.runtime:
+            props["meas_age"] = _num("age of the own measurement when used [s]")
+            props["drops"] = _num("messages dropped so far")
+        return {"title": "tether.Agent", "type": "object", "properties": props}
+
+    def leader_schema(self) -> dict:
+        d = self.dim
+        return {"title": "tether.Leader", "type": "object",
+                "properties": {"t": {"type": "number"}, "k": {"type": "integer"},
+                               "p": _vec_schema("position [m]", d), "v": _vec_schema("velocity [m/s]", d),
+                               "a": _vec_schema("acceleration [m/s^2]", d)}}
+
+    def payload_schema(self) -> dict:
+        return {"title": "tether.Payload", "type": "object",
+                "properties": {"t": {"type": "number"}, "k": {"type": "integer"},
+                               "p": _vec_schema("position [m]", 3), "v": _vec_schema("velocity [m/s]", 3),
+                               "tension": {"type": "array", "items": {"type": ["number", "null"]},
+                                           "description": "cable tension per vehicle [N], agent order"},
+                               "tension_max": _num("largest cable tension [N]"),
+                               "slack_events": {"type": "array", "items": {"type": ["number", "null"]}}}}
+
+
+class Rows:
+    """Tick k of a run's arrays as Python lists: the whole run converted once (files), or one
+    tick at a time (live)."""
+
+    NAMES = ("p", "v", "u", "xi", "zeta", "kp", "kv", "d", "leader_p", "leader_v", "leader_a")
+
+    def __init__(self, run: Run, layout: Layout, whole: bool):
+        self.run, self.layout, self.whole = run, layout, whole
+        arrays = {name: getattr(run, name) for name in self.NAMES}
+        arrays["xi_norm"] = None
+        arrays["safety_mode"] = run.safety.safety_mode
+        arrays["plant_mode"] = run.safety.plant_mode
+        if layout.link_src is not None:
+            assert run.links is not None  # the layout saw them
+            arrays["link_age"] = run.links.age
+            if layout.link_delivery:
+                arrays["link_delivery"] = run.links.delivery
+        if layout.runtime:
+            assert run.runtime is not None
+            arrays["meas_age"], arrays["drops"] = run.runtime.meas_age, run.runtime.drops
+        if layout.payload:
+            arrays["payload_p"], arrays["payload_v"] = run.plant.payload_p, run.plant.payload_v
+        if layout.tension:
+            arrays["tension"], arrays["slack_events"] = run.plant.tension, run.plant.slack_events
+        if layout.attitude:
+            arrays["quat"] = None
+        self.arrays = arrays
+        if whole:
+            self.lists = {name: self._full(name).tolist() for name in arrays}
+
+    def _full(self, name: str, k: slice | int = slice(None)) -> np.ndarray:
+        if name == "xi_norm":
+            return np.linalg.norm(self.run.xi[k], axis=-1)
+        if name == "quat":
+            attitude = self.run.plant.attitude
+            assert attitude is not None  # only in the layout when recorded
+            return quaternions(attitude[k])
+        return self.arrays[name][k]
+
+    def at(self, k: int) -> dict[str, list]:
+        if self.whole:
+            return {name: rows[k] for name, rows in self.lists.items()}
+        return {name: self._full(name, k).tolist() for name in self.arrays}
+
+
+class View:
+    """Logs a run's ticks, events and notes on the channels of one Foxglove context."""
+
+    def __init__(self, ctx: foxglove.Context, layout: Layout, scene_every: int = 1):
+        self.lay, self.scene_every = layout, max(1, int(scene_every))
+        self.enc = msgspec.json.Encoder()
+        L = layout
+        self.scene = fch.SceneUpdateChannel("/scene", context=ctx)
+        self.tf = fch.FrameTransformsChannel("/tf", context=ctx)
+        self.safety = fch.LogChannel("/safety", context=ctx)
+        self.log = fch.LogChannel("/log", context=ctx)
+        schema = L.agent_schema()
+        self.agents = [foxglove.Channel(f"/agent/{aid}", schema=schema, context=ctx).base for aid in L.ids]
+        self.leader = foxglove.Channel("/leader", schema=L.leader_schema(), context=ctx).base
+        self.payload = (foxglove.Channel("/payload", schema=L.payload_schema(), context=ctx).base
+                        if L.payload else None)
+        # objects that never change, built once and shared by every scene message
+        self.ident = fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+        self.vsize = fm.Vector3(x=0.15, y=0.15, z=0.15)
+        self.lsize = fm.Vector3(x=0.2, y=0.2, z=0.2)
+        self.psize = fm.Vector3(x=0.12, y=0.12, z=0.12)
+        self.mode_colour = {c: _colour(rgb) for c, rgb in MODE_COLOURS.items()}
+        self.nosample = _colour(NO_SAMPLE_COLOUR)
+        self.leader_colour = _colour(LEADER_COLOUR)
+        self.slot_colour = _colour(SLOT_COLOUR, 0.25)
+        self.payload_colour = _colour(PAYLOAD_COLOUR)
+        self.white = _colour((1.0, 1.0, 1.0))
+        self.frames = [f"agent_{aid}" for aid in L.ids]
+        self.fence = self._fence_entity() if L.fence is not None else None
+
+    # ------------------------------------------------------------------ scene
+    def _v3(self, p: Sequence[float], dz: float = 0.0) -> fm.Vector3:
+        z = p[2] if len(p) > 2 else 0.0
+        return fm.Vector3(x=_f(p[0]), y=_f(p[1]), z=_f(z) + dz)
+
+    def _pose(self, p: Sequence[float]) -> fm.Pose:
+        return fm.Pose(position=self._v3(p), orientation=self.ident)
+
+    def _fence_entity(self) -> fm.SceneEntity:
+        f = self.lay.fence
+        assert f is not None  # called only with a fence
+        lo = list(f.min) + [0.0] * (3 - len(f.min))
+        hi = list(f.max) + [0.0] * (3 - len(f.max))
+        corners = [(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        edges = [(a, b) for a in range(8) for b in range(a + 1, 8)
+                 if sum(corners[a][i] != corners[b][i] for i in range(3)) == 1]
+        pts = [fm.Point3(x=corners[i][0], y=corners[i][1], z=corners[i][2]) for e in edges for i in e]
+        line = fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineList, pose=fm.Pose(orientation=self.ident),
+                                thickness=2.0, scale_invariant=True, points=pts, color=_colour(FENCE_COLOUR, 0.8))
+        return fm.SceneEntity(frame_id="world", id="geofence", lines=[line],
+                              metadata=[fm.KeyValuePair(key="action", value=f.action)])
+
+    def _scene(self, k: int, ns: int, r: dict) -> None:
+        L = self.lay
+        stamp_ = _ts(ns)
+        modes = r["safety_mode"]
+        spheres, texts = [], []
+        for i, aid in enumerate(L.ids):
+            p = r["p"][i]
+            colour = self.mode_colour.get(modes[i], self.nosample)
+            spheres.append(fm.SpherePrimitive(pose=self._pose(p), size=self.vsize, color=colour))
+            label = str(aid) if modes[i] == 0 else f"{aid} {_name(L.modes, modes[i])}"
+            texts.append(fm.TextPrimitive(pose=fm.Pose(position=self._v3(p, 0.15), orientation=self.ident),
+                                          billboard=True, font_size=14.0, scale_invariant=True, color=self.white,
+                                          text=label))
+        lp = r["leader_p"]
+        lead3 = [lp[j] if j < L.dim else 0.0 for j in range(3)]
+        slots = [fm.CubePrimitive(pose=fm.Pose(position=fm.Vector3(x=_f(lead3[0] + o[0]), y=_f(lead3[1] + o[1]),
+                                                                   z=_f(lead3[2] + o[2])), orientation=self.ident),
+                                  size=self.vsize, color=self.slot_colour) for o in L.offsets.tolist()]
+        ents = [
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="vehicles", spheres=spheres, texts=texts),
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="leader",
+                           spheres=[fm.SpherePrimitive(pose=self._pose(lp), size=self.lsize, color=self.leader_colour)],
+                           texts=[fm.TextPrimitive(pose=fm.Pose(position=self._v3(lp, 0.2), orientation=self.ident),
+                                                   billboard=True, font_size=14.0, scale_invariant=True,
+                                                   color=self.white, text="leader")]),
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="slots", cubes=slots),
+        ]
+        if L.payload:
+            pp = r["payload_p"]
+            prims: dict[str, Any] = {"spheres": [fm.SpherePrimitive(pose=self._pose(pp), size=self.psize, color=self.payload_colour)]}
+            if L.tension:
+                pts, cols = [], []
+                top = fm.Point3(x=_f(pp[0]), y=_f(pp[1]), z=_f(pp[2]))
+                for i in range(L.n):
+                    rgba = tension_colour(r["tension"][i], L.nominal_tension)
+                    c = fm.Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+                    q = r["p"][i]
+                    pts += [fm.Point3(x=_f(q[0]), y=_f(q[1]), z=_f(q[2])), top]
+                    cols += [c, c]
+                prims["lines"] = [fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineList,
+                                                   pose=fm.Pose(orientation=self.ident), thickness=2.0,
+                                                   scale_invariant=True, points=pts, colors=cols)]
+            ents.append(fm.SceneEntity(timestamp=stamp_, frame_id="world", id="payload", **prims))
+        if self.fence is not None:
+            ents.append(self.fence)
+        self.scene.log(fm.SceneUpdate(entities=ents), log_time=ns)
+        quat = r.get("quat")
+        tfs = []
+        for i in range(L.n):
+            q = quat[i] if quat is not None else None
+            rot = self.ident if q is None else fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
+            tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id=self.frames[i],
+                                         translation=self._v3(r["p"][i]), rotation=rot))
+        tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id="leader",
+                                     translation=self._v3(lp), rotation=self.ident))
+        if L.payload:
+            tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id="payload",
+                                         translation=self._v3(r["payload_p"]), rotation=self.ident))
+        self.tf.log(fm.FrameTransforms(transforms=tfs), log_time=ns)
+
+    # ------------------------------------------------------------------ ticks
+    def tick(self, k: int, t: float, r: dict, scene: bool | None = None) -> None:
+        """Log tick ``k`` (mission time ``t``) from its rows ``r`` (:meth:`Rows.at`)."""
+        L, enc = self.lay, self.enc
+        ns = stamp(t)
+        modes, pmodes = r["safety_mode"], r["plant_mode"]
+        for i, ch in enumerate(self.agents):
+            msg = {"t": t, "k": k, "xi_norm": r["xi_norm"][i], "xi": r["xi"][i], "zeta": r["zeta"][i],
+                   "kp": r["kp"][i], "kv": r["kv"][i], "u": r["u"][i], "p": r["p"][i], "v": r["v"][i],
+                   "d": r["d"][i], "safety_mode": modes[i], "safety_mode_name": _name(L.modes, modes[i]),
+                   "plant_mode": pmodes[i]}
+            if L.link_src is not None:
+                ages = r["link_age"][i]
+                dl = r["link_delivery"][i] if L.link_delivery else None
+                msg["links"] = [{"src": s, "age": ages[n], **({"delivery": dl[n]} if dl is not None else {})}
+                                for n, s in enumerate(L.link_src[i]) if s != 0]
+            if L.runtime:
+                msg["meas_age"], msg["drops"] = r["meas_age"][i], r["drops"][i]
+            ch.log(enc.encode(msg), ns)
+        self.leader.log(enc.encode({"t": t, "k": k, "p": r["leader_p"], "v": r["leader_v"], "a": r["leader_a"]}), ns)
+        if self.payload is not None:
+            msg = {"t": t, "k": k, "p": r["payload_p"], "v": r["payload_v"]}
+            if L.tension:
+                ten = r["tension"]
+                finite = [x for x in ten if x == x]
+                msg.update(tension=ten, tension_max=max(finite) if finite else None, slack_events=r["slack_events"])
+            self.payload.log(enc.encode(msg), ns)
+        if scene if scene is not None else k % self.scene_every == 0:
+            self._scene(k, ns, r)
+
+    def event(self, e: SafetyEvent) -> None:
+        """A safety mode change on ``/safety``."""
+        ns = stamp(e.t)
+        dst = _name(self.lay.modes, e.dst)
+        level = (fm.LogLevel.Error if dst == "ESTOP" else
+                 fm.LogLevel.Warning if dst in ("HOLD", "LAND") else fm.LogLevel.Info)
+        text = f"t = {e.t:.3f} s: vehicle {e.vehicle}: {_name(self.lay.modes, e.src)} -> {dst}: {e.reason}"
+        self.safety.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=f"agent {e.vehicle}"), log_time=ns)
+
+    def note(self, t: float, text: str, level: fm.LogLevel = fm.LogLevel.Info, name: str = "tether") -> None:
+        """A note on ``/log``."""
+        ns = stamp(t)
+        self.log.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=name), log_time=ns)
+
+
+def _f(x: float) -> float:
+    """A coordinate for a scene primitive (NaN, i.e. no sample, drawn at the origin)."""
+    return x if x == x else 0.0
+
+
+def _name(modes: Sequence[str], code: int) -> str:
+    return modes[code] if 0 <= code < len(modes) else ("no sample" if code == NO_SAMPLE else str(code))
+
+
+def _mission_of(run: Run, mission: ms.Mission | None) -> ms.Mission | None:
+    if mission is not None or not run.meta.mission_text:
+        return mission
+    try:
+        return ms.loads(run.meta.mission_text)
+    except Exception:  # an old or foreign mission text: the scene loses offsets and fence, nothing else
+        return None
+
+
+def scene_every(rate: float, scene_rate: float | None) -> int:
+    """Ticks between scene messages for a control rate and a scene rate (0 or None: every tick)."""
+    if not scene_rate or scene_rate <= 0 or scene_rate >= rate:
+        return 1
+    return max(1, int(round(rate / scene_rate)))
+
+
+def _opening_notes(view: View, run: Run) -> None:
+    m = run.meta
+    view.note(0.0, f"mission {m.mission!r}: {m.source}, law {m.law}, {m.rate:g} Hz, {m.steps} steps, "
+                   f"seed {m.seed}; {len(run.agent_ids)} agents {list(map(int, run.agent_ids))}")
+
+
+def _closing_notes(view: View, run: Run) -> None:
+    m, t_end = run.meta, float(run.t[-1]) if len(run.t) and run.t[-1] == run.t[-1] else 0.0
+    if m.diverged_at is not None:
+        view.note(m.diverged_at, f"the run diverged at t = {m.diverged_at:g} s and was stopped", fm.LogLevel.Error)
+    s = run.safety
+    if s.gate_counts is not None and s.gate_reasons is not None:
+        for i, aid in enumerate(run.agent_ids):
+            counts = {str(r): int(c) for r, c in zip(s.gate_reasons, s.gate_counts[i]) if c}
+            if counts:
+                view.note(t_end, f"agent {aid}: the gate rejected " + ", ".join(f"{c} {r}" for r, c in counts.items()),
+                          fm.LogLevel.Warning, name=f"agent {aid}")
+    if m.complete is not None:
+        view.note(t_end, f"recorded {m.samples_recorded} of {m.samples_expected} samples"
+                         + ("" if m.complete else " (incomplete)"),
+                  fm.LogLevel.Info if m.complete else fm.LogLevel.Warning)
+    view.note(t_end, f"end of run at t = {t_end:g} s")
+
+
+def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rate: float | None = SCENE_RATE) -> Path:
+    """Write ``run`` as an MCAP file at ``path`` (atomically); returns it. ``mission`` gives the
+    offsets, geofence and payload of the scene (None: read from the run's mission text)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mission = _mission_of(run, mission)
+    layout = Layout(run, mission)
+    tmp = path.with_name(path.name + ".part")
+    collecting = gc.isenabled()
+    gc.disable()  # millions of short-lived lists and dicts: the cyclic collector would cost a third
+    ctx = foxglove.Context()
+    writer = foxglove.open_mcap(tmp, allow_overwrite=True, context=ctx,
+                                writer_options=MCAPWriteOptions(compression_threads=0))
+    try:
+        view = View(ctx, layout, scene_every(run.meta.rate, scene_rate))
+        writer.write_metadata("tether", {
+            "mission": run.meta.mission, "source": run.meta.source, "law": run.meta.law,
+            "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(EPOCH_NS),
+            "scene_every": str(view.scene_every), "modes": ",".join(layout.modes),
+            "run_meta": msgspec.json.encode(msgspec.structs.replace(run.meta, mission_text=None)).decode()})
+        if run.meta.mission_text:
+            writer.attach(log_time=EPOCH_NS, create_time=EPOCH_NS, name="mission.toml", media_type="application/toml",
+                          data=run.meta.mission_text.encode())
+        rows = Rows(run, layout, whole=True)
+        events = sorted(run.safety.events, key=lambda e: (e.k, e.vehicle, e.t))
+        ev = 0
+        _opening_notes(view, run)
+        times = run.t.tolist()
+        last = len(times) - 1
+        for k, t in enumerate(times):
+            if t != t:  # an unrecorded tick (a run stopped early)
+                continue
+            while ev < len(events) and events[ev].k <= k:
+                view.event(events[ev])
+                ev += 1
+            view.tick(k, t, rows.at(k), scene=(k % view.scene_every == 0 or k == last))
+        for e in events[ev:]:
+            view.event(e)
+        _closing_notes(view, run)
+    finally:
+        writer.close()
+        if collecting:
+            gc.enable()
+    tmp.replace(path)
+    return path
+
+
+class Live:
+    """The live view: a Foxglove WebSocket server serving a run's channels as it is filled.
+
+    Pass :meth:`tick` as the simulator's ``on_tick``; ``speed`` > 0 paces the run to that many
+    mission seconds per wall second (so that a person can watch it), 0 lets it run as fast as it
+    computes. The scene is sent at every tick up to ``scene_rate`` Hz."""
+
+    def __init__(self, port: int = 8765, host: str = "127.0.0.1", speed: float = 1.0,
+                 mission: ms.Mission | None = None, scene_rate: float | None = SCENE_RATE,
+                 sleep: Callable[[float], None] = time.sleep):
+        self.ctx = foxglove.Context()
+        self.server = foxglove.start_server(name="tether", host=host, port=port, context=self.ctx,
+                                            capabilities=[foxglove.Capability.Time])
+        self.speed, self.mission, self.scene_rate, self.sleep = speed, mission, scene_rate, sleep
+        self.view: View | None = None
+        self.rows: Rows | None = None
+        self.wall0 = 0.0
+        self.events = 0
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def tick(self, run: Run, k: int) -> None:
+        if self.view is None:
+            layout = Layout(run, _mission_of(run, self.mission))
+            self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate))
+            self.rows = Rows(run, layout, whole=False)
+            _opening_notes(self.view, run)
+            self.wall0 = time.monotonic()
+        t = float(run.t[k])
+        if self.speed > 0:
+            ahead = t / self.speed - (time.monotonic() - self.wall0)
+            if ahead > 0:
+                self.sleep(ahead)
+        events = run.safety.events
+        while self.events < len(events):
+            self.view.event(events[self.events])
+            self.events += 1
+        assert self.rows is not None  # set by start()
+        self.view.tick(k, t, self.rows.at(k))
+        self.server.broadcast_time(stamp(t))
+
+    def finish(self, run: Run) -> None:
+        if self.view is not None:
+            _closing_notes(self.view, run)
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+__all__ = ["EPOCH_NS", "SCENE_RATE", "Layout", "Live", "View", "scene_every", "stamp", "write_mcap"]
+
+
+def layout(agent_ids: Sequence[int] = (1, 2, 3, 4), dim: int = 2) -> str:
+    """The Foxglove layout of ``docs/foxglove/tether.json`` for these agents: the 3D scene
+    (world frame), ||xi_i||, Kp and Kv plots, the safety events and the run's log."""
+    import foxglove.layouts as fl
+
+    def plot(title: str, paths: list[tuple[str, str]]) -> fl.PlotPanel:
+        return fl.PlotPanel(title=title, config=fl.PlotConfig(
+            paths=[fl.PlotSeries(value=v, label=lab, timestamp_method="receiveTime") for v, lab in paths],
+            show_legend=True, legend_display="floating"))
+
+    ids = list(agent_ids)
+    axes = "xyz"
+    three_d = fl.ThreeDeePanel(title="formation", config=fl.ThreeDeeConfig(
+        follow_tf="world", topics={"/scene": fl.BaseRendererSceneUpdateTopicSettings(visible=True)}))
+    plots = fl.SplitContainer(direction="column", items=[
+        fl.SplitItem(content=plot("||xi_i|| [m]", [(f"/agent/{a}.xi_norm", f"agent {a}") for a in ids])),
+        fl.SplitItem(content=plot("Kp", [(f"/agent/{a}.kp[{j}]", f"{a}{axes[j]}") for a in ids for j in range(dim)])),
+        fl.SplitItem(content=plot("Kv", [(f"/agent/{a}.kv[{j}]", f"{a}{axes[j]}") for a in ids for j in range(dim)])),
+        fl.SplitItem(content=plot("safety mode", [(f"/agent/{a}.safety_mode", f"agent {a}") for a in ids])),
+    ])
+    logs = fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(content=fl.LogPanel(title="safety events", config=fl.LogConfig(topic_to_render="/safety"))),
+        fl.SplitItem(content=fl.LogPanel(title="run log", config=fl.LogConfig(topic_to_render="/log"))),
+    ])
+    left = fl.SplitContainer(direction="column", items=[fl.SplitItem(proportion=3, content=three_d),
+                                                         fl.SplitItem(proportion=1, content=logs)])
+    root = fl.SplitContainer(direction="row", items=[fl.SplitItem(proportion=3, content=left),
+                                                     fl.SplitItem(proportion=2, content=plots)])
+    return fl.Layout(content=root).to_json()

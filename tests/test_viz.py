@@ -1,0 +1,265 @@
+"""The Foxglove view of a run: ``run.mcap`` read back with the ``mcap`` package (a reader that is
+not the writer), the live view read with a plain WebSocket client speaking the Foxglove WebSocket
+protocol, and the progress display's rate and ETA."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("foxglove")
+mcap_reader = pytest.importorskip("mcap.reader")
+ws_client = pytest.importorskip("websockets.sync.client")
+
+from recorder import viz  # noqa: E402
+from sim import lockstep  # noqa: E402
+from tether import catalog  # noqa: E402
+from tether import mission as ms  # noqa: E402
+from tether.progress import Progress  # noqa: E402
+from tether.runfile import Run  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+FOXGLOVE_TYPES = {"/scene": "foxglove.SceneUpdate", "/tf": "foxglove.FrameTransforms", "/log": "foxglove.Log",
+                  "/safety": "foxglove.Log"}
+
+
+def tether(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout, stdin=subprocess.DEVNULL)
+
+
+def read_mcap(path: Path) -> tuple[dict[str, tuple[str, str, str]], dict[str, list[tuple[int, bytes]]]]:
+    """topic -> (schema name, schema encoding, message encoding); topic -> [(log time, data)] in file order."""
+    with open(path, "rb") as fh:
+        reader = mcap_reader.make_reader(fh)
+        summary = reader.get_summary()
+        channels = {ch.topic: (summary.schemas[ch.schema_id].name, summary.schemas[ch.schema_id].encoding,
+                               ch.message_encoding) for ch in summary.channels.values()}
+        messages: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            messages[channel.topic].append((message.log_time, message.data))
+    return channels, dict(messages)
+
+
+def check_file(path: Path, run: Run, scene_every: int) -> dict[str, list[tuple[int, bytes]]]:
+    """Every channel with its schema, the expected counts, times in order, and values equal to the run file's."""
+    channels, msgs = read_mcap(path)
+    T = len(run.t)
+    agents = [f"/agent/{a}" for a in run.agent_ids]
+    for topic in agents + ["/leader"]:
+        assert channels[topic] == (("tether.Agent" if topic != "/leader" else "tether.Leader"), "jsonschema", "json")
+        assert len(msgs[topic]) == T, topic
+    for topic, name in FOXGLOVE_TYPES.items():
+        if topic in msgs or topic in ("/scene", "/tf", "/log"):
+            assert channels[topic] == (name, "protobuf", "protobuf"), topic
+    scenes = len(range(0, T, scene_every)) + (0 if (T - 1) % scene_every == 0 else 1)
+    assert len(msgs["/scene"]) == len(msgs["/tf"]) == scenes
+    assert len(msgs["/log"]) >= 2  # what ran, and its end
+    assert len(msgs.get("/safety", [])) == len(run.safety.events)
+    for topic, rows in msgs.items():
+        times = [t for t, _ in rows]
+        assert times == sorted(times), f"{topic}: log times out of order"
+    # the epoch: mission time t is logged at EPOCH_NS + t
+    assert msgs["/leader"][0][0] == viz.EPOCH_NS
+    assert msgs["/leader"][-1][0] == viz.stamp(float(run.t[-1]))
+    # values: a few ticks, every agent, equal to the run file (JSON floats round-trip exactly)
+    norm = np.linalg.norm(run.xi, axis=2)
+    for k in (0, 1, T // 2, T - 1):
+        for i, topic in enumerate(agents):
+            t_ns, data = msgs[topic][k]
+            m = json.loads(data)
+            assert t_ns == viz.stamp(float(run.t[k])) and m["k"] == k and m["t"] == run.t[k]
+            for f in ("xi", "zeta", "kp", "kv", "u", "p", "v"):
+                assert m[f] == getattr(run, f)[k, i].tolist(), (topic, k, f)
+            assert m["xi_norm"] == norm[k, i]
+            assert m["safety_mode"] == run.safety.safety_mode[k, i]
+            assert m["safety_mode_name"] == run.meta.modes[run.safety.safety_mode[k, i]]
+        lead = json.loads(msgs["/leader"][k][1])
+        assert lead["p"] == run.leader_p[k].tolist() and lead["v"] == run.leader_v[k].tolist()
+    return msgs
+
+
+def test_simulate_writes_run_mcap_beside_run_npz(tmp_path: Path) -> None:
+    out = tmp_path / "sim"
+    done = tether("simulate", "section4", "--out", str(out), "--duration", "2", "--no-figures")
+    assert done.returncode == 0, done.stderr
+    run = Run.load(out)
+    msgs = check_file(out / "run.mcap", run, viz.scene_every(run.meta.rate, viz.SCENE_RATE))
+    assert "links" not in json.loads(msgs["/agent/1"][0][1])  # the reference simulator has no links
+
+
+def test_lockstep_tether_run_writes_run_mcap(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    done = tether("run", "section4", "--out", str(out), "--duration", "1", "--quiet",
+                  "--ns", f"viz-{os.getpid()}", timeout=400.0)
+    assert done.returncode == 0, done.stdout + done.stderr
+    run = Run.load(out)
+    assert run.meta.source == "runtime-lockstep"
+    msgs = check_file(out / "run.mcap", run, viz.scene_every(run.meta.rate, viz.SCENE_RATE))
+    k = len(run.t) - 1
+    m = json.loads(msgs["/agent/1"][k][1])
+    lk = run.links
+    used = [n for n, s in enumerate(lk.src[0]) if s != 0]
+    assert [x["src"] for x in m["links"]] == [int(lk.src[0, n]) for n in used]
+    assert [x["delivery"] for x in m["links"]] == [float(lk.delivery[k, 0, n]) for n in used]
+    assert [x["age"] for x in m["links"]] == [float(lk.age[k, 0, n]) for n in used]
+    assert m["meas_age"] == run.runtime.meas_age[k, 0]
+    assert m["plant_mode"] == run.safety.plant_mode[k, 0]
+
+
+def test_payload_fence_and_events_in_the_file(tmp_path: Path) -> None:
+    """exp2 (payload and cables) in the in-process engine; a geofence and safety events added by hand."""
+    m = ms.load(catalog.resolve("exp2"))
+    run = lockstep.simulate(m, duration=0.5)
+    from tether.wire import SafetyEvent
+
+    run.safety.events = [SafetyEvent(k=10, t=10 * m.dt, vehicle=int(run.agent_ids[1]), src=0, dst=1, reason="test")]
+    import msgspec
+
+    fence = ms.Geofence(min=[-50.0, -50.0, 0.0], max=[50.0, 50.0, 20.0])
+    fenced = msgspec.structs.replace(m, safety=msgspec.structs.replace(m.safety, geofence=fence))
+    path = viz.write_mcap(run, fenced, tmp_path / "run.mcap", scene_rate=0)
+    channels, msgs = read_mcap(path)
+    T = len(run.t)
+    assert channels["/payload"] == ("tether.Payload", "jsonschema", "json")
+    assert len(msgs["/payload"]) == len(msgs["/scene"]) == T  # scene_rate 0: every tick
+    for k in (0, T - 1):
+        p = json.loads(msgs["/payload"][k][1])
+        assert p["p"] == run.plant.payload_p[k].tolist() and p["tension"] == run.plant.tension[k].tolist()
+    assert channels["/safety"] == ("foxglove.Log", "protobuf", "protobuf")
+    assert len(msgs["/safety"]) == 1 and msgs["/safety"][0][0] == viz.stamp(10 * m.dt)
+    assert b"FLYING -> HOLD: test" in msgs["/safety"][0][1]
+    assert b"geofence" in msgs["/scene"][0][1] and b"payload" in msgs["/scene"][0][1]
+    assert b"agent_1" in msgs["/tf"][0][1]
+
+
+def test_tether_mcap_converts_an_existing_run(tmp_path: Path) -> None:
+    m = ms.load(catalog.resolve("section4"))
+    run = lockstep.simulate(m, duration=0.3)
+    run.meta.mission_text = ms.dumps(m)
+    run.save(tmp_path / "run.npz")
+    done = tether("mcap", str(tmp_path), "--scene-rate", "10")
+    assert done.returncode == 0, done.stderr
+    check_file(tmp_path / "run.mcap", Run.load(tmp_path), viz.scene_every(m.rate, 10))
+
+
+# ------------------------------------------------------------------------------------------- live
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+"""The Foxglove WebSocket protocol's names: foxglove-sdk 0.30's server accepts only the first (the
+protocol's current name; the frames are those of ``foxglove.websocket.v1``), older servers the second."""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_simulate_live_serves_the_channels_over_the_foxglove_websocket_protocol(tmp_path: Path) -> None:
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "simulate", "section4", "--out", str(tmp_path / "live"),
+                             "--duration", "30", "--live", str(port), "--speed", "1", "--no-figures", "--no-mcap"],
+                            cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        ws = None
+        while ws is None:
+            try:
+                ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5)
+            except OSError:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    pytest.fail(f"no live server on port {port}: {proc.poll()}")
+                time.sleep(0.2)
+        with ws:
+            assert ws.subprotocol in SUBPROTOCOLS
+            channels: dict[str, dict] = {}
+            info = None
+            got: dict[int, list[tuple[int, bytes]]] = defaultdict(list)
+            subscribed = False
+            clock: list[int] = []
+            wanted = ["/agent/1", "/leader", "/scene", "/tf", "/log"]
+            while time.monotonic() < deadline:
+                try:
+                    frame = ws.recv(timeout=5)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    op = json.loads(frame)
+                    if op["op"] == "serverInfo":
+                        info = op
+                    elif op["op"] == "advertise":
+                        channels.update({c["topic"]: c for c in op["channels"]})
+                    if not subscribed and all(t in channels for t in wanted):
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": n, "channelId": channels[t]["id"]} for n, t in enumerate(wanted)]}))
+                        subscribed = True
+                    continue
+                if frame[0] == 0x02:  # time (the Time capability): the run's clock
+                    clock.append(struct.unpack_from("<Q", frame, 1)[0])
+                    continue
+                assert frame[0] == 0x01  # message data
+                sub, stamp_ns = struct.unpack_from("<IQ", frame, 1)
+                got[sub].append((stamp_ns, frame[13:]))
+                if all(len(got[n]) >= 2 for n in range(len(wanted)) if wanted[n] != "/log") and got[0]:
+                    break
+            assert info is not None and info["name"] == "tether"
+            assert channels["/agent/1"]["schemaName"] == "tether.Agent" and channels["/agent/1"]["encoding"] == "json"
+            assert channels["/scene"]["schemaName"] == "foxglove.SceneUpdate"
+            assert channels["/scene"]["encoding"] == "protobuf"
+            for n, topic in enumerate(wanted):
+                if topic != "/log":
+                    assert len(got[n]) >= 2, f"no messages on {topic}"
+            sample = json.loads(got[0][-1][1])
+            assert set(sample) >= {"t", "k", "xi_norm", "xi", "zeta", "kp", "kv", "u", "safety_mode"}
+            assert got[0][-1][0] == viz.stamp(sample["t"])
+            assert sample["t"] < 30.0  # live: while the run goes on
+            assert clock and clock[-1] >= viz.EPOCH_NS
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=30)
+
+
+# ------------------------------------------------------------------------------------------ progress
+class FakeStream(io.StringIO):
+    def isatty(self) -> bool:
+        return False
+
+
+def test_progress_lines_show_rate_and_eta() -> None:
+    now = [100.0]
+    out = FakeStream()
+    prog = Progress(stream=out, clock=lambda: now[0])
+    for k in range(0, 1001, 50):
+        prog(k, 1000, "section4")
+        now[0] += 0.5  # 50 ticks per half second: 100 ticks/s
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 11  # one per 10 %
+    assert lines[0] == "section4 0% (0/1000)"
+    assert lines[5] == "section4 50% (500/1000) 100/s ETA 5s"
+    assert lines[-1] == "section4 100% (1000/1000) 100/s elapsed 10s"
+
+
+def test_the_shipped_layout_is_the_generated_one() -> None:
+    """``docs/foxglove/tether.json`` is ``recorder.viz.layout()`` (Section 4's agents); regenerate it
+    with ``python -c "from recorder import viz; print(viz.layout())"`` after changing either."""
+    shipped = json.loads((REPO / "docs" / "foxglove" / "tether.json").read_text())
+    assert shipped == json.loads(viz.layout())
+    panels = json.dumps(shipped)
+    for want in ('"panelType": "ThreeDee"', '"panelType": "Plot"', '"panelType": "Log"', "/agent/1.xi_norm",
+                 "/agent/4.kv[1]", '"/safety"'):
+        assert want in panels
