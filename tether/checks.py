@@ -102,7 +102,7 @@ def validate_duration(m: Mission, duration: float, field: str = "duration") -> P
     if not _whole_periods(duration, m.rate):
         out.append((field, f"is {duration} s, not a whole number of control periods at {m.rate} Hz; "
                            f"make duration * rate an integer, e.g. "
-                           f"`{field} = {_nearest_periods(duration, m.rate)!r}`"))
+                           f"`{field}{' ' if field.startswith('--') else ' = '}{_nearest_periods(duration, m.rate)!r}`"))
         return out
     steps = int(round(duration * m.rate))
     if steps * m.n > MAX_AGENT_TICKS:

@@ -284,14 +284,19 @@ class Run:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write ``path`` (a ``.npz``) atomically; returns it."""
+        """Write ``path`` (a ``.npz``) atomically; returns it. On a failed write (a full disk) the
+        partial ``.part`` file is removed and the ``OSError`` re-raised naming ``path``."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = msgspec.json.encode(msgspec.structs.replace(self.meta, format_version=FORMAT_VERSION)).decode()
         tmp = path.with_name(path.name + ".part")
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, meta=np.array(meta), **self.arrays())
-        tmp.replace(path)
+        try:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, meta=np.array(meta), **self.arrays())
+            tmp.replace(path)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise OSError(exc.errno, f"{exc.strerror or exc} while writing the run file", str(path)) from exc
         return path
 
     @classmethod
