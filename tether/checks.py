@@ -46,7 +46,7 @@ from tether.runfile import SERIES
 from tether.schema import Problems
 from tether.wire import Keys
 
-__all__ = ["MAX_AGENT_TICKS", "MAX_EXTENT", "MAX_RATE", "MAX_RUN_BYTES", "MIN_AGE", "MIN_RATE", "WEIGHT_RANGE",
+__all__ = ["MAX_AGENT_TICKS", "MAX_EXTENT", "MAX_RATE", "MAX_RUN_BYTES", "MAX_ID", "MAX_SEED", "MIN_AGE", "MIN_RATE", "WEIGHT_RANGE",
            "run_bytes", "unreachable_agents", "validate", "validate_duration"]
 
 # --------------------------------------------------------------------------- limits (docs/mission.md)
@@ -65,6 +65,10 @@ WEIGHT_RANGE = (1e-6, 1e6)
 """Allowed edge weights a_ij: the ratio of the largest to the smallest weight bounds how badly
 conditioned L1 (Eq. 7) is, and 1e12 leaves Lemma 3 solvable in float64; a weight like 5e-324
 (subnormal) is an absent edge written as a number."""
+MAX_ID = 2**31 - 1
+"""Largest node id: an id is a key chunk and every message's ``sender`` (a msgpack integer)."""
+MAX_SEED = 2**63 - 1
+"""Largest seed (an int64 in run files and network models)."""
 MIN_AGE = 1e-3
 """Smallest ``links.max_age`` and ``[safety]`` timeout [s]: 1 ms, below any network's delivery
 time, so a smaller value would throw away every real-time sample."""
@@ -214,6 +218,8 @@ def validate(m: Mission) -> Problems:
                                 "e.g. " + repr(''.join('-' if c in '/*$#?@ ' else c for c in m.name))))
     if m.seed < 0:
         out.append(("seed", f"is {m.seed}; use a seed >= 0 (random generators take non-negative seeds)"))
+    elif m.seed > MAX_SEED:
+        out.append(("seed", f"is {m.seed}, beyond 2^63 - 1 (run files store it as int64); use a smaller seed"))
 
     # ids
     if not m.agents:
@@ -222,6 +228,9 @@ def validate(m: Mission) -> Problems:
     for k, a in enumerate(m.agents):
         if a.id <= 0:
             out.append((f"agents[{k}].id", f"is {a.id}; use a positive integer id"))
+        elif a.id > MAX_ID:
+            out.append((f"agents[{k}].id", f"is {a.id}, beyond {MAX_ID} (ids go on the wire as integers and into "
+                                           "keys); use a smaller positive id"))
         if a.id in seen:
             out.append((f"agents[{k}].id", f"is {a.id}, the id of agents[{seen[a.id]}]; give every agent its own id"))
         seen.setdefault(a.id, k)
@@ -234,6 +243,9 @@ def validate(m: Mission) -> Problems:
         _validate_disturbance(a.disturbance, d, m.rate, f"agents[{k}].disturbance", out)
     if m.leader.id <= 0:
         out.append(("leader.id", f"is {m.leader.id}; use a positive integer id"))
+    elif m.leader.id > MAX_ID:
+        out.append(("leader.id", f"is {m.leader.id}, beyond {MAX_ID} (ids go on the wire as integers and into "
+                                 "keys); use a smaller positive id"))
     _check_vec(m.leader.p0, d, "leader.p0", out)
     _check_vec(m.leader.v0, d, "leader.v0", out)
     _validate_profile(m, out)
