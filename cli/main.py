@@ -55,18 +55,23 @@ def _positive_int(text: str) -> int:
 
 
 def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
-    """Check, before anything runs, that directory ``text`` (option ``arg``) exists or can be made,
-    that a file can be written in it, and that none of ``outputs`` inside it is a directory. Raises
+    """Check, before anything runs, that directory ``text`` (option ``arg``) can be written in: it
+    is a directory, or does not exist yet below a writable one (a probe file is made and removed
+    there; nothing else is created), and none of ``outputs`` inside it is a directory. Raises
     :class:`BadArgument` naming the option, the path and the cause."""
     out = Path(text)
     if out.exists() and not out.is_dir():
         raise BadArgument(f"{arg}: {out} is an existing file, not a directory; give a directory (it is made if missing)")
+    base = out.absolute()
+    while not base.exists():
+        base = base.parent
+    if not base.is_dir():
+        raise BadArgument(f"{arg}: {base} is a file, so {out} cannot be made; give another directory")
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".tether-probe-"):
+        with tempfile.NamedTemporaryFile(dir=base, prefix=".tether-probe-"):
             pass
     except OSError as exc:
-        raise BadArgument(f"{arg}: cannot write in {out} ({exc.strerror or exc}, "
+        raise BadArgument(f"{arg}: cannot write in {base} ({exc.strerror or exc}, "
                           f"{errno.errorcode.get(exc.errno or 0, 'errno ' + str(exc.errno))}); "
                           "give a writable directory") from None
     for name in outputs:
