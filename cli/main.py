@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import errno
-import json
 import math
 import os
 import shlex
@@ -18,7 +17,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from tether import catalog
+from tether import catalog, jsonout
 from tether import mission as ms
 from tether.progress import Progress
 
@@ -81,17 +80,6 @@ def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
     return out
 
 
-def _finite_json(obj: object) -> object:
-    """``obj`` with every non-finite float replaced by None (JSON has no NaN or infinity)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite_json(v) for v in obj]
-    return obj
-
-
 def cmd_check(args: argparse.Namespace) -> int:
     from tether import graph
 
@@ -134,18 +122,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     run = refsim.simulate(m, args.mode, substeps=args.substeps, progress=lambda k, n: prog(k, n, m.name))
     run.meta.mission_text = catalog.resolve(args.mission).read_text()
     run.save(out / "run.npz")
-    summary = _finite_json(metrics.summary(run))
+    summary = jsonout.finite(metrics.summary(run))
     diverged = not all(np.all(np.isfinite(getattr(run, f))) for f in ("p", "v", "kp", "kv"))
     if not diverged:
-        summary["tracking_error_m"] = _finite_json(metrics.tracking_error(run, Setup.of(m).offsets[: m.n]))
-    (out / "metrics.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
+        summary["tracking_error_m"] = jsonout.finite(metrics.tracking_error(run, Setup.of(m).offsets[: m.n]))
+    (out / "metrics.json").write_text(jsonout.dumps(summary))
     if diverged:
         print(f"error: the run diverged (non-finite states or gains); wrote {out / 'run.npz'} and "
               f"{out / 'metrics.json'}, no figures; check the mission's gains and limits", file=sys.stderr)
         return 1
     if not args.no_figures:
         figures.run_panels(run, out)
-    print(json.dumps(summary, indent=2))
+    print(jsonout.dumps(summary))
     print(f"wrote {out / 'run.npz'}")
     return 0
 
