@@ -84,8 +84,15 @@ def cmd_check(args: argparse.Namespace) -> int:
     from tether import graph
 
     m = _load(args.mission)
+    import numpy as np
+
     topo = graph.topology(m)
-    numeric = graph.lemma3_holds(topo)
+    try:
+        numeric = graph.lemma3_holds(topo)
+    except (AssertionError, np.linalg.LinAlgError) as exc:  # ill-conditioned beyond what the weight range allows
+        raise ms.MissionError(str(catalog.resolve(args.mission)), [
+            ("edges", f"fail Lemma 3 numerically ({str(exc).splitlines()[0]}); spread the weights less "
+                      "(their ratio sets L1's conditioning) or shorten the longest path from the leader")]) from None
     n = m.n
     print(f"mission {m.name!r} (version {m.version}): {n} agents, dim {m.dim}, {m.rate:g} Hz, "
           f"{m.duration:g} s ({m.steps} steps), seed {m.seed}")
