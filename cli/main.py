@@ -1,23 +1,27 @@
 """The ``tether`` command. Parses argv and mission files, then calls the library; nothing else.
 
-Exit status: 0 success, 1 a run failed, 2 bad input (mission file or arguments), 130 interrupted;
-``tether run`` also 3 (a failsafe fired or a value diverged) and 4 (a process died or froze in a
-real-time run): ``deploy/local.py``.
+Exit status (every command's, in ``docs/exit-status.md``): 0 success, 1 a run failed (also a write
+that failed part-way: the path and errno are named), 2 bad input (mission file or arguments,
+checked before anything starts), 130 interrupted; ``tether run`` also 3 (a failsafe fired or a
+value diverged) and 4 (a process died or froze in a real-time run): ``deploy/local.py``.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
+import os
 import shlex
 import sys
+import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from tether import catalog
+from tether import catalog, jsonout
 from tether import mission as ms
 from tether.progress import Progress
 
@@ -28,18 +32,77 @@ if TYPE_CHECKING:  # each subcommand imports what it runs
 T = TypeVar("T")
 
 
-def _load(arg: str) -> ms.Mission:
-    return ms.load(catalog.resolve(arg))
+def _load(arg: str, duration: float | None = None) -> ms.Mission:
+    """The mission ``arg`` names, with ``--duration`` applied and checked (:func:`tether.mission.with_duration`)."""
+    path = catalog.resolve(arg)
+    return ms.with_duration(ms.load(path), duration, str(path))
+
+
+class BadArgument(Exception):
+    """A command-line argument is unusable: ``"<argument>: <what is wrong>; <how to fix it>"`` (exit 2)."""
+
+
+def _seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds > 0 (every ``--duration``)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds; give e.g. 30") from None
+    if not math.isfinite(x) or x <= 0:
+        raise argparse.ArgumentTypeError(f"{text} s is not a run length; give a finite number of seconds > 0, e.g. 30")
+    return x
+
+
+def _positive_int(text: str) -> int:
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give e.g. 10") from None
+    if x <= 0:
+        raise argparse.ArgumentTypeError(f"{x} is not >= 1; give e.g. 10")
+    return x
+
+
+def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
+    """Check, before anything runs, that directory ``text`` (option ``arg``) can be written in: it
+    is a directory, or does not exist yet below a writable one (a probe file is made and removed
+    there; nothing else is created), and none of ``outputs`` inside it is a directory. Raises
+    :class:`BadArgument` naming the option, the path and the cause."""
+    out = Path(text)
+    if out.exists() and not out.is_dir():
+        raise BadArgument(f"{arg}: {out} is an existing file, not a directory; give a directory (it is made if missing)")
+    base = out.absolute()
+    while not base.exists():
+        base = base.parent
+    if not base.is_dir():
+        raise BadArgument(f"{arg}: {base} is a file, so {out} cannot be made; give another directory")
+    try:
+        with tempfile.NamedTemporaryFile(dir=base, prefix=".tether-probe-"):
+            pass
+    except OSError as exc:
+        raise BadArgument(f"{arg}: cannot write in {base} ({exc.strerror or exc}, "
+                          f"{errno.errorcode.get(exc.errno or 0, 'errno ' + str(exc.errno))}); "
+                          "give a writable directory") from None
+    for name in outputs:
+        if (out / name).is_dir():
+            raise BadArgument(f"{arg}: {out / name} is a directory where the run writes a file; remove it or "
+                              "give another --out")
+    return out
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from tether import graph
 
     m = _load(args.mission)
+    import numpy as np
+
     topo = graph.topology(m)
-    graph.check_lemma3(topo.adjacency)
+    try:
+        numeric = graph.lemma3_holds(topo)
+    except (AssertionError, np.linalg.LinAlgError) as exc:  # ill-conditioned beyond what the weight range allows
+        raise ms.MissionError(str(catalog.resolve(args.mission)), [
+            ("edges", f"fail Lemma 3 numerically ({str(exc).splitlines()[0]}); spread the weights less "
+                      "(their ratio sets L1's conditioning) or shorten the longest path from the leader")]) from None
     n = m.n
     print(f"mission {m.name!r} (version {m.version}): {n} agents, dim {m.dim}, {m.rate:g} Hz, "
           f"{m.duration:g} s ({m.steps} steps), seed {m.seed}")
@@ -47,12 +110,16 @@ def cmd_check(args: argparse.Namespace) -> int:
     print(f"law {law.kind}: Kp(0)={ms.per_axis(law.kp0, m.dim)} Kv(0)={ms.per_axis(law.kv0, m.dim)} "
           f"Gamma_p={law.gamma_p:g} Gamma_v={law.gamma_v:g}" + (f" sigma={law.sigma:g}" if law.sigma else ""))
     print(f"leader {m.leader.id}: p0={m.leader.p0} profile={type(m.leader.profile).__name__}")
-    print(f"{len(m.edges)} edges; Assumption 1 holds; Lemma 3 checked (-L1^-1 L2 >= 0, unit row sums)")
+    lemma = ("Lemma 3 checked (-L1^-1 L2 >= 0, unit row sums)" if numeric else
+             f"Lemma 3 follows from Assumption 1 (N > {graph.DENSE_MAX}: not re-computed densely)")
+    print(f"{len(m.edges)} edges; Assumption 1 holds; {lemma}")
     print(f"{'agent':>5} {'kappa':>6} {'hears leader':>12}  in-neighbours (weight)   offset    plant / disturbance")
+    ends = [*topo.starts[1:], len(topo.dst)]
     for i, a in enumerate(m.agents):
-        nbrs = [(m.leader.id if j == n else m.agents[j].id, topo.adjacency[i, j]) for j in np.nonzero(topo.adjacency[i])[0]]
+        span = range(topo.starts[i], ends[i])
+        nbrs = [(m.leader.id if topo.src[k] == n else m.agents[topo.src[k]].id, topo.weight[k]) for k in span]
         nb = ", ".join(f"{j}({w:g})" for j, w in nbrs)
-        hears = "yes" if topo.adjacency[i, n] > 0 else "no"
+        hears = "yes" if any(topo.src[k] == n for k in span) else "no"
         print(f"{a.id:>5} {topo.kappa[i]:>6g} {hears:>12}  {nb:<23} {a.offset}  "
               f"{type(a.plant).__name__} / {type(a.disturbance).__name__}")
     for note in m.assumed:
@@ -64,8 +131,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from sim import figures, metrics, refsim
     from sim.refsim import Setup
 
-    m = _load(args.mission)
-    out = Path(args.out)
+    import numpy as np
+
+    m = _load(args.mission, args.duration)
+    out = _writable_dir("--out", args.out, ("run.npz", "metrics.json"))
     prog = Progress()
     live = None
     if args.live is not None:  # the live view (docs/foxglove.md): needs the viz extra
@@ -74,8 +143,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         live = viz.Live(port=args.live, speed=args.speed, mission=m, scene_rate=args.scene_rate)
         print(f"live view: ws://127.0.0.1:{live.port} (Foxglove: Open connection, Foxglove WebSocket)", flush=True)
     try:
-        run = refsim.simulate(m, args.mode, duration=args.duration, substeps=args.substeps,
-                              progress=lambda k, n: prog(k, n, m.name), on_tick=live.tick if live else None)
+        run = refsim.simulate(m, args.mode, substeps=args.substeps, progress=lambda k, n: prog(k, n, m.name),
+                              on_tick=live.tick if live else None)
         if live is not None:
             live.finish(run)
     finally:
@@ -83,17 +152,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             live.close()
     run.meta.mission_text = catalog.resolve(args.mission).read_text()
     run.save(out / "run.npz")
+    summary = jsonout.finite(metrics.summary(run))
+    assert isinstance(summary, dict)
+    diverged = not all(np.all(np.isfinite(getattr(run, f))) for f in ("p", "v", "kp", "kv"))
+    if not diverged:
+        summary["tracking_error_m"] = jsonout.finite(metrics.tracking_error(run, Setup.of(m).offsets[: m.n]))
+    (out / "metrics.json").write_text(jsonout.dumps(summary))
+    if diverged:
+        print(f"error: the run diverged (non-finite states or gains); wrote {out / 'run.npz'} and "
+              f"{out / 'metrics.json'}, no figures; check the mission's gains and limits", file=sys.stderr)
+        return 1
     mcap = None
     if not args.no_mcap:
         from recorder.export import mcap_beside
 
         mcap = mcap_beside(run, m, out / "run.npz", scene_rate=args.scene_rate)
-    summary = metrics.summary(run)
-    summary["tracking_error_m"] = metrics.tracking_error(run, Setup.of(m).offsets[: m.n])
-    (out / "metrics.json").write_text(json.dumps(summary, indent=2))
     if not args.no_figures:
         figures.run_panels(run, out)
-    print(json.dumps(summary, indent=2))
+    print(jsonout.dumps(summary))
     print(f"wrote {out / 'run.npz'}" + (f" and {mcap}" if mcap else ""))
     return 0
 
@@ -101,6 +177,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from sim import reproduce
 
+    _load(args.what, args.duration)  # --duration checked against the mission it shortens, before anything runs
+    _writable_dir("--out", args.out, ("metrics.json", "metrics.md", "report.md"))
     prog = Progress()
     if args.what != "section4":
         from sim import experiments
@@ -131,8 +209,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s launcher: %(message)s")
     path = catalog.builtin_path("section4")
+    _load(str(path), args.duration)
     m = load_mission(path, args.duration)
-    out = Path(args.out)
+    out = _writable_dir("--out", args.out, ("run.npz",))
     opts = local.LaunchOptions(out=out, clock="lockstep", duration=args.duration)
     status = asyncio.run(local.run(path, opts))
     if status != 0:
@@ -147,12 +226,33 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    import zipfile
+
+    import msgspec
+
     from sim import figures
     from tether.runfile import Run
 
     path = Path(args.run)
-    run = Run.load(path)
-    out = Path(args.out) if args.out else (path if path.is_dir() else path.parent)
+    file = path / "run.npz" if path.is_dir() else path
+    if not path.exists():
+        raise BadArgument(f"run: {path} does not exist; give a run.npz or the directory holding it "
+                          "(tether simulate/run --out DIR writes DIR/run.npz)")
+    if not file.is_file():
+        raise BadArgument(f"run: {file} is not a file; give a run.npz or the directory holding it")
+    with open(file, "rb") as fh:
+        head = fh.read(4)
+    if head != b"PK\x03\x04":
+        raise BadArgument(f"run: {file} is not a run file (a run.npz is a zip archive; this file does not start "
+                          "like one: truncated, or another kind of file); give a run.npz that tether wrote")
+    try:
+        run = Run.load(file)
+    except (OSError, ValueError, KeyError, IndexError, TypeError, EOFError, zipfile.BadZipFile,
+            msgspec.MsgspecError) as exc:  # a bad zip, a truncated array, foreign metadata
+        raise BadArgument(f"run: {file} is not a readable run file ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else 'no detail'}); give a run.npz that "
+                          "tether wrote, or write it again") from None
+    out = _writable_dir("--out", args.out if args.out else str(path if path.is_dir() else path.parent))
     for p in figures.run_panels(run, out):
         print(f"wrote {p}")
     return 0
@@ -255,7 +355,8 @@ def _check_id(args: argparse.Namespace) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from sim import sweep
 
-    m = _load(args.mission)
+    m = _load(args.mission, args.duration)
+    _writable_dir("--out", args.out, ("sweep.csv", "sweep.md"))
     try:
         grid = {"loss": sweep.parse_list(args.loss, "--loss", 0.0, 100.0, "%", hi_open=True),
                 "delay": sweep.parse_list(args.delay, "--delay", 0.0, 60_000.0, "ms"),
@@ -350,7 +451,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     from deploy import faults
 
     path = catalog.resolve(args.mission)
+    _load(args.mission, args.duration)
     load_mission(path, args.duration)
+    _writable_dir("--out", args.out, ("run.npz",))
+    if (Path(args.out) / "logs").exists() and not (Path(args.out) / "logs").is_dir():
+        raise BadArgument(f"--out: {Path(args.out) / 'logs'} is a file where the run writes its logs; remove it "
+                          "or give another --out")
+    if args.ns is not None:
+        from tether import wire
+
+        try:
+            wire.Keys(args.ns)
+        except ValueError as exc:
+            raise BadArgument(f"--ns: {exc}") from None
     try:
         injected = tuple(faults.parse(text) for text in args.fault)
     except faults.FaultError as exc:
@@ -410,7 +523,7 @@ def _process_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start-timeout", type=_positive_seconds, default=None,
                    help="fail (exit 1) when the start message has not come this long after the process is "
                         "ready [s]; default: wait for ever (a service waiting for its operator's start)")
-    p.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
+    p.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     p.add_argument("--log-level", default="INFO")
     _zenoh_options(p)
 
@@ -428,8 +541,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output directory (run.npz, metrics.json, figures)")
     s.add_argument("--mode", choices=["discrete", "continuous"], default="discrete",
                    help="sampled-data (the runtime's semantics) or continuous-time RK4")
-    s.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
-    s.add_argument("--substeps", type=int, default=10, help="RK4 steps per control period (continuous mode)")
+    s.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
+    s.add_argument("--substeps", type=_positive_int, default=10, help="RK4 steps per control period (continuous mode)")
     s.add_argument("--no-figures", action="store_true")
     s.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
     s.add_argument("--scene-rate", type=float, default=None, metavar="HZ",
@@ -443,13 +556,13 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("reproduce", help="reproduce a result of the paper")
     r.add_argument("what", choices=["section4", "exp1", "exp2"])
     r.add_argument("--out", required=True)
-    r.add_argument("--duration", type=float, default=None, help="override the 1000 s horizon [s]")
+    r.add_argument("--duration", type=_seconds, default=None, help="override the 1000 s horizon [s]")
     r.add_argument("--continuous", action="store_true", help="also run the continuous-time RK4 mode (slow)")
     r.set_defaults(func=cmd_reproduce)
 
     dm = sub.add_parser("demo", help="the main demo: Section 4 as separate processes over Zenoh (lockstep), figures")
     dm.add_argument("--out", default="runs/demo")
-    dm.add_argument("--duration", type=float, default=30.0, help="mission time to run [s] (the mission's is 1000)")
+    dm.add_argument("--duration", type=_seconds, default=30.0, help="mission time to run [s] (the mission's is 1000)")
     dm.set_defaults(func=cmd_demo)
 
     rn = sub.add_parser("run", help="run a mission as separate processes over Zenoh (leader, agents, plants, recorder)")
@@ -459,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--network", choices=["star", "mesh"], default="star",
                     help="star: clients around one router session (default); mesh: peers")
     rn.add_argument("--window", type=int, default=8, help="lockstep ticks in flight")
-    rn.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
+    rn.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     rn.add_argument("--no-handover", action="store_true",
                     help="leave Zenoh's runtime threads as they are (default: hand them over, ZENOH_RUNTIME)")
     rn.add_argument("--ns", default=None)
@@ -505,7 +618,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--burst", default="1", help="mean loss-burst lengths [messages]; 1: independent losses")
     sw.add_argument("--jitter", type=float, default=0.0, help="uniform delay jitter, half-width [ms]")
     sw.add_argument("--laws", default="sigma,benchmark", help="laws to run (default both)")
-    sw.add_argument("--duration", type=float, default=None, help="override the mission's duration [s]")
+    sw.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     sw.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess",
                     help="inprocess: the lockstep runtime's arithmetic in one process (equal bit for bit, "
                          "several times faster: bench/sweep_engine.py); runtime: real processes over Zenoh (tether run) for every point")
@@ -558,18 +671,19 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from tether.schema import SchemaError
+
     try:
         return int(args.func(args))
-    except ms.MissionError as exc:
+    except (SchemaError, BadArgument) as exc:  # a mission, settings, profile or hosts file; an argument
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except ValueError as exc:  # bad settings (e.g. a zenoh endpoint): the message names the field
-        from tether.transport import SettingsError
-
-        if isinstance(exc, SettingsError):
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        raise
+    except OSError as exc:  # a write (or read) failed part-way: a full disk, a vanished directory
+        code = errno.errorcode.get(exc.errno or 0, f"errno {exc.errno}")
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or exc} ({code}); free space or fix the path, then run again",
+              file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -8,7 +8,7 @@ in the world frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -66,6 +66,10 @@ class PiecewiseLinearVelocity:
     p0: np.ndarray
     tau: np.ndarray  # (M,)
     vel: np.ndarray  # (M, d)
+    _slope: np.ndarray = field(init=False, repr=False, compare=False)
+    """Per-knot acceleration [m/s^2], set once in __post_init__."""
+    _pk: np.ndarray = field(init=False, repr=False, compare=False)
+    """Position at each knot [m], set once in __post_init__."""
 
     @classmethod
     def from_schedule(cls, p0: np.ndarray, segs: list[tuple[float, np.ndarray]], ramp: float) -> "PiecewiseLinearVelocity":
@@ -75,7 +79,8 @@ class PiecewiseLinearVelocity:
             vel += [vel[-1], v]
         return cls(p0, np.array(tau), np.array(vel, dtype=float))
 
-    def __call__(self, t: float | np.ndarray) -> Sample:
+    def __post_init__(self) -> None:
+        # per-knot slopes and positions, once (O(M)); a sample is then a bisection, O(log M)
         tau, vel = self.tau, self.vel
         dtau = np.diff(tau)
         slope = np.zeros((len(tau), vel.shape[1]))
@@ -84,6 +89,11 @@ class PiecewiseLinearVelocity:
         # position at each knot: trapezoids (exact for piecewise-linear velocity)
         pk = self.p0 + np.concatenate([np.zeros((1, vel.shape[1])),
                                        np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dtau[:, None], axis=0)])
+        object.__setattr__(self, "_slope", slope)
+        object.__setattr__(self, "_pk", pk)
+
+    def __call__(self, t: float | np.ndarray) -> Sample:
+        tau, vel, slope, pk = self.tau, self.vel, self._slope, self._pk
         tt = np.asarray(t, dtype=float)
         m = np.clip(np.searchsorted(tau, tt, side="left") - 1, 0, len(tau) - 1)
         s = (tt - tau[m])[..., None]

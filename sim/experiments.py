@@ -24,7 +24,6 @@ Experiment 2 variants (the payload's weight):
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Callable
@@ -36,6 +35,7 @@ from plant.payload import CableParams, hover_equilibrium
 from plant.vehicle import G
 from recorder.export import mcap_beside
 from sim import figures, lockstep, metrics
+from tether import jsonout
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.progress import labelled
@@ -177,7 +177,7 @@ def run_experiment(name: str, out: Path, duration: float | None = None, progress
                                   title=f"{m.name}: variants"))
     if name == "exp2" and m.payload is not None:
         paths.append(figures.payload(runs[first], out / "payload.png", m.payload.mass))
-    (out / "metrics.json").write_text(json.dumps(table, indent=2))
+    (out / "metrics.json").write_text(jsonout.dumps(table))
     (out / "report.md").write_text(report(name, m, table, runs, paths))
     return {"metrics": table, "figures": [str(p) for p in paths]}
 

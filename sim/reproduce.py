@@ -7,7 +7,6 @@ whose text is computed from the numbers (nothing here knows what the paper's fig
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 
 from recorder.export import mcap_beside
 from sim import figures, metrics, refsim
+from tether import jsonout
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.progress import labelled
@@ -62,7 +62,7 @@ def section4(out: Path, duration: float | None = None, continuous: bool = False,
             out / ("fig4.png" if mode == "discrete" else f"fig4-{mode}.png"),
             title=f"Section 4, {m.rate:g} Hz sampled-data" if mode == "discrete" else "Section 4, continuous time (RK4)",
         ))
-    (out / "metrics.json").write_text(json.dumps(table, indent=2))
+    (out / "metrics.json").write_text(jsonout.dumps(table))
     (out / "metrics.md").write_text(_report(m, table, runs))
     return {"metrics": table, "figures": [str(p) for p in paths]}
 

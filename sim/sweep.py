@@ -23,7 +23,6 @@ formation error non-finite or beyond :data:`sim.lockstep.DIVERGE_AT`), and what 
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import subprocess
@@ -41,6 +40,7 @@ from typing import Callable, Literal
 import msgspec
 import numpy as np
 
+from tether import jsonout
 from tether.netprofile import Bernoulli, Delay, GilbertElliott, LinkProfile, Network
 from tether import graph
 from sim import lockstep, metrics
@@ -231,7 +231,7 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
             "rate_hz": m.rate, "seed": m.seed, "loss_pct": loss, "delay_ms": delay, "burst": list(burst),
             "jitter_ms": jitter_ms, "laws": list(laws), "cpu_count": os.cpu_count(),
             "max_age_s": m.links.max_age, "compensate": m.links.compensate if compensate is None else compensate}
-    (out / "sweep.json").write_text(json.dumps({"meta": meta, "rows": ordered}, indent=2, default=_json))
+    (out / "sweep.json").write_text(jsonout.dumps({"meta": meta, "rows": ordered}))
     paths = figures.heatmaps(ordered, out, loss=loss, delay=delay, burst=list(burst), laws=list(laws),
                              title=f"{m.name}: {meta['duration_s']:g} s, swarm-wide link impairment")
     (out / "sweep.md").write_text(report(ordered, meta, paths))
@@ -254,12 +254,6 @@ def _csv(x: object) -> object:
     if isinstance(x, float):
         return f"{x:.6g}"
     return x
-
-
-def _json(x: object) -> object:
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    raise TypeError(type(x))
 
 
 def report(rows: list[dict], meta: dict, figures: list[Path]) -> str:

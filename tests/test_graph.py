@@ -56,3 +56,17 @@ def test_in_neighbours_are_the_topology_rows_in_row_order(seed: int) -> None:
         assert [w for _, w in ins] == list(topo.weight[topo.dst == i])
         assert {j for j, _ in ins} <= set(ids)
     assert graph.in_neighbours(m, m.leader.id) == []
+
+
+def test_topology_is_sparse_and_lemma3_dense_only_for_small_n() -> None:
+    """The edge arrays are built without the (N+1)^2 matrix; Lemma 3 is solved up to DENSE_MAX agents."""
+    small = random_mission(np.random.default_rng(11), 7)
+    topo = graph.topology(small)
+    assert "adjacency" not in vars(topo)  # not built yet
+    assert graph.lemma3_holds(topo) is True
+    assert topo.adjacency.shape == (8, 8)
+    big = random_mission(np.random.default_rng(12), graph.DENSE_MAX + 1, duration=1.0)
+    topo = graph.topology(big)
+    assert graph.lemma3_holds(topo) is False
+    assert "adjacency" not in vars(topo)
+    np.testing.assert_allclose(np.bincount(topo.dst, topo.weight, minlength=big.n), topo.kappa)

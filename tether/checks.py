@@ -5,12 +5,20 @@ as ``(field path, "<what is wrong>; <how to fix it>")`` pairs: non-finite number
 durations, ids, dimensions, the leader's profile and the disturbances, the edges (self-loops,
 weights, duplicates, edges into the leader), the law's parameters (Theorem 1's ``K(0) >= 1`` and
 ``sigma > 0``), the vehicles and the payload, the network section, the ``[safety]`` section, and
-Assumption 1 (:func:`unreachable_agents`: every agent has a directed path from the leader).
+Assumption 1 (:func:`unreachable_agents`: every agent has a directed path from the leader), the
+namespace the mission's name gives its keys, physical bounds (gains, extents, a leader profile
+flyable within ``[safety]``) and the run's size (:func:`run_bytes` against :data:`MAX_RUN_BYTES`).
 :func:`tether.mission.loads` runs it on every mission it decodes.
+
+Every check is O(N + edges + profile points): a 10 000-agent mission is checked in about a second.
+A problem of an agent or an edge is named by its path in the file (``agents[2].offset``,
+``edges[4].weight``) and, in its message, by the agent's id (``agent 7:``) or the edge's ends
+(``edge 3 → 4:``), which is what a reader of a large generated mission looks for.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import msgspec
@@ -34,9 +42,97 @@ from tether.mission import (
     per_axis,
 )
 from tether.netprofile import validate_network
+from tether.runfile import SERIES
 from tether.schema import Problems
+from tether.wire import Keys
 
-__all__ = ["unreachable_agents", "validate"]
+__all__ = ["MAX_AGENT_TICKS", "MAX_EXTENT", "MAX_RATE", "MAX_RUN_BYTES", "MAX_ID", "MAX_SEED", "MIN_AGE", "MIN_RATE", "WEIGHT_RANGE",
+           "run_bytes", "unreachable_agents", "validate", "validate_duration"]
+
+# --------------------------------------------------------------------------- limits (docs/mission.md)
+MIN_RATE, MAX_RATE = 0.1, 10_000.0
+"""Control rate bounds [Hz]: below 0.1 Hz a period of more than 10 s is no feedback loop for a
+vehicle; above 10 kHz no process ticks (a Zenoh round trip alone is ~0.1 ms)."""
+MAX_RUN_BYTES = 4 * 2**30
+"""Largest run a mission may ask for, by :func:`run_bytes` (4 GiB): beyond it the reference
+simulator's or the recorder's arrays would not fit a laptop's memory."""
+MAX_AGENT_TICKS = 10**9
+"""Largest steps x agents a mission may ask for: about 3 hours of the reference simulator."""
+MAX_EXTENT = 1e5
+"""Largest coordinate of a position or an offset [m] (100 km): beyond it, a position in float64
+has less than 1e-11 m resolution left for the law's differences, and nothing flies that far."""
+WEIGHT_RANGE = (1e-6, 1e6)
+"""Allowed edge weights a_ij: the ratio of the largest to the smallest weight bounds how badly
+conditioned L1 (Eq. 7) is, and 1e12 leaves Lemma 3 solvable in float64; a weight like 5e-324
+(subnormal) is an absent edge written as a number."""
+MAX_ID = 2**31 - 1
+"""Largest node id: an id is a key chunk and every message's ``sender`` (a msgpack integer)."""
+MAX_SEED = 2**63 - 1
+"""Largest seed (an int64 in run files and network models)."""
+MIN_AGE = 1e-3
+"""Smallest ``links.max_age`` and ``[safety]`` timeout [s]: 1 ms, below any network's delivery
+time, so a smaller value would throw away every real-time sample."""
+SERIES_RECORDED = len(SERIES) + 3
+"""Per-agent ``(T, N, d)`` series of a run file: the engines' (``tether.runfile.SERIES``) and the
+recorder's three plant measurements."""
+LINK_SERIES = 10
+"""Per-edge ``(T, edges)`` link statistics the recorder keeps."""
+
+
+def run_bytes(m: Mission, steps: int | None = None) -> int:
+    """Estimated size of the run file's arrays for ``steps`` periods (the mission's by default) [bytes]:
+    ``(steps + 1) x 8 x (SERIES_RECORDED x N x d + LINK_SERIES x edges + 4 x N + 3 x d)`` (the
+    per-agent series, the link statistics, the per-agent counters and modes, the leader's p, v, a).
+    The reference simulator holds the same arrays in memory; the recorder preallocates them."""
+    steps = m.steps if steps is None else steps
+    per_sample = SERIES_RECORDED * m.n * m.dim + LINK_SERIES * len(m.edges) + 4 * m.n + 3 * m.dim + 1
+    return (steps + 1) * 8 * per_sample
+
+
+def _gib(x: float) -> str:
+    return f"{x / 2**30:.3g} GiB" if x >= 2**20 else f"{x / 2**20:.3g} MiB"
+
+
+def validate_duration(m: Mission, duration: float, field: str = "duration") -> Problems:
+    """The checks of a run length ``duration`` [s] (the mission's, or a ``--duration`` override named
+    ``field``): finite, > 0, a whole number of periods, and a run within :data:`MAX_RUN_BYTES` and
+    :data:`MAX_AGENT_TICKS`. Every command checks ``--duration`` with this one function."""
+    out: Problems = []
+    if not math.isfinite(duration) or duration <= 0:
+        out.append((field, f"is {duration} s; set a duration > 0 (a finite number of seconds)"))
+        return out
+    if not m.rate > 0 or not math.isfinite(m.rate):
+        return out
+    if not _whole_periods(duration, m.rate):
+        out.append((field, f"is {duration} s, not a whole number of control periods at {m.rate} Hz; "
+                           f"make duration * rate an integer, e.g. "
+                           f"`{field}{' ' if field.startswith('--') else ' = '}{_nearest_periods(duration, m.rate)!r}`"))
+        return out
+    steps = int(round(duration * m.rate))
+    if steps * m.n > MAX_AGENT_TICKS:
+        out.append((field, f"is {duration:g} s: {steps} steps x {m.n} agents = {steps * m.n:.3g} agent-ticks, "
+                           f"beyond the limit of {MAX_AGENT_TICKS:.0e}; shorten the duration or lower the rate"))
+        return out
+    need = run_bytes(m, steps)
+    if need > MAX_RUN_BYTES:
+        out.append((field, f"is {duration:g} s: a run of {steps} steps x {m.n} agents x dim {m.dim} needs about "
+                           f"{_gib(need)} of arrays, beyond the {_gib(MAX_RUN_BYTES)} limit; shorten the duration "
+                           f"(at most {_longest(m, MAX_RUN_BYTES):g} s at {m.rate:g} Hz), lower the rate, or run "
+                           "the library with record=False (refsim.simulate keeps only the last sample)"))
+    return out
+
+
+def _longest(m: Mission, budget: int) -> float:
+    """The longest duration [s] whose run fits ``budget`` bytes."""
+    per_step = run_bytes(m, 1) - run_bytes(m, 0)
+    return max(1, budget // per_step - 1) / m.rate
+
+
+def _ids(ids: list[int], most: int = 8) -> str:
+    """``[1, 2, 3]``, or its first few ids and how many more."""
+    if len(ids) <= most:
+        return str(ids)
+    return f"[{', '.join(map(str, ids[:most]))}, ... ({len(ids) - most} more)]"
 
 
 def _finite_tree(obj: object, path: str, out: Problems) -> None:
@@ -48,17 +144,15 @@ def _finite_tree(obj: object, path: str, out: Problems) -> None:
         for k, item in enumerate(obj):
             _finite_tree(item, f"{path}[{k}]", out)
     elif isinstance(obj, msgspec.Struct):
-        for name in obj.__struct_fields__:
-            enc = _encoded_name(type(obj), name)
+        for name, enc in _encoded_names(type(obj)):
             _finite_tree(getattr(obj, name), f"{path}.{enc}" if path else enc, out)
 
 
-def _encoded_name(cls: type, name: str) -> str:
-    """The name a struct field has in the file (``Edge.src`` is ``from``)."""
-    for f in msgspec.structs.fields(cls):
-        if f.name == name:
-            return f.encode_name
-    return name
+@functools.cache
+def _encoded_names(cls: type) -> tuple[tuple[str, str], ...]:
+    """``(attribute, name in the file)`` of every field of a struct (``Edge.src`` is ``from``), read once
+    per class (msgspec re-reads a class's annotations on every call)."""
+    return tuple((f.name, f.encode_name) for f in msgspec.structs.fields(cls))
 
 
 def _axes(dim: int) -> str:
@@ -101,19 +195,31 @@ def validate(m: Mission) -> Problems:
     out: Problems = []
     _finite_tree(m, "", out)
     if out:
-        return out
+        return _label(m, out)
     d = m.dim
 
     if m.rate <= 0:
         out.append(("rate", f"is {m.rate} Hz; set a control rate > 0, e.g. `rate = 100.0`"))
-    if m.duration <= 0:
-        out.append(("duration", f"is {m.duration} s; set a duration > 0"))
-    elif m.rate > 0 and not _whole_periods(m.duration, m.rate):
-        out.append(("duration", f"is {m.duration} s, not a whole number of control periods at {m.rate} Hz; "
-                                f"make duration * rate an integer, e.g. "
-                                f"`duration = {_nearest_periods(m.duration, m.rate)!r}`"))
+    elif not MIN_RATE <= m.rate <= MAX_RATE:
+        out.append(("rate", f"is {m.rate:g} Hz, outside [{MIN_RATE:g}, {MAX_RATE:g}] Hz (a feedback loop a "
+                            f"process can tick); set e.g. `rate = 100.0`"))
+    rate_ok = MIN_RATE <= m.rate <= MAX_RATE
+    if m.duration <= 0 or rate_ok:
+        out.extend(validate_duration(m, m.duration) if rate_ok else [("duration", f"is {m.duration} s; set a duration > 0")])
+    if not m.name:
+        out.append(("name", "is empty; name the mission, e.g. `name = \"formation-1\"` (it is the key namespace)"))
+    else:
+        try:
+            Keys(m.name)
+        except ValueError:
+            bad = sorted(set("/*$#?@ ") & set(m.name))
+            out.append(("name", f"is {m.name!r}, which holds {' '.join(repr(c) for c in bad)}; the name is the run's "
+                                "Zenoh key namespace (one key chunk): use letters, digits, '-', '_' or '.', "
+                                "e.g. " + repr(''.join('-' if c in '/*$#?@ ' else c for c in m.name))))
     if m.seed < 0:
         out.append(("seed", f"is {m.seed}; use a seed >= 0 (random generators take non-negative seeds)"))
+    elif m.seed > MAX_SEED:
+        out.append(("seed", f"is {m.seed}, beyond 2^63 - 1 (run files store it as int64); use a smaller seed"))
 
     # ids
     if not m.agents:
@@ -122,6 +228,9 @@ def validate(m: Mission) -> Problems:
     for k, a in enumerate(m.agents):
         if a.id <= 0:
             out.append((f"agents[{k}].id", f"is {a.id}; use a positive integer id"))
+        elif a.id > MAX_ID:
+            out.append((f"agents[{k}].id", f"is {a.id}, beyond {MAX_ID} (ids go on the wire as integers and into "
+                                           "keys); use a smaller positive id"))
         if a.id in seen:
             out.append((f"agents[{k}].id", f"is {a.id}, the id of agents[{seen[a.id]}]; give every agent its own id"))
         seen.setdefault(a.id, k)
@@ -134,33 +243,42 @@ def validate(m: Mission) -> Problems:
         _validate_disturbance(a.disturbance, d, m.rate, f"agents[{k}].disturbance", out)
     if m.leader.id <= 0:
         out.append(("leader.id", f"is {m.leader.id}; use a positive integer id"))
+    elif m.leader.id > MAX_ID:
+        out.append(("leader.id", f"is {m.leader.id}, beyond {MAX_ID} (ids go on the wire as integers and into "
+                                 "keys); use a smaller positive id"))
     _check_vec(m.leader.p0, d, "leader.p0", out)
     _check_vec(m.leader.v0, d, "leader.v0", out)
     _validate_profile(m, out)
 
     # edges
-    nodes = sorted(set(seen) | {m.leader.id})
+    nodes = set(seen) | {m.leader.id}
+    listing = _ids(sorted(nodes))
     pairs: dict[tuple[int, int], int] = {}
+    lo, hi = WEIGHT_RANGE
     for k, e in enumerate(m.edges):
         where = f"edges[{k}]"
+        name = f"edge {e.src} → {e.dst}"
         if e.src not in nodes:
-            out.append((f"{where}.from", f"is {e.src}, which is neither an agent nor the leader; "
-                                         f"use one of the ids {nodes}"))
+            out.append((f"{where}.from", f"{name}: from is {e.src}, which is neither an agent nor the leader; "
+                                         f"use one of the ids {listing}"))
         if e.dst not in nodes:
-            out.append((f"{where}.to", f"is {e.dst}, which is neither an agent nor the leader; "
-                                       f"use one of the ids {nodes}"))
+            out.append((f"{where}.to", f"{name}: to is {e.dst}, which is neither an agent nor the leader; "
+                                       f"use one of the ids {listing}"))
         if e.dst == m.leader.id and e.src != e.dst:
-            out.append((f"{where}.to", f"is {e.dst}, the virtual leader, which hears nobody (Eq. 6); "
+            out.append((f"{where}.to", f"{name}: to is {e.dst}, the virtual leader, which hears nobody (Eq. 6); "
                                        f"remove the edge or reverse it (`from = {e.dst}, to = {e.src}`)"))
         if e.src == e.dst:
-            out.append((where, f"is a self-loop on {e.src} (a_ii = 0 by definition); remove it"))
+            out.append((where, f"{name} is a self-loop on {e.src} (a_ii = 0 by definition); remove it"))
         if e.weight <= 0:
-            out.append((f"{where}.weight", f"is {e.weight} but an edge has a_ij > 0; give a positive weight, "
-                                           "or remove the edge for a_ij = 0"))
+            out.append((f"{where}.weight", f"{name}: weight is {e.weight} but an edge has a_ij > 0; give a positive "
+                                           "weight, or remove the edge for a_ij = 0"))
+        elif not lo <= e.weight <= hi:
+            out.append((f"{where}.weight", f"{name}: weight is {e.weight:g}, outside [{lo:g}, {hi:g}] (a wider "
+                                           "spread of weights makes L1 numerically singular, Lemma 3); rescale "
+                                           "the weights, or remove the edge for a_ij = 0"))
         key = (e.src, e.dst)
         if key in pairs:
-            out.append((where, f"repeats edges[{pairs[key]}] ({e.src} -> {e.dst}); merge them into one edge "
-                               "with one weight"))
+            out.append((where, f"{name} repeats edges[{pairs[key]}]; merge them into one edge with one weight"))
         pairs.setdefault(key, k)
 
     # law
@@ -194,6 +312,10 @@ def validate(m: Mission) -> Problems:
     _validate_physics(m, out)
     if m.links.max_age <= 0:
         out.append(("links.max_age", f"is {m.links.max_age} s; the oldest usable sample age must be > 0 (e.g. 0.5)"))
+    elif m.links.max_age < MIN_AGE:
+        out.append(("links.max_age", f"is {m.links.max_age:g} s, below {MIN_AGE:g} s (no network delivers a sample "
+                                     "that young, so every sample would be dropped); use e.g. 0.5"))
+    _validate_bounds(m, out)
     if m.netem is not None:
         out.extend(validate_network(m.netem, set(seen) | {m.leader.id}, path="netem"))
     _validate_safety(m, out)
@@ -206,7 +328,110 @@ def validate(m: Mission) -> Problems:
                                  f"agent{'s' if len(unreachable) > 1 else ''} {_and(unreachable)}; add edges so "
                                  "that each of them hears the leader or an agent the leader reaches, e.g. "
                                  f"`{{ from = {m.leader.id}, to = {unreachable[0]} }}`"))
-    return out
+    return _label(m, out)
+
+
+def _norm(v: list[float]) -> float:
+    return math.sqrt(sum(x * x for x in v))
+
+
+def _validate_bounds(m: Mission, out: Problems) -> None:
+    """Physical bounds: gains within ``safety.gain_cap``, coordinates within :data:`MAX_EXTENT`,
+    speeds within ``safety.max_speed``, and a leader profile the vehicles can fly within
+    ``safety.max_speed`` and ``safety.max_accel`` (else the run is over before it starts: the
+    supervisors call it divergence, or the reference leaves every vehicle behind)."""
+    sf = m.safety
+    cap = sf.gain_cap
+    if cap > 1:
+        for name in ("kp0", "kv0"):
+            val = getattr(m.law, name)
+            for k, x in enumerate(val if isinstance(val, list) else [val]):
+                if x > cap:
+                    field = f"law.{name}" + (f"[{k}]" if isinstance(val, list) else "")
+                    out.append((field, f"is {x:g}, beyond safety.gain_cap ({cap:g}): every supervisor would call "
+                                       f"it divergence at t = 0; use a gain <= {cap:g} (e.g. 2.0), or raise the cap"))
+
+    def extent(v: list[float] | None, field: str) -> None:
+        if v is not None and any(abs(x) > MAX_EXTENT for x in v):
+            out.append((field, f"has a coordinate of {max(abs(x) for x in v):g} m, beyond {MAX_EXTENT:g} m; give "
+                               "positions and offsets within 100 km of the origin (shift the frame)"))
+
+    def speed(v: list[float] | None, field: str, what: str = "is") -> None:
+        if v is not None and sf.max_speed > 0 and _norm(v) > sf.max_speed:
+            out.append((field, f"{what} a speed of {_norm(v):g} m/s, beyond safety.max_speed ({sf.max_speed:g} "
+                               "m/s); give a slower velocity, or raise max_speed"))
+
+    for k, a in enumerate(m.agents):
+        extent(a.p0, f"agents[{k}].p0")
+        extent(a.offset, f"agents[{k}].offset")
+        speed(a.v0, f"agents[{k}].v0", "has")
+    extent(m.leader.p0, "leader.p0")
+    speed(m.leader.v0, "leader.v0", "has")
+    if m.payload is not None:
+        extent(m.payload.p0, "payload.p0")
+    if sf.geofence is not None:
+        extent(sf.geofence.min, "safety.geofence.min")
+        extent(sf.geofence.max, "safety.geofence.max")
+    if m.floor is not None and abs(m.floor) > MAX_EXTENT:
+        out.append(("floor", f"is {m.floor:g} m, beyond {MAX_EXTENT:g} m; give a height within 100 km"))
+
+    prof, path = m.leader.profile, "leader.profile"
+    amax, vmax = sf.max_accel, sf.max_speed
+    if not (amax > 0 and vmax > 0):
+        return
+    if isinstance(prof, ExpAccel):
+        if _norm(prof.a0) > amax:
+            out.append((f"{path}.a0", f"has a norm of {_norm(prof.a0):g} m/s^2, beyond safety.max_accel ({amax:g} "
+                                      "m/s^2), which caps every command; give a smaller a0, or raise max_accel"))
+        elif m.duration > 0 and len(prof.a0) == m.dim:
+            lam, T = prof.decay, m.duration
+            i1 = T if lam == 0 else -math.expm1(-lam * T) / lam
+            v0 = m.leader.v0 or [0.0] * m.dim
+            if len(v0) == m.dim:
+                end = [v + a * i1 for v, a in zip(v0, prof.a0)]
+                if _norm(end) > vmax:
+                    out.append((f"{path}.a0", f"takes the leader to {_norm(end):.4g} m/s by t = {T:g} s, beyond "
+                                              f"safety.max_speed ({vmax:g} m/s); give a smaller a0, a larger decay "
+                                              "or a shorter duration"))
+    elif isinstance(prof, VelocitySchedule):
+        for k, seg in enumerate(prof.segments):
+            speed(seg.v, f"{path}.segments[{k}].v", "has")
+            if k and prof.ramp > 0:
+                dv = _norm([a - b for a, b in zip(seg.v, prof.segments[k - 1].v)])
+                if dv / prof.ramp > amax:
+                    out.append((f"{path}.ramp", f"is {prof.ramp:g} s, so segments[{k}] asks {dv / prof.ramp:.4g} "
+                                                f"m/s^2, beyond safety.max_accel ({amax:g} m/s^2); lengthen the "
+                                                f"ramp to >= {dv / amax:.3g} s"))
+                    break
+    elif isinstance(prof, Waypoints):
+        pts = prof.points
+        for k, pt in enumerate(pts):
+            extent(pt.p, f"{path}.points[{k}].p")
+        for k in range(1, len(pts)):
+            span = pts[k].t - pts[k - 1].t
+            if span <= 0 or len(pts[k].p) != len(pts[k - 1].p):
+                continue
+            dist = _norm([a - b for a, b in zip(pts[k].p, pts[k - 1].p)])
+            v_peak, a_peak = 1.875 * dist / span, 10 / math.sqrt(3) * dist / (span * span)
+            if v_peak > vmax or a_peak > amax:
+                need = max(1.875 * dist / vmax, math.sqrt(10 / math.sqrt(3) * dist / amax))
+                out.append((f"{path}.points[{k}].t", f"is {span:.4g} s after points[{k - 1}] for {dist:.4g} m: the "
+                                                     f"minimum-jerk segment peaks at {v_peak:.4g} m/s and "
+                                                     f"{a_peak:.4g} m/s^2, beyond safety.max_speed ({vmax:g} m/s) or "
+                                                     f"max_accel ({amax:g} m/s^2); leave at least {need:.4g} s "
+                                                     "between them"))
+
+
+def _label(m: Mission, out: Problems) -> Problems:
+    """Name the agent of every ``agents[k]...`` problem by its id (``agent 7: ...``)."""
+    labelled: Problems = []
+    for field, msg in out:
+        if field.startswith("agents[") and "]" in field:
+            k = field[len("agents["):field.index("]")]
+            if k.isdigit() and int(k) < len(m.agents) and not msg.startswith("agent "):
+                msg = f"agent {m.agents[int(k)].id}: {msg}"
+        labelled.append((field, msg))
+    return labelled
 
 
 def _validate_safety(m: Mission, out: Problems) -> None:
@@ -220,6 +445,11 @@ def _validate_safety(m: Mission, out: Problems) -> None:
         if not value > 0:
             default = getattr(Safety(), name)
             out.append((f"safety.{name}", f"is {value} {unit}; give a value > 0 (the default is {default!r})"))
+    for name in ("leader_timeout", "neighbour_timeout", "cmd_timeout"):
+        value = getattr(sf, name)
+        if 0 < value < MIN_AGE:
+            out.append((f"safety.{name}", f"is {value:g} s, below {MIN_AGE:g} s (no sample arrives that fast, so it "
+                                          f"would fire at once); use e.g. {getattr(Safety(), name)!r}"))
     if sf.jump_margin < 0:
         out.append(("safety.jump_margin", f"is {sf.jump_margin} m; use >= 0"))
     if sf.future_window < 0:
@@ -283,6 +513,8 @@ def _validate_physics(m: Mission, out: Problems) -> None:
             if not p.uri.startswith(("radio://", "usb://", "udp://")):
                 out.append((f"{where}.uri", f"is {p.uri!r}; give a cflib URI: radio://0/80/2M/E7E7E7E701, usb://0 "
                                             "or udp://127.0.0.1:19850 (the software Crazyflie)"))
+            elif (bad := _uri_problem(p.uri)) is not None:
+                out.append((f"{where}.uri", f"is {p.uri!r}: {bad}"))
             for name in ("takeoff_height", "takeoff_time", "land_time", "connect_timeout"):
                 if not getattr(p, name) > 0:
                     out.append((f"{where}.{name}", f"is {getattr(p, name)}; use a value > 0"))
@@ -310,6 +542,33 @@ def _validate_physics(m: Mission, out: Problems) -> None:
             out.append(("payload.p0", f"is below the floor ({m.floor} m); raise its z to >= {m.floor}"))
     if m.floor is not None and m.dim != 3:
         out.append(("floor", "needs a 3D mission; remove it or set `dim = 3`"))
+
+
+_URI_EXAMPLE = "radio://0/80/2M/E7E7E7E701, usb://0 or udp://127.0.0.1:19850"
+
+
+def _uri_problem(uri: str) -> str | None:
+    """What is wrong with a cflib URI past its scheme (``"<what>; <fix>"``), or None."""
+    scheme, _, rest = uri.partition("://")
+    if scheme == "udp":
+        host, sep, port = rest.rpartition(":")
+        if not sep or not host or not port.isdigit():
+            return f"a udp URI is udp://HOST:PORT; write e.g. udp://127.0.0.1:19850"
+        if not 1 <= int(port) <= 65535:
+            return f"port {port} is not a UDP port; use a port in 1..65535, e.g. udp://{host}:19850"
+        return None
+    if scheme == "usb":
+        return None if rest.isdigit() else "a usb URI is usb://N (the dongle's index); write e.g. usb://0"
+    parts = rest.split("/")  # radio://DONGLE/CHANNEL[/RATE[/ADDRESS]]
+    if not 2 <= len(parts) <= 4 or not parts[0].isdigit() or not parts[1].isdigit():
+        return "a radio URI is radio://DONGLE/CHANNEL/RATE/ADDRESS; write e.g. radio://0/80/2M/E7E7E7E701"
+    if not 0 <= int(parts[1]) <= 125:
+        return f"channel {parts[1]} is not a Crazyradio channel; use 0..125, e.g. radio://0/80/2M/E7E7E7E701"
+    if len(parts) > 2 and parts[2] not in ("250K", "1M", "2M"):
+        return f"data rate {parts[2]!r} is not one of 250K, 1M or 2M; write e.g. radio://0/80/2M/E7E7E7E701"
+    if len(parts) > 3 and (len(parts[3]) != 10 or any(c not in "0123456789abcdefABCDEF" for c in parts[3])):
+        return f"address {parts[3]!r} is not 10 hex digits; write e.g. radio://0/80/2M/E7E7E7E701"
+    return None
 
 
 def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out: Problems) -> None:

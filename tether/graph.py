@@ -7,6 +7,7 @@ Indexing: agents are rows ``0..N-1`` in mission order and the virtual leader is 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -17,8 +18,10 @@ from tether.mission import Mission
 class Topology:
     """The weighted directed graph of a mission in array form.
 
+    Built from the edges in O(N + edges); the dense :attr:`adjacency` is made only when it is
+    first read (the engines' and metrics' small-N algebra), never by the checks.
+
     Attributes:
-        adjacency: ``(N+1, N+1)`` matrix ``A``; the leader's row is zero (it hears nobody).
         src, dst, weight: the edges ``src -> dst`` as index arrays sorted by ``dst`` (then ``src``),
             the form the vectorised simulator sums over.
         kappa: ``(N,)`` in-degrees ``kappa_i = sum_j a_ij`` (Eq. 17).
@@ -28,7 +31,6 @@ class Topology:
             in-degree; unused slots point at the leader with weight 0).
     """
 
-    adjacency: np.ndarray
     src: np.ndarray
     dst: np.ndarray
     weight: np.ndarray
@@ -39,7 +41,15 @@ class Topology:
 
     @property
     def n(self) -> int:
-        return self.adjacency.shape[0] - 1
+        return len(self.kappa)
+
+    @cached_property
+    def adjacency(self) -> np.ndarray:
+        """``(N+1, N+1)`` matrix ``A``; the leader's row is zero (it hears nobody). O(N^2) memory:
+        built on first use, for the dense algebra of small missions."""
+        a = np.zeros((self.n + 1, self.n + 1))
+        a[self.dst, self.src] = self.weight
+        return a
 
 
 def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
@@ -50,15 +60,23 @@ def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
     return [(src, weight) for _, src, weight in ins]
 
 
+def rows(m: Mission) -> dict[int, int]:
+    """Node id -> row (:meth:`Mission.index_of` for every node at once: agents in file order, the leader last)."""
+    out = {a.id: k for k, a in enumerate(m.agents)}
+    out[m.leader.id] = m.n
+    return out
+
+
 def topology(m: Mission) -> Topology:
-    """Build the :class:`Topology` of a validated mission."""
+    """Build the :class:`Topology` of a validated mission, in O(N + edges)."""
     n = m.n
-    a = np.zeros((n + 1, n + 1))
-    for e in m.edges:
-        a[m.index_of(e.dst), m.index_of(e.src)] = e.weight
-    dst, src = np.nonzero(a)  # row-major: sorted by dst, then src
-    weight = a[dst, src]
-    kappa = a[:n].sum(axis=1)
+    row = rows(m)
+    dst = np.fromiter((row[e.dst] for e in m.edges), dtype=np.intp, count=len(m.edges))
+    src = np.fromiter((row[e.src] for e in m.edges), dtype=np.intp, count=len(m.edges))
+    weight = np.fromiter((e.weight for e in m.edges), dtype=float, count=len(m.edges))
+    order = np.lexsort((src, dst))  # sorted by dst, then src (a valid mission has no repeated pair)
+    dst, src, weight = dst[order], src[order], weight[order]
+    kappa = np.bincount(dst, weights=weight, minlength=n + 1)[:n]
     if np.any(kappa <= 0):
         raise ValueError("every agent needs at least one in-neighbour (Assumption 1)")
     starts = np.searchsorted(dst, np.arange(n))
@@ -68,8 +86,7 @@ def topology(m: Mission) -> Topology:
     slot_weight = np.zeros((degree.max(), n))
     slot_src[slot, dst] = src
     slot_weight[slot, dst] = weight
-    return Topology(a, src.astype(np.intp), dst.astype(np.intp), weight, kappa, starts.astype(np.intp),
-                    slot_src, slot_weight[:, :, None])
+    return Topology(src, dst, weight, kappa, starts.astype(np.intp), slot_src, slot_weight[:, :, None])
 
 
 def neighbour_sums(topo: Topology, x: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
@@ -104,6 +121,26 @@ def lemma3_matrix(adjacency: np.ndarray) -> np.ndarray:
     """``-L1^{-1} L2`` (N x 1). Under Assumption 1 it is non-negative with unit row sums (Lemma 3)."""
     l1, l2 = partition(adjacency)
     return -np.linalg.solve(l1, l2)
+
+
+DENSE_MAX = 2000
+"""Largest N whose Lemma 3 matrix :func:`lemma3_holds` computes densely (an N x N solve: 32 MB and
+about a second at 2000); beyond it the lemma is taken from Assumption 1 (see there)."""
+
+
+def lemma3_holds(topo: Topology, atol: float = 1e-9) -> bool:
+    """Check Lemma 3 on a mission's graph; returns whether it was checked numerically.
+
+    Up to :data:`DENSE_MAX` agents ``-L1^{-1} L2`` is computed (:func:`check_lemma3`, raises
+    ``AssertionError``). Beyond, nothing is computed: under Assumption 1 (checked in O(N + edges)
+    by :func:`tether.checks.unreachable_agents`) ``L1`` is a non-singular M-matrix, so
+    ``-L1^{-1} L2 >= 0``, and ``L1 1 = -L2`` (the rows of L sum to 0) gives unit row sums: the
+    lemma's own proof, which a dense solve would only re-confirm at O(N^2) memory and O(N^3) time.
+    """
+    if topo.n > DENSE_MAX:
+        return False
+    check_lemma3(topo.adjacency, atol)
+    return True
 
 
 def check_lemma3(adjacency: np.ndarray, atol: float = 1e-9) -> None:

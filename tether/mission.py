@@ -22,12 +22,16 @@ from typing import Literal
 
 import msgspec
 import msgspec.inspect
+import msgspec.structs
 
 from tether.netprofile import Network
 from tether.schema import KeyPath, Kind, Problems, SchemaError, Strict, read_issue
 
 SCHEMA_VERSION = 1
 """The mission-file version this release reads."""
+
+MAX_FILE_BYTES = 64 * 2**20
+"""Largest mission file read (64 MiB: about 300 000 agents); a larger one is refused before parsing."""
 
 Vector = list[float]
 """A vector of ``dim`` components (2 or 3), in the world frame."""
@@ -443,12 +447,18 @@ def loads(text: str | bytes, source: str = "<mission>") -> Mission:
     Type errors stop decoding, so at most one of them is reported (with its fix); a mission that
     decodes is then checked by :func:`validate`, which reports every problem it finds.
     """
+    if len(text) > MAX_FILE_BYTES:
+        raise MissionError(source, [("<file>", f"is {len(text) / 2**20:.1f} MiB, beyond the {MAX_FILE_BYTES // 2**20} "
+                                               "MiB a mission file may have; generate fewer agents or edges")])
     try:
         raw = tomllib.loads(text.decode() if isinstance(text, bytes) else text)
     except tomllib.TOMLDecodeError as exc:
         raise MissionError(source, [("<file>", f"is not valid TOML: {exc}; fix the syntax there")]) from None
     except UnicodeDecodeError:
         raise MissionError(source, [("<file>", "is not UTF-8 text; save it as UTF-8")]) from None
+    except RecursionError:
+        raise MissionError(source, [("<file>", "nests arrays or tables too deeply to read (hundreds of levels); "
+                                               "a mission nests at most a few levels: fix the brackets")]) from None
     if "version" not in raw:
         raise MissionError(source, [("version", f"is missing; add `version = {SCHEMA_VERSION}` "
                                                 f"(this release reads version {SCHEMA_VERSION})")])
@@ -463,6 +473,9 @@ def loads(text: str | bytes, source: str = "<mission>") -> Mission:
         mission = msgspec.convert(raw, type=Mission)
     except msgspec.ValidationError as exc:
         raise MissionError(source, [_field_of(exc, raw)]) from None
+    except RecursionError:
+        raise MissionError(source, [("<file>", "nests arrays or tables too deeply to read; a mission nests at "
+                                               "most a few levels: fix the brackets")]) from None
     problems = validate(mission)
     if problems:
         raise MissionError(source, problems)
@@ -473,10 +486,27 @@ def load(path: str | Path) -> Mission:
     """Read, decode and validate a mission file. Raises :class:`MissionError` (also for a missing file)."""
     path = Path(path)
     try:
-        text = path.read_bytes()
+        if path.is_dir():
+            raise MissionError(str(path), [("<file>", "is a directory; give a mission file (.toml)")])
+        with open(path, "rb") as fh:
+            text = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
-        raise MissionError(str(path), [("<file>", f"cannot be read ({exc.strerror}); check the path")]) from None
+        raise MissionError(str(path), [("<file>", f"cannot be read ({exc.strerror or exc}); check the path")]) from None
     return loads(text, source=str(path))
+
+
+def with_duration(m: Mission, duration: float | None, source: str = "<mission>") -> Mission:
+    """``m`` with its run length replaced by ``duration`` [s] (a ``--duration`` override), checked by
+    :func:`tether.checks.validate_duration` like the mission's own; ``None`` returns ``m``. Raises
+    :class:`MissionError` naming ``--duration``. The one check every command's ``--duration`` gets."""
+    if duration is None:
+        return m
+    from tether import checks
+
+    problems = checks.validate_duration(m, float(duration), field="--duration")
+    if problems:
+        raise MissionError(f"{source} with --duration {duration}", problems)
+    return msgspec.structs.replace(m, duration=float(duration))
 
 
 # --------------------------------------------------------------------------- decode messages

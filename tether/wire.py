@@ -351,11 +351,12 @@ class Receiver:
     def accept(self, payload: bytes, expect: type[M], sender: int | None) -> M | None:
         try:
             msg = _DECODER.decode(payload)
-        except (msgspec.DecodeError, msgspec.ValidationError):
-            # only now read the version: a message of another version is not a malformed one
+        except (msgspec.DecodeError, msgspec.ValidationError, RecursionError):
+            # only now read the version: a message of another version is not a malformed one (a
+            # payload nested thousands deep makes msgspec raise RecursionError: malformed too)
             try:
                 other = _VERSION.decode(payload).v != WIRE_VERSION
-            except (msgspec.DecodeError, msgspec.ValidationError):
+            except (msgspec.DecodeError, msgspec.ValidationError, RecursionError):
                 other = False
             self._drop("version" if other else "malformed")
             return None

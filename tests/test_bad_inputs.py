@@ -1,0 +1,272 @@
+"""Every bad input is a clear error before anything starts: the ``tether`` command as a subprocess.
+
+Two catalogues, both run as real processes under a memory limit (``RLIMIT_AS``, :data:`MEMORY`) and
+a timeout (:data:`TIMEOUT`):
+
+- every mission of ``tests/missions_bad/`` (the catalogue ``tests/test_mission.py`` checks in
+  process, with its ``# expect:`` lines) through ``tether check``, and the ones whose harm was in
+  a later command (a run-sized allocation, a key namespace, a diverging run) through that command
+  too (:data:`ALSO`);
+- :data:`ARGUMENTS`: bad command-line arguments (``--duration``, ``--out``, ``plot``'s run file...).
+
+Each must exit with status 2, name its field or argument on stderr, print no traceback, start no
+process and write no run.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tether.runfile import Run, RunMeta
+
+BAD = Path(__file__).parent / "missions_bad"
+BAD_FILES = sorted(BAD.glob("*.toml"))
+REPO = Path(__file__).parent.parent
+
+MEMORY = 1 << 30
+"""Address-space limit of every command here [bytes]: 1 GiB, a hundredth of what the unchecked
+inputs tried to allocate."""
+TIMEOUT = 60.0
+"""Every command must answer within this long [s] (each takes about a second; the machine is shared)."""
+
+_EXPECT = re.compile(r"^# expect: (?P<field>\S+) \| (?P<text>.+)$")
+
+ALSO = {
+    "duration_agent_ticks": "simulate",
+    "duration_run_too_big": "simulate",
+    "rate_giga": "simulate",
+    "rate_tiny_duration_huge": "simulate",
+    "kp0_huge": "simulate",
+    "offset_huge": "simulate",
+    "waypoints_too_fast": "simulate",
+    "weight_subnormal": "simulate",
+    "name_with_slash": "run",
+    "name_with_space": "run",
+    "name_with_star": "run",
+    "name_empty": "run",
+    "crazyflie_udp_port_out_of_range": "run",
+}
+"""Catalogue missions that are also given to the command where they used to do harm."""
+
+
+def _limit() -> None:  # runs in the child before exec
+    resource.setrlimit(resource.RLIMIT_AS, (MEMORY, MEMORY))
+
+
+def tether(*args: str, cwd: Path | None = None) -> tuple[subprocess.CompletedProcess[str], float]:
+    """Run ``python -m cli ARGS`` under :data:`MEMORY` and :data:`TIMEOUT`; the result and its wall time [s]."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", MPLBACKEND="Agg")
+    start = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=TIMEOUT,
+                       preexec_fn=_limit, env=env, cwd=cwd or REPO)
+    return r, time.monotonic() - start
+
+
+def _assert_refused(r: subprocess.CompletedProcess[str], names: list[str]) -> None:
+    assert "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 2, f"status {r.returncode}\n{r.stderr}"
+    for name in names:
+        assert name in r.stderr, f"{name!r} not named in\n{r.stderr}"
+
+
+def _expected(path: Path) -> list[tuple[str, str]]:
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    found = [_EXPECT.match(line) for line in text.splitlines()]
+    return [(m["field"], m["text"]) for m in found if m]
+
+
+# --------------------------------------------------------------------------- missions
+def test_catalogue_covers_the_commands() -> None:
+    stems = {p.stem for p in BAD_FILES}
+    assert set(ALSO) <= stems, set(ALSO) - stems
+    assert len(BAD_FILES) + len(ALSO) + len(ARGUMENTS) >= 150
+
+
+@pytest.mark.parametrize("path", BAD_FILES, ids=[p.stem for p in BAD_FILES])
+def test_check_refuses_every_bad_mission(path: Path) -> None:
+    r, _ = tether("check", str(path))
+    _assert_refused(r, [f"  {field}: " for field, _ in _expected(path)])
+    for _, text in _expected(path):
+        assert text in r.stderr, r.stderr
+    assert r.stdout == ""
+
+
+@pytest.mark.parametrize("stem", sorted(ALSO), ids=sorted(ALSO))
+def test_the_command_it_harmed_refuses_it_before_starting(stem: str, tmp_path: Path) -> None:
+    path = BAD / f"{stem}.toml"
+    command = ALSO[stem]
+    out = tmp_path / "out"
+    extra = ["--no-figures"] if command == "simulate" else ["--quiet"]
+    r, _ = tether(command, str(path), "--out", str(out), *extra)
+    _assert_refused(r, [f"  {field}: " for field, _ in _expected(path)])
+    assert not (out / "run.npz").exists() and not (out / "logs").exists(), "something ran"
+
+
+# --------------------------------------------------------------------------- arguments
+@dataclass(frozen=True)
+class Bad:
+    """A bad command line: ``args`` (``{tmp}`` is a fresh directory, ``{file}`` a file in it,
+    ``{npzdir}`` a directory whose run.npz is a directory, ``{junk}`` a directory whose run.npz is
+    not a zip, ``{trunc}`` one whose run.npz is a truncated zip, ``{good}`` one with a valid run), the words stderr must hold."""
+
+    name: str
+    args: tuple[str, ...]
+    names: tuple[str, ...]
+
+
+ARGUMENTS = [
+    Bad("simulate-duration-negative", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "-5"),
+        ("--duration", "> 0")),
+    Bad("simulate-duration-zero", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "0"), ("--duration",)),
+    Bad("simulate-duration-nan", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "nan"), ("--duration",)),
+    Bad("simulate-duration-inf", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "inf"), ("--duration",)),
+    Bad("simulate-duration-text", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "ten"),
+        ("--duration", "not a number")),
+    Bad("simulate-duration-below-a-period", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "0.001"),
+        ("--duration", "whole number of control periods", "--duration 0.01")),
+    Bad("simulate-duration-huge", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "1e12"),
+        ("--duration", "agent-ticks")),
+    Bad("simulate-duration-run-too-big", ("simulate", "section4", "--out", "{tmp}/o", "--duration", "1e5"),
+        ("--duration", "GiB", "4 GiB limit")),
+    Bad("simulate-substeps-zero", ("simulate", "section4", "--out", "{tmp}/o", "--substeps", "0"), ("--substeps",)),
+    Bad("simulate-out-is-a-file", ("simulate", "section4", "--out", "{file}", "--duration", "1"),
+        ("--out", "existing file")),
+    Bad("simulate-out-below-a-file", ("simulate", "section4", "--out", "{file}/sub", "--duration", "1"),
+        ("--out", "is a file, so")),
+    Bad("simulate-out-unwritable", ("simulate", "section4", "--out", "/proc/self/tether-out", "--duration", "1"),
+        ("--out", "cannot write", "ENOENT")),
+    Bad("sweep-out-is-a-file", ("sweep", "section4", "--out", "{file}", "--duration", "1"), ("--out", "existing file")),
+    Bad("simulate-out-sysfs", ("simulate", "section4", "--out", "/sys/tether-out", "--duration", "1"),
+        ("--out", "cannot write")),
+    Bad("simulate-out-run-npz-is-a-directory", ("simulate", "section4", "--out", "{npzdir}", "--duration", "1"),
+        ("--out", "run.npz is a directory")),
+    Bad("simulate-missing-mission", ("simulate", "{tmp}/none.toml", "--out", "{tmp}/o"), ("<file>", "cannot be read")),
+    Bad("check-a-directory", ("check", "{tmp}"), ("<file>", "is a directory")),
+    Bad("reproduce-duration-negative", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "-1"),
+        ("--duration",)),
+    Bad("reproduce-duration-below-a-period", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "0.001"),
+        ("--duration", "whole number of control periods")),
+    Bad("reproduce-exp1-duration-huge", ("reproduce", "exp1", "--out", "{tmp}/o", "--duration", "1e15"),
+        ("--duration", "agent-ticks")),
+    Bad("reproduce-out-is-a-file", ("reproduce", "section4", "--out", "{file}", "--duration", "1"),
+        ("--out", "existing file")),
+    Bad("run-duration-below-a-period", ("run", "section4", "--out", "{tmp}/o", "--duration", "0.001"),
+        ("--duration", "whole number of control periods")),
+    Bad("run-duration-negative", ("run", "section4", "--out", "{tmp}/o", "--duration", "-5"), ("--duration",)),
+    Bad("run-duration-huge", ("run", "section4", "--out", "{tmp}/o", "--duration", "1e12"),
+        ("--duration", "agent-ticks")),
+    Bad("run-out-is-a-file", ("run", "section4", "--out", "{file}", "--duration", "1"), ("--out", "existing file")),
+    Bad("run-out-run-npz-is-a-directory", ("run", "section4", "--out", "{npzdir}", "--duration", "1"),
+        ("--out", "run.npz is a directory")),
+    Bad("run-out-unwritable", ("run", "section4", "--out", "/sys/tether-out", "--duration", "1"),
+        ("--out", "cannot write")),
+    Bad("run-ns-with-slash", ("run", "section4", "--out", "{tmp}/o", "--duration", "1", "--ns", "a/b"),
+        ("--ns", "key chunk")),
+    Bad("demo-duration-negative", ("demo", "--out", "{tmp}/o", "--duration", "-1"), ("--duration",)),
+    Bad("sweep-duration-below-a-period", ("sweep", "section4", "--out", "{tmp}/o", "--duration", "0.001"),
+        ("--duration", "whole number of control periods")),
+    Bad("plot-missing-directory", ("plot", "{tmp}/nowhere"), ("run:", "does not exist")),
+    Bad("plot-directory-without-run", ("plot", "{tmp}"), ("run:", "is not a file")),
+    Bad("plot-not-a-zip", ("plot", "{junk}"), ("run:", "not a run file", "zip archive")),
+    Bad("plot-truncated-zip", ("plot", "{trunc}"), ("run:", "not a readable run file")),
+    Bad("plot-out-unwritable", ("plot", "{good}", "--out", "/sys/tether-plots"), ("--out", "cannot write")),
+    Bad("plot-out-is-a-file", ("plot", "{good}", "--out", "{file}"), ("--out", "existing file")),
+    Bad("land-ns-with-star", ("land", "--ns", "swarm*", "--connect", "tcp/127.0.0.1:1"), ("--ns",)),
+]
+"""Bad command lines (37; beside them 43 of the 105 catalogue missions are new with this file)."""
+
+
+def _fill(text: str, tmp: Path) -> str:
+    file = tmp / "a-file"
+    file.write_text("not a directory\n")
+    npzdir = tmp / "npzdir"
+    (npzdir / "run.npz").mkdir(parents=True, exist_ok=True)
+    junk = tmp / "junk"
+    junk.mkdir(exist_ok=True)
+    (junk / "run.npz").write_bytes(b"\x80\x04garbage, not a zip")
+    trunc = tmp / "trunc"
+    trunc.mkdir(exist_ok=True)
+    (trunc / "run.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 40)
+    good = tmp / "good"
+    if not (good / "run.npz").exists():
+        run = Run.empty(3, [4, 7], 2, RunMeta(mission="x", source="reference-discrete", law="sigma", rate=10.0, steps=2))
+        run.save(good / "run.npz")
+    return text.format(tmp=tmp, file=file, npzdir=npzdir, junk=junk, trunc=trunc, good=good)
+
+
+@pytest.mark.parametrize("bad", ARGUMENTS, ids=[b.name for b in ARGUMENTS])
+def test_bad_argument_is_refused_before_anything_starts(bad: Bad, tmp_path: Path) -> None:
+    args = [_fill(a, tmp_path) for a in bad.args]
+    r, _ = tether(*args)
+    _assert_refused(r, list(bad.names))
+    assert not (tmp_path / "o" / "run.npz").exists() and not (tmp_path / "o" / "logs").exists(), "something ran"
+    assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+# --------------------------------------------------------------------------- scale and writes
+def _chain(n: int) -> str:
+    """A mission of ``n`` agents in a chain behind the leader (sparse: n edges)."""
+    lines = ['version = 1', 'name = "chain"', 'dim = 2', 'rate = 10.0', 'duration = 1.0',
+             '[law]', 'kind = "sigma"', 'kp0 = 2.0', 'kv0 = 2.0', 'gamma_p = 0.05', 'gamma_v = 0.05', 'sigma = 1.0',
+             '[leader]', f'id = {n + 1}', 'p0 = [0.0, 0.0]']
+    for i in range(1, n + 1):
+        lines += ['[[agents]]', f'id = {i}', f'p0 = [{float(i)}, 0.0]', f'offset = [{float(i)}, 0.0]']
+    lines += ['[[edges]]', f'from = {n + 1}', 'to = 1']
+    for i in range(1, n):
+        lines += ['[[edges]]', f'from = {i}', f'to = {i + 1}']
+    return "\n".join(lines) + "\n"
+
+
+def test_check_of_a_10000_agent_chain_is_fast_and_small(tmp_path: Path) -> None:
+    """Once 92 s and 2.4 GB (a dense 10 001 x 10 001 matrix and a solve); now O(N + edges)."""
+    path = tmp_path / "chain.toml"
+    path.write_text(_chain(10_000))
+    r, seconds = tether("check", str(path))
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "10000 agents" in r.stdout and "Lemma 3 follows from Assumption 1" in r.stdout
+    assert seconds < 30.0  # about 1 s on an idle machine
+
+
+def test_a_write_that_fails_part_way_names_the_path_and_errno(tmp_path: Path) -> None:
+    """A full disk, emulated by a file-size limit: status 1, the path and the errno named, no ``.part`` left."""
+    import signal
+
+    def small_files() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write then fails with EFBIG instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+        _limit()
+
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-m", "cli", "simulate", "section4", "--duration", "20", "--out", str(out),
+                        "--no-figures"], capture_output=True, text=True, timeout=TIMEOUT, preexec_fn=small_files,
+                       cwd=REPO)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert f"{out / 'run.npz'}:" in r.stderr and "EFBIG" in r.stderr
+    assert not list(out.glob("*.part"))
+
+
+def test_a_velocity_schedule_of_100000_segments_is_sampled_by_bisection() -> None:
+    """Once O(segments) per sample (about 0.1 s each at 100 000 segments); now O(log segments)."""
+    import numpy as np
+
+    from leader.profile import PiecewiseLinearVelocity
+
+    segs = [(float(k), np.array([float(k % 3), 0.0])) for k in range(100_000)]
+    ref = PiecewiseLinearVelocity.from_schedule(np.zeros(2), segs, 0.1)
+    start = time.process_time()
+    for k in range(200):
+        ref(k * 37.3)
+    assert time.process_time() - start < 2.0
+    small = PiecewiseLinearVelocity.from_schedule(np.zeros(2), segs[:5], 0.1)
+    p, v, a = small(2.05)  # mid-ramp from segment 1 (v = 1) to 2 (v = 2): v = 1.5, a = 10
+    np.testing.assert_allclose(v, [1.5, 0.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a, [10.0, 0.0], rtol=0, atol=1e-9)

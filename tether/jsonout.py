@@ -1,0 +1,34 @@
+"""JSON output files (metrics, sweep tables): strict JSON, with nothing JSON cannot hold. Pure.
+
+Python's ``json`` writes NaN and infinity as the bare words ``NaN`` and ``Infinity``, which no JSON
+parser but Python's accepts. :func:`dumps` writes them as ``null`` instead (a metric with no
+value: a diverged run, an empty window) and numpy scalars as plain numbers, and refuses anything
+else that is not JSON (``allow_nan=False`` is then only a guard).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+__all__ = ["dumps", "finite"]
+
+
+def finite(obj: object) -> object:
+    """``obj`` with numpy scalars made plain and every non-finite float replaced by None."""
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        obj = obj.item()
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
+
+
+def dumps(obj: object, indent: int | None = 2) -> str:
+    """``obj`` as strict JSON text (see the module docstring); raises TypeError for a non-JSON value."""
+    return json.dumps(finite(obj), indent=indent, allow_nan=False)
