@@ -91,6 +91,7 @@ def test_catalogue_covers_the_commands() -> None:
     assert len(BAD_FILES) + len(ALSO) + len(ARGUMENTS) >= 150
 
 
+@pytest.mark.slow  # one subprocess per case: the in-process catalogue runs in the fast lane (test_mission)
 @pytest.mark.parametrize("path", BAD_FILES, ids=[p.stem for p in BAD_FILES])
 def test_check_refuses_every_bad_mission(path: Path) -> None:
     r, _ = tether("check", str(path))
@@ -100,6 +101,7 @@ def test_check_refuses_every_bad_mission(path: Path) -> None:
     assert r.stdout == ""
 
 
+@pytest.mark.slow  # one subprocess per case: the in-process catalogue runs in the fast lane (test_mission)
 @pytest.mark.parametrize("stem", sorted(ALSO), ids=sorted(ALSO))
 def test_the_command_it_harmed_refuses_it_before_starting(stem: str, tmp_path: Path) -> None:
     path = BAD / f"{stem}.toml"
@@ -203,6 +205,7 @@ def _fill(text: str, tmp: Path) -> str:
     return text.format(tmp=tmp, file=file, npzdir=npzdir, junk=junk, trunc=trunc, good=good)
 
 
+@pytest.mark.slow  # one subprocess per case: the in-process catalogue runs in the fast lane (test_mission)
 @pytest.mark.parametrize("bad", ARGUMENTS, ids=[b.name for b in ARGUMENTS])
 def test_bad_argument_is_refused_before_anything_starts(bad: Bad, tmp_path: Path) -> None:
     args = [_fill(a, tmp_path) for a in bad.args]

@@ -101,6 +101,7 @@ def test_simulate_writes_run_mcap_beside_run_npz(tmp_path: Path) -> None:
     assert "links" not in json.loads(msgs["/agent/1"][0][1])  # the reference simulator has no links
 
 
+@pytest.mark.slow  # real processes
 def test_lockstep_tether_run_writes_run_mcap(tmp_path: Path) -> None:
     out = tmp_path / "run"
     done = tether("run", "section4", "--out", str(out), "--duration", "1", "--quiet",
@@ -168,6 +169,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # real processes
 def test_simulate_live_serves_the_channels_over_the_foxglove_websocket_protocol(tmp_path: Path) -> None:
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "cli", "simulate", "section4", "--out", str(tmp_path / "live"),
