@@ -121,7 +121,7 @@ async def run(node: Node) -> None:
         # the agent relays nothing meanwhile, so its neighbours count it out
         plant_silent = not lockstep and k < m.steps and (plant.silent_at(k) or t - own.t > sf.cmd_timeout)
         if plant_silent != holding:
-            log.warning("plant %d is %s at t = %.2f s", aid, "silent" if plant_silent else "back", t)
+            log.warning("plant %d is %s at t = %.2f s", aid, "silent: holding" if plant_silent else "back", t)
             holding = plant_silent
         heard: list[Heard | None] = [
             None if msg is None else (msg.t, np.array(msg.p), np.array(msg.vel), np.array(msg.a)) for msg in got]
