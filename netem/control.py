@@ -110,7 +110,8 @@ def serve(node: "Node") -> None:
             log.error("netem change refused: %s", exc)
             query.reply_err(f"{node.args.role} {node.args.node_id}: refused: {exc}")
             return
-        query.reply(query.key_expr, json.dumps({"node": node.args.node_id, "changed": done}))
+        # on its own key, even to a wildcard query: the access rules let an agent reply for itself only
+        query.reply(key, json.dumps({"node": node.args.node_id, "changed": done}))
 
     node.queryable(key, handle)
 
