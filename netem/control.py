@@ -75,7 +75,7 @@ async def netem_set(settings: tp.ZenohSettings, ns: str, rule: LinkRule, at: flo
         for reply in replies:  # blocks until every queryable answered or the timeout
             if reply.ok is not None:
                 body = json.loads(reply.ok.payload.to_bytes())
-                answers.append(Answer(body["node"], body["changed"]))
+                answers.append(Answer(body["node"], body["changed"], body.get("error")))
             else:
                 answers.append(Answer(None, [], reply.err.payload.to_string()))
         present = agents_up()
@@ -97,18 +97,23 @@ def serve(node: "Node") -> None:
     ``netem_invalid``)."""
     key = node.keys.topic(node.args.role, node.args.node_id, "netem")
 
+    def refuse(query: zenoh.Query, why: str) -> None:
+        # a reply on its own key, not reply_err: an error reply travels on the query's key, which for
+        # `agent/*/netem` the access rules cannot let an agent reply on without letting it answer for others
+        query.reply(key, json.dumps({"node": node.args.node_id, "changed": [], "error": why}))
+
     def handle(query: zenoh.Query) -> None:
         payload = query.payload
         msg = node.receiver.accept(payload.to_bytes() if payload is not None else b"", wire.NetemSet, 0)
         if msg is None:
-            query.reply_err("not a valid NetemSet message (see tether.wire); nothing changed")
+            refuse(query, "not a valid NetemSet message (see tether.wire); nothing changed")
             return
         try:
             done = apply(node, msg)
         except ValueError as exc:
             node.count_drop("netem_invalid")
             log.error("netem change refused: %s", exc)
-            query.reply_err(f"{node.args.role} {node.args.node_id}: refused: {exc}")
+            refuse(query, f"{node.args.role} {node.args.node_id}: refused: {exc}")
             return
         # on its own key, even to a wildcard query: the access rules let an agent reply for itself only
         query.reply(key, json.dumps({"node": node.args.node_id, "changed": done}))

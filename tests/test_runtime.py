@@ -494,7 +494,7 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
     on agent 1's inputs and waits until agent 1's telemetry counts them; then SIGINT."""
     ns = f"interrupted-{os.getpid()}"
     keys = wire.Keys(ns)
-    with launch(tmp_path_factory.mktemp("interrupted"), ns, "--clock", "realtime", "--duration", "60") as run:
+    with launch(tmp_path_factory.mktemp("interrupted"), ns, "--clock", "realtime", "--duration", "60", "--insecure") as run:  # a plain client attaches
         wait_for_realtime_start(run)
         client = PlainClient(router_of(run.children))
         try:
@@ -598,7 +598,7 @@ class Killed:
 def killed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Killed]:
     ns = f"killed-{os.getpid()}"
     # the survivors fly on to the mission's end (agent 1 still hears the leader), so keep it short
-    with launch(tmp_path_factory.mktemp("killed"), ns, "--clock", "realtime", "--duration", "15") as run:
+    with launch(tmp_path_factory.mktemp("killed"), ns, "--clock", "realtime", "--duration", "15", "--insecure") as run:  # a plain client attaches
         wait_for_realtime_start(run)
         client = PlainClient(router_of(run.children))
         try:  # under way: agent 3, which hears agent 2, has run half a second of ticks
@@ -670,7 +670,7 @@ def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(real
     """Over the last 10 s of a 20 s run. The lockstep run of the same mission equals the reference
     simulator to 1e-9 (test_lockstep_run_equals_the_reference_simulator), so the reference
     simulator stands in for a second, 20 s lockstep run."""
-    assert realtime.status == 0, realtime.launcher_log
+    assert realtime.status in (0, 5), realtime.launcher_log  # 5: recorded, a sample lost (DROP streams)
     rt = Run.load(realtime.out)
     ref = refsim.simulate(load_mission(SECTION4, 20.0))
     got, want = envelope(rt, 10.0), envelope(ref, 10.0)
@@ -682,7 +682,7 @@ def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(real
 
 
 def test_realtime_run_ends_well_and_records_most_ticks(realtime: Finished) -> None:
-    assert realtime.status == 0, realtime.launcher_log
+    assert realtime.status in (0, 5), realtime.launcher_log  # 5: recorded, a sample lost (DROP streams)
     assert exit_statuses(realtime.launcher_log) == {n: 0 for n in CHILDREN}
     rt = Run.load(realtime.out)
     assert rt.meta.source == "runtime-realtime"
