@@ -562,7 +562,10 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         raise ms.MissionError(f"tether run {mission_path}", problems)
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
-    settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease)
+    # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound
+    limits = localtls.ingress_limits(m, keys.ns) if opts.clock == "realtime" else ()
+    settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease,
+                                ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
     opts.out.mkdir(parents=True, exist_ok=True)
     sec: localtls.Security | None = None
@@ -573,7 +576,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     else:
         router = "tls/" + router.split("/", 1)[1]
         try:
-            sec = localtls.prepare(m, keys.ns, opts.out, launch.members(), router, opts.listen, opts.lease)
+            sec = localtls.prepare(m, keys.ns, opts.out, launch.members(), router, opts.listen, opts.lease,
+                                   limits)
         except pki.PkiError as exc:
             log.error("cannot make this run's certificates: %s (or pass --insecure)", exc)
             return EXIT_FAILED

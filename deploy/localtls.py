@@ -39,6 +39,7 @@ from typing import Any
 from deploy import acl, pki
 from deploy.hosts import is_ip
 from tether import mission as ms
+from tether import transport as tp
 from tether import wire
 
 CERT_DAYS = 2
@@ -75,6 +76,23 @@ def grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
             g = dataclasses.replace(g, subscribe=(*g.subscribe, k.topic("world", 0, "state")))
         out.append(g)
     return [*out, world]
+
+
+LIMIT_FACTOR = 20
+"""Real time: a listener passes at most this many times the mission's rate of messages per second
+on each key a process publishes, per link; one sample per period is what a stream sends."""
+OTHER_RATE = 1.0
+"""Real time: messages per second per link on any other key of the namespace, in mission rates."""
+
+
+def ingress_limits(m: ms.Mission, ns: str) -> tuple[tuple[str, float], ...]:
+    """The listeners' per-link ingress limits of a real-time run of ``m`` (``downsampling``): each
+    published key of the run at :data:`LIMIT_FACTOR` times the rate, anything else in the namespace
+    at :data:`OTHER_RATE` times it. A flood on a key, from any one session, reaches the subscribers
+    at that rate at most, decided in Zenoh's threads before any Python callback, while every other
+    session's link keeps its own budget. (Not in lockstep, whose ticks go out in bursts.)"""
+    keys = sorted({k for g in grants(m, ns) if g.name != "router" for k in g.publish})
+    return (*((k, LIMIT_FACTOR * m.rate) for k in keys), (wire.Keys(ns).everything, OTHER_RATE * m.rate))
 
 
 def _host_of(endpoint: str) -> str | None:
@@ -117,6 +135,8 @@ class Security:
     identities: int = 0
     """Certificates made (every process, the router and the operator)."""
     configs: dict[str, Path] = field(default_factory=dict)
+    limits: tuple[tuple[str, float], ...] = ()
+    """Ingress rate limits of every listener (``tether.transport.ZenohSettings.ingress_limits``)."""
 
     def tls(self, name: str, listening: bool) -> dict[str, Any]:
         d = self.dir
@@ -141,6 +161,8 @@ class Security:
             conf["connect"] = {"endpoints": connect}
         if listen:
             conf["access_control"] = self.access
+            if self.limits:
+                conf["downsampling"] = tp.downsampling(self.limits)
         return conf
 
     def write(self, name: str, conf: dict[str, Any], note: str) -> Path:
@@ -162,7 +184,7 @@ class Security:
 
 
 def prepare(m: ms.Mission, ns: str, out: Path, members: list[tuple[str, int]], router_endpoint: str,
-            listen: tuple[str, ...], lease: float) -> Security:
+            listen: tuple[str, ...], lease: float, limits: tuple[tuple[str, float], ...] = ()) -> Security:
     """Make this run's CA, identities and the operator's configuration in ``out/tls`` (replacing an
     earlier run's there); the CA's key is deleted before returning. Raises :class:`~deploy.pki.PkiError`."""
     t0 = time.monotonic()
@@ -172,7 +194,7 @@ def prepare(m: ms.Mission, ns: str, out: Path, members: list[tuple[str, int]], r
     d.mkdir(parents=True)
     d.chmod(0o700)
     access = acl.access_control(grants(m, ns), ns)
-    sec = Security(d.resolve(), ns, lease, access, router_endpoint)
+    sec = Security(d.resolve(), ns, lease, access, router_endpoint, limits=limits)
     router_hosts = ["127.0.0.1", *(h for ep in listen if (h := _host_of(ep)) is not None)]
     with tempfile.TemporaryDirectory(prefix="tether-ca-") as tmp:
         ca = pki.make_ca(Path(tmp), f"tether run {ns} CA", CERT_DAYS)
