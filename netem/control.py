@@ -59,9 +59,15 @@ async def netem_set(settings: tp.ZenohSettings, ns: str, rule: LinkRule, at: flo
     answers: list[Answer] = []
     async with tp.open_session(settings) as session:
         def agents_up() -> list[int]:
-            return sorted(wire.Keys.parse_token(str(r.ok.key_expr))[1]
-                          for r in session.liveliness().get(keys.token("agent", "*"), timeout=timeout)
-                          if r.ok is not None)
+            up = []
+            for r in session.liveliness().get(keys.token("agent", "*"), timeout=timeout):
+                if r.ok is None:
+                    continue
+                try:
+                    up.append(wire.Keys.parse_token(str(r.ok.key_expr))[1])
+                except ValueError:  # a token on a malformed key: not an agent
+                    pass
+            return sorted(up)
 
         if rule.dst is not None:  # connected, and that agent is up (it may still be starting)
             try:

@@ -192,7 +192,10 @@ class Node:
         out = set()
         for key, up in self.alive.items():
             if not up:
-                r, nid = wire.Keys.parse_token(key)
+                try:
+                    r, nid = wire.Keys.parse_token(key)
+                except ValueError:  # a token on a malformed key (a non-numeric id): no input may crash
+                    continue
                 if r == role:
                     out.add(nid)
         return out
