@@ -82,6 +82,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import msgspec
 import numpy as np
 
 from deploy import faults as faults_mod
@@ -704,7 +705,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     if sup is not None and sup.dropped:
         log.warning("the launcher dropped %d malformed message(s): %s", sum(sup.dropped.values()),
                     ", ".join(f"{n} {why}" for why, n in sorted(sup.dropped.items())))
-    if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST):
+    if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
         status = _recorded(opts.out / "run.npz", status)
     return status
 
@@ -717,7 +718,7 @@ def _recorded(path: Path, status: int) -> int:
     try:
         with np.load(path, allow_pickle=False) as run:
             meta = runfile.decode_meta(str(run["meta"]))
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, msgspec.MsgspecError) as exc:
         log.error("no readable run file at %s (%s): see logs/recorder-0.log", path, exc)
         return EXIT_FAILED if status == EXIT_OK else status
     if meta.complete is False:
