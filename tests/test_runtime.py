@@ -518,6 +518,7 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
             pubs = {key: client.publisher(key) for key in {key for key, _, _ in junk}}
             for key, payload, _ in junk:
                 pubs[key].put(payload)
+                time.sleep(0.002)  # paced: the router passes one sample per key and link per 1/(20 rate) s
             _, tele = client.next_matching(lambda k, m: k == agent1 and m.drops == expected, WAIT,
                                            f"agent 1's telemetry to count {expected}")
             client.next_matching(lambda k, m: k == agent1 and m.k >= 100, WAIT,
