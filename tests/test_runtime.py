@@ -516,11 +516,16 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
             heard_by_recorder = (keys.topic("plant", 1, "state"), keys.topic("leader", LEADER, "state"))
             recorder_expected = count([r for key, _, r in junk if key in heard_by_recorder])
             pubs = {key: client.publisher(key) for key in {key for key, _, _ in junk}}
-            for key, payload, _ in junk:
+            # one at a time, each once counted: in real time the router passes one sample per key and
+            # link per 1/(20 rate) s, so a burst would be thinned before reaching agent 1
+            running: collections.Counter[str] = collections.Counter()
+            for key, payload, reason in junk:
                 pubs[key].put(payload)
-                time.sleep(0.002)  # paced: the router passes one sample per key and link per 1/(20 rate) s
-            _, tele = client.next_matching(lambda k, m: k == agent1 and m.drops == expected, WAIT,
-                                           f"agent 1's telemetry to count {expected}")
+                running[reason] += 1
+                want = dict(running)
+                _, tele = client.next_matching(lambda k, m: k == agent1 and m.drops == want, WAIT,
+                                               f"agent 1's telemetry to count {want}")
+            assert dict(running) == expected
             client.next_matching(lambda k, m: k == agent1 and m.k >= 100, WAIT,
                                  "agent 1 at tick 100")  # a second of run to record
             for pub in pubs.values():

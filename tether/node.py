@@ -40,8 +40,8 @@ log = logging.getLogger("tether")
 FIFO_CAPACITY = 65536
 """Samples a process can hold between two drains before the oldest is dropped (and counted)."""
 INPUT_CAPACITY = 8
-"""Real time: samples one input key holds between two drains (its newest); older ones are dropped
-and counted as ``overflow``. A state stream brings one per period."""
+"""Real time: samples one input key holds between two drains (its newest); older ones are dropped,
+counted per key in :attr:`Node.overflow` and logged once. A state stream brings one per period."""
 INPUT_BUDGET = 8
 """Real time: samples of one input key decoded per control period at most; the rest wait, muted
 (overwritten by newer ones), until the next period. A flood on one key then costs the event loop
@@ -107,6 +107,8 @@ class Node:
         """Real time: one bounded queue per subscribed input key (see :data:`INPUT_BUDGET`)."""
         self._used: dict[str, int] = {}
         self._overflow: dict[str, int] = {}
+        self.overflow = self._overflow
+        """Real time: samples each input key's queue dropped (oldest first), by key."""
         self._period = -1
         self._rearm: asyncio.Handle | None = None
         self._watched: dict[str, list[Source]] = {}
@@ -302,10 +304,11 @@ class Node:
             if len(q) and self._used.get(key, 0) >= INPUT_BUDGET:
                 q.muted = True
                 waiting = True
-            lost = q.dropped - self._overflow.get(key, 0)
-            if lost:
+            if q.dropped and key not in self._overflow:  # once per key: a flood, or this loop stalled
+                log.warning("input %s: more than %d samples between two drains; the oldest are dropped "
+                            "(counted in Node.overflow)", key, INPUT_CAPACITY)
+            if q.dropped:
                 self._overflow[key] = q.dropped
-                self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
         if waiting and self._rearm is None and monotonic is not None:
             delay = (period + 1) * h - monotonic()
             self._rearm = asyncio.get_running_loop().call_later(max(0.0, delay), self._next_period)
