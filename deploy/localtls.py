@@ -83,17 +83,24 @@ LIMIT_FACTOR = 20
 on each key a process publishes, per link; one sample per period is what a stream sends."""
 
 
+CONTROL_RATE = 50.0
+"""Real time: messages per second per link on the start and the operator's order keys."""
+
+
 def ingress_limits(m: ms.Mission, ns: str) -> tuple[tuple[str, float], ...]:
     """The listeners' per-link ingress limits of a real-time run of ``m`` (``downsampling``): each
-    published key of the run at :data:`LIMIT_FACTOR` times the rate. A flood on one of these keys,
+    published key of the run at :data:`LIMIT_FACTOR` times the rate (the start and the operator's
+    orders at :data:`CONTROL_RATE`). A flood on one of these keys,
     from any one session, reaches the subscribers at that rate at most, decided in Zenoh's threads
     before any Python callback, while every other session's link keeps its own budget. (Not in
     lockstep, whose ticks go out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule
     beside them (``tether/<ns>/**`` for "anything else") blocked some of the exact keys' samples
     altogether (measured), so keys outside the grants are not limited; under TLS no one may
     publish on them anyway."""
-    keys = sorted({k for g in grants(m, ns) if g.name != "router" for k in g.publish})
-    return tuple((k, LIMIT_FACTOR * m.rate) for k in keys)
+    k = wire.Keys(ns)
+    control = {k.start: CONTROL_RATE, k.safety: CONTROL_RATE}  # one start; an order is 6 copies over 0.5 s
+    keys = sorted({x for g in grants(m, ns) if g.name != "router" for x in g.publish})
+    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys)
 
 
 def _host_of(endpoint: str) -> str | None:
