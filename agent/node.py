@@ -44,6 +44,9 @@ async def run(node: Node) -> None:
     state = node.publisher(keys.topic("agent", aid, "state"))
 
     def relay(msg: wire.PlantState) -> None:
+        if msg is not plant.newest:  # not newer than the last (a replay, a duplicate): never re-published as fresh
+            node.count_drop("stale_relay")
+            return
         state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist(),
                    mode=tick.supervisor.mode)
 

@@ -473,7 +473,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
                                duration=args.duration, handover_runtime=not args.no_handover,
                                listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
-                               vehicle_connect=dict(args.vehicle_connect), faults=injected)
+                               vehicle_connect=dict(args.vehicle_connect), faults=injected,
+                               insecure=args.insecure)
     return asyncio.run(local.run(path, opts))
 
 
@@ -594,6 +595,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="inject a fault at mission time T [s]: kill:agent/2@10 (SIGKILL), freeze:leader@5+3 "
                          "(SIGSTOP, SIGCONT D s later), partition:agent/3@8+2 (its link cut for D s), "
                          "forge:leader@12 (one far-off sample on its state key); repeatable (deploy/faults.py)")
+    rn.add_argument("--insecure", action="store_true",
+                    help="no certificates and no access rules (plain TCP): anyone who reaches the router can "
+                         "publish on the run's keys. Default: mTLS, one identity per process, deny-by-default "
+                         "rules; tools attach to --listen tls/... with --zenoh-config OUT/tls/control-0.json5")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.set_defaults(func=cmd_run)
 

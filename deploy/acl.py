@@ -11,7 +11,8 @@ link, by the CN of the certificate the other side presented:
   alone, on ``tether/<ns>/control/0/safety``, which every agent and plant may subscribe to;
 * ``ingress`` rules say what a node may send: ``put`` (publish), ``declare_subscriber``,
   ``liveliness_token``, ``declare_liveliness_subscriber``, and for ``tether netem-set`` (run-time
-  changes of the emulated network) the agents' ``declare_queryable`` and ``reply``, the control's
+  changes of the emulated network) the agents' ``declare_queryable`` and ``reply`` (a reply only on
+  the agent's own key, even to a wildcard query), the control's
   ``query`` and ``liveliness_query``;
 * ``egress`` rules say what it may be sent: ``put`` on the keys it may subscribe to,
   ``liveliness_token`` of the processes it watches, queries to the agents and their replies to the
@@ -54,7 +55,10 @@ class Grant:
     serves: tuple[str, ...] = ()
     """Queryables it may declare; it receives queries on, and may reply on, ``answers``."""
     answers: tuple[str, ...] = ()
-    """Query key expressions it receives and replies on (a query's key may be a wildcard)."""
+    """Query key expressions it receives (a query's key may be a wildcard)."""
+    replies: tuple[str, ...] = ()
+    """Keys it may reply on: its own queryables' keys only, so that no process can answer a
+    wildcard query (``agent/*/netem``) in another's name."""
     asks: tuple[str, ...] = ()
     """Key expressions it may query (and receive replies on)."""
     lists: tuple[str, ...] = ()
@@ -87,7 +91,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
     out = [
         Grant("router", publish=(k.everything,), subscribe=(k.everything,), tokens=(every_token,),
               watch=(every_token,), sees=(every_token,), serves=(k.everything,), answers=(k.everything,),
-              asks=(k.everything,), lists=(every_token,)),
+              replies=(k.everything,), asks=(k.everything,), lists=(every_token,)),
         Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
               subscribe=(k.start, k.tick), tokens=(k.token("leader", lid),)),
         Grant("control-0", publish=(k.start, k.tick, k.safety), subscribe=(k.acks,), watch=(every_token,), sees=(every_token,),
@@ -108,6 +112,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
             serves=(k.topic("agent", aid, "netem"),),  # Node.netem_control: run-time netem changes
             answers=(k.topic("agent", aid, "netem"), every_netem),
+            replies=(k.topic("agent", aid, "netem"),),  # its own key only: never a reply keyed for another
         ))
         out.append(Grant(
             f"plant-{aid}",
@@ -143,7 +148,7 @@ def access_control(gs: list[Grant], ns: str) -> dict[str, Any]:
             _rule(f"{g.name}:sees", ["liveliness_token"], "egress", g.sees),
             _rule(f"{g.name}:serve", ["declare_queryable"], "ingress", g.serves),
             _rule(f"{g.name}:queried", ["query"], "egress", g.answers),
-            _rule(f"{g.name}:reply", ["reply"], "ingress", g.answers),
+            _rule(f"{g.name}:reply", ["reply"], "ingress", g.replies),
             _rule(f"{g.name}:ask", ["query"], "ingress", g.asks),
             _rule(f"{g.name}:answered", ["reply"], "egress", g.asks),
             _rule(f"{g.name}:list", ["liveliness_query"], "ingress", g.lists),

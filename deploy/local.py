@@ -6,6 +6,16 @@ for every liveliness token, runs the mission (lockstep: this process is the cloc
 time: it announces the common start instant), shows progress, and stops everything at the end or
 on Ctrl-C. Children get their own session (process group) and stop when the launcher is gone.
 
+Authentication (default): every process gets its own certificate of a CA made for this run, every
+link is TLS 1.3 with client certificates, and the router (and, in a mesh, every peer) enforces the
+deployment's deny-by-default access rules (``deploy/localtls.py``, ``deploy/acl.py``): a session
+without a certificate of the run gets no link, and one with a certificate may do only what its
+role does. Tools attach through ``--listen tls/...`` with the operator identity
+``DIR/tls/control-0.json5`` (``--zenoh-config``). ``--insecure`` turns all this off (plain TCP, no
+rules: anyone who reaches the router can move the formation), with a warning. Under TLS,
+``--vehicle-connect`` is refused (an endpoint of your own holds no certificate of the run) and
+``--listen`` takes ``tls/`` endpoints only; ``openssl`` must be on PATH (exit 2 otherwise).
+
 Network (``--network``):
 
 * ``star`` (default): this process opens a Zenoh **router** session on a free loopback port and
@@ -49,7 +59,13 @@ event (who, when, what, why). Exit status (:data:`EXIT_OK` ...):
   every process still running;
 * 4 — in real time, a process died, froze (or was cut off) or never started; the others ran on
   (takes precedence over 3);
-* 130 — interrupted (Ctrl-C, SIGTERM), whatever else happened.
+* 5 — recorded but incomplete: nothing else went wrong, but the run file lacks samples
+  (``complete: false`` in its metadata; real-time DROP streams under load); the counts are logged;
+* 130 — interrupted by Ctrl-C (SIGINT), whatever else happened;
+* 143 — terminated (SIGTERM to the launcher), whatever else happened.
+
+Inputs never crash the launcher: a message on a key it does not expect (a lockstep acknowledgement
+with a non-numeric id, say) is dropped and counted, and the count is logged at the end.
 """
 
 from __future__ import annotations
@@ -66,10 +82,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import msgspec
+import numpy as np
 import zenoh
 
 from deploy import faults as faults_mod
 from deploy import inject
+from deploy import localtls
+from deploy import pki
 from deploy.faults import Fault
 from deploy.inject import describe_exit
 from deploy.relay import Relay
@@ -133,6 +153,8 @@ class LaunchOptions:
     land_timeout: float | None = None
     """Real time: after the first Ctrl-C's land order, how long to wait for LANDED [s]; None: the
     descent from the highest start at ``safety.land_speed`` + 3 s."""
+    insecure: bool = False
+    """No certificates and no access rules (plain TCP; see the module docstring)."""
 
 
 @dataclass
@@ -176,7 +198,7 @@ class Launch:
             return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("world", 0), ("recorder", 0)]
         return [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")], ("recorder", 0)]
 
-    def spawn(self, router: str) -> None:
+    def spawn(self, router: str, sec: localtls.Security | None = None) -> None:
         o = self.opts
         logs = o.out / "logs"
         logs.mkdir(parents=True, exist_ok=True)
@@ -198,7 +220,12 @@ class Launch:
             endpoint = o.vehicle_connect.get(nid, router) if vehicle else router
             if (role, nid) in self.relays:
                 endpoint = self.relays[role, nid].endpoint
-            if o.network == "star":
+                if sec is not None:  # the relay forwards bytes: TLS passes through it end to end
+                    endpoint = "tls/" + endpoint.split("/", 1)[1]
+            if sec is not None:
+                listen = None if o.network == "star" else f"tls/127.0.0.1:{tp.free_tcp_port()}"
+                cmd += ["--zenoh-config", str(sec.child(role, nid, endpoint, listen))]
+            elif o.network == "star":
                 cmd += ["--zenoh-mode", "client", "--connect", endpoint]
             else:
                 cmd += ["--zenoh-mode", "peer", "--connect", endpoint,
@@ -241,6 +268,7 @@ class LaunchFailed(RuntimeError):
 
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
+EXIT_INCOMPLETE, EXIT_TERMINATED = 5, 143
 """Exit statuses of ``tether run`` (see the module docstring)."""
 
 
@@ -304,6 +332,11 @@ class Supervision:
     """The launcher stopped the survivors (their 143s are not failures)."""
     epoch: float | None = None
     done_tick: int = -1
+    dropped: dict[str, int] = field(default_factory=dict)
+    """Messages the launcher dropped (malformed key or payload), by reason."""
+
+    def drop(self, reason: str) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
 
     def mission_time(self, m: ms.Mission) -> float | None:
         if self.epoch is not None:
@@ -384,9 +417,15 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
             for rec in acks.drain():
                 msg = receiver.accept(rec.payload, wire.Ack, None)
                 if msg is None:
+                    sup.drop("ack_payload")
                     continue
-                role, nid, _ = wire.Keys.parse(rec.key)
+                try:
+                    role, nid, _ = wire.Keys.parse(rec.key)
+                except ValueError:  # e.g. a non-numeric id: no input may crash the launcher
+                    sup.drop("ack_key")
+                    continue
                 if nid != msg.sender:
+                    sup.drop("ack_sender")
                     continue
                 moved |= src.ack(role, nid, msg.k)
             if moved:
@@ -524,13 +563,34 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         problems += [(f"agents[{k}].plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")
                      for k, a in enumerate(m.agents) if isinstance(a.plant, ms.CrazyfliePlant)]
+    if not opts.insecure:
+        problems += localtls.problems(opts.listen, opts.vehicle_connect)
     if problems:
         raise ms.MissionError(f"tether run {mission_path}", problems)
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
-    settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease)
+    # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound
+    limits = localtls.ingress_limits(m, keys.ns) if opts.clock == "realtime" else ()
+    settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease,
+                                ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
     opts.out.mkdir(parents=True, exist_ok=True)
+    sec: localtls.Security | None = None
+    if opts.insecure:
+        log.warning("--insecure: no certificates and no access rules; anyone who reaches the router (%s) can "
+                    "publish on any key of the run (move the formation, end it, rewrite the recording)",
+                    ", ".join(settings.listen))
+    else:
+        router = "tls/" + router.split("/", 1)[1]
+        try:
+            sec = localtls.prepare(m, keys.ns, opts.out, launch.members(), router, opts.listen, opts.lease,
+                                   limits)
+        except pki.PkiError as exc:
+            log.error("cannot make this run's certificates: %s (or pass --insecure)", exc)
+            return EXIT_FAILED
+        settings = tp.ZenohSettings(config_file=str(sec.configs["router"]))
+        log.info("mTLS: %d identities made in %.2f s in %s; operator identity for tools (--zenoh-config): %s",
+                 sec.identities, sec.seconds, sec.dir, sec.configs["control-0"])
     progress = Progress() if opts.progress else None
     sigints = 0
     first_sigint = asyncio.Event()
@@ -547,19 +607,28 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             terminate.set()
 
     loop.add_signal_handler(signal.SIGINT, on_sigint)
-    loop.add_signal_handler(signal.SIGTERM, terminate.set)
+    terminated = False
+
+    def on_sigterm() -> None:
+        nonlocal terminated
+        terminated = True
+        terminate.set()
+
+    loop.add_signal_handler(signal.SIGTERM, on_sigterm)
     status = EXIT_OK
     interrupted = False
     t0 = time.monotonic()
     sup: Supervision | None = None
     try:
         async with tp.open_session(settings) as session:
-            log.info("router listening on %s (namespace %s)", ", ".join(settings.listen), keys.ns)
+            listening = (router, *opts.listen)
+            log.info("router listening on %s (namespace %s%s)", ", ".join(listening), keys.ns,
+                     "" if sec is None else ", TLS with client certificates and access rules")
             port = int(router.rsplit(":", 1)[1])
             for f in opts.faults:
                 if f.kind == "partition" and f.member(m) not in launch.relays:
                     launch.relays[f.member(m)] = await Relay.start(("127.0.0.1", port))
-            launch.spawn(router)
+            launch.spawn(router, sec)
             members = launch.members()
             monitor = inject.Monitor(session, m, keys, members, lambda: sup.mission_time(m) if sup else None,
                                      forge_agents=any(f.kind == "forge" and f.role == "agent" for f in opts.faults))
@@ -594,7 +663,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             try:
                 done, _ = await asyncio.wait({work, stopper}, return_when=asyncio.FIRST_COMPLETED)
                 if stopper in done:
-                    log.warning("interrupted: stopping every process")
+                    log.warning("%s: stopping every process", "terminated (SIGTERM)" if terminated else "interrupted")
                     interrupted = True
                 else:
                     interrupted = work.result()
@@ -625,7 +694,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             (opts.out / "faults.json").write_text(json.dumps(sup.injector.records(), indent=2) + "\n")
         (opts.out / "events.json").write_text(json.dumps([e.to_json() for e in events], indent=2) + "\n")
     if interrupted:
-        status = EXIT_INTERRUPTED
+        status = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     elif status == EXIT_OK:
         status = _exit_status(events)
         reported = {e.who for e in events if e.what == "died"}
@@ -639,11 +708,38 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         log.warning("%d event(s) in this run (who, when, what, why):", len(shown))
         for e in shown:
             log.warning("  %s", e.line())
-    if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST):
-        log.info("run recorded in %s (exit status %d: %s)", opts.out / "run.npz", status, MEANING[status])
+    if sup is not None and sup.dropped:
+        log.warning("the launcher dropped %d malformed message(s): %s", sum(sup.dropped.values()),
+                    ", ".join(f"{n} {why}" for why, n in sorted(sup.dropped.items())))
+    if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
+        status = _recorded(opts.out / "run.npz", status)
+    return status
+
+
+def _recorded(path: Path, status: int) -> int:
+    """Tell what the run file holds; a clean run whose file lacks samples is :data:`EXIT_INCOMPLETE`,
+    one without a run file :data:`EXIT_FAILED`."""
+    from tether import runfile
+
+    try:
+        with np.load(path, allow_pickle=False) as run:
+            meta = runfile.decode_meta(str(run["meta"]))
+    except (OSError, KeyError, ValueError, msgspec.MsgspecError) as exc:
+        log.error("no readable run file at %s (%s): see logs/recorder-0.log", path, exc)
+        return EXIT_FAILED if status == EXIT_OK else status
+    if meta.complete is False:
+        got, want = meta.samples_recorded, meta.samples_expected
+        counts = f"{got} of {want} samples recorded" if got is not None and want is not None else "samples missing"
+        if status == EXIT_OK:
+            status = EXIT_INCOMPLETE
+        log.warning("run recorded INCOMPLETE in %s: %s (the others were lost on the way or the run was cut "
+                    "short; see logs/recorder-0.log) (exit status %d: %s)", path, counts, status, MEANING[status])
+        return status
+    log.info("run recorded in %s (exit status %d: %s)", path, status, MEANING[status])
     return status
 
 
 MEANING = {EXIT_OK: "clean", EXIT_FAILED: "the run failed", EXIT_BAD_INPUT: "bad input",
            EXIT_FAILSAFE: "a failsafe fired or a value diverged", EXIT_LOST: "a process died or froze",
-           EXIT_INTERRUPTED: "interrupted"}
+           EXIT_INTERRUPTED: "interrupted", EXIT_INCOMPLETE: "recorded, but samples are missing",
+           EXIT_TERMINATED: "terminated (SIGTERM)"}

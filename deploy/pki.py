@@ -114,6 +114,38 @@ def issue(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], day
     return cert, key
 
 
+def issue_one_step(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], days: int) -> tuple[Path, Path]:
+    """As :func:`issue`, the same key type and extensions, in one ``openssl req -x509 -CA`` run
+    (OpenSSL >= 3.0) instead of two; falls back to :func:`issue` when this openssl lacks ``-CA``.
+    For ``tether run``, which makes a dozen identities before every run."""
+    directory.mkdir(parents=True, exist_ok=True)
+    key, cert = directory / f"{stem}.key", directory / f"{stem}.crt"
+    sans = ",".join(dict.fromkeys(f"IP:{a}" if is_ip(a) else f"DNS:{a}" for a in addresses))
+    config = "\n".join([
+        "[req]", "distinguished_name = dn", "x509_extensions = leaf", "prompt = no", "[dn]", "[leaf]",
+        "basicConstraints=critical,CA:FALSE",
+        "keyUsage=critical,digitalSignature",
+        "extendedKeyUsage=serverAuth,clientAuth",
+        "subjectKeyIdentifier=hash",
+        "authorityKeyIdentifier=keyid",
+        *([f"subjectAltName={sans}"] if sans else []),
+    ]) + "\n"
+    with tempfile.TemporaryDirectory() as tmp:
+        cnf = Path(tmp) / "req.cnf"
+        cnf.write_text(config)
+        try:
+            _run(["req", "-x509", "-config", str(cnf), "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
+                  "-nodes", "-keyout", str(key), "-out", str(cert), "-subj", f"/CN={cn}", "-days", str(days),
+                  "-CA", str(ca.cert), "-CAkey", str(ca.key), "-set_serial", "0x" + secrets.token_hex(16)],
+                 f"making the certificate of {cn}")
+        except PkiError as exc:
+            if "-CA" not in str(exc) and "unknown option" not in str(exc).lower():
+                raise
+            return issue(ca, directory, stem, cn, addresses, days)
+    _private(key)
+    return cert, key
+
+
 def verify(ca_cert: Path, cert: Path) -> None:
     """Check that ``cert`` chains to ``ca_cert`` (``openssl verify``); :class:`PkiError` otherwise."""
     _run(["verify", "-CAfile", str(ca_cert), str(cert)], f"verifying {cert} against {ca_cert}")

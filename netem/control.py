@@ -59,9 +59,15 @@ async def netem_set(settings: tp.ZenohSettings, ns: str, rule: LinkRule, at: flo
     answers: list[Answer] = []
     async with tp.open_session(settings) as session:
         def agents_up() -> list[int]:
-            return sorted(wire.Keys.parse_token(str(r.ok.key_expr))[1]
-                          for r in session.liveliness().get(keys.token("agent", "*"), timeout=timeout)
-                          if r.ok is not None)
+            up = []
+            for r in session.liveliness().get(keys.token("agent", "*"), timeout=timeout):
+                if r.ok is None:
+                    continue
+                try:
+                    up.append(wire.Keys.parse_token(str(r.ok.key_expr))[1])
+                except ValueError:  # a token on a malformed key: not an agent
+                    pass
+            return sorted(up)
 
         if rule.dst is not None:  # connected, and that agent is up (it may still be starting)
             try:
@@ -75,7 +81,7 @@ async def netem_set(settings: tp.ZenohSettings, ns: str, rule: LinkRule, at: flo
         for reply in replies:  # blocks until every queryable answered or the timeout
             if reply.ok is not None:
                 body = json.loads(reply.ok.payload.to_bytes())
-                answers.append(Answer(body["node"], body["changed"]))
+                answers.append(Answer(body["node"], body["changed"], body.get("error")))
             elif reply.err is not None:
                 answers.append(Answer(None, [], reply.err.payload.to_string()))
         present = agents_up()
@@ -97,20 +103,26 @@ def serve(node: "Node") -> None:
     ``netem_invalid``)."""
     key = node.keys.topic(node.args.role, node.args.node_id, "netem")
 
+    def refuse(query: zenoh.Query, why: str) -> None:
+        # a reply on its own key, not reply_err: an error reply travels on the query's key, which for
+        # `agent/*/netem` the access rules cannot let an agent reply on without letting it answer for others
+        query.reply(key, json.dumps({"node": node.args.node_id, "changed": [], "error": why}))
+
     def handle(query: zenoh.Query) -> None:
         payload = query.payload
         msg = node.receiver.accept(payload.to_bytes() if payload is not None else b"", wire.NetemSet, 0)
         if msg is None:
-            query.reply_err("not a valid NetemSet message (see tether.wire); nothing changed")
+            refuse(query, "not a valid NetemSet message (see tether.wire); nothing changed")
             return
         try:
             done = apply(node, msg)
         except ValueError as exc:
             node.count_drop("netem_invalid")
             log.error("netem change refused: %s", exc)
-            query.reply_err(f"{node.args.role} {node.args.node_id}: refused: {exc}")
+            refuse(query, f"{node.args.role} {node.args.node_id}: refused: {exc}")
             return
-        query.reply(query.key_expr, json.dumps({"node": node.args.node_id, "changed": done}))
+        # on its own key, even to a wildcard query: the access rules let an agent reply for itself only
+        query.reply(key, json.dumps({"node": node.args.node_id, "changed": done}))
 
     node.queryable(key, handle)
 

@@ -105,7 +105,7 @@ def test_a_formation_of_software_crazyflies_flown_in_real_time(tmp_path: Path) -
     with software_crazyflies(ports, START):
         path = crazyflie_mission(tmp_path, ports, 14.0)
         r = _run(path, tmp_path / "run")
-        assert r.returncode == 0, r.stderr[-3000:]
+        assert r.returncode in (0, 5), r.stderr[-3000:]  # 5: recorded, a sample lost (real time)
     run = Run.load(tmp_path / "run")
     xn = metrics.xi_norm(run)
     tail = run.t >= 11.0

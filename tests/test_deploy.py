@@ -396,13 +396,15 @@ def test_plain_tcp_is_refused(deployment: gen.Deployment, router: str) -> None:
 
 
 # --------------------------------------------------------------------------- access control
-def attack(dep: gen.Deployment, **json5: object) -> tuple[list[bytes], list[bytes], list[bytes], list[tuple[str, bool]]]:
+def attack(dep: gen.Deployment, overhear: frozenset[bytes] = frozenset(),
+           **json5: object) -> tuple[list[bytes], list[bytes], list[bytes], list[tuple[str, bool]]]:
     """Agent 2's identity tries to command agent 3's plant, fake agent 3's state, eavesdrop on agent 3's
     commands and fake plant 3's token, while agent 3 and plant 3 do their legitimate work. Returns
     what plant 3 received on agent 3's cmd, what agent 1 received on agent 3's state, what the
     attacker's subscriber on the whole namespace got, and the tokens agent 3 saw before plant 3's
-    real one. ``json5`` replaces keys in
-    every profile (e.g. the router to use)."""
+    real one. ``overhear``: payloads to wait for on the attacker's own subscriber before returning
+    (where the attack is expected to succeed: it is then the condition the caller asserts).
+    ``json5`` replaces keys in every profile (e.g. the router to use)."""
     evil_cmd, evil_state = cmd(3, [9.9, 9.9]), wire.encode(wire.State(sender=3, seq=0, k=0, t=0.0, p=[9.9, 9.9],
                                                                      vel=[0.0, 0.0], a=[0.0, 0.0]))
     with open_as(dep, "plant-3", **json5) as plant3, open_as(dep, "agent-1", **json5) as agent1, \
@@ -439,6 +441,8 @@ def attack(dep: gen.Deployment, **json5: object) -> tuple[list[bytes], list[byte
         tokens_before = list(seen.events)
         real_token = plant3.liveliness().declare_token(KEYS.token("plant", 3))
         seen.wait_for(KEYS.token("plant", 3))  # the watcher does see plant 3's real token
+        for payload in overhear:  # the router forwards to the attacker on its own link, maybe later
+            overheard.wait_for(payload)
         del fake_token, own_token, real_token
         return cmds.items, states.items, overheard.items, tokens_before
 
@@ -460,7 +464,8 @@ def test_agent_2_cannot_move_agent_3_through_the_router(deployment: gen.Deployme
     open_router = config_of(deployment, "router", access_control__enabled=False,
                             listen__endpoints=[f"tls/127.0.0.1:{port}"])
     with zenoh.open(open_router):
-        cmds, states, overheard, tokens = attack(deployment, connect__endpoints=[f"tls/127.0.0.1:{port}"])
+        cmds, states, overheard, tokens = attack(deployment, overhear=frozenset(legit),
+                                                 connect__endpoints=[f"tls/127.0.0.1:{port}"])
     assert evil in cmds and legit <= set(overheard) and any(s not in (b"state 0", b"state 1") for s in states)
     assert (KEYS.token("plant", 3), True) in tokens
 
@@ -512,6 +517,53 @@ def test_only_the_operator_can_order_a_land_or_an_estop(deployment: gen.Deployme
     with zenoh.open(open_router):
         at_plant, at_agent = order_attack(deployment, connect__endpoints=[f"tls/127.0.0.1:{port}"])
     assert order("estop", "agent 2 says so") in at_plant and order("land", "agent 2 says so") in at_agent
+
+
+def reply_attack(dep: gen.Deployment, **json5: object) -> list[tuple[str, bytes]]:
+    """The operator (``control-0``) asks ``agent/*/netem``, as ``tether netem-set`` does; agent 3
+    answers for itself, and agent 2 answers first in agent 3's name (a reply keyed
+    ``agent/3/netem``), then for itself. Returns the (key, payload) replies the operator got, once
+    both real answers are in (agent 2's own answer leaves after its forged one, on the same link)."""
+    forged, own2, own3 = b"agent 3 (forged by agent 2)", b"agent 2", b"agent 3"
+    with open_as(dep, "control-0", **json5) as operator, open_as(dep, "agent-3", **json5) as agent3, \
+            open_as(dep, "agent-2", **json5) as evil:
+        def answer3(query: zenoh.Query) -> None:
+            query.reply(KEYS.topic("agent", 3, "netem"), own3)
+
+        def answer2(query: zenoh.Query) -> None:
+            query.reply(KEYS.topic("agent", 3, "netem"), forged)
+            query.reply(KEYS.topic("agent", 2, "netem"), own2)
+
+        q3 = agent3.declare_queryable(KEYS.topic("agent", 3, "netem"), answer3)
+        q2 = evil.declare_queryable(KEYS.topic("agent", 2, "netem"), answer2)
+        got: list[tuple[str, bytes]] = []
+        deadline = time.monotonic() + WAIT
+        while not {own2, own3} <= {p for _, p in got}:  # until both queryables are known and answered
+            assert time.monotonic() < deadline, f"the agents' answers did not arrive within {WAIT} s (got {got})"
+            # every reply, not one per key (the default consolidation would hide a second reply on agent/3/netem)
+            for reply in operator.get("tether/trio/agent/*/netem", timeout=1.0,
+                                      consolidation=zenoh.ConsolidationMode.NONE):
+                if reply.ok is not None:
+                    got.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+        del q2, q3
+        return got
+
+
+def test_an_agent_can_answer_the_operators_query_only_for_itself(deployment: gen.Deployment, router: str) -> None:
+    forged = (KEYS.topic("agent", 3, "netem"), b"agent 3 (forged by agent 2)")
+    got = reply_attack(deployment)
+    assert forged not in got
+    assert {(KEYS.topic("agent", 2, "netem"), b"agent 2"), (KEYS.topic("agent", 3, "netem"), b"agent 3")} <= set(got)
+    g = {x.name: x for x in acl.grants(ms.load(deployment.host_dir("agent-1") / "mission.toml"), "trio")}
+    assert all(grant.replies == (KEYS.topic("agent", int(name[6:]), "netem"),)
+               for name, grant in g.items() if name.startswith("agent-"))
+
+    # counter-check: through a router with the same profile but no access control, the forged reply arrives
+    port = tp.free_tcp_port()
+    open_router = config_of(deployment, "router", access_control__enabled=False,
+                            listen__endpoints=[f"tls/127.0.0.1:{port}"])
+    with zenoh.open(open_router):
+        assert forged in reply_attack(deployment, connect__endpoints=[f"tls/127.0.0.1:{port}"])
 
 
 @pytest.fixture(scope="module")

@@ -129,7 +129,7 @@ def faulted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Faulted]:
     port = tp.free_tcp_port()
     attach = tp.loopback_endpoint(port)
     with launch(tmp_path_factory.mktemp("faulted"), ns, "--clock", "realtime", "--duration", "40",
-                "--listen", attach, "--fault", f"kill:agent/2@{KILL_AT:g}",
+                "--listen", attach, "--insecure", "--fault", f"kill:agent/2@{KILL_AT:g}",  # a plain client attaches
                 "--fault", f"freeze:agent/4@{FREEZE_AT:g}+{FREEZE_FOR:g}") as run:
         wait_for_realtime_start(run)
         client = PlainClient(attach)

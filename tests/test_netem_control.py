@@ -24,7 +24,8 @@ NETEM = '\n[netem]\ndefault = "ideal"\n'
 def start_run(tmp: Path, section: str, duration: float) -> tuple[subprocess.Popen, str]:
     mission = tmp / "m.toml"
     mission.write_text(builtin_path("section4").read_text() + section)
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    # authenticated (the default): the tool attaches with the operator identity the launcher writes
+    endpoint = f"tls/127.0.0.1:{tp.free_tcp_port()}"
     proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(mission), "--out", str(tmp / "run"),
                              "--duration", str(duration), "--listen", endpoint, "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -35,12 +36,13 @@ def start_run(tmp: Path, section: str, duration: float) -> tuple[subprocess.Pope
         assert time.monotonic() < deadline, "the run did not come up"
     else:
         raise AssertionError(f"the run ended before coming up (status {proc.wait()})")
-    return proc, endpoint
+    return proc, str(tmp / "run" / "tls" / "control-0.json5")
 
 
 def netem_set(endpoint: str, *args: str, timeout: float = 20.0) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "cli", "netem-set", *args, "--ns", "section4",
-                           "--connect", endpoint, "--timeout", str(timeout)], capture_output=True, text=True,
+                           *(["--zenoh-config", endpoint] if endpoint.endswith(".json5") else ["--connect", endpoint]),
+                           "--timeout", str(timeout)], capture_output=True, text=True,
                           timeout=60)
 
 

@@ -191,7 +191,7 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
                 launcher = subprocess.Popen(
                     [sys.executable, "-m", "cli", "run", str(mission(tmp_path)), "--out", str(out),
                      "--clock", "realtime", "--ns", key_ns, "--lease", str(LEASE), "--quiet",
-                     "--listen", swarm_ep, "--listen", watch_ep,
+                     "--listen", swarm_ep, "--listen", watch_ep, "--insecure",  # its own on-board router
                      "--wrap", f"{VEHICLE}={' '.join(ns.exec_prefix())}",
                      "--vehicle-connect", f"{VEHICLE}={onboard_ep}"],
                     cwd=REPO, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)

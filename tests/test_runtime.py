@@ -496,7 +496,7 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
     on agent 1's inputs and waits until agent 1's telemetry counts them; then SIGINT."""
     ns = f"interrupted-{os.getpid()}"
     keys = wire.Keys(ns)
-    with launch(tmp_path_factory.mktemp("interrupted"), ns, "--clock", "realtime", "--duration", "60") as run:
+    with launch(tmp_path_factory.mktemp("interrupted"), ns, "--clock", "realtime", "--duration", "60", "--insecure") as run:  # a plain client attaches
         wait_for_realtime_start(run)
         client = PlainClient(router_of(run.children))
         try:
@@ -518,10 +518,16 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
             heard_by_recorder = (keys.topic("plant", 1, "state"), keys.topic("leader", LEADER, "state"))
             recorder_expected = count([r for key, _, r in junk if key in heard_by_recorder])
             pubs = {key: client.publisher(key) for key in {key for key, _, _ in junk}}
-            for key, payload, _ in junk:
+            # one at a time, each once counted: in real time the router passes one sample per key and
+            # link per 1/(20 rate) s, so a burst would be thinned before reaching agent 1
+            running: collections.Counter[str] = collections.Counter()
+            for key, payload, reason in junk:
                 pubs[key].put(payload)
-            _, tele = client.next_matching(lambda k, m: k == agent1 and m.drops == expected, WAIT,
-                                           f"agent 1's telemetry to count {expected}")
+                running[reason] += 1
+                want = dict(running)
+                _, tele = client.next_matching(lambda k, m: k == agent1 and m.drops == want, WAIT,
+                                               f"agent 1's telemetry to count {want}")
+            assert dict(running) == expected
             client.next_matching(lambda k, m: k == agent1 and m.k >= 100, WAIT,
                                  "agent 1 at tick 100")  # a second of run to record
             for pub in pubs.values():
@@ -600,7 +606,7 @@ class Killed:
 def killed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Killed]:
     ns = f"killed-{os.getpid()}"
     # the survivors fly on to the mission's end (agent 1 still hears the leader), so keep it short
-    with launch(tmp_path_factory.mktemp("killed"), ns, "--clock", "realtime", "--duration", "15") as run:
+    with launch(tmp_path_factory.mktemp("killed"), ns, "--clock", "realtime", "--duration", "15", "--insecure") as run:  # a plain client attaches
         wait_for_realtime_start(run)
         client = PlainClient(router_of(run.children))
         try:  # under way: agent 3, which hears agent 2, has run half a second of ticks
@@ -672,7 +678,7 @@ def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(real
     """Over the last 10 s of a 20 s run. The lockstep run of the same mission equals the reference
     simulator to 1e-9 (test_lockstep_run_equals_the_reference_simulator), so the reference
     simulator stands in for a second, 20 s lockstep run."""
-    assert realtime.status == 0, realtime.launcher_log
+    assert realtime.status in (0, 5), realtime.launcher_log  # 5: recorded, a sample lost (DROP streams)
     rt = Run.load(realtime.out)
     ref = refsim.simulate(load_mission(SECTION4, 20.0))
     got, want = envelope(rt, 10.0), envelope(ref, 10.0)
@@ -684,7 +690,7 @@ def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(real
 
 
 def test_realtime_run_ends_well_and_records_most_ticks(realtime: Finished) -> None:
-    assert realtime.status == 0, realtime.launcher_log
+    assert realtime.status in (0, 5), realtime.launcher_log  # 5: recorded, a sample lost (DROP streams)
     assert exit_statuses(realtime.launcher_log) == {n: 0 for n in CHILDREN}
     rt = Run.load(realtime.out)
     assert rt.meta.source == "runtime-realtime"

@@ -203,3 +203,32 @@ class BoundedFifo(Generic[T]):
     def dropped(self) -> int:
         """Items discarded by the drop-oldest policy."""
         return self._dropped
+
+
+class InputQueue(BoundedFifo[T]):
+    """One input key's queue (real time): a :class:`BoundedFifo` (bounded, drop-oldest, counted)
+    that its reader may **mute** once it has used its decoding budget for the current period. A
+    muted queue still keeps the newest ``capacity`` items (a flood costs one append and, when full,
+    one drop per message on Zenoh's thread) but wakes nobody, so that a flood cannot keep the event
+    loop busy; the reader unmutes it at the next period."""
+
+    def __init__(self, capacity: int, wakeup: Wakeup | None = None):
+        super().__init__(capacity, wakeup)
+        self.muted = False
+
+    def put(self, item: T, /) -> None:
+        with self._lock:
+            if len(self._items) >= self._capacity:
+                self._items.popleft()
+                self._dropped += 1
+            self._items.append(item)
+            self._written += 1
+        if self._wakeup is not None and not self.muted:
+            self._wakeup.notify()
+
+    def take(self, n: int) -> list[T]:
+        """At most ``n`` queued items, oldest first."""
+        with self._lock:
+            out = [self._items.popleft() for _ in range(min(n, len(self._items)))]
+            self._popped += len(out)
+            return out

@@ -9,14 +9,15 @@ core knows only this protocol, so a process without ``[netem]`` never loads the 
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 RECENT_SEQS = 256
-"""Sequence numbers a source remembers to tell duplicates from reordered samples (a duplicate
-arriving more than this many samples late counts as reordered)."""
+"""How far behind the newest sequence number a source tells duplicates from reordered samples:
+it remembers every sequence number received in that window. A sample further behind is too old
+to be a reordering and counts as a duplicate (a replay, or a copy too late to matter), so that
+``received - duplicates`` never exceeds the samples sent."""
 
 
 class Copy(Protocol):
@@ -61,13 +62,16 @@ class Source:
     stale: int = 0
     """Samples not newer (by sequence number) than the newest held: reordered or duplicated."""
     duplicates: int = 0
-    """Stale samples whose sequence number had already been received (a second copy)."""
+    """Stale samples whose sequence number had already been received (a second copy, a replay), or
+    more than :data:`RECENT_SEQS` behind the newest."""
     reordered: int = 0
-    """Stale samples seen for the first time (overtaken by a newer one on the way)."""
+    """Stale samples seen for the first time, within :data:`RECENT_SEQS` of the newest
+    (overtaken by a newer one on the way)."""
     corrupt: int = 0
     """Copies an emulated link corrupted (they fail the receiver's checksum and are dropped)."""
-    recent: deque[int] = field(default_factory=lambda: deque(maxlen=RECENT_SEQS))
-    """The last sequence numbers received, to tell a duplicate from a reordered sample."""
+    recent: set[int] = field(default_factory=set)
+    """The sequence numbers received within :data:`RECENT_SEQS` of the newest, to tell a duplicate
+    from a reordered sample."""
     last: int = -1
     """The producer's last tick (the mission's), when known."""
     channel: Link | None = None
@@ -99,19 +103,26 @@ class Source:
         return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
 
     def offer(self, msg: Any) -> None:
+        """Take one decoded sample: the gate may reject it; otherwise it is counted, held by tick,
+        becomes the newest if its sequence number is, and goes to ``on_message`` (which can tell a
+        stale one: it is then not :attr:`newest`)."""
         if self.admit is not None and self.admit(msg) is not None:
             self.rejected += 1
             return
         self.received += 1
         if self.newest is not None and msg.seq <= self.newest.seq:
             self.stale += 1
-            if msg.seq in self.recent:
+            if msg.seq in self.recent or msg.seq < self.newest.seq - RECENT_SEQS:
                 self.duplicates += 1
             else:
                 self.reordered += 1
+                self.recent.add(msg.seq)
         else:
             self.newest = msg
-        self.recent.append(msg.seq)
+            self.recent.add(msg.seq)
+            if len(self.recent) > 2 * RECENT_SEQS:
+                floor = msg.seq - RECENT_SEQS
+                self.recent = {q for q in self.recent if q >= floor}
         if self.keep:
             self.by_tick.setdefault(msg.k, msg)
         if self.on_message is not None:

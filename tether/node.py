@@ -39,6 +39,13 @@ log = logging.getLogger("tether")
 
 FIFO_CAPACITY = 65536
 """Samples a process can hold between two drains before the oldest is dropped (and counted)."""
+INPUT_CAPACITY = 8
+"""Real time: samples one input key holds between two drains (its newest); older ones are dropped,
+counted per key in :attr:`Node.overflow` and logged once. A state stream brings one per period."""
+INPUT_BUDGET = 8
+"""Real time: samples of one input key decoded per control period at most; the rest wait, muted
+(overwritten by newer ones), until the next period. A flood on one key then costs the event loop
+at most this many decodes per period and wakes it at most once per period."""
 
 
 class Stalled(RuntimeError):
@@ -99,6 +106,14 @@ class Node:
         self.queries: handoff.BoundedFifo[tuple[Callable[[zenoh.Query], None], zenoh.Query]] = \
             handoff.BoundedFifo(64, self.wakeup)
         self.sources: dict[str, Source] = {}
+        self.inputs: dict[str, handoff.InputQueue[tp.Received]] = {}
+        """Real time: one bounded queue per subscribed input key (see :data:`INPUT_BUDGET`)."""
+        self._used: dict[str, int] = {}
+        self._overflow: dict[str, int] = {}
+        self.overflow = self._overflow
+        """Real time: samples each input key's queue dropped (oldest first), by key."""
+        self._period = -1
+        self._rearm: asyncio.Handle | None = None
         self._watched: dict[str, list[Source]] = {}
         self._declared: list[Any] = []
         self._token: Any = None
@@ -153,7 +168,10 @@ class Node:
                      channel=channel)
         self.sources[key] = src
         if subscribe:
-            self._declared.append(tp.declare_subscriber(self.session, key, self.fifo))
+            sink: handoff.Sink[tp.Received] = self.fifo
+            if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
+                sink = self.inputs[key] = handoff.InputQueue(INPUT_CAPACITY, self.wakeup)
+            self._declared.append(tp.declare_subscriber(self.session, key, sink))
         return src
 
     def queryable(self, key: str, handle: Callable[[zenoh.Query], None]) -> None:
@@ -181,7 +199,10 @@ class Node:
         out = set()
         for key, up in self.alive.items():
             if not up:
-                r, nid = wire.Keys.parse_token(key)
+                try:
+                    r, nid = wire.Keys.parse_token(key)
+                except ValueError:  # a token on a malformed key (a non-numeric id): no input may crash
+                    continue
                 if r == role:
                     out.add(nid)
         return out
@@ -240,17 +261,9 @@ class Node:
         time in real time) and reaches its source when the link delivers it (:meth:`release`)."""
         realtime = not self.clock.lockstep
         for rec in self.fifo.drain():
-            src = self.sources.get(rec.key)
-            if src is None:
-                continue
-            msg = self.receiver.accept(rec.payload, src.expect, src.sender)
-            if msg is None:
-                continue
-            if src.channel is None:
-                src.offer(msg)
-                continue
-            src.raw_k = max(src.raw_k, msg.k)
-            src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
+            self._accept(rec, realtime)
+        if self.inputs:
+            self._drain_inputs(realtime)
         if realtime:
             self.release(self.mission_time())
         self._serve_queries()
@@ -263,6 +276,54 @@ class Node:
                     log.warning("%s is back", ev.key)
                 elif not ev.alive and src.silent:
                     log.warning("%s went silent (liveliness token gone)", ev.key)
+
+    def _accept(self, rec: tp.Received, realtime: bool) -> None:
+        src = self.sources.get(rec.key)
+        if src is None:
+            return
+        msg = self.receiver.accept(rec.payload, src.expect, src.sender)
+        if msg is None:
+            return
+        if src.channel is None:
+            src.offer(msg)
+            return
+        src.raw_k = max(src.raw_k, msg.k)
+        src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
+
+    def _drain_inputs(self, realtime: bool) -> None:
+        """Decode at most :data:`INPUT_BUDGET` samples per input key and control period; a key over
+        its budget is muted until the next period, when a timer wakes the loop to go on."""
+        h = self.mission.dt
+        monotonic = getattr(self.clock, "monotonic", None)
+        period = int(monotonic() // h) if monotonic is not None else self._period
+        if period != self._period:
+            self._period = period
+            self._used.clear()
+            for q in self.inputs.values():
+                q.muted = False
+        waiting = False
+        for key, q in self.inputs.items():
+            used = self._used.get(key, 0)
+            items = q.take(INPUT_BUDGET - used)
+            if items:
+                self._used[key] = used + len(items)
+                for rec in items:
+                    self._accept(rec, realtime)
+            if len(q) and self._used.get(key, 0) >= INPUT_BUDGET:
+                q.muted = True
+                waiting = True
+            if q.dropped and key not in self._overflow:  # once per key: a flood, or this loop stalled
+                log.warning("input %s: more than %d samples between two drains; the oldest are dropped "
+                            "(counted in Node.overflow)", key, INPUT_CAPACITY)
+            if q.dropped:
+                self._overflow[key] = q.dropped
+        if waiting and self._rearm is None and monotonic is not None:
+            delay = (period + 1) * h - monotonic()
+            self._rearm = asyncio.get_running_loop().call_later(max(0.0, delay), self._next_period)
+
+    def _next_period(self) -> None:
+        self._rearm = None
+        self.wakeup.notify()
 
     def release(self, now: float, only: Source | None = None) -> None:
         """Hand the copies that emulated links deliver by ``now`` to their sources. A corrupted
@@ -347,6 +408,8 @@ class Node:
         return late
 
     def close(self) -> None:
+        if self._rearm is not None:
+            self._rearm.cancel()
         for obj in reversed(self._declared):
             try:
                 obj.undeclare()

@@ -126,6 +126,12 @@ class ZenohSettings(Strict, frozen=True):
     Zenoh's default, under which a client fails at once if its router is not up yet."""
     tls: TlsFiles | None = None
     """TLS files for ``tls/`` endpoints; ``None``: no TLS."""
+    ingress_limits: tuple[tuple[str, float], ...] = ()
+    """Per-link ingress rate limits, ``(key expression, messages per second)``: Zenoh's
+    ``downsampling`` (``flows = ["ingress"]``, messages ``put`` and ``delete``), applied in Zenoh's
+    own threads before any callback. Each link has its own budget per rule (a flooding session
+    cannot use up another's), the most specific rule applies to a key, and within a rule a message
+    arriving sooner than ``1/rate`` after the last one passed is dropped (a burst keeps its first)."""
     config_file: str | None = None
     """A complete Zenoh JSON5 configuration file (such as those ``tether deploy-gen`` writes, with TLS
     and access control), read with ``zenoh.Config.from_file``. It is then the whole configuration:
@@ -228,6 +234,10 @@ def validate_settings(s: ZenohSettings) -> Problems:
         out.append(("scouting_delay", f"is {s.scouting_delay!r}; give seconds >= 0, or leave it unset"))
     if s.connect_timeout is not None and not _positive_seconds(s.connect_timeout):
         out.append(("connect_timeout", f"is {s.connect_timeout!r}; give seconds > 0, or leave it unset"))
+    for i, limit in enumerate(s.ingress_limits):
+        if not (isinstance(limit, (tuple, list)) and len(limit) == 2 and isinstance(limit[0], str)
+                and _positive_seconds(limit[1])):
+            out.append((f"ingress_limits[{i}]", f"is {limit!r}; give (key expression, messages per second > 0)"))
     if s.tls is not None:
         for side in ("listen", "connect"):
             cert, key = getattr(s.tls, f"{side}_certificate"), getattr(s.tls, f"{side}_private_key")
@@ -304,6 +314,8 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         entries.append(("scouting_delay", "scouting/delay", round(settings.scouting_delay * 1000)))
     if settings.connect_timeout is not None:
         entries.append(("connect_timeout", "connect/timeout_ms", max(1, round(settings.connect_timeout * 1000))))
+    if settings.ingress_limits:
+        entries.append(("ingress_limits", "downsampling", downsampling(settings.ingress_limits)))
     if settings.tls is not None:
         for name in msgspec.structs.fields(TlsFiles):
             value = getattr(settings.tls, name.name)
@@ -316,6 +328,12 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         except zenoh.ZError as exc:
             raise SettingsError([(field, f"rejected by Zenoh at {key!r}: {exc}")]) from None
     return config
+
+
+def downsampling(limits: Iterable[tuple[str, float]]) -> list[dict[str, Any]]:
+    """Zenoh's ``downsampling`` section for :attr:`ZenohSettings.ingress_limits`."""
+    return [{"id": "tether-ingress", "messages": ["put", "delete"], "flows": ["ingress"],
+             "rules": [{"key_expr": k, "freq": float(f)} for k, f in limits]}]
 
 
 # =========================================================================== endpoints

@@ -1,0 +1,268 @@
+"""``tether run`` hardened: authenticated by default, floods bounded, replays not relayed, no crash on
+bad input, truthful exit statuses (``deploy/local.py``, ``deploy/localtls.py``, ``tether/node.py``).
+
+Every run is real processes on loopback; every wait is on a condition with a timeout:
+
+* a default run admits no session without a certificate of the run (plain TCP, TLS without a client
+  certificate), while the operator identity it writes (``DIR/tls/control-0.json5``) attaches and
+  lands the swarm with ``tether land --zenoh-config``;
+* a flood of junk on an input of every process (the start key) for 8 s leaves the formation error
+  within 10 % of a clean real-time run's;
+* a replay of agent 1's plant samples is counted and never re-published as agent 1's state, and a
+  replay of a neighbour's samples does not push a link's delivery above 1;
+* a lockstep acknowledgement on a key with a non-numeric id is dropped and counted, not a crash;
+  SIGTERM exits 143; without ``openssl`` the launcher says so and exits 2.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from sim import refsim
+from tests.support import read, wait_until
+from tests.test_runtime import (REPO, SECTION4, STARTUP, WAIT, PlainClient, envelope, launch, tether_cmd,
+                                wait_for_realtime_start)
+from tether import transport as tp
+from tether import wire
+from tether.node import load_mission
+from tether.runfile import Run
+
+FLOOD_FROM, FLOOD_FOR = 6.0, 8.0
+"""Mission time [s] the flood starts, and how long it lasts."""
+
+
+def up(run) -> None:
+    wait_until(lambda: "processes are up" in run.launcher_log or run.proc.poll() is not None, STARTUP,
+               "every process to come up")
+    assert run.proc.poll() is None, run.launcher_log
+
+
+# =========================================================================== authenticated by default
+def test_a_default_run_admits_only_its_own_identities_and_the_operator_lands_it(tmp_path: Path) -> None:
+    ns = f"secure-{os.getpid()}"
+    attach = f"tls/127.0.0.1:{tp.free_tcp_port()}"
+    with launch(tmp_path, ns, "--clock", "realtime", "--duration", "60", "--listen", attach) as run:
+        wait_for_realtime_start(run)
+        tls = run.out / "tls"
+        assert (tls / "control-0.json5").is_file() and (tls / "ca.crt").is_file()
+        assert not list(tls.glob("ca.key")) and not list(run.out.rglob("ca.key"))  # nothing more can be signed
+        assert all((k.stat().st_mode & 0o077) == 0 for k in tls.glob("*.key"))
+        assert "identities made in" in run.launcher_log and "--insecure" not in run.launcher_log
+        port = attach.rsplit(":", 1)[1]
+        attempts = {
+            "plain TCP": tp.ZenohSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",)),
+            "TLS without a client certificate": tp.ZenohSettings(
+                mode="client", connect=(attach,), tls=tp.TlsFiles(root_ca_certificate=str(tls / "ca.crt"))),
+        }
+        for what, settings in attempts.items():
+            with pytest.raises(tp.TransportError, match="Unable to connect"):
+                with tp.open_session(settings):
+                    pytest.fail(f"{what}: a link was opened")
+        # the operator identity attaches and its land order is obeyed by every vehicle
+        land = subprocess.run(tether_cmd("land", "--ns", ns, "--zenoh-config", str(tls / "control-0.json5"),
+                                         "--reason", "test"), cwd=REPO, capture_output=True, text=True, timeout=60)
+        assert land.returncode == 0, land.stdout + land.stderr
+        run.wait(STARTUP)
+    assert run.status == 3, run.launcher_log  # a failsafe (LAND) fired: the vehicles obeyed
+    assert "operator: land (test)" in run.child_log("agent/1")
+    assert "ERROR" not in run.launcher_log
+
+
+# =========================================================================== floods
+FLOODER = textwrap.dedent("""
+    import os, sys, time, zenoh
+    os.nice(19)  # an attacker elsewhere: the flood's messages, not its CPU, are what is tested
+    endpoint, key, delay, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+    RATE = 255_000  # messages per second at most (the rate of the reported incident)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", '["%s"]' % endpoint)
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as s:
+        pub = s.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        junk = bytes(range(64))  # 64 bytes, not a message: every copy is rejected by the decoder
+        time.sleep(delay)
+        n, t0 = 0, time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            for _ in range(1000):
+                pub.put(junk)
+            n += 1000
+            ahead = n / RATE - (time.monotonic() - t0)
+            if ahead > 0:
+                time.sleep(ahead)
+        print(n, time.monotonic() - t0, flush=True)
+""")
+
+
+def formation_error(run: Run, since: float) -> float:
+    """The 95th percentile over ticks t_k >= ``since`` of the largest ||xi_i(t_k)|| [m]: the formation
+    error most of the time, not one tick that this shared machine's load delayed (the envelope, a
+    maximum, moved by 2x between two clean runs here). A flood that mattered (the incident: 16.6 m
+    for 4 s of 11) moves it all the same."""
+    recent = run.t >= since - 1e-9
+    worst = np.nanmax(np.linalg.norm(run.xi[recent], axis=-1), axis=1)
+    return float(np.nanpercentile(worst, 95))
+
+
+def _flight(tmp: Path, ns: str, flood: bool) -> tuple[Run, str]:
+    """A 20 s real-time run of Section 4 (``--insecure``: a plain session attaches), flooded or not."""
+    attach = tp.loopback_endpoint(tp.free_tcp_port())
+    report = ""
+    with launch(tmp, ns, "--clock", "realtime", "--duration", "20", "--insecure", "--listen", attach) as run:
+        wait_for_realtime_start(run)
+        if flood:  # tick 0 is 1 s after the start message (start_lead): from about FLOOD_FROM s of mission time
+            flooder = subprocess.run([sys.executable, "-c", FLOODER, attach, wire.Keys(ns).start,
+                                      str(FLOOD_FROM - 1.0), str(FLOOD_FOR)], capture_output=True, text=True,
+                                     timeout=STARTUP)
+            assert flooder.returncode == 0, flooder.stderr
+            sent, took = flooder.stdout.split()
+            report = f"{int(sent)} junk samples in {float(took):.1f} s ({int(sent) / float(took):.0f}/s), "
+        run.wait(STARTUP)
+    # 5: recorded, some samples lost (DROP streams under load); 3: a transient failsafe (a process starved
+    # of CPU for half a second on this shared machine): the formation error is what is asserted
+    assert run.status in (0, 3, 5), run.launcher_log
+    return Run.load(run.out), report + f"exit status {run.status}"
+
+
+def test_a_flood_on_every_process_input_leaves_the_formation_error_within_10_percent(tmp_path: Path) -> None:
+    """The same mission twice, one after the other (two at once overload this machine, flood or not):
+    clean, then flooded with junk on the start key, which every process subscribes to, from mission
+    time FLOOD_FROM for FLOOD_FOR seconds. The flooder runs at the lowest priority (an attacker
+    elsewhere: its messages, not its CPU, are tested). Compared from the flood's second second on."""
+    ns = f"flood-{os.getpid()}"
+    clean, clean_report = _flight(tmp_path / "clean", f"{ns}-clean", flood=False)
+    flooded, report = _flight(tmp_path / "flooded", f"{ns}-flooded", flood=True)
+    since = FLOOD_FROM + 1.0
+    got, want = formation_error(flooded, since), formation_error(clean, since)
+    drops = np.nanmax(flooded.runtime.drops, axis=0)  # per agent, since the start
+    print(f"\nflood: {report} on control/0/start; reached and dropped by each agent: {drops.astype(int).tolist()}; "
+          f"formation error (p95 of the worst agent) from t = {since:g} s: flooded {got:.4f} m, clean {want:.4f} m "
+          f"({clean_report}) ({100 * (got / want - 1):+.1f} %); envelopes (max): flooded "
+          f"{envelope(flooded, since):.4f} m, clean {envelope(clean, since):.4f} m")
+    assert (drops > 0).all()  # the flood did reach every agent (rejected and counted)
+    # the claim is that a flood does not raise it (a clean run on this shared machine may do worse by itself)
+    assert got <= 1.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
+
+
+# =========================================================================== replays
+def test_replayed_samples_are_counted_not_relayed_and_delivery_stays_at_most_1(tmp_path: Path) -> None:
+    ns = f"replay-{os.getpid()}"
+    keys = wire.Keys(ns)
+    attach = tp.loopback_endpoint(tp.free_tcp_port())
+    plant1, agent1, agent4 = keys.topic("plant", 1, "state"), keys.topic("agent", 1, "state"), keys.topic("agent", 4, "state")
+    with launch(tmp_path, ns, "--clock", "realtime", "--duration", "12", "--insecure", "--listen", attach) as run:
+        wait_for_realtime_start(run)
+        client = PlainClient(attach)
+        try:
+            client.subscribe(plant1)
+            client.subscribe(agent4)
+            recorded: dict[str, list[bytes]] = {plant1: [], agent4: []}
+            deadline = time.monotonic() + WAIT + 20
+            while min(len(v) for v in recorded.values()) < 100:  # a second of each
+                assert time.monotonic() < deadline, "did not hear a second of plant 1 and agent 4"
+                key, payload = client.samples.get(timeout=WAIT)
+                recorded[key].append(payload)
+            client.unsubscribe()
+            client.subscribe(agent1)  # what agent 1 publishes as its own state from now on
+            pubs = {k: client.publisher(k) for k in recorded}
+            for _ in range(3):  # every recorded sample again, three times
+                for key, payloads in recorded.items():
+                    for p in payloads:
+                        pubs[key].put(p)
+            relayed: list[wire.State] = []
+
+            def two_seconds() -> bool:
+                _take(client, relayed)
+                return len(relayed) >= 200
+
+            wait_until(two_seconds, WAIT + 20, "two seconds of agent 1's state after the replay")
+        finally:
+            client.close()
+        run.wait(STARTUP)
+    ks = [m.k for m in relayed]
+    assert ks == sorted(set(ks)), "agent 1 re-published a sample that was not newer than the last"
+    rt = Run.load(run.out)
+    i1 = list(rt.agent_ids).index(1)
+    assert np.nanmax(rt.runtime.drops[:, i1]) > 0  # the replayed plant samples were counted (stale_relay / gate)
+    delivery = rt.links.delivery
+    assert delivery is not None and np.nanmax(delivery) <= 1.0, np.nanmax(delivery)
+    d = rt.links.duplicates[-1, i1]
+    assert d.max() > 0  # the replayed neighbour samples were counted as duplicates
+
+
+def _take(client: PlainClient, into: list) -> None:
+    """Decode every sample the client has queued into ``into``."""
+    with contextlib.suppress(queue.Empty):
+        while True:
+            _, payload = client.samples.get_nowait()
+            into.append(msgspec.msgpack.decode(payload, type=wire.Message))
+
+
+# =========================================================================== bad input, exit statuses
+ACKER = textwrap.dedent("""
+    import sys, zenoh
+    endpoint, key, payload = sys.argv[1], sys.argv[2], bytes.fromhex(sys.argv[3])
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", '["%s"]' % endpoint)
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as s:
+        pub = s.declare_publisher(key)
+        while not pub.matching_status.matching:  # the launcher's acknowledgement subscriber
+            pass
+        while True:  # until the run is over (the test kills this process)
+            pub.put(payload)
+            import time; time.sleep(0.01)
+""")
+
+
+def test_a_malformed_lockstep_acknowledgement_is_dropped_and_counted_not_a_crash(tmp_path: Path) -> None:
+    ns = f"badack-{os.getpid()}"
+    attach = tp.loopback_endpoint(tp.free_tcp_port())
+    ack = wire.encode(wire.Ack(sender=0, seq=0, k=1, t=0.01, role="recorder"))
+    with launch(tmp_path, ns, "--duration", "10", "--insecure", "--listen", attach) as run:
+        up(run)
+        acker = subprocess.Popen([sys.executable, "-c", ACKER, attach, f"tether/{ns}/recorder/x/ack", ack.hex()],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            run.wait(STARTUP + 60)
+        finally:
+            acker.kill()
+            acker.wait()
+    assert run.status == 0, run.launcher_log
+    assert "Traceback" not in run.launcher_log
+    assert "malformed message(s):" in run.launcher_log and "ack_key" in run.launcher_log, run.launcher_log
+
+
+def test_sigterm_exits_143_and_says_so(tmp_path: Path) -> None:
+    with launch(tmp_path, f"term-{os.getpid()}", "--clock", "realtime", "--duration", "60", "--insecure") as run:
+        wait_for_realtime_start(run)
+        run.proc.send_signal(signal.SIGTERM)
+        run.wait(60)
+    assert run.status == 143, run.launcher_log
+    assert "terminated (SIGTERM)" in run.launcher_log
+
+
+def test_without_openssl_a_default_run_exits_2_naming_it(tmp_path: Path) -> None:
+    bare = tmp_path / "bin"
+    bare.mkdir()
+    env = {**os.environ, "PATH": str(bare)}  # no openssl on PATH
+    assert shutil.which("openssl", path=str(bare)) is None
+    r = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--out", str(tmp_path / "out"), "--quiet"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "openssl" in r.stderr and "--insecure" in r.stderr, r.stderr
+    assert not (tmp_path / "out" / "logs").exists()  # nothing started
