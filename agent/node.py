@@ -5,7 +5,7 @@ arrives, stamped with the measurement's own tick and sample time. Tick k: take t
 measurement of tick k and each in-neighbour's state of tick k (lockstep: exactly those; real
 time: the newest held), run the agent's tick (:meth:`agent.tick.AgentTick.step`: the law, then the
 safety supervisor, then collision avoidance when the mission asks for it), publish the command to
-its plant and telemetry. Every sample passes the plausibility gate (:mod:`agent.gate`) before it is
+its plant and telemetry. Every sample passes the plausibility gate (:mod:`tether.gate`) before it is
 stored; the operator's orders arrive on ``control/0/safety``. In real time the agent ticks half a period after its plant and the leader
 (``AGENT_PHASE``), so that the tick-k samples are usually in by then.
 """
@@ -18,15 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from agent.gate import Gate, merged
+from tether.gate import Gate, for_sender, merged
 from agent.safety import Status
 from agent.tick import AgentTick, Heard
-from leader import profile
 from netem import control as netem_control
 from tether import transport as tp
 from tether import wire
 from tether.inputs import Source
-from tether.mission import CrazyfliePlant, Mission
 from tether.node import Node
 
 log = logging.getLogger("tether")
@@ -51,12 +49,10 @@ async def run(node: Node) -> None:
                    mode=tick.supervisor.mode)
 
     sf = m.safety
-    initial = _initial_positions(m)
     gates: list[Gate] = []
 
     def gate(sender: int) -> Callable[[Any], str | None]:
-        g = Gate(m.dt, sf.max_speed, sf.jump_margin, initial[sender],
-                 future_window=sf.future_window, now=None if node.clock.lockstep else node.mission_time)
+        g = for_sender(m, sender, None if node.clock.lockstep else node.mission_time)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
@@ -166,19 +162,6 @@ async def run(node: Node) -> None:
                   xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
                   gate=merged(gates))
-
-
-def _initial_positions(m: Mission) -> dict[int, list[float]]:
-    """Where each sender is at t = 0, the plausibility gate's first reference: an agent's ``p0``
-    (raised by its take-off height for a Crazyflie, which takes off before tick 0), the leader's
-    profile at 0 (its first waypoint when it has waypoints)."""
-    out = {m.leader.id: profile.build(m.leader, m.dim)(0.0)[0].tolist()}
-    for a in m.agents:
-        p = list(a.p0)
-        if isinstance(a.plant, CrazyfliePlant):
-            p[-1] += a.plant.takeoff_height
-        out[a.id] = p
-    return out
 
 
 def _order(orders: list[str]) -> str | None:

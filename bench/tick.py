@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from agent.avoid import filter_command
-from agent.gate import Gate
+from tether.gate import Gate
 from agent.safety import NOMINAL
 from agent.tick import AgentTick
 from tether import wire

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from recorder.export import mcap_beside
-from tether import wire
+from tether import gate, wire
 from tether.node import Node
 from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
@@ -163,14 +163,19 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
         holder["rec"] = rec
         # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
-        node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id, on_message=rec.leader,
-                    keep=False)
+        # the record passes the same plausibility gate as the agents (tether/gate.py): a forged far-off
+        # sample for a coming tick must not take the real one's place in the file
+        now = None if node.clock.lockstep else node.mission_time
+        leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
+                             on_message=rec.leader, keep=False)
+        leader.admit = gate.for_sender(m, m.leader.id, now).check
         producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
             node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
                         subscribe=False, keep=False)
-            node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
-                        subscribe=False, keep=False)
+            plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
+                                subscribe=False, keep=False)
+            plant.admit = gate.for_sender(m, aid, now).check
             producers += [("agent", aid), ("plant", aid)]
         if m.payload is not None:
             node.source(keys.topic("world", 0, "state"), wire.WorldState, 0, on_message=rec.world, keep=False)

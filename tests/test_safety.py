@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agent.gate import Gate
+from tether.gate import Gate
 from agent.safety import Status, Supervisor, reaches
 from agent.tick import AgentTick
 from tests.factories import build
@@ -335,3 +335,21 @@ def test_the_agent_follows_its_plant_watchdog_down_and_holds_while_the_plant_is_
     assert sup.mode == LAND and "watchdog" in sup.events[-1].reason
     sup = Supervisor(mission(), 1, (3, 4))
     assert not step(sup, 0, status=Status(plant_mode=wire.ESTOP)).any() and sup.mode == ESTOP
+
+
+def test_the_gates_first_reference_is_where_each_sender_really_starts() -> None:
+    import msgspec
+
+    from tether import mission as ms
+    from tether.gate import initial_positions
+
+    m = mission()
+    ref = initial_positions(m)
+    assert ref[4] == [0.0, 0.0, 1.0] and ref[2] == [2.0, 0.0, 1.0]
+    leader = msgspec.structs.replace(m.leader, profile=ms.Waypoints(points=[ms.Waypoint(t=0.0, p=[5.0, 5.0, 2.0]),
+                                                                          ms.Waypoint(t=10.0, p=[6.0, 5.0, 2.0])]))
+    cf = ms.CrazyfliePlant(uri="udp://127.0.0.1:19850", takeoff_height=0.8)
+    agents = [msgspec.structs.replace(a, plant=cf) if a.id == 1 else a for a in m.agents]
+    ref = initial_positions(msgspec.structs.replace(m, leader=leader, agents=agents))
+    assert ref[4] == [5.0, 5.0, 2.0]  # the first waypoint, not p0
+    assert ref[1] == [1.0, 0.0, 1.8]  # above p0 by the take-off height

@@ -28,7 +28,31 @@ from dataclasses import dataclass, field
 from collections.abc import Callable
 from typing import Any
 
+from tether.mission import CrazyfliePlant, Mission, Waypoints
+
 REASONS = ("stamp", "future", "jump", "speed")
+
+
+def initial_positions(m: Mission) -> dict[int, list[float]]:
+    """Where each sender is at t = 0, a gate's first reference [m]: an agent's ``p0`` (raised by
+    its take-off height for a Crazyflie, which takes off before tick 0), the leader's profile at 0
+    (its first waypoint when it has waypoints, else its ``p0``)."""
+    prof = m.leader.profile
+    out = {m.leader.id: list(prof.points[0].p) if isinstance(prof, Waypoints) else list(m.leader.p0)}
+    for a in m.agents:
+        p = list(a.p0)
+        if isinstance(a.plant, CrazyfliePlant):
+            p[-1] += a.plant.takeoff_height
+        out[a.id] = p
+    return out
+
+
+def for_sender(m: Mission, sender: int, now: Callable[[], float] | None) -> Gate:
+    """The gate of ``sender``'s samples in mission ``m``; ``now``: the receiver's mission time in
+    real time (None in lockstep)."""
+    sf = m.safety
+    return Gate(m.dt, sf.max_speed, sf.jump_margin, initial_positions(m)[sender],
+                future_window=sf.future_window, now=now)
 
 
 @dataclass
