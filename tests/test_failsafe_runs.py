@@ -119,6 +119,8 @@ def test_a_forged_far_leader_sample_is_rejected_and_changes_no_command(tmp_path:
     assert np.all(jumps >= 1), jumps
     assert not run.safety.events
     assert np.nanmax(np.abs(run.u)) < 5.0 and np.nanmax(np.linalg.norm(run.xi, axis=-1)) < 2.0
+    # and the record itself is clean: the recorder passes the same gate
+    assert np.nanmax(np.abs(run.leader_p)) < 100.0
 
 
 def test_a_frozen_leader_holds_those_that_hear_it_and_they_fly_on_when_it_is_back(tmp_path: Path) -> None:
