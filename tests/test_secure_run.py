@@ -40,6 +40,8 @@ from tether import wire
 from tether.node import load_mission
 from tether.runfile import Run
 
+pytestmark = pytest.mark.slow  # real processes, real time
+
 FLOOD_FROM, FLOOD_FOR = 6.0, 8.0
 """Mission time [s] the flood starts, and how long it lasts."""
 
