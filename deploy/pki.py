@@ -93,15 +93,7 @@ def issue(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], day
     ``directory``. ``addresses`` (IPs or DNS names) become the subject alternative names."""
     directory.mkdir(parents=True, exist_ok=True)
     key, cert = directory / f"{stem}.key", directory / f"{stem}.crt"
-    sans = ",".join(dict.fromkeys(f"IP:{a}" if is_ip(a) else f"DNS:{a}" for a in addresses))
-    ext = "\n".join([
-        "basicConstraints=critical,CA:FALSE",
-        "keyUsage=critical,digitalSignature",
-        "extendedKeyUsage=serverAuth,clientAuth",
-        "subjectKeyIdentifier=hash",
-        "authorityKeyIdentifier=keyid",
-        *([f"subjectAltName={sans}"] if sans else []),
-    ]) + "\n"
+    ext = "\n".join(_leaf_extensions(addresses)) + "\n"
     with tempfile.TemporaryDirectory() as tmp:
         csr, extfile = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
         extfile.write_text(ext)
@@ -114,22 +106,26 @@ def issue(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], day
     return cert, key
 
 
+def _leaf_extensions(addresses: list[str]) -> list[str]:
+    """The X.509 v3 extensions of every leaf certificate: not a CA, signing only, TLS server and
+    client, key identifiers, and the host's addresses as subject alternative names."""
+    sans = ",".join(dict.fromkeys(f"IP:{a}" if is_ip(a) else f"DNS:{a}" for a in addresses))
+    return ["basicConstraints=critical,CA:FALSE",
+            "keyUsage=critical,digitalSignature",
+            "extendedKeyUsage=serverAuth,clientAuth",
+            "subjectKeyIdentifier=hash",
+            "authorityKeyIdentifier=keyid",
+            *([f"subjectAltName={sans}"] if sans else [])]
+
+
 def issue_one_step(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], days: int) -> tuple[Path, Path]:
     """As :func:`issue`, the same key type and extensions, in one ``openssl req -x509 -CA`` run
     (OpenSSL >= 3.0) instead of two; falls back to :func:`issue` when this openssl lacks ``-CA``.
     For ``tether run``, which makes a dozen identities before every run."""
     directory.mkdir(parents=True, exist_ok=True)
     key, cert = directory / f"{stem}.key", directory / f"{stem}.crt"
-    sans = ",".join(dict.fromkeys(f"IP:{a}" if is_ip(a) else f"DNS:{a}" for a in addresses))
-    config = "\n".join([
-        "[req]", "distinguished_name = dn", "x509_extensions = leaf", "prompt = no", "[dn]", "[leaf]",
-        "basicConstraints=critical,CA:FALSE",
-        "keyUsage=critical,digitalSignature",
-        "extendedKeyUsage=serverAuth,clientAuth",
-        "subjectKeyIdentifier=hash",
-        "authorityKeyIdentifier=keyid",
-        *([f"subjectAltName={sans}"] if sans else []),
-    ]) + "\n"
+    config = "\n".join(["[req]", "distinguished_name = dn", "x509_extensions = leaf", "prompt = no", "[dn]",
+                         "[leaf]", *_leaf_extensions(addresses)]) + "\n"
     with tempfile.TemporaryDirectory() as tmp:
         cnf = Path(tmp) / "req.cnf"
         cnf.write_text(config)
