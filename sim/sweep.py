@@ -42,7 +42,7 @@ import numpy as np
 
 from tether import jsonout
 from tether.netprofile import Bernoulli, Delay, GilbertElliott, LinkProfile, Network
-from tether import graph
+from tether import graph, wire
 from sim import lockstep, metrics
 from tether import mission as ms
 from sim.reproduce import with_law
@@ -144,6 +144,10 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         "diverged": bool(s["diverged"] or run.meta.diverged_at is not None
                          or not true_max <= lockstep.DIVERGE_AT),
         "diverged_at_s": run.meta.diverged_at,
+        # the safety layer's part: when its first event came, and how many vehicles it grounded
+        "failsafe_at_s": run.safety.events[0].t if run.safety.events else None,
+        "grounded": int(np.sum(np.isin(run.safety.safety_mode[_last_row(run.safety.safety_mode)],
+                                       (wire.LAND, wire.LANDED, wire.ESTOP)))),
     }
     if run.links is not None:
         ticks = len(run.t)
@@ -155,6 +159,12 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         row["age_p50_ms"] = float(np.percentile(age, 50) * 1e3) if age.size else math.nan
         row["age_p99_ms"] = float(np.percentile(age, 99) * 1e3) if age.size else math.nan
     return row
+
+
+def _last_row(modes: np.ndarray) -> int:
+    """The last tick with every vehicle's mode recorded (-1 marks no sample; a diverged run stops early)."""
+    rows = np.nonzero(np.all(modes >= 0, axis=1))[0]
+    return int(rows[-1]) if rows.size else len(modes) - 1
 
 
 def run_point(mission_text: str, engine: Engine, workdir: str | None) -> dict:
@@ -181,7 +191,8 @@ def run_point(mission_text: str, engine: Engine, workdir: str | None) -> dict:
 COLUMNS = ("law", "loss_pct", "delay_ms", "burst", "ultimate_bound_m", "ultimate_bound_seen_m", "max_xi_true_m",
            "settling_time_s", "peak_gain", "peak_kp",
            "peak_kv", "final_kp_mean", "final_kv_mean", "kp_growth_per_s", "kv_growth_per_s", "max_xi_m",
-           "diverged", "diverged_at_s", "delivery_ratio", "age_p50_ms", "age_p99_ms", "wall_s")
+           "diverged", "diverged_at_s", "failsafe_at_s", "grounded", "delivery_ratio", "age_p50_ms", "age_p99_ms",
+           "wall_s")
 
 
 def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], burst: Sequence[float] = (1.0,),

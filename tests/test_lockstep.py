@@ -178,3 +178,16 @@ def test_the_runtime_engine_gives_the_same_map(tmp_path: Path) -> None:
         for key in ("ultimate_bound_m", "ultimate_bound_seen_m", "max_xi_true_m", "peak_gain", "final_kp_mean"):
             assert a[key] == b[key], (key, a, b)
         assert a["delivery_ratio"] == pytest.approx(b["delivery_ratio"], abs=0.02)
+
+
+@pytest.mark.slow  # two 60 s runs of Section 4
+def test_a_sweep_row_says_when_the_safety_layer_acted_and_how_many_it_grounded() -> None:
+    base = load_mission(builtin_path("section4"), 60.0)
+    calm = sweep.point_mission(base, sweep.Point("sigma", 0.0, 0.0, 1.0), compensate=True)
+    row = sweep.figures_of_merit(lockstep.simulate(calm), calm)
+    assert row["failsafe_at_s"] is None and row["grounded"] == 0
+    # compensating 200 ms of delay oscillates (docs/netem.md): saturated, then one vehicle overspeeds
+    wild = sweep.point_mission(base, sweep.Point("sigma", 0.0, 200.0, 1.0), compensate=True)
+    row = sweep.figures_of_merit(lockstep.simulate(wild), wild)
+    assert row["failsafe_at_s"] is not None and 0 < row["failsafe_at_s"] < 60.0
+    assert row["grounded"] >= 1 and not row["diverged"]
