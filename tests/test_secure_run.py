@@ -201,8 +201,8 @@ def test_replayed_samples_are_counted_not_relayed_and_delivery_stays_at_most_1(t
     assert np.nanmax(rt.runtime.drops[:, i1]) > 0  # the replayed plant samples were counted (stale_relay / gate)
     delivery = rt.links.delivery
     assert delivery is not None and np.nanmax(delivery) <= 1.0, np.nanmax(delivery)
-    d = rt.links.duplicates[-1, i1]
-    assert d.max() > 0  # the replayed neighbour samples were counted as duplicates
+    d = rt.links.duplicates[:, i1]  # cumulative per tick; the last tick's telemetry may be lost (NaN)
+    assert np.nanmax(d) > 0  # the replayed neighbour samples were counted as duplicates
 
 
 def _take(client: PlainClient, into: list) -> None:
