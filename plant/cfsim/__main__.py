@@ -20,7 +20,7 @@ import math
 import signal
 import sys
 
-from plant.cfsim import server
+from plant.cfsim import realism, server
 from plant.cfsim.firmware import FirmwareConfig
 
 log = logging.getLogger("tether.cfsim")
@@ -50,6 +50,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--trace", default=None, metavar="FILE",
                     help="record every vehicle's true state per 10 ms tick in FILE (k instance x y z vx vy vz "
                          "thrust supervisor)")
+    real = ap.add_argument_group("realism (all off by default; seeded: a seed gives the same run)")
+    real.add_argument("--seed", type=int, default=0,
+                      help="seed of every random draw; vehicle i uses seed + instance (default 0)")
+    real.add_argument("--noise", type=float, default=None, metavar="SIGMA_P",
+                      help="estimator noise: position error std [m] per axis, e.g. 0.1 (Loco Positioning)")
+    real.add_argument("--noise-vel", type=float, default=0.05, metavar="SIGMA_V",
+                      help="with --noise: velocity error std [m/s] per axis (default 0.05)")
+    real.add_argument("--noise-tau", type=float, default=0.5, metavar="S",
+                      help="with --noise: correlation time of the errors [s] (default 0.5)")
+    real.add_argument("--battery", action="store_true",
+                      help="a battery that drains with thrust (pm.vbat, pm.state, pm.batteryLevel)")
+    real.add_argument("--battery-mah", type=float, default=250.0, help="with --battery: capacity [mAh] (default 250)")
+    real.add_argument("--battery-charge", type=float, default=1.0,
+                      help="with --battery: state of charge at boot, 0..1 (default 1)")
+    real.add_argument("--latency", type=float, default=0.0, metavar="MS",
+                      help="link delay [ms] of every datagram, each way (default 0)")
+    real.add_argument("--jitter", type=float, default=0.0, metavar="MS",
+                      help="extra link delay, uniform in [0, MS] (default 0)")
+    real.add_argument("--loss", type=float, default=0.0, metavar="P",
+                      help="probability that a datagram is lost, each way, 0..1 (default 0)")
     ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = ap.parse_args(argv)
     if args.count < 1:
@@ -61,19 +81,33 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         ap.error(f"--p0 given {len(args.p0)} times for --count {args.count}: give it once per vehicle or not at all")
     if args.p0 is None and not math.isfinite(args.spacing):
         ap.error("--spacing must be a finite number of metres")
+    try:
+        args.noise_cfg = (realism.NoiseConfig(args.noise, args.noise_vel, args.noise_tau, args.seed)
+                          if args.noise is not None else None)
+        args.battery_cfg = (realism.BatteryConfig(capacity_mah=args.battery_mah, charge=args.battery_charge)
+                            if args.battery else None)
+        args.link_cfg = realism.LinkConfig(args.latency / 1000.0, args.jitter / 1000.0, args.loss, args.seed)
+    except ValueError as e:
+        ap.error(f"realism option: {e}")
     return args
 
 
 def config(args: argparse.Namespace) -> server.SimConfig:
     starts = args.p0 or [(i * args.spacing, 0.0, 0.0) for i in range(args.count)]
+    def noise(instance: int) -> realism.NoiseConfig | None:
+        n = args.noise_cfg
+        return None if n is None else realism.NoiseConfig(n.sigma_p, n.sigma_v, n.tau, n.seed + instance)
+
     return server.SimConfig(
         vehicles=tuple(
             server.VehicleConfig(port=args.base_port + i, p0=p0,
-                                 firmware=FirmwareConfig(instance=args.instance + i))
+                                 firmware=FirmwareConfig(instance=args.instance + i, noise=noise(args.instance + i),
+                                                         battery=args.battery_cfg))
             for i, p0 in enumerate(starts)
         ),
         host=args.host,
         trace=args.trace,
+        link=args.link_cfg,
     )
 
 

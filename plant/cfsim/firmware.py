@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plant.cfsim import crtp, toc
+from plant.cfsim import crtp, realism, toc
 from plant.cfsim.crtp import Packet, Port
 from plant.quadrotor import Quadrotor, wrap_angle
 
@@ -143,7 +143,41 @@ class Velocity:
     yaw_rate: float
 
 
-Setpoint = Off | Attitude | Track | Velocity
+@dataclass(frozen=True, slots=True)
+class Hover:
+    """A hover setpoint (``send_hover_setpoint``): velocity [m/s] in the body's yaw frame (x forward,
+    y left), absolute height [m] and yaw rate [rad/s; counter-clockwise positive]."""
+
+    vx_body: float
+    vy_body: float
+    z: float
+    yaw_rate: float
+
+
+@dataclass(frozen=True, slots=True)
+class ZHold:
+    """A z-distance setpoint (``send_zdistance_setpoint``): roll and pitch [rad; right-handed Z-Y-X],
+    absolute height [m] and yaw rate [rad/s; counter-clockwise positive]."""
+
+    roll: float
+    pitch: float
+    z: float
+    yaw_rate: float
+
+
+@dataclass(frozen=True, slots=True)
+class Manual:
+    """A manual setpoint (``send_setpoint_manual``): thrust [PWM units]; roll and pitch [rad] or,
+    with ``rate``, roll and pitch rates [rad/s] (right-handed); yaw rate [rad/s; counter-clockwise]."""
+
+    thrust_pwm: float
+    roll: float
+    pitch: float
+    yaw_rate: float
+    rate: bool
+
+
+Setpoint = Off | Attitude | Track | Velocity | Hover | ZHold | Manual
 OFF = Off()
 _ZERO3 = (0.0, 0.0, 0.0)
 
@@ -206,6 +240,61 @@ class Segment:
         return Track(pos, vel, acc, self.yaw0 + (self.yaw1 - self.yaw0) * s)
 
 
+@dataclass(frozen=True, slots=True)
+class Spiral:
+    """The high-level commander's spiral (``spiral(angle, r0, rF, ascent, duration, sideways,
+    clockwise)``), started at ``t0`` from position ``p0`` and yaw ``yaw0``.
+
+    The firmware (``planner.c`` ``plan_spiral_from``) fits one 7th-order polynomial to the spiral's
+    start and end (position, velocity, acceleration, yaw); this is the spiral itself, which meets
+    those same end conditions: the yaw turns at the constant rate ``omz = -sense angle / duration``
+    (``sense`` = +1 clockwise, -1 counter-clockwise), the radius goes linearly from ``r0`` to ``rF``
+    and the height rises linearly by ``ascent``. The vehicle faces along the path (or, ``sideways``,
+    across it). ``angle`` is clamped to [-2 pi, 2 pi], the radii to >= 0, as the firmware does."""
+
+    t0: float
+    duration: float
+    p0: tuple[float, float, float]
+    yaw0: float
+    angle: float
+    r0: float
+    rf: float
+    ascent: float
+    sideways: bool
+    clockwise: bool
+
+    def finished(self, t: float) -> bool:
+        return t >= self.t0 + self.duration
+
+    def _axes(self, theta: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        s, c = math.sin(theta), math.cos(theta)
+        if self.sideways:
+            return (-c, -s), (s, -c)
+        return (-s, c), (-c, -s)
+
+    def eval(self, t: float) -> Track:
+        sense = 1.0 if self.clockwise else -1.0
+        angle = max(-2.0 * math.pi, min(2.0 * math.pi, self.angle))
+        r0, rf = max(0.0, self.r0), max(0.0, self.rf)
+        T = self.duration
+        omz, dr, dz = -sense * angle / T, (rf - r0) / T, self.ascent / T
+        a0, _ = self._axes(wrap_angle(self.yaw0))
+        centre = (self.p0[0] - sense * r0 * a0[0], self.p0[1] - sense * r0 * a0[1])
+        tau = min(max(0.0, t - self.t0), T)
+        theta = wrap_angle(self.yaw0) + omz * tau
+        r = r0 + dr * tau
+        (ax, ay), (bx, by) = self._axes(theta)
+        pos = (centre[0] + sense * r * ax, centre[1] + sense * r * ay, self.p0[2] + dz * tau)
+        if self.finished(t):
+            return Track(vec3(pos), _ZERO3, _ZERO3, theta)
+        vel = (sense * (dr * ax + r * omz * bx), sense * (dr * ay + r * omz * by), dz)
+        acc = (sense * (2.0 * dr * omz * bx - r * omz * omz * ax), sense * (2.0 * dr * omz * by - r * omz * omz * ay), 0.0)
+        return Track(vec3(pos), vec3(vel), vec3(acc), theta)
+
+
+Plan = Segment | Spiral
+
+
 class HlState(enum.Enum):
     IDLE = "idle"
     """Stopped: offers "motors off" (``plan_is_stopped``)."""
@@ -233,9 +322,12 @@ BIT_TUMBLED, BIT_LOCKED, BIT_CRASHED, BIT_HL_ACTIVE, BIT_HL_FINISHED, BIT_HL_DIS
 LOG_CREATE, LOG_APPEND, LOG_DELETE, LOG_START, LOG_STOP, LOG_RESET = 0, 1, 2, 3, 4, 5
 LOG_CREATE_V2, LOG_APPEND_V2, LOG_START_V2 = 6, 7, 8
 PARAM_MISC_SETBYNAME, PARAM_MISC_GET_EXTENDED_TYPE_V2, PARAM_MISC_GET_DEFAULT_V2 = 0, 7, 8
+PARAM_MISC_PERSISTENT_STORE, PARAM_MISC_PERSISTENT_GET_STATE, PARAM_MISC_PERSISTENT_CLEAR = 3, 4, 5
 MEM_INFO_VER, MEM_INFO_NBR = 0, 1
-HL_SET_GROUP_MASK, HL_STOP, HL_TAKEOFF_2, HL_LAND_2, HL_GO_TO_2 = 0, 3, 7, 8, 12
+HL_SET_GROUP_MASK, HL_STOP, HL_TAKEOFF_2, HL_LAND_2, HL_SPIRAL, HL_GO_TO_2 = 0, 3, 7, 8, 11, 12
 GENERIC_STOP, GENERIC_FULL_STATE, GENERIC_POSITION, GENERIC_VELOCITY_WORLD = 0, 6, 7, 8
+GENERIC_VELOCITY_WORLD_LEGACY, GENERIC_ZDISTANCE_LEGACY, GENERIC_HOVER_LEGACY = 1, 2, 5
+GENERIC_ZDISTANCE, GENERIC_HOVER, GENERIC_MANUAL = 9, 10, 11
 META_NOTIFY_SETPOINT_STOP = 0
 PLATFORM_VERSION_PROTOCOL, PLATFORM_VERSION_FIRMWARE, PLATFORM_VERSION_DEVICE = 0, 1, 2
 PLATFORM_ARM, PLATFORM_RECOVER, PLATFORM_NOTIFY = 1, 2, 3
@@ -263,7 +355,14 @@ class FirmwareConfig:
     contact_step: float = 0.002
     """Step [s] of the world near and on the floor (the contact force is held over a step)."""
     vbat: float = 3.9
-    """Battery voltage [V] reported in ``pm.vbat`` (constant: no battery model)."""
+    """Battery voltage [V] reported in ``pm.vbat`` without a battery model."""
+    noise: realism.NoiseConfig | None = None
+    """Estimator noise on the state estimate the controller flies on and the logs report (off: the
+    estimate is the truth)."""
+    battery: realism.BatteryConfig | None = None
+    """A battery that drains with thrust (off: ``pm.vbat`` is the constant :attr:`vbat`)."""
+    tilt_max_manual: float = math.radians(30.0)
+    """Largest roll/pitch [rad] that integrated manual rate setpoints reach."""
 
 
 @dataclass
@@ -302,6 +401,8 @@ class Firmware:
         self._log_items = toc.log_items(toc.LOG_VARS)
         self._param_items = toc.param_items(toc.PARAM_VARS)
         self._param_index = {v.full_name: i for i, v in enumerate(toc.PARAM_VARS)}
+        self._persistent: dict[int, float] = {}
+        """Values stored by ``persistent_store`` (the firmware's EEPROM), by parameter index."""
         self._params: list[float] = [v.default for v in toc.PARAM_VARS]
         self._params[self._param_index["cfsim.instance"]] = self.cfg.instance
         self._params[self._param_index["cfsim.mass"]] = quad.mass
@@ -315,8 +416,8 @@ class Firmware:
         self._thrust_locked = True
         # high-level commander
         self._hl = HlState.IDLE
-        self._segment: Segment | None = None
-        self._hl_pos = vec3(quad.p)
+        self._segment: Plan | None = None
+        self._hl_pos = vec3(self.est_p)
         self._hl_yaw = quad.euler()[2]
         # supervisor
         self._sup = SupState.READY
@@ -326,6 +427,14 @@ class Firmware:
         self._vel_yaw: float | None = None
         self._applied: Setpoint = OFF
         self._accel = np.zeros(3)
+        self._manual_att = (0.0, 0.0)
+        """Roll and pitch [rad] integrated from manual rate setpoints."""
+        # realism
+        self.noise = realism.EstimatorNoise(self.cfg.noise, PERIOD) if self.cfg.noise is not None else None
+        self.battery = realism.Battery(self.cfg.battery) if self.cfg.battery is not None else None
+        self._console: bytearray = bytearray()
+        self.console_lines: list[str] = []
+        """Every console line printed since boot (also sent to the client on the console port)."""
         # floor
         m = quad.mass
         w = 2.0 * math.pi * self.cfg.floor_frequency
@@ -339,6 +448,28 @@ class Firmware:
     def t(self) -> float:
         """Simulated time since boot [s]."""
         return self.k * PERIOD
+
+    @property
+    def est_p(self) -> np.ndarray:
+        """The position estimate [m; world]: the truth plus the estimator's error, if modelled."""
+        return self.quad.p if self.noise is None else self.quad.p + self.noise.position
+
+    @property
+    def est_v(self) -> np.ndarray:
+        """The velocity estimate [m/s; world]."""
+        return self.quad.v if self.noise is None else self.quad.v + self.noise.velocity
+
+    def console_print(self, text: str) -> None:
+        """Print ``text`` on the console (CRTP port 0): sent to the client with the next tick."""
+        self._console += text.encode("ascii", "replace")
+        self.console_lines.extend(line for line in text.splitlines() if line)
+
+    def _console_packets(self) -> list[Packet]:
+        out = []
+        while self._console:
+            chunk, self._console = bytes(self._console[:crtp.MAX_DATA]), self._console[crtp.MAX_DATA:]
+            out.append(Packet(Port.CONSOLE, 0, chunk))
+        return out
 
     @property
     def supervisor_state(self) -> SupState:
@@ -592,8 +723,27 @@ class Firmware:
                 var = toc.PARAM_VARS[ident]
                 default = self._params[ident] if var.read_only else var.default
                 return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + b"\0" + toc.pack_value(var.ctype, default))]
-            # no parameter has an extended type (none is persistent)
+            if cmd == PARAM_MISC_GET_EXTENDED_TYPE_V2 and ident < len(toc.PARAM_VARS) \
+                    and toc.PARAM_VARS[ident].persistent:
+                return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + bytes((0, toc.EXTENDED_PERSISTENT)))]
             return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + bytes((errno.ENOENT,)))]
+        if cmd in (PARAM_MISC_PERSISTENT_STORE, PARAM_MISC_PERSISTENT_GET_STATE, PARAM_MISC_PERSISTENT_CLEAR):
+            ident = struct.unpack_from("<H", d, 1)[0]
+            head = d[:3]
+            if ident >= len(toc.PARAM_VARS) or not toc.PARAM_VARS[ident].persistent:
+                return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + bytes((errno.ENOENT,)))]
+            var = toc.PARAM_VARS[ident]
+            if cmd == PARAM_MISC_PERSISTENT_STORE:
+                self._persistent[ident] = self._params[ident]
+                return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + b"\0")]
+            if cmd == PARAM_MISC_PERSISTENT_CLEAR:
+                self._persistent.pop(ident, None)
+                return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + b"\0")]
+            stored = self._persistent.get(ident)
+            body = toc.pack_value(var.ctype, var.default)
+            if stored is None:
+                return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + b"\0" + body)]
+            return [Packet(Port.PARAM, crtp.PARAM_MISC_CHANNEL, head + b"\1" + body + toc.pack_value(var.ctype, stored))]
         self.ignored += 1
         return []
 
@@ -604,6 +754,10 @@ class Firmware:
         self._params[ident] = value
         if var.full_name == "stabilizer.stop" and value:
             self._lock()
+        elif var.full_name == "kalman.resetEstimation" and value:
+            if self.noise is not None:
+                self.noise.reset()
+            self.console_print("CFSIM: state estimate reset\n")
 
     # commander ports
     def _commander(self, pkt: Packet) -> list[Packet]:
@@ -642,10 +796,29 @@ class Firmware:
             _, x, y, z, yaw = struct.unpack("<Bffff", d)
             _finite(x, y, z, yaw)
             sp = Track((x, y, z), _ZERO3, _ZERO3, math.radians(yaw))
-        elif kind == GENERIC_VELOCITY_WORLD:
+        elif kind in (GENERIC_VELOCITY_WORLD, GENERIC_VELOCITY_WORLD_LEGACY):
             _, vx, vy, vz, yaw_rate = struct.unpack("<Bffff", d)
             _finite(vx, vy, vz, yaw_rate)
-            sp = Velocity((vx, vy, vz), math.radians(yaw_rate))
+            sign = -1.0 if kind == GENERIC_VELOCITY_WORLD_LEGACY else 1.0  # legacy yaw rate is inverted
+            sp = Velocity((vx, vy, vz), sign * math.radians(yaw_rate))
+        elif kind in (GENERIC_HOVER, GENERIC_HOVER_LEGACY):
+            _, vx, vy, yaw_rate, z = struct.unpack("<Bffff", d)
+            _finite(vx, vy, yaw_rate, z)
+            sign = -1.0 if kind == GENERIC_HOVER_LEGACY else 1.0
+            sp = Hover(vx, vy, z, sign * math.radians(yaw_rate))
+        elif kind in (GENERIC_ZDISTANCE, GENERIC_ZDISTANCE_LEGACY):
+            # roll and pitch arrive as the user gave them (no -pitch here, unlike send_setpoint), and
+            # the firmware reads pitch in its legacy frame: positive pitch raises the nose
+            _, roll, pitch, yaw_rate, z = struct.unpack("<Bffff", d)
+            _finite(roll, pitch, yaw_rate, z)
+            sign = -1.0 if kind == GENERIC_ZDISTANCE_LEGACY else 1.0
+            sp = ZHold(math.radians(roll), -math.radians(pitch), z, sign * math.radians(yaw_rate))
+        elif kind == GENERIC_MANUAL:
+            # cflib sends -pitch, as for send_setpoint; thrust 10001..60000 for 0..100 %; no thrust lock
+            _, roll, pitch, yaw_rate, thrust, rate = struct.unpack("<BfffHB", d)
+            _finite(roll, pitch, yaw_rate)
+            pwm = 0.0 if thrust < RPYT_MIN_THRUST else float(min(thrust, RPYT_MAX_THRUST))
+            sp = Manual(pwm, math.radians(roll), -math.radians(pitch), math.radians(yaw_rate), bool(rate))
         elif kind == GENERIC_FULL_STATE:
             v = struct.unpack("<BhhhhhhhhhIhhh", d)
             mm = [c / 1000.0 for c in v[1:10]]
@@ -670,7 +843,7 @@ class Firmware:
 
     def _relax_priority(self) -> None:
         """``commanderRelaxPriority``: the high-level commander takes over from the present state."""
-        self._hl_pos = vec3(self.quad.p)
+        self._hl_pos = vec3(self.est_p)
         self._hl_yaw = self.quad.euler()[2]
         self._priority = Priority.HIGH_LEVEL
 
@@ -709,6 +882,20 @@ class Firmware:
                                     self._hl_yaw + wrap_angle(goal_yaw - self._hl_yaw))
             self._hl = HlState.FLYING if cmd == HL_TAKEOFF_2 else HlState.LANDING
             return 0
+        if cmd == HL_SPIRAL:
+            _, _, sideways, clockwise, phi, r0, rf, dz, duration = struct.unpack("<BBBBfffff", d)
+            _finite(phi, r0, rf, dz, duration)
+            if duration <= 0.0:
+                return errno.EINVAL
+            if self._hl is HlState.IDLE:
+                start, yaw0 = self._hl_pos, self._hl_yaw
+            else:
+                assert self._segment is not None
+                ev = self._segment.eval(t)
+                start, yaw0 = ev.pos, ev.yaw
+            self._segment = Spiral(t, float(duration), start, yaw0, phi, r0, rf, dz, bool(sideways), bool(clockwise))
+            self._hl = HlState.FLYING
+            return 0
         if cmd == HL_GO_TO_2:
             _, _, relative, linear, x, y, z, yaw, duration = struct.unpack("<BBBBfffff", d)
             if self._hl is HlState.IDLE:
@@ -745,10 +932,22 @@ class Firmware:
         """Advance one control period; returns the log packets due at its end."""
         t = self.t
         quad = self.quad
+        # 0. estimator, power management
+        if self.noise is not None:
+            self.noise.step()
+        if self.battery is not None:
+            before = self.battery.state
+            self.battery.step(float(quad.motor_thrusts.sum()), quad.mass * self._g, PERIOD)
+            if self.battery.state != before:
+                if self.battery.state == realism.PM_LOW_POWER:
+                    self.console_print(f"PM: battery low, {self.battery.vbat:.2f} V\n")
+                elif self.battery.state == realism.PM_SHUTDOWN:
+                    self.console_print("PM: battery empty, motors off\n")
+                    self._lock()
         # 1. high-level commander
         if self.can_fly:
             if self._hl is HlState.IDLE:
-                self._hl_pos = vec3(quad.p)
+                self._hl_pos = vec3(self.est_p)
                 self._hl_yaw = quad.euler()[2]
                 self._set_setpoint(OFF, Priority.HIGH_LEVEL)
             else:
@@ -785,8 +984,8 @@ class Firmware:
         self._accel = (quad.v - v0) / PERIOD
         if any(f > 0.0 for f in quad.motor_commands):
             self._last_thrust_ms = self.k * PERIOD_MS
-        # 6. logs
-        return self._logs_due()
+        # 6. logs and console
+        return self._logs_due() + self._console_packets()
 
     def _override(self, sp: Setpoint) -> Setpoint:
         """``supervisorOverrideSetpoint``."""
@@ -800,6 +999,10 @@ class Firmware:
                 return Track((float("nan"), float("nan"), p[2]), (0.0, 0.0, sp.vel[2]), _ZERO3, sp.yaw)
             if isinstance(sp, Velocity):
                 return Velocity((float("nan"), float("nan"), sp.vel[2]), 0.0)
+            if isinstance(sp, (Hover, ZHold)):
+                return ZHold(0.0, 0.0, sp.z, 0.0)
+            if isinstance(sp, Manual):
+                return Manual(sp.thrust_pwm, 0.0, 0.0, 0.0, False)
         return sp
 
     def _control(self, sp: Setpoint) -> None:
@@ -811,15 +1014,43 @@ class Firmware:
         elif isinstance(sp, Attitude):
             quad.command_attitude(pwm_to_thrust(sp.thrust_pwm, self._fmax), sp.roll, sp.pitch, sp.yaw_rate)
             self._vel_yaw = None
+        elif isinstance(sp, Manual):
+            if sp.rate:
+                lim = self.cfg.tilt_max_manual
+                r, pt = self._manual_att
+                self._manual_att = (max(-lim, min(lim, r + sp.roll * PERIOD)),
+                                    max(-lim, min(lim, pt + sp.pitch * PERIOD)))
+            else:
+                self._manual_att = (sp.roll, sp.pitch)
+            quad.command_attitude(pwm_to_thrust(sp.thrust_pwm, self._fmax), *self._manual_att, sp.yaw_rate)
+            self._vel_yaw = None
+        elif isinstance(sp, ZHold):
+            p, v = self.est_p, self.est_v
+            uz = self.cfg.kp[2] * (sp.z - p[2]) - self.cfg.kv[2] * v[2]
+            tilt = max(0.1, math.cos(sp.roll) * math.cos(sp.pitch))
+            thrust = min(quad.params.collective_thrust_max, max(0.0, quad.mass * (self._g + uz) / tilt))
+            quad.command_attitude(thrust, sp.roll, sp.pitch, sp.yaw_rate)
+            self._vel_yaw = None
+        elif isinstance(sp, Hover):
+            p, v = self.est_p, self.est_v
+            if self._vel_yaw is None:
+                self._vel_yaw = quad.euler()[2]
+            self._vel_yaw = wrap_angle(self._vel_yaw + sp.yaw_rate * PERIOD)
+            c, s = math.cos(self._vel_yaw), math.sin(self._vel_yaw)
+            vref = (c * sp.vx_body - s * sp.vy_body, s * sp.vx_body + c * sp.vy_body)
+            kv = self.cfg.kv_velocity_mode
+            u = [kv[0] * (vref[0] - v[0]), kv[1] * (vref[1] - v[1]),
+                 self.cfg.kp[2] * (sp.z - p[2]) - self.cfg.kv[2] * v[2]]
+            quad.command(np.array(u), self._vel_yaw)
         elif isinstance(sp, Track):
-            p, v = quad.p, quad.v
+            p, v = self.est_p, self.est_v
             kp, kv = self.cfg.kp, self.cfg.kv
             u = [0.0 if math.isnan(sp.pos[i]) else
                  sp.acc[i] + kp[i] * (sp.pos[i] - p[i]) + kv[i] * (sp.vel[i] - v[i]) for i in range(3)]
             quad.command(np.array(u), sp.yaw)
             self._vel_yaw = None
         else:
-            v = quad.v
+            v = self.est_v
             kv = self.cfg.kv_velocity_mode
             if self._vel_yaw is None:
                 self._vel_yaw = quad.euler()[2]
@@ -839,7 +1070,7 @@ class Firmware:
             if lowest > self._z_contact:
                 quad.advance(remaining)
                 return
-            if (isinstance(sp, Off) or (isinstance(sp, Attitude) and sp.thrust_pwm == 0.0)) \
+            if (isinstance(sp, Off) or (isinstance(sp, (Attitude, Manual)) and sp.thrust_pwm == 0.0)) \
                     and p[2] <= self._z_contact and float(np.abs(v).max()) < 1e-3 \
                     and float(np.abs(quad.omega).max()) < 1e-2 \
                     and float(quad.motor_thrusts.max()) < _MOTORS_STOPPED * quad.mass * self._g:
@@ -881,18 +1112,20 @@ class Firmware:
     def telemetry(self) -> list[float]:
         """Every log variable's present value, in TOC order (units in :mod:`plant.cfsim.toc`)."""
         quad, g = self.quad, self._g
-        p, v, a = quad.p, quad.v, self._accel
+        p, v, a = self.est_p, self.est_v, self._accel
         roll, pitch, yaw = quad.euler()
         qw, qx, qy, qz = quad.quaternion
         spec = quad.rotation.T @ (a + np.array([0.0, 0.0, g])) / g
         thrust_sp, roll_sp, pitch_sp, yaw_sp = quad.attitude_setpoint
         sp = self._applied
-        target_p = sp.pos if isinstance(sp, Track) else _ZERO3
+        target_p = sp.pos if isinstance(sp, Track) else (0.0, 0.0, sp.z) if isinstance(sp, (Hover, ZHold)) else _ZERO3
         target_v = sp.vel if isinstance(sp, (Track, Velocity)) else _ZERO3
         motors = [thrust_to_pwm(4.0 * f, self._fmax) for f in quad.motor_commands]
         bits = self.supervisor_bits()
         deg = math.degrees
-        vbat = self.cfg.vbat
+        bat = self.battery
+        vbat = self.cfg.vbat if bat is None else bat.vbat
+        level = max(0.0, min(100.0, (vbat - 3.0) / 1.2 * 100.0)) if bat is None else bat.level
         values = {
             "stateEstimate.x": p[0], "stateEstimate.y": p[1], "stateEstimate.z": p[2],
             "stateEstimate.vx": v[0], "stateEstimate.vy": v[1], "stateEstimate.vz": v[2],
@@ -906,7 +1139,7 @@ class Firmware:
             "ctrltarget.roll": deg(roll_sp), "ctrltarget.pitch": -deg(pitch_sp), "ctrltarget.yaw": deg(yaw_sp),
             "acc.x": spec[0], "acc.y": spec[1], "acc.z": spec[2],
             "motor.m1": motors[0], "motor.m2": motors[1], "motor.m3": motors[2], "motor.m4": motors[3],
-            "pm.vbat": vbat, "pm.state": 0, "pm.batteryLevel": max(0.0, min(100.0, (vbat - 3.0) / 1.2 * 100.0)),
+            "pm.vbat": vbat, "pm.state": realism.PM_BATTERY if bat is None else bat.state, "pm.batteryLevel": level,
             "supervisor.info": bits,
             "sys.canfly": (bits >> BIT_CAN_FLY) & 1, "sys.isFlying": (bits >> BIT_FLYING) & 1, "sys.isTumbled": 0,
         }

@@ -26,7 +26,7 @@ from typing import TextIO
 
 import numpy as np
 
-from plant.cfsim import crtp
+from plant.cfsim import crtp, realism
 from plant.cfsim.firmware import PERIOD, Firmware, FirmwareConfig
 from plant.quadrotor import Quadrotor, QuadrotorParams
 from tether.clock import RealtimeClock
@@ -60,13 +60,19 @@ class SimConfig:
     """Largest backlog [s] the ticker catches up on; beyond it simulated time skips."""
     trace: str | None = None
     """File to record every vehicle's true state in, one line per vehicle and tick (see :class:`Ticker`)."""
+    link: realism.LinkConfig = field(default_factory=realism.LinkConfig)
+    """Latency and loss of every vehicle's link, both ways (vehicle i seeds its link with seed + i)."""
 
 
 class Endpoint(asyncio.DatagramProtocol):
     """One vehicle's UDP endpoint. Datagrams are handled in the event loop's thread, in order."""
 
-    def __init__(self, fw: Firmware, client_timeout: float, monotonic: Callable[[], float]) -> None:
+    def __init__(self, fw: Firmware, client_timeout: float, monotonic: Callable[[], float],
+                 link: realism.LinkConfig | None = None) -> None:
         self.fw = fw
+        self._link_in = realism.LinkModel(link) if link is not None and link.active else None
+        self._link_out = (realism.LinkModel(realism.LinkConfig(link.latency, link.jitter, link.loss, link.seed + 1_000_003))
+                          if link is not None and link.active else None)
         self.client: Address | None = None
         self.transport: asyncio.DatagramTransport | None = None
         self._client_timeout = client_timeout
@@ -80,11 +86,23 @@ class Endpoint(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: Address) -> None:
         self.received += 1
+        if self._link_in is not None:
+            delay = self._link_in.decide()
+            if delay is None:
+                return
+            if delay > 0.0:
+                asyncio.get_running_loop().call_later(delay, self._receive, data, addr)
+                return
+        self._receive(data, addr)
+
+    def _receive(self, data: bytes, addr: Address) -> None:
         try:
             pkt = crtp.decode(data)
         except crtp.CrtpError:
             self.fw.dropped += 1
             return
+        if addr != self.client:
+            self.fw.console_print(f"CFSIM: vehicle {self.fw.cfg.instance}, link from {addr[0]}:{addr[1]}\n")
         self.client, self._last_heard = addr, self._monotonic()
         for reply in self.fw.handle(pkt):
             self._send(reply, addr)
@@ -102,8 +120,19 @@ class Endpoint(asyncio.DatagramProtocol):
             self._send(pk, self.client)
 
     def _send(self, pkt: crtp.Packet, addr: Address) -> None:
-        assert self.transport is not None
-        self.transport.sendto(crtp.encode(pkt), addr)
+        if self._link_out is not None:
+            delay = self._link_out.decide()
+            if delay is None:
+                return
+            if delay > 0.0:
+                asyncio.get_running_loop().call_later(delay, self._sendto, crtp.encode(pkt), addr)
+                return
+        self._sendto(crtp.encode(pkt), addr)
+
+    def _sendto(self, raw: bytes, addr: Address) -> None:
+        if self.transport is None or self.transport.is_closing():
+            return
+        self.transport.sendto(raw, addr)
         self.sent += 1
 
 
@@ -156,7 +185,10 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
     try:
         for v in cfg.vehicles:
             quad = Quadrotor(cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
-            ep = Endpoint(Firmware(quad, v.firmware), cfg.client_timeout, monotonic)
+            link = cfg.link
+            if link.active:
+                link = realism.LinkConfig(link.latency, link.jitter, link.loss, link.seed + v.firmware.instance)
+            ep = Endpoint(Firmware(quad, v.firmware), cfg.client_timeout, monotonic, link)
             await loop.create_datagram_endpoint(functools.partial(_same, ep), local_addr=(cfg.host, v.port))
             endpoints.append(ep)
         if on_ready is not None:

@@ -79,6 +79,9 @@ PARAM_TYPES: dict[int, CType] = {
 PARAM_UINT8, PARAM_UINT16, PARAM_FLOAT = PARAM_TYPES[0x08], PARAM_TYPES[0x09], PARAM_TYPES[0x06]
 PARAM_READ_ONLY = 0x40
 """Type-byte flag: the parameter cannot be written."""
+PARAM_EXTENDED = 0x10
+"""Type-byte flag: the parameter has an extended type (here always *persistent*)."""
+EXTENDED_PERSISTENT = 1
 
 _MAX_NAME = crtp.MAX_DATA - 5
 """group + name may take at most 30 - (cmd, id16, type, two NULs) = 25 characters."""
@@ -108,6 +111,8 @@ class ParamVar:
     default: float
     read_only: bool
     doc: str
+    persistent: bool = False
+    """Can be stored with cflib's ``param.persistent_store`` (the firmware's EEPROM)."""
 
     @property
     def full_name(self) -> str:
@@ -115,7 +120,8 @@ class ParamVar:
 
     @property
     def type_byte(self) -> int:
-        return self.ctype.code | (PARAM_READ_ONLY if self.read_only else 0)
+        return (self.ctype.code | (PARAM_READ_ONLY if self.read_only else 0)
+                | (PARAM_EXTENDED if self.persistent else 0))
 
 
 def _log(group: str, names: str, ctype: CType, doc: str) -> list[LogVar]:
@@ -140,7 +146,7 @@ LOG_VARS: tuple[LogVar, ...] = tuple(
     + _log("acc", "x y z", LOG_FLOAT, "specific force {n} (what an accelerometer reads) [g; body frame]")
     + _log("motor", "m1 m2 m3 m4", LOG_UINT16, "motor {n} command [PWM units, 0..65535]")
     + _log("pm", "vbat", LOG_FLOAT, "battery voltage [V]")
-    + _log("pm", "state", LOG_INT8, "power state (0 = on battery)")
+    + _log("pm", "state", LOG_INT8, "power state (0 battery, 3 low power, 4 shut down)")
     + _log("pm", "batteryLevel", LOG_UINT8, "battery charge [%]")
     + _log("supervisor", "info", LOG_UINT16,
            "supervisor bitfield (bit 1 armed, 3 can fly, 4 flying, 6 locked, 8 HL active, ...)")
@@ -156,6 +162,12 @@ PARAM_VARS: tuple[ParamVar, ...] = (
     ParamVar("hlCommander", "vland", PARAM_FLOAT, 0.5, False, "default landing velocity [m/s] (unused)"),
     ParamVar("stabilizer", "stop", PARAM_UINT8, 0, False,
              "nonzero: emergency stop (motors off, supervisor locked)"),
+    ParamVar("stabilizer", "estimator", PARAM_UINT8, 2, False,
+             "estimator (1 complementary, 2 Kalman): stored, no effect (one estimator is modelled)", True),
+    ParamVar("stabilizer", "controller", PARAM_UINT8, 1, False,
+             "controller (1 PID, 2 Mellinger, ...): stored, no effect (one controller is modelled)", True),
+    ParamVar("kalman", "resetEstimation", PARAM_UINT8, 0, False,
+             "nonzero: reset the state estimate (with estimator noise, a fresh error is drawn)"),
     ParamVar("cfsim", "instance", PARAM_UINT16, 0, True, "index of this simulated vehicle in its launch"),
     ParamVar("cfsim", "mass", PARAM_FLOAT, 0.0, True, "vehicle mass [kg]"),
     ParamVar("cfsim", "hoverPwm", PARAM_UINT16, 0, True,
