@@ -392,6 +392,9 @@ class Firmware:
     def __init__(self, quad: Quadrotor, cfg: FirmwareConfig | None = None) -> None:
         self.quad = quad
         self.cfg = cfg if cfg is not None else FirmwareConfig()
+        # realism
+        self.noise = realism.EstimatorNoise(self.cfg.noise, PERIOD) if self.cfg.noise is not None else None
+        self.battery = realism.Battery(self.cfg.battery) if self.cfg.battery is not None else None
         self._fmax = quad.params.motor_thrust_max
         self._g = quad.params.g
         self.k = 0
@@ -429,9 +432,6 @@ class Firmware:
         self._accel = np.zeros(3)
         self._manual_att = (0.0, 0.0)
         """Roll and pitch [rad] integrated from manual rate setpoints."""
-        # realism
-        self.noise = realism.EstimatorNoise(self.cfg.noise, PERIOD) if self.cfg.noise is not None else None
-        self.battery = realism.Battery(self.cfg.battery) if self.cfg.battery is not None else None
         self._console: bytearray = bytearray()
         self.console_lines: list[str] = []
         """Every console line printed since boot (also sent to the client on the console port)."""

@@ -9,9 +9,10 @@ a seed and the sequence of calls fix every outcome. All three are off by default
   every 10 ms; the position controller flies on the estimate, so the vehicle itself wanders too.
 * :class:`Battery`: a 1-cell LiPo of ``capacity_mah`` whose current grows with the collective thrust
   (``idle_a`` + ``hover_a * (T / T_hover)^1.5``); the open-circuit voltage falls linearly with the
-  charge from ``v_full`` to ``v_empty`` and sags by ``r_internal * I``. Below ``v_low`` the power
-  state is *low power* (3, the firmware's ``PM_BAT_LOW_VOLTAGE`` 3.2 V); at ``v_empty`` or an empty
-  charge it is *shut down* (4).
+  charge from ``v_full`` to ``v_empty`` and sags by ``r_internal * I``. Once the (loaded) voltage has
+  stayed below ``v_low`` for ``low_delay`` the power state is *low power* (3; the firmware's
+  ``PM_BAT_LOW_VOLTAGE`` 3.2 V and ``PM_BAT_LOW_TIMEOUT`` 5 s), back on battery (0) as soon as it is
+  above again; an empty charge is *shut down* (4), for good.
 * :class:`LinkModel`: every datagram, either way, is lost with probability ``loss`` and otherwise
   delivered ``latency`` [s] later (plus a uniform jitter up to ``jitter``).
 """
@@ -92,11 +93,13 @@ class BatteryConfig:
     """Motor current at hover thrust [A] (about 7 minutes of hover from 250 mAh)."""
     charge: float = 1.0
     """State of charge at boot (0..1]."""
+    low_delay: float = 5.0
+    """How long [s] the voltage must stay below ``v_low`` before the state is low power."""
 
     def __post_init__(self) -> None:
         _check("capacity_mah", self.capacity_mah, open_lo=True)
         _check("charge", self.charge, 0.0, 1.0, open_lo=True)
-        for name in ("r_internal", "idle_a", "hover_a"):
+        for name in ("r_internal", "idle_a", "hover_a", "low_delay"):
             _check(name, getattr(self, name))
         if not self.v_empty < self.v_low < self.v_full:
             raise ValueError(f"battery voltages: need v_empty < v_low < v_full, got "
@@ -112,20 +115,21 @@ class Battery:
         self.charge = cfg.charge
         self.current = cfg.idle_a
         self.state = PM_BATTERY
-        self._low_since: float | None = None
+        self._low_for = 0.0
+        """How long [s] the voltage has been below ``v_low``."""
 
     def step(self, thrust: float, hover_thrust: float, dt: float) -> None:
         c = self.cfg
         ratio = max(0.0, thrust) / hover_thrust if hover_thrust > 0 else 0.0
         self.current = c.idle_a + c.hover_a * ratio ** 1.5
         self.charge = max(0.0, self.charge - self.current * dt / (c.capacity_mah * 3.6))
-        v = self.vbat
-        if self.charge <= 0.0 or v <= c.v_empty:
+        self._low_for = self._low_for + dt if self.vbat < c.v_low else 0.0
+        if self.charge <= 0.0 or self.state == PM_SHUTDOWN:
             self.state = PM_SHUTDOWN
-        elif self.state != PM_SHUTDOWN and v < c.v_low:
+        elif self._low_for >= c.low_delay:
             self.state = PM_LOW_POWER
-        elif self.state == PM_LOW_POWER and v >= c.v_low + 0.1:
-            self.state = PM_BATTERY  # hysteresis: a lighter load lets the voltage recover
+        else:
+            self.state = PM_BATTERY
 
     @property
     def open_circuit(self) -> float:
