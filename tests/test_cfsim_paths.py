@@ -90,17 +90,17 @@ def test_noise_off_by_default_and_of_the_stated_size() -> None:
 
 
 def test_battery_drains_with_thrust_and_reports_low_power() -> None:
-    cfg = realism.BatteryConfig(capacity_mah=5.0)
+    cfg = realism.BatteryConfig(capacity_mah=20.0)
     idle, flying = realism.Battery(cfg), realism.Battery(cfg)
     states = []
     for _ in range(6000):  # 60 s
         idle.step(0.0, 0.284, 0.01)
         flying.step(0.284, 0.284, 0.01)
         states.append(flying.state)
-    assert idle.charge > 0.8 and idle.state == realism.PM_BATTERY
+    assert idle.charge > 0.95 and idle.state == realism.PM_BATTERY
     assert flying.charge < idle.charge and flying.vbat < idle.vbat
     assert realism.PM_LOW_POWER in states  # on the way down
-    assert states[-1] == realism.PM_SHUTDOWN  # 2.15 A for 60 s empties 5 mAh
+    assert states[-1] == realism.PM_SHUTDOWN  # 2.15 A for 60 s empties 20 mAh
 
 
 def test_link_model_is_deterministic_and_loses_the_stated_share() -> None:
