@@ -2,8 +2,12 @@
 
 Pure numpy. One :class:`DisturbanceBank` holds any mix of models for a set of agents (one row per
 agent), so the same code serves one plant process (one row) and the vectorised simulator (N rows).
-Each row is the sum of a constant, one sinusoid per axis, and a piecewise-constant random table;
-a mission's ``none``/``constant``/``sinusoid``/``bounded_random`` each set one of these parts.
+Each row is the sum of a constant, sinusoid layers and piecewise-constant random layers; a
+mission's ``none``/``constant``/``sinusoid``/``bounded_random`` each set one of these parts, and a
+``sum`` sets several (its constants add into the constant part; its j-th sinusoid is layer j, its
+j-th random term random layer j). A bank has as many layers as its agent with the most such
+terms; rows with fewer have zero layers, which add exact zeros, so a single model gives the same
+numbers, bit for bit, as it did before sums existed.
 
 For exact zero-order-hold plants, :meth:`DisturbanceBank.increments` returns, over tick k
 (``[t_k, t_k + h]``, ``t_k = k h``)::
@@ -30,9 +34,11 @@ class DisturbanceBank:
     Attributes:
         h: control period [s].
         const: ``(n, d)`` constant part [m/s^2].
-        amp, omega, phase: ``(n, d)`` sinusoid amplitude [m/s^2], frequency [rad/s], phase [rad].
-        table: ``(n, M, d)`` random values [m/s^2]; row i uses ``table[i, k // hold_ticks[i]]``.
-        hold_ticks: ``(n,)`` ticks per random value (1 where unused).
+        amp, omega, phase: ``(n, d)`` sinusoid amplitude [m/s^2], frequency [rad/s], phase [rad],
+            or ``(L, n, d)`` for L sinusoid layers.
+        table: ``(n, M, d)`` random values [m/s^2]; row i uses ``table[i, k // hold_ticks[i]]``;
+            or ``(R, n, M, d)`` for R random layers.
+        hold_ticks: ``(n,)`` ticks per random value (1 where unused), or ``(R, n)``.
     """
 
     h: float
@@ -58,27 +64,39 @@ class DisturbanceBank:
         ``numpy.random.default_rng([mission.seed, agent_id])``: the same per agent whatever the process."""
         ids = m.agent_ids if agent_ids is None else agent_ids
         n, d, h = len(ids), m.dim, m.dt
-        const, amp, omega, phase = (np.zeros((n, d)) for _ in range(4))
-        hold = np.ones(n, dtype=np.int64)
-        randoms: dict[int, np.ndarray] = {}
-        for i, aid in enumerate(ids):
-            dist = m.agent(aid).disturbance
-            if isinstance(dist, ms.Constant):
-                const[i] = dist.value
-            elif isinstance(dist, ms.Sinusoid):
-                amp[i], omega[i] = dist.amplitude, dist.omega
-                if dist.phase is not None:
-                    phase[i] = dist.phase
-            elif isinstance(dist, ms.BoundedRandom):
-                hold[i] = int(round(dist.hold / h))
-                count = m.steps // hold[i] + 2
-                bound = np.array(ms.per_axis(dist.bound, d))
-                rng = np.random.default_rng([m.seed, aid])
-                randoms[i] = rng.uniform(-1.0, 1.0, size=(count, d)) * bound
+        terms = [ms.disturbance_terms(m.agent(aid).disturbance) for aid in ids]
+        n_sine = max([1] + [sum(isinstance(t, ms.Sinusoid) for t in ts) for ts in terms])
+        n_rand = max([1] + [sum(isinstance(t, ms.BoundedRandom) for t in ts) for ts in terms])
+        const = np.zeros((n, d))
+        amp, omega, phase = (np.zeros((n_sine, n, d)) for _ in range(3))
+        hold = np.ones((n_rand, n), dtype=np.int64)
+        randoms: dict[tuple[int, int], np.ndarray] = {}
+        for i, (aid, ts) in enumerate(zip(ids, terms)):
+            j_sine = j_rand = 0
+            for dist in ts:
+                if isinstance(dist, ms.Constant):
+                    const[i] = const[i] + np.asarray(dist.value, dtype=float)
+                elif isinstance(dist, ms.Sinusoid):
+                    amp[j_sine, i], omega[j_sine, i] = dist.amplitude, dist.omega
+                    if dist.phase is not None:
+                        phase[j_sine, i] = dist.phase
+                    j_sine += 1
+                elif isinstance(dist, ms.BoundedRandom):
+                    hold[j_rand, i] = int(round(dist.hold / h))
+                    count = m.steps // hold[j_rand, i] + 2
+                    bound = np.array(ms.per_axis(dist.bound, d))
+                    # the first random term draws exactly as a single bounded_random model does
+                    rng = np.random.default_rng([m.seed, aid] if j_rand == 0 else [m.seed, aid, j_rand])
+                    randoms[(j_rand, i)] = rng.uniform(-1.0, 1.0, size=(count, d)) * bound
+                    j_rand += 1
         width = max((r.shape[0] for r in randoms.values()), default=1)
-        table = np.zeros((n, width, d))
-        for i, r in randoms.items():
-            table[i, : r.shape[0]] = r
+        table = np.zeros((n_rand, n, width, d))
+        for (j, i), r in randoms.items():
+            table[j, i, : r.shape[0]] = r
+        if n_sine == 1:
+            amp, omega, phase = amp[0], omega[0], phase[0]
+        if n_rand == 1:
+            return cls(h, const, amp, omega, phase, table[0], hold[0])
         return cls(h, const, amp, omega, phase, table, hold)
 
     def __post_init__(self) -> None:
@@ -110,18 +128,33 @@ class DisturbanceBank:
         return not (self._has_sine or self._has_random or self._has_const)
 
     def _random(self, k: int) -> np.ndarray:
-        idx = np.minimum(k // self.hold_ticks, self.table.shape[1] - 1)
-        return self.table[np.arange(self.table.shape[0]), idx]
+        if self.table.ndim == 3:
+            idx = np.minimum(k // self.hold_ticks, self.table.shape[1] - 1)
+            return self.table[np.arange(self.table.shape[0]), idx]
+        rows = np.arange(self.table.shape[1])
+        out = np.zeros(self.const.shape)
+        for table, hold in zip(self.table, self.hold_ticks):
+            out = out + table[rows, np.minimum(k // hold, table.shape[1] - 1)]
+        return out
+
+    def _sine(self, t: float) -> np.ndarray:
+        s = self.amp * np.sin(self.omega * t + self.phase)
+        if s.ndim == 2:
+            return s
+        out = s[0]
+        for layer in s[1:]:
+            out = out + layer
+        return out
 
     def value(self, k: int) -> np.ndarray:
         """``d(t_k)``, shape ``(n, d)``."""
         t = k * self.h
-        return self.const + self.amp * np.sin(self.omega * t + self.phase) + self._random(k)
+        return self.const + self._sine(t) + self._random(k)
 
     def value_at(self, t: float) -> np.ndarray:
         """``d(t)`` at any time (for the continuous-time simulator), shape ``(n, d)``."""
         k = int(np.floor(t / self.h + 1e-9))
-        return self.const + self.amp * np.sin(self.omega * t + self.phase) + self._random(k)
+        return self.const + self._sine(t) + self._random(k)
 
     def increments(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Exact ``(dv, dp)`` over tick k, each ``(n, d)`` (see the module docstring)."""
@@ -135,7 +168,16 @@ class DisturbanceBank:
         elif theta0 is None:
             return np.zeros_like(self.const), np.zeros_like(self.const)
         else:
-            s0, c0 = np.sin(theta0), np.cos(theta0)
-            return s0 * self._cv_s + c0 * self._cv_c, s0 * self._cp_s + c0 * self._cp_c
+            return self._sine_increments(theta0)
+        sv, sp = self._sine_increments(theta0)
+        return dv + sv, dp + sp
+
+    def _sine_increments(self, theta0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s0, c0 = np.sin(theta0), np.cos(theta0)
-        return dv + s0 * self._cv_s + c0 * self._cv_c, dp + s0 * self._cp_s + c0 * self._cp_c
+        dv, dp = s0 * self._cv_s + c0 * self._cv_c, s0 * self._cp_s + c0 * self._cp_c
+        if dv.ndim == 2:
+            return dv, dp
+        sv, sp = dv[0], dp[0]
+        for lv, lp in zip(dv[1:], dp[1:]):
+            sv, sp = sv + lv, sp + lp
+        return sv, sp

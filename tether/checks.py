@@ -29,6 +29,7 @@ from tether.mission import (
     Constant,
     CrazyfliePlant,
     Disturbance,
+    DisturbanceSum,
     DoubleIntegrator,
     ExpAccel,
     Mission,
@@ -572,6 +573,13 @@ def _uri_problem(uri: str) -> str | None:
 
 
 def _validate_disturbance(dist: Disturbance, d: int, rate: float, path: str, out: Problems) -> None:
+    if isinstance(dist, DisturbanceSum):
+        if not dist.terms:
+            out.append((f"{path}.terms", "is empty; give at least one term (a [[...disturbance.terms]] table "
+                                         "with its own kind), or use kind = \"none\""))
+        for j, term in enumerate(dist.terms):
+            _validate_disturbance(term, d, rate, f"{path}.terms[{j}]", out)
+        return
     if isinstance(dist, Sinusoid):
         for name in ("amplitude", "omega", "phase"):
             _check_vec(getattr(dist, name), d, f"{path}.{name}", out)
@@ -611,10 +619,17 @@ def _validate_profile(m: Mission, out: Problems) -> None:
                                          "or make them equal"))
         for k, seg in enumerate(segs):
             _check_vec(seg.v, d, f"{path}.segments[{k}].v", out)
-            if k and seg.t < segs[k - 1].t + prof.ramp:
-                out.append((f"{path}.segments[{k}].t", f"is {seg.t} s, earlier than the previous segment's t + ramp "
-                                                       f"({segs[k - 1].t + prof.ramp} s); sort the segments by t "
-                                                       "or shorten the ramp"))
+            # the first segment is the starting velocity and has no ramp: the second may start its
+            # ramp at once ("hold 2 s, then ramp for 3 s" is segments t = 0 and t = 2, ramp = 3)
+            prev_end = segs[k - 1].t + (prof.ramp if k > 1 else 0.0)
+            if k and seg.t < prev_end:
+                if k == 1:
+                    out.append((f"{path}.segments[1].t", f"is {seg.t} s, earlier than segments[0].t ({segs[0].t} s); "
+                                                         "sort the segments by t"))
+                else:
+                    out.append((f"{path}.segments[{k}].t", f"is {seg.t} s, earlier than the previous segment's "
+                                                           f"t + ramp ({prev_end} s); sort the segments by t "
+                                                           "or shorten the ramp"))
         if prof.ramp < 0:
             out.append((f"{path}.ramp", f"is {prof.ramp} s; set a ramp >= 0 (0 is a step)"))
     elif isinstance(prof, Waypoints):

@@ -138,7 +138,23 @@ class BoundedRandom(Kind, tag="bounded_random", frozen=True):
     """Time between redraws [s]."""
 
 
-Disturbance = NoDisturbance | Sinusoid | Constant | BoundedRandom
+SingleDisturbance = NoDisturbance | Sinusoid | Constant | BoundedRandom
+
+
+class DisturbanceSum(Kind, tag="sum", frozen=True):
+    """``d = terms[0] + terms[1] + ...``: a sum of single models, each evaluated exactly as it is
+    alone (a bounded random term j > 0 draws from its own generator, seeded by the mission seed,
+    the agent id and j). In TOML, one ``[[agents.disturbance.terms]]`` table per term."""
+
+    terms: list[SingleDisturbance]
+
+
+Disturbance = NoDisturbance | Sinusoid | Constant | BoundedRandom | DisturbanceSum
+
+
+def disturbance_terms(dist: Disturbance) -> list[SingleDisturbance]:
+    """The single models a disturbance adds up (one for a single model)."""
+    return list(dist.terms) if isinstance(dist, DisturbanceSum) else [dist]
 
 
 # --------------------------------------------------------------------------- plants
