@@ -19,7 +19,7 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 from tether import catalog, jsonout
 from tether import mission as ms
@@ -469,12 +469,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     except faults.FaultError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    opts = local.LaunchOptions(out=Path(args.out), clock=args.clock, network=args.network, window=args.window,
+    if args.sitl_args and not args.sitl:
+        raise BadArgument("--sitl-args: give it with --sitl")
+    clock: Literal["lockstep", "realtime"] = args.clock or ("realtime" if args.sitl else "lockstep")
+    opts = local.LaunchOptions(out=Path(args.out), clock=clock, network=args.network, window=args.window,
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
                                duration=args.duration, handover_runtime=not args.no_handover,
                                listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
                                vehicle_connect=dict(args.vehicle_connect), faults=injected,
-                               insecure=args.insecure)
+                               insecure=args.insecure,
+                               sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return asyncio.run(local.run(path, opts))
 
 
@@ -569,7 +573,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn = sub.add_parser("run", help="run a mission as separate processes over Zenoh (leader, agents, plants, recorder)")
     rn.add_argument("mission")
     rn.add_argument("--out", required=True, help="directory for run.npz and logs/")
-    rn.add_argument("--clock", choices=["lockstep", "realtime"], default="lockstep")
+    rn.add_argument("--clock", choices=["lockstep", "realtime"], default=None,
+                    help="lockstep (default) or realtime (the default with --sitl)")
     rn.add_argument("--network", choices=["star", "mesh"], default="star",
                     help="star: clients around one router session (default); mesh: peers")
     rn.add_argument("--window", type=int, default=8, help="lockstep ticks in flight")
@@ -595,6 +600,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="inject a fault at mission time T [s]: kill:agent/2@10 (SIGKILL), freeze:leader@5+3 "
                          "(SIGSTOP, SIGCONT D s later), partition:agent/3@8+2 (its link cut for D s), "
                          "forge:leader@12 (one far-off sample on its state key); repeatable (deploy/faults.py)")
+    rn.add_argument("--sitl", action="store_true",
+                    help="start the software Crazyflies the mission's udp:// crazyflie plants need (python -m "
+                         "plant.cfsim, one per vehicle at its p0) and stop them at the end (deploy/sitl.py)")
+    rn.add_argument("--sitl-args", default="", metavar="ARGS",
+                    help="with --sitl: extra simulator options, e.g. '--noise 0.1 --seed 2' (docs/cfsim.md)")
     rn.add_argument("--insecure", action="store_true",
                     help="no certificates and no access rules (plain TCP): anyone who reaches the router can "
                          "publish on the run's keys. Default: mTLS, one identity per process, deny-by-default "

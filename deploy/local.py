@@ -90,6 +90,7 @@ from deploy import faults as faults_mod
 from deploy import inject
 from deploy import localtls
 from deploy import pki
+from deploy import sitl
 from deploy.faults import Fault
 from deploy.inject import describe_exit
 from deploy.relay import Relay
@@ -146,6 +147,9 @@ class LaunchOptions:
     (e.g. an on-board router that links to one of :attr:`listen`)."""
     faults: tuple[Fault, ...] = ()
     """Faults to inject (``--fault``; ``deploy/faults.py``, ``deploy/inject.py``)."""
+    sitl: tuple[str, ...] | None = None
+    """Start the software Crazyflies the mission's ``udp://`` Crazyflies need, with these extra
+    simulator options, and stop them at the end (``--sitl``; ``deploy/sitl.py``); None: do not."""
     settle_timeout: float | None = None
     """Real time: after the first failure, how long the survivors get before they are stopped [s];
     None: until every vehicle has landed or the mission ends (a failsafe that recovers, e.g. an
@@ -563,6 +567,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         problems += [(f"agents[{k}].plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")
                      for k, a in enumerate(m.agents) if isinstance(a.plant, ms.CrazyfliePlant)]
+    if opts.sitl is not None:
+        problems += sitl.problems(m, opts.sitl)
     if not opts.insecure:
         problems += localtls.problems(opts.listen, opts.vehicle_connect)
     if problems:
@@ -606,6 +612,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                 log.warning("interrupted again: stopping every process at once")
             terminate.set()
 
+    try:
+        simulators = sitl.start(m, opts.sitl, opts.out / "logs") if opts.sitl is not None else None
+    except RuntimeError as exc:
+        log.error("--sitl: %s", exc)
+        return EXIT_FAILED
     loop.add_signal_handler(signal.SIGINT, on_sigint)
     terminated = False
 
@@ -686,6 +697,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     finally:
         loop.remove_signal_handler(signal.SIGINT)
         loop.remove_signal_handler(signal.SIGTERM)
+        if simulators is not None:
+            codes = simulators.stop()
+            log.info("software Crazyflies stopped: %s", ", ".join(f"agent {a} exit {c}" for a, c in codes.items()))
     for c in launch.children:
         log.info("%-12s exit %s", c.name, c.status)
     events = sup.monitor.events if sup is not None else []

@@ -1,0 +1,212 @@
+"""``tether run MISSION --sitl``: start the software Crazyflies a Crazyflie mission needs, stop them
+at the end.
+
+Every agent whose plant is ``crazyflie`` with a ``udp://HOST:PORT`` URI on this machine gets one
+``python -m plant.cfsim --count 1 --base-port PORT --instance ID --p0 X,Y,Z`` process (its agent's
+``p0``, so the vehicle stands where the mission says it starts). The launcher waits, with a deadline,
+for each to print ``cfsim ready``; then the run proceeds as against real vehicles. The simulators are
+stopped (SIGTERM, then SIGKILL after a grace) whatever ends the run: its end, a failure, Ctrl-C or
+SIGTERM. Each is started in its own session (a terminal's Ctrl-C reaches the launcher only, which
+stops them in order) and, on Linux, with the launcher as its parent-death signal, so that a launcher
+killed outright does not leave them running either.
+
+A mission whose Crazyflies are not all ``udp://`` on a loopback or local address cannot be run with
+``--sitl`` (a real vehicle cannot be simulated into existence): :func:`problems` names each such
+agent's ``uri``. Extra simulator options (``--sitl-args "--noise 0.1 --seed 2"``: estimator noise,
+battery, link latency and loss; ``docs/cfsim.md``) are checked by the simulator's own parser before
+anything starts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import queue
+import shlex
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from tether import mission as ms
+
+log = logging.getLogger("tether.sitl")
+
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "0.0.0.0")
+STARTUP_TIMEOUT = 30.0
+"""How long [s] a simulator may take to print ``cfsim ready`` (numpy's import on a loaded machine)."""
+STOP_GRACE = 5.0
+
+
+@dataclass(frozen=True)
+class SitlVehicle:
+    agent_id: int
+    host: str
+    port: int
+    p0: tuple[float, float, float]
+
+
+def vehicles(m: ms.Mission) -> list[SitlVehicle]:
+    """The software Crazyflies ``m`` needs (its ``crazyflie`` agents with a local ``udp://`` URI)."""
+    out = []
+    for a in m.agents:
+        if isinstance(a.plant, ms.CrazyfliePlant):
+            u = urlsplit(a.plant.uri)
+            if u.scheme == "udp" and u.hostname in LOCAL_HOSTS and u.port is not None:
+                p0 = (list(a.p0) + [0.0, 0.0, 0.0])[:3]
+                out.append(SitlVehicle(a.id, u.hostname, u.port, (float(p0[0]), float(p0[1]), float(p0[2]))))
+    return out
+
+
+def problems(m: ms.Mission, extra: tuple[str, ...]) -> list[tuple[str, str]]:
+    """Why ``m`` cannot run with ``--sitl`` (and these ``extra`` simulator options); empty if it can."""
+    from plant.cfsim.__main__ import parse_args
+
+    out: list[tuple[str, str]] = []
+    cf = [(k, a) for k, a in enumerate(m.agents) if isinstance(a.plant, ms.CrazyfliePlant)]
+    if not cf:
+        out.append(("--sitl", f"mission {m.name} has no crazyflie agent to simulate; drop --sitl"))
+    ports: dict[int, int] = {}
+    for k, a in cf:
+        assert isinstance(a.plant, ms.CrazyfliePlant)
+        u = urlsplit(a.plant.uri)
+        try:
+            port = u.port
+        except ValueError:
+            port = None
+        if u.scheme != "udp" or u.hostname not in LOCAL_HOSTS or port is None:
+            out.append((f"agents[{k}].plant.uri", f"is {a.plant.uri!r}, not a software Crazyflie on this machine; "
+                                                  "with --sitl give udp://127.0.0.1:PORT (e.g. udp://127.0.0.1:19850)"))
+            continue
+        if port in ports:
+            out.append((f"agents[{k}].plant.uri", f"uses port {port} like agent {ports[port]}; give each vehicle "
+                                                  "its own port"))
+        ports[port] = a.id
+    try:
+        _quiet_parse(parse_args, ["--count", "1", *extra])
+    except SystemExit:
+        out.append(("--sitl-args", f"{shlex.join(extra)!r} is not accepted by python -m plant.cfsim; "
+                                   "see python -m plant.cfsim --help (e.g. --sitl-args '--noise 0.1 --seed 2')"))
+    return out
+
+
+def _quiet_parse(parse: object, argv: list[str]) -> None:
+    import io
+
+    with contextlib.redirect_stderr(io.StringIO()):
+        parse(argv)  # type: ignore[operator]
+
+
+def _set_pdeathsig() -> None:  # runs in the child between fork and exec
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    os.setsid()
+
+
+@dataclass
+class Sitl:
+    """The running simulators."""
+
+    procs: dict[int, subprocess.Popen[str]] = field(default_factory=dict)
+    stderr: dict[int, list[str]] = field(default_factory=dict)
+
+    def stop(self, grace: float = STOP_GRACE) -> dict[int, int]:
+        """SIGTERM every simulator, SIGKILL what is left after ``grace``; returns exit codes by agent."""
+        for p in self.procs.values():
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        codes = {}
+        for aid, p in self.procs.items():
+            try:
+                codes[aid] = p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                codes[aid] = p.wait()
+        return codes
+
+
+def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = STARTUP_TIMEOUT) -> Sitl:
+    """Start one simulator per vehicle of ``m`` and wait until each is ready; on any failure the ones
+    started are stopped and ``RuntimeError`` says which failed and why (its stderr's tail).
+
+    Call it from the thread that lives as long as the run (the main thread): the parent-death signal
+    fires when the thread that started a child ends."""
+    logs.mkdir(parents=True, exist_ok=True)
+    sitl = Sitl()
+    ready: queue.Queue[tuple[int, str | None]] = queue.Queue()
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    try:
+        for v in vehicles(m):
+            cmd = [sys.executable, "-m", "plant.cfsim", "--count", "1", "--host", v.host if v.host != "localhost" else "127.0.0.1",
+                   "--base-port", str(v.port), "--instance", str(v.agent_id),
+                   "--p0", ",".join(repr(c) for c in v.p0), "--log-level", "WARNING", *extra]
+            p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True, env=env, preexec_fn=_set_pdeathsig)  # noqa: PLW1509 (setsid + prctl only)
+            sitl.procs[v.agent_id] = p
+            sitl.stderr[v.agent_id] = []
+            _pump(v.agent_id, p, sitl.stderr[v.agent_id], ready, logs / f"cfsim-{v.agent_id}.log")
+        waiting = set(sitl.procs)
+        deadline = time.monotonic() + timeout
+        while waiting:
+            try:
+                aid, line = ready.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise RuntimeError(f"software Crazyflie(s) of agent(s) {sorted(waiting)} not ready within "
+                                   f"{timeout:g} s") from None
+            if line is None:
+                tail = " | ".join(sitl.stderr[aid][-5:])
+                raise RuntimeError(f"software Crazyflie of agent {aid} exited with {sitl.procs[aid].wait()}: {tail}")
+            if line == "cfsim ready":
+                waiting.discard(aid)
+        log.info("software Crazyflies ready: %s", ", ".join(f"agent {v.agent_id} udp://{v.host}:{v.port}"
+                                                            for v in vehicles(m)))
+        return sitl
+    except BaseException:
+        sitl.stop()
+        raise
+
+
+def _pump(aid: int, p: subprocess.Popen[str], stderr: list[str], ready: queue.Queue[tuple[int, str | None]],
+          logfile: Path) -> None:
+    def out() -> None:
+        assert p.stdout is not None
+        for line in p.stdout:
+            ready.put((aid, line.strip()))
+        ready.put((aid, None))
+
+    def err() -> None:
+        assert p.stderr is not None
+        with open(logfile, "w", encoding="utf-8") as fh:
+            for line in p.stderr:
+                stderr.append(line.rstrip("\n"))
+                fh.write(line)
+                fh.flush()
+
+    for fn in (out, err):
+        threading.Thread(target=fn, daemon=True, name=f"cfsim-{aid}").start()
+
+
+@contextlib.contextmanager
+def running(m: ms.Mission, extra: tuple[str, ...], logs: Path) -> Iterator[Sitl]:
+    sitl = start(m, extra, logs)
+    try:
+        yield sitl
+    finally:
+        codes = sitl.stop()
+        log.info("software Crazyflies stopped: %s", ", ".join(f"agent {a} exit {c}" for a, c in codes.items()))
