@@ -155,7 +155,7 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
         for v in vehicles(m):
             cmd = [sys.executable, "-m", "plant.cfsim", "--count", "1", "--host", v.host if v.host != "localhost" else "127.0.0.1",
                    "--base-port", str(v.port), "--instance", str(v.agent_id),
-                   "--p0", ",".join(repr(c) for c in v.p0), "--log-level", "WARNING", *extra]
+                   "--p0=" + ",".join(repr(c) for c in v.p0), "--log-level", "WARNING", *extra]
             p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  text=True, env=env, preexec_fn=_set_pdeathsig)  # noqa: PLW1509 (setsid + prctl only)
             sitl.procs[v.agent_id] = p

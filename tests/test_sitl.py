@@ -1,0 +1,119 @@
+"""``tether run MISSION --sitl``: the launcher starts the software Crazyflies the mission needs and
+stops them at the end, on Ctrl-C and when it is killed outright: no simulator outlives a run.
+Missions that cannot be simulated, and bad simulator options, are refused (exit 2) before anything
+starts. Real launcher, real simulators, real cflib in the plants; ports 19945..19948."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tether import catalog
+
+pytest.importorskip("cflib")
+
+ROOT = Path(__file__).resolve().parent.parent
+PORTS = range(19945, 19949)
+
+
+def mission(tmp: Path, *, uri0: str | None = None) -> Path:
+    text = catalog.builtin_path("exp1_cf").read_text()
+    for k, port in enumerate(PORTS):
+        text = text.replace(f"udp://127.0.0.1:{19850 + k}", f"udp://127.0.0.1:{port}")
+    if uri0 is not None:
+        text = text.replace(f"udp://127.0.0.1:{PORTS[0]}", uri0)
+    path = tmp / "exp1_cf_test.toml"
+    path.write_text(text)
+    return path
+
+
+def tether(*args: str) -> subprocess.Popen[str]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=ROOT, env=env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def simulators() -> list[int]:
+    """Pids of live ``plant.cfsim`` processes serving this test's ports."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            argv = (d / "cmdline").read_bytes().split(b"\0")
+            state = (d / "stat").read_text().rpartition(")")[2].split()[0]
+        except OSError:
+            continue
+        if b"plant.cfsim" in argv and state != "Z" and any(str(p).encode() in argv for p in PORTS):
+            out.append(int(d.name))
+    return out
+
+
+def wait_for(pred, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            pytest.fail(f"waited {timeout:g} s for {what}")
+        time.sleep(0.1)
+
+
+def test_refused_before_anything_starts(tmp_path: Path) -> None:
+    bad = mission(tmp_path, uri0="radio://0/80/2M/E7E7E7E701")
+    p = tether("run", str(bad), "--sitl", "--out", str(tmp_path / "a"))
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 2, out
+    assert "agents[0].plant.uri" in out and "udp://127.0.0.1:PORT" in out
+    p = tether("run", str(mission(tmp_path)), "--sitl", "--sitl-args", "--noise -3", "--out", str(tmp_path / "b"))
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 2, out
+    assert "--sitl-args" in out
+    p = tether("run", "exp1", "--sitl", "--out", str(tmp_path / "c"))
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 2 and "no crazyflie agent" in out, out
+    assert not simulators()
+
+
+@pytest.mark.slow
+def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
+    out_dir = tmp_path / "run"
+    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(out_dir))
+    out, _ = p.communicate(timeout=240)
+    # 0, or 3 when a plant's failsafe briefly held a vehicle on a loaded machine; the run happened
+    assert p.returncode in (0, 3), out
+    assert "software Crazyflies ready" in out and "software Crazyflies stopped" in out
+    assert (out_dir / "run.npz").is_file()
+    assert sorted(f.name for f in (out_dir / "logs").glob("cfsim-*.log")) == [f"cfsim-{i}.log" for i in (1, 2, 3, 4)]
+    assert not simulators()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["sigint", "sigkill"])
+def test_no_simulator_outlives_an_interrupted_or_killed_launcher(tmp_path: Path, how: str) -> None:
+    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "60", "--out", str(tmp_path / "run"))
+    try:
+        wait_for(lambda: len(simulators()) == 4, 60.0, "four simulators")
+        time.sleep(1.0)
+        if how == "sigint":
+            p.send_signal(signal.SIGINT)  # Ctrl-C: the launcher lands the vehicles and stops everything
+            p.communicate(timeout=120)
+        else:
+            # no chance to clean up: SIGKILL to the launcher's process group (its agents and plants);
+            # the simulators are in sessions of their own, and their parent-death signal stops them
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate(timeout=30)
+        wait_for(lambda: not simulators(), 20.0, "every simulator to exit")
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGKILL)  # whatever of the run is left in its group
+        for pid in simulators():  # only ours: they serve this test's ports
+            os.kill(pid, signal.SIGKILL)
