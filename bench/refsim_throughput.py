@@ -6,7 +6,8 @@ Missions: N double integrators, 3D, the leader heard by agent 1, every other age
 earlier agent (a random tree) plus one random extra in-edge (mean in-degree about 2), sinusoidal
 disturbances on every agent (and, as a second row, none), the sigma law. Prints, per engine
 (``numpy``: the reference code; ``compiled``: :mod:`sim.kernel`, numba), the median and the spread
-of ``--repeats`` runs, and the ratio of the medians; then the same for the continuous mode (RK4,
+of ``--repeats`` runs, and the ratio of the medians (of wall time, and of this process's CPU time:
+the figure to compare on a shared machine); then the same for the continuous mode (RK4,
 10 substeps) over ``--continuous-steps`` control steps. The compiled kernels' first call in a fresh
 process (import, compile or cache load) is printed apart, cold and warm, and never enters a median.
 """
@@ -14,6 +15,7 @@ process (import, compile or cache load) is printed apart, cold and warm, and nev
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -47,13 +49,15 @@ def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):
     })
 
 
-def rate(m, mode: str, engine: str, n: int, steps: int, repeats: int) -> list[float]:
-    out = []
+def rate(m, mode: str, engine: str, n: int, steps: int, repeats: int) -> tuple[list[float], list[float]]:
+    """Agent-steps per second of wall time and per second of this process's CPU time, per repeat."""
+    wall, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         refsim.simulate(m, mode, engine=engine, record=False)
-        out.append(n * steps / (time.perf_counter() - t0))
-    return out
+        wall.append(n * steps / (time.perf_counter() - t0))
+        cpu.append(n * steps / max(time.process_time() - c0, 1e-9))
+    return wall, cpu
 
 
 def first_call() -> str:
@@ -82,22 +86,23 @@ def main() -> None:
     else:
         print("numba is not installed: numpy path only (pip install 'tether[fast]')")
     for mode, steps in (("discrete", args.steps), ("continuous", args.continuous_steps)):
-        print(f"\n{mode}, {steps} steps")
+        print(f"\n{mode}, {steps} steps; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
         print(f"{'N':>6} {'disturbance':>12} {'engine':>9} {'median agent-steps/s':>22} {'min':>10} {'max':>10} "
-              f"{'us/step':>9} {'ratio':>7}")
+              f"{'us/step':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
         for n, dist in [(n, dist) for n in args.sizes for dist in (True, False)]:
             if mode == "continuous" and n > 100:
                 continue  # the numpy RK4 pays Python per stage: minutes at N = 1000
             m = mission(n, steps, disturbance=dist)
             if "compiled" in engines:
                 refsim.simulate(m, mode, engine="compiled", record=False)  # warm (compiled, loaded)
-            base = None
+            base = cbase = None
             for engine in engines:
-                rates = rate(m, mode, engine, n, steps, args.repeats)
-                med = statistics.median(rates)
-                base = base or med
+                rates, cpu = rate(m, mode, engine, n, steps, args.repeats)
+                med, cmed = statistics.median(rates), statistics.median(cpu)
+                base, cbase = base or med, cbase or cmed
                 print(f"{n:>6} {'sinusoid' if dist else 'none':>12} {engine:>9} {med:>22.3e} {min(rates):>10.2e} "
-                      f"{max(rates):>10.2e} {1e6 * n / med:>9.2f} {med / base:>6.1f}x")
+                      f"{max(rates):>10.2e} {1e6 * n / med:>9.2f} {med / base:>6.1f}x {cmed:>10.2e} "
+                      f"{cmed / cbase:>6.1f}x")
 
 
 if __name__ == "__main__":
