@@ -176,6 +176,38 @@ class AgentLaw:
             ``(u, xi, zeta, kp_next, kv_next)``: the command for this tick, the errors, and the
             gains for the next tick.
         """
+        # errors(), control() and gain_update() term by term on Python floats: the same IEEE
+        # operations in the same order as numpy's elementwise ones (bit for bit, tests/test_law.py),
+        # without a numpy temporary per operation on a 2- or 3-vector. The weighted sums stay
+        # numpy's (its matrix-vector product rounds as it does, fused multiply-adds included).
+        w = self.weights
+        ka = self.kappa
+        prm, gs = self.params, self.gains
+        decay, gp, gv = gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain
+        xi, zeta, u, kp_next, kv_next = [], [], [], [], []
+        for pc, vc, sp, sv, sa, sd, kpc, kvc in zip(p.tolist(), v.tolist(), (w @ nb_p).tolist(), (w @ nb_v).tolist(),
+                                                    (w @ nb_a).tolist(), self.sum_wdelta.tolist(), kp.tolist(),
+                                                    kv.tolist()):
+            e = ka * pc - sp - sd
+            z = ka * vc - sv
+            xi.append(e)
+            zeta.append(z)
+            u.append((sa - kpc * e - kvc * z) / ka)
+            kp_next.append(1.0 + (kpc - 1.0) * decay + gp * (e * e))
+            kv_next.append(1.0 + (kvc - 1.0) * decay + gv * (z * z))
+        return np.array(u), np.array(xi), np.array(zeta), np.array(kp_next), np.array(kv_next)
+
+    def step_numpy(
+        self,
+        p: np.ndarray,
+        v: np.ndarray,
+        nb_p: np.ndarray,
+        nb_v: np.ndarray,
+        nb_a: np.ndarray,
+        kp: np.ndarray,
+        kv: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`step` written with this module's vectorised functions (the readable form; tested equal)."""
         w = self.weights
         xi, zeta = errors(self.kappa, p, v, w @ nb_p, w @ nb_v, self.sum_wdelta)
         u = control(self.kappa, w @ nb_a, xi, zeta, kp, kv)

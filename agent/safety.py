@@ -188,7 +188,7 @@ class Supervisor:
             return np.zeros_like(p)
         if self.mode in (FLYING, HOLD):
             cause, why = "", ""
-            speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
+            speed = _norm(v)
             if speed > cfg.max_speed:
                 cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
             elif status.plant_silent:
@@ -240,13 +240,13 @@ class Supervisor:
     # ------------------------------------------------------------------ helpers
     def _diverged(self, u: np.ndarray, xi: np.ndarray, kp: np.ndarray, kv: np.ndarray) -> str | None:
         cfg = self.cfg
-        err = math.sqrt(float(xi @ xi)) if np.all(np.isfinite(xi)) else math.inf
+        err = _norm(xi)
         if not err <= cfg.max_formation_error:
             return f"divergence: |xi| {err:.3g} m beyond {cfg.max_formation_error:g} m"
-        top = max(float(kp.max()), float(kv.max()))
+        top = max(_max(kp.tolist()), _max(kv.tolist()))
         if not top <= cfg.gain_cap:
             return f"divergence: gain {top:.3g} beyond gain_cap {cfg.gain_cap:g}"
-        if not np.all(np.isfinite(u)):
+        if not math.isfinite(float(u @ u)) and not np.isfinite(u).all():
             return "divergence: non-finite command"
         return None
 
@@ -255,7 +255,7 @@ class Supervisor:
         if fence is None:
             return None
         cfg = self.cfg
-        speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
+        speed = _norm(v)
         # where the vehicle would stop if it braked now: HOLD's brake settles within about
         # 1/hold_kv seconds of travel at the current speed, more if saturated
         reach = speed / cfg.hold_kv + speed * speed / (2.0 * cfg.max_accel)
@@ -286,6 +286,18 @@ class Supervisor:
         ev = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=self.mode, dst=mode, reason=why)
         self.events.append(ev)
         self._new.append(ev)
+
+
+def _norm(x: np.ndarray) -> float:
+    """``|x|``, infinite if a component is not finite (a NaN component makes ``x @ x`` NaN, an
+    infinite one makes it infinite: one dot product, no element-wise check)."""
+    sq = float(x @ x)
+    return math.sqrt(sq) if sq == sq else math.inf
+
+
+def _max(xs: list[float]) -> float:
+    """``ndarray.max()`` of a short list: NaN if any element is."""
+    return math.nan if any(x != x for x in xs) else max(xs)
 
 
 def mode_name(code: int) -> str:

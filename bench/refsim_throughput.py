@@ -1,16 +1,21 @@
-"""Reference-simulator throughput in agent-steps per second (discrete mode, no recording).
+"""Reference-simulator throughput in agent-steps per second (no recording), numpy path beside the compiled kernels.
 
-    python bench/refsim_throughput.py [--sizes 4 100 1000] [--repeats 5] [--steps 2000]
+    python bench/refsim_throughput.py [--sizes 4 100 1000] [--repeats 5] [--steps 2000] [--continuous-steps 200]
 
 Missions: N double integrators, 3D, the leader heard by agent 1, every other agent hearing one
 earlier agent (a random tree) plus one random extra in-edge (mean in-degree about 2), sinusoidal
-disturbances on every agent (and, as a second row, none), the sigma law. Prints the median and
-the spread of ``--repeats`` runs.
+disturbances on every agent (and, as a second row, none), the sigma law. Prints, per engine
+(``numpy``: the reference code; ``compiled``: :mod:`sim.kernel`, numba), the median and the spread
+of ``--repeats`` runs, and the ratio of the medians (of wall time, and of this process's CPU time:
+the figure to compare on a shared machine); then the same for the continuous mode (RK4,
+10 substeps) over ``--continuous-steps`` control steps. The compiled kernels' first call in a fresh
+process (import, compile or cache load) is printed apart, cold and warm, and never enters a median.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -21,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.factories import build  # noqa: E402
-from sim import refsim  # noqa: E402
+from sim import kernel, refsim  # noqa: E402
 
 
 def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):
@@ -44,22 +49,60 @@ def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):
     })
 
 
+def rate(m, mode: str, engine: str, n: int, steps: int, repeats: int) -> tuple[list[float], list[float]]:
+    """Agent-steps per second of wall time and per second of this process's CPU time, per repeat."""
+    wall, cpu = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        refsim.simulate(m, mode, engine=engine, record=False)
+        wall.append(n * steps / (time.perf_counter() - t0))
+        cpu.append(n * steps / max(time.process_time() - c0, 1e-9))
+    return wall, cpu
+
+
+def first_call() -> str:
+    """The compiled kernels' start-up in a fresh process: import + compile (or cache load) + one tiny run."""
+    code = ("import time; t0 = time.perf_counter(); from sim import refsim; from tests.factories import build; "
+            "import bench.refsim_throughput as b; m = b.mission(4, 10); "
+            "refsim.simulate(m, engine='compiled', record=False); print(time.perf_counter() - t0)")
+    import subprocess
+    root = str(Path(__file__).resolve().parents[1])
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root,
+                          env={**__import__("os").environ, "PYTHONPATH": root})
+    return done.stdout.strip() or done.stderr.strip()[-300:]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[4, 100, 1000])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--continuous-steps", type=int, default=200)
     args = ap.parse_args()
-    print(f"{'N':>6} {'disturbance':>12} {'median agent-steps/s':>22} {'min':>12} {'max':>12} {'us/step':>9}")
-    for n, dist in [(n, dist) for n in args.sizes for dist in (True, False)]:
-        m = mission(n, args.steps, disturbance=dist)
-        rates = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            refsim.simulate(m, "discrete", record=False)
-            rates.append(n * args.steps / (time.perf_counter() - t0))
-        med = statistics.median(rates)
-        print(f"{n:>6} {'sinusoid' if dist else 'none':>12} {med:>22.3e} {min(rates):>12.3e} {max(rates):>12.3e} {1e6 * n / med:>9.1f}")
+    engines = ["numpy"] + (["compiled"] if kernel.AVAILABLE else [])
+    if kernel.AVAILABLE:
+        print(f"compiled kernels, first call in a fresh process [s]: {float(first_call()):.2f} (then warm: "
+              f"{float(first_call()):.2f})")
+    else:
+        print("numba is not installed: numpy path only (pip install 'tether[fast]')")
+    for mode, steps in (("discrete", args.steps), ("continuous", args.continuous_steps)):
+        print(f"\n{mode}, {steps} steps; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+        print(f"{'N':>6} {'disturbance':>12} {'engine':>9} {'median agent-steps/s':>22} {'min':>10} {'max':>10} "
+              f"{'us/step':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
+        for n, dist in [(n, dist) for n in args.sizes for dist in (True, False)]:
+            if mode == "continuous" and n > 100:
+                continue  # the numpy RK4 pays Python per stage: minutes at N = 1000
+            m = mission(n, steps, disturbance=dist)
+            if "compiled" in engines:
+                refsim.simulate(m, mode, engine="compiled", record=False)  # warm (compiled, loaded)
+            base = cbase = None
+            for engine in engines:
+                rates, cpu = rate(m, mode, engine, n, steps, args.repeats)
+                med, cmed = statistics.median(rates), statistics.median(cpu)
+                base, cbase = base or med, cbase or cmed
+                print(f"{n:>6} {'sinusoid' if dist else 'none':>12} {engine:>9} {med:>22.3e} {min(rates):>10.2e} "
+                      f"{max(rates):>10.2e} {1e6 * n / med:>9.2f} {med / base:>6.1f}x {cmed:>10.2e} "
+                      f"{cmed / cbase:>6.1f}x")
 
 
 if __name__ == "__main__":

@@ -956,7 +956,7 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
             f" -> {'holds' if holds else 'does NOT hold'} {a.scale_rate:g} Hz")
         if holds:
             largest = n
-        else:
+        elif not a.scale_all:
             break
     say(f"   largest N holding {a.scale_rate:g} Hz here: {largest}")
     report["scale"] = {"rate": a.scale_rate, "duration": a.rt_duration, "rows": rows, "largest": largest}
@@ -1216,6 +1216,7 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16, 32], help="case 2: N, stepped until one fails")
     ap.add_argument("--scale-rate", type=float, default=50.0)
     ap.add_argument("--scale-repeats", type=int, default=1, help="case 2: runs per N (median late share)")
+    ap.add_argument("--scale-all", action="store_true", help="case 2: run every N of --sizes, also past one that fails")
     ap.add_argument("--rt-duration", type=float, default=15.0, help="case 2 (and 4): mission seconds per run")
     ap.add_argument("--latency-n", type=int, default=8)
     ap.add_argument("--latency-rate", type=float, default=100.0)

@@ -143,8 +143,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         live = viz.Live(port=args.live, speed=args.speed, mission=m, scene_rate=args.scene_rate)
         print(f"live view: ws://127.0.0.1:{live.port} (Foxglove: Open connection, Foxglove WebSocket)", flush=True)
     try:
-        run = refsim.simulate(m, args.mode, substeps=args.substeps, progress=lambda k, n: prog(k, n, m.name),
-                              on_tick=live.tick if live else None)
+        try:
+            run = refsim.simulate(m, args.mode, substeps=args.substeps, progress=lambda k, n: prog(k, n, m.name),
+                                  on_tick=live.tick if live else None, engine=args.engine)
+        except ValueError as e:
+            if args.engine != "compiled":
+                raise
+            print(f"tether simulate: --engine compiled: {e}", file=sys.stderr)
+            return 2
         if live is not None:
             live.finish(run)
     finally:
@@ -548,6 +554,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sampled-data (the runtime's semantics) or continuous-time RK4")
     s.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     s.add_argument("--substeps", type=_positive_int, default=10, help="RK4 steps per control period (continuous mode)")
+    s.add_argument("--engine", choices=["auto", "numpy", "compiled"], default="auto",
+                   help="the compiled kernels (numba, the [fast] extra) or the numpy reference; auto: the "
+                        "kernels when installed (without --live)")
     s.add_argument("--no-figures", action="store_true")
     s.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
     s.add_argument("--scene-rate", type=float, default=None, metavar="HZ",

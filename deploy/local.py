@@ -207,6 +207,10 @@ class Launch:
         logs = o.out / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         env = dict(os.environ)
+        # numpy works on 2- and 3-vectors in every role: one BLAS thread each (a pool of idle
+        # OpenBLAS threads per process costs memory and wake-ups, never speed, on these sizes)
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env.setdefault(var, "1")
         if o.handover_runtime:
             env.setdefault("ZENOH_RUNTIME", HANDOVER)
         for role, nid in self.members():

@@ -254,7 +254,8 @@ class Link:
         return reason
 
     def _in_outage(self, t: float) -> bool:
-        return any(start <= t < end for start, end in self._profile.outages)
+        outages = self._profile.outages
+        return bool(outages) and any(start <= t < end for start, end in outages)
 
     def _lost(self) -> bool:
         """The loss model's decision for this message; moves the Gilbert-Elliott chain."""

@@ -103,18 +103,19 @@ class DoubleIntegratorPlant:
         self._h = m.dt
         self._k = 0
         d = m.dim
-        self._p = [np.array(m.agent(i).p0, dtype=float) for i in ids]
-        self._v = [np.array(m.agent(i).v0 if m.agent(i).v0 is not None else [0.0] * d, dtype=float) for i in ids]
-        self._a = [np.zeros(d) for _ in ids]
+        self._p = np.array([m.agent(i).p0 for i in ids], dtype=float).reshape(len(ids), d)
+        self._v = np.array([m.agent(i).v0 if m.agent(i).v0 is not None else [0.0] * d for i in ids],
+                           dtype=float).reshape(len(ids), d)
+        self._a = np.zeros((len(ids), d))
 
     def state(self) -> Sample:
-        return Sample(np.array(self._p), np.array(self._v), np.array(self._a), self._dist.value(self._k))
+        return Sample(self._p.copy(), self._v.copy(), self._a.copy(), self._dist.value(self._k))
 
     def step(self, u: np.ndarray) -> None:
         dv, dp = self._dist.increments(self._k)
-        for r in range(len(self.ids)):  # row by row: the same arithmetic as one plant process
-            self._p[r], self._v[r], self._a[r] = double_integrator.step(self._p[r], self._v[r], u[r], dv[r], dp[r],
-                                                                        self._h)
+        # all rows at once: element-wise, each row's arithmetic is one plant process's
+        self._p, self._v, self._a = double_integrator.step(self._p, self._v, np.asarray(u, dtype=float), dv, dp,
+                                                           self._h)
         self._k += 1
 
     def close(self) -> None:

@@ -30,6 +30,7 @@ physical scale (``diverge_at``) or not finite, is stopped there: the rest of its
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -40,6 +41,7 @@ from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from leader import profile
 from plant import base as plants
+from plant.disturbance import DisturbanceBank
 from plant.rest import Resting
 from tether import wire
 from tether.inputs import Source
@@ -84,9 +86,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     ticks = [AgentTick.from_mission(m, i) for i in ids]
     # each plant rests on the ground or cuts its motors when its agent's supervisor says so, as the
     # plant process's watchdog does (transparent while every vehicle flies)
-    hosts = [Resting(host, d, m.safety.ground) for host in plants.build(m)]
+    hosts = [Resting(host, d, m.safety.ground) for host in _plants(m)]
     row_of = {aid: (h, r) for h in hosts for r, aid in enumerate(h.ids)}
     order = [row_of[aid] for aid in ids]
+    host_rows = [[ids.index(aid) for aid in host.ids] for host in hosts]
     net = m.netem
     if net is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
@@ -102,18 +105,33 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     avoid = m.safety.avoid is not None  # every vehicle hears the others' states (range sensing)
     meta = RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
                    seed=m.seed)
-    run = Run.empty(steps + 1 if record else 1, ids, d, meta)
-    ages = np.full((steps + 1 if record else 1, n, width), np.nan)
+    rows = steps + 1 if record else 1
+    run = Run.empty(rows, ids, d, meta)
+    ages = np.full((rows, n, width), np.nan)
     every = max(1, steps // 100)
+    # the leader's reference at every tick at once (numpy evaluates it element by element: the
+    # same values as the leader process's one call per tick)
+    lead_p, lead_v, lead_a = (np.broadcast_to(np.asarray(x, dtype=float), (steps + 1, d))
+                              for x in ref(np.arange(steps + 1) * h))
+    single = len(hosts) == 1 and order == [(hosts[0], r) for r in range(n)]  # one host, in agent order
+    out_rows: list[list] = [[] for _ in range(6)]  # this tick's u, xi, zeta, kp, kv and modes, per agent
 
     for k in range(steps + 1):
         t = k * h
-        samples = {id(host): host.state() for host in hosts}
-        p, v, a, dist = ([samples[id(host)].__dict__[f][r] for host, r in order] for f in ("p", "v", "a", "d"))
-        lp, lv, la = ref(t)
+        states = [host.state() for host in hosts]
+        by_host = {id(host): st for host, st in zip(hosts, states)}
+        if single:
+            st = states[0]
+            p, v, a, dist = list(st.p), list(st.v), list(st.a), list(st.d)
+        else:
+            picked = [(by_host[id(host)], r) for host, r in order]
+            p = [st.p[r] for st, r in picked]
+            v = [st.v[r] for st, r in picked]
+            a = [st.a[r] for st, r in picked]
+            dist = [st.d[r] for st, r in picked]
+        lp, lv, la = lead_p[k], lead_v[k], lead_a[k]
         # what each sender publishes at tick k: the leader's reference, each agent's relayed sample
-        sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {
-            lid: (t, np.asarray(lp, dtype=float), np.asarray(lv, dtype=float), np.asarray(la, dtype=float))}
+        sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {lid: (t, lp, lv, la)}
         modes = {lid: wire.FLYING}  # each sender's mode, as its state message carries it
         for i, aid in enumerate(ids):  # what each agent shares for the feed-forward
             sent[aid] = (t, p[i], v[i], ticks[i].shared(a[i]))
@@ -146,21 +164,26 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             near = [(p[j], v[j]) for j in range(n) if j != i] if avoid else ()
             out = tk.step(k, t, p[i], v[i], a[i], heard, Status(stopped=stopped), near=near)
             us.append(out.u)
-            worst = max(worst, abs(out.xi).max())
+            worst = max(worst, _abs_max(out.xi.tolist()))
             if keep:
-                ages[r, i, :len(row)] = [age if ok else math.nan for age, ok in zip(out.ages, out.used)]
-                run.p[r, i], run.v[r, i], run.a[r, i], run.u[r, i] = p[i], v[i], a[i], out.u
-                run.xi[r, i], run.zeta[r, i], run.kp[r, i], run.kv[r, i] = out.xi, out.zeta, out.kp, out.kv
-                run.d[r, i] = dist[i]
-                # the one place this engine records a safety mode: the agent's supervisor, and the
-                # plant's command watchdog (the in-process plants follow every command, and rest or
-                # cut their motors with their agent, as Command.mode makes the plant process do)
-                run.safety.safety_mode[r, i] = out.mode
-                run.safety.plant_mode[r, i] = out.mode if out.mode in (wire.LANDED, wire.ESTOP) else wire.FLYING
+                if width:
+                    ages[r, i, :len(row)] = [age if ok else math.nan for age, ok in zip(out.ages, out.used)]
+                for col, x in zip(out_rows, (out.u, out.xi, out.zeta, out.kp, out.kv, out.mode)):
+                    col.append(x)
         if keep:
             run.t[r] = t
+            run.p[r], run.v[r], run.a[r], run.d[r] = p, v, a, dist
+            run.u[r], run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = out_rows[:5]
+            # the one place this engine records a safety mode: the agent's supervisor, and the
+            # plant's command watchdog (the in-process plants follow every command, and rest or
+            # cut their motors with their agent, as Command.mode makes the plant process do)
+            run.safety.safety_mode[r] = out_rows[5]
+            run.safety.plant_mode[r] = [mode if mode in (wire.LANDED, wire.ESTOP) else wire.FLYING
+                                        for mode in out_rows[5]]
+            for col in out_rows:
+                col.clear()
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp, lv, la
-            _record_plants(run.plant, samples, order, r, steps + 1 if record else 1)
+            _record_plants(run.plant, by_host, order, r, rows)
         caught = any(tk.supervisor.diverged is not None for tk in ticks)
         if caught or not (worst <= diverge_at):  # also catches NaN
             run.meta.diverged_at = t
@@ -172,9 +195,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             break
         if k == steps:
             break
-        for host in hosts:
-            rows = [ids.index(aid) for aid in host.ids]
-            host.step(np.array([us[i] for i in rows]), [ticks[i].supervisor.mode for i in rows])
+        for host, hrows in zip(hosts, host_rows):
+            host.step(np.array([us[i] for i in hrows]), [ticks[i].supervisor.mode for i in hrows])
         if progress is not None and k % every == 0:
             progress(k, steps)
     if progress is not None:
@@ -197,6 +219,45 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     for host in hosts:
         host.close()
     return run
+
+
+def _abs_max(xs: list[float]) -> float:
+    """``numpy.abs(xs).max()`` of a short list: NaN if any element is."""
+    return math.nan if any(x != x for x in xs) else max(map(abs, xs))
+
+
+def _plants(m: Mission) -> list[plants.Plant]:
+    """:func:`plant.base.build`'s plants, the double integrators whose disturbance banks take the
+    same branches (their models' flags) hosted together: one row per vehicle of one vectorised
+    host, each row's arithmetic element-wise that of its own plant process."""
+    built = plants.build(m)
+    if m.payload is not None:
+        return built
+    groups: dict[tuple, list[int]] = {}
+    out: list[plants.Plant] = []
+    for host in built:
+        key = _branches(m, host)
+        if key is None:
+            out.append(host)
+        else:
+            groups.setdefault(key, []).extend(host.ids)
+    return out + [plants.DoubleIntegratorPlant(m, group) for group in groups.values()]
+
+
+def _branches(m: Mission, host: plants.Plant) -> tuple | None:
+    """Which branches of :class:`~plant.disturbance.DisturbanceBank` a one-vehicle double
+    integrator's bank takes (None: not such a plant, or a bank whose flags are unknown here)."""
+    if type(host) is not plants.DoubleIntegratorPlant:
+        return None
+    bank = DisturbanceBank.from_mission(m, list(host.ids))
+    flags = tuple(getattr(bank, f, None) for f in ("_has_sine", "_has_random", "_has_const"))
+    known = {f.name for f in dataclasses.fields(bank)} == _BANK_FIELDS
+    return flags if known and None not in flags else None
+
+
+_BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s",
+                          "_cp_c", "_has_sine", "_has_random", "_has_const"})
+"""The bank layout whose branches :func:`_branches` knows (another makes every plant its own host)."""
 
 
 def _record_plants(rec: PlantRecord, samples: dict[int, plants.Sample], order: list, r: int, rows: int) -> None:

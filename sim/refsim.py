@@ -21,6 +21,12 @@ The ``continuous`` mode integrates the continuous-time closed loop with fixed-st
     L1 vdot = a_{i,N+1} a_ref + kappa * d - Kp * xi - Kv * zeta
 
 Comparing the two modes shows what sampling changes.
+
+Both modes have two engines: the numpy code below (the readable reference, vectorised over agents)
+and the compiled kernels of :mod:`sim.kernel` (the ``[fast]`` extra, numba: one pass per agent per
+step), equal to it bit for bit in the discrete mode and to round-off in the continuous one
+(``tests/test_refsim.py``). ``engine="auto"`` takes the kernels when numba is installed and the
+run has no ``on_tick`` (a live view paces the run sample by sample: the numpy loop serves it).
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from tether.mission import Mission
 from tether.runfile import Run, RunMeta, Source
 
 Mode = Literal["discrete", "continuous"]
+Engine = Literal["auto", "numpy", "compiled"]
 Progress = Callable[[int, int], None]
 OnTick = Callable[[Run, int], None]
 """Called with the run being filled and the index of the sample just recorded (live views)."""
@@ -84,23 +91,47 @@ def simulate(
     substeps: int = 10,
     progress: Progress | None = None,
     on_tick: OnTick | None = None,
+    engine: Engine = "auto",
 ) -> Run:
     """Run a mission in one process. ``duration`` overrides the mission's (a whole number of periods).
 
     Returns a :class:`~tether.runfile.Run` with one sample per control tick (``steps + 1``
     samples); with ``record=False`` only the final sample is kept (for benchmarks). ``on_tick`` is
     called after each recorded sample with the run and the sample's index (``--live``).
+    ``engine``: ``"numpy"`` the reference code, ``"compiled"`` the kernels of :mod:`sim.kernel`
+    (ValueError without numba), ``"auto"`` the kernels when they can run this mission.
     """
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
     source: Source = "reference-discrete" if mode == "discrete" else "reference-continuous"
     meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate, steps=steps,
                    seed=m.seed)
+    if mode not in ("discrete", "continuous"):
+        raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
+    if _compiled(s, engine, on_tick):
+        from sim import fast
+        if mode == "discrete":
+            return fast.discrete(s, steps, record, progress, meta)
+        return fast.continuous(s, steps, substeps, record, progress, meta)
     if mode == "discrete":
         return _discrete(s, steps, record, progress, meta, on_tick)
-    if mode == "continuous":
-        return _continuous(s, steps, substeps, record, progress, meta, on_tick)
-    raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
+    return _continuous(s, steps, substeps, record, progress, meta, on_tick)
+
+
+def _compiled(s: Setup, engine: Engine, on_tick: OnTick | None) -> bool:
+    """Whether this run takes the compiled kernels."""
+    if engine == "numpy":
+        return False
+    from sim import kernel
+    if engine == "compiled":
+        if not kernel.AVAILABLE:
+            raise ValueError("engine='compiled' needs numba (pip install 'tether[fast]')")
+        if not kernel.supports(s.dist) or on_tick is not None:
+            raise ValueError("engine='compiled' cannot run this mission (an unknown disturbance layout, or on_tick)")
+        return True
+    if engine != "auto":
+        raise ValueError(f"engine must be 'auto', 'numpy' or 'compiled', not {engine!r}")
+    return kernel.supports(s.dist) and on_tick is None
 
 
 def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta,
@@ -157,12 +188,17 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     return run
 
 
-def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta,
-                on_tick: OnTick | None = None) -> Run:
-    m, topo, prm = s.mission, s.topo, s.params
+def check_continuous(m: Mission) -> None:
+    """The continuous mode feeds forward the exact accelerations: a mission asking otherwise is refused."""
     if m.law.feedforward != "measured":
         raise ValueError(f"law.feedforward = {m.law.feedforward!r}: the continuous mode feeds forward the exact "
                          "accelerations only; use the discrete mode")
+
+
+def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta,
+                on_tick: OnTick | None = None) -> Run:
+    m, topo, prm = s.mission, s.topo, s.params
+    check_continuous(m)
     n, d, h = m.n, m.dim, m.dt
     hf = h / substeps
     kappa = topo.kappa[:, None]

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tether.runfile import Links, Run, RunMeta
 
@@ -76,6 +77,18 @@ def test_simulate_writes_a_run_metrics_and_figures(tmp_path: Path) -> None:
     r2 = tether("plot", str(tmp_path), "--out", str(tmp_path / "again"))
     assert r2.returncode == 0, r2.stderr
     assert (tmp_path / "again" / "xy.png").exists()
+
+
+def test_simulate_engines_write_the_same_run(tmp_path: Path) -> None:
+    pytest.importorskip("numba")
+    runs = {}
+    for engine in ("numpy", "compiled"):
+        r = tether("simulate", "section4", "--out", str(tmp_path / engine), "--duration", "3", "--engine", engine,
+                   "--no-figures", "--no-mcap")
+        assert r.returncode == 0, r.stderr
+        runs[engine] = Run.load(tmp_path / engine / "run.npz")
+    for f in ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d"):
+        np.testing.assert_array_equal(getattr(runs["compiled"], f), getattr(runs["numpy"], f), err_msg=f)
 
 
 def test_reproduce_section4_short(tmp_path: Path) -> None:

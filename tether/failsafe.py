@@ -28,9 +28,10 @@ TOUCHDOWN = 0.02
 
 def saturate(u: np.ndarray, max_accel: float) -> np.ndarray | None:
     """``u`` scaled down to norm ``max_accel`` where it exceeds it; None if ``u`` is not finite."""
-    if not np.all(np.isfinite(u)):
+    uu = float(u @ u)  # finite only if every component is (checked element-wise only where not)
+    if not math.isfinite(uu) and not np.isfinite(u).all():
         return None
-    norm = math.sqrt(float(u @ u))
+    norm = math.sqrt(uu)
     if norm <= max_accel:
         return u
     return u * (max_accel / norm)

@@ -1,0 +1,97 @@
+"""The reference simulator's modes on the compiled kernels of :mod:`sim.kernel` (numba).
+
+The same setup, run record and progress reports as :mod:`sim.refsim`'s numpy loops; the kernels
+run the steps, a chunk of steps per call (one progress report per chunk).
+"""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+
+from sim import kernel
+from sim.refsim import Progress, Setup, check_continuous
+from tether import graph, wire
+from tether.runfile import Run, RunMeta
+
+_FEED = {"measured": 0, "commanded": 1, "none": 2}
+
+
+def _outputs(run: Run) -> tuple[np.ndarray, ...]:
+    return run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, run.d
+
+
+def _chunks(steps: int) -> list[tuple[int, int]]:
+    """Ticks ``0 .. steps`` in about 100 calls (the progress reports of the numpy loop), of at least
+    250 ticks (a call's own cost is tens of microseconds)."""
+    every = max(250, steps // 100)
+    return [(k, min(k + every, steps + 1)) for k in range(0, steps + 1, every)]
+
+
+def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
+    """:func:`sim.refsim.simulate`'s discrete mode, bit for bit."""
+    from agent import law
+
+    m, topo, prm = s.mission, s.topo, s.params
+    n, d, h = m.n, m.dim, m.dt
+    gs = law.GainStep.over(prm.sigma, h)
+    ticks = np.arange(steps + 1)
+    lp, lv, la = s.ref(ticks * h)
+    lp, lv, la = (np.array(np.broadcast_to(x, (steps + 1, d)), dtype=float, order="C") for x in (lp, lv, la))
+    pos, vel, acc = np.zeros((2, n + 1, d)), np.zeros((2, n + 1, d)), np.zeros((2, n + 1, d))
+    pos[0, :n], vel[0, :n] = s.p0, s.v0
+    meas = np.zeros((n, d))
+    gains = np.ascontiguousarray(np.stack([np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]), dtype=float)
+    rows = steps + 1 if record else 1
+    run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
+    kept = ticks if record else ticks[-1:]
+    run.t[:] = kept * h
+    run.leader_p[:], run.leader_v[:], run.leader_a[:] = lp[kept], lv[kept], la[kept]
+    slot_w = np.ascontiguousarray(topo.slot_weight[:, :, 0])
+    bank = kernel.bank_arrays(s.dist)
+    feed = _FEED[m.law.feedforward]
+    for k0, k1 in _chunks(steps):
+        kernel.discrete(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, s.sum_wdelta,
+                        feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
+                        pos, vel, acc, meas, gains, *bank, *_outputs(run))
+        if progress is not None and k1 <= steps:
+            progress(k0, steps)
+    if progress is not None:
+        progress(steps, steps)
+    return run
+
+
+def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
+    """:func:`sim.refsim.simulate`'s continuous mode, to round-off."""
+    m, topo, prm = s.mission, s.topo, s.params
+    check_continuous(m)
+    n, d, h = m.n, m.dim, m.dt
+    a_lead = np.ascontiguousarray(topo.adjacency[:n, n], dtype=float)
+    l1, _ = graph.partition(topo.adjacency)
+    l1_inv = np.ascontiguousarray(np.linalg.inv(l1))
+    meta = msgspec.structs.replace(meta, substeps=substeps)
+    y = np.stack([s.p0, s.v0, np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]).astype(float)
+    rows = steps + 1 if record else 1
+    run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
+    ticks = np.arange(steps + 1)
+    kept = ticks if record else ticks[-1:]
+    run.t[:] = kept * h
+    lead = s.ref(kept * h)
+    run.leader_p[:], run.leader_v[:], run.leader_a[:] = (np.broadcast_to(x, (len(kept), d)) for x in lead)
+    slot_w = np.ascontiguousarray(topo.slot_weight[:, :, 0])
+    bank = kernel.bank_arrays(s.dist)
+    const, amp, omega, phase, table, hold, has_random = *bank[:6], bank[11]
+    sin_m, cos_m = kernel.rotation_tables(omega, h, substeps)
+    for k0, k1 in _chunks(steps):
+        times = kernel.stage_times(k0, k1, h, substeps)
+        ref = s.ref(times.ravel())
+        ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d))).reshape(*times.shape, d)
+                               for x in ref)
+        kernel.continuous(k0, k1, steps, record, h, substeps, y, ref_p, ref_v, ref_a, times, topo.kappa,
+                          topo.slot_src, slot_w, s.sum_wdelta, a_lead, l1_inv, prm.gamma_p, prm.gamma_v,
+                          prm.sigma, const, amp, omega, phase, table, hold, has_random, sin_m, cos_m, *_outputs(run))
+        if progress is not None and k1 <= steps:
+            progress(k0, steps)
+    if progress is not None:
+        progress(steps, steps)
+    return run

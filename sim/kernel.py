@@ -1,0 +1,328 @@
+"""The reference simulator's compiled kernels (numba, the ``[fast]`` extra): one pass per agent per step.
+
+:mod:`sim.refsim` keeps its numpy form as the readable reference; these kernels compute the same
+arithmetic, operation for operation, agent by agent, without a numpy temporary per operation:
+
+* :func:`discrete` is the discrete mode's loop (the law, the exact gain update, the exact
+  zero-order-hold double integrator, the disturbance increments of
+  :meth:`plant.disturbance.DisturbanceBank.increments` and values of ``value``), each product and
+  sum in the numpy path's order, so that its runs equal the numpy path's bit for bit
+  (``tests/test_refsim.py``). Positions, velocities and shared accelerations are double-buffered
+  (``[k % 2]`` is tick k's), so one pass over the agents reads tick k and writes tick k+1.
+* :func:`continuous` is the continuous mode's RK4 with the algebraic loop through ``L1^{-1}``, every
+  stage in the kernel; the leader's profile is evaluated by numpy beforehand at every stage time
+  (:func:`stage_times`). The sinusoids are rotated from their phase at each control tick by the
+  angle-addition formula (two sines a control step per axis instead of forty) and the two mid-step
+  stages share theirs, and the matrix-vector product sums in a fixed order where numpy calls BLAS:
+  it equals the numpy path to round-off, not bit for bit.
+
+The disturbance bank is read from its arrays (:func:`bank_arrays`); a bank whose layout this module
+does not know (a model added to :mod:`plant.disturbance` since) makes :func:`supports` say no, and
+the simulator keeps its numpy path, which goes through the bank's own methods.
+
+Without numba installed, :data:`AVAILABLE` is False and nothing here is compiled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from plant.disturbance import DisturbanceBank
+
+numba: Any
+try:  # the [fast] extra
+    import numba
+except ImportError:  # exercised where numba is missing (tests/test_refsim_kernel.py hides it)
+    numba = None
+
+AVAILABLE = numba is not None
+"""Whether the compiled kernels can run here (numba imports)."""
+
+_BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s",
+                          "_cp_c", "_has_sine", "_has_random", "_has_const"})
+"""The :class:`DisturbanceBank` layout the kernels evaluate."""
+
+
+def supports(dist: DisturbanceBank) -> bool:
+    """Whether the kernels evaluate ``dist`` exactly as its own methods do (its layout is known)."""
+    return (AVAILABLE and type(dist) is DisturbanceBank
+            and frozenset(f.name for f in dataclasses.fields(dist)) == _BANK_FIELDS)
+
+
+def bank_arrays(dist: DisturbanceBank) -> tuple[Any, ...]:
+    """The bank as the kernels take it: its arrays, flags and coefficients."""
+    return (dist.const, dist.amp, dist.omega, dist.phase, dist.table, dist.hold_ticks.astype(np.int64),
+            dist._cv_s, dist._cv_c, dist._cp_s, dist._cp_c,
+            bool(dist._has_sine), bool(dist._has_random), bool(dist._has_const))
+
+
+def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
+    # no fastmath: no reassociation, no fused multiply-adds, so each operation rounds as numpy's does
+    return fn if numba is None else numba.njit(cache=True, nogil=True)(fn)
+
+
+@_jit
+def _random(table: np.ndarray, hold: np.ndarray, i: int, k: int, c: int) -> float:
+    idx = k // hold[i]
+    last = table.shape[1] - 1
+    return table[i, idx if idx < last else last, c]
+
+
+@_jit
+def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
+             kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray,
+             feed: int, decay: float, gp_gain: float, gv_gain: float,
+             lp: np.ndarray, lv: np.ndarray, la: np.ndarray,
+             pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, gains: np.ndarray,
+             const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
+             hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
+             has_sine: bool, has_random: bool, has_const: bool,
+             out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
+             out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray) -> None:
+    """Ticks ``k0 .. k1-1`` of the discrete mode (``feed``: 0 measured, 1 commanded, 2 none).
+
+    State, updated in place: ``pos, vel, acc`` ``(2, N+1, d)`` (row N the leader), ``meas`` ``(N, d)``,
+    ``gains`` ``(2, N, d)`` [Kp, Kv]. Samples go to row k of ``out_*`` (``record``) or row 0 at
+    ``k == steps``."""
+    n, d = meas.shape
+    slots = slot_src.shape[0]
+    zero_d = not (has_sine or has_random or has_const)
+    for k in range(k0, k1):
+        cur = k & 1
+        nxt = cur ^ 1
+        for c in range(d):
+            pos[cur, n, c] = lp[k, c]
+            vel[cur, n, c] = lv[k, c]
+            acc[cur, n, c] = la[k, c]
+        keep = record or k == steps
+        r = k if record else 0
+        last = k == steps
+        tk = k * h
+        for i in range(n):
+            ki = kappa[i]
+            for c in range(d):
+                s0 = slot_src[0, i]
+                w0 = slot_w[0, i]
+                sp = w0 * pos[cur, s0, c]
+                sv = w0 * vel[cur, s0, c]
+                sa = w0 * acc[cur, s0, c]
+                for s in range(1, slots):
+                    j = slot_src[s, i]
+                    w = slot_w[s, i]
+                    sp += w * pos[cur, j, c]
+                    sv += w * vel[cur, j, c]
+                    sa += w * acc[cur, j, c]
+                p = pos[cur, i, c]
+                v = vel[cur, i, c]
+                xi = ki * p - sp - swd[i, c]
+                zeta = ki * v - sv
+                kp = gains[0, i, c]
+                kv = gains[1, i, c]
+                if feed == 2:
+                    sa = 0.0
+                u = (sa - kp * xi - kv * zeta) / ki
+                if keep:
+                    out_p[r, i, c] = p
+                    out_v[r, i, c] = v
+                    out_a[r, i, c] = meas[i, c]
+                    out_u[r, i, c] = u
+                    out_xi[r, i, c] = xi
+                    out_zeta[r, i, c] = zeta
+                    out_kp[r, i, c] = kp
+                    out_kv[r, i, c] = kv
+                    if zero_d:
+                        out_d[r, i, c] = 0.0
+                    else:
+                        out_d[r, i, c] = (const[i, c] + amp[i, c] * math.sin(omega[i, c] * tk + phase[i, c])
+                                          + (_random(table, hold, i, k, c) if has_random else 0.0))
+                if last:
+                    continue
+                gains[0, i, c] = 1.0 + (kp - 1.0) * decay + gp_gain * (xi * xi)
+                gains[1, i, c] = 1.0 + (kv - 1.0) * decay + gv_gain * (zeta * zeta)
+                # DisturbanceBank.increments(k), term by term
+                if has_random or has_const:
+                    held = const[i, c] + (_random(table, hold, i, k, c) if has_random else 0.0)
+                    dv = held * h
+                    dp = held * hh2
+                    if has_sine:
+                        th = omega[i, c] * tk + phase[i, c]
+                        sn = math.sin(th)
+                        cs = math.cos(th)
+                        dv = dv + sn * cv_s[i, c] + cs * cv_c[i, c]
+                        dp = dp + sn * cp_s[i, c] + cs * cp_c[i, c]
+                elif has_sine:
+                    th = omega[i, c] * tk + phase[i, c]
+                    sn = math.sin(th)
+                    cs = math.cos(th)
+                    dv = sn * cv_s[i, c] + cs * cv_c[i, c]
+                    dp = sn * cp_s[i, c] + cs * cp_c[i, c]
+                else:
+                    dv = 0.0
+                    dp = 0.0
+                # plant.double_integrator.step
+                pos[nxt, i, c] = p + h * v + hh2 * u + dp
+                vel[nxt, i, c] = v + h * u + dv
+                a_next = u + dv / h
+                meas[i, c] = a_next
+                acc[nxt, i, c] = u if feed == 1 else a_next
+
+
+def stage_times(k0: int, k1: int, h: float, substeps: int) -> np.ndarray:
+    """The times at which the continuous mode evaluates its right-hand side over control steps
+    ``k0 .. k1-1``, ``(k1 - k0, substeps, 3)``: ``ts``, ``ts + hf/2``, ``ts + hf`` with
+    ``ts = k h + j hf``, computed as the numpy path computes them."""
+    hf = h / substeps
+    t = np.arange(k0, k1)[:, None] * h
+    ts = t + np.arange(substeps)[None, :] * hf
+    return np.stack([ts, ts + 0.5 * hf, ts + hf], axis=2)
+
+
+@_jit
+def _dist_at(t: float, m: int, sin0: np.ndarray, cos0: np.ndarray, sin_m: np.ndarray, cos_m: np.ndarray,
+             h: float, const: np.ndarray, amp: np.ndarray, table: np.ndarray, hold: np.ndarray, has_random: bool,
+             out: np.ndarray) -> None:
+    """``d(t)`` (``DisturbanceBank.value_at``) at ``t = t_k + m hf / 2`` into ``out``: the sinusoids by
+    the angle-addition formula from ``sin0, cos0`` (their phase at ``t_k``) and the tables
+    ``sin_m, cos_m`` of ``omega m hf / 2`` (a few ulp from ``sin(omega t + phase)``: round-off)."""
+    n, d = out.shape
+    kd = int(math.floor(t / h + 1e-9)) if has_random else 0
+    for i in range(n):
+        for c in range(d):
+            sn = sin0[i, c] * cos_m[m, i, c] + cos0[i, c] * sin_m[m, i, c]
+            out[i, c] = const[i, c] + amp[i, c] * sn + (_random(table, hold, i, kd, c) if has_random else 0.0)
+
+
+@_jit
+def _rhs(y: np.ndarray, lp: np.ndarray, lv: np.ndarray, la: np.ndarray,
+         kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
+         l1_inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float, dist: np.ndarray,
+         dy: np.ndarray, xi: np.ndarray, zeta: np.ndarray, rhs_b: np.ndarray) -> None:
+    """The continuous closed loop's right-hand side into ``dy`` (and the errors); ``y`` is
+    ``(4, N, d)`` [p, v, Kp, Kv]; the leader's sample ``lp, lv, la``; the disturbance ``dist``."""
+    _, n, d = y.shape
+    slots = slot_src.shape[0]
+    for i in range(n):
+        ki = kappa[i]
+        for c in range(d):
+            sp = 0.0
+            sv = 0.0
+            for s in range(slots):
+                j = slot_src[s, i]
+                w = slot_w[s, i]
+                pj = lp[c] if j == n else y[0, j, c]
+                vj = lv[c] if j == n else y[1, j, c]
+                if s == 0:
+                    sp = w * pj
+                    sv = w * vj
+                else:
+                    sp += w * pj
+                    sv += w * vj
+            e = ki * y[0, i, c] - sp - swd[i, c]
+            z = ki * y[1, i, c] - sv
+            xi[i, c] = e
+            zeta[i, c] = z
+            rhs_b[i, c] = a_lead[i] * la[c] + ki * dist[i, c] - y[2, i, c] * e - y[3, i, c] * z
+    for i in range(n):
+        for c in range(d):
+            acc = 0.0
+            for j in range(n):
+                acc += l1_inv[i, j] * rhs_b[j, c]
+            dy[0, i, c] = y[1, i, c]
+            dy[1, i, c] = acc
+            dy[2, i, c] = -sigma * (y[2, i, c] - 1.0) + gamma_p * (xi[i, c] * xi[i, c])
+            dy[3, i, c] = -sigma * (y[3, i, c] - 1.0) + gamma_v * (zeta[i, c] * zeta[i, c])
+
+
+@_jit
+def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: int, y: np.ndarray,
+               ref_p: np.ndarray, ref_v: np.ndarray, ref_a: np.ndarray, times: np.ndarray,
+               kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
+               l1_inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float,
+               const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
+               hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
+               out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
+               out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray) -> None:
+    """Control steps ``k0 .. k1-1`` of the continuous mode: record tick k's sample, then ``substeps``
+    RK4 steps of ``y`` in place. ``ref_*`` and ``times`` are ``(k1 - k0, substeps, 3, ...)`` (see
+    :func:`stage_times`); ``sin_m, cos_m`` ``(2 substeps + 1, N, d)`` the sine and cosine of
+    ``omega m hf / 2``. The disturbance is shared by the two mid-step stages (the same time)."""
+    _, n, d = y.shape
+    hf = h / substeps
+    k1s = np.empty_like(y)
+    k2s = np.empty_like(y)
+    k3s = np.empty_like(y)
+    k4s = np.empty_like(y)
+    tmp = np.empty_like(y)
+    xi = np.empty((n, d))
+    zeta = np.empty((n, d))
+    d0 = np.empty((n, d))
+    dh = np.empty((n, d))
+    b = np.empty((n, d))
+    sin0 = np.empty((n, d))
+    cos0 = np.empty((n, d))
+    for k in range(k0, k1):
+        q = k - k0
+        t = k * h
+        for i in range(n):
+            for c in range(d):
+                th = omega[i, c] * t + phase[i, c]
+                sin0[i, c] = math.sin(th)
+                cos0[i, c] = math.cos(th)
+        _dist_at(t, 0, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
+        _rhs(y, ref_p[q, 0, 0], ref_v[q, 0, 0], ref_a[q, 0, 0], kappa, slot_src, slot_w, swd, a_lead, l1_inv,
+             gamma_p, gamma_v, sigma, d0, k1s, xi, zeta, b)
+        if record or k == steps:
+            r = k if record else 0
+            for i in range(n):
+                for c in range(d):
+                    out_p[r, i, c] = y[0, i, c]
+                    out_v[r, i, c] = y[1, i, c]
+                    out_a[r, i, c] = k1s[1, i, c]
+                    out_u[r, i, c] = k1s[1, i, c] - d0[i, c]
+                    out_xi[r, i, c] = xi[i, c]
+                    out_zeta[r, i, c] = zeta[i, c]
+                    out_kp[r, i, c] = y[2, i, c]
+                    out_kv[r, i, c] = y[3, i, c]
+                    out_d[r, i, c] = d0[i, c]
+        if k == steps:
+            break
+        for j in range(substeps):
+            if j:
+                _dist_at(times[q, j, 0], 2 * j, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
+                _rhs(y, ref_p[q, j, 0], ref_v[q, j, 0], ref_a[q, j, 0], kappa, slot_src, slot_w, swd, a_lead,
+                     l1_inv, gamma_p, gamma_v, sigma, d0, k1s, xi, zeta, b)
+            for g in range(4):
+                for i in range(n):
+                    for c in range(d):
+                        tmp[g, i, c] = y[g, i, c] + 0.5 * hf * k1s[g, i, c]
+            _dist_at(times[q, j, 1], 2 * j + 1, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, dh)
+            _rhs(tmp, ref_p[q, j, 1], ref_v[q, j, 1], ref_a[q, j, 1], kappa, slot_src, slot_w, swd, a_lead,
+                 l1_inv, gamma_p, gamma_v, sigma, dh, k2s, xi, zeta, b)
+            for g in range(4):
+                for i in range(n):
+                    for c in range(d):
+                        tmp[g, i, c] = y[g, i, c] + 0.5 * hf * k2s[g, i, c]
+            _rhs(tmp, ref_p[q, j, 1], ref_v[q, j, 1], ref_a[q, j, 1], kappa, slot_src, slot_w, swd, a_lead,
+                 l1_inv, gamma_p, gamma_v, sigma, dh, k3s, xi, zeta, b)
+            for g in range(4):
+                for i in range(n):
+                    for c in range(d):
+                        tmp[g, i, c] = y[g, i, c] + hf * k3s[g, i, c]
+            _dist_at(times[q, j, 2], 2 * j + 2, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
+            _rhs(tmp, ref_p[q, j, 2], ref_v[q, j, 2], ref_a[q, j, 2], kappa, slot_src, slot_w, swd, a_lead,
+                 l1_inv, gamma_p, gamma_v, sigma, d0, k4s, xi, zeta, b)
+            for g in range(4):
+                for i in range(n):
+                    for c in range(d):
+                        y[g, i, c] = y[g, i, c] + (hf / 6.0) * (k1s[g, i, c] + 2.0 * k2s[g, i, c]
+                                                               + 2.0 * k3s[g, i, c] + k4s[g, i, c])
+
+
+def rotation_tables(omega: np.ndarray, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``sin, cos`` of ``omega m hf / 2`` for ``m = 0 .. 2 substeps``, ``(2 substeps + 1, N, d)``."""
+    x = omega[None] * (np.arange(2 * substeps + 1)[:, None, None] * (0.5 * h / substeps))
+    return np.ascontiguousarray(np.sin(x)), np.ascontiguousarray(np.cos(x))
