@@ -560,9 +560,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     launch = Launch(mission_path.resolve(), m, opts)
     problems = check_vehicle_options(m, opts) + check_faults(m, opts, launch.members())
     if opts.clock == "lockstep":
-        problems += [(f"agents[{k}].plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
+        problems += [(f"agent {a.id}.plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")
-                     for k, a in enumerate(m.agents) if isinstance(a.plant, ms.CrazyfliePlant)]
+                     for a in m.agents if isinstance(a.plant, ms.CrazyfliePlant)]
     if not opts.insecure:
         problems += localtls.problems(opts.listen, opts.vehicle_connect)
     if problems:

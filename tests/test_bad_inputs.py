@@ -38,7 +38,7 @@ inputs tried to allocate."""
 TIMEOUT = 60.0
 """Every command must answer within this long [s] (each takes about a second; the machine is shared)."""
 
-_EXPECT = re.compile(r"^# expect: (?P<field>\S+) \| (?P<text>.+)$")
+_EXPECT = re.compile(r"^# expect: (?P<field>.+?) \| (?P<text>.+)$")
 
 ALSO = {
     "duration_agent_ticks": "simulate",

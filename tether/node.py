@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import msgspec
 import zenoh
 
 from tether import handoff
@@ -423,14 +422,7 @@ class Node:
 
 def load_mission(path: Path, duration: float | None = None) -> ms.Mission:
     """Load a mission, with its duration overridden when ``duration`` is given (then re-validated)."""
-    m = ms.load(path)
-    if duration is None:
-        return m
-    m = msgspec.structs.replace(m, duration=float(duration))
-    problems = ms.validate(m)
-    if problems:
-        raise ms.MissionError(f"{path} with --duration {duration}", problems)
-    return m
+    return ms.with_duration(ms.load(path), duration, source=str(path))
 
 
 async def _watch_parent(pid: int, stop: asyncio.Event) -> None:
