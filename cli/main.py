@@ -134,6 +134,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
     m = _load(args.mission, args.duration)
+    from tether.graph import DENSE_MAX
+
+    if args.mode == "continuous" and m.n > DENSE_MAX:  # the continuous mode inverts L1, N x N
+        raise ms.MissionError(str(args.mission), [(
+            "--mode", f"is continuous, which inverts the dense {m.n} x {m.n} matrix L1 (about "
+                      f"{8 * m.n * m.n / 2**30:.3g} GiB and O(N^3) time); use --mode discrete (sparse, the "
+                      f"runtime's semantics), or at most {DENSE_MAX} agents")])
     out = _writable_dir("--out", args.out, ("run.npz", "metrics.json"))
     prog = Progress()
     live = None

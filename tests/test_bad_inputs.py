@@ -229,14 +229,81 @@ def _chain(n: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def measured(*args: str) -> tuple[int, str, str, float, int]:
+    """Run ``python -m cli ARGS`` like :func:`tether`; its status, stdout, stderr, wall time [s] and
+    peak resident set [bytes], the last read from the kernel's accounting of that one child (``wait4``)."""
+    import tempfile
+
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", MPLBACKEND="Agg")
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        start = time.monotonic()
+        p = subprocess.Popen([sys.executable, "-m", "cli", *args], stdout=out, stderr=err, text=True,
+                             preexec_fn=_limit, env=env, cwd=REPO)
+        deadline = start + TIMEOUT
+        while True:
+            pid, status, usage = os.wait4(p.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.monotonic() > deadline:
+                p.kill()
+                p.wait()
+                raise AssertionError(f"tether {' '.join(args)} did not finish within {TIMEOUT} s")
+            time.sleep(0.05)
+        seconds = time.monotonic() - start
+        p.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        return p.returncode, out.read(), err.read(), seconds, usage.ru_maxrss * 1024  # Linux: KiB
+
+
+BIG_CHAIN = 10_000
+CHAIN_SECONDS = 30.0
+"""Bound on ``check`` and ``simulate`` of the :data:`BIG_CHAIN` chain [s]: measured about 1 s
+(``check``) and 9 s (``simulate``, most of it the run.mcap scene of 10 000 vehicles) on an idle machine."""
+CHAIN_RSS = 500 * 2**20
+"""Bound on their peak resident set [bytes]: measured 57 MB (``check``) and 300 MB (``simulate``);
+a single dense (N+1) x (N+1) matrix of the chain is 800 MB (the ``check`` of old took 2.4 GB)."""
+
+
 def test_check_of_a_10000_agent_chain_is_fast_and_small(tmp_path: Path) -> None:
     """Once 92 s and 2.4 GB (a dense 10 001 x 10 001 matrix and a solve); now O(N + edges)."""
     path = tmp_path / "chain.toml"
-    path.write_text(_chain(10_000))
-    r, seconds = tether("check", str(path))
-    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
-    assert "10000 agents" in r.stdout and "Lemma 3 follows from Assumption 1" in r.stdout
-    assert seconds < 30.0  # about 1 s on an idle machine
+    path.write_text(_chain(BIG_CHAIN))
+    status, out, err, seconds, rss = measured("check", str(path))
+    assert status == 0 and "Traceback" not in err, err
+    assert f"{BIG_CHAIN} agents" in out and "Lemma 3 follows from Assumption 1" in out
+    assert seconds < CHAIN_SECONDS, seconds
+    assert rss < CHAIN_RSS, f"peak RSS {rss / 2**20:.0f} MiB"
+
+
+@pytest.mark.slow  # about 10 s of one core
+def test_simulate_of_a_10000_agent_chain_is_fast_and_small(tmp_path: Path) -> None:
+    """Once 924 MB (the offsets summed through the dense adjacency) and O(N^2) agent look-ups; now the
+    engine is O(N + edges) per tick. The continuous mode, which inverts L1, is refused up front."""
+    path = tmp_path / "chain.toml"
+    path.write_text(_chain(BIG_CHAIN))
+    out = tmp_path / "o"
+    status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(out), "--no-figures")
+    assert status == 0 and "Traceback" not in err, err
+    assert (out / "run.npz").is_file() and (out / "run.mcap").is_file()
+    assert seconds < CHAIN_SECONDS, seconds
+    assert rss < CHAIN_RSS, f"peak RSS {rss / 2**20:.0f} MiB"
+    status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(tmp_path / "c"), "--mode", "continuous")
+    _assert_refused(subprocess.CompletedProcess([], status, "", err), ["--mode", "GiB", "--mode discrete"])
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_run_too_big_for_its_agents_is_refused_with_the_estimate(tmp_path: Path) -> None:
+    """Steps x agents and the memory estimate are checked before anything is allocated."""
+    path = tmp_path / "chain.toml"
+    path.write_text(_chain(BIG_CHAIN).replace("duration = 1.0", "duration = 20000.0"))
+    status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(tmp_path / "o"))
+    _assert_refused(subprocess.CompletedProcess([], status, "", err), ["  duration: ", "agent-ticks", "2e+09", "1e+09"])
+    path.write_text(_chain(BIG_CHAIN).replace("duration = 1.0", "duration = 50.0"))
+    status, _, err, seconds, rss = measured("check", str(path))
+    _assert_refused(subprocess.CompletedProcess([], status, "", err), ["  duration: ", "GiB of arrays", "4 GiB limit"])
+    assert rss < CHAIN_RSS and seconds < CHAIN_SECONDS
+    assert not (tmp_path / "o").exists()
 
 
 def test_a_write_that_fails_part_way_names_the_path_and_errno(tmp_path: Path) -> None:
