@@ -299,7 +299,7 @@ def test_a_run_too_big_for_its_agents_is_refused_with_the_estimate(tmp_path: Pat
     path.write_text(_chain(BIG_CHAIN).replace("duration = 1.0", "duration = 20000.0"))
     status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(tmp_path / "o"))
     _assert_refused(subprocess.CompletedProcess([], status, "", err), ["  duration: ", "agent-ticks", "2e+09", "1e+09"])
-    path.write_text(_chain(BIG_CHAIN).replace("duration = 1.0", "duration = 50.0"))
+    path.write_text(_chain(BIG_CHAIN).replace("duration = 1.0", "duration = 1000.0"))
     status, _, err, seconds, rss = measured("check", str(path))
     _assert_refused(subprocess.CompletedProcess([], status, "", err), ["  duration: ", "GiB of arrays", "4 GiB limit"])
     assert rss < CHAIN_RSS and seconds < CHAIN_SECONDS
