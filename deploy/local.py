@@ -71,7 +71,6 @@ with a non-numeric id, say) is dropped and counted, and the count is logged at t
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import os
 import signal
@@ -95,7 +94,7 @@ from deploy.inject import describe_exit
 from deploy.relay import Relay
 from tether import mission as ms
 from tether import transport as tp
-from tether import handoff
+from tether import handoff, jsonout
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
 from tether.progress import Progress
@@ -691,8 +690,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     events = sup.monitor.events if sup is not None else []
     if sup is not None:
         if opts.faults:
-            (opts.out / "faults.json").write_text(json.dumps(sup.injector.records(), indent=2) + "\n")
-        (opts.out / "events.json").write_text(json.dumps([e.to_json() for e in events], indent=2) + "\n")
+            (opts.out / "faults.json").write_text(jsonout.dumps(sup.injector.records()) + "\n")
+        (opts.out / "events.json").write_text(jsonout.dumps([e.to_json() for e in events]) + "\n")
     if interrupted:
         status = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     elif status == EXIT_OK:

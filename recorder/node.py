@@ -11,7 +11,6 @@ Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from recorder.export import mcap_beside
-from tether import gate, wire
+from tether import gate, jsonout, wire
 from tether.node import Node
 from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
@@ -146,7 +145,7 @@ class Recording:
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
-            lines = "".join(json.dumps(d) + "\n" for d in self.netem)
+            lines = "".join(jsonout.dumps(d, indent=None) + "\n" for d in self.netem)
             (self.out / "netem.jsonl").write_text(lines)
         self.saved = True
         log.info("wrote %s (%d of %d samples)", path, self.count.sum(), self.expected * len(self.count))
