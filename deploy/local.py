@@ -77,7 +77,9 @@ import signal
 import subprocess
 import sys
 import time
+import shutil
 from dataclasses import dataclass, field
+from typing import BinaryIO
 from pathlib import Path
 from typing import Literal
 
@@ -168,12 +170,26 @@ class Child:
     def name(self) -> str:
         return f"{self.role}/{self.node_id}"
 
+    def error(self) -> str | None:
+        """The last error line of its log (``... ERROR role/id: failed: ...``), if any."""
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return None
+        for line in reversed(lines):
+            if " ERROR " in line:
+                return line.split(": ", 1)[-1]
+        return None
+
     def tail(self, lines: int = 15) -> str:
         try:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
         except OSError:
             return "(no log)"
 
+
+LOG_RESERVE = 4 * 2**20
+"""Free space [bytes] a run's ``--out`` must have beyond the run file's estimate, for its logs."""
 
 HANDOVER = "(rx: (handover: app), acc: (handover: app), net: (handover: app), tx: (handover: app))"
 
@@ -186,6 +202,46 @@ class Launch:
     children: list[Child] = field(default_factory=list)
     relays: dict[tuple[str, int], Relay] = field(default_factory=dict)
     """Processes whose link to the router goes through a relay (partition faults)."""
+    logs: dict[tuple[str, int], BinaryIO] = field(default_factory=dict)
+    """Every child's log file, opened by :meth:`open_logs` before any process starts."""
+
+    def open_logs(self) -> None:
+        """Check that ``--out`` can hold the run, then create ``logs/`` and every child's log file,
+        before any process starts. Raises :class:`~tether.mission.MissionError` naming ``--out``
+        (exit status 2): the file that could not be made and why (ENOSPC, EACCES, EROFS...), or
+        the free space against the run file's estimate (:func:`tether.checks.run_bytes`)."""
+        from tether import checks
+        from tether.node import os_error
+
+        out = self.opts.out
+        try:
+            free = shutil.disk_usage(out).free
+        except OSError as exc:
+            raise ms.MissionError("tether run", [("--out", f"cannot use {out}: {os_error(exc)}")]) from None
+        need = checks.run_bytes(self.mission) + LOG_RESERVE
+        if free < need:
+            raise ms.MissionError("tether run", [("--out", (
+                f"{out} has {free / 2**20:.3g} MiB free, but the run needs about {need / 2**20:.3g} MiB "
+                f"(the run file's arrays and {LOG_RESERVE // 2**20} MiB of logs); free space on its file "
+                "system, give another --out, or shorten the run (--duration)"))])
+        path = out / "logs"
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            for role, nid in self.members():
+                path = out / "logs" / f"{role}-{nid}.log"
+                self.logs[role, nid] = open(path, "wb")
+        except OSError as exc:
+            self.close_logs(remove=True)
+            raise ms.MissionError("tether run", [("--out", f"cannot create the run's logs: {os_error(exc)}; "
+                                                           "nothing was started")]) from None
+
+    def close_logs(self, remove: bool = False) -> None:
+        """Close the log files not handed to a process (and ``remove`` them: none was used)."""
+        for fh in self.logs.values():
+            fh.close()
+            if remove:
+                Path(fh.name).unlink(missing_ok=True)
+        self.logs.clear()
 
     @property
     def keys(self) -> wire.Keys:
@@ -199,8 +255,8 @@ class Launch:
 
     def spawn(self, router: str, sec: localtls.Security | None = None) -> None:
         o = self.opts
-        logs = o.out / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
+        if not self.logs:
+            self.open_logs()
         env = dict(os.environ)
         if o.handover_runtime:
             env.setdefault("ZENOH_RUNTIME", HANDOVER)
@@ -231,8 +287,9 @@ class Launch:
                         "--listen", tp.loopback_endpoint(tp.free_tcp_port())]
             if vehicle and nid in o.wrap:
                 cmd = [*o.wrap[nid], *cmd]
-            path = logs / f"{role}-{nid}.log"
-            with open(path, "wb") as fh:
+            fh = self.logs.pop((role, nid))
+            path = Path(fh.name)
+            with fh:
                 proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
                                         env=env, start_new_session=True)
             self.children.append(Child(role, nid, proc, path))
@@ -574,6 +631,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                                 ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
     opts.out.mkdir(parents=True, exist_ok=True)
+    launch.open_logs()  # a full or read-only --out: exit 2 naming the file, before anything starts
     sec: localtls.Security | None = None
     if opts.insecure:
         log.warning("--insecure: no certificates and no access rules; anyone who reaches the router (%s) can "
@@ -702,6 +760,10 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         if bad:
             status = EXIT_FAILED
             log.error("failed: %s", ", ".join(f"{c.name} ({c.status})" for c in bad))
+            for c in bad:
+                why = c.error()
+                if why:
+                    log.error("  %s: %s", c.name, why)
     shown = [e for e in events if e.what != "back"]
     if shown:
         log.warning("%d event(s) in this run (who, when, what, why):", len(shown))
@@ -725,6 +787,15 @@ def _recorded(path: Path, status: int) -> int:
             meta = runfile.decode_meta(str(run["meta"]))
     except (OSError, KeyError, ValueError, msgspec.MsgspecError) as exc:
         log.error("no readable run file at %s (%s): see logs/recorder-0.log", path, exc)
+        try:  # the usual cause, which the recorder's own log (on the same disk) may not hold
+            free = shutil.disk_usage(path.parent).free
+        except OSError:
+            free = None
+        if free is not None and free < LOG_RESERVE:
+            log.error("the file system of %s has %d bytes free: a full disk (free space, or give another --out)",
+                      path.parent, free)
+        if path.with_name(path.name + ".part").exists():
+            log.error("%s.part is a run file the recorder did not finish writing", path)
         return EXIT_FAILED if status == EXIT_OK else status
     if meta.complete is False:
         got, want = meta.samples_recorded, meta.samples_expected

@@ -71,6 +71,8 @@ class Recording:
         self.count = np.zeros(T, dtype=np.int64)
         self.expected = 1 + 2 * n + (m.payload is not None)
         self.saved = False
+        self.failed: OSError | None = None
+        """Why :meth:`save` could not write the run file, if it could not."""
 
     def leader(self, msg: wire.State) -> None:
         if 0 <= msg.k < len(self.count):
@@ -128,6 +130,17 @@ class Recording:
         self.count[k] += 1
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
+        """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
+        :attr:`failed` (the stop hook then does not try again) and re-raised: :func:`tether.node.serve`
+        logs it with the path and the cause (:func:`tether.node.os_error`), no traceback, and exits 1."""
+        self.failed = None
+        try:
+            return self._save(complete, drops)
+        except OSError as exc:
+            self.failed = exc
+            raise
+
+    def _save(self, complete: bool, drops: dict[str, int]) -> Path:
         meta, safety = self.run.meta, self.run.safety
         meta.complete = complete
         meta.recorder_drops = DropCounts.of(drops)
@@ -218,7 +231,7 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
 
     def on_stop(node: Node) -> None:
         rec = holder.get("rec")
-        if rec is not None and not rec.saved:
+        if rec is not None and not rec.saved and rec.failed is None:
             rec.save(complete=False, drops=node.receiver.drops)
 
     return run, on_stop

@@ -324,6 +324,73 @@ def test_a_write_that_fails_part_way_names_the_path_and_errno(tmp_path: Path) ->
     assert not list(out.glob("*.part"))
 
 
+@pytest.fixture
+def small_disk(tmp_path: Path):  # type: ignore[no-untyped-def]
+    """``mount(size, inodes)``: a real tmpfs of that size and inode count under ``tmp_path`` (root
+    only; skipped otherwise), unmounted at the end."""
+    mounted: list[Path] = []
+
+    def mount(size: str, inodes: int) -> Path:
+        if os.geteuid() != 0:
+            pytest.skip("mounting a small tmpfs needs root")
+        where = tmp_path / f"disk{len(mounted)}"
+        where.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},nr_inodes={inodes}", "tmpfs", str(where)],
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+        mounted.append(where)
+        return where
+
+    yield mount
+    for where in mounted:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_a_run_whose_logs_cannot_be_made_is_refused_before_anything_starts(tmp_path: Path, small_disk) -> None:  # type: ignore[no-untyped-def]
+    """``logs/`` in the way, a file system out of inodes, one without room for the run: exit 2, the
+    file and the cause named, what to do, no process started (no log left behind)."""
+    out = tmp_path / "in-the-way"
+    out.mkdir()
+    (out / "logs").write_text("a file where the launcher makes a directory\n")
+    r, _ = tether("run", "section4", "--out", str(out), "--duration", "1", "--insecure", "--quiet")
+    _assert_refused(r, ["--out", f"{out / 'logs'} is a file", "give another --out"])
+    assert "router listening" not in r.stderr
+
+    inodes = small_disk("16m", 5) / "o"  # the root, o, logs and two files: the third log fails
+    inodes.mkdir()
+    r, _ = tether("run", "section4", "--out", str(inodes), "--duration", "1", "--insecure", "--quiet")
+    _assert_refused(r, ["--out", "cannot create the run's logs", "ENOSPC", "free space on its file system"])
+    assert "router listening" not in r.stderr and list((inodes / "logs").iterdir()) == []
+
+    full = small_disk("64k", 100) / "o"
+    r, _ = tether("run", "section4", "--out", str(full), "--duration", "1", "--insecure", "--quiet")
+    _assert_refused(r, ["--out", "MiB free, but the run needs about", "give another --out"])
+    assert not (full / "logs").exists()
+
+
+@pytest.mark.slow  # a 3 s lockstep run of every process
+def test_a_run_file_that_cannot_be_written_is_named_by_the_recorder_and_the_launcher(tmp_path: Path) -> None:
+    """A disk that fills up during the run, made real by a file-size limit on the launcher and every
+    process it starts (the write then fails with EFBIG): the recorder logs the path and the cause and
+    exits 1, no traceback; the launcher names the recorder's cause and exits 1; no ``.part`` is left."""
+    import signal
+
+    def small_files() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # inherited: the write fails instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, 60_000))
+
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--out", str(out), "--duration", "3",
+                        "--insecure", "--quiet"], capture_output=True, text=True, timeout=120, preexec_fn=small_files,
+                       cwd=REPO)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert f"recorder/0: failed: {out / 'run.npz'}: " in r.stderr and "(EFBIG)" in r.stderr, r.stderr
+    recorder = (out / "logs" / "recorder-0.log").read_text()
+    assert "Traceback" not in recorder and f"failed: {out / 'run.npz'}: File too large" in recorder, recorder
+    assert not (out / "run.npz").exists() and not list(out.glob("*.part"))
+
+
 def test_a_velocity_schedule_of_100000_segments_is_sampled_by_bisection() -> None:
     """Once O(segments) per sample (about 0.1 s each at 100 000 segments); now O(log segments)."""
     import numpy as np

@@ -16,6 +16,7 @@ drop-oldest, counted); decoding and checks run on the event loop (:class:`~tethe
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 import os
 import signal
@@ -49,6 +50,21 @@ at most this many decodes per period and wakes it at most once per period."""
 
 class Stalled(RuntimeError):
     """A lockstep input did not arrive in time; the message names it."""
+
+
+def os_error(exc: OSError) -> str:
+    """An ``OSError`` as one line for a user: the file, the cause and its errno name, what to do
+    (``/out/run.npz: No space left on device (ENOSPC); free space on its file system ...``)."""
+    code = errno.errorcode.get(exc.errno or 0, f"errno {exc.errno}")
+    where = f"{exc.filename}: " if exc.filename else ""
+    advice = {errno.ENOSPC: "free space on its file system, or give another --out",
+              errno.EDQUOT: "free space within your quota, or give another --out",
+              errno.EFBIG: "the file is beyond the file-size limit (ulimit -f): raise it, or record less",
+              errno.EACCES: "make the directory writable, or give another --out",
+              errno.EPERM: "make the directory writable, or give another --out",
+              errno.EROFS: "the file system is read-only: give another --out"}.get(exc.errno or 0,
+                                                                                  "fix the path, then run again")
+    return f"{where}{exc.strerror or exc} ({code}); {advice}"
 
 
 @dataclass(frozen=True)
@@ -466,7 +482,11 @@ async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
         try:
             status = await _run_tasks(node, role)
             if on_stop is not None:
-                on_stop(node)
+                try:
+                    on_stop(node)
+                except OSError as exc:
+                    log.error("failed: %s", os_error(exc))
+                    status = EXIT_FAILED
         finally:
             node.close()
             for sig in (signal.SIGTERM, signal.SIGINT):
@@ -488,6 +508,9 @@ async def _run_tasks(node: Node, role: Callable[[Node], Awaitable[None]]) -> int
             await role(node)
         except Stalled as exc:
             log.error("stalled: %s", exc)
+            failed = True
+        except OSError as exc:  # a file that cannot be written (a full disk...): named, no traceback
+            log.error("failed: %s", os_error(exc))
             failed = True
         except Exception:
             log.exception("failed")
