@@ -183,8 +183,19 @@ ARGUMENTS = [
     Bad("plot-out-unwritable", ("plot", "{good}", "--out", "/sys/tether-plots"), ("--out", "cannot write")),
     Bad("plot-out-is-a-file", ("plot", "{good}", "--out", "{file}"), ("--out", "existing file")),
     Bad("land-ns-with-star", ("land", "--ns", "swarm*", "--connect", "tcp/127.0.0.1:1"), ("--ns",)),
+    # the same --duration check for every command (a 0-step run once wrote NaN into metrics.json)
+    Bad("run-duration-zero", ("run", "section4", "--out", "{tmp}/o", "--duration", "0"), ("--duration", "> 0")),
+    Bad("run-duration-nan", ("run", "section4", "--out", "{tmp}/o", "--duration", "nan"), ("--duration",)),
+    Bad("reproduce-duration-zero", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "0"),
+        ("--duration", "> 0")),
+    Bad("reproduce-duration-text", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "ten"),
+        ("--duration", "not a number")),
+    Bad("sweep-duration-negative", ("sweep", "section4", "--out", "{tmp}/o", "--duration", "-5"), ("--duration",)),
+    Bad("run-out-proc", ("run", "section4", "--out", "/proc/self/tether-out", "--duration", "1"),
+        ("--out", "cannot write")),
+    Bad("reproduce-duration-inf", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "inf"), ("--duration",)),
 ]
-"""Bad command lines (37; beside them 43 of the 105 catalogue missions are new with this file)."""
+"""Bad command lines (44; beside them 43 of the 105 catalogue missions are new with this file)."""
 
 
 def _fill(text: str, tmp: Path) -> str:
