@@ -7,7 +7,8 @@ Every run is real processes on loopback; every wait is on a condition with a tim
   certificate), while the operator identity it writes (``DIR/tls/control-0.json5``) attaches and
   lands the swarm with ``tether land --zenoh-config``;
 * a flood of junk on an input of every process (the start key) for 8 s leaves the formation error
-  within 10 % of a clean real-time run's;
+  (RMS of ||xi_i|| over the agents and the flood's ticks) within 10 % of a clean real-time run's;
+* the backlog a healed link delivers at once (a 1 s partition) is recorded whole;
 * a replay of agent 1's plant samples is counted and never re-published as agent 1's state, and a
   replay of a neighbour's samples does not push a link's delivery above 1;
 * a lockstep acknowledgement on a key with a non-numeric id is dropped and counted, not a crash;
@@ -109,14 +110,16 @@ FLOODER = textwrap.dedent("""
 """)
 
 
-def formation_error(run: Run, since: float) -> float:
-    """The 95th percentile over ticks t_k >= ``since`` of the largest ||xi_i(t_k)|| [m]: the formation
-    error most of the time, not one tick that this shared machine's load delayed (the envelope, a
-    maximum, moved by 2x between two clean runs here). A flood that mattered (the incident: 16.6 m
-    for 4 s of 11) moves it all the same."""
-    recent = run.t >= since - 1e-9
-    worst = np.nanmax(np.linalg.norm(run.xi[recent], axis=-1), axis=1)
-    return float(np.nanpercentile(worst, 95))
+def formation_error(run: Run, since: float, until: float) -> float:
+    """The RMS over every agent and every tick ``since <= t_k <= until`` of ||xi_i(t_k)|| [m], xi as
+    the agents computed it (Eq. 8). Why this statistic: it weighs every agent and every tick of the
+    window alike, so that a sustained rise (the incident: 16.6 m for 4 s of 11) moves it in full, and
+    a rise on one agent only counts too, while one tick this shared machine's load delayed moves it by
+    a fraction of a percent; a maximum (the envelope) moved by 2x between two clean runs here, and a
+    percentile of the worst agent hides what the other agents do. Ticks whose samples were lost (NaN)
+    are left out."""
+    window = (run.t >= since - 1e-9) & (run.t <= until + 1e-9)
+    return float(np.sqrt(np.nanmean(np.linalg.norm(run.xi[window], axis=-1) ** 2)))
 
 
 def _flight(tmp: Path, ns: str, flood: bool) -> tuple[Run, str]:
@@ -147,16 +150,23 @@ def test_a_flood_on_every_process_input_leaves_the_formation_error_within_10_per
     ns = f"flood-{os.getpid()}"
     clean, clean_report = _flight(tmp_path / "clean", f"{ns}-clean", flood=False)
     flooded, report = _flight(tmp_path / "flooded", f"{ns}-flooded", flood=True)
-    since = FLOOD_FROM + 1.0
-    got, want = formation_error(flooded, since), formation_error(clean, since)
+    since, until = FLOOD_FROM + 1.0, FLOOD_FROM + FLOOD_FOR
+    got, want = formation_error(flooded, since, until), formation_error(clean, since, until)
+    ideal = formation_error(refsim.simulate(load_mission(SECTION4, 20.0)), since, until)
     drops = np.nanmax(flooded.runtime.drops, axis=0)  # per agent, since the start
     print(f"\nflood: {report} on control/0/start; reached and dropped by each agent: {drops.astype(int).tolist()}; "
-          f"formation error (p95 of the worst agent) from t = {since:g} s: flooded {got:.4f} m, clean {want:.4f} m "
-          f"({clean_report}) ({100 * (got / want - 1):+.1f} %); envelopes (max): flooded "
-          f"{envelope(flooded, since):.4f} m, clean {envelope(clean, since):.4f} m")
+          f"formation error (RMS of ||xi_i|| over agents and ticks, t = {since:g}..{until:g} s): flooded {got:.4f} m, "
+          f"clean {want:.4f} m ({clean_report}) ({100 * (got / want - 1):+.1f} %), reference simulator "
+          f"{ideal:.4f} m; envelopes (max): flooded {envelope(flooded, since):.4f} m, clean "
+          f"{envelope(clean, since):.4f} m")
     assert (drops > 0).all()  # the flood did reach every agent (rejected and counted)
-    # the claim is that a flood does not raise it (a clean run on this shared machine may do worse by itself)
-    assert got <= 1.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
+    # the clean run must be the mission as flown (it is, on a machine with the CPU for 10 processes at
+    # 100 Hz: within 0.1 % of the reference simulator); one the machine's load degraded by itself is
+    # no measure of what the flood did
+    assert abs(want - ideal) <= 0.10 * ideal, (f"the clean run itself is {100 * (want / ideal - 1):+.0f} % off the "
+                                               f"reference simulator ({want:.4f} m vs {ideal:.4f} m): the machine "
+                                               "was too loaded for a real-time comparison")
+    assert abs(got - want) <= 0.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
 
 
 # =========================================================================== bursts after a partition
