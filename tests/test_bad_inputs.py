@@ -193,9 +193,17 @@ ARGUMENTS = [
     Bad("sweep-duration-negative", ("sweep", "section4", "--out", "{tmp}/o", "--duration", "-5"), ("--duration",)),
     Bad("run-out-proc", ("run", "section4", "--out", "/proc/self/tether-out", "--duration", "1"),
         ("--out", "cannot write")),
+    Bad("simulate-continuous-substeps-huge", ("simulate", "section4", "--out", "{tmp}/o", "--mode", "continuous",
+                                              "--substeps", "1000000000"), ("--substeps", "agent-substeps")),
+    Bad("simulate-scene-rate-negative", ("simulate", "section4", "--out", "{tmp}/o", "--scene-rate", "-1"),
+        ("--scene-rate", ">= 0")),
+    Bad("run-stall-timeout-nan", ("run", "section4", "--out", "{tmp}/o", "--stall-timeout", "nan"),
+        ("--stall-timeout", "seconds > 0")),
+    Bad("run-lease-huge", ("run", "section4", "--out", "{tmp}/o", "--lease", "1e300"), ("--lease", "an hour")),
+    Bad("run-lease-negative", ("run", "section4", "--out", "{tmp}/o", "--lease", "-1"), ("--lease",)),
     Bad("reproduce-duration-inf", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "inf"), ("--duration",)),
 ]
-"""Bad command lines (44; beside them 43 of the 105 catalogue missions are new with this file)."""
+"""Bad command lines (49; beside them 43 of the 105 catalogue missions are new with this file)."""
 
 
 def _fill(text: str, tmp: Path) -> str:
