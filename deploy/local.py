@@ -635,7 +635,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     sec: localtls.Security | None = None
     if opts.insecure:
         log.warning("--insecure: no certificates and no access rules; anyone who reaches the router (%s) can "
-                    "publish on any key of the run (move the formation, end it, rewrite the recording)",
+                    "publish on any key of the run (move the formation, end it, rewrite the recording); its streams are "
+                    "rate-limited per link instead, which cuts the bursts a healed link or a loaded machine delivers",
                     ", ".join(settings.listen))
     else:
         router = "tls/" + router.split("/", 1)[1]
