@@ -626,7 +626,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
     # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound
-    limits = localtls.ingress_limits(m, keys.ns, streams=opts.insecure) if opts.clock == "realtime" else ()
+    limits = localtls.ingress_limits(m, keys.ns) if opts.clock == "realtime" else ()
     settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease,
                                 ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
@@ -635,8 +635,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     sec: localtls.Security | None = None
     if opts.insecure:
         log.warning("--insecure: no certificates and no access rules; anyone who reaches the router (%s) can "
-                    "publish on any key of the run (move the formation, end it, rewrite the recording); its streams are "
-                    "rate-limited per link instead, which cuts the bursts a healed link or a loaded machine delivers",
+                    "publish on any key of the run (move the formation, end it, rewrite the recording)",
                     ", ".join(settings.listen))
     else:
         router = "tls/" + router.split("/", 1)[1]

@@ -1,4 +1,4 @@
-"""The per-input decoding budget of a real-time process (``tether/node.py``): a token bucket per key.
+"""The per-input decoding budget of a real-time recorder (``tether/node.py``): a token bucket per key.
 
 A real :class:`~tether.node.Node` on a real Zenoh session (isolated: no endpoint, no scouting), its
 real per-key queues (:class:`~tether.handoff.InputQueue`, the ones Zenoh's callback thread fills)
@@ -47,7 +47,7 @@ def state(sender: int, k: int, h: float) -> bytes:
 
 
 async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> None:
-    args = nd.NodeArgs(mission_path=builtin_path("section4"), role="agent", node_id=2, clock="realtime",
+    args = nd.NodeArgs(mission_path=builtin_path("section4"), role="recorder", node_id=0, clock="realtime",
                        zenoh=tp.ZenohSettings(mode="peer", scouting_delay=0.0,
                                              listen=(tp.loopback_endpoint(tp.free_tcp_port()),)))
     m = nd.load_mission(args.mission_path)
@@ -62,7 +62,10 @@ async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> N
             src = node.source(stream, wire.State, 1)
             lead = node.source(flooded, wire.State, m.leader.id)
             cap = nd.input_capacity(m.rate)
-            assert cap == round(nd.BACKLOG * m.rate) == 200
+            assert cap == round(nd.BACKLOG * m.rate) == 200 == node._capacity
+            flying = nd.Node(nd.NodeArgs(mission_path=args.mission_path, role="agent", node_id=2, clock="realtime",
+                                         zenoh=args.zenoh), m, session, clock)
+            assert flying._capacity == nd.INPUT_BUDGET  # a role that flies keeps the newest few
 
             # one sample per period for a second: the stream's budget stays full
             k = 0
