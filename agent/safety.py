@@ -211,14 +211,10 @@ class Supervisor:
                     self._go(k, t, LAND, f"held for {cfg.land_after:g} s ({self.cause})", p)
         if self.mode == FLYING:
             out = failsafe.saturate(u, cfg.max_accel)
-            if out is not None:
-                return out
-            self._act(k, t, cfg.divergence_action, "divergence: non-finite command", p)
-            if self.diverged is None:
-                self.diverged = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=FLYING, dst=self.mode,
-                                            reason="divergence: non-finite command")
-            if self.mode == ESTOP:
-                return np.zeros_like(p)
+            if out is None:  # cannot be: a non-finite u in FLYING or HOLD is a divergence above, whose action
+                # (hold, latched; land; estop) leaves FLYING for this tick; never pass it on if it ever were
+                raise AssertionError(f"agent {self.agent_id}: a non-finite command reached FLYING at tick {k}")
+            return out
         assert self.p_hold is not None
         if self.mode == HOLD:
             return failsafe.hold(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel)

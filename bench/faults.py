@@ -108,6 +108,7 @@ import zenoh  # noqa: E402
 
 from deploy import operator  # noqa: E402
 from tether import catalog  # noqa: E402
+from tether import jsonout  # noqa: E402
 from tether import graph  # noqa: E402
 from tether import transport as tp  # noqa: E402
 from tether import wire  # noqa: E402
@@ -224,7 +225,7 @@ def save_tap(tap: Tap, out: Path) -> None:
     for wall, kind, vid, msg in tap.decoded():
         rows.append((wall, kind, vid, msg.k, msg.t, getattr(msg, "mode", None),
                      dict(msg.gate) if kind == "agent/telemetry" else None))
-    (out / "tap.json").write_text(json.dumps({"epoch": tap.epoch, "order_put": tap.order_put, "rows": rows}))
+    (out / "tap.json").write_text(jsonout.dumps({"epoch": tap.epoch, "order_put": tap.order_put, "rows": rows}, indent=None))
 
 
 # =========================================================================== one run
@@ -689,7 +690,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"tether {action} --connect: {w * 1e3:.0f} ms wall for the command itself", flush=True)
     print(f"# load after: {os.getloadavg()}", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1, default=str) + "\n")
+        Path(args.json).write_text(jsonout.dumps(report, indent=1, default=str) + "\n")
     return 0
 
 

@@ -71,6 +71,7 @@ except ImportError:
     AGENT_PHASE = 0.0
 from tether import mission as ms  # noqa: E402
 from tether import catalog  # noqa: E402
+from tether import jsonout  # noqa: E402
 from tether import handoff  # noqa: E402
 from tether import runfile  # noqa: E402
 from tether import transport as tp  # noqa: E402
@@ -507,7 +508,7 @@ def run_probe(endpoint: str, ns: str, rate: float, kind: str, n_agents: int, ste
             sent = (arr - sent_ns) / 1e3
         parts = key.split("/")
         rows.append((int(parts[2] == "agent"), int(parts[3]), k, (arr - (t0_ns + k * 1e9 / rate)) / 1e3, sent))
-    Path(out).write_text(json.dumps({"rows": rows, "received": len(arrivals), "expected": expected}))
+    Path(out).write_text(jsonout.dumps({"rows": rows, "received": len(arrivals), "expected": expected}, indent=None))
 
 
 PHASES = (0.25, 0.5, 0.75, 0.9)
@@ -1260,7 +1261,7 @@ def main(argv: list[str]) -> None:
         say(f"\ndone in {time.monotonic() - t0:.0f} s; load average at end " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
     if a.json is not None:
         report["machine"]["load_at_end"] = os.getloadavg()
-        a.json.write_text(json.dumps(report, indent=1, default=float))
+        a.json.write_text(jsonout.dumps(report, indent=1, default=float))
 
 
 if __name__ == "__main__":

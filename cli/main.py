@@ -134,6 +134,20 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
     m = _load(args.mission, args.duration)
+    from tether.graph import DENSE_MAX
+
+    from tether.checks import MAX_AGENT_TICKS
+
+    if args.mode == "continuous" and m.steps * args.substeps * m.n > MAX_AGENT_TICKS:
+        raise ms.MissionError(str(args.mission), [(
+            "--substeps", f"is {args.substeps}: {m.steps} steps x {args.substeps} substeps x {m.n} agents = "
+                          f"{m.steps * args.substeps * m.n:.3g} agent-substeps, beyond the limit of "
+                          f"{MAX_AGENT_TICKS:.0e}; use fewer substeps (10 is plenty for RK4) or a shorter --duration")])
+    if args.mode == "continuous" and m.n > DENSE_MAX:  # the continuous mode inverts L1, N x N
+        raise ms.MissionError(str(args.mission), [(
+            "--mode", f"is continuous, which inverts the dense {m.n} x {m.n} matrix L1 (about "
+                      f"{8 * m.n * m.n / 2**30:.3g} GiB and O(N^3) time); use --mode discrete (sparse, the "
+                      f"runtime's semantics), or at most {DENSE_MAX} agents")])
     out = _writable_dir("--out", args.out, ("run.npz", "metrics.json"))
     prog = Progress()
     live = None
@@ -510,7 +524,7 @@ def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-mode", choices=["peer", "client", "router"], default="peer")
     g.add_argument("--listen", action="append", default=[], help="endpoint to listen on (repeatable)")
     g.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
-    g.add_argument("--lease", type=float, default=2.0, help="link lease [s]: a frozen peer is seen gone after it")
+    g.add_argument("--lease", type=_lease, default=2.0, help="link lease [s]: a frozen peer is seen gone after it")
     g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
 
 
@@ -525,11 +539,31 @@ def _positive_seconds(text: str) -> float:
     return value
 
 
+def _lease(text: str) -> float:
+    """An argparse type: a link lease [s], finite, > 0 and at most an hour."""
+    value = _positive_seconds(text)
+    if value > 3600:
+        raise argparse.ArgumentTypeError(f"{text} s: a lease beyond an hour would not see a frozen peer gone within "
+                                         "the run; give e.g. 2")
+    return value
+
+
+def _scene_rate(text: str) -> float:
+    """An argparse type: a scene rate [Hz], finite and >= 0 (0: every tick)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a rate in Hz >= 0, e.g. 25 (0: every tick)")
+    return value
+
+
 def _process_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mission", required=True)
     p.add_argument("--clock", choices=["lockstep", "realtime"], default="realtime")
     p.add_argument("--ns", default=None, help="key namespace (default: the mission name)")
-    p.add_argument("--stall-timeout", type=float, default=30.0, help="lockstep: fail after waiting this long [s]")
+    p.add_argument("--stall-timeout", type=_positive_seconds, default=30.0, help="lockstep: fail after waiting this long [s]")
     p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is gone")
     p.add_argument("--start-timeout", type=_positive_seconds, default=None,
                    help="fail (exit 1) when the start message has not come this long after the process is "
@@ -559,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "kernels when installed (without --live)")
     s.add_argument("--no-figures", action="store_true")
     s.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
-    s.add_argument("--scene-rate", type=float, default=None, metavar="HZ",
+    s.add_argument("--scene-rate", type=_scene_rate, default=None, metavar="HZ",
                    help="rate of the 3D scene in run.mcap and the live view (default 25; 0: every tick)")
     s.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                    help="serve the run over the Foxglove WebSocket protocol while it goes on (default port 8765)")
@@ -591,11 +625,11 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--no-handover", action="store_true",
                     help="leave Zenoh's runtime threads as they are (default: hand them over, ZENOH_RUNTIME)")
     rn.add_argument("--ns", default=None)
-    rn.add_argument("--stall-timeout", type=float, default=30.0)
+    rn.add_argument("--stall-timeout", type=_positive_seconds, default=30.0)
     rn.add_argument("--listen", action="append", default=[],
                     help="another endpoint for the launcher's router, for tools that attach to the run "
                          "(tether netem-set, plain Zenoh clients); repeatable")
-    rn.add_argument("--lease", type=float, default=2.0,
+    rn.add_argument("--lease", type=_lease, default=2.0,
                     help="Zenoh link lease [s] of every process: a frozen or cut-off one is seen gone after it")
     rn.add_argument("--wrap", action="append", default=[], metavar="ID=PREFIX",
                     type=_vehicle_option(lambda v: tuple(shlex.split(v)), "3='ip netns exec uav3'"),
@@ -681,7 +715,7 @@ def build_parser() -> argparse.ArgumentParser:
     mc = sub.add_parser("mcap", help="write a run's Foxglove file (run.mcap) from its run file")
     mc.add_argument("run", help="a run.npz or the directory holding it")
     mc.add_argument("--out", default=None, help="the MCAP file (default: run.mcap beside run.npz)")
-    mc.add_argument("--scene-rate", type=float, default=None, metavar="HZ",
+    mc.add_argument("--scene-rate", type=_scene_rate, default=None, metavar="HZ",
                     help="rate of the 3D scene (default 25; 0: every tick)")
     mc.set_defaults(func=cmd_mcap)
 

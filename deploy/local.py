@@ -71,14 +71,15 @@ with a non-numeric id, say) is dropped and counted, and the count is logged at t
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import os
 import signal
 import subprocess
 import sys
 import time
+import shutil
 from dataclasses import dataclass, field
+from typing import BinaryIO
 from pathlib import Path
 from typing import Literal
 
@@ -96,7 +97,7 @@ from deploy.inject import describe_exit
 from deploy.relay import Relay
 from tether import mission as ms
 from tether import transport as tp
-from tether import handoff
+from tether import handoff, jsonout
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
 from tether.progress import Progress
@@ -173,12 +174,26 @@ class Child:
     def name(self) -> str:
         return f"{self.role}/{self.node_id}"
 
+    def error(self) -> str | None:
+        """The last error line of its log (``... ERROR role/id: failed: ...``), if any."""
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return None
+        for line in reversed(lines):
+            if " ERROR " in line:
+                return line.split(": ", 1)[-1]
+        return None
+
     def tail(self, lines: int = 15) -> str:
         try:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
         except OSError:
             return "(no log)"
 
+
+LOG_RESERVE = 4 * 2**20
+"""Free space [bytes] a run's ``--out`` must have beyond the run file's estimate, for its logs."""
 
 HANDOVER = "(rx: (handover: app), acc: (handover: app), net: (handover: app), tx: (handover: app))"
 
@@ -191,6 +206,46 @@ class Launch:
     children: list[Child] = field(default_factory=list)
     relays: dict[tuple[str, int], Relay] = field(default_factory=dict)
     """Processes whose link to the router goes through a relay (partition faults)."""
+    logs: dict[tuple[str, int], BinaryIO] = field(default_factory=dict)
+    """Every child's log file, opened by :meth:`open_logs` before any process starts."""
+
+    def open_logs(self) -> None:
+        """Check that ``--out`` can hold the run, then create ``logs/`` and every child's log file,
+        before any process starts. Raises :class:`~tether.mission.MissionError` naming ``--out``
+        (exit status 2): the file that could not be made and why (ENOSPC, EACCES, EROFS...), or
+        the free space against the run file's estimate (:func:`tether.checks.run_bytes`)."""
+        from tether import checks
+        from tether.node import os_error
+
+        out = self.opts.out
+        try:
+            free = shutil.disk_usage(out).free
+        except OSError as exc:
+            raise ms.MissionError("tether run", [("--out", f"cannot use {out}: {os_error(exc)}")]) from None
+        need = checks.run_bytes(self.mission) + LOG_RESERVE
+        if free < need:
+            raise ms.MissionError("tether run", [("--out", (
+                f"{out} has {free / 2**20:.3g} MiB free, but the run needs about {need / 2**20:.3g} MiB "
+                f"(the run file's arrays and {LOG_RESERVE // 2**20} MiB of logs); free space on its file "
+                "system, give another --out, or shorten the run (--duration)"))])
+        path = out / "logs"
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            for role, nid in self.members():
+                path = out / "logs" / f"{role}-{nid}.log"
+                self.logs[role, nid] = open(path, "wb")
+        except OSError as exc:
+            self.close_logs(remove=True)
+            raise ms.MissionError("tether run", [("--out", f"cannot create the run's logs: {os_error(exc)}; "
+                                                           "nothing was started")]) from None
+
+    def close_logs(self, remove: bool = False) -> None:
+        """Close the log files not handed to a process (and ``remove`` them: none was used)."""
+        for fh in self.logs.values():
+            fh.close()
+            if remove:
+                Path(fh.name).unlink(missing_ok=True)
+        self.logs.clear()
 
     @property
     def keys(self) -> wire.Keys:
@@ -204,8 +259,8 @@ class Launch:
 
     def spawn(self, router: str, sec: localtls.Security | None = None) -> None:
         o = self.opts
-        logs = o.out / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
+        if not self.logs:
+            self.open_logs()
         env = dict(os.environ)
         # numpy works on 2- and 3-vectors in every role: one BLAS thread each (a pool of idle
         # OpenBLAS threads per process costs memory and wake-ups, never speed, on these sizes)
@@ -240,8 +295,9 @@ class Launch:
                         "--listen", tp.loopback_endpoint(tp.free_tcp_port())]
             if vehicle and nid in o.wrap:
                 cmd = [*o.wrap[nid], *cmd]
-            path = logs / f"{role}-{nid}.log"
-            with open(path, "wb") as fh:
+            fh = self.logs.pop((role, nid))
+            path = Path(fh.name)
+            with fh:
                 proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
                                         env=env, start_new_session=True)
             self.children.append(Child(role, nid, proc, path))
@@ -568,9 +624,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     launch = Launch(mission_path.resolve(), m, opts)
     problems = check_vehicle_options(m, opts) + check_faults(m, opts, launch.members())
     if opts.clock == "lockstep":
-        problems += [(f"agents[{k}].plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
+        problems += [(f"agent {a.id}.plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")
-                     for k, a in enumerate(m.agents) if isinstance(a.plant, ms.CrazyfliePlant)]
+                     for a in m.agents if isinstance(a.plant, ms.CrazyfliePlant)]
     if opts.sitl is not None:
         problems += sitl.problems(m, opts.sitl)
     if not opts.insecure:
@@ -585,6 +641,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                                 ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
     opts.out.mkdir(parents=True, exist_ok=True)
+    launch.open_logs()  # a full or read-only --out: exit 2 naming the file, before anything starts
     sec: localtls.Security | None = None
     if opts.insecure:
         log.warning("--insecure: no certificates and no access rules; anyone who reaches the router (%s) can "
@@ -709,8 +766,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     events = sup.monitor.events if sup is not None else []
     if sup is not None:
         if opts.faults:
-            (opts.out / "faults.json").write_text(json.dumps(sup.injector.records(), indent=2) + "\n")
-        (opts.out / "events.json").write_text(json.dumps([e.to_json() for e in events], indent=2) + "\n")
+            (opts.out / "faults.json").write_text(jsonout.dumps(sup.injector.records()) + "\n")
+        (opts.out / "events.json").write_text(jsonout.dumps([e.to_json() for e in events]) + "\n")
     if interrupted:
         status = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     elif status == EXIT_OK:
@@ -721,6 +778,10 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         if bad:
             status = EXIT_FAILED
             log.error("failed: %s", ", ".join(f"{c.name} ({c.status})" for c in bad))
+            for c in bad:
+                why = c.error()
+                if why:
+                    log.error("  %s: %s", c.name, why)
     shown = [e for e in events if e.what != "back"]
     if shown:
         log.warning("%d event(s) in this run (who, when, what, why):", len(shown))
@@ -744,6 +805,15 @@ def _recorded(path: Path, status: int) -> int:
             meta = runfile.decode_meta(str(run["meta"]))
     except (OSError, KeyError, ValueError, msgspec.MsgspecError) as exc:
         log.error("no readable run file at %s (%s): see logs/recorder-0.log", path, exc)
+        try:  # the usual cause, which the recorder's own log (on the same disk) may not hold
+            free = shutil.disk_usage(path.parent).free
+        except OSError:
+            free = None
+        if free is not None and free < LOG_RESERVE:
+            log.error("the file system of %s has %d bytes free: a full disk (free space, or give another --out)",
+                      path.parent, free)
+        if path.with_name(path.name + ".part").exists():
+            log.error("%s.part is a run file the recorder did not finish writing", path)
         return EXIT_FAILED if status == EXIT_OK else status
     if meta.complete is False:
         got, want = meta.samples_recorded, meta.samples_expected

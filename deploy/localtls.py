@@ -87,10 +87,18 @@ CONTROL_RATE = 50.0
 """Real time: messages per second per link on the start and the operator's order keys."""
 
 
-def ingress_limits(m: ms.Mission, ns: str) -> tuple[tuple[str, float], ...]:
-    """The listeners' per-link ingress limits of a real-time run of ``m`` (``downsampling``): each
-    published key of the run at :data:`LIMIT_FACTOR` times the rate (the start and the operator's
-    orders at :data:`CONTROL_RATE`). A flood on one of these keys,
+def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[str, float], ...]:
+    """The listeners' per-link ingress limits of a real-time run of ``m`` (``downsampling``): the start
+    and the operator's orders at :data:`CONTROL_RATE` and, with ``streams`` (the launcher's choice in
+    every mode), each other published key of the run at :data:`LIMIT_FACTOR` times the rate. The price
+    of the stream limits: Zenoh's downsampling passes one message per ``1/freq`` window, so the backlog
+    a healed link or a loaded machine delivers at once is cut to its first (measured, Section 4, 8 s,
+    a 1 s partition of agent 3, load average 10-13: 5640 and 5941 of 7209 samples recorded, 66 of agent
+    3's 201 from the cut to 1 s after; without them 7116-7156 of 7209, 201 of 201). They stay on, even
+    authenticated (where the access rules already keep anyone but a stream's own process off its key),
+    because the formation flew worse without them on a loaded machine: RMS of ||xi|| over 7-14 s of
+    20 s authenticated real-time runs, 0.443 and 0.442 m with them (the reference simulator: 0.441 m),
+    17.3, 0.70 and 0.99 m without (one run each, load average 8-16). A flood on one of these keys,
     from any one session, reaches the subscribers at that rate at most, decided in Zenoh's threads
     before any Python callback, while every other session's link keeps its own budget. (Not in
     lockstep, whose ticks go out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule
@@ -100,7 +108,7 @@ def ingress_limits(m: ms.Mission, ns: str) -> tuple[tuple[str, float], ...]:
     k = wire.Keys(ns)
     control = {k.start: CONTROL_RATE, k.safety: CONTROL_RATE}  # one start; an order is 6 copies over 0.5 s
     keys = sorted({x for g in grants(m, ns) if g.name != "router" for x in g.publish})
-    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys)
+    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys if streams or x in control)
 
 
 def _host_of(endpoint: str) -> str | None:

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 import zenoh
 
+from tether import jsonout
 from tether import transport as tp
 from tether import wire
 from tether.netprofile import LinkProfile, LinkRule, Network, ProfileError, convert, resolve, validate_network
@@ -106,7 +107,7 @@ def serve(node: "Node") -> None:
     def refuse(query: zenoh.Query, why: str) -> None:
         # a reply on its own key, not reply_err: an error reply travels on the query's key, which for
         # `agent/*/netem` the access rules cannot let an agent reply on without letting it answer for others
-        query.reply(key, json.dumps({"node": node.args.node_id, "changed": [], "error": why}))
+        query.reply(key, jsonout.dumps({"node": node.args.node_id, "changed": [], "error": why}, indent=None))
 
     def handle(query: zenoh.Query) -> None:
         payload = query.payload
@@ -122,7 +123,7 @@ def serve(node: "Node") -> None:
             refuse(query, f"{node.args.role} {node.args.node_id}: refused: {exc}")
             return
         # on its own key, even to a wildcard query: the access rules let an agent reply for itself only
-        query.reply(key, json.dumps({"node": node.args.node_id, "changed": done}))
+        query.reply(key, jsonout.dumps({"node": node.args.node_id, "changed": done}, indent=None))
 
     node.queryable(key, handle)
 

@@ -11,7 +11,6 @@ Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from recorder.export import mcap_beside
-from tether import gate, wire
+from tether import gate, jsonout, wire
 from tether.node import Node
 from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
@@ -72,6 +71,8 @@ class Recording:
         self.count = np.zeros(T, dtype=np.int64)
         self.expected = 1 + 2 * n + (m.payload is not None)
         self.saved = False
+        self.failed: OSError | None = None
+        """Why :meth:`save` could not write the run file, if it could not."""
 
     def leader(self, msg: wire.State) -> None:
         if 0 <= msg.k < len(self.count):
@@ -129,6 +130,17 @@ class Recording:
         self.count[k] += 1
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
+        """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
+        :attr:`failed` (the stop hook then does not try again) and re-raised: :func:`tether.node.serve`
+        logs it with the path and the cause (:func:`tether.node.os_error`), no traceback, and exits 1."""
+        self.failed = None
+        try:
+            return self._save(complete, drops)
+        except OSError as exc:
+            self.failed = exc
+            raise
+
+    def _save(self, complete: bool, drops: dict[str, int]) -> Path:
         meta, safety = self.run.meta, self.run.safety
         meta.complete = complete
         meta.recorder_drops = DropCounts.of(drops)
@@ -146,7 +158,7 @@ class Recording:
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
-            lines = "".join(json.dumps(d) + "\n" for d in self.netem)
+            lines = "".join(jsonout.dumps(d, indent=None) + "\n" for d in self.netem)
             (self.out / "netem.jsonl").write_text(lines)
         self.saved = True
         log.info("wrote %s (%d of %d samples)", path, self.count.sum(), self.expected * len(self.count))
@@ -219,7 +231,7 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
 
     def on_stop(node: Node) -> None:
         rec = holder.get("rec")
-        if rec is not None and not rec.saved:
+        if rec is not None and not rec.saved and rec.failed is None:
             rec.save(complete=False, drops=node.receiver.drops)
 
     return run, on_stop

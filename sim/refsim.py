@@ -72,7 +72,7 @@ class Setup:
         n, d = m.n, m.dim
         offsets = np.zeros((n + 1, d))
         offsets[:n] = [a.offset for a in m.agents]
-        sum_wdelta = topo.kappa[:, None] * offsets[:n] - topo.adjacency[:n] @ offsets
+        sum_wdelta = topo.kappa[:, None] * offsets[:n] - graph.neighbour_sums(topo, offsets)  # O(edges), no N x N
         p0 = np.array([a.p0 for a in m.agents], dtype=float)
         v0 = np.array([a.v0 if a.v0 is not None else [0.0] * d for a in m.agents], dtype=float)
         return cls(m, topo, law.LawParams.from_mission(m), profile.build(m.leader, d),

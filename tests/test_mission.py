@@ -29,9 +29,13 @@ SHIPPED_FILES = sorted(SHIPPED.glob("*.toml"))
 MIN_CATALOGUE = 100
 """The catalogue must not shrink below this many cases."""
 
-_EXPECT = re.compile(r"^# expect: (?P<field>\S+) \| (?P<text>.+)$")
-_FIELD = re.compile(r"^(<file>|[A-Za-z_][\w-]*(\[\d+\])*(\.[A-Za-z_][\w-]*(\[\d+\])*)*)$")
-"""A field path as messages name it: ``agents[2].offset``, ``law.kp0[1]``, or ``<file>``."""
+_EXPECT = re.compile(r"^# expect: (?P<field>.+?) \| (?P<text>.+)$")
+_PLACE = r"\d+(st|nd|rd|th) \[\[(agents|edges)\]\]"
+_TABLE = rf"(agent \d+|edge \d+ → \d+)( \({_PLACE}\))?|{_PLACE}"
+_PATH = r"[A-Za-z_][\w-]*(\[\d+\])*(\.[A-Za-z_][\w-]*(\[\d+\])*)*"
+_FIELD = re.compile(rf"^(<file>|{_PATH}|({_TABLE})(\.{_PATH})?)$")
+"""A field path as messages name it: ``law.kp0[1]``, ``agent 7.offset``, ``edge 3 → 4.weight``,
+``2nd [[edges]].from`` (a table without ids), or ``<file>``."""
 
 
 def _expectations(path: Path) -> list[tuple[str, str]]:
@@ -47,6 +51,7 @@ def _assert_well_formed(problems: list[tuple[str, str]]) -> None:
     assert problems, "a MissionError must carry at least one problem"
     for field, message in problems:
         assert _FIELD.match(field), f"field {field!r} is not a path in the file"
+        assert not re.match(r"^(agents|edges)\[", field), f"{field!r} names a table by its place, not its id or ends"
         what, sep, fix = message.partition("; ")
         assert sep and what.strip() and fix.strip(), f"{field}: {message!r} does not say how to fix it after '; '"
         assert message == message.strip() and "\n" not in message, f"{field}: {message!r}"
@@ -145,7 +150,7 @@ def test_two_defects_are_both_reported() -> None:
     with pytest.raises(ms.MissionError) as info:
         ms.loads(text, source="two.toml")
     fields = [f for f, _ in info.value.problems]
-    assert sorted(fields) == ["agents[0].p0", "law.gamma_p"]
+    assert sorted(fields) == ["agent 1.p0", "law.gamma_p"]
     _assert_well_formed(info.value.problems)
     assert str(info.value).startswith("two.toml: 2 problem(s)")
 
@@ -159,7 +164,7 @@ def test_many_defects_are_all_reported() -> None:
     with pytest.raises(ms.MissionError) as info:
         ms.loads(text)
     fields = sorted(f for f, _ in info.value.problems)
-    assert fields == ["agents[3].offset", "edges[3]", "edges[3].weight", "law.sigma", "rate"]
+    assert fields == ["agent 4.offset", "edge 3 → 3", "edge 3 → 3.weight", "law.sigma", "rate"]
     _assert_well_formed(info.value.problems)
 
 
@@ -168,7 +173,7 @@ def test_assumption1_waits_for_the_ids() -> None:
     text = _section4_text().replace("{ from = 5, to = 1, weight = 1.0 }", "{ from = 6, to = 1, weight = 1.0 }")
     with pytest.raises(ms.MissionError) as info:
         ms.loads(text)
-    assert [f for f, _ in info.value.problems] == ["edges[0].from"]
+    assert [f for f, _ in info.value.problems] == ["edge 6 → 1.from"]
 
 
 def test_nan_is_reported_alone() -> None:
@@ -204,7 +209,7 @@ def test_non_utf8_file_is_a_mission_error(tmp_path: Path) -> None:
         ("kp0 = 2.0", "kp0 = [[2.0], [2.0]]", "law.kp0[0]", "is an array but must be a number"),
         ('kind = "exp_accel"', "kind = 3", "leader.profile.kind", '"waypoints"'),
         ("offset = [1.0, 0.0]", 'offset = [1.0, 0.0]\nplant = "double_integrator"',
-         "agents[0].plant", '`plant = { kind = "double_integrator" }`'),
+         "agent 1.plant", '`plant = { kind = "double_integrator" }`'),
         ("decay = 0.1", "decay = 0.1, dekay = 1.0", "leader.profile.dekay", "rename it to `decay`"),
         ("assumed = [", "assumed = [1, ", "assumed[0]", "is an integer but must be a string"),
     ],
@@ -225,7 +230,19 @@ def test_field_of_falls_back_to_msgspec_text() -> None:
     field, message = ms._field_of("Expected `int` >= 0 - at `$.agents[0].id`")
     assert field == "agents[0].id"
     assert message.startswith("expected `int` >= 0; ")
-    _assert_well_formed([(field, message)])
+    _assert_well_formed(ms.by_id([(field, message)], [None], []))  # an id that did not decode: by place
+
+
+def test_tables_are_named_by_id_and_ends_not_by_place() -> None:
+    """``agents[k]`` / ``edges[k]`` become the agent's id and the edge's ends; the place is added only
+    where the id or the ends do not say which table is meant (absent, or repeated in the file)."""
+    problems = [("agents[0].offset", "x; y"), ("agents[1].p0[1]", "x; y"), ("agents[2].id", "x; y"),
+                ("edges[0].weight", "x; y"), ("edges[1]", "x; y"), ("edges[2].from", "x; y"), ("rate", "x; y")]
+    named = [f for f, _ in ms.by_id(problems, [7, 2, 2], [(3, 4), (1, 2), None])]
+    assert named == ["agent 7.offset", "agent 2 (2nd [[agents]]).p0[1]", "agent 2 (3rd [[agents]]).id",
+                     "edge 3 → 4.weight", "edge 1 → 2", "3rd [[edges]].from", "rate"]
+    assert [ms.ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 101, 111)] == [
+        "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "101st", "111th"]
 
 
 # --------------------------------------------------------------------------- per_axis

@@ -257,6 +257,24 @@ def test_gate_rejects_each_reason_and_moves_its_reference_only_on_accept() -> No
     assert g.p_ref == [0.2, 0.0, 1.0]
 
 
+def test_a_replayed_old_sample_does_not_take_the_reference_back() -> None:
+    """The sender flies 10 m/s along x; a replay of its tick-0 sample passes (it was true once) but
+    leaves the reference at the newest sample, so that a forgery 20 m behind the truth, within reach
+    of the old position after a second, is still rejected."""
+    g = Gate(H, max_speed=10.0, margin=0.5, p_ref=[0.0, 0.0, 1.0])
+    real = [state(k, [0.1 * k, 0.0, 1.0], vel=[10.0, 0.0, 0.0]) for k in range(101)]
+    for s in real:
+        assert g.check(s) is None
+    assert (g.p_ref, g.t_ref) == (real[100].p, real[100].t)
+    assert g.check(real[0]) is None  # replayed: plausible, so not rejected...
+    assert g.check(real[50]) is None
+    assert (g.p_ref, g.t_ref) == (real[100].p, real[100].t)  # ...but the reference stays the newest
+    assert g.accepted == 103
+    assert g.check(state(101, [-9.9, 0.0, 1.0])) == "jump"  # 10.1 m from p(0) in 1.01 s would pass
+    assert g.check(state(101, [10.1, 0.0, 1.0], vel=[10.0, 0.0, 0.0])) is None
+    assert g.p_ref == [10.1, 0.0, 1.0]
+
+
 def test_a_forged_sample_for_a_coming_tick_never_shadows_the_real_one() -> None:
     """A Source keeps the first sample of each tick; the forgery comes first, far away."""
     g = Gate(H, max_speed=30.0, margin=1.0, p_ref=[0.0, 0.0, 1.0])

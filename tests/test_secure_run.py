@@ -6,8 +6,9 @@ Every run is real processes on loopback; every wait is on a condition with a tim
 * a default run admits no session without a certificate of the run (plain TCP, TLS without a client
   certificate), while the operator identity it writes (``DIR/tls/control-0.json5``) attaches and
   lands the swarm with ``tether land --zenoh-config``;
-* a flood of junk on an input of every process (the start key) for 8 s leaves the formation error
-  within 10 % of a clean real-time run's;
+* a flood of junk on an input of every vehicle (the order key, from the operator identity) for 8 s
+  leaves the formation error
+  (RMS of ||xi_i|| over the agents and the flood's ticks) within 10 % of a clean real-time run's;
 * a replay of agent 1's plant samples is counted and never re-published as agent 1's state, and a
   replay of a neighbour's samples does not push a link's delivery above 1;
 * a lockstep acknowledgement on a key with a non-numeric id is dropped and counted, not a crash;
@@ -87,12 +88,9 @@ def test_a_default_run_admits_only_its_own_identities_and_the_operator_lands_it(
 FLOODER = textwrap.dedent("""
     import os, sys, time, zenoh
     os.nice(19)  # an attacker elsewhere: the flood's messages, not its CPU, are what is tested
-    endpoint, key, delay, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+    config, key, delay, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
     RATE = 255_000  # messages per second at most (the rate of the reported incident)
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", '["%s"]' % endpoint)
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = zenoh.Config.from_file(config)  # the operator identity the run wrote beside it
     with zenoh.open(conf) as s:
         pub = s.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
         junk = bytes(range(64))  # 64 bytes, not a message: every copy is rejected by the decoder
@@ -109,24 +107,29 @@ FLOODER = textwrap.dedent("""
 """)
 
 
-def formation_error(run: Run, since: float) -> float:
-    """The 95th percentile over ticks t_k >= ``since`` of the largest ||xi_i(t_k)|| [m]: the formation
-    error most of the time, not one tick that this shared machine's load delayed (the envelope, a
-    maximum, moved by 2x between two clean runs here). A flood that mattered (the incident: 16.6 m
-    for 4 s of 11) moves it all the same."""
-    recent = run.t >= since - 1e-9
-    worst = np.nanmax(np.linalg.norm(run.xi[recent], axis=-1), axis=1)
-    return float(np.nanpercentile(worst, 95))
+def formation_error(run: Run, since: float, until: float) -> float:
+    """The RMS over every agent and every tick ``since <= t_k <= until`` of ||xi_i(t_k)|| [m], xi as
+    the agents computed it (Eq. 8). Why this statistic: it weighs every agent and every tick of the
+    window alike, so that a sustained rise (the incident: 16.6 m for 4 s of 11) moves it in full, and
+    a rise on one agent only counts too, while one tick this shared machine's load delayed moves it by
+    a fraction of a percent; a maximum (the envelope) moved by 2x between two clean runs here, and a
+    percentile of the worst agent hides what the other agents do. Ticks whose samples were lost (NaN)
+    are left out."""
+    window = (run.t >= since - 1e-9) & (run.t <= until + 1e-9)
+    return float(np.sqrt(np.nanmean(np.linalg.norm(run.xi[window], axis=-1) ** 2)))
 
 
 def _flight(tmp: Path, ns: str, flood: bool) -> tuple[Run, str]:
-    """A 20 s real-time run of Section 4 (``--insecure``: a plain session attaches), flooded or not."""
-    attach = tp.loopback_endpoint(tp.free_tcp_port())
+    """A 20 s real-time run of Section 4, authenticated (the default), flooded or not by a tool
+    holding the operator identity: a hostile tool that may publish on the order key, which every
+    agent and plant subscribes to."""
+    attach = f"tls/127.0.0.1:{tp.free_tcp_port()}"
     report = ""
-    with launch(tmp, ns, "--clock", "realtime", "--duration", "20", "--insecure", "--listen", attach) as run:
+    with launch(tmp, ns, "--clock", "realtime", "--duration", "20", "--listen", attach) as run:
         wait_for_realtime_start(run)
         if flood:  # tick 0 is 1 s after the start message (start_lead): from about FLOOD_FROM s of mission time
-            flooder = subprocess.run([sys.executable, "-c", FLOODER, attach, wire.Keys(ns).start,
+            operator = str(run.out / "tls" / "control-0.json5")
+            flooder = subprocess.run([sys.executable, "-c", FLOODER, operator, wire.Keys(ns).safety,
                                       str(FLOOD_FROM - 1.0), str(FLOOD_FOR)], capture_output=True, text=True,
                                      timeout=STARTUP)
             assert flooder.returncode == 0, flooder.stderr
@@ -141,22 +144,29 @@ def _flight(tmp: Path, ns: str, flood: bool) -> tuple[Run, str]:
 
 def test_a_flood_on_every_process_input_leaves_the_formation_error_within_10_percent(tmp_path: Path) -> None:
     """The same mission twice, one after the other (two at once overload this machine, flood or not):
-    clean, then flooded with junk on the start key, which every process subscribes to, from mission
+    clean, then flooded with junk on the order key, which every agent and plant subscribes to, from mission
     time FLOOD_FROM for FLOOD_FOR seconds. The flooder runs at the lowest priority (an attacker
     elsewhere: its messages, not its CPU, are tested). Compared from the flood's second second on."""
     ns = f"flood-{os.getpid()}"
     clean, clean_report = _flight(tmp_path / "clean", f"{ns}-clean", flood=False)
     flooded, report = _flight(tmp_path / "flooded", f"{ns}-flooded", flood=True)
-    since = FLOOD_FROM + 1.0
-    got, want = formation_error(flooded, since), formation_error(clean, since)
+    since, until = FLOOD_FROM + 1.0, FLOOD_FROM + FLOOD_FOR
+    got, want = formation_error(flooded, since, until), formation_error(clean, since, until)
+    ideal = formation_error(refsim.simulate(load_mission(SECTION4, 20.0)), since, until)
     drops = np.nanmax(flooded.runtime.drops, axis=0)  # per agent, since the start
-    print(f"\nflood: {report} on control/0/start; reached and dropped by each agent: {drops.astype(int).tolist()}; "
-          f"formation error (p95 of the worst agent) from t = {since:g} s: flooded {got:.4f} m, clean {want:.4f} m "
-          f"({clean_report}) ({100 * (got / want - 1):+.1f} %); envelopes (max): flooded "
-          f"{envelope(flooded, since):.4f} m, clean {envelope(clean, since):.4f} m")
+    print(f"\nflood: {report} on control/0/safety; reached and dropped by each agent: {drops.astype(int).tolist()}; "
+          f"formation error (RMS of ||xi_i|| over agents and ticks, t = {since:g}..{until:g} s): flooded {got:.4f} m, "
+          f"clean {want:.4f} m ({clean_report}) ({100 * (got / want - 1):+.1f} %), reference simulator "
+          f"{ideal:.4f} m; envelopes (max): flooded {envelope(flooded, since):.4f} m, clean "
+          f"{envelope(clean, since):.4f} m")
     assert (drops > 0).all()  # the flood did reach every agent (rejected and counted)
-    # the claim is that a flood does not raise it (a clean run on this shared machine may do worse by itself)
-    assert got <= 1.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
+    # the clean run must be the mission as flown (it is, on a machine with the CPU for 10 processes at
+    # 100 Hz: within 0.1 % of the reference simulator); one the machine's load degraded by itself is
+    # no measure of what the flood did
+    assert abs(want - ideal) <= 0.10 * ideal, (f"the clean run itself is {100 * (want / ideal - 1):+.0f} % off the "
+                                               f"reference simulator ({want:.4f} m vs {ideal:.4f} m): the machine "
+                                               "was too loaded for a real-time comparison")
+    assert abs(got - want) <= 0.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
 
 
 # =========================================================================== replays

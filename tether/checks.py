@@ -11,9 +11,9 @@ flyable within ``[safety]``) and the run's size (:func:`run_bytes` against :data
 :func:`tether.mission.loads` runs it on every mission it decodes.
 
 Every check is O(N + edges + profile points): a 10 000-agent mission is checked in about a second.
-A problem of an agent or an edge is named by its path in the file (``agents[2].offset``,
-``edges[4].weight``) and, in its message, by the agent's id (``agent 7:``) or the edge's ends
-(``edge 3 → 4:``), which is what a reader of a large generated mission looks for.
+A problem of an agent or an edge is named by the agent's id or the edge's ends, not by the table's
+place in the file (``agent 7.offset``, ``edge 3 → 4.weight``; :func:`tether.mission.by_id`), which
+is what a reader of a large generated mission looks for.
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ from tether.mission import (
     Sinusoid,
     VelocitySchedule,
     Waypoints,
+    by_id,
+    ordinal,
     per_axis,
 )
 from tether.netprofile import validate_network
@@ -233,7 +235,8 @@ def validate(m: Mission) -> Problems:
             out.append((f"agents[{k}].id", f"is {a.id}, beyond {MAX_ID} (ids go on the wire as integers and into "
                                            "keys); use a smaller positive id"))
         if a.id in seen:
-            out.append((f"agents[{k}].id", f"is {a.id}, the id of agents[{seen[a.id]}]; give every agent its own id"))
+            out.append((f"agents[{k}].id", f"is {a.id} in the {ordinal(seen[a.id] + 1)} and the {ordinal(k + 1)} "
+                                           "[[agents]] tables; give every agent its own id"))
         seen.setdefault(a.id, k)
         if a.id == m.leader.id:
             out.append((f"agents[{k}].id", f"is {a.id}, the leader's id; give the agent and the leader "
@@ -258,28 +261,28 @@ def validate(m: Mission) -> Problems:
     lo, hi = WEIGHT_RANGE
     for k, e in enumerate(m.edges):
         where = f"edges[{k}]"
-        name = f"edge {e.src} → {e.dst}"
         if e.src not in nodes:
-            out.append((f"{where}.from", f"{name}: from is {e.src}, which is neither an agent nor the leader; "
+            out.append((f"{where}.from", f"is {e.src}, which is neither an agent nor the leader; "
                                          f"use one of the ids {listing}"))
         if e.dst not in nodes:
-            out.append((f"{where}.to", f"{name}: to is {e.dst}, which is neither an agent nor the leader; "
+            out.append((f"{where}.to", f"is {e.dst}, which is neither an agent nor the leader; "
                                        f"use one of the ids {listing}"))
         if e.dst == m.leader.id and e.src != e.dst:
-            out.append((f"{where}.to", f"{name}: to is {e.dst}, the virtual leader, which hears nobody (Eq. 6); "
+            out.append((f"{where}.to", f"is {e.dst}, the virtual leader, which hears nobody (Eq. 6); "
                                        f"remove the edge or reverse it (`from = {e.dst}, to = {e.src}`)"))
         if e.src == e.dst:
-            out.append((where, f"{name} is a self-loop on {e.src} (a_ii = 0 by definition); remove it"))
+            out.append((where, f"is a self-loop on {e.src} (a_ii = 0 by definition); remove it"))
         if e.weight <= 0:
-            out.append((f"{where}.weight", f"{name}: weight is {e.weight} but an edge has a_ij > 0; give a positive "
+            out.append((f"{where}.weight", f"is {e.weight} but an edge has a_ij > 0; give a positive "
                                            "weight, or remove the edge for a_ij = 0"))
         elif not lo <= e.weight <= hi:
-            out.append((f"{where}.weight", f"{name}: weight is {e.weight:g}, outside [{lo:g}, {hi:g}] (a wider "
+            out.append((f"{where}.weight", f"is {e.weight:g}, outside [{lo:g}, {hi:g}] (a wider "
                                            "spread of weights makes L1 numerically singular, Lemma 3); rescale "
                                            "the weights, or remove the edge for a_ij = 0"))
         key = (e.src, e.dst)
         if key in pairs:
-            out.append((where, f"{name} repeats edges[{pairs[key]}]; merge them into one edge with one weight"))
+            out.append((where, f"repeats the {ordinal(pairs[key] + 1)} [[edges]] table (both are {e.src} → {e.dst}); "
+                               "merge them into one edge with one weight"))
         pairs.setdefault(key, k)
 
     # law
@@ -424,15 +427,9 @@ def _validate_bounds(m: Mission, out: Problems) -> None:
 
 
 def _label(m: Mission, out: Problems) -> Problems:
-    """Name the agent of every ``agents[k]...`` problem by its id (``agent 7: ...``)."""
-    labelled: Problems = []
-    for field, msg in out:
-        if field.startswith("agents[") and "]" in field:
-            k = field[len("agents["):field.index("]")]
-            if k.isdigit() and int(k) < len(m.agents) and not msg.startswith("agent "):
-                msg = f"agent {m.agents[int(k)].id}: {msg}"
-        labelled.append((field, msg))
-    return labelled
+    """Name every ``agents[k]…`` problem by the agent's id and every ``edges[k]…`` one by the edge's
+    ends (``agent 7.offset``, ``edge 3 → 4.weight``)."""
+    return by_id(out, [a.id for a in m.agents], [(e.src, e.dst) for e in m.edges])
 
 
 def _validate_safety(m: Mission, out: Problems) -> None:

@@ -15,6 +15,10 @@ numbers). The gate then asks whether it could be true, and rejects, with a count
   sample the reference is the sender's initial position from the mission at t = 0;
 * ``speed`` — its velocity is beyond ``max_speed``.
 
+Only an accepted sample newer than the last accepted one (a later ``t``) moves the reference: a
+replayed old sample, which may well pass (it was true once), must not take the reference back in
+time, where a forgery could then be measured against an old position with a long time to reach it.
+
 A rejected sample is never stored, so a forged sample for an upcoming tick cannot shadow the real
 one (a :class:`tether.inputs.Source` keeps the first sample of each tick): to be stored it must be
 where the sender really could be. A forgery that passes is, by construction, within reach of the
@@ -71,11 +75,15 @@ class Gate:
     now: Callable[[], float] | None = None
     """Real time: the receiver's mission time [s] (its clock)."""
     rejected: dict[str, int] = field(default_factory=dict)
+    accepted: int = 0
+    """Samples accepted (each newer one moved the reference)."""
 
     def check(self, msg: Any) -> str | None:
         reason = self._reason(msg)
         if reason is None:
-            self.p_ref, self.t_ref = list(msg.p), msg.t
+            if self.accepted == 0 or msg.t > self.t_ref:  # never back in time (a replay)
+                self.p_ref, self.t_ref = list(msg.p), msg.t
+            self.accepted += 1
         else:
             self.rejected[reason] = self.rejected.get(reason, 0) + 1
         return reason

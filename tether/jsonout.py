@@ -1,4 +1,6 @@
-"""JSON output files (metrics, sweep tables): strict JSON, with nothing JSON cannot hold. Pure.
+"""JSON output files (metrics, sweep tables, a run's events and faults, netem logs, replies, bench
+reports): strict JSON, with nothing JSON cannot hold. Pure. Every JSON the project writes goes
+through :func:`dumps`.
 
 Python's ``json`` writes NaN and infinity as the bare words ``NaN`` and ``Infinity``, which no JSON
 parser but Python's accepts. :func:`dumps` writes them as ``null`` instead (a metric with no
@@ -10,6 +12,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +33,9 @@ def finite(obj: object) -> object:
     return obj
 
 
-def dumps(obj: object, indent: int | None = 2) -> str:
-    """``obj`` as strict JSON text (see the module docstring); raises TypeError for a non-JSON value."""
-    return json.dumps(finite(obj), indent=indent, allow_nan=False)
+def dumps(obj: object, indent: int | None = 2, default: Callable[[Any], object] | None = None) -> str:
+    """``obj`` as strict JSON text (see the module docstring); raises TypeError for a non-JSON value.
+    ``default``: as :func:`json.dumps`'s (a value for an object JSON cannot hold), its result made
+    :func:`finite` too."""
+    fallback = None if default is None else (lambda o: finite(default(o)))
+    return json.dumps(finite(obj), indent=indent, allow_nan=False, default=fallback)

@@ -3,8 +3,9 @@
 A mission file is decoded into :class:`Mission` with msgspec (unknown fields are errors; the bases
 and the error come from :mod:`tether.schema`), then :func:`validate` (:mod:`tether.checks`) checks
 what a type cannot say: the graph (Assumption 1, self-loops, weights, ids), dimensions, the law's
-parameters, and finiteness. Every error names the field by its path in the file
-(``agents[2].offset``) and says how to fix it, as ``"<what is wrong>; <how to fix it>"``.
+parameters, and finiteness. Every error names the field by its path in the file, with an agent
+named by its id and an edge by its ends (``agent 7.offset``, ``edge 3 → 4.weight``, see
+:func:`by_id`), and says how to fix it, as ``"<what is wrong>; <how to fix it>"``.
 :func:`load` does both and returns a :class:`Mission`; it raises :class:`MissionError` listing every
 problem found, not only the first (a type error stops decoding, so it is reported alone).
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Literal
@@ -435,25 +437,112 @@ class Mission(Strict, frozen=True):
         return [a.id for a in self.agents]
 
     def index_of(self, node_id: int) -> int:
-        """Row of a node in the simulator's arrays: agents ``0..N-1`` in file order, the leader ``N``."""
+        """Row of a node in the simulator's arrays: agents ``0..N-1`` in file order, the leader ``N``. O(1)."""
         if node_id == self.leader.id:
             return self.n
-        return self.agent_ids.index(node_id)
+        row = _rows(self.agents).get(node_id)
+        if row is None:
+            raise ValueError(f"{node_id} is not an agent of mission {self.name!r}")
+        return row
 
     def agent(self, agent_id: int) -> Agent:
-        for a in self.agents:
-            if a.id == agent_id:
-                return a
-        raise KeyError(f"no agent with id {agent_id}")
+        """The agent with id ``agent_id`` (the first, should the file repeat it). O(1)."""
+        row = _rows(self.agents).get(agent_id)
+        if row is None:
+            raise KeyError(f"no agent with id {agent_id}")
+        return self.agents[row]
+
+
+_ROWS: dict[int, tuple[list[Agent], dict[int, int]]] = {}
+"""``id(agents)`` -> (the list, agent id -> first row): the rows of the last few missions' agents,
+so that looking an agent up by id is O(1), not O(N) (a 10 000-agent mission looks up every agent).
+The entry holds the list itself, so its ``id`` cannot be reused while it is here."""
+
+
+def _rows(agents: list[Agent]) -> dict[int, int]:
+    hit = _ROWS.get(id(agents))
+    if hit is None or hit[0] is not agents:
+        rows: dict[int, int] = {}
+        for k, a in enumerate(agents):
+            rows.setdefault(a.id, k)
+        if len(_ROWS) >= 16:
+            _ROWS.clear()
+        hit = _ROWS[id(agents)] = (agents, rows)
+    return hit[1]
 
 
 # --------------------------------------------------------------------------- errors
 class MissionError(SchemaError):
     """A mission file is not valid. ``problems`` holds one ``(field, message)`` pair per problem.
 
-    ``field`` is the path of the offending value in the file (``agents[2].offset``, ``law.kp0[1]``),
+    ``field`` is the path of the offending value in the file, an agent named by its id and an edge
+    by its ends (``agent 7.offset``, ``edge 3 → 4.weight``, ``law.kp0[1]``; :func:`by_id`),
     ``"<file>"`` for the file as a whole. Every message reads ``"<what is wrong>; <how to fix it>"``.
     """
+
+
+_TABLE = re.compile(r"^(?P<table>agents|edges)\[(?P<k>\d+)\](?P<rest>.*)$", re.DOTALL)
+
+
+def ordinal(n: int) -> str:
+    """``1`` -> ``"1st"``, ``2`` -> ``"2nd"``, ``11`` -> ``"11th"``, ``23`` -> ``"23rd"``."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def by_id(problems: Problems, agent_ids: list[int | None], edge_ends: list[tuple[int, int] | None]) -> Problems:
+    """``problems`` with every ``agents[k]…`` / ``edges[k]…`` field named as a reader of the file
+    looks for it: ``agent 7.offset``, ``edge 3 → 4.weight``. Pure.
+
+    ``agent_ids[k]`` is the id of the file's k-th ``[[agents]]`` table and ``edge_ends[k]`` the
+    ``(from, to)`` of its k-th ``[[edges]]`` table, ``None`` where the file gives none (then, and
+    only then, the table is named by its place: ``3rd [[agents]]``); an id or a pair of ends that
+    the file repeats is named with its place too (``agent 2 (5th [[agents]])``), since the id alone
+    would not say which table is meant.
+    """
+    ids: dict[int, int] = {}
+    for i in agent_ids:
+        if i is not None:
+            ids[i] = ids.get(i, 0) + 1
+    ends: dict[tuple[int, int], int] = {}
+    for e in edge_ends:
+        if e is not None:
+            ends[e] = ends.get(e, 0) + 1
+
+    def name(table: str, k: int) -> str:
+        place = f"{ordinal(k + 1)} [[{table}]]"
+        if table == "agents":
+            i = agent_ids[k] if k < len(agent_ids) else None
+            if i is None:
+                return place
+            return f"agent {i} ({place})" if ids[i] > 1 else f"agent {i}"
+        e = edge_ends[k] if k < len(edge_ends) else None
+        if e is None:
+            return place
+        return f"edge {e[0]} → {e[1]} ({place})" if ends[e] > 1 else f"edge {e[0]} → {e[1]}"
+
+    out: Problems = []
+    for field, msg in problems:
+        m = _TABLE.match(field)
+        out.append((name(m["table"], int(m["k"])) + m["rest"], msg) if m else (field, msg))
+    return out
+
+
+def raw_ends(raw: object) -> tuple[list[int | None], list[tuple[int, int] | None]]:
+    """The agent ids and edge ends a decoded TOML document gives (``None`` where one is absent or
+    not an integer), for :func:`by_id` before the document is a :class:`Mission`."""
+    def integer(x: object) -> int | None:
+        return x if type(x) is int else None
+
+    tables = raw if isinstance(raw, dict) else {}
+    agents = tables.get("agents")
+    edges = tables.get("edges")
+    ids = [integer(a.get("id")) if isinstance(a, dict) else None for a in (agents if isinstance(agents, list) else [])]
+    ends: list[tuple[int, int] | None] = []
+    for e in edges if isinstance(edges, list) else []:
+        src, dst = (integer(e.get("from")), integer(e.get("to"))) if isinstance(e, dict) else (None, None)
+        ends.append((src, dst) if src is not None and dst is not None else None)
+    return ids, ends
 
 
 # --------------------------------------------------------------------------- decoding
@@ -488,7 +577,7 @@ def loads(text: str | bytes, source: str = "<mission>") -> Mission:
     try:
         mission = msgspec.convert(raw, type=Mission)
     except msgspec.ValidationError as exc:
-        raise MissionError(source, [_field_of(exc, raw)]) from None
+        raise MissionError(source, by_id([_field_of(exc, raw)], *raw_ends(raw))) from None
     except RecursionError:
         raise MissionError(source, [("<file>", "nests arrays or tables too deeply to read; a mission nests at "
                                                "most a few levels: fix the brackets")]) from None
@@ -522,7 +611,11 @@ def with_duration(m: Mission, duration: float | None, source: str = "<mission>")
     problems = checks.validate_duration(m, float(duration), field="--duration")
     if problems:
         raise MissionError(f"{source} with --duration {duration}", problems)
-    return msgspec.structs.replace(m, duration=float(duration))
+    out = msgspec.structs.replace(m, duration=float(duration))
+    problems = checks.validate(out)  # what else the run length decides (a leader profile that runs away by then)
+    if problems:
+        raise MissionError(f"{source} with --duration {duration}", problems)
+    return out
 
 
 # --------------------------------------------------------------------------- decode messages

@@ -33,6 +33,7 @@ from typing import Literal, TypeVar
 import msgspec
 
 from tether.netprofile import LinkRule
+from tether.schema import Strict
 
 WIRE_VERSION = 1
 
@@ -43,7 +44,7 @@ never match it, so only a subscriber that names ``@tether`` sees tokens)."""
 Role = Literal["leader", "agent", "plant", "clock", "control", "recorder", "launcher", "world"]
 
 
-class _Msg(msgspec.Struct, tag_field="type", forbid_unknown_fields=True, frozen=True, kw_only=True):
+class _Msg(Strict, tag_field="type", frozen=True, kw_only=True):
     v: int = WIRE_VERSION
     """Wire version."""
     sender: int
@@ -92,7 +93,7 @@ class Command(_Msg, tag="cmd", frozen=True):
     motors on ESTOP, whatever ``u`` says."""
 
 
-class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+class LinkStats(Strict, frozen=True, kw_only=True):
     """What agent i saw of one in-neighbour j up to tick k."""
 
     src: int
@@ -120,7 +121,7 @@ class LinkStats(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     """99th percentile of the same [s]."""
 
 
-class LinkDecision(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+class LinkDecision(Strict, frozen=True, kw_only=True):
     """What the emulated link ``src -> sender`` did with one copy (``[netem] log = true``)."""
 
     src: int
@@ -141,7 +142,7 @@ agent's commands, HOLD or LAND when it has taken over, LANDED, and ESTOP once it
 FLYING, HOLD, LAND, LANDED, ESTOP = range(5)
 
 
-class SafetyEvent(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+class SafetyEvent(Strict, frozen=True, kw_only=True):
     """One mode change of a vehicle's supervisor or watchdog."""
 
     k: int
