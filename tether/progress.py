@@ -45,8 +45,9 @@ class Progress:
         self.clock = clock
         self.tracks: dict[str, _Track] = {}
 
-    def status(self, k: int, n: int, label: str = "") -> str:
-        """The text of the display for ``k`` of ``n`` done (also starts the label's clock)."""
+    def status(self, k: int, n: int, label: str = "", note: str = "") -> str:
+        """The text of the display for ``k`` of ``n`` done (also starts the label's clock), ``note``
+        (e.g. failures and workers) after it."""
         now = self.clock()
         tr = self.tracks.get(label)
         if tr is None:
@@ -58,10 +59,10 @@ class Progress:
             rate = (k - tr.k0) / elapsed
             text += f" {_rate(rate)}"
             text += f" elapsed {_duration(elapsed)}" if k >= n else f" ETA {_duration((n - k) / rate)}"
-        return text
+        return f"{text} {note}" if note else text
 
-    def __call__(self, k: int, n: int, label: str = "") -> None:
-        text = self.status(k, n, label)
+    def __call__(self, k: int, n: int, label: str = "", note: str = "") -> None:
+        text = self.status(k, n, label, note)
         tr = self.tracks[label]
         pct = 100 * k // max(n, 1)
         if self.tty:
