@@ -18,6 +18,8 @@ def _grid_options(p: argparse.ArgumentParser, *, seeds_required: bool) -> None:
     p.add_argument("--executor", default=None, metavar="tcp://HOST:PORT",
                    help="run the cells on the Dask scheduler at this address (pip install 'tether[cluster]'; "
                         "default: local processes, --jobs of them)")
+    p.add_argument("--connect-timeout", default=None, metavar="S",
+                   help="how long --executor waits for the scheduler and its first worker [s] (default 10)")
     p.add_argument("--seeds", default=None, required=seeds_required, metavar="N",
                    help="Monte Carlo: N replicates of every cell (new seed for random disturbances and network, "
                         "jittered start positions, random sinusoid phases); mean, std and 95%% t-interval per cell")
@@ -119,6 +121,9 @@ def cmd_study(args: argparse.Namespace) -> int:
             raise BadArgument(f"--jobs: {args.jobs} must be at least 1")
         if args.executor is not None:
             study.check_address(args.executor)
+        elif args.connect_timeout is not None:
+            raise BadArgument("--connect-timeout: applies to --executor only; add --executor tcp://HOST:PORT")
+        timeout = _number(args.connect_timeout, "--connect-timeout", 0.1, 3600.0, study.CONNECT_TIMEOUT_S)
         prog = Progress()
         out = Path(args.out)
 
@@ -130,7 +135,7 @@ def cmd_study(args: argparse.Namespace) -> int:
         rows = sweep.sweep(m, out, laws=laws, jitter_ms=args.jitter, duration=args.duration, engine=args.engine,
                            jobs=args.jobs, compensate=args.compensate, progress=prog, sigma=sigma, gamma_p=gamma_p,
                            gamma_v=gamma_v, seeds=seeds, p0_jitter=p0_jitter, executor=args.executor,
-                           on_start=started, loss=loss, delay=delay, burst=burst)
+                           connect_timeout=timeout, on_start=started, loss=loss, delay=delay, burst=burst)
     except (sweep.SweepError, study.StudyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

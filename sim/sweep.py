@@ -285,7 +285,7 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
           progress: Callable[..., None] | None = None, sigma: Sequence[float] | None = None,
           gamma_p: Sequence[float] | None = None, gamma_v: Sequence[float] | None = None,
           seeds: int | None = None, p0_jitter: float = P0_JITTER_M, executor: str | None = None,
-          stop_after: int | None = None, on_start: Callable[[int, str], None] | None = None) -> list[dict]:
+          connect_timeout: float | None = None, stop_after: int | None = None, on_start: Callable[[int, str], None] | None = None) -> list[dict]:
     """Run the grid (every cell through :mod:`sim.study`: kept as it finishes in ``study.jsonl``, a
     rerun resumes), write ``sweep.csv``, ``sweep.json``, ``sweep.md``, the figures (and with
     ``seeds``, ``summary.csv``) and every point's mission file under ``out``; returns the rows (in
@@ -320,7 +320,8 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
     dirs = {cells[pt].digest: str(out / "points" / pt.name) for pt in points}
     results = study.StudyFile(out / "study.jsonl")
     results.check(study.study_key(cell_list))  # another study's directory is left as it is
-    with study.open_executor(executor, jobs) as eng:  # a bad --executor stops here, before anything is written
+    timeout = study.CONNECT_TIMEOUT_S if connect_timeout is None else connect_timeout
+    with study.open_executor(executor, jobs, timeout) as eng:  # a bad --executor stops here, before anything is written
         out.mkdir(parents=True, exist_ok=True)
         for pt, text in texts.items():
             d = out / "points" / pt.name
