@@ -143,7 +143,7 @@ def cmd_study(args: argparse.Namespace) -> int:
         print(f"\ninterrupted: {exc.done} of {exc.total} cells done, kept in {exc.path}; run the same command "
               "again to resume (finished cells are skipped)", file=sys.stderr)
         return 130
-    except sweep.StudyFailed as exc:
+    except (sweep.StudyFailed, study.StudyBroken) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     import json

@@ -37,7 +37,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, Executor, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -72,6 +72,11 @@ US_PER_AGENT_TICK = 85.0
 
 class StudyError(ValueError):
     """A study that cannot start or resume: names the option or file and the fix (exit 2)."""
+
+
+class StudyBroken(RuntimeError):
+    """The executor itself failed (a local worker process died, so the pool is unusable): the
+    finished cells are kept; rerunning the same command resumes."""
 
 
 class StudyInterrupted(Exception):
@@ -426,6 +431,8 @@ def run(cells: Sequence[Cell], results: StudyFile, engine: Engine, *, meta: dict
                 c = pending.pop(fut)
                 try:
                     res = fut.result()
+                except BrokenExecutor:
+                    raise
                 except Exception as exc:  # the cell raised, or the engine gave up on it (a KilledWorker)
                     failed[c.name] = f"{type(exc).__name__}: {exc}"
                     continue
@@ -443,6 +450,10 @@ def run(cells: Sequence[Cell], results: StudyFile, engine: Engine, *, meta: dict
             fut.cancel()
         results.close()
         raise StudyInterrupted(len(done), total, results.path) from None
+    except BrokenExecutor as exc:
+        results.close()
+        raise StudyBroken(f"the {engine.kind} executor broke ({exc}); {len(done)} of {total} cells done and kept "
+                          f"in {results.path}; run the same command again to resume") from None
     results.close()
     return Outcome(done, failed, ran, resumed, per_worker, time.perf_counter() - t0)
 
