@@ -25,6 +25,8 @@ def _rate(r: float) -> str:
         return f"{r / 1e3:.1f}k/s"
     if r >= 100:
         return f"{r:.0f}/s"
+    if r < 0.1:  # slow work (a study's cells): per minute, not 0.0/s
+        return f"{r * 60:.2g}/min"
     return f"{r:.1f}/s"
 
 
