@@ -331,3 +331,26 @@ def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_resumes(tmp_path: Path) -
     r = _cli(*args)
     assert r.returncode == 0, r.stderr
     assert f"{8 - kept} run now, {kept} kept from before" in r.stdout, r.stdout
+
+
+@pytest.mark.slow  # six short runs
+def test_montecarlo_writes_mean_spread_and_interval_per_cell_and_the_figure(tmp_path: Path) -> None:
+    out = tmp_path / "mc"
+    r = _cli("montecarlo", "section4", "--seeds", "3", "--delay", "0,50", "--duration", "2", "--jobs", "2",
+             "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    import csv
+
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    assert len(rows) == 6 and sorted({row["rep"] for row in rows}) == ["0", "1", "2"]
+    assert len({row["seed"] for row in rows}) == 3  # one seed per replicate, the same in both cells
+    summary = list(csv.DictReader(open(out / "summary.csv")))
+    assert len(summary) == 2
+    for cell in summary:
+        values = [float(x["ultimate_bound_m"]) for x in rows if x["delay_ms"] == cell["delay_ms"]]
+        s = study.stats(values)
+        assert float(cell["ultimate_bound_m_mean"]) == pytest.approx(s["mean"], rel=1e-5)
+        assert float(cell["ultimate_bound_m_ci_lo"]) < float(cell["ultimate_bound_m_mean"]) < \
+            float(cell["ultimate_bound_m_ci_hi"])
+        assert cell["replicates"] == "3" and float(cell["ultimate_bound_m_std"]) > 0
+    assert (out / "study.png").stat().st_size > 0 and "95 % Student-t interval" in (out / "sweep.md").read_text()
