@@ -90,16 +90,19 @@ class StudyInterrupted(Exception):
 # --------------------------------------------------------------------------- cells
 @dataclass(frozen=True)
 class Cell:
-    """One run of a study: ``name`` (unique in the study), the mission's TOML ``text``, the engine."""
+    """One run of a study: ``name`` (unique in the study), the mission's TOML ``text``, the engine,
+    and ``code``: the version of whatever turns a run into its row (``sim.sweep.METRICS_VERSION``)."""
 
     name: str
     text: str
     engine: str
+    code: str = ""
 
     @property
     def digest(self) -> str:
-        """The cell's identity: a hash of its engine and mission text (its row depends on nothing else)."""
-        return hashlib.sha256(f"{self.engine}\n{self.text}".encode()).hexdigest()[:20]
+        """The cell's identity: a hash of its engine, code version and mission text (its row depends
+        on nothing else)."""
+        return hashlib.sha256(f"{self.engine}\n{self.code}\n{self.text}".encode()).hexdigest()[:20]
 
 
 def study_key(cells: Sequence[Cell]) -> str:

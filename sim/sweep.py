@@ -191,16 +191,25 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
 GAIN_TOL = 0.05
 """A gain has converged once it stays within this fraction of its final value."""
 
+METRICS_VERSION = 2
+"""Changes whenever a figure of merit's definition does: part of every cell's identity, so a study
+made with other definitions is not resumed into this one (1: no ``gain_convergence_s``; 2: it)."""
+
 
 def gain_convergence_time(t: np.ndarray, kp: np.ndarray, kv: np.ndarray, tol: float = GAIN_TOL,
                           tail: float = 0.1) -> float:
     """The first sample time after which every agent's every gain (``Kp`` and ``Kv``, each axis)
-    stays within ``tol`` times its final value [s]. NaN when that happens only in the last ``tail``
-    of the run (the gains are still moving: the run is too short to tell) or the run diverged."""
+    stays within ``tol`` times its final value [s]. NaN when the final value is no settled value (a
+    gain drifts by more than ``tol / 5`` of it over the last ``tail`` of the run: the run is too
+    short to tell, or the gains grow without bound), when the gains settle only in that tail, or when
+    the run diverged."""
     k = np.concatenate([kp.reshape(len(t), -1), kv.reshape(len(t), -1)], axis=1)
     if not np.all(np.isfinite(k)):
         return math.nan
     final = k[-1]
+    i0 = min(len(t) - 1, int(math.floor(len(t) * (1.0 - tail))))
+    if np.any(np.abs(final - k[i0]) > 0.2 * tol * np.abs(final)):
+        return math.nan
     bad = np.nonzero(~np.all(np.abs(k - final) <= tol * np.abs(final), axis=1))[0]
     if bad.size == 0:
         return float(t[0])
@@ -308,7 +317,7 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
                          f"({study.estimate(m, len(points))}); use fewer seeds or a smaller grid")
     missions = {pt: point_mission(m, pt, jitter_ms, duration, compensate, p0_jitter) for pt in points}
     texts = {pt: ms.dumps(pm) for pt, pm in missions.items()}
-    cells = {pt: study.Cell(pt.name, texts[pt], engine) for pt in points}
+    cells = {pt: study.Cell(pt.name, texts[pt], engine, f"metrics {METRICS_VERSION}") for pt in points}
     meta = {"mission": m.name, "engine": engine, "duration_s": duration if duration is not None else m.duration,
             "rate_hz": m.rate, "seed": m.seed, "loss_pct": list(loss), "delay_ms": list(delay),
             "burst": list(burst), "jitter_ms": jitter_ms, "laws": list(laws),
