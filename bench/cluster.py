@@ -59,8 +59,11 @@ def _run(cells: list[study.Cell], address: str | None, jobs: int, tmp: Path, **k
     return time.perf_counter() - t0, outcome
 
 
-def _rows(o: study.Outcome) -> dict[str, dict]:
-    return {d: r["row"] for d, r in o.records.items()}
+def _rows(o: study.Outcome) -> str:
+    """The rows as text (every float by its repr: NaN equals NaN here, unlike in a dict compare)."""
+    import json
+
+    return json.dumps({d: o.records[d]["row"] for d in sorted(o.records)}, allow_nan=True)
 
 
 class _Dask:
@@ -106,7 +109,7 @@ def main() -> int:
                      "local pool, 2 workers": (None, 2, 2), "Dask, scheduler + 2 workers": (dask.address, 2, 2)}
             walls: dict[str, list[float]] = {k: [] for k in modes}
             busy: dict[str, list[float]] = {k: [] for k in modes}
-            want: dict[str, dict] | None = None
+            want: str | None = None
             for _ in range(args.repeats):
                 for label, (address, jobs, slots) in modes.items():
                     if label.startswith("local pool, 1"):  # a pool of one: force the pool, not inline
