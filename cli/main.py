@@ -373,24 +373,9 @@ def _check_id(args: argparse.Namespace) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from sim import sweep
+    from cli.study import cmd_study  # studies (executors, resume, Monte Carlo): cli/study.py
 
-    m = _load(args.mission, args.duration)
-    _writable_dir("--out", args.out, ("sweep.csv", "sweep.md"))
-    try:
-        grid = {"loss": sweep.parse_list(args.loss, "--loss", 0.0, 100.0, "%", hi_open=True),
-                "delay": sweep.parse_list(args.delay, "--delay", 0.0, 60_000.0, "ms"),
-                "burst": sweep.parse_list(args.burst, "--burst", 1.0, 1e6, "messages")}
-        laws = tuple(x.strip() for x in args.laws.split(","))
-        prog = Progress()
-        rows = sweep.sweep(m, Path(args.out), laws=laws, jitter_ms=args.jitter, duration=args.duration,
-                           engine=args.engine, jobs=args.jobs, compensate=args.compensate, progress=prog, **grid)
-    except sweep.SweepError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    diverged = sum(r["diverged"] for r in rows)
-    print(f"{len(rows)} runs, {diverged} diverged; wrote {Path(args.out) / 'sweep.csv'}, sweep.md and heatmaps")
-    return 0
+    return cmd_study(args)
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:
@@ -684,6 +669,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
                     help="latency compensation on every agent (default: as the mission's [links] says)")
     sw.set_defaults(func=cmd_sweep)
+    from cli import study as study_cli
+
+    study_cli.extend(sub, sw)  # --executor, --seeds, --sigma/--gamma-p/--gamma-v, and `tether montecarlo`
 
     nc = sub.add_parser("netem-set", help="change the emulated links of a running swarm (its mission needs [netem])")
     nc.add_argument("profile", help='a preset (wifi, wifi-lossy, ...) or an inline TOML table, e.g. "{ loss = { p = 0.3 } }"')

@@ -27,13 +27,10 @@ import math
 import os
 import subprocess
 import sys
-import threading
 import time
 import warnings
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
-from multiprocessing import get_context
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -58,14 +55,25 @@ class SweepError(ValueError):
 
 @dataclass(frozen=True)
 class Point:
+    """One cell of a study: a law, a network, optionally the law's sigma and rates (None: the
+    mission's) and a Monte Carlo replicate (None: the mission itself; ``sim.study.replicate``)."""
+
     law: str
     loss_pct: float
     delay_ms: float
     burst: float
+    sigma: float | None = None
+    gamma_p: float | None = None
+    gamma_v: float | None = None
+    rep: int | None = None
 
     @property
     def name(self) -> str:
-        return f"{self.law}-loss{self.loss_pct:g}-delay{self.delay_ms:g}-burst{self.burst:g}"
+        text = f"{self.law}-loss{self.loss_pct:g}-delay{self.delay_ms:g}-burst{self.burst:g}"
+        for tag, x in (("sigma", self.sigma), ("gp", self.gamma_p), ("gv", self.gamma_v)):
+            if x is not None:
+                text += f"-{tag}{x:g}"
+        return text if self.rep is None else f"{text}-rep{self.rep}"
 
 
 def parse_list(text: str, option: str, lo: float, hi: float, unit: str, hi_open: bool = False) -> list[float]:
@@ -101,12 +109,30 @@ def link_profile(loss_pct: float, delay_ms: float, burst: float, jitter_ms: floa
 
 
 def point_mission(m: ms.Mission, pt: Point, jitter_ms: float = 0.0, duration: float | None = None,
-                  compensate: bool | None = None) -> ms.Mission:
-    """The mission of one grid point: ``m`` under ``pt.law`` with the point's network everywhere
-    (and ``[links] compensate`` set when ``compensate`` is given)."""
+                  compensate: bool | None = None, p0_jitter: float = 0.0) -> ms.Mission:
+    """The mission of one grid point: ``m`` under ``pt.law`` (with the point's sigma and rates
+    when set) with the point's network everywhere (and ``[links] compensate`` set when
+    ``compensate`` is given), as replicate ``pt.rep`` when set (start positions jittered by up to
+    ``p0_jitter`` m)."""
     if pt.law not in LAWS:
         raise SweepError(f"--laws: {pt.law!r} is not a law; use sigma, benchmark or both")
-    base = m if pt.law == m.law.kind else with_law(m, pt.law)
+    if pt.law == "benchmark" and pt.sigma is not None:
+        raise SweepError("--sigma: the benchmark law has no sigma; give --laws sigma with a --sigma grid")
+    if pt.law == "sigma" and m.law.kind != "sigma" and pt.sigma is None:
+        raise SweepError("--laws: this mission's law is the benchmark, which does not say which sigma to use; "
+                         "give --sigma or --laws benchmark")
+    if m.law.kind != "sigma" and pt.law == "sigma":
+        base = msgspec.structs.replace(m, law=msgspec.structs.replace(m.law, kind="sigma", sigma=pt.sigma))
+    else:
+        base = m if pt.law == m.law.kind else with_law(m, pt.law)
+    changes = {k: v for k, v in (("sigma", pt.sigma), ("gamma_p", pt.gamma_p), ("gamma_v", pt.gamma_v))
+               if v is not None}
+    if changes:
+        base = msgspec.structs.replace(base, law=msgspec.structs.replace(base.law, **changes))
+    if pt.rep is not None:
+        from sim import study
+
+        base = study.replicate(base, pt.rep, p0_jitter)
     net = Network(default=link_profile(pt.loss_pct, pt.delay_ms, pt.burst, jitter_ms))
     out = msgspec.structs.replace(base, netem=net, name=f"{m.name}-{pt.name}")
     if duration is not None:
@@ -134,6 +160,7 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         "ultimate_bound_seen_m": s["ultimate_bound_xi_m"],
         "settling_time_s": s["settling_time_s"],
         "peak_gain": max(s["peak_kp"], s["peak_kv"]),
+        "gain_convergence_s": gain_convergence_time(run.t, run.kp, run.kv),
         "peak_kp": s["peak_kp"],
         "peak_kv": s["peak_kv"],
         "final_kp_mean": s["final_kp_mean"],
@@ -159,6 +186,37 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         row["age_p50_ms"] = float(np.percentile(age, 50) * 1e3) if age.size else math.nan
         row["age_p99_ms"] = float(np.percentile(age, 99) * 1e3) if age.size else math.nan
     return row
+
+
+GAIN_TOL = 0.05
+"""A gain has converged once it stays within this fraction of its final value."""
+
+METRICS_VERSION = 2
+"""Changes whenever a figure of merit's definition does: part of every cell's identity, so a study
+made with other definitions is not resumed into this one (1: no ``gain_convergence_s``; 2: it)."""
+
+
+def gain_convergence_time(t: np.ndarray, kp: np.ndarray, kv: np.ndarray, tol: float = GAIN_TOL,
+                          tail: float = 0.1) -> float:
+    """The first sample time after which every agent's every gain (``Kp`` and ``Kv``, each axis)
+    stays within ``tol`` times its final value [s]. NaN when the final value is no settled value (a
+    gain drifts by more than ``tol / 5`` of it over the last ``tail`` of the run: the run is too
+    short to tell, or the gains grow without bound), when the gains settle only in that tail, or when
+    the run diverged."""
+    k = np.concatenate([kp.reshape(len(t), -1), kv.reshape(len(t), -1)], axis=1)
+    if not np.all(np.isfinite(k)):
+        return math.nan
+    final = k[-1]
+    i0 = min(len(t) - 1, int(math.floor(len(t) * (1.0 - tail))))
+    if np.any(np.abs(final - k[i0]) > 0.2 * tol * np.abs(final)):
+        return math.nan
+    bad = np.nonzero(~np.all(np.abs(k - final) <= tol * np.abs(final), axis=1))[0]
+    if bad.size == 0:
+        return float(t[0])
+    first = bad[-1] + 1
+    if first >= len(t) or t[first] > t[0] + (1.0 - tail) * (t[-1] - t[0]):
+        return math.nan
+    return float(t[first])
 
 
 def _last_row(modes: np.ndarray) -> int:
@@ -188,75 +246,146 @@ def run_point(mission_text: str, engine: Engine, workdir: str | None) -> dict:
     return row
 
 
-COLUMNS = ("law", "loss_pct", "delay_ms", "burst", "ultimate_bound_m", "ultimate_bound_seen_m", "max_xi_true_m",
-           "settling_time_s", "peak_gain", "peak_kp",
+POINT_COLUMNS = ("law", "loss_pct", "delay_ms", "burst", "sigma", "gamma_p", "gamma_v", "rep", "seed")
+COLUMNS = (*POINT_COLUMNS, "ultimate_bound_m", "ultimate_bound_seen_m", "max_xi_true_m",
+           "settling_time_s", "peak_gain", "gain_convergence_s", "peak_kp",
            "peak_kv", "final_kp_mean", "final_kv_mean", "kp_growth_per_s", "kv_growth_per_s", "max_xi_m",
-           "diverged", "diverged_at_s", "failsafe_at_s", "grounded", "delivery_ratio", "age_p50_ms", "age_p99_ms",
-           "wall_s")
+           "diverged", "diverged_at_s", "failsafe_at_s", "grounded", "delivery_ratio", "age_p50_ms", "age_p99_ms")
+"""``sweep.csv``: what was run and what it gave; nothing about where or how long (``study.jsonl``
+has each cell's worker and wall time), so the same study gives the same file on any executor."""
+
+MC_METRICS = ("ultimate_bound_m", "ultimate_bound_seen_m", "max_xi_true_m", "settling_time_s", "peak_gain",
+              "gain_convergence_s", "final_kp_mean", "final_kv_mean", "kp_growth_per_s", "delivery_ratio",
+              "age_p99_ms")
+"""The metrics a Monte Carlo study summarises per cell (``summary.csv``)."""
+
+GROUP = ("law", "loss_pct", "delay_ms", "burst", "sigma", "gamma_p", "gamma_v")
+
+P0_JITTER_M = 0.2
+"""A Monte Carlo replicate's default start-position jitter [m] per horizontal axis."""
+
+
+class StudyFailed(RuntimeError):
+    """Some cells raised (or their workers kept dying): the others are kept; rerunning retries them."""
+
+    def __init__(self, failed: dict[str, str], done: int, total: int) -> None:
+        first = next(iter(failed.items()))
+        super().__init__(f"{len(failed)} of {total} cells failed ({done} done and kept); first: {first[0]}: "
+                         f"{first[1][:300]}; rerun the same command to retry them")
+        self.failed = failed
+
+
+def points_of(m: ms.Mission, *, loss: Sequence[float], delay: Sequence[float], burst: Sequence[float],
+              laws: Sequence[str], sigma: Sequence[float] | None = None, gamma_p: Sequence[float] | None = None,
+              gamma_v: Sequence[float] | None = None, seeds: int | None = None) -> list[Point]:
+    """Every cell of a study, in table order (replicates innermost)."""
+    reps: Sequence[int | None] = [None] if seeds is None else range(seeds)
+    sig: Sequence[float | None] = sigma or [None]
+    gps: Sequence[float | None] = gamma_p or [None]
+    gvs: Sequence[float | None] = gamma_v or [None]
+    return [Point(law, lo, de, b, s, gp, gv, r)
+            for law in laws for b in burst for lo in loss for de in delay
+            for s in sig for gp in gps for gv in gvs for r in reps]
 
 
 def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], burst: Sequence[float] = (1.0,),
           laws: tuple[str, ...] = LAWS, jitter_ms: float = 0.0, duration: float | None = None,
           engine: Engine = "inprocess", jobs: int = 1, compensate: bool | None = None,
-          progress: Callable[[int, int, str], None] | None = None) -> list[dict]:
-    """Run the grid, write ``sweep.csv``, ``sweep.json``, ``sweep.md``, the heatmaps and every
-    point's mission file under ``out``; returns the rows (in grid order)."""
-    from sim import figures
+          progress: Callable[..., None] | None = None, sigma: Sequence[float] | None = None,
+          gamma_p: Sequence[float] | None = None, gamma_v: Sequence[float] | None = None,
+          seeds: int | None = None, p0_jitter: float = P0_JITTER_M, executor: str | None = None,
+          connect_timeout: float | None = None, stop_after: int | None = None, on_start: Callable[[int, str], None] | None = None) -> list[dict]:
+    """Run the grid (every cell through :mod:`sim.study`: kept as it finishes in ``study.jsonl``, a
+    rerun resumes), write ``sweep.csv``, ``sweep.json``, ``sweep.md``, the figures (and with
+    ``seeds``, ``summary.csv``) and every point's mission file under ``out``; returns the rows (in
+    grid order). ``executor``: None (inline for ``jobs = 1``, else a local pool) or a Dask
+    scheduler's ``tcp://HOST:PORT``. ``on_start(cells, executor_kind)`` is called once the executor
+    is up, before the first cell; ``stop_after``: interrupt after that many cells (measurements)."""
+    from sim import study, studyplots
 
     if engine not in ("inprocess", "runtime"):
         raise SweepError(f"--engine: {engine!r} is not an engine; use inprocess or runtime")
     if jobs < 1:
         raise SweepError(f"--jobs: {jobs} must be at least 1")
-    points = [Point(law, lo, de, b) for law in laws for b in burst for lo in loss for de in delay]
-    texts = {pt: ms.dumps(point_mission(m, pt, jitter_ms, duration, compensate)) for pt in points}
-    out.mkdir(parents=True, exist_ok=True)
-    for pt, text in texts.items():
-        d = out / "points" / pt.name
-        d.mkdir(parents=True, exist_ok=True)
-        (d / "mission.toml").write_text(text)
-    rows: dict[Point, dict] = {}
-    total = len(points)
-    if progress is not None:
-        progress(0, total, "sweep")
-    if jobs == 1:
-        for pt in points:
-            rows[pt] = {**asdict(pt), **run_point(texts[pt], engine, str(out / "points" / pt.name))}
-            if progress is not None:
-                progress(len(rows), total, "sweep")
-    else:  # spawned workers: a Zenoh session (runtime engine) must never cross a fork
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"), initializer=_follow_parent,
-                                 initargs=(os.getpid(),)) as pool:
-            futures = {pool.submit(run_point, texts[pt], engine, str(out / "points" / pt.name)): pt for pt in points}
-            for fut in as_completed(futures):
-                pt = futures[fut]
-                rows[pt] = {**asdict(pt), **fut.result()}
-                if progress is not None:
-                    progress(len(rows), total, "sweep")
-    ordered = [rows[pt] for pt in points]
-    with open(out / "sweep.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
-        w.writeheader()
-        for row in ordered:
-            w.writerow({k: _csv(row.get(k)) for k in COLUMNS})
+    if executor is not None and engine == "runtime":
+        raise SweepError("--executor: the runtime engine writes each point's run file on the machine that runs "
+                         "it; use --engine inprocess with --executor")
+    points = points_of(m, loss=loss, delay=delay, burst=burst, laws=laws, sigma=sigma, gamma_p=gamma_p,
+                       gamma_v=gamma_v, seeds=seeds)
+    if len(points) > study.MAX_CELLS:
+        raise SweepError(f"--seeds: the study has {len(points)} cells, more than {study.MAX_CELLS} "
+                         f"({study.estimate(m, len(points))}); use fewer seeds or a smaller grid")
+    missions = {pt: point_mission(m, pt, jitter_ms, duration, compensate, p0_jitter) for pt in points}
+    texts = {pt: ms.dumps(pm) for pt, pm in missions.items()}
+    cells = {pt: study.Cell(pt.name, texts[pt], engine, f"metrics {METRICS_VERSION}") for pt in points}
     meta = {"mission": m.name, "engine": engine, "duration_s": duration if duration is not None else m.duration,
-            "rate_hz": m.rate, "seed": m.seed, "loss_pct": loss, "delay_ms": delay, "burst": list(burst),
-            "jitter_ms": jitter_ms, "laws": list(laws), "cpu_count": os.cpu_count(),
+            "rate_hz": m.rate, "seed": m.seed, "loss_pct": list(loss), "delay_ms": list(delay),
+            "burst": list(burst), "jitter_ms": jitter_ms, "laws": list(laws),
+            "sigma": list(sigma) if sigma else None, "gamma_p": list(gamma_p) if gamma_p else None,
+            "gamma_v": list(gamma_v) if gamma_v else None, "seeds": seeds,
+            "p0_jitter_m": p0_jitter if seeds else None,
             "max_age_s": m.links.max_age, "compensate": m.links.compensate if compensate is None else compensate}
-    (out / "sweep.json").write_text(jsonout.dumps({"meta": meta, "rows": ordered}))
-    paths = figures.heatmaps(ordered, out, loss=loss, delay=delay, burst=list(burst), laws=list(laws),
-                             title=f"{m.name}: {meta['duration_s']:g} s, swarm-wide link impairment")
-    (out / "sweep.md").write_text(report(ordered, meta, paths))
+    cell_list = [cells[pt] for pt in points]
+    dirs = {cells[pt].digest: str(out / "points" / pt.name) for pt in points}
+    results = study.StudyFile(out / "study.jsonl")
+    results.check(study.study_key(cell_list))  # another study's directory is left as it is
+    timeout = study.CONNECT_TIMEOUT_S if connect_timeout is None else connect_timeout
+    with study.open_executor(executor, jobs, timeout) as eng:  # a bad --executor stops here, before anything is written
+        out.mkdir(parents=True, exist_ok=True)
+        for pt, text in texts.items():
+            d = out / "points" / pt.name
+            d.mkdir(parents=True, exist_ok=True)
+            f = d / "mission.toml"
+            if not f.exists() or f.read_text() != text:
+                f.write_text(text)
+        if on_start is not None:
+            on_start(len(points), eng.kind)
+        outcome = study.run(cell_list, results, eng, meta=meta, workdir=lambda c: dirs[c.digest],
+                            progress=progress, stop_after=stop_after)
+    if outcome.failed:
+        raise StudyFailed(outcome.failed, len(outcome.records), len(points))
+    ordered = []
+    for pt in points:
+        law = missions[pt].law
+        ordered.append({"law": pt.law, "loss_pct": pt.loss_pct, "delay_ms": pt.delay_ms, "burst": pt.burst,
+                        "sigma": law.sigma, "gamma_p": law.gamma_p, "gamma_v": law.gamma_v, "rep": pt.rep,
+                        "seed": missions[pt].seed, **outcome.records[cells[pt].digest]["row"]})
+    walls = [r["wall_s"] for r in outcome.records.values()]
+    meta["cells"] = len(points)
+    meta["cell_wall_s_median"] = float(np.median(walls)) if walls else None
+    meta["ran_now"], meta["resumed"] = outcome.ran, outcome.resumed
+    meta["per_worker"] = dict(outcome.per_worker)
+    meta["executor"] = eng.kind
+    _write_csv(out / "sweep.csv", ordered, COLUMNS)
+    summary = None
+    if seeds is not None:
+        summary = study.summarise(ordered, GROUP, MC_METRICS)
+        cols = [*GROUP, "replicates", "diverged"] + [f"{k}_{s}" for k in MC_METRICS
+                                                     for s in ("mean", "std", "ci_lo", "ci_hi", "n")]
+        _write_csv(out / "summary.csv", summary, tuple(cols))
+    (out / "sweep.json").write_text(jsonout.dumps({"meta": meta, "rows": ordered, "summary": summary}))
+    title = f"{m.name}: {meta['duration_s']:g} s"
+    plain = sigma is None and gamma_p is None and gamma_v is None and seeds is None
+    if plain:
+        from sim import figures
+
+        paths = figures.heatmaps(ordered, out, loss=loss, delay=delay, burst=list(burst), laws=list(laws),
+                                 title=f"{title}, swarm-wide link impairment")
+        (out / "sweep.md").write_text(report(ordered, meta, paths))
+    else:
+        paths = studyplots.study_figures(ordered, summary, out, meta, title=title)
+        (out / "sweep.md").write_text(studyplots.report(ordered, summary, meta, paths))
     return ordered
 
 
-def _follow_parent(pid: int) -> None:
-    """In a worker: exit as soon as the sweep that started it is gone (killed, not just interrupted)."""
-    def watch() -> None:
-        while os.getppid() == pid:
-            time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True, name="follow-parent").start()
+def _write_csv(path: Path, rows: list[dict], columns: tuple[str, ...]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
+        w.writeheader()
+        for row in rows:
+            w.writerow({k: _csv(row.get(k)) for k in columns})
+    os.replace(tmp, path)
 
 
 def _csv(x: object) -> object:

@@ -25,6 +25,8 @@ def _rate(r: float) -> str:
         return f"{r / 1e3:.1f}k/s"
     if r >= 100:
         return f"{r:.0f}/s"
+    if r < 0.1:  # slow work (a study's cells): per minute, not 0.0/s
+        return f"{r * 60:.2g}/min"
     return f"{r:.1f}/s"
 
 
@@ -45,8 +47,9 @@ class Progress:
         self.clock = clock
         self.tracks: dict[str, _Track] = {}
 
-    def status(self, k: int, n: int, label: str = "") -> str:
-        """The text of the display for ``k`` of ``n`` done (also starts the label's clock)."""
+    def status(self, k: int, n: int, label: str = "", note: str = "") -> str:
+        """The text of the display for ``k`` of ``n`` done (also starts the label's clock), ``note``
+        (e.g. failures and workers) after it."""
         now = self.clock()
         tr = self.tracks.get(label)
         if tr is None:
@@ -58,10 +61,10 @@ class Progress:
             rate = (k - tr.k0) / elapsed
             text += f" {_rate(rate)}"
             text += f" elapsed {_duration(elapsed)}" if k >= n else f" ETA {_duration((n - k) / rate)}"
-        return text
+        return f"{text} {note}" if note else text
 
-    def __call__(self, k: int, n: int, label: str = "") -> None:
-        text = self.status(k, n, label)
+    def __call__(self, k: int, n: int, label: str = "", note: str = "") -> None:
+        text = self.status(k, n, label, note)
         tr = self.tracks[label]
         pct = 100 * k // max(n, 1)
         if self.tty:
