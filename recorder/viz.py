@@ -505,7 +505,9 @@ class Live:
     def port(self) -> int:
         return self.server.port
 
-    def tick(self, run: Run, k: int) -> None:
+    def tick(self, run: Run, k: int, events: list[SafetyEvent] | None = None) -> None:
+        """Log tick ``k`` of ``run``; the safety events are ``run.safety.events`` unless ``events``
+        (a list that only grows: the recorder's, while the run is being filled) is given."""
         if self.view is None:
             layout = Layout(run, _mission_of(run, self.mission))
             self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate))
@@ -517,7 +519,8 @@ class Live:
             ahead = t / self.speed - (time.monotonic() - self.wall0)
             if ahead > 0:
                 self.sleep(ahead)
-        events = run.safety.events
+        if events is None:
+            events = run.safety.events
         while self.events < len(events):
             self.view.event(events[self.events])
             self.events += 1
