@@ -18,6 +18,7 @@ members leaving and coming back.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import time
@@ -160,8 +161,9 @@ class Recording:
         path = self.run.save(self.out / "run.npz")
         cpu1 = time.process_time()
         try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
-            if self.mcap:
-                mcap_beside(self.run, self.mission, path)
+            if self.mcap:  # ticks of which nothing was heard (a stop, a late start) are left out of it
+                heard = dataclasses.replace(self.run, t=np.where(self.count > 0, self.run.t, np.nan))
+                mcap_beside(heard, self.mission, path)
         except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
         cpu2 = time.process_time()

@@ -418,7 +418,9 @@ def _opening_notes(view: View, run: Run) -> None:
 
 
 def _closing_notes(view: View, run: Run) -> None:
-    m, t_end = run.meta, float(run.t[-1]) if len(run.t) and run.t[-1] == run.t[-1] else 0.0
+    m = run.meta
+    heard = run.t[np.isfinite(run.t)]
+    t_end = float(heard[-1]) if len(heard) else 0.0  # the last tick written (a stopped run's are NaN after it)
     if m.diverged_at is not None:
         view.note(m.diverged_at, f"the run diverged at t = {m.diverged_at:g} s and was stopped", fm.LogLevel.Error)
     s = run.safety

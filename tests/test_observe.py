@@ -1,0 +1,318 @@
+"""Watching a swarm: ``tether run --live`` read with a real WebSocket client speaking the Foxglove
+WebSocket protocol, ``tether record`` attached to a real ``tether run --listen`` (before it starts,
+and late under mTLS with the operator identity) and stopped with SIGINT, and a run stopped with
+SIGINT leaving both files. Real processes, real Zenoh on loopback, the real ``mcap`` reader."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("foxglove")
+mcap_reader = pytest.importorskip("mcap.reader")
+ws_client = pytest.importorskip("websockets.sync.client")
+
+from recorder import viz  # noqa: E402
+from tether import transport as tp  # noqa: E402
+from tether.runfile import Run  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+"""The Foxglove WebSocket protocol (foxglove-sdk 0.30's server answers the first; the frames are those
+of ``foxglove.websocket.v1``)."""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def tether(*args: str, log: Path | None = None) -> subprocess.Popen[str]:
+    """``tether ARGS`` in its own session; its output piped, or written to ``log``."""
+    if log is None:
+        return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    with open(log, "w") as fh:
+        return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
+                                stdout=fh, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def finish(proc: subprocess.Popen[str], timeout: float = 120.0) -> tuple[int, str]:
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=30)
+        pytest.fail(f"still running after {timeout} s:\n{out[-3000:]}")
+    return proc.returncode, out
+
+
+def kill(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=30)
+
+
+def wait_for(cond, timeout: float, what: str, proc: subprocess.Popen[str] | None = None) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        if proc is not None and proc.poll() is not None:
+            pytest.fail(f"process ended ({proc.returncode}) while waiting for {what}:\n{proc.communicate()[0][-3000:]}")
+        time.sleep(0.1)
+
+
+def live_messages(port: int, topics: list[str], want: int, timeout: float) -> tuple[dict, dict[str, list]]:
+    """Connect to a Foxglove WebSocket server, subscribe to ``topics`` once advertised, and collect
+    ``want`` messageData frames per topic: (advertised channels by topic, topic -> [(stamp, payload)])."""
+    deadline = time.monotonic() + timeout
+    ws = None
+    while ws is None:
+        try:
+            ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5)
+        except OSError:
+            if time.monotonic() > deadline:
+                pytest.fail(f"no live server on port {port}")
+            time.sleep(0.2)
+    channels: dict[str, dict] = {}
+    got: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
+    info = None
+    subscribed = False
+    with ws:
+        assert ws.subprotocol in SUBPROTOCOLS
+        while time.monotonic() < deadline and not (subscribed and all(len(got[t]) >= want for t in topics)):
+            try:
+                frame = ws.recv(timeout=2)
+            except TimeoutError:
+                continue
+            if isinstance(frame, str):
+                op = json.loads(frame)
+                if op["op"] == "serverInfo":
+                    info = op
+                elif op["op"] == "advertise":
+                    channels.update({c["topic"]: c for c in op["channels"]})
+                if not subscribed and all(t in channels for t in topics):
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": n, "channelId": channels[t]["id"]} for n, t in enumerate(topics)]}))
+                    subscribed = True
+                continue
+            if frame[0] != 0x01:  # 0x02: the run's clock (Time capability)
+                continue
+            sub, stamp_ns = struct.unpack_from("<IQ", frame, 1)
+            got[topics[sub]].append((stamp_ns, bytes(frame[13:])))
+    assert info is not None and info["name"] == "tether", info
+    for t in topics:
+        assert len(got[t]) >= want, f"{len(got[t])} messages on {t} (advertised: {sorted(channels)})"
+    return channels, dict(got)
+
+
+def read_mcap(path: Path) -> dict[str, list[tuple[int, bytes]]]:
+    with open(path, "rb") as fh:
+        reader = mcap_reader.make_reader(fh)
+        out: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            out[channel.topic].append((message.log_time, message.data))
+    return dict(out)
+
+
+def heard(run: Run) -> np.ndarray:
+    """Ticks of which every agent's telemetry was recorded."""
+    return np.flatnonzero(np.all(np.isfinite(run.xi[:, :, 0]), axis=1))
+
+
+def same_samples(a: np.ndarray, b: np.ndarray, what: str) -> None:
+    """The very same values wherever both files hold the sample (a real-time stream may drop one)."""
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.mean() > 0.9, f"{what}: only {both.mean():.0%} of the samples in both files"
+    assert np.array_equal(a[both], b[both]), what
+
+
+def heard_any(run: Run) -> int:
+    """How many ticks have any sample (leader, telemetry or plant): those run.mcap holds."""
+    assert run.runtime is not None
+    any_ = (np.isfinite(run.leader_p[:, 0]) | np.isfinite(run.xi[:, :, 0]).any(axis=1)
+            | np.isfinite(run.runtime.plant_p[:, :, 0]).any(axis=1))
+    return int(any_.sum())
+
+
+# ------------------------------------------------------------------------------ bad --live ports
+RUN = ["run", "section4", "--insecure"]
+RECORD = ["record", "--mission", "section4", "--connect", "tcp/127.0.0.1:7447"]
+
+
+@pytest.mark.parametrize(("command", "port"), [(RUN, "70000"), (["simulate", "section4"], "0"), (RUN, "busy"),
+                                               (RECORD, "busy")])
+def test_a_bad_live_port_is_refused_before_anything_starts(tmp_path: Path, command: list[str], port: str) -> None:
+    out = tmp_path / "out"
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = str(busy.getsockname()[1])
+        done = subprocess.run([sys.executable, "-m", "cli", *command, "--out", str(out), "--live",
+                               taken if port == "busy" else port], cwd=REPO, capture_output=True, text=True,
+                              timeout=120, stdin=subprocess.DEVNULL)
+    assert done.returncode == 2, done.stderr
+    if port == "busy":
+        assert f"--live: port {taken}" in done.stderr and "in use" in done.stderr and "give a free port" in done.stderr
+    else:
+        assert f"--live: {port} is not a TCP port; give one in 1..65535" in done.stderr
+    assert not out.exists()  # nothing started, nothing written
+
+
+# ------------------------------------------------------------------------------- tether run --live
+@pytest.mark.slow  # real processes
+def test_run_live_serves_the_recorders_channels_while_the_run_goes_on(tmp_path: Path) -> None:
+    port = free_port()
+    duration = 20.0
+    proc = tether("run", "section4", "--clock", "realtime", "--duration", str(duration), "--insecure", "--quiet",
+                  "--out", str(tmp_path / "run"), "--live", str(port))
+    try:
+        channels, got = live_messages(port, ["/agent/2", "/leader", "/scene", "/tf"], want=3, timeout=90)
+        assert proc.poll() is None  # live: the run still goes on
+        assert channels["/agent/2"]["schemaName"] == "tether.Agent" and channels["/agent/2"]["encoding"] == "json"
+        assert channels["/scene"]["schemaName"] == "foxglove.SceneUpdate"
+        assert channels["/scene"]["encoding"] == "protobuf"
+        stamps = [s for s, _ in got["/agent/2"]]
+        assert stamps == sorted(stamps)
+        sample = json.loads(got["/agent/2"][-1][1])
+        assert got["/agent/2"][-1][0] == viz.stamp(sample["t"])
+        assert 0.0 <= sample["t"] < duration and sample["k"] == round(sample["t"] * 100)
+        assert sample["safety_mode_name"] == "FLYING" and len(sample["xi"]) == 2
+        assert all(k >= 1.0 for k in sample["kp"]) and sample["xi_norm"] >= 0.0  # sigma-mod gains stay >= 1
+        assert set(sample) >= {"zeta", "kv", "u", "p", "links", "meas_age", "drops"}
+        leader = json.loads(got["/leader"][-1][1])
+        assert len(leader["p"]) == 2 and abs(leader["t"] - sample["t"]) < 1.0
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)  # first Ctrl-C: land, then stop
+        code, out = finish(proc)
+    assert code in (130, 5), out[-3000:]
+    assert (tmp_path / "run" / "run.mcap").exists()
+
+
+# ------------------------------------------------------------------------------------ tether record
+@pytest.mark.slow  # real processes
+def test_record_started_before_the_swarm_records_it_until_sigint(tmp_path: Path) -> None:
+    """``tether record`` waits for a router that is not up yet, records a real-time ``tether run
+    --listen`` from its start, and writes both files when stopped mid-run: its samples are the run's."""
+    port = tp.free_tcp_port()
+    rec_dir, run_dir = tmp_path / "rec", tmp_path / "run"
+    rec = tether("record", "--mission", "section4", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(rec_dir),
+                 "--duration", "12")
+    run = None
+    try:
+        time.sleep(1.0)  # a recorder that is up before the swarm: it keeps trying the router
+        assert rec.poll() is None
+        run = tether("run", "section4", "--clock", "realtime", "--duration", "12", "--insecure", "--quiet",
+                     "--listen", f"tcp/127.0.0.1:{port}", "--out", str(run_dir))
+        logs = run_dir / "logs" / "recorder-0.log"
+        # stop the recorder once the run has flown 5 s (the run's own recorder says when it started)
+        wait_for(lambda: logs.exists() and "real time: tick 0" in logs.read_text(), 90, "the run's start", run)
+        started = time.monotonic()
+        wait_for(lambda: time.monotonic() - started > 6.0, 30, "5 s of flight", run)
+        rec.send_signal(signal.SIGINT)
+        code, out = finish(rec, 60)
+        assert code == 0, out[-3000:]
+        assert "stopped after" in out and "INCOMPLETE" in out, out[-2000:]
+        code, run_out = finish(run)
+        assert code in (0, 3, 5), run_out[-3000:]  # clean, a failsafe under load, or samples dropped
+    finally:
+        kill(rec)
+        if run is not None:
+            kill(run)
+    ours, theirs = Run.load(rec_dir), Run.load(run_dir)
+    assert ours.meta.complete is False and ours.meta.namespace == "section4"
+    both = np.intersect1d(heard(ours), heard(theirs))
+    assert len(both) > 300  # at least 3 s of flight at 100 Hz in both files
+    assert heard(ours).max() < theirs.meta.steps - 100  # it stopped mid-run
+    for f in ("p", "v", "xi", "zeta", "kp", "kv", "u", "leader_p"):
+        same_samples(getattr(ours, f)[both], getattr(theirs, f)[both], f)
+    msgs = read_mcap(rec_dir / "run.mcap")
+    mine = set(heard(ours))
+    agent1 = [json.loads(d) for _, d in msgs["/agent/1"]]
+    assert {m["k"] for m in agent1} >= mine  # every tick recorded is in the file, nothing after the stop
+    assert max(m["k"] for m in agent1) <= max(np.flatnonzero(np.isfinite(ours.p[:, :, 0]).any(axis=1)))
+    norm = np.linalg.norm(ours.xi, axis=2)
+    for m in agent1:
+        if m["k"] in mine:
+            assert m["xi_norm"] == norm[m["k"], 0]
+
+
+@pytest.mark.slow  # real processes, mTLS
+def test_record_joins_a_running_swarm_late_with_the_operator_identity(tmp_path: Path) -> None:
+    """Under mTLS (the default), with ``DIR/tls/control-0.json5``: a recorder that attaches after the
+    start infers tick 0 from the samples and records the rest of the run, equal to the run's file."""
+    port = tp.free_tcp_port()
+    rec_dir, run_dir = tmp_path / "rec", tmp_path / "run"
+    run = tether("run", "section4", "--clock", "realtime", "--duration", "20", "--quiet",
+                 "--listen", f"tls/127.0.0.1:{port}", "--out", str(run_dir))
+    rec = None
+    try:
+        logs = run_dir / "logs" / "recorder-0.log"
+        wait_for(lambda: logs.exists() and "real time: tick 0" in logs.read_text(), 90, "the run's start", run)
+        started = time.monotonic()
+        wait_for(lambda: time.monotonic() - started > 2.0, 30, "2 s of flight", run)
+        rec = tether("record", "--mission", "section4", "--zenoh-config", str(run_dir / "tls" / "control-0.json5"),
+                     "--out", str(rec_dir), "--duration", "20")
+        code, out = finish(rec, 90)
+        assert code == 0, out[-3000:]
+        assert "joined a swarm already running" in out and "the run ended" in out, out[-2000:]
+        code, run_out = finish(run)
+        assert code in (0, 3, 5), run_out[-3000:]  # clean, a failsafe under load, or samples dropped
+    finally:
+        kill(run)
+        if rec is not None:
+            kill(rec)
+    ours, theirs = Run.load(rec_dir), Run.load(run_dir)
+    mine = heard(ours)
+    assert mine.min() > 100 and len(mine) > 300  # it joined late, and heard the rest
+    both = np.intersect1d(mine, heard(theirs))
+    assert len(both) > 0.9 * len(mine)
+    for f in ("p", "xi", "kp", "kv", "u", "leader_p"):
+        same_samples(getattr(ours, f)[both], getattr(theirs, f)[both], f)
+    assert ours.safety.gate_counts is not None
+    msgs = read_mcap(rec_dir / "run.mcap")
+    assert len(msgs["/agent/3"]) == heard_any(ours)  # the ticks before it joined are not in the file
+
+
+# ----------------------------------------------------------------------- a stopped run keeps both files
+@pytest.mark.slow  # real processes
+def test_a_lockstep_run_stopped_by_sigint_leaves_both_files(tmp_path: Path) -> None:
+    """Ctrl-C on a long lockstep run: the recorder writes ``run.npz`` then ``run.mcap`` of what it
+    recorded, and the launcher waits for it (``deploy.local.write_grace``) instead of killing it."""
+    out = tmp_path / "run"
+    out.mkdir()
+    log = tmp_path / "launcher.log"
+    proc = tether("run", "section4", "--duration", "1000", "--insecure", "--out", str(out), log=log)
+    try:
+        wait_for(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)
+        started = time.monotonic()
+        wait_for(lambda: time.monotonic() - started > 8.0, 30, "8 s of running", proc)
+        os.killpg(proc.pid, signal.SIGINT)
+        code, _ = finish(proc, 300)
+    finally:
+        kill(proc)
+    text = log.read_text()
+    assert code == 130, text[-3000:]
+    assert "did not finish writing" not in text
+    run = Run.load(out)
+    assert run.meta.complete is False
+    assert len(heard(run)) > 100
+    msgs = read_mcap(out / "run.mcap")
+    assert len(msgs["/agent/1"]) == heard_any(run) == len(msgs["/leader"])
+    assert msgs["/leader"][-1][0] == viz.stamp(float(run.t[heard_any(run) - 1]))
