@@ -316,3 +316,85 @@ def test_a_lockstep_run_stopped_by_sigint_leaves_both_files(tmp_path: Path) -> N
     msgs = read_mcap(out / "run.mcap")
     assert len(msgs["/agent/1"]) == heard_any(run) == len(msgs["/leader"])
     assert msgs["/leader"][-1][0] == viz.stamp(float(run.t[heard_any(run) - 1]))
+
+
+# ------------------------------------------------------------------------------------- tether top
+def telemetry(sender: int, k: int, mode: int = 0, xi: tuple[float, float] = (0.01, 0.0), **kw: object) -> bytes:
+    from tether import wire
+
+    links = [wire.LinkStats(src=0, received=k, used=k, stale=0, age=0.01, silent=False, delivery=1.0,
+                            age_p50=0.01, age_p99=0.01)]
+    msg = wire.Telemetry(sender=sender, seq=k, k=k, t=k * 0.01, meas_t=k * 0.01, p=[0.0, 0.0], vel=[0.0, 0.0],
+                         a=[0.0, 0.0], u=[0.3, 0.4], xi=list(xi), zeta=[0.0, 0.0], kp=[1.0, 1.5], kv=[1.0, 1.0],
+                         links=links, drops={}, mode=mode, **kw)  # type: ignore[arg-type]
+    return wire.encode(msg)
+
+
+def test_top_board_keeps_each_agents_newest_telemetry_and_drops_the_rest() -> None:
+    from recorder.top import Board
+    from tether import wire
+
+    b = Board("s4")
+    key = "tether/s4/agent/{}/telemetry".format
+    b.telemetry(key(1), telemetry(1, 10), now=0.0)
+    b.telemetry(key(1), telemetry(1, 9), now=0.0)  # older: dropped
+    b.telemetry(key(2), telemetry(3, 5), now=0.0)  # another agent's on agent 2's key: forged
+    b.telemetry(key(2), b"\x93junk", now=0.0)
+    b.telemetry("tether/s4/agent/x/telemetry", telemetry(1, 11), now=0.0)
+    b.telemetry(key(2), wire.encode(wire.Ack(sender=2, seq=0, k=0, t=0.0, role="agent")), now=0.0)
+    assert b.drops == {"stale": 1, "sender": 1, "malformed": 1, "key": 1, "type": 1}
+    assert sorted(b.rows) == [1] and b.rows[1].msg is not None and b.rows[1].msg.k == 10
+    cells, styles = b.cells(b.rows[1], now=0.1)
+    assert cells[:5] == ["1", "FLYING", "0.010", "1.00/1.50  1.00/1.00", "0.50"]
+    assert styles[1] == "green" and styles[2] == ""
+    # trouble: a mode other than FLYING, a big |xi|, an event; a gone token; silence
+    ev = wire.SafetyEvent(k=20, t=0.2, vehicle=1, src=0, dst=1, reason="leader silent 0.52 s")
+    b.telemetry(key(1), telemetry(1, 20, mode=1, xi=(0.6, 0.8), events=[ev]), now=1.0)
+    cells, styles = b.cells(b.rows[1], now=1.1)
+    assert cells[1] == "HOLD" and styles[1] == "yellow" and styles[2] == "red"
+    assert cells[7] == "t=0.2s FLYING->HOLD leader silent 0.52 s"
+    assert b.cells(b.rows[1], now=3.0)[0][1].startswith("STALE")
+    b.token("@tether/s4/agent/1", False)
+    b.token("@tether/s4/agent/4", True)
+    assert b.cells(b.rows[1], now=1.1)[0][1] == "GONE (HOLD)"
+    assert b.cells(b.rows[4], now=1.1)[0][1] == "no telemetry"
+
+
+@pytest.mark.slow  # real processes, a real terminal
+def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -> None:
+    import shutil
+
+    if shutil.which("tmux") is None:
+        pytest.skip("tmux is not installed (apt-get install tmux): tether top is tested in a real terminal")
+    port = tp.free_tcp_port()
+    run = tether("run", "section4", "--clock", "realtime", "--duration", "30", "--insecure", "--quiet",
+                 "--listen", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "run"), "--fault", "kill:agent/2@12")
+    session = f"tether-top-{os.getpid()}"
+    rc = tmp_path / "rc"
+    command = (f"cd {REPO} && PYTHONPATH={REPO} {sys.executable} -m cli top --connect tcp/127.0.0.1:{port} "
+               f"--ns section4; echo $? > {rc}")
+    subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "170", "-y", "30", command], check=True)
+
+    def pane() -> str:
+        done = subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True, text=True)
+        return done.stdout
+
+    def rows(mode: str) -> set[str]:
+        out = set()
+        for line in pane().splitlines():
+            cells = [c.strip() for c in line.split("│")]
+            if len(cells) > 3 and cells[1] in "1234" and cells[1] and cells[2].startswith(mode):
+                out.add(cells[1])
+        return out
+
+    try:
+        wait_for(lambda: rows("FLYING") == {"1", "2", "3", "4"}, 90, "a FLYING row for every vehicle", run)
+        assert "tether top: namespace 'section4'" in pane()
+        wait_for(lambda: "2" in rows("GONE") | rows("STALE"), 60, "vehicle 2 shown gone once killed", run)
+        subprocess.run(["tmux", "send-keys", "-t", session, "q"], check=True)
+        wait_for(lambda: rc.exists() and rc.read_text().strip() != "", 30, "tether top to quit on q")
+        assert rc.read_text().strip() == "0"
+    finally:
+        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
+        os.killpg(run.pid, signal.SIGTERM)
+        finish(run)
