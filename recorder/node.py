@@ -157,18 +157,19 @@ class Recording:
         safety.gate_reasons = np.array(reasons, dtype=str)
         safety.gate_counts = np.array([[gate[r] if r in gate else 0 for r in reasons] for _, gate in self.gate],
                                       dtype=np.int64).reshape(len(self.gate), len(reasons))
-        cpu0 = time.process_time()
+        cpu0, wall0 = time.process_time(), time.perf_counter()
         path = self.run.save(self.out / "run.npz")
-        cpu1 = time.process_time()
+        cpu1, wall1 = time.process_time(), time.perf_counter()
         try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
             if self.mcap:  # ticks of which nothing was heard (a stop, a late start) are left out of it
                 heard = dataclasses.replace(self.run, t=np.where(self.count > 0, self.run.t, np.nan))
                 mcap_beside(heard, self.mission, path)
         except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
-        cpu2 = time.process_time()
+        cpu2, wall2 = time.process_time(), time.perf_counter()
         # bench/recording.py reads this line: the recorder's CPU while recording, and for each file
-        log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap", cpu0, cpu1 - cpu0, cpu2 - cpu1)
+        log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap (wall %.3f s, %.3f s)",
+                 cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
             lines = "".join(json.dumps(d) + "\n" for d in self.netem)
