@@ -654,6 +654,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             listening = (router, *opts.listen)
             log.info("router listening on %s (namespace %s%s)", ", ".join(listening), keys.ns,
                      "" if sec is None else ", TLS with client certificates and access rules")
+            if opts.live is not None:
+                log.info("live view (from the recorder): ws://127.0.0.1:%d (Foxglove: Open connection, "
+                         "Foxglove WebSocket; docs/foxglove.md)", opts.live)
             port = int(router.rsplit(":", 1)[1])
             for f in opts.faults:
                 if f.kind == "partition" and f.member(m) not in launch.relays:

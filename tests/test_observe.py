@@ -251,6 +251,11 @@ def test_record_started_before_the_swarm_records_it_until_sigint(tmp_path: Path)
     for m in agent1:
         if m["k"] in mine:
             assert m["xi_norm"] == norm[m["k"], 0]
+    # and its run.mcap matches the run's own, message for message, where both recorded the tick whole
+    theirs_msgs = {json.loads(d)["k"]: json.loads(d) for _, d in read_mcap(run_dir / "run.mcap")["/agent/1"]}
+    common = [m for m in agent1 if m["k"] in set(both) and m["k"] in theirs_msgs]
+    assert len(common) > 300
+    assert all(m == theirs_msgs[m["k"]] for m in common)
 
 
 @pytest.mark.slow  # real processes, mTLS
