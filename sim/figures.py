@@ -212,7 +212,7 @@ def xy_figure(run: Run, offsets: np.ndarray | None = None) -> Figure:
         offsets = mission_offsets(run)
     sl = _decimate(run)
     n = len(run.agent_ids)
-    fig, (axp, axr) = plt.subplots(1, 2, figsize=(12, 5.5))
+    fig, (axp, axr) = plt.subplots(1, 2, figsize=(12, 6.2))
     target = offsets[:, :2] if offsets is not None else None
     ticks = _snapshot_ticks(run)
     order_of = (lambda xy: _polygon(target)) if target is not None else _polygon  # noqa: E731
@@ -253,9 +253,9 @@ def xy_figure(run: Run, offsets: np.ndarray | None = None) -> Figure:
     axr.set_ylabel("y - y_leader [m]")
     axr.set_title("positions relative to the leader (to scale)")
     axr.set_aspect("equal", adjustable="datalim")
-    for ax in (axp, axr):
+    for ax in (axp, axr):  # legends below the axes: they never hide a snapshot
         ax.grid(True, lw=0.3)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4, frameon=False)
     fig.tight_layout()
     return fig
 
