@@ -86,12 +86,23 @@ class Recording:
         self.saved = False
         self.first: float | None = None
         """The swarm's epoch as inferred from the first telemetry heard (:meth:`Node.ready`'s hint)."""
+        self.oldest = -1
+        """The first tick of which a sample was recorded (-1: none yet)."""
+        self.newest = -1
+        """The newest tick of which a sample was recorded."""
+
+    def _heard(self, k: int) -> None:
+        if k > self.newest:
+            self.newest = k
+        if self.oldest < 0 or k < self.oldest:
+            self.oldest = k
 
     def leader(self, msg: wire.State) -> None:
         if 0 <= msg.k < len(self.count):
             r = self.run
             r.leader_p[msg.k], r.leader_v[msg.k], r.leader_a[msg.k] = msg.p, msg.vel, msg.a
             self.count[msg.k] += 1
+            self._heard(msg.k)
 
     def plant(self, msg: wire.PlantState) -> None:
         if 0 <= msg.k < len(self.count):
@@ -100,6 +111,7 @@ class Recording:
             self.run.d[msg.k, i] = msg.d
             self.run.safety.plant_mode[msg.k, i] = msg.mode
             self.count[msg.k] += 1
+            self._heard(msg.k)
 
     def world(self, msg: wire.WorldState) -> None:
         series = self.world_series
@@ -109,15 +121,17 @@ class Recording:
             pp[msg.k], pv[msg.k] = msg.p, msg.vel
             tension[msg.k], slack[msg.k] = msg.tension, msg.slack_events
             self.count[msg.k] += 1
+            self._heard(msg.k)
 
     def telemetry(self, msg: wire.Telemetry) -> None:
         k = msg.k
-        if self.first is None:
-            # an agent publishes tick k's telemetry about half a period after t_k: one period
-            # earlier than its arrival is an epoch never behind the swarm's (tether record, late)
-            self.first = time.time() - msg.t - self.mission.dt
         if not 0 <= k < len(self.count):
             return
+        if self.first is None and abs(msg.t - k * self.mission.dt) <= 0.5 * self.mission.dt:
+            # an agent publishes tick k's telemetry about half a period after t_k: one period
+            # earlier than its arrival is an epoch never behind the swarm's (tether record, late);
+            # only from a sample whose tick and time agree and lie within the mission
+            self.first = time.time() - msg.t - self.mission.dt
         i, r, lk, rt = self.col[msg.sender], self.run, self.lk, self.rt
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
@@ -145,6 +159,7 @@ class Recording:
                                "at": d.at})
         rt.late[k, i] = msg.late
         self.count[k] += 1
+        self._heard(k)
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
         meta, safety = self.run.meta, self.run.safety
@@ -197,16 +212,14 @@ class Feed:
         log.info("live view: ws://%s:%d (Foxglove: Open connection, Foxglove WebSocket)", host, self.live.port)
 
     def step(self) -> None:
-        """Send every tick that is ready."""
-        count, expected = self.rec.count, self.rec.expected
-        heard = np.flatnonzero(count[max(self.next, 0):])
-        if not len(heard):
+        """Send every tick that is ready (O(1) when none is)."""
+        rec = self.rec
+        if rec.newest < 0:
             return
         if self.next < 0:
-            self.next = int(heard[0])
-            heard = heard - heard[0]
-        newest = self.next + int(heard[-1])
-        run, events = self.rec.run, self.rec.events
+            self.next = rec.oldest
+        count, expected, newest = rec.count, rec.expected, rec.newest
+        run, events = rec.run, rec.events
         while self.next <= newest and (count[self.next] >= expected or newest - self.next >= self.LAG):
             self.live.tick(run, self.next, events=events)
             self.next += 1
