@@ -209,6 +209,9 @@ class Feed:
         self.live = viz.Live(port=port, host=host, speed=0.0, mission=rec.mission)
         self.next = -1
         """The next tick to send (-1: none heard yet; a recorder that attaches late starts at the first heard)."""
+        self.sent = 0
+        self.cpu = 0.0
+        """Ticks sent, and the CPU time spent sending them [s] (logged at the end: bench/recording.py)."""
         log.info("live view: ws://%s:%d (Foxglove: Open connection, Foxglove WebSocket)", host, self.live.port)
 
     def step(self) -> None:
@@ -220,14 +223,18 @@ class Feed:
             self.next = rec.oldest
         count, expected, newest = rec.count, rec.expected, rec.newest
         run, events = rec.run, rec.events
+        t0 = time.process_time()
         while self.next <= newest and (count[self.next] >= expected or newest - self.next >= self.LAG):
             self.live.tick(run, self.next, events=events)
             self.next += 1
+            self.sent += 1
+        self.cpu += time.process_time() - t0
 
     def close(self) -> None:
         self.step()
         self.live.finish(self.rec.run)
         self.live.close()
+        log.info("live view: sent %d ticks in %.3f s of CPU", self.sent, self.cpu)
 
 
 def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
