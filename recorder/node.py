@@ -214,8 +214,8 @@ class Feed:
         """Ticks sent, and the CPU time spent sending them [s] (logged at the end: bench/recording.py)."""
         log.info("live view: ws://%s:%d (Foxglove: Open connection, Foxglove WebSocket)", host, self.live.port)
 
-    def step(self) -> None:
-        """Send every tick that is ready (O(1) when none is)."""
+    def step(self, flush: bool = False) -> None:
+        """Send every tick that is ready (O(1) when none is); ``flush``: every tick heard (the end)."""
         rec = self.rec
         if rec.newest < 0:
             return
@@ -224,14 +224,14 @@ class Feed:
         count, expected, newest = rec.count, rec.expected, rec.newest
         run, events = rec.run, rec.events
         t0 = time.process_time()
-        while self.next <= newest and (count[self.next] >= expected or newest - self.next >= self.LAG):
+        while self.next <= newest and (flush or count[self.next] >= expected or newest - self.next >= self.LAG):
             self.live.tick(run, self.next, events=events)
             self.next += 1
             self.sent += 1
         self.cpu += time.process_time() - t0
 
     def close(self) -> None:
-        self.step()
+        self.step(flush=True)
         self.live.finish(self.rec.run)
         self.live.close()
         log.info("live view: sent %d ticks in %.3f s of CPU", self.sent, self.cpu)
