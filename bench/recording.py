@@ -34,7 +34,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = re.compile(r"recorder CPU: ([0-9.]+) s recording, ([0-9.]+) s run\.npz, ([0-9.]+) s run\.mcap "
-                 r"\(wall ([0-9.]+) s, ([0-9.]+) s\)")
+                 r"\(wall ([0-9.]+) s, ([0-9.]+) s\); ([0-9.]+) s of start-up")
 LIVE = re.compile(r"live view: sent ([0-9]+) ticks in ([0-9.]+) s of CPU")
 RAN = re.compile(r"ran ([0-9.]+) s of mission time in ([0-9.]+) s of wall time")
 
@@ -68,7 +68,7 @@ def tether_run(out: Path, clock: str, duration: float, *extra: str, agents_cpu: 
         raise RuntimeError(f"no CPU line in {out / 'logs' / 'recorder-0.log'}")
     ran = RAN.search(text)
     row = {"wall": wall, "rec_cpu": float(cpu[1]), "npz_cpu": float(cpu[2]), "mcap_cpu": float(cpu[3]),
-           "npz_wall": float(cpu[4]), "mcap_wall": float(cpu[5]),
+           "npz_wall": float(cpu[4]), "mcap_wall": float(cpu[5]), "startup_cpu": float(cpu[6]),
            "npz": (out / "run.npz").stat().st_size,
            "mcap": (out / "run.mcap").stat().st_size if (out / "run.mcap").exists() else 0.0,
            "stepping": float(ran[2]) if ran else float("nan")}
@@ -143,19 +143,22 @@ def main() -> None:
     if "realtime" in a.cases:
         print(f"real time: tether run section4 --clock realtime --duration {a.rt_duration:g}, run.mcap on vs off")
         on, off = pairs("realtime", a.repeats, (), ("--no-mcap",), "realtime", a.rt_duration)
-        share = [r["mcap_cpu"] / (r["rec_cpu"] + r["npz_cpu"] + r["mcap_cpu"]) for r in on]
+        share = [r["mcap_cpu"] / (r["rec_cpu"] - r["startup_cpu"] + r["npz_cpu"] + r["mcap_cpu"]) for r in on]
         total_on = med(on, "rec_cpu") + med(on, "npz_cpu") + med(on, "mcap_cpu")
         total_off = med(off, "rec_cpu") + med(off, "npz_cpu") + med(off, "mcap_cpu")
-        print(f"run.mcap in the same run: {med(on, 'mcap_cpu'):.3f} s of the recorder's {total_on:.2f} s of CPU, "
-              f"{100 * statistics.median(share):.1f} % (median of {len(on)})")
+        print(f"run.mcap in the same run: {med(on, 'mcap_cpu'):.3f} s of CPU against the recorder's "
+              f"{med(on, 'rec_cpu') - med(on, 'startup_cpu'):.2f} s from the start of the run to its end: "
+              f"{100 * statistics.median(share):.1f} % (median of {len(on)}; start-up "
+              f"{med(on, 'startup_cpu'):.2f} s left out)")
         print(f"  on vs off: recorder CPU {total_on:.2f} s vs {total_off:.2f} s ({100 * (total_on / total_off - 1):+.1f} %; "
               "start-up included, load differs between runs)")
     if "live" in a.cases:
         print(f"live view: tether run section4 --clock realtime --duration {a.rt_duration:g}, --live (no viewer) vs not")
         on, off = pairs("live", a.repeats, ("--live", "PORT", "--no-mcap"), ("--no-mcap",), "realtime", a.rt_duration,
                         agents_cpu=True)
-        share = [r["live_cpu"] / r["rec_cpu"] for r in on]
-        print(f"live view in the same run: {med(on, 'live_cpu'):.3f} s of the recorder's {med(on, 'rec_cpu'):.2f} s of CPU "
+        share = [r["live_cpu"] / (r["rec_cpu"] - r["startup_cpu"]) for r in on]
+        print(f"live view in the same run: {med(on, 'live_cpu'):.3f} s of the recorder's "
+              f"{med(on, 'rec_cpu') - med(on, 'startup_cpu'):.2f} s of CPU in the run "
               f"to send {med(on, 'live_ticks'):.0f} ticks, {100 * statistics.median(share):.1f} % (median of {len(on)})")
         print(f"  on vs off (load differs between runs): recorder CPU {med(on, 'rec_cpu'):.2f} s vs "
               f"{med(off, 'rec_cpu'):.2f} s; agent CPU (median agent) {med(on, 'agent_cpu'):.2f} s vs "

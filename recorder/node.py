@@ -86,6 +86,8 @@ class Recording:
         self.saved = False
         self.first: float | None = None
         """The swarm's epoch as inferred from the first telemetry heard (:meth:`Node.ready`'s hint)."""
+        self.cpu_ready = 0.0
+        """The process's CPU time when the run started (its start-up before it) [s]."""
         self.oldest = -1
         """The first tick of which a sample was recorded (-1: none yet)."""
         self.newest = -1
@@ -183,8 +185,9 @@ class Recording:
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
         cpu2, wall2 = time.process_time(), time.perf_counter()
         # bench/recording.py reads this line: the recorder's CPU while recording, and for each file
-        log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap (wall %.3f s, %.3f s)",
-                 cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1)
+        log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap (wall %.3f s, %.3f s); "
+                 "%.3f s of start-up before the run", cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1,
+                 self.cpu_ready)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
             lines = "".join(json.dumps(d) + "\n" for d in self.netem)
@@ -287,6 +290,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         if attach:
             log.info("waiting for namespace %r to start (Ctrl-C: stop; nothing is written before a sample)", keys.ns)
         await node.ready(token=not attach, epoch_hint=(lambda: rec.first) if attach else None)
+        rec.cpu_ready = time.process_time()
         last = m.steps
         if node.clock.lockstep:
             for k in range(last + 1):
