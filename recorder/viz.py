@@ -214,10 +214,13 @@ class Rows:
         if layout.attitude:
             arrays["quat"] = None
         self.arrays = arrays
-        if whole:
-            self.lists = {name: self._full(name).tolist() for name in arrays}
+        if whole:  # the ticks written only (a stopped run's empty rest is never converted)
+            index = np.flatnonzero(np.isfinite(run.t))
+            self.pos = np.full(len(run.t), -1, dtype=np.int64)
+            self.pos[index] = np.arange(len(index))
+            self.lists = {name: self._full(name, index).tolist() for name in arrays}
 
-    def _full(self, name: str, k: slice | int = slice(None)) -> np.ndarray:
+    def _full(self, name: str, k: slice | int | np.ndarray = slice(None)) -> np.ndarray:
         if name == "xi_norm":
             return np.linalg.norm(self.run.xi[k], axis=-1)
         if name == "quat":
@@ -228,7 +231,8 @@ class Rows:
 
     def at(self, k: int) -> dict[str, list]:
         if self.whole:
-            return {name: rows[k] for name, rows in self.lists.items()}
+            n = int(self.pos[k])
+            return {name: rows[n] for name, rows in self.lists.items()}
         return {name: self._full(name, k).tolist() for name in self.arrays}
 
 
