@@ -151,6 +151,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = _writable_dir("--out", args.out, ("run.npz", "metrics.json"))
     prog = Progress()
     live = None
+    _check_live(args.live)
     if args.live is not None:  # the live view (docs/foxglove.md): needs the viz extra
         from recorder import viz
 
@@ -362,7 +363,7 @@ def cmd_world(args: argparse.Namespace) -> int:
 def cmd_recorder(args: argparse.Namespace) -> int:
     from recorder import node as recorder
 
-    run, on_stop = recorder.make(Path(args.out))
+    run, on_stop = recorder.make(Path(args.out), live=args.live, mcap=not args.no_mcap)
     return _serve(args, "recorder", 0, run, on_stop)
 
 
@@ -459,6 +460,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _load(args.mission, args.duration)
     load_mission(path, args.duration)
     _writable_dir("--out", args.out, ("run.npz",))
+    _check_live(args.live)
     if (Path(args.out) / "logs").exists() and not (Path(args.out) / "logs").is_dir():
         raise BadArgument(f"--out: {Path(args.out) / 'logs'} is a file where the run writes its logs; remove it "
                           "or give another --out")
@@ -482,9 +484,18 @@ def cmd_run(args: argparse.Namespace) -> int:
                                duration=args.duration, handover_runtime=not args.no_handover,
                                listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
                                vehicle_connect=dict(args.vehicle_connect), faults=injected,
-                               insecure=args.insecure,
+                               insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return asyncio.run(local.run(path, opts))
+
+
+def _check_live(port: int | None) -> None:
+    """``--live PORT``: a port this machine can serve on now (exit 2 before anything starts)."""
+    from cli import live
+
+    problem = live.port_problem(port)
+    if problem is not None:
+        raise BadArgument(problem)
 
 
 def _vehicle_option(parse: Callable[[str], T], example: str) -> Callable[[str], tuple[int, T]]:
@@ -638,6 +649,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "publish on the run's keys. Default: mTLS, one identity per process, deny-by-default "
                          "rules; tools attach to --listen tls/... with --zenoh-config OUT/tls/control-0.json5")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
+    rn.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                    help="serve the run over the Foxglove WebSocket protocol while it goes on, from the recorder "
+                         "(default port 8765; docs/foxglove.md)")
+    rn.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
     rn.set_defaults(func=cmd_run)
 
     for role, fn, helptext in (("leader", cmd_leader, "the virtual leader's process"),
@@ -651,6 +666,9 @@ def build_parser() -> argparse.ArgumentParser:
             rp.add_argument("--id", type=int, required=True)
         if role == "recorder":
             rp.add_argument("--out", required=True)
+            rp.add_argument("--live", type=int, default=None, metavar="PORT",
+                            help="serve the run over the Foxglove WebSocket protocol on this port while it goes on")
+            rp.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
         rp.set_defaults(func=fn)
 
     sw = sub.add_parser("sweep", help="degradation study: a mission over a grid of link loss and delay, both laws")
@@ -706,6 +724,11 @@ def build_parser() -> argparse.ArgumentParser:
     mc.add_argument("--scene-rate", type=_scene_rate, default=None, metavar="HZ",
                     help="rate of the 3D scene (default 25; 0: every tick)")
     mc.set_defaults(func=cmd_mcap)
+
+    from cli import record, top
+
+    record.add_parser(sub)
+    top.add_parser(sub)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file (safety mode changes marked)")
     pl.add_argument("run", help="a run.npz or the directory holding it")

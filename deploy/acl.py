@@ -9,6 +9,7 @@ link, by the CN of the certificate the other side presented:
 
 * the operator's stop orders (``tether land``, ``tether estop``) are published by ``control-0``
   alone, on ``tether/<ns>/control/0/safety``, which every agent and plant may subscribe to;
+  ``control-0`` may also hear what the recorder hears (``tether record``, ``tether top``);
 * ``ingress`` rules say what a node may send: ``put`` (publish), ``declare_subscriber``,
   ``liveliness_token``, ``declare_liveliness_subscriber``, and for ``tether netem-set`` (run-time
   changes of the emulated network) the agents' ``declare_queryable`` and ``reply`` (a reply only on
@@ -94,7 +95,12 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
               replies=(k.everything,), asks=(k.everything,), lists=(every_token,)),
         Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
               subscribe=(k.start, k.tick), tokens=(k.token("leader", lid),)),
-        Grant("control-0", publish=(k.start, k.tick, k.safety), subscribe=(k.acks,), watch=(every_token,), sees=(every_token,),
+        # the operator also watches the swarm (tether record, tether top): it may hear every stream
+        # the recorder hears, and publish none of them
+        Grant("control-0", publish=(k.start, k.tick, k.safety),
+              subscribe=(k.acks, k.start, k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
+                         f"tether/{ns}/plant/*/state", k.topic("world", 0, "state")),
+              watch=(every_token,), sees=(every_token,),
               asks=(every_netem,), lists=(k.token("agent", "*"),)),
         Grant("recorder-0", publish=(k.topic("recorder", 0, "ack"),),
               subscribe=(k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",

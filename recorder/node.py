@@ -6,14 +6,24 @@ every sample of k, so the clock never runs ahead of what is recorded. In real ti
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
 in both cases (a stopped run is marked ``complete = false``), with ``run.mcap`` beside it when the
 Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
+
+The same role serves two more uses (:func:`make`): ``live`` serves every tick over the Foxglove
+WebSocket protocol while the run goes on (``tether run --live``, ``tether record --live``: a
+:class:`Feed`, in this process, never in an agent's), and ``attach`` is the recorder of a deployed
+swarm (``tether record``): a plain client outside the swarm, with no liveliness token and no
+lockstep acknowledgements, that records until the run's last tick or until it is stopped, through
+members leaving and coming back.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -32,8 +42,10 @@ process's own stop signal before calling the run cut short [s]."""
 class Recording:
     """The run being filled, sample by sample (pure bookkeeping, no I/O until :meth:`save`)."""
 
-    def __init__(self, node: Node, out: Path):
+    def __init__(self, node: Node, out: Path, mcap: bool = True):
         m = node.mission
+        self.mcap = mcap
+        """Write ``run.mcap`` beside ``run.npz`` (``--no-mcap``: not, e.g. to measure its cost)."""
         self.mission = m
         self.out = out
         self.col = {aid: i for i, aid in enumerate(m.agent_ids)}
@@ -73,12 +85,27 @@ class Recording:
         self.saved = False
         self.failed: OSError | None = None
         """Why :meth:`save` could not write the run file, if it could not."""
+        self.first: float | None = None
+        """The swarm's epoch as inferred from the first telemetry heard (:meth:`Node.ready`'s hint)."""
+        self.cpu_ready = 0.0
+        """The process's CPU time when the run started (its start-up before it) [s]."""
+        self.oldest = -1
+        """The first tick of which a sample was recorded (-1: none yet)."""
+        self.newest = -1
+        """The newest tick of which a sample was recorded."""
+
+    def _heard(self, k: int) -> None:
+        if k > self.newest:
+            self.newest = k
+        if self.oldest < 0 or k < self.oldest:
+            self.oldest = k
 
     def leader(self, msg: wire.State) -> None:
         if 0 <= msg.k < len(self.count):
             r = self.run
             r.leader_p[msg.k], r.leader_v[msg.k], r.leader_a[msg.k] = msg.p, msg.vel, msg.a
             self.count[msg.k] += 1
+            self._heard(msg.k)
 
     def plant(self, msg: wire.PlantState) -> None:
         if 0 <= msg.k < len(self.count):
@@ -87,6 +114,7 @@ class Recording:
             self.run.d[msg.k, i] = msg.d
             self.run.safety.plant_mode[msg.k, i] = msg.mode
             self.count[msg.k] += 1
+            self._heard(msg.k)
 
     def world(self, msg: wire.WorldState) -> None:
         series = self.world_series
@@ -96,11 +124,17 @@ class Recording:
             pp[msg.k], pv[msg.k] = msg.p, msg.vel
             tension[msg.k], slack[msg.k] = msg.tension, msg.slack_events
             self.count[msg.k] += 1
+            self._heard(msg.k)
 
     def telemetry(self, msg: wire.Telemetry) -> None:
         k = msg.k
         if not 0 <= k < len(self.count):
             return
+        if self.first is None and abs(msg.t - k * self.mission.dt) <= 0.5 * self.mission.dt:
+            # an agent publishes tick k's telemetry about half a period after t_k: one period
+            # earlier than its arrival is an epoch never behind the swarm's (tether record, late);
+            # only from a sample whose tick and time agree and lie within the mission
+            self.first = time.time() - msg.t - self.mission.dt
         i, r, lk, rt = self.col[msg.sender], self.run, self.lk, self.rt
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
@@ -128,6 +162,7 @@ class Recording:
                                "at": d.at})
         rt.late[k, i] = msg.late
         self.count[k] += 1
+        self._heard(k)
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
         """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
@@ -151,11 +186,20 @@ class Recording:
         safety.gate_reasons = np.array(reasons, dtype=str)
         safety.gate_counts = np.array([[gate[r] if r in gate else 0 for r in reasons] for _, gate in self.gate],
                                       dtype=np.int64).reshape(len(self.gate), len(reasons))
+        cpu0, wall0 = time.process_time(), time.perf_counter()
         path = self.run.save(self.out / "run.npz")
+        cpu1, wall1 = time.process_time(), time.perf_counter()
         try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
-            mcap_beside(self.run, self.mission, path)
+            if self.mcap:  # ticks of which nothing was heard (a stop, a late start) are left out of it
+                heard = dataclasses.replace(self.run, t=np.where(self.count > 0, self.run.t, np.nan))
+                mcap_beside(heard, self.mission, path)
         except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
+        cpu2, wall2 = time.process_time(), time.perf_counter()
+        # bench/recording.py reads this line: the recorder's CPU while recording, and for each file
+        log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap (wall %.3f s, %.3f s); "
+                 "%.3f s of start-up before the run", cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1,
+                 self.cpu_ready)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
             lines = "".join(jsonout.dumps(d, indent=None) + "\n" for d in self.netem)
@@ -165,13 +209,61 @@ class Recording:
         return path
 
 
-def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node], None]]:
-    """The recorder role writing to ``out``, and its stop hook (writes a partial file)."""
-    holder: dict[str, Recording] = {}
+class Feed:
+    """The live view of a recording (``--live``): a Foxglove WebSocket server in the recorder's
+    process, fed tick by tick from the run being filled (the same channels as ``run.mcap``,
+    ``recorder.viz.Live``). A tick goes out once every sample of it is in, or, in real time, once
+    :data:`LAG` newer ticks have been heard (its missing samples then go out as nulls)."""
+
+    LAG = 5
+
+    def __init__(self, rec: Recording, port: int, host: str = "127.0.0.1"):
+        from recorder import viz  # the viz extra, only with --live
+
+        self.rec = rec
+        self.live = viz.Live(port=port, host=host, speed=0.0, mission=rec.mission)
+        self.next = -1
+        """The next tick to send (-1: none heard yet; a recorder that attaches late starts at the first heard)."""
+        self.sent = 0
+        self.cpu = 0.0
+        """Ticks sent, and the CPU time spent sending them [s] (logged at the end: bench/recording.py)."""
+        log.info("live view: ws://%s:%d (Foxglove: Open connection, Foxglove WebSocket)", host, self.live.port)
+
+    def step(self, flush: bool = False) -> None:
+        """Send every tick that is ready (O(1) when none is); ``flush``: every tick heard (the end)."""
+        rec = self.rec
+        if rec.newest < 0:
+            return
+        if self.next < 0:
+            self.next = rec.oldest
+        count, expected, newest = rec.count, rec.expected, rec.newest
+        run, events = rec.run, rec.events
+        t0 = time.process_time()
+        while self.next <= newest and (flush or count[self.next] >= expected or newest - self.next >= self.LAG):
+            self.live.tick(run, self.next, events=events)
+            self.next += 1
+            self.sent += 1
+        self.cpu += time.process_time() - t0
+
+    def close(self) -> None:
+        self.step(flush=True)
+        self.live.finish(self.rec.run)
+        self.live.close()
+        log.info("live view: sent %d ticks in %.3f s of CPU", self.sent, self.cpu)
+
+
+def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
+         live_host: str = "127.0.0.1") -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node], None]]:
+    """The recorder role writing to ``out``, and its stop hook (writes a partial file).
+
+    ``live``: also serve the run over the Foxglove WebSocket protocol on this port (:class:`Feed`).
+    ``attach``: record a swarm from outside it (``tether record``): no token, no acknowledgements,
+    records until the last tick or a stop, whoever comes and goes. ``mcap``: write ``run.mcap``."""
+    holder: dict[str, Any] = {}
 
     async def run(node: Node) -> None:
         m, keys = node.mission, node.keys
-        rec = Recording(node, out)
+        rec = Recording(node, out, mcap=mcap)
         holder["rec"] = rec
         # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
@@ -194,30 +286,59 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
             producers.append(("world", 0))
         node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
         node.subscribe(f"tether/{keys.ns}/plant/*/state")
-        ack = node.publisher(keys.topic("recorder", node.args.node_id, "ack"))
+        ack = None if attach else node.publisher(keys.topic("recorder", node.args.node_id, "ack"))
         seen: set[str] = set()
         gone: set[str] = set()
         wanted = {keys.token(r, i) for r, i in producers}
         for r, i in producers:
             node.watch(r, i)
-        await node.ready()
+        feed = None
+        if live is not None:
+            try:
+                feed = holder["feed"] = Feed(rec, live, live_host)
+            except Exception as exc:  # noqa: BLE001 - the port was taken since it was checked: record anyway
+                log.error("--live: no live view on port %d (%s: %s); recording without it",
+                          live, type(exc).__name__, exc)
+        if attach:
+            log.info("waiting for namespace %r to start (Ctrl-C: stop; nothing is written before a sample)", keys.ns)
+        await node.ready(token=not attach, epoch_hint=(lambda: rec.first) if attach else None)
+        rec.cpu_ready = time.process_time()
         last = m.steps
         if node.clock.lockstep:
             for k in range(last + 1):
                 await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
                                  f"every sample of tick {k} (have {rec.count[k]} of {rec.expected})")
-                ack.send(wire.Ack, k, k * m.dt, role="recorder")
+                if ack is not None:
+                    ack.send(wire.Ack, k, k * m.dt, role="recorder")
+                if feed is not None:
+                    feed.step()
         else:
+            if feed is not None and node.tasks is not None:
+                async def follow(f: Feed) -> None:
+                    while True:
+                        await asyncio.sleep(m.dt)
+                        f.step()
+
+                node.tasks.create_task(follow(feed), name="live view")
+
             def finished() -> bool:
                 for key, alive in node.token_log:
                     (seen if alive else gone).add(key)
                 node.token_log.clear()
-                return rec.count[last] >= rec.expected or (seen >= wanted and (gone & wanted) == wanted)
+                if rec.count[last] >= rec.expected:
+                    return True
+                if attach:  # members come and go: over only once none is left after the mission's end
+                    return (seen >= wanted and not any(node.alive.get(w) for w in wanted)
+                            and node.mission_time() > m.duration)
+                return seen >= wanted and (gone & wanted) == wanted
 
             await node.until(finished, None, "the end of the run")
         complete = bool(np.all(rec.count >= rec.expected))
+        if feed is not None:
+            holder.pop("feed", None)
+            feed.close()
         rec.save(complete=complete, drops=node.receiver.drops)
-        if rec.count[last] == 0:
+        if rec.count[last] == 0 and not attach:
             # the producers may have left because the run is being stopped (Ctrl-C): then this
             # process's own stop follows within moments, and ends it as stopped, not failed
             try:
@@ -230,8 +351,20 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
                                f"(recorded {int(rec.count.sum())} of {rec.expected * len(rec.count)} samples)")
 
     def on_stop(node: Node) -> None:
+        feed = holder.pop("feed", None)
+        if feed is not None:
+            try:
+                feed.close()
+            except Exception as exc:  # noqa: BLE001 - the files matter more than the live view
+                log.warning("live view: %s: %s", type(exc).__name__, exc)
         rec = holder.get("rec")
-        if rec is not None and not rec.saved and rec.failed is None:
-            rec.save(complete=False, drops=node.receiver.drops)
+        if rec is None or rec.saved or rec.failed is not None:
+            return
+        if attach and not rec.count.any():
+            log.warning("stopped before any sample of namespace %r was heard: no run file written", node.keys.ns)
+            return
+        log.info("stopped: writing %s and run.mcap (%d of %d samples)", out / "run.npz", int(rec.count.sum()),
+                 rec.expected * len(rec.count))
+        rec.save(complete=False, drops=node.receiver.drops)
 
     return run, on_stop

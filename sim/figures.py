@@ -21,45 +21,127 @@ from tether.runfile import Run  # noqa: E402
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 AXES = "xyz"
+
+
+LINESTYLES = ("-", "--", ":")
+"""Per axis (x, y, z) in the gain panels; the colour is the agent's."""
+GAIN_UNIT = "(dimensionless)"
+ASPECT_LIMIT = 4.0
+"""A world view is drawn to scale (equal aspect) unless its extents differ by more than this factor."""
+COINCIDE = 5e-3
+"""Curves closer than this fraction of their panel's range everywhere are noted as coinciding."""
+
+
+def colour(i: int) -> str:
+    """The colour of the run's i-th agent (by column), the same in every panel of every figure."""
+    return f"C{i % 10}"
 
 
 def _decimate(run: Run, max_points: int = 4000) -> slice:
     return slice(None, None, max(1, len(run.t) // max_points))
 
 
-def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
-    """Fig. 4 layout: one column per run (e.g. sigma-modification, benchmark), rows ||xi_i||, Kp, Kv."""
-    path = Path(path)
+def mission_offsets(run: Run) -> np.ndarray | None:
+    """The formation offsets ``h_i`` (N, d) of the run's agents, from its mission text; None
+    when the run holds none (or one this version cannot read)."""
+    from tether import mission as ms
+
+    if not run.meta.mission_text:
+        return None
+    try:
+        m = ms.loads(run.meta.mission_text)
+    except Exception:  # noqa: BLE001 - an old or foreign mission text: figures without slots
+        return None
+    by_id = {a.id: a.offset for a in m.agents}
+    if not all(int(aid) in by_id for aid in run.agent_ids):
+        return None
+    return np.array([by_id[int(aid)] for aid in run.agent_ids], dtype=float)
+
+
+def coinciding(curves: list[tuple[str, np.ndarray]], rel: float = COINCIDE) -> list[list[str]]:
+    """Groups (two or more labels) of curves that coincide: every pair in a group is within
+    ``rel`` of the panel's range of each other at every sample (NaN where both are NaN)."""
+    finite = [y[np.isfinite(y)] for _, y in curves]
+    values = np.concatenate(finite) if finite else np.array([])
+    if values.size == 0:
+        return []
+    span = float(np.ptp(values)) or max(1.0, float(np.max(np.abs(values))))
+    tol = rel * span
+    groups: list[list[int]] = []
+    for n, (_, y) in enumerate(curves):
+        for g in groups:
+            ref = curves[g[0]][1]
+            both_nan = np.isnan(y) & np.isnan(ref)
+            if y.shape == ref.shape and np.all(both_nan | (np.abs(y - ref) <= tol)):
+                g.append(n)
+                break
+        else:
+            groups.append([n])
+    return [[curves[n][0] for n in g] for g in groups if len(g) > 1]
+
+
+def note_coinciding(ax: Axes, curves: list[tuple[str, np.ndarray]]) -> list[list[str]]:
+    """Write in ``ax`` which of its curves coincide (so that a hidden curve is not taken for a
+    missing one); returns the groups."""
+    groups = coinciding(curves)
+    if groups:
+        text = "coincide: " + "; ".join(" = ".join(g) for g in groups)
+        ax.text(0.99, 0.03, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=6, wrap=True,
+                bbox={"boxstyle": "round", "fc": "white", "ec": "0.7", "alpha": 0.85})
+    return groups
+
+
+def comparison_figure(runs: dict[str, Run], title: str = "") -> Figure:
+    """Fig. 4 layout (:func:`comparison`), unsaved."""
     cols = len(runs)
     fig, ax = plt.subplots(3, cols, figsize=(5.2 * cols, 8.0), sharex="col", squeeze=False)
     for c, (label, run) in enumerate(runs.items()):
         sl = _decimate(run)
         t = run.t[sl]
         xn = metrics.xi_norm(run)[sl]
+        curves: list[list[tuple[str, np.ndarray]]] = [[], [], []]
         for i, aid in enumerate(run.agent_ids):
-            ax[0, c].plot(t, xn[:, i], lw=0.8, label=f"agent {aid}")
+            ax[0, c].plot(t, xn[:, i], lw=0.8, color=colour(i), label=f"agent {aid}")
+            curves[0].append((f"{aid}", xn[:, i]))
             for k in range(run.kp.shape[2]):
-                ax[1, c].plot(t, run.kp[sl, i, k], lw=0.8, label=f"{aid}{AXES[k]}")
-                ax[2, c].plot(t, run.kv[sl, i, k], lw=0.8, label=f"{aid}{AXES[k]}")
+                ls = LINESTYLES[k % 3]
+                ax[1, c].plot(t, run.kp[sl, i, k], lw=0.8, color=colour(i), ls=ls, label=f"{aid}{AXES[k]}")
+                ax[2, c].plot(t, run.kv[sl, i, k], lw=0.8, color=colour(i), ls=ls, label=f"{aid}{AXES[k]}")
+                curves[1].append((f"{aid}{AXES[k]}", run.kp[sl, i, k]))
+                curves[2].append((f"{aid}{AXES[k]}", run.kv[sl, i, k]))
         ax[0, c].set_title(label)
         mark_events(run, ax[:, c])
         ax[0, c].set_ylabel(r"$\|\xi_i\|$ [m]")
-        ax[1, c].set_ylabel(r"$K_p$")
-        ax[2, c].set_ylabel(r"$K_v$")
+        ax[1, c].set_ylabel(r"$K_p$ " + GAIN_UNIT)
+        ax[2, c].set_ylabel(r"$K_v$ " + GAIN_UNIT)
         ax[2, c].set_xlabel("t [s]")
         for r in range(3):
             ax[r, c].grid(True, lw=0.3)
+            note_coinciding(ax[r, c], curves[r])
         ax[0, c].legend(fontsize=7, loc="upper right")
         ax[1, c].legend(fontsize=6, ncol=2, loc="upper left")
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    return fig
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=150)
     plt.close(fig)
     return path
+
+
+def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
+    """Fig. 4 layout: one column per run (e.g. sigma-modification, benchmark), rows ||xi_i||, Kp, Kv;
+    one colour per agent (:func:`colour`), one line style per axis in the gain rows, and a note
+    where curves coincide."""
+    return _save(comparison_figure(runs, title), path)
 
 
 def mark_events(run: Run, axes: Iterable[Axes]) -> None:
@@ -75,69 +157,119 @@ def mark_events(run: Run, axes: Iterable[Axes]) -> None:
                          fontsize=6, color="tab:red", va="top", ha="right")
 
 
-def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None) -> list[Path]:
-    """Per-run figures: errors and gains (``errors_gains.png``), velocities against the leader's
-    (``velocities.png``) and the path in the x-y plane with formation snapshots (``xy.png``)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [comparison({run.meta.law: run}, out / "errors_gains.png", title=run.meta.mission)]
-
+def velocities_figure(run: Run) -> Figure:
+    """Each agent's velocity against the leader's, per axis (unsaved)."""
     sl = _decimate(run)
     dim = run.v.shape[2]
     fig, ax = plt.subplots(dim, 1, figsize=(7, 2.3 * dim), sharex=True, squeeze=False)
     for k in range(dim):
+        curves = []
         for i, aid in enumerate(run.agent_ids):
-            ax[k, 0].plot(run.t[sl], run.v[sl, i, k], lw=0.8, label=f"agent {aid}")
+            ax[k, 0].plot(run.t[sl], run.v[sl, i, k], lw=0.8, color=colour(i), label=f"agent {aid}")
+            curves.append((f"{aid}", run.v[sl, i, k]))
         ax[k, 0].plot(run.t[sl], run.leader_v[sl, k], "k--", lw=1.0, label="leader")
+        curves.append(("leader", run.leader_v[sl, k]))
         ax[k, 0].set_ylabel(f"$v_{AXES[k]}$ [m/s]")
         ax[k, 0].grid(True, lw=0.3)
+        note_coinciding(ax[k, 0], curves)
     mark_events(run, ax[:, 0])
     ax[0, 0].legend(fontsize=7, ncol=3)
     ax[-1, 0].set_xlabel("t [s]")
     fig.tight_layout()
-    paths.append(out / "velocities.png")
-    fig.savefig(paths[-1], dpi=150)
-    plt.close(fig)
+    return fig
 
-    fig, (axp, axr) = plt.subplots(1, 2, figsize=(12, 5.5))
+
+def _snapshot_ticks(run: Run, fracs: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0)) -> list[int]:
+    rows = np.flatnonzero(np.all(np.isfinite(run.p[:, :, :2]), axis=(1, 2)))
+    if not len(rows):
+        return []
+    return sorted({int(rows[min(len(rows) - 1, int(f * (len(rows) - 1)))]) for f in fracs})
+
+
+def _ring(xy: np.ndarray, order: np.ndarray) -> np.ndarray:
+    return np.vstack([xy[order], xy[order[:1]]])
+
+
+def _scale_or_note(ax: Axes, xy: np.ndarray, what: str) -> bool:
+    """Equal aspect when the extents of ``xy`` allow it (:data:`ASPECT_LIMIT`), else a note in the
+    title that the axes are not to scale. Returns whether it is to scale."""
+    ext = np.nanmax(xy, axis=0) - np.nanmin(xy, axis=0)
+    ext = np.where(np.isfinite(ext), ext, 0.0)
+    small, large = float(min(ext)), float(max(ext))
+    if large <= ASPECT_LIMIT * max(small, 1e-9) or large == 0.0:
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(what)
+        return True
+    ax.set_title(f"{what}\n(not to scale: x spans {ext[0]:.4g} m, y {ext[1]:.4g} m; "
+                 "the formation is to scale on the right)", fontsize=9)
+    return False
+
+
+def xy_figure(run: Run, offsets: np.ndarray | None = None) -> Figure:
+    """The world view (paths, formation snapshots, target slots) beside the view relative to the
+    leader (drawn to scale, target slots ``h_i`` and the target polygon), unsaved."""
+    if offsets is None:
+        offsets = mission_offsets(run)
+    sl = _decimate(run)
+    n = len(run.agent_ids)
+    fig, (axp, axr) = plt.subplots(1, 2, figsize=(12, 6.2))
+    target = offsets[:, :2] if offsets is not None else None
+    ticks = _snapshot_ticks(run)
+    order_of = (lambda xy: _polygon(target)) if target is not None else _polygon  # noqa: E731
     for i, aid in enumerate(run.agent_ids):
-        axp.plot(run.p[sl, i, 0], run.p[sl, i, 1], lw=0.7, label=f"agent {aid}")
+        axp.plot(run.p[sl, i, 0], run.p[sl, i, 1], lw=0.7, color=colour(i), label=f"agent {aid}")
         rel = run.p[sl, i, :2] - run.leader_p[sl, :2]
-        axr.plot(rel[:, 0], rel[:, 1], lw=0.5, alpha=0.6, label=f"agent {aid}")
+        axr.plot(rel[:, 0], rel[:, 1], lw=0.5, alpha=0.6, color=colour(i), label=f"agent {aid}")
     axp.plot(run.leader_p[sl, 0], run.leader_p[sl, 1], "k--", lw=0.8, label="leader")
-    rows = [k for k in range(len(run.t)) if np.all(np.isfinite(run.p[k]))]
-    for frac in (0.0, 0.25, 0.5, 1.0):
-        if not rows:
-            break
-        k = rows[min(len(rows) - 1, int(frac * (len(rows) - 1)))]
-        ring = np.vstack([run.p[k, :, :2], run.p[k, :1, :2]])
-        axp.plot(ring[:, 0], ring[:, 1], "k:", lw=0.8)
-        axp.plot(run.p[k, :, 0], run.p[k, :, 1], "^", ms=6, color="tab:blue")
-        axp.plot(run.leader_p[k, 0], run.leader_p[k, 1], "*", ms=10, color="tab:red")
-        axp.annotate(f"t={run.t[k]:.0f}s", run.leader_p[k, :2], fontsize=7, xytext=(4, 4), textcoords="offset points")
-        rel = run.p[k, :, :2] - run.leader_p[k, :2]
-        ring = np.vstack([rel, rel[:1]])
-        axr.plot(ring[:, 0], ring[:, 1], ":", lw=0.8, color="0.3")
-        axr.plot(rel[:, 0], rel[:, 1], "^", ms=6)
-        axr.annotate(f"t={run.t[k]:.0f}s", rel[0], fontsize=7, xytext=(4, 4), textcoords="offset points")
-    if offsets is not None:
-        axr.plot(offsets[:, 0], offsets[:, 1], "o", mfc="none", mec="k", ms=10, label="offsets $h_i$")
-    axr.plot(0.0, 0.0, "*", ms=12, color="tab:red", label="leader")
+    for n_snap, k in enumerate(ticks):
+        xy = run.p[k, :, :2]
+        lead = run.leader_p[k, :2]
+        order = order_of(xy)
+        first = n_snap == 0
+        if target is not None:
+            slots = lead + target
+            axp.plot(*_ring(slots, _polygon(target)).T, "--", lw=0.7, color="0.55",
+                     label="target formation" if first else None)
+            axp.scatter(slots[:, 0], slots[:, 1], s=60, facecolors="none",
+                        edgecolors=[colour(i) for i in range(n)], lw=1.0, label="target slots" if first else None)
+        axp.plot(*_ring(xy, order).T, "k:", lw=0.8, label="formation" if first else None)
+        axp.scatter(xy[:, 0], xy[:, 1], marker="^", s=36, c=[colour(i) for i in range(n)], zorder=3)
+        axp.plot(lead[0], lead[1], "*", ms=10, color="k")
+        axp.annotate(f"t={run.t[k]:.0f}s", lead, fontsize=7, xytext=(4, 4), textcoords="offset points")
+        rel = xy - lead
+        axr.plot(*_ring(rel, order).T, ":", lw=0.8, color="0.3")
+        axr.scatter(rel[:, 0], rel[:, 1], marker="^", s=36, c=[colour(i) for i in range(n)], zorder=3)
+        axr.annotate(f"t={run.t[k]:.0f}s", rel[order[0]], fontsize=7, xytext=(4, 4), textcoords="offset points")
+    if target is not None:
+        axr.plot(*_ring(target, _polygon(target)).T, "--", lw=1.0, color="0.45", label="target formation")
+        axr.scatter(target[:, 0], target[:, 1], s=140, facecolors="none", edgecolors=[colour(i) for i in range(n)],
+                    lw=1.4, label="target slots $h_i$", zorder=4)
+    axr.plot(0.0, 0.0, "*", ms=12, color="k", label="leader")
+    world = np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]])
+    _scale_or_note(axp, world, "paths and formation snapshots")
     axp.set_xlabel("x [m]")
     axp.set_ylabel("y [m]")
-    axp.set_title("paths and formation snapshots")
     axr.set_xlabel("x - x_leader [m]")
     axr.set_ylabel("y - y_leader [m]")
-    axr.set_title("positions relative to the leader")
+    axr.set_title("positions relative to the leader (to scale)")
     axr.set_aspect("equal", adjustable="datalim")
-    for ax in (axp, axr):
+    for ax in (axp, axr):  # legends below the axes: they never hide a snapshot
         ax.grid(True, lw=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4, frameon=False)
     fig.tight_layout()
-    paths.append(out / "xy.png")
-    fig.savefig(paths[-1], dpi=150)
-    plt.close(fig)
-    return paths
+    return fig
+
+
+def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None) -> list[Path]:
+    """Per-run figures: errors and gains (``errors_gains.png``), velocities against the leader's
+    (``velocities.png``) and the path in the x-y plane with formation snapshots and target slots,
+    beside the same relative to the leader (``xy.png``). ``offsets``: the formation's ``h_i``
+    (default: from the run's mission text). One colour per agent in every panel."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return [comparison({run.meta.law: run}, out / "errors_gains.png", title=run.meta.mission),
+            _save(velocities_figure(run), out / "velocities.png"),
+            _save(xy_figure(run, offsets), out / "xy.png")]
 
 
 def heatmaps(rows: list[dict], out_dir: str | Path, *, loss: list[float], delay: list[float], burst: list[float],
@@ -198,27 +330,45 @@ def heatmaps(rows: list[dict], out_dir: str | Path, *, loss: list[float], delay:
     return paths
 
 
-def snapshots(run: Run, times: tuple[float, ...], path: str | Path, three_d: bool = False) -> Path:
-    """Figs. 7 and 10: the vehicles (triangles) and the leader (star) at ``times``, the formation's
-    polygon dashed; one panel per time in the x-y plane, or one 3D panel with every time."""
-    path = Path(path)
+def snapshots_figure(run: Run, times: tuple[float, ...], three_d: bool = False,
+                     offsets: np.ndarray | None = None) -> Figure:
+    """:func:`snapshots`, unsaved."""
+    if offsets is None:
+        offsets = mission_offsets(run)
+    n = len(run.agent_ids)
+    colours = [colour(i) for i in range(n)]
     ks = [min(len(run.t) - 1, int(round(t / (run.t[1] - run.t[0])))) for t in times]
+    order = _polygon(offsets[:, :2] if offsets is not None else run.p[ks[0], :, :2])
     if three_d:
         fig = plt.figure(figsize=(7.5, 6.5))
         ax = fig.add_subplot(projection="3d")
         sl = _decimate(run)
         for i, aid in enumerate(run.agent_ids):
-            ax.plot(run.p[sl, i, 0], run.p[sl, i, 1], run.p[sl, i, 2], lw=0.7, label=f"agent {aid}")
+            ax.plot(run.p[sl, i, 0], run.p[sl, i, 1], run.p[sl, i, 2], lw=0.7, color=colours[i], label=f"agent {aid}")
         ax.plot(run.leader_p[sl, 0], run.leader_p[sl, 1], run.leader_p[sl, 2], "k--", lw=0.8, label="leader")
         if run.plant.payload_p is not None:
             pp = run.plant.payload_p[sl]
             ax.plot(pp[:, 0], pp[:, 1], pp[:, 2], color="tab:brown", lw=1.2, label="payload")
-        for k in ks:
-            ring = np.vstack([run.p[k], run.p[k, :1]])
-            ax.plot(ring[:, 0], ring[:, 1], ring[:, 2], "k:", lw=0.8)
-            ax.scatter(run.p[k, :, 0], run.p[k, :, 1], run.p[k, :, 2], marker="^", color="tab:blue")
-            ax.scatter(*run.leader_p[k], marker="*", s=80, color="tab:red")
+        for n_snap, k in enumerate(ks):
+            first = n_snap == 0
+            ring = _ring(run.p[k], order)
+            ax.plot(ring[:, 0], ring[:, 1], ring[:, 2], "k:", lw=0.8, label="formation" if first else None)
+            ax.scatter(run.p[k, :, 0], run.p[k, :, 1], run.p[k, :, 2], marker="^", c=colours)
+            if offsets is not None:
+                slots = run.leader_p[k] + offsets
+                sring = _ring(slots, order)
+                ax.plot(sring[:, 0], sring[:, 1], sring[:, 2], "--", lw=0.7, color="0.55",
+                        label="target formation" if first else None)
+                ax.scatter(slots[:, 0], slots[:, 1], slots[:, 2], s=50, facecolors="none", edgecolors=colours,
+                           label="target slots" if first else None)
+            ax.scatter(*run.leader_p[k], marker="*", s=80, color="k")
             ax.text(*run.leader_p[k], f" t={run.t[k]:.0f}s", fontsize=7)
+        pts = np.concatenate([run.p.reshape(-1, 3), run.leader_p])
+        ext = np.nanmax(pts, axis=0) - np.nanmin(pts, axis=0)
+        if max(ext) <= ASPECT_LIMIT * max(min(ext), 1e-9):
+            ax.set_box_aspect(tuple(float(e) for e in ext))  # to scale
+        else:
+            ax.set_title("not to scale: " + ", ".join(f"{a} spans {e:.3g} m" for a, e in zip(AXES, ext)), fontsize=8)
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_zlabel("z [m]")
@@ -227,26 +377,41 @@ def snapshots(run: Run, times: tuple[float, ...], path: str | Path, three_d: boo
         fig, axs = plt.subplots(1, len(ks), figsize=(3.6 * len(ks), 3.8), squeeze=False)
         lo = np.nanmin(np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]]), axis=0) - 0.3
         hi = np.nanmax(np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]]), axis=0) + 0.3
+        spread = np.nanmax(np.ptp(run.p[ks][:, :, :2], axis=1)) + 0.6 if ks else 1.0
+        follow = float(np.max(hi - lo)) > 10 * spread  # a long mission: each panel centred on its leader
         for ax, k in zip(axs[0], ks):
-            order = _polygon(run.p[k, :, :2])
-            ring = np.vstack([run.p[k, order, :2], run.p[k, order[:1], :2]])
-            ax.plot(ring[:, 0], ring[:, 1], "k--", lw=0.8)
-            ax.plot(run.p[k, :, 0], run.p[k, :, 1], "^", ms=8, color="tab:blue")
+            lead = run.leader_p[k, :2]
+            if offsets is not None:
+                slots = lead + offsets[:, :2]
+                ax.plot(*_ring(slots, order).T, "--", lw=0.7, color="0.55")
+                ax.scatter(slots[:, 0], slots[:, 1], s=90, facecolors="none", edgecolors=colours, lw=1.0)
+            ax.plot(*_ring(run.p[k, :, :2], order).T, "k:", lw=0.8)
+            ax.scatter(run.p[k, :, 0], run.p[k, :, 1], marker="^", s=50, c=colours, zorder=3)
             for i, aid in enumerate(run.agent_ids):
                 ax.annotate(str(aid), run.p[k, i, :2], fontsize=7, xytext=(3, 3), textcoords="offset points")
-            ax.plot(run.leader_p[k, 0], run.leader_p[k, 1], "*", ms=12, color="tab:red")
+            ax.plot(lead[0], lead[1], "*", ms=12, color="k")
             ax.set_title(f"t = {run.t[k]:.0f} s", fontsize=9)
-            ax.set_xlim(lo[0], hi[0])
-            ax.set_ylim(lo[1], hi[1])
+            if follow:
+                ax.set_xlim(lead[0] - spread, lead[0] + spread)
+                ax.set_ylim(lead[1] - spread, lead[1] + spread)
+            else:
+                ax.set_xlim(lo[0], hi[0])
+                ax.set_ylim(lo[1], hi[1])
             ax.set_aspect("equal")
             ax.grid(True, lw=0.3)
             ax.set_xlabel("x [m]")
         axs[0, 0].set_ylabel("y [m]")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=150)
-    plt.close(fig)
-    return path
+    return fig
+
+
+def snapshots(run: Run, times: tuple[float, ...], path: str | Path, three_d: bool = False,
+              offsets: np.ndarray | None = None) -> Path:
+    """Figs. 7 and 10: the vehicles (triangles, the agent's colour) and the leader (star) at
+    ``times``, the formation's polygon dotted, the target slots (leader + ``h_i``, hollow) and
+    their polygon dashed; one panel per time in the x-y plane (to scale), or one 3D panel with
+    every time (to scale unless its extents differ too much, then said in the title)."""
+    return _save(snapshots_figure(run, times, three_d, offsets), path)
 
 
 def _polygon(xy: np.ndarray) -> np.ndarray:

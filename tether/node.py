@@ -258,9 +258,14 @@ class Node:
             await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
-    async def ready(self, paced: bool = False, phase: float = 0.0) -> None:
+    async def ready(self, paced: bool = False, phase: float = 0.0, token: bool = True,
+                    epoch_hint: Callable[[], float | None] | None = None) -> None:
         """Declare liveliness (after every subscription, so a launcher that sees the token knows
-        this process hears everything it needs), then wait for the start.
+        this process hears everything it needs), then wait for the start. ``token=False``: a
+        process outside the swarm (``tether record``) declares none, so that no launcher or
+        agent counts it as a member. ``epoch_hint``: real time, for a process that may join a
+        swarm already flying (and so never hear its start): the epoch it infers from the samples
+        it hears, or None while it has heard none.
 
         In lockstep, only a ``paced`` role (the leader, whose inputs do not depend on the tick)
         follows the clock's grants; every other role is gated by its inputs of tick k, which is
@@ -273,10 +278,18 @@ class Node:
         if isinstance(clock, LockstepClock) and paced:
             self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
-        self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
-        await self.until(lambda: start.newest is not None, self.args.start_timeout,
-                         "the launcher's start message (--start-timeout)")
-        epoch = start.newest.epoch
+        if token:
+            self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
+        def started() -> bool:
+            return start.newest is not None or (epoch_hint is not None and epoch_hint() is not None)
+
+        await self.until(started, self.args.start_timeout, "the launcher's start message (--start-timeout)")
+        hinted = epoch_hint() if epoch_hint is not None else None
+        epoch = start.newest.epoch if start.newest is not None else hinted
+        if epoch is None:
+            raise Stalled("started without an epoch")  # not reached: started() held
+        if start.newest is None:
+            log.info("joined a swarm already running: tick 0 taken as %.3f from the samples heard", epoch)
         try:
             self.clock.begin(epoch, phase)
         except ClockError as exc:

@@ -1,0 +1,281 @@
+"""``tether top``: a live terminal monitor of a running swarm, one row per vehicle.
+
+It is a plain Zenoh client that hears the telemetry the agents already publish
+(``tether/<ns>/agent/<i>/telemetry``, :class:`tether.wire.Telemetry`) and the swarm's liveliness
+tokens, and draws with ``rich`` in an ordinary terminal (over SSH too): per vehicle its safety mode,
+‖ξ_i‖, the gains Kp and Kv (per axis), ‖u_i‖, the worst link's delivery ratio and age p99, and the
+last mode change. Trouble is coloured: a mode other than FLYING, an agent whose token is gone or whose
+telemetry stopped, ‖ξ_i‖ beyond ``xi_warn``, a link delivering less than 90 % or older than
+``age_warn``, a non-finite value. ``q`` or Ctrl-C quits.
+
+:class:`Board` is the monitor's state, fed sample by sample (no I/O; malformed samples are dropped and
+counted, never raised); :func:`run` is the terminal loop around it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import msgspec
+
+from tether import wire
+
+if TYPE_CHECKING:
+    from rich.table import Table
+
+STALE = 1.0
+"""An agent whose newest telemetry is this old [s, wall] is shown STALE."""
+XI_WARN = 0.5
+"""‖ξ_i‖ shown red beyond this [m] (``--xi-warn``)."""
+AGE_WARN = 0.1
+"""A link's age p99 shown amber beyond this [s] (``--age-warn``)."""
+DELIVERY_WARN = 0.9
+"""A link's delivery ratio shown amber below this."""
+REFRESH = 0.25
+"""Seconds between redraws."""
+
+
+@dataclass
+class Row:
+    """What the monitor knows of one vehicle."""
+
+    vehicle: int
+    msg: wire.Telemetry | None = None
+    heard: float | None = None
+    """When its newest telemetry came [s, monotonic]."""
+    alive: bool | None = None
+    """Its agent's liveliness token: present, gone, or never seen (None)."""
+    last_event: wire.SafetyEvent | None = None
+
+
+@dataclass
+class Board:
+    """The monitor's state: a row per vehicle, the drops, the newest mission time."""
+
+    ns: str
+    xi_warn: float = XI_WARN
+    age_warn: float = AGE_WARN
+    rows: dict[int, Row] = field(default_factory=dict)
+    drops: dict[str, int] = field(default_factory=dict)
+    t: float | None = None
+    """The newest mission time heard [s]."""
+
+    def _drop(self, reason: str) -> None:
+        self.drops[reason] = self.drops.get(reason, 0) + 1
+
+    def _row(self, vehicle: int) -> Row:
+        if vehicle not in self.rows:
+            self.rows[vehicle] = Row(vehicle)
+        return self.rows[vehicle]
+
+    def telemetry(self, key: str, payload: bytes, now: float) -> None:
+        """One sample on ``tether/<ns>/agent/<i>/telemetry``: kept when it is agent i's, newer
+        than the one held, and well formed; else dropped and counted by reason."""
+        try:
+            role, vehicle, topic = wire.Keys.parse(key)
+        except ValueError:
+            self._drop("key")
+            return
+        if role != "agent" or topic != "telemetry":
+            self._drop("key")
+            return
+        try:
+            msg = wire.decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError, RecursionError):
+            self._drop("malformed")
+            return
+        if not isinstance(msg, wire.Telemetry):
+            self._drop("type")
+            return
+        if msg.v != wire.WIRE_VERSION:
+            self._drop("version")
+            return
+        if msg.sender != vehicle:
+            self._drop("sender")
+            return
+        if not math.isfinite(msg.t):
+            self._drop("nonfinite")
+            return
+        row = self._row(vehicle)
+        if row.msg is not None and msg.k <= row.msg.k:
+            self._drop("stale")
+            return
+        row.msg, row.heard = msg, now
+        if msg.events:
+            row.last_event = max(msg.events, key=lambda e: (e.k, e.t))
+        self.t = msg.t if self.t is None else max(self.t, msg.t)
+
+    def token(self, key: str, alive: bool) -> None:
+        """A liveliness change; only agents' tokens make rows."""
+        try:
+            role, vehicle = wire.Keys.parse_token(key)
+        except ValueError:
+            return
+        if role == "agent":
+            self._row(vehicle).alive = alive
+
+    def cells(self, row: Row, now: float) -> tuple[list[str], list[str]]:
+        """The row's cells as text, and a style per cell ("" for none)."""
+        msg = row.msg
+        if msg is None:
+            state = "GONE" if row.alive is False else "no telemetry"
+            return ([str(row.vehicle), state] + ["-"] * 6, ["bold", "red" if row.alive is False else "dim"] + [""] * 6)
+        mode = wire.MODES[msg.mode] if 0 <= msg.mode < len(wire.MODES) else f"mode {msg.mode}"
+        styles = ["bold"]
+        age = now - row.heard if row.heard is not None else math.inf
+        if row.alive is False:
+            mode, mstyle = f"GONE ({mode})", "bold red"
+        elif age > STALE:
+            mode, mstyle = f"STALE {age:.0f}s ({mode})", "bold red"
+        else:
+            mstyle = {"FLYING": "green", "HOLD": "yellow", "LAND": "dark_orange", "LANDED": "dim",
+                      "ESTOP": "bold red"}.get(mode, "red")
+        styles.append(mstyle)
+        xi = _norm(msg.xi)
+        styles.append("red" if not xi <= self.xi_warn else "")
+        gains = "  ".join("/".join(_num(x) for x in v) for v in (msg.kp, msg.kv))
+        styles.append("red" if not all(map(math.isfinite, msg.kp + msg.kv)) else "")
+        u = _norm(msg.u)
+        styles.append("red" if not math.isfinite(u) else "")
+        links = msg.links
+        delivery = min((s.delivery for s in links), default=math.nan)
+        p99 = max((s.age_p99 for s in links), default=math.nan)
+        silent = any(s.silent for s in links)
+        styles.append("yellow" if silent or (math.isfinite(delivery) and delivery < DELIVERY_WARN) else "")
+        styles.append("yellow" if silent or (math.isfinite(p99) and p99 > self.age_warn) else "")
+        ev = row.last_event
+        event = "-" if ev is None else f"t={ev.t:.1f}s {_mode(ev.src)}->{_mode(ev.dst)} {ev.reason}"
+        styles.append("yellow" if ev is not None else "")
+        link_delivery = "-" if not links else f"{delivery:.0%}" + (" silent" if silent else "")
+        link_age = "-" if not math.isfinite(p99) else f"{p99 * 1000:.0f} ms"
+        return ([str(row.vehicle), mode, _num(xi, 3), gains, _num(u, 2), link_delivery, link_age, event], styles)
+
+    def table(self, now: float, where: str = "") -> Table:
+        """The monitor as a ``rich`` renderable."""
+        from rich.table import Table
+
+        heading = f"tether top: namespace {self.ns!r}"
+        if where:
+            heading += f" via {where}"
+        heading += f", t = {self.t:.2f} s" if self.t is not None else ", waiting for telemetry"
+        dropped = sum(self.drops.values())
+        caption = "q: quit" + (f"   dropped {dropped} sample(s): " + ", ".join(
+            f"{n} {why}" for why, n in sorted(self.drops.items())) if dropped else "")
+        t = Table(title=heading, caption=caption, expand=False)
+        for name, justify in (("vehicle", "right"), ("mode", "left"), ("|xi| [m]", "right"),
+                              ("Kp  Kv (per axis)", "left"), ("|u| [m/s2]", "right"), ("link delivery", "right"),
+                              ("age p99", "right"), ("last event", "left")):
+            t.add_column(name, justify=justify)  # type: ignore[arg-type]
+        for vehicle in sorted(self.rows):
+            cells, styles = self.cells(self.rows[vehicle], now)
+            t.add_row(*[f"[{s}]{_escape(c)}[/]" if s else _escape(c) for c, s in zip(cells, styles)])
+        return t
+
+
+def _escape(text: str) -> str:
+    from rich.markup import escape
+
+    return escape(text)
+
+
+def _norm(v: list[float]) -> float:
+    return math.sqrt(sum(x * x for x in v))
+
+
+def _num(x: float, digits: int = 2) -> str:
+    return f"{x:.{digits}f}" if math.isfinite(x) else str(x)
+
+
+def _mode(code: int) -> str:
+    return wire.MODES[code] if 0 <= code < len(wire.MODES) else str(code)
+
+
+class _Keys:
+    """``q`` on a terminal's stdin, read without echo or line buffering (restored on exit)."""
+
+    def __init__(self, on_quit: Callable[[], None]):
+        self.on_quit = on_quit
+        self.saved: list | None = None
+        self.fd = sys.stdin.fileno() if sys.stdin is not None and sys.stdin.isatty() else None
+
+    def __enter__(self) -> _Keys:
+        if self.fd is not None:
+            import termios
+            import tty
+
+            self.saved = termios.tcgetattr(self.fd)
+            tty.setcbreak(self.fd)
+            asyncio.get_running_loop().add_reader(self.fd, self._read)
+        return self
+
+    def _read(self) -> None:
+        assert self.fd is not None
+        data = os.read(self.fd, 64)
+        if not data or b"q" in data or b"Q" in data:
+            self.on_quit()
+
+    def __exit__(self, *exc: object) -> None:
+        if self.fd is not None:
+            import termios
+
+            asyncio.get_running_loop().remove_reader(self.fd)
+            if self.saved is not None:
+                termios.tcsetattr(self.fd, termios.TCSADRAIN, self.saved)
+
+
+async def run(settings: object, ns: str, where: str, xi_warn: float = XI_WARN, age_warn: float = AGE_WARN) -> int:
+    """Open a session with ``settings`` (a :class:`tether.transport.ZenohSettings`), show the
+    monitor until ``q``, Ctrl-C or SIGTERM; returns 0."""
+    from rich.console import Console
+    from rich.live import Live
+
+    from tether import handoff
+    from tether import transport as tp
+
+    if not isinstance(settings, tp.ZenohSettings):
+        raise TypeError("settings: a tether.transport.ZenohSettings")
+    keys = wire.Keys(ns)
+    board = Board(ns, xi_warn=xi_warn, age_warn=age_warn)
+    quit_ = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, quit_.set)
+    samples: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096)
+    tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(1024)
+    console = Console()
+    try:
+        async with tp.open_session(settings) as session:
+            declared = [tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", samples),
+                        tp.watch_tokens(session, keys.tokens, tokens)]
+            try:
+                with _Keys(quit_.set), Live(board.table(time.monotonic(), where), console=console, screen=True,
+                                            auto_refresh=False) as live:
+                    while not quit_.is_set():
+                        try:  # a redraw every REFRESH s, however many samples come
+                            async with asyncio.timeout(REFRESH):
+                                await quit_.wait()
+                        except TimeoutError:
+                            pass
+                        now = time.monotonic()
+                        for rec in samples.drain():
+                            board.telemetry(rec.key, rec.payload, now)
+                        for ev in tokens.drain():
+                            board.token(ev.key, ev.alive)
+                        if samples.dropped:
+                            board.drops["overflow"] = samples.dropped
+                        live.update(board.table(now, where), refresh=True)
+            finally:
+                for d in declared:
+                    d.undeclare()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+    return 0

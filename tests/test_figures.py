@@ -1,0 +1,130 @@
+"""Figures a paper can use: files written, and the properties that make them readable checked on
+matplotlib's own objects (aspect, colours, labels, notes), not on pixels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.colors as mcolors
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+
+from sim import figures, refsim
+from tether import catalog
+from tether import mission as ms
+from tether.runfile import Run
+
+
+def simulated(name: str, duration: float) -> Run:
+    path = catalog.builtin_path(name)
+    m = ms.with_duration(ms.load(path), duration, str(path))
+    run = refsim.simulate(m)
+    run.meta.mission_text = path.read_text()
+    return run
+
+
+@pytest.fixture(scope="module")
+def section4() -> Run:
+    return simulated("section4", 40.0)
+
+
+def rgb(c: object) -> tuple[float, ...]:
+    return tuple(round(x, 3) for x in mcolors.to_rgb(c))  # type: ignore[arg-type]
+
+
+def lines_by_label(ax: object) -> dict[str, tuple[float, ...]]:
+    return {ln.get_label(): rgb(ln.get_color()) for ln in ax.get_lines()}  # type: ignore[attr-defined]
+
+
+def test_run_panels_write_the_three_figures(section4: Run, tmp_path: Path) -> None:
+    paths = figures.run_panels(section4, tmp_path)
+    assert [p.name for p in paths] == ["errors_gains.png", "velocities.png", "xy.png"]
+    assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_one_colour_per_agent_across_every_panel(section4: Run) -> None:
+    want = {int(aid): rgb(figures.colour(i)) for i, aid in enumerate(section4.agent_ids)}
+    fig = figures.comparison_figure({"sigma": section4})
+    err, kp, kv = fig.axes[:3]
+    assert {int(lab.split()[1]): c for lab, c in lines_by_label(err).items() if lab.startswith("agent")} == want
+    for ax in (kp, kv):
+        got = lines_by_label(ax)
+        for aid, c in want.items():
+            assert got[f"{aid}x"] == got[f"{aid}y"] == c  # the axes differ by line style, not colour
+    plt.close(fig)
+    fig = figures.velocities_figure(section4)
+    for ax in fig.axes:
+        got = lines_by_label(ax)
+        assert all(got[f"agent {aid}"] == c for aid, c in want.items())
+    plt.close(fig)
+    fig = figures.xy_figure(section4)
+    world, rel = fig.axes
+    for ax in (world, rel):
+        got = lines_by_label(ax)
+        assert all(got[f"agent {aid}"] == c for aid, c in want.items())
+    # the snapshot markers and the target slots carry the agent's colour too
+    markers = [c for c in world.collections if len(c.get_offsets()) == len(want)]
+    assert markers
+    for coll in markers:
+        colours = coll.get_facecolors() if coll.get_facecolors().size and coll.get_facecolors()[0][3] > 0 \
+            else coll.get_edgecolors()
+        assert [tuple(round(x, 3) for x in c[:3]) for c in colours] == list(want.values())
+    plt.close(fig)
+
+
+def test_gains_are_marked_dimensionless(section4: Run) -> None:
+    fig = figures.comparison_figure({"sigma": section4})
+    assert [ax.get_ylabel() for ax in fig.axes[1:3]] == ["$K_p$ (dimensionless)", "$K_v$ (dimensionless)"]
+    assert fig.axes[0].get_ylabel().endswith("[m]")
+    plt.close(fig)
+
+
+def test_the_formation_is_drawn_to_scale_with_its_target_slots(section4: Run) -> None:
+    fig = figures.xy_figure(section4)
+    world, rel = fig.axes
+    assert rel.get_aspect() == 1.0  # to scale: the diamond is a diamond
+    # Section 4 spans hundreds of metres by a few: the world view says it is not to scale
+    assert world.get_aspect() == "auto" and "not to scale" in world.get_title()
+    labels = {ln.get_label() for ln in rel.get_lines()} | {c.get_label() for c in rel.collections}
+    assert {"target formation", "target slots $h_i$"} <= labels
+    slots = next(c for c in rel.collections if c.get_label() == "target slots $h_i$")
+    offsets = figures.mission_offsets(section4)
+    assert offsets is not None
+    assert np.allclose(np.sort(slots.get_offsets(), axis=0), np.sort(offsets[:, :2], axis=0))
+    target = next(ln for ln in rel.get_lines() if ln.get_label() == "target formation")
+    ring = np.column_stack(target.get_data())
+    assert len(ring) == len(offsets) + 1 and np.allclose(ring[0], ring[-1])  # a closed polygon
+    edges = np.linalg.norm(np.diff(ring, axis=0), axis=1)
+    assert np.allclose(edges, edges[0])  # around the diamond (not across it): four equal sides
+    world_labels = {ln.get_label() for ln in world.get_lines()} | {c.get_label() for c in world.collections}
+    assert {"target formation", "target slots", "formation"} <= world_labels
+    plt.close(fig)
+
+
+def test_a_compact_world_view_is_to_scale(tmp_path: Path) -> None:
+    run = simulated("failsafe", 4.0)
+    fig = figures.xy_figure(run)
+    assert fig.axes[0].get_aspect() == 1.0 and "not to scale" not in fig.axes[0].get_title()
+    plt.close(fig)
+    fig = figures.snapshots_figure(run, (0.0, 2.0), three_d=True)
+    ax = fig.axes[0]
+    labels = {ln.get_label() for ln in ax.get_lines()} | {c.get_label() for c in ax.collections}
+    assert {"formation", "target formation", "target slots"} <= labels
+    plt.close(fig)
+    assert figures.snapshots(run, (0.0, 2.0), tmp_path / "s.png").stat().st_size > 5_000
+
+
+def test_curves_that_coincide_are_noted(section4: Run) -> None:
+    run = section4
+    kp = run.kp.copy()
+    kp[:, 1] = kp[:, 0]  # agent 2's gains exactly agent 1's: the curves hide each other
+    import dataclasses
+
+    fig = figures.comparison_figure({"sigma": dataclasses.replace(run, kp=kp)})
+    notes = [t.get_text() for t in fig.axes[1].texts]
+    assert any(n.startswith("coincide: ") and "1x = 2x" in n and "1y = 2y" in n for n in notes), notes
+    plt.close(fig)
+    t = np.linspace(0, 1, 50)
+    assert figures.coinciding([("a", t), ("b", t + 1e-9), ("c", t + 0.5)]) == [["a", "b"]]
+    assert figures.coinciding([("a", t), ("b", t[::-1])]) == []
