@@ -24,7 +24,9 @@ from agent.tick import AgentTick, Heard
 from netem import control as netem_control
 from tether import transport as tp
 from tether import wire
+from tether import skew
 from tether.inputs import Source
+from tether.skew import SkewMonitor
 from tether.node import Node
 
 log = logging.getLogger("tether")
@@ -51,11 +53,17 @@ async def run(node: Node) -> None:
     sf = m.safety
     gates: list[Gate] = []
 
-    def gate(sender: int) -> Callable[[Any], str | None]:
+    # real time: each input link's clock offset, from sample times against arrival times
+    # (tether/skew.py), observed before the gate, which rejects a sender too far ahead
+    clocks = None if node.clock.lockstep else SkewMonitor(m.dt)
+
+    def gate(sender: int, role: str) -> Callable[[Any], str | None]:
         g = for_sender(m, sender, None if node.clock.lockstep else node.mission_time)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
+            if clocks is not None:
+                clocks.observe(role, sender, msg.t, node.mission_time())
             why = g.check(msg)
             if why is not None and g.rejected[why] in (1, 10, 100, 1000):  # say so, without flooding the log
                 log.warning("gate: sample of %d for tick %d rejected (%s), %d so far", sender, msg.k, why,
@@ -74,7 +82,7 @@ async def run(node: Node) -> None:
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
     plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
-    plant.admit = gate(aid)
+    plant.admit = gate(aid, "plant")
     node.watch("plant", aid, plant)
     if m.netem is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
@@ -84,7 +92,7 @@ async def run(node: Node) -> None:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
         src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel)
-        src.admit = gate(j)
+        src.admit = gate(j, role)
         node.watch(role, j, src)
         nbrs.append(src)
         if channel is not None:
@@ -97,7 +105,7 @@ async def run(node: Node) -> None:
         for j in m.agent_ids:
             if j != aid and j not in law.neighbours:
                 src = node.source(keys.topic("agent", j, "state"), wire.State, j)
-                src.admit = gate(j)
+                src.admit = gate(j, "agent")
                 proximity.append(src)
     vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]
     netem_control.serve(node)
@@ -112,6 +120,12 @@ async def run(node: Node) -> None:
         await node.tick(k)
         t = k * m.dt
         own, *got = await node.aligned([plant, *nbrs, *proximity], k)
+        clock: list[wire.ClockLink] = []
+        if clocks is not None:
+            estimates = clocks.report()
+            clock = [wire.ClockLink(role=c.role, src=c.src, offset=c.offset, warn=c.warn) for c in estimates]
+            for c in clocks.newly_flagged(estimates):
+                log.warning("%s", skew.describe(c, f"agent/{aid}", clocks.limit))
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
@@ -158,7 +172,7 @@ async def run(node: Node) -> None:
                 delivery=(received - s.duplicates) / sent if sent else 0.0, age_p50=p50, age_p99=p99))
         decisions = [wire.LinkDecision(src=j, seq=d.seq, now=d.now, event=d.event, at=d.at)
                      for j, ch in channels for d in ch.link.take_decisions()]
-        tele.send(wire.Telemetry, k, t, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u,
+        tele.send(wire.Telemetry, k, t, clock=clock, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u,
                   xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
                   gate=merged(gates))

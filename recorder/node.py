@@ -21,7 +21,7 @@ import numpy as np
 from recorder.export import mcap_beside
 from tether import gate, wire
 from tether.node import Node
-from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
+from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
 log = logging.getLogger("tether")
 
@@ -67,6 +67,11 @@ class Recording:
             self.world_series = pp, pv, tension, slack
         self.events: list[wire.SafetyEvent] = []
         """Mode changes, as the agents' telemetry reports them."""
+        self.clock: ClockRecord | None = None
+        """Real time: the agents' per-link clock-offset bounds (slots: the plant and the in-neighbours)."""
+        self.clock_slots: list[dict[tuple[str, int], int]] = [{} for _ in range(n)]
+        if not node.clock.lockstep:
+            self.clock = self.run.clock = ClockRecord.empty(T, n, width + 1)
         self.gate: list[tuple[int, dict[str, int]]] = [(-1, {}) for _ in range(n)]
         """Per agent: the newest telemetry's tick and its gate rejections since start, by reason."""
         self.count = np.zeros(T, dtype=np.int64)
@@ -116,6 +121,8 @@ class Recording:
             self.delivery[k, i, n] = link.delivery
             self.age_p50[k, i, n] = link.age_p50
             self.age_p99[k, i, n] = link.age_p99
+        if self.clock is not None:
+            self._clock(k, i, msg.clock)
         rt.drops[k, i] = sum(msg.drops.values())
         rt.meas_age[k, i] = msg.t - msg.meas_t
         r.safety.safety_mode[k, i] = msg.mode
@@ -127,6 +134,19 @@ class Recording:
                                "at": d.at})
         rt.late[k, i] = msg.late
         self.count[k] += 1
+
+    def _clock(self, k: int, i: int, links: list[wire.ClockLink]) -> None:
+        rec, slots = self.clock, self.clock_slots[i]
+        if rec is None:
+            return
+        for c in links:
+            slot = slots.get((c.role, c.src))
+            if slot is None:
+                if len(slots) >= rec.src.shape[1]:
+                    continue  # a proximity sender (collision avoidance) beyond the law's in-links
+                slot = slots[c.role, c.src] = len(slots)
+                rec.role[i, slot], rec.src[i, slot] = c.role, c.src
+            rec.offset[k, i, slot] = c.offset
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
         meta, safety = self.run.meta, self.run.safety
