@@ -125,7 +125,7 @@ async def run(node: Node) -> None:
             estimates = clocks.report()
             clock = [wire.ClockLink(role=c.role, src=c.src, offset=c.offset, warn=c.warn) for c in estimates]
             for c in clocks.newly_flagged(estimates):
-                log.warning("%s", skew.describe(c, f"agent/{aid}", clocks.limit))
+                log.warning("%s", skew.describe(c, f"agent/{aid}", clocks.limits))
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue

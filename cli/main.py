@@ -687,6 +687,13 @@ def build_parser() -> argparse.ArgumentParser:
     deploy_gen.add_arguments(dg)
     dg.set_defaults(func=deploy_gen.run_args)
 
+    from deploy import rehearse
+
+    rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
+                                         "namespace of its own (root)")
+    rehearse.add_arguments(rh)
+    rh.set_defaults(func=rehearse.run_args)
+
     mc = sub.add_parser("mcap", help="write a run's Foxglove file (run.mcap) from its run file")
     mc.add_argument("run", help="a run.npz or the directory holding it")
     mc.add_argument("--out", default=None, help="the MCAP file (default: run.mcap beside run.npz)")

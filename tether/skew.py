@@ -28,9 +28,13 @@ cannot move the estimate. Samples are observed *before* the plausibility gate (a
 clock is ahead by more than the gate's ``future`` bound has every sample rejected, and that is
 exactly what must be seen).
 
-A link is flagged (:attr:`LinkClock.warn`) when ``|e|`` exceeds :func:`threshold`: half a control
-period. Below it every sample still lands in its own tick's slot; above it ages are wrong by more
-than half a period, and at two periods ahead the gate rejects the sender altogether.
+A link is flagged (:attr:`LinkClock.warn`) when ``e`` is outside :func:`bounds`: below minus half
+a control period (the sender's clock is certainly ahead by more than that: its samples' ages read
+half a period too young, and at two periods ahead the gate rejects every one of them), or above
+one period (the receiver's clock is ahead, or the link is slower than a period: either way every
+sample misses the tick it was meant for). The upper bound is wider because ``e > 0`` includes the
+link's delay (measured 1-2 ms on loopback, 3-6 ms with TLS through network namespaces on a loaded
+machine), which is no clock error.
 """
 
 from __future__ import annotations
@@ -47,9 +51,10 @@ MIN_BLOCKS = 3
 """Complete blocks needed before a link has an estimate (0.75 s after its first sample)."""
 
 
-def threshold(period: float) -> float:
-    """The offset [s] above which a link is flagged: half the control period ``period`` [s]."""
-    return 0.5 * period
+def bounds(period: float) -> tuple[float, float]:
+    """The offsets [s] outside which a link is flagged: ``(-period / 2, period)`` for the control
+    period ``period`` [s] (see the module docstring)."""
+    return -0.5 * period, period
 
 
 def pair(e_ij: float, e_ji: float) -> tuple[float, float]:
@@ -117,7 +122,7 @@ class LinkClock:
     offset: float
     """``e`` [s]: minimum delay plus how far the receiver's clock is ahead of the sender's."""
     warn: bool
-    """``|offset|`` is above :func:`threshold`."""
+    """``offset`` is outside :func:`bounds`."""
 
 
 @dataclass
@@ -138,16 +143,17 @@ class SkewMonitor:
         self.link(role, src).observe(t, now)
 
     @property
-    def limit(self) -> float:
-        return threshold(self.period)
+    def limits(self) -> tuple[float, float]:
+        return bounds(self.period)
 
     def report(self) -> list[LinkClock]:
         """Every link that has an estimate, in the order the links were first seen."""
+        lo, hi = self.limits
         out = []
         for (role, src), est in self.links.items():
             e = est.estimate
             if e is not None:
-                out.append(LinkClock(role, src, e, abs(e) > self.limit))
+                out.append(LinkClock(role, src, e, not lo <= e <= hi))
         return out
 
     def newly_flagged(self, now: list[LinkClock]) -> list[LinkClock]:
@@ -159,7 +165,7 @@ class SkewMonitor:
         return new
 
 
-def describe(c: LinkClock, receiver: str, limit: float) -> str:
+def describe(c: LinkClock, receiver: str, limits: tuple[float, float]) -> str:
     """A warning line for a flagged link."""
     ms_ = 1000 * c.offset
     if c.offset < 0:
@@ -168,5 +174,5 @@ def describe(c: LinkClock, receiver: str, limit: float) -> str:
     else:
         why = (f"its samples arrive {ms_:.1f} ms after their time at the earliest: {receiver}'s clock is ahead "
                f"of {c.role}/{c.src}'s by up to that, or the link is that slow")
-    return f"clock: link {c.role}/{c.src} -> {receiver}: {why} (threshold {1000 * limit:.1f} ms; synchronise the " \
-           "hosts' clocks: chrony/PTP, docs/deploy.md)"
+    return (f"clock: link {c.role}/{c.src} -> {receiver}: {why} (flagged outside {1000 * limits[0]:+.1f} .. "
+            f"{1000 * limits[1]:+.1f} ms; synchronise the hosts' clocks: chrony/PTP, docs/deploy.md)")

@@ -168,7 +168,7 @@ class ClockLink(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     offset: float
     """[s]; negative: the sender's clock is ahead by at least ``-offset``."""
     warn: bool = False
-    """``|offset|`` is above the threshold (half a control period)."""
+    """``offset`` is below minus half a control period or above one period (:func:`tether.skew.bounds`)."""
 
 
 class Telemetry(_Msg, tag="telemetry", frozen=True):
