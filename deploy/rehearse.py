@@ -299,6 +299,8 @@ class Running:
     proc: subprocess.Popen[bytes] | None = None
     starts: list[float] = field(default_factory=list)
     """Wall times [s since the Unix epoch] the unit was (re)started."""
+    pids: list[int] = field(default_factory=list)
+    """The process id of each start."""
     exits: list[tuple[float, int]] = field(default_factory=list)
     """(wall time, status) of each exit."""
     due: float | None = None
@@ -312,6 +314,7 @@ class Running:
             self.proc = subprocess.Popen(["ip", "netns", "exec", ns, *self.argv], cwd=cwd, stdin=subprocess.DEVNULL,
                                          stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         self.starts.append(time.time())
+        self.pids.append(self.proc.pid)
         self.due, self.done = None, False
 
     def alive(self) -> bool:
@@ -483,7 +486,7 @@ def rehearse(deploy: Path, opts: Options) -> int:
                 signal.signal(s, h)
         left = namespaces_of(os.getpid())
         record["units"] = {r.unit.name: {"host": r.unit.host, "namespace": ns_of.get(r.unit.host),
-                                         "argv": r.argv, "starts": r.starts, "exits": r.exits,
+                                         "argv": r.argv, "starts": r.starts, "pids": r.pids, "exits": r.exits,
                                          "restart": r.unit.restart} for r in runs}
         record["left_behind"] = left
         opts.out.mkdir(parents=True, exist_ok=True)

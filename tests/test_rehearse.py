@@ -1,0 +1,307 @@
+"""A deployment rehearsal on one machine (deploy/rehearse.py), and clock skew detected in real runs.
+
+* The unit reader and the rehearsal's plan (fast): what is read from a generated deployment, and
+  what is refused before anything starts (addresses a namespace cannot take, non-root).
+* A rehearsal of a generated Section 4 deployment (4 vehicles, each on a host of its own, router,
+  leader and recorder on a ground station): every host in its own network namespace on a bridge,
+  every unit's command line as written; it flies, and its formation-error envelope equals a
+  loopback ``tether run`` of the same mission within the real-time tolerance of
+  ``tests/test_runtime.py`` (10 %); nothing is left behind, at the end or after Ctrl-C.
+* An injected skew (``--fault skew:...``) is detected within seconds, by the right agents, with
+  the right sign and size (``tether run``, real time).
+
+Needs root and iproute2 for the namespaces (skipped otherwise, with the reason). Namespaces are
+``tether-rh<pid>-...`` (tests/test_partition.py uses ``tether-pt-<pid>``); host addresses are in
+10.77.0.0/24, inside those namespaces only; every loopback port is picked free at run time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deploy import gen, rehearse
+from sim import refsim
+from tests.support import read, wait_until
+from tether.catalog import builtin_path
+from tether.node import load_mission
+from tether.runfile import Run
+
+REPO = Path(__file__).resolve().parents[1]
+SECTION4 = builtin_path("section4")
+DURATION = 20.0
+"""Mission time of the compared runs [s] (as tests/test_runtime.py's real-time run)."""
+TOLERANCE = 0.10
+"""Formation-error envelopes over the last half agree within this (tests/test_runtime.py)."""
+RUN_WITHIN = 85.0
+"""Upper bound on one real-time run of 20 s with its start-up and teardown [s] (two loaded cores)."""
+HOSTS = """\
+version = 1
+config_dir = {config}
+tether = "/opt/tether/venv/bin/tether"
+python = "/opt/tether/venv/bin/python"
+[router]
+address = "10.77.0.1"
+[leader]
+address = "10.77.0.1"
+[recorder]
+address = "10.77.0.1"
+out = {out}
+[[agents]]
+id = 1
+address = "10.77.0.11"
+[[agents]]
+id = 2
+address = "10.77.0.12"
+[[agents]]
+id = 3
+address = "10.77.0.13"
+[[agents]]
+id = 4
+address = "10.77.0.14"
+"""
+
+
+def generate(tmp: Path, hosts: str = HOSTS) -> gen.Deployment:
+    out = tmp / "deploy"
+    path = tmp / "hosts.toml"
+    path.write_text(hosts.format(config=json.dumps(str(out / "hosts" / "{host}")),
+                                 out=json.dumps(str(tmp / "recorder-out"))))
+    return gen.generate(SECTION4, out, hosts=path)
+
+
+def needs_namespaces() -> None:
+    why = rehearse.unavailable()
+    if why is None:
+        from tests import netns
+
+        why = netns.unavailable()
+    if why is not None:
+        pytest.skip(f"a rehearsal {why}")
+
+
+def cli(*args: str, **kw: object) -> subprocess.Popen[bytes]:
+    return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
+                            env=dict(os.environ, PYTHONPATH=str(REPO)), **kw)  # type: ignore[call-overload]
+
+
+def envelope(run: Run, since: float) -> float:
+    """max over agents and ticks t_k >= ``since`` of ||xi_i(t_k)|| [m], as the agents computed it."""
+    return float(np.nanmax(np.linalg.norm(run.xi[run.t >= since - 1e-9], axis=-1)))
+
+
+def left_behind(record: dict) -> tuple[list[str], list[int]]:
+    """The rehearsal's namespaces that still exist, and its processes that still run."""
+    listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    names = {ln.split()[0] for ln in listed.splitlines() if ln.split()}
+    spaces = [ns for ns in record["namespaces"] if ns in names]
+    alive = []
+    for unit in record["units"].values():
+        for pid in unit["pids"]:
+            try:
+                os.kill(pid, 0)
+                alive.append(pid)
+            except ProcessLookupError:
+                pass
+    return spaces, alive
+
+
+# =========================================================================== fast: reading a deployment
+def test_units_are_read_as_systemd_reads_them(tmp_path: Path) -> None:
+    dep = generate(tmp_path)
+    pl = rehearse.plan(dep.out)
+    assert pl.hosts == {"agent-1": "10.77.0.11", "agent-2": "10.77.0.12", "agent-3": "10.77.0.13",
+                        "agent-4": "10.77.0.14", "leader": "10.77.0.1", "recorder": "10.77.0.1", "router": "10.77.0.1"}
+    assert list(pl.machines) == ["10.77.0.11", "10.77.0.12", "10.77.0.13", "10.77.0.14", "10.77.0.1"]
+    units = {u.name: u for u in pl.units}
+    assert sorted(units) == sorted(["tether-router", "tether-leader-5", "tether-start", "tether-recorder-0",
+                                    *[f"tether-{r}-{i}" for i in (1, 2, 3, 4) for r in ("agent", "plant")]])
+    a2 = units["tether-agent-2"]
+    assert (a2.kind, a2.restart, a2.restart_sec, a2.host) == ("simple", "on-failure", 2.0, "agent-2")
+    assert a2.argv[:2] == ["/opt/tether/venv/bin/tether", "agent"]
+    assert a2.argv[a2.argv.index("--zenoh-config") + 1] == str(dep.config("agent-2"))
+    assert (units["tether-router"].restart, units["tether-start"].kind) == ("always", "oneshot")
+    here = rehearse.command(a2, 5.0)
+    assert here[:3] == [sys.executable, "-m", "cli"] and here[3:-2] == a2.argv[1:] and here[-2:] == ["--duration", "5.0"]
+    assert rehearse.command(units["tether-router"], 5.0)[:3] == [sys.executable, "-m", "deploy.router"]
+
+
+def test_specifiers_are_filled_as_systemd_would(tmp_path: Path) -> None:
+    unit = tmp_path / "x@7.service"
+    unit.write_text("[Unit]\nDescription=x\n[Service]\nExecStart=-/bin/echo %i %% \"a b\" %n %H\nRestart=always\n")
+    u = rehearse.parse_unit(unit, "host-a")
+    assert u.argv == ["/bin/echo", "7", "%", "a b", "x@7.service", "host-a"] and u.restart == "always"
+    unit.write_text("[Service]\nExecStart=/bin/echo %Z\n")
+    with pytest.raises(rehearse.RehearseError, match="specifier %Z"):
+        rehearse.parse_unit(unit, "h")
+    unit.write_text("[Service]\nType=simple\n")
+    with pytest.raises(rehearse.RehearseError, match="no ExecStart"):
+        rehearse.parse_unit(unit, "h")
+
+
+@pytest.mark.parametrize(("address", "says"), [("127.0.0.1", "own loopback"), ("uav1.local", "is a name")])
+def test_addresses_a_namespace_cannot_take_are_refused(tmp_path: Path, address: str, says: str) -> None:
+    dep = generate(tmp_path, HOSTS.replace('"10.77.0.11"', json.dumps(address)))
+    with pytest.raises(rehearse.RehearseError, match=says) as err:
+        rehearse.plan(dep.out)
+    assert "agent-1" in str(err.value) and "hosts file" in str(err.value)
+    with pytest.raises(rehearse.RehearseError, match="no hosts/ directory"):
+        rehearse.plan(tmp_path)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to drop to another user")
+def test_without_root_it_exits_2_before_anything_starts(tmp_path: Path) -> None:
+    dep = generate(tmp_path)
+    done = subprocess.run(["setpriv", "--reuid", "65534", "--regid", "65534", "--clear-groups", sys.executable, "-m",
+                           "cli", "rehearse", str(dep.out), "--out", str(tmp_path / "run")], cwd=REPO,
+                          capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "needs root" in done.stderr and "sudo" in done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+# =========================================================================== a rehearsal against a loopback run
+@dataclass
+class Done:
+    out: Path
+    status: int
+    log: str
+
+
+@pytest.fixture(scope="module")
+def rehearsal(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Done]:
+    needs_namespaces()
+    tmp = tmp_path_factory.mktemp("rehearsal")
+    dep = generate(tmp)
+    out = tmp / "run"
+    with open(tmp / "rehearse.log", "wb") as fh:
+        proc = cli("rehearse", str(dep.out), "--out", str(out), "--duration", repr(DURATION), stdout=fh,
+                   stderr=subprocess.STDOUT)
+        try:
+            status = proc.wait(RUN_WITHIN)
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                proc.wait(30)
+    yield Done(out, status, read(tmp / "rehearse.log"))
+
+
+@pytest.fixture(scope="module")
+def loopback(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Done]:
+    out = tmp_path_factory.mktemp("loopback") / "run"
+    done = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--clock", "realtime", "--duration",
+                           repr(DURATION), "--out", str(out), "--quiet", "--ns", f"loopback-{os.getpid()}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=RUN_WITHIN,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+    yield Done(out, done.returncode, done.stderr)
+
+
+@pytest.mark.slow  # two real-time runs of 20 s: the rehearsal and tether run
+def test_a_rehearsal_flies_and_equals_a_loopback_run(rehearsal: Done, loopback: Done) -> None:
+    assert rehearsal.status == 0, rehearsal.log[-4000:]
+    assert loopback.status in (0, 5), loopback.log[-3000:]  # 5: recorded, a sample lost (DROP streams)
+    rh, lb = Run.load(rehearsal.out), Run.load(loopback.out)
+    assert rh.meta.source == "runtime-realtime" and rh.meta.namespace == "section4"
+    assert rh.xi.shape == lb.xi.shape and rh.clock is not None
+    recorded = np.isfinite(rh.xi).all(axis=-1).mean()
+    assert recorded > 0.9, f"only {recorded:.1%} of agent ticks recorded"
+    ref = refsim.simulate(load_mission(SECTION4, DURATION))
+    got, want, ideal = envelope(rh, DURATION / 2), envelope(lb, DURATION / 2), envelope(ref, DURATION / 2)
+    print(f"\nformation-error envelope over the last {DURATION / 2:g} s: rehearsal {got:.4f} m, loopback {want:.4f} m "
+          f"({100 * (got / want - 1):+.1f} %), lockstep reference {ideal:.4f} m ({100 * (got / ideal - 1):+.1f} %)")
+    assert abs(got / want - 1) <= TOLERANCE, f"rehearsal {got:.4f} m vs loopback {want:.4f} m"
+    record = json.loads((rehearsal.out / "rehearsal.json").read_text())
+    # every unit of the deployment ran once, in its host's namespace, and ended well
+    hosts = {u: v["namespace"] for u, v in record["units"].items()}
+    assert hosts["tether-agent-3"] != hosts["tether-agent-4"] and hosts["tether-router"] == hosts["tether-leader-5"]
+    assert all(len(u["pids"]) == 1 for u in record["units"].values())
+    assert all(u["exits"][-1][1] == 0 for n, u in record["units"].items() if n != "tether-router")
+    # the links crossed the bridge: every agent's in-links have offset bounds, none flagged
+    assert np.isfinite(rh.clock.offset[-1, :, 0]).all()
+    # nothing left behind
+    assert record["left_behind"] == [] and left_behind(record) == ([], [])
+
+
+@pytest.mark.slow  # a rehearsal interrupted mid-run
+def test_ctrl_c_tears_everything_down(tmp_path: Path) -> None:
+    needs_namespaces()
+    dep = generate(tmp_path)
+    out = tmp_path / "run"
+    with open(tmp_path / "rehearse.log", "wb") as fh:
+        proc = cli("rehearse", str(dep.out), "--out", str(out), "--duration", "60", stdout=fh, stderr=subprocess.STDOUT)
+        try:
+            wait_until(lambda: "real time: tick 0" in read(out / "logs" / "tether-agent-2.log"), 60,
+                       "agent 2 to start flying")
+            time.sleep(1.0)  # mid-flight
+            proc.send_signal(signal.SIGINT)
+            status = proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert status == 130, read(tmp_path / "rehearse.log")[-3000:]
+    record = json.loads((out / "rehearsal.json").read_text())
+    assert len(record["namespaces"]) == 6  # 5 machines and the switch
+    assert left_behind(record) == ([], [])
+    assert not any(ns.startswith(f"tether-rh{proc.pid}-") for ns in
+                   subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout.split())
+
+
+# =========================================================================== skew, detected
+def log_time(line: str) -> float:
+    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
+    stamp, ms_ = line[:23].split(",")
+    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms_) / 1000
+
+
+@pytest.mark.slow  # a real-time run with vehicle 2's clock 30 ms ahead
+def test_an_injected_skew_is_detected_within_seconds(tmp_path: Path) -> None:
+    """Vehicle 2's host (its agent and plant) 30 ms ahead: agent 3, which hears agent 2, sees its
+    samples arrive ~30 ms before their time (the sender is ahead: certain); agent 2, which hears
+    agent 1, sees agent 1's arrive ~30 ms late (its own clock ahead, or a slow link); the others' links
+    are not flagged. Each says so in its log within a few seconds of tick 0, in telemetry, in the
+    launcher's events and in the run file."""
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--clock", "realtime", "--duration", "8",
+                           "--out", str(out), "--quiet", "--ns", f"skew-{os.getpid()}",
+                           "--fault", "skew:agent/2=+0.03", "--fault", "skew:plant/2=+0.03"],
+                          cwd=REPO, capture_output=True, text=True, timeout=RUN_WITHIN,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert (out / "run.npz").exists(), done.stderr[-3000:]
+    for who, sender, sign in (("agent-3", "agent/2", "before"), ("agent-2", "agent/1", "after")):
+        text = read(out / "logs" / f"{who}.log")
+        epoch = float(re.search(r"real time: tick 0 at ([0-9.]+)", text).group(1))  # type: ignore[union-attr]
+        line = next((ln for ln in text.splitlines() if f"clock: link {sender} -> {who.replace('-', '/')}" in ln), None)
+        assert line is not None, text[-3000:]
+        assert f"arrive " in line and f"ms {sign} their time" in line
+        delay = log_time(line) - epoch
+        print(f"\n{who} flagged {sender} {delay:.2f} s after tick 0: {line[24:]}")
+        assert delay < 3.0
+    events = json.loads((out / "events.json").read_text())
+    assert {(e["who"], e["why"].split(":")[0]) for e in events if e["what"] == "skew"} >= {
+        ("agent/3", "link agent/2"), ("agent/2", "link agent/1")}
+    run = Run.load(out)
+    assert run.clock is not None
+    col = {int(a): i for i, a in enumerate(run.agent_ids)}
+
+    def offset(agent: int, role: str, src: int) -> float:
+        i = col[agent]
+        slot = next(s for s in range(run.clock.src.shape[1])  # type: ignore[union-attr]
+                    if run.clock.role[i, s] == role and run.clock.src[i, s] == src)  # type: ignore[union-attr]
+        return float(np.nanmedian(run.clock.offset[run.t >= 2.0, i, slot]))  # type: ignore[union-attr]
+
+    assert -0.035 <= offset(3, "agent", 2) <= -0.025
+    assert 0.025 <= offset(2, "agent", 1) <= 0.040
+    assert abs(offset(2, "plant", 2)) < 0.005  # one host, one clock
+    assert -0.005 <= offset(4, "agent", 3) <= 0.010  # neither end skewed: not flagged
