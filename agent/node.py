@@ -13,6 +13,7 @@ stored; the operator's orders arrive on ``control/0/safety``. In real time the a
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -57,11 +58,20 @@ async def run(node: Node) -> None:
     # (tether/skew.py), observed before the gate, which rejects a sender too far ahead
     clocks = None if node.clock.lockstep else SkewMonitor(m.dt)
 
+    # real time: a restarted agent rejoins a run under way; its plant (same host, same clock) is
+    # still ticking, and the earliest arrival of its samples gives the run's start instant
+    rejoin = Rejoin(getattr(node.clock, "wall", None))
+
     def gate(sender: int, role: str) -> Callable[[Any], str | None]:
         g = for_sender(m, sender, None if node.clock.lockstep else node.mission_time)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
+            if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+                # before this process's start: samples of a run already under way
+                if role == "plant":
+                    rejoin.observe(msg.k, msg.t)
+                return "before start"
             if clocks is not None:
                 clocks.observe(role, sender, msg.t, node.mission_time())
             why = g.check(msg)
@@ -111,12 +121,20 @@ async def run(node: Node) -> None:
     netem_control.serve(node)
     cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND)
     tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY)
-    await node.ready(phase=AGENT_PHASE)
+    await node.ready(phase=AGENT_PHASE, rejoin=rejoin.epoch)
+    first = 0
+    rejoining = node.rejoined
+    ramp = Ramp(sf.max_accel * m.dt / REJOIN_RAMP, m.dim) if node.rejoined else None
+    if node.rejoined:
+        first = min(m.steps, math.floor(node.mission_time() / m.dt) + 1)
+        log.warning("rejoined a run under way at tick %d (t = %.2f s): tick 0 at %.3f, from the earliest of %d "
+                    "samples of plant %d; gains K(0); holding until every input is fresh", first, first * m.dt,
+                    rejoin.epoch() or 0.0, rejoin.samples, aid)
 
     lockstep = node.clock.lockstep
     holding = False
     neighbours = set(law.neighbours)
-    for k in range(m.steps + 1):
+    for k in range(first, m.steps + 1):
         await node.tick(k)
         t = k * m.dt
         own, *got = await node.aligned([plant, *nbrs, *proximity], k)
@@ -148,14 +166,25 @@ async def run(node: Node) -> None:
             # a gone leader reaches nobody
             gone = (node.gone("agent") - neighbours - {aid}) | node.gone("leader") if k < m.steps - 1 else set()
             status = Status(gone=[s.silent_at(k) for s in nbrs], stopped=stopped, others_gone=frozenset(gone),
-                            operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode)
+                            operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode,
+                            rejoining=rejoining)
         near: list[tuple[np.ndarray, np.ndarray]] = []
         if avoid:
             seen = [got[n] for n in vehicles] + far
             near = [(np.array(msg.p), np.array(msg.vel)) for msg in seen
                     if msg is not None and t - msg.t <= m.links.max_age]
         out = tick.step(k, t, np.array(own.p), np.array(own.vel), np.array(own.a), heard, status, near)
-        u = out.u.tolist()
+        if rejoining and t - own.t <= m.dt and all(msg is not None and t - msg.t <= m.dt for msg in got):
+            rejoining = False  # every input fresh (the first tick always holds): the supervisor may fly again
+            log.warning("rejoin: every input fresh at t = %.2f s", t)
+        if ramp is not None:
+            ramp.u = ramp.limit(out.u, out.mode == wire.FLYING)
+            u = ramp.u.tolist()
+            if not ramp.active and out.mode == wire.FLYING:
+                log.warning("rejoin: the command has caught up with the law's at t = %.2f s", t)
+                ramp = None
+        else:
+            u = out.u.tolist()
         cmd.send(wire.Command, k, t, u=u, mode=out.mode)
         events = tick.supervisor.take_events()
         for ev in events:
@@ -176,6 +205,62 @@ async def run(node: Node) -> None:
                   xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
                   gate=merged(gates))
+
+
+class Rejoin:
+    """A restarted agent's view of a run already under way, from its own plant's samples (pure
+    bookkeeping; ``wall`` is the process's injected wall clock, None in lockstep).
+
+    The plant publishes tick k's sample at ``epoch + k h`` on the host's clock (the agent's own:
+    one companion computer) and it arrives a delay L later, so ``wall - t`` over samples is
+    ``epoch + L``; its minimum over :data:`REJOIN_SAMPLES` samples is the start instant, late by the
+    smallest delay of the plant-to-agent link (sub-millisecond on one host, a few through a router)."""
+
+    def __init__(self, wall: Callable[[], float] | None):
+        self.wall = wall
+        self.samples = 0
+        self.best = math.inf
+        self.newest = -1
+
+    def observe(self, k: int, t: float) -> None:
+        if self.wall is None or not math.isfinite(t) or k <= 0:
+            return
+        self.samples += 1
+        self.newest = max(self.newest, k)
+        self.best = min(self.best, self.wall() - t)
+
+    def epoch(self) -> float | None:
+        """The run's start instant [s since the Unix epoch], once enough samples came; else None."""
+        return self.best if self.samples >= REJOIN_SAMPLES and math.isfinite(self.best) else None
+
+
+class Ramp:
+    """After a rejoin: the command leaving the agent changes by at most ``step`` [m/s^2] per tick
+    once the supervisor flies again, from the HOLD command it flew, until it has caught up with the
+    law's (then :attr:`active` is False and the ramp is dropped). Every command is a point between
+    two commands within ``max_accel``, so within it too."""
+
+    def __init__(self, step: float, dim: int):
+        self.step = step
+        self.u = np.zeros(dim)
+        """The command sent last (before the first: zero, what a plant holding at rest flies)."""
+        self.active = True
+
+    def limit(self, want: np.ndarray, flying: bool) -> np.ndarray:
+        if not flying or not self.active:
+            return want
+        du = want - self.u
+        size = float(np.linalg.norm(du))
+        if size <= self.step:
+            self.active = False
+            return want
+        return self.u + du * (self.step / size)
+
+
+REJOIN_RAMP = 1.0
+"""After a rejoin, the command may go from 0 to ``max_accel`` in no less than this [s]."""
+REJOIN_SAMPLES = 20
+"""Plant samples a restarted agent takes before it trusts its estimate of the start instant."""
 
 
 def _order(orders: list[str]) -> str | None:

@@ -127,6 +127,8 @@ class Node:
         self.token_log: list[tuple[str, bool]] = []
         self.alive: dict[str, bool] = {}
         """Liveliness seen so far, by token key: True while present, False once gone."""
+        self.rejoined = False
+        """Real time: this process joined a run already under way (see :meth:`ready`)."""
 
     # ------------------------------------------------------------------ declarations
     def withdraw(self) -> None:
@@ -220,14 +222,18 @@ class Node:
             await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
-    async def ready(self, paced: bool = False, phase: float = 0.0) -> None:
+    async def ready(self, paced: bool = False, phase: float = 0.0,
+                    rejoin: Callable[[], float | None] | None = None) -> None:
         """Declare liveliness (after every subscription, so a launcher that sees the token knows
         this process hears everything it needs), then wait for the start.
 
         In lockstep, only a ``paced`` role (the leader, whose inputs do not depend on the tick)
         follows the clock's grants; every other role is gated by its inputs of tick k, which is
         what makes the run deterministic, and needs only the start. In real time, tick k starts at
-        ``epoch + (k + phase) h``."""
+        ``epoch + (k + phase) h``. ``rejoin`` (real time): returns the start instant of a run
+        already under way, once the role can tell it (a restarted agent, from its plant's samples),
+        else None; the process then joins that run (:attr:`rejoined`) instead of waiting for a start
+        message that was sent before it existed."""
         if self._watched:
             self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
         clock = self.clock
@@ -236,9 +242,19 @@ class Node:
             self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
         self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
-        await self.until(lambda: start.newest is not None, self.args.start_timeout,
-                         "the launcher's start message (--start-timeout)")
-        epoch = start.newest.epoch
+        joined: list[float] = []
+
+        def started() -> bool:
+            if start.newest is not None:
+                return True
+            if rejoin is not None and not self.clock.lockstep and (e := rejoin()) is not None:
+                joined.append(e)
+                return True
+            return False
+
+        await self.until(started, self.args.start_timeout, "the launcher's start message (--start-timeout)")
+        epoch = start.newest.epoch if start.newest is not None else joined[0]
+        self.rejoined = start.newest is None
         try:
             self.clock.begin(epoch, phase)
         except ClockError as exc:
