@@ -25,6 +25,9 @@ from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, Run
 
 log = logging.getLogger("tether")
 
+RETURN_GRACE = 10.0
+"""Real time: how long every producer may be away at once before the end of the mission (a router
+restarting: its clients link again within seconds) before the run is taken as over [s]."""
 STOP_GRACE = 2.0
 """Real time: when every producer has left before the last tick, how long to wait for this
 process's own stop signal before calling the run cut short [s]."""
@@ -216,13 +219,34 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
                                  f"every sample of tick {k} (have {rec.count[k]} of {rec.expected})")
                 ack.send(wire.Ack, k, k * m.dt, role="recorder")
         else:
+            away: list[float] = []
+            """Mission time since which every producer's token has been absent (a router restart
+            takes them all at once, and gives them back)."""
+
             def finished() -> bool:
                 for key, alive in node.token_log:
                     (seen if alive else gone).add(key)
                 node.token_log.clear()
-                return rec.count[last] >= rec.expected or (seen >= wanted and (gone & wanted) == wanted)
+                if rec.count[last] >= rec.expected:
+                    return True
+                if not (seen >= wanted and all(node.alive.get(key) is False for key in wanted)):
+                    away.clear()
+                    return False
+                now = node.mission_time()
+                if not away:
+                    away.append(now)
+                return now >= m.duration or now - away[0] >= RETURN_GRACE
 
-            await node.until(finished, None, "the end of the run")
+            async def poke() -> None:  # re-check while nothing arrives (every producer away)
+                while True:
+                    await asyncio.sleep(0.5)
+                    node.wakeup.notify()
+
+            poker = asyncio.get_running_loop().create_task(poke())
+            try:
+                await node.until(finished, None, "the end of the run")
+            finally:
+                poker.cancel()
         complete = bool(np.all(rec.count >= rec.expected))
         rec.save(complete=complete, drops=node.receiver.drops)
         if rec.count[last] == 0:
