@@ -27,6 +27,7 @@ from tether import transport as tp
 from tether import wire
 from tether import skew
 from tether.inputs import Source
+from tether.rejoin import Rejoin
 from tether.skew import SkewMonitor
 from tether.node import Node
 
@@ -207,33 +208,6 @@ async def run(node: Node) -> None:
                   gate=merged(gates))
 
 
-class Rejoin:
-    """A restarted agent's view of a run already under way, from its own plant's samples (pure
-    bookkeeping; ``wall`` is the process's injected wall clock, None in lockstep).
-
-    The plant publishes tick k's sample at ``epoch + k h`` on the host's clock (the agent's own:
-    one companion computer) and it arrives a delay L later, so ``wall - t`` over samples is
-    ``epoch + L``; its minimum over :data:`REJOIN_SAMPLES` samples is the start instant, late by the
-    smallest delay of the plant-to-agent link (sub-millisecond on one host, a few through a router)."""
-
-    def __init__(self, wall: Callable[[], float] | None):
-        self.wall = wall
-        self.samples = 0
-        self.best = math.inf
-        self.newest = -1
-
-    def observe(self, k: int, t: float) -> None:
-        if self.wall is None or not math.isfinite(t) or k <= 0:
-            return
-        self.samples += 1
-        self.newest = max(self.newest, k)
-        self.best = min(self.best, self.wall() - t)
-
-    def epoch(self) -> float | None:
-        """The run's start instant [s since the Unix epoch], once enough samples came; else None."""
-        return self.best if self.samples >= REJOIN_SAMPLES and math.isfinite(self.best) else None
-
-
 class Ramp:
     """After a rejoin: the command leaving the agent changes by at most ``step`` [m/s^2] per tick
     once the supervisor flies again, from the HOLD command it flew, until it has caught up with the
@@ -259,8 +233,6 @@ class Ramp:
 
 REJOIN_RAMP = 1.0
 """After a rejoin, the command may go from 0 to ``max_accel`` in no less than this [s]."""
-REJOIN_SAMPLES = 20
-"""Plant samples a restarted agent takes before it trusts its estimate of the start instant."""
 
 
 def _order(orders: list[str]) -> str | None:

@@ -24,8 +24,9 @@ network namespace of its own (root only, like ``ip netns``):
 * **Restarts.** ``Restart=on-failure`` restarts a unit that exits with a failure status or a signal
   after ``RestartSec``; ``Restart=always`` (the router) restarts it on any exit. A unit can be killed
   (SIGKILL) at a mission time with ``--kill UNIT@T`` to rehearse what its ``Restart=`` does.
-* **The end.** The run ends when every unit but the router has exited and is not due a restart,
-  (every process exits 0 after the last tick), or after ``--timeout``. Then everything is torn down:
+* **The end.** The run ends when every unit but the router has exited and is not due a restart
+  (every process exits 0 after the last tick), or :data:`END_GRACE` after the mission's end (a unit
+  restarted after the run waits for a start that will not come), or after ``--timeout``. Then everything is torn down:
   every process (SIGTERM, SIGKILL after a grace), whatever still runs in a namespace (by pid), every
   namespace (which removes its veth and, with the switch, the bridge). The same happens on Ctrl-C
   or SIGTERM. ``RUN/rehearsal.json`` lists the namespaces, addresses, commands, exits and restarts;
@@ -60,6 +61,8 @@ log = logging.getLogger("tether")
 REPO = Path(__file__).resolve().parents[1]
 PREFIX = "tether-rh"
 """Every namespace a rehearsal makes is named ``tether-rh<pid>-<...>`` (the creating process's pid)."""
+END_GRACE = 30.0
+"""Units still running this long after the mission's end [s] are stopped (and the rehearsal fails)."""
 ROUTER_UP = 30.0
 """How long to wait for the router's "listening" line [s]."""
 
@@ -456,6 +459,11 @@ def rehearse(deploy: Path, opts: Options) -> int:
                           starter.log_path.read_text(errors="replace")[-1500:])
                 break
             if all(r.done for r in others) and starter.done:
+                break
+            if epoch is not None and time.time() > epoch + duration + END_GRACE:
+                late = [r.unit.name for r in others if not r.done]
+                log.error("%s still running %g s after the mission's end (restarted after the run, waiting for a "
+                          "start that will not come?): stopping", ", ".join(late), END_GRACE)
                 break
             if now > limit:
                 log.error("the run did not end in time (--timeout)")

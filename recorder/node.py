@@ -21,13 +21,11 @@ import numpy as np
 from recorder.export import mcap_beside
 from tether import gate, wire
 from tether.node import Node
+from tether.rejoin import Rejoin
 from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
 log = logging.getLogger("tether")
 
-RETURN_GRACE = 10.0
-"""Real time: how long every producer may be away at once before the end of the mission (a router
-restarting: its clients link again within seconds) before the run is taken as over [s]."""
 STOP_GRACE = 2.0
 """Real time: when every producer has left before the last tick, how long to wait for this
 process's own stop signal before calling the run cut short [s]."""
@@ -191,7 +189,18 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
         now = None if node.clock.lockstep else node.mission_time
         leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
                              on_message=rec.leader, keep=False)
-        leader.admit = gate.for_sender(m, m.leader.id, now).check
+        # a recorder restarted mid-run joins it from the leader's samples (tether/rejoin.py); before
+        # its start, samples are not recorded
+        rejoin = Rejoin(getattr(node.clock, "wall", None))
+        leader_gate = gate.for_sender(m, m.leader.id, now).check
+
+        def admit_leader(msg: wire.State) -> str | None:
+            if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+                rejoin.observe(msg.k, msg.t)
+                return "before start"
+            return leader_gate(msg)
+
+        leader.admit = admit_leader
         producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
             node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
@@ -211,7 +220,10 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
         wanted = {keys.token(r, i) for r, i in producers}
         for r, i in producers:
             node.watch(r, i)
-        await node.ready()
+        await node.ready(rejoin=rejoin.epoch)
+        if node.rejoined:
+            log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "
+                        "the ticks before are missing from the run file", node.mission_time(), rejoin.samples)
         last = m.steps
         if node.clock.lockstep:
             for k in range(last + 1):
@@ -219,23 +231,17 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
                                  f"every sample of tick {k} (have {rec.count[k]} of {rec.expected})")
                 ack.send(wire.Ack, k, k * m.dt, role="recorder")
         else:
-            away: list[float] = []
-            """Mission time since which every producer's token has been absent (a router restart
-            takes them all at once, and gives them back)."""
-
             def finished() -> bool:
                 for key, alive in node.token_log:
                     (seen if alive else gone).add(key)
                 node.token_log.clear()
                 if rec.count[last] >= rec.expected:
                     return True
+                # every producer away at once before the end (a router restarting takes them all, and
+                # gives them back): wait for them until the mission's end on this clock
                 if not (seen >= wanted and all(node.alive.get(key) is False for key in wanted)):
-                    away.clear()
                     return False
-                now = node.mission_time()
-                if not away:
-                    away.append(now)
-                return now >= m.duration or now - away[0] >= RETURN_GRACE
+                return node.mission_time() >= m.duration
 
             async def poke() -> None:  # re-check while nothing arrives (every producer away)
                 while True:

@@ -85,6 +85,12 @@ def test_the_monitor_flags_above_half_a_period_once_until_it_clears() -> None:
     assert [(c.role, c.src, c.warn) for c in report] == [("plant", 2, False), ("agent", 1, True), ("leader", 5, False)]
     assert [(c.role, c.src) for c in mon.newly_flagged(report)] == [("agent", 1)]
     assert mon.newly_flagged(mon.report()) == []
+    # a flagged link whose offset moves by more than a period is said again (a loaded start-up's delay
+    # first, the skew after it)
+    moved = [skew.LinkClock("agent", 1, -0.029 + 0.011, True)]
+    assert mon.newly_flagged(moved) == moved and mon.newly_flagged(moved) == []
+    assert mon.newly_flagged([skew.LinkClock("agent", 1, 0.0, False)]) == []
+    assert mon.newly_flagged(moved) == moved  # cleared, then flagged again
     line = skew.describe(report[1], "agent/2", mon.limits)
     assert "agent/1's clock is ahead of agent/2's by at least" in line and "29.0 ms" in line
 

@@ -131,7 +131,8 @@ class SkewMonitor:
 
     period: float
     links: dict[tuple[str, int], LinkEstimator] = field(default_factory=dict)
-    warned: set[tuple[str, int]] = field(default_factory=set)
+    warned: dict[tuple[str, int], float] = field(default_factory=dict)
+    """Flagged links, with the offset last said."""
 
     def link(self, role: str, src: int) -> LinkEstimator:
         est = self.links.get((role, src))
@@ -157,11 +158,17 @@ class SkewMonitor:
         return out
 
     def newly_flagged(self, now: list[LinkClock]) -> list[LinkClock]:
-        """Of ``now`` (:meth:`report`), the links flagged that were not at the previous call (each is
-        said once until it clears)."""
-        flagged = {(c.role, c.src) for c in now if c.warn}
-        new = [c for c in now if c.warn and (c.role, c.src) not in self.warned]
-        self.warned = flagged
+        """Of ``now`` (:meth:`report`), the links flagged that were not at the previous call, or whose
+        offset has moved by more than a period since they were last said (a slow start-up that turns
+        out to be a skew): each is said once until it clears or changes."""
+        new = []
+        for c in now:
+            key = (c.role, c.src)
+            if not c.warn:
+                self.warned.pop(key, None)
+            elif key not in self.warned or abs(c.offset - self.warned[key]) > self.period:
+                self.warned[key] = c.offset
+                new.append(c)
         return new
 
 
