@@ -17,7 +17,8 @@ network namespace of its own (root only, like ``ip netns``):
   program path that does not exist here (the hosts file's ``tether`` or ``python``, e.g.
   ``/opt/tether/venv/bin/tether``) runs as this interpreter (``python -m cli`` for ``tether``).
   ``User=`` is not applied (the processes run as root, in their namespace). ``--duration S`` adds
-  ``--duration S`` to every tether process (the mission file stays as generated).
+  ``--duration S`` to every tether process (the mission file stays as generated); ``--skew HOST=S``
+  adds ``--clock-skew S`` to every tether process of a host (an unsynchronised host).
 * **Order, as an operator would.** The router's unit first (``tether-router``; until it logs that
   it listens), then every other long-running unit, then the one-shot ``tether-start`` on the leader's
   host, which waits for every process's liveliness token and announces tick 0.
@@ -196,9 +197,14 @@ def plan(deploy: Path) -> Plan:
     return Plan(deploy, hosts, units)
 
 
-def command(u: Unit, duration: float | None) -> list[str]:
+TETHER_ROLES = ("agent", "plant", "leader", "recorder", "world")
+"""Units whose program is a tether process (they take ``--duration`` and ``--clock-skew``)."""
+
+
+def command(u: Unit, duration: float | None, skew: float = 0.0) -> list[str]:
     """The command a unit runs here: its ExecStart, with a program path this machine lacks replaced
-    by this interpreter, and ``--duration`` added to tether processes when asked."""
+    by this interpreter, and ``--duration`` (and a host's ``--clock-skew``) added to tether
+    processes when asked."""
     argv = list(u.argv)
     prog = argv[0]
     if not (os.path.isfile(prog) and os.access(prog, os.X_OK)):
@@ -210,8 +216,10 @@ def command(u: Unit, duration: float | None) -> list[str]:
         else:
             raise RehearseError(f"unit {u.name}: its program {prog} does not exist here and is neither tether nor "
                                 "python; install it at that path")
-    if duration is not None and u.role in ("agent", "plant", "leader", "recorder", "world"):
+    if duration is not None and u.role in TETHER_ROLES:
         argv += ["--duration", repr(duration)]
+    if skew and u.role in TETHER_ROLES:
+        argv += ["--clock-skew", repr(skew)]
     return argv
 
 
@@ -339,6 +347,8 @@ class Options:
     """Give up this long after the start [s]; default the mission's duration plus 120 s."""
     kills: list[tuple[str, float]] = field(default_factory=list)
     """(unit, mission time [s]): SIGKILL that unit then."""
+    skews: dict[str, float] = field(default_factory=dict)
+    """Host directory -> clock offset [s] of every tether process on it (an unsynchronised host)."""
     grace: float = 5.0
 
 
@@ -367,8 +377,11 @@ def rehearse(deploy: Path, opts: Options) -> int:
         pl = plan(deploy)
         runs = []
         logs = opts.out / "logs"
+        for host in opts.skews:
+            if host not in pl.hosts:
+                raise RehearseError(f"--skew {host}: no such host directory; use one of {', '.join(pl.hosts)}")
         for u in pl.units:
-            runs.append(Running(u, command(u, opts.duration), logs / f"{u.name}.log"))
+            runs.append(Running(u, command(u, opts.duration, opts.skews.get(u.host, 0.0)), logs / f"{u.name}.log"))
         names = {u.name for u in pl.units}
         for unit, _ in opts.kills:
             if unit not in names:
@@ -536,6 +549,21 @@ def _kill(text: str) -> tuple[str, float]:
     return unit.removesuffix(".service"), t
 
 
+def _skew(text: str) -> tuple[str, float]:
+    from tether.clock import check_skew
+
+    host, sep, value = text.partition("=")
+    try:
+        s = float(value)
+    except ValueError:
+        s = float("nan")
+    why = check_skew(s, "the skew")
+    if not sep or not host or why is not None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST=S (a host directory and a clock offset [s]), e.g. "
+                                         f"agent-2=+0.03" + (f"; {why}" if sep and host and why else ""))
+    return host, s
+
+
 def _seconds(text: str) -> float:
     try:
         v = float(text)
@@ -554,12 +582,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="give up this long after the units start [s] (default: the duration + 180 s)")
     p.add_argument("--kill", action="append", type=_kill, default=[], metavar="UNIT@T",
                    help="SIGKILL a unit's process at mission time T [s] (its Restart= then applies); repeatable")
+    p.add_argument("--skew", action="append", type=_skew, default=[], metavar="HOST=S",
+                   help="every tether process of host directory HOST runs S seconds ahead (--clock-skew): an "
+                        "unsynchronised host; repeatable")
 
 
 def run_args(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s rehearse: %(message)s")
     return rehearse(Path(args.deploy), Options(out=Path(args.out), duration=args.duration, timeout=args.timeout,
-                                               kills=list(args.kill)))
+                                               kills=list(args.kill), skews=dict(args.skew)))
 
 
 def main(argv: list[str] | None = None) -> int:

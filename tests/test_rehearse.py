@@ -149,6 +149,18 @@ def test_units_are_read_as_systemd_reads_them(tmp_path: Path) -> None:
     here = rehearse.command(a2, 5.0)
     assert here[:3] == [sys.executable, "-m", "cli"] and here[3:-2] == a2.argv[1:] and here[-2:] == ["--duration", "5.0"]
     assert rehearse.command(units["tether-router"], 5.0)[:3] == [sys.executable, "-m", "deploy.router"]
+    assert rehearse.command(a2, None, 0.03)[-2:] == ["--clock-skew", "0.03"]
+    assert "--clock-skew" not in rehearse.command(units["tether-router"], None, 0.03)
+
+
+def test_bad_rehearsal_options_exit_2_naming_them(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from cli import main as tether
+
+    for bad, says in (("--skew=agent-2", "not HOST=S"), ("--skew=agent-2=nan", "finite"),
+                      ("--kill=tether-agent-2", "not UNIT@T"), ("--duration=-1", "> 0")):
+        with pytest.raises(SystemExit) as ex:
+            tether.main(["rehearse", str(tmp_path), "--out", str(tmp_path / "o"), bad])
+        assert ex.value.code == 2 and says in capsys.readouterr().err
 
 
 def test_specifiers_are_filled_as_systemd_would(tmp_path: Path) -> None:
