@@ -221,6 +221,7 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
         for r, i in producers:
             node.watch(r, i)
         await node.ready(rejoin=rejoin.epoch)
+        holder["started"] = rec
         if node.rejoined:
             log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "
                         "the ticks before are missing from the run file", node.mission_time(), rejoin.samples)
@@ -255,7 +256,7 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
                 poker.cancel()
         complete = bool(np.all(rec.count >= rec.expected))
         rec.save(complete=complete, drops=node.receiver.drops)
-        if rec.count[last] == 0:
+        if rec.count[last] == 0 and node.mission_time() < m.duration:
             # the producers may have left because the run is being stopped (Ctrl-C): then this
             # process's own stop follows within moments, and ends it as stopped, not failed
             try:
@@ -269,7 +270,9 @@ def make(out: Path) -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node],
 
     def on_stop(node: Node) -> None:
         rec = holder.get("rec")
-        if rec is not None and not rec.saved:
+        if rec is not None and not rec.saved and "started" in holder:
             rec.save(complete=False, drops=node.receiver.drops)
+        elif rec is not None and not rec.saved:  # stopped before any start: another process's file stays
+            log.warning("stopped before the run started: no run file written")
 
     return run, on_stop

