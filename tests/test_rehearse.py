@@ -339,7 +339,8 @@ def test_an_injected_skew_is_detected_within_seconds(tmp_path: Path) -> None:
     print(f"host 2's lead estimated {1000 * float(np.nanmedian(lead[run.t >= 2.0])):.1f} ms (right from t = {first:.2f} s); "
           f"agent 3's one-way bound on agent 2 {1000 * e23:+.1f} ms")
     assert first < 3.0
-    assert np.mean(right[run.t >= 2.0]) > 0.8
+    later = (run.t >= 2.0) & np.isfinite(lead)
+    assert np.mean(right[later]) > 0.8, np.nanpercentile(lead[later], [5, 50, 95])
     assert abs(float(np.nanmedian(series(2, "plant", 2)[run.t >= 2.0]))) < 0.02  # one host, one clock: delay only
 
 
