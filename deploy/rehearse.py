@@ -32,7 +32,8 @@ network namespace of its own (root only, like ``ip netns``):
   namespace (which removes its veth and, with the switch, the bridge). The same happens on Ctrl-C
   or SIGTERM. ``RUN/rehearsal.json`` lists the namespaces, addresses, commands, exits and restarts;
   ``RUN/logs/<unit>.log`` each unit's output; the recorder's ``run.npz`` (and ``run.mcap``) is copied
-  from its unit's ``--out`` into ``RUN``: the same run file as ``tether run`` writes.
+  from its unit's ``--out`` into ``RUN`` (a ``run.npz`` left there by an earlier run is removed
+  first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
 
 Exit status: 0 the run ended and was recorded; 1 a unit failed for good, or the run did not end in
 time, or nothing was recorded; 2 bad input (not root, not a deployment, an address a namespace
@@ -499,12 +500,14 @@ def rehearse(deploy: Path, opts: Options) -> int:
         status = 1
     finally:
         stopping = True
+        for sig in previous:  # a second Ctrl-C must not cut the teardown short
+            signal.signal(sig, signal.SIG_IGN)
         try:
             _stop_all(runs, opts.grace)
             net.destroy()
         finally:
-            for s, h in previous.items():
-                signal.signal(s, h)
+            for sig, h in previous.items():
+                signal.signal(sig, h)
         left = namespaces_of(os.getpid())
         record["units"] = {r.unit.name: {"host": r.unit.host, "namespace": ns_of.get(r.unit.host),
                                          "argv": r.argv, "starts": r.starts, "pids": r.pids, "exits": r.exits,
