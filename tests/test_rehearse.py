@@ -347,9 +347,10 @@ def test_an_injected_skew_is_detected_within_seconds(tmp_path: Path) -> None:
 # =========================================================================== restart and rejoin
 KILL_AT = 4.0
 """Mission time [s] the rehearsal SIGKILLs agent 2 (its unit's Restart=on-failure brings it back)."""
-REJOIN_WITHIN = 12.0
+REJOIN_WITHIN = 20.0
 """Kill to rejoined [s]: RestartSec=2 of the unit, then a Python process importing numpy and Zenoh and
-linking over TLS on two loaded cores (measured 4.8 s on a quiet minute, 12.9 s at load average 13)."""
+linking over TLS on two loaded cores (measured 4.3-4.8 s on a quieter minute, 12.9 s at load average 13,
+15.0 s at load average 68)."""
 RESTART_SAFETY = "\n[safety]\ncmd_cutoff = 30.0\nland_after = 30.0\n"
 """The rehearsed mission's one change to Section 4: the plant holds (rather than lands, after the
 default 2 s) while its agent restarts, and the agents the lost one cuts off hold (rather than land)
@@ -410,7 +411,7 @@ def test_a_killed_agent_rejoins_and_the_survivors_stay_bounded(tmp_path: Path) -
 
 
 # =========================================================================== router loss
-ROUTER_BACK_WITHIN = 12.0
+ROUTER_BACK_WITHIN = 15.0
 """Router killed to its clients linked again [s]: RestartSec=2, the router's start-up, then each
 client's reconnection (measured 3.0-7.5 s on two loaded cores)."""
 
@@ -445,13 +446,17 @@ def test_a_router_restart_is_survived(tmp_path: Path) -> None:
     killed = record["kills"][0]["wall"]
     for aid in (1, 2, 3, 4):
         text = read(run_dir / "logs" / f"tether-agent-{aid}.log")
-        after = [ln for ln in text.splitlines() if log_time(ln) >= killed - 0.01]
-        held = next((ln for ln in after if "-> HOLD" in ln), None)
+        lines = [ln for ln in text.splitlines() if ln[:4].isdigit()]
+        after = [ln for ln in lines if log_time(ln) >= killed - 0.01]
+        # holding within 2 s of the kill: the last mode change by then is to HOLD (on a loaded machine
+        # it may already have been holding, for another reason, when the router went)
+        modes = [ln for ln in lines if "safety: t = " in ln and log_time(ln) <= killed + 2.0]
         back = next((ln for ln in after if f"plant/{aid} is back" in ln), None)
-        assert held is not None and back is not None, text[-3000:]
-        assert log_time(held) - killed < 2.0 and log_time(back) - killed < ROUTER_BACK_WITHIN
-        print(f"\nagent {aid}: held {log_time(held) - killed:.2f} s after the router's kill, its plant back "
-              f"{log_time(back) - killed:.2f} s after")
+        last = re.search(r"safety: t = [0-9.]+ s: (\w+) -> (\w+)", modes[-1]) if modes else None
+        assert last is not None and last.group(2) == "HOLD" and back is not None, text[-3000:]
+        assert log_time(back) - killed < ROUTER_BACK_WITHIN
+        print(f"\nagent {aid}: holding {max(0.0, log_time(modes[-1]) - killed):.2f} s after the router's kill, its "
+              f"plant back {log_time(back) - killed:.2f} s after")
     run = Run.load(run_dir)
     assert run.meta.complete is False and run.meta.samples_recorded < run.meta.samples_expected  # what it missed
     recorded = np.isfinite(run.xi).all(axis=-1).all(axis=1)
