@@ -13,6 +13,7 @@ stored; the operator's orders arrive on ``control/0/safety``. In real time the a
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -24,7 +25,10 @@ from agent.tick import AgentTick, Heard
 from netem import control as netem_control
 from tether import transport as tp
 from tether import wire
+from tether import skew
 from tether.inputs import Source
+from tether.rejoin import Rejoin
+from tether.skew import SkewMonitor
 from tether.node import Node
 
 log = logging.getLogger("tether")
@@ -51,11 +55,26 @@ async def run(node: Node) -> None:
     sf = m.safety
     gates: list[Gate] = []
 
-    def gate(sender: int) -> Callable[[Any], str | None]:
+    # real time: each input link's clock offset, from sample times against arrival times
+    # (tether/skew.py), observed before the gate, which rejects a sender too far ahead
+    clocks = None if node.clock.lockstep else SkewMonitor(m.dt)
+
+    # real time: a restarted agent rejoins a run under way; its plant (same host, same clock) is
+    # still ticking, and the earliest arrival of its samples gives the run's start instant
+    rejoin = Rejoin(getattr(node.clock, "wall", None))
+
+    def gate(sender: int, role: str) -> Callable[[Any], str | None]:
         g = for_sender(m, sender, None if node.clock.lockstep else node.mission_time)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
+            if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+                # before this process's start: samples of a run already under way
+                if role == "plant":
+                    rejoin.observe(msg.k, msg.t)
+                return "before start"
+            if clocks is not None:
+                clocks.observe(role, sender, msg.t, node.mission_time())
             why = g.check(msg)
             if why is not None and g.rejected[why] in (1, 10, 100, 1000):  # say so, without flooding the log
                 log.warning("gate: sample of %d for tick %d rejected (%s), %d so far", sender, msg.k, why,
@@ -74,7 +93,7 @@ async def run(node: Node) -> None:
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
     plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
-    plant.admit = gate(aid)
+    plant.admit = gate(aid, "plant")
     node.watch("plant", aid, plant)
     if m.netem is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
@@ -84,7 +103,7 @@ async def run(node: Node) -> None:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
         src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel)
-        src.admit = gate(j)
+        src.admit = gate(j, role)
         node.watch(role, j, src)
         nbrs.append(src)
         if channel is not None:
@@ -97,21 +116,35 @@ async def run(node: Node) -> None:
         for j in m.agent_ids:
             if j != aid and j not in law.neighbours:
                 src = node.source(keys.topic("agent", j, "state"), wire.State, j)
-                src.admit = gate(j)
+                src.admit = gate(j, "agent")
                 proximity.append(src)
     vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]
     netem_control.serve(node)
     cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND)
     tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY)
-    await node.ready(phase=AGENT_PHASE)
+    await node.ready(phase=AGENT_PHASE, rejoin=rejoin.epoch)
+    first = 0
+    rejoining = node.rejoined
+    ramp = Ramp(sf.max_accel * m.dt / REJOIN_RAMP, m.dim) if node.rejoined else None
+    if node.rejoined:
+        first = min(m.steps, math.floor(node.mission_time() / m.dt) + 1)
+        log.warning("rejoined a run under way at tick %d (t = %.2f s): tick 0 at %.3f, from the earliest of %d "
+                    "samples of plant %d; gains K(0); holding until every input is fresh", first, first * m.dt,
+                    rejoin.epoch() or 0.0, rejoin.samples, aid)
 
     lockstep = node.clock.lockstep
     holding = False
     neighbours = set(law.neighbours)
-    for k in range(m.steps + 1):
+    for k in range(first, m.steps + 1):
         await node.tick(k)
         t = k * m.dt
         own, *got = await node.aligned([plant, *nbrs, *proximity], k)
+        clock: list[wire.ClockLink] = []
+        if clocks is not None:
+            estimates = clocks.report()
+            clock = [wire.ClockLink(role=c.role, src=c.src, offset=c.offset, warn=c.warn) for c in estimates]
+            for c in clocks.newly_flagged(estimates):
+                log.warning("%s", skew.describe(c, f"agent/{aid}", clocks.limits))
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
@@ -134,14 +167,25 @@ async def run(node: Node) -> None:
             # a gone leader reaches nobody
             gone = (node.gone("agent") - neighbours - {aid}) | node.gone("leader") if k < m.steps - 1 else set()
             status = Status(gone=[s.silent_at(k) for s in nbrs], stopped=stopped, others_gone=frozenset(gone),
-                            operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode)
+                            operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode,
+                            rejoining=rejoining)
         near: list[tuple[np.ndarray, np.ndarray]] = []
         if avoid:
             seen = [got[n] for n in vehicles] + far
             near = [(np.array(msg.p), np.array(msg.vel)) for msg in seen
                     if msg is not None and t - msg.t <= m.links.max_age]
         out = tick.step(k, t, np.array(own.p), np.array(own.vel), np.array(own.a), heard, status, near)
-        u = out.u.tolist()
+        if rejoining and t - own.t <= m.dt and all(msg is not None and t - msg.t <= m.dt for msg in got):
+            rejoining = False  # every input fresh (the first tick always holds): the supervisor may fly again
+            log.warning("rejoin: every input fresh at t = %.2f s", t)
+        if ramp is not None:
+            ramp.u = ramp.limit(out.u, out.mode == wire.FLYING)
+            u = ramp.u.tolist()
+            if not ramp.active and out.mode == wire.FLYING:
+                log.warning("rejoin: the command has caught up with the law's at t = %.2f s", t)
+                ramp = None
+        else:
+            u = out.u.tolist()
         cmd.send(wire.Command, k, t, u=u, mode=out.mode)
         events = tick.supervisor.take_events()
         for ev in events:
@@ -158,10 +202,37 @@ async def run(node: Node) -> None:
                 delivery=(received - s.duplicates) / sent if sent else 0.0, age_p50=p50, age_p99=p99))
         decisions = [wire.LinkDecision(src=j, seq=d.seq, now=d.now, event=d.event, at=d.at)
                      for j, ch in channels for d in ch.link.take_decisions()]
-        tele.send(wire.Telemetry, k, t, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u,
+        tele.send(wire.Telemetry, k, t, clock=clock, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u,
                   xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
                   drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
                   gate=merged(gates))
+
+
+class Ramp:
+    """After a rejoin: the command leaving the agent changes by at most ``step`` [m/s^2] per tick
+    once the supervisor flies again, from the HOLD command it flew, until it has caught up with the
+    law's (then :attr:`active` is False and the ramp is dropped). Every command is a point between
+    two commands within ``max_accel``, so within it too."""
+
+    def __init__(self, step: float, dim: int):
+        self.step = step
+        self.u = np.zeros(dim)
+        """The command sent last (before the first: zero, what a plant holding at rest flies)."""
+        self.active = True
+
+    def limit(self, want: np.ndarray, flying: bool) -> np.ndarray:
+        if not flying or not self.active:
+            return want
+        du = want - self.u
+        size = float(np.linalg.norm(du))
+        if size <= self.step:
+            self.active = False
+            return want
+        return self.u + du * (self.step / size)
+
+
+REJOIN_RAMP = 1.0
+"""After a rejoin, the command may go from 0 to ``max_accel`` in no less than this [s]."""
 
 
 def _order(orders: list[str]) -> str | None:

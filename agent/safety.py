@@ -15,7 +15,8 @@ Transitions:
 
 * FLYING → HOLD: the leader (for an agent that hears it) is silent for ``leader_timeout``; an
   in-neighbour is lost and the leader no longer reaches this agent in the surviving graph; the
-  own speed is beyond ``max_speed`` (latched); the plant is silent.
+  own speed is beyond ``max_speed`` (latched); the plant is silent; the agent was restarted into a
+  running swarm and its inputs are not fresh yet (``Status.rejoining``: its first tick holds).
 * HOLD → FLYING: the cause is gone (the leader is heard again, the graph reaches this agent
   again, the plant is back), unless it was latched.
 * HOLD → LAND: the cause has lasted ``land_after``.
@@ -77,6 +78,9 @@ class Status:
         plant_silent: no fresh measurement from the own plant (its token is gone, or its newest
             sample is older than ``cmd_timeout``).
         plant_mode: the own plant's watchdog mode (a plant that has taken over to land is followed).
+        rejoining: the agent was restarted into a running swarm and its inputs are not fresh yet
+            (its own measurement or an in-neighbour's sample is missing or older than a period):
+            it holds until they are (HOLD → FLYING "rejoin recovered"), or lands after ``land_after``.
     """
 
     gone: Sequence[bool] = ()
@@ -85,6 +89,7 @@ class Status:
     operator: str | None = None
     plant_silent: bool = False
     plant_mode: int = FLYING
+    rejoining: bool = False
 
 
 NOMINAL = Status()
@@ -193,6 +198,8 @@ class Supervisor:
                 cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
             elif status.plant_silent:
                 cause, why = "plant", "plant silent"
+            elif status.rejoining:
+                cause, why = "rejoin", "restarted into a running swarm: holding until every input is fresh"
             elif leader_silent and self.hears_leader:
                 cause, why = "leader", "leader silent"
             elif not reachable:

@@ -26,6 +26,7 @@ from tether import mission as ms
 from tether.progress import Progress
 
 if TYPE_CHECKING:  # each subcommand imports what it runs
+    from tether.clock import LockstepClock, RealtimeClock
     from tether.node import Node, NodeArgs
     from tether.transport import ZenohSettings
 
@@ -326,7 +327,18 @@ def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[No
     from tether.node import serve, setup_logging
 
     setup_logging(role, node_id, args.log_level)
-    return asyncio.run(serve(_node_args(args, role, node_id), body, on_stop))
+    return asyncio.run(serve(_node_args(args, role, node_id), body, on_stop, clock=_skewed_clock(args)))
+
+
+def _skewed_clock(args: argparse.Namespace) -> LockstepClock | RealtimeClock | None:
+    """The process's clock when ``--clock-skew`` offsets it (an emulated unsynchronised host), else None."""
+    if not args.clock_skew:
+        return None
+    from tether.clock import make
+
+    if args.clock != "realtime":
+        raise BadArgument("--clock-skew: lockstep ticks follow the clock source, not a clock; use --clock realtime")
+    return make("realtime", _load(args.mission, args.duration).dt, args.clock_skew)
 
 
 def cmd_leader(args: argparse.Namespace) -> int:
@@ -524,6 +536,18 @@ def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
 
 
+def _skew(text: str) -> float:
+    from tether.clock import check_skew
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds; write e.g. +0.05") from None
+    if (why := check_skew(value, "")) is not None:
+        raise argparse.ArgumentTypeError(why.removeprefix(": "))
+    return value
+
+
 def _positive_seconds(text: str) -> float:
     """An argparse type: a finite number of seconds > 0."""
     try:
@@ -565,6 +589,9 @@ def _process_options(p: argparse.ArgumentParser) -> None:
                    help="fail (exit 1) when the start message has not come this long after the process is "
                         "ready [s]; default: wait for ever (a service waiting for its operator's start)")
     p.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
+    p.add_argument("--clock-skew", type=_skew, default=0.0, metavar="S",
+                   help="real time: this process's clock reads S seconds ahead (negative: behind) of the host's, "
+                        "to rehearse unsynchronised hosts (tether run --fault skew:ROLE/ID=S)")
     p.add_argument("--log-level", default="INFO")
     _zenoh_options(p)
 
@@ -638,7 +665,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--fault", action="append", default=[], metavar="KIND:TARGET@T[+D]",
                     help="inject a fault at mission time T [s]: kill:agent/2@10 (SIGKILL), freeze:leader@5+3 "
                          "(SIGSTOP, SIGCONT D s later), partition:agent/3@8+2 (its link cut for D s), "
-                         "forge:leader@12 (one far-off sample on its state key); repeatable (deploy/faults.py)")
+                         "forge:leader@12 (one far-off sample on its state key), skew:agent/2=+0.05 (its clock 50 ms "
+                         "ahead, real time); repeatable (deploy/faults.py)")
     rn.add_argument("--sitl", action="store_true",
                     help="start the software Crazyflies the mission's udp:// crazyflie plants need (python -m "
                          "plant.cfsim, one per vehicle at its p0) and stop them at the end (deploy/sitl.py)")
@@ -717,6 +745,13 @@ def build_parser() -> argparse.ArgumentParser:
                                            "access control and service units, from a mission")
     deploy_gen.add_arguments(dg)
     dg.set_defaults(func=deploy_gen.run_args)
+
+    from deploy import rehearse
+
+    rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
+                                         "namespace of its own (root)")
+    rehearse.add_arguments(rh)
+    rh.set_defaults(func=rehearse.run_args)
 
     mc = sub.add_parser("mcap", help="write a run's Foxglove file (run.mcap) from its run file")
     mc.add_argument("run", help="a run.npz or the directory holding it")

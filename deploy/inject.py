@@ -61,7 +61,7 @@ class Event:
     who: str
     """``agent/2``."""
     what: str
-    """``died``, ``froze``, ``back``, ``failsafe``, ``diverged``, ``silent``, ``fault``."""
+    """``died``, ``froze``, ``back``, ``failsafe``, ``diverged``, ``silent``, ``fault``, ``skew``."""
     why: str
 
     def line(self) -> str:
@@ -119,6 +119,8 @@ class Monitor:
         """Newest raw sample of each state key (for forging)."""
         self.alive_token: dict[str, bool] = {}
         self._diverged: set[str] = set()
+        self._skewed: set[tuple[str, str, int]] = set()
+        """(agent, sender role, sender id) of the links already reported skewed."""
         self._decoder = msgspec.msgpack.Decoder(wire.Message)
         ns = keys.ns
         self._subs = [
@@ -169,6 +171,12 @@ class Monitor:
                                 f"mode {wire.MODES[before] if 0 <= before < 5 else before} -> "
                                 f"{wire.MODES[mode] if 0 <= mode < 5 else mode}" + (f" ({why})" if why else ""),
                                 t=msg.t)
+            if isinstance(msg, wire.Telemetry):
+                for c in msg.clock:
+                    if c.warn and (name, c.role, c.src) not in self._skewed:
+                        self._skewed.add((name, c.role, c.src))
+                        self.report(name, "skew", f"link {c.role}/{c.src}: clock offset bound {1000 * c.offset:+.1f} ms "
+                                                  "(arrival minus sample time; tether/skew.py)", t=msg.t)
             if isinstance(msg, wire.Telemetry) and name not in self._diverged:
                 xi = math.sqrt(sum(x * x for x in msg.xi))
                 gains = max([*msg.kp, *msg.kv], default=0.0)
@@ -237,7 +245,10 @@ class Injector:
         self.keys = keys
         self.relays = relays
         self.monitor = monitor
-        self.firings = [_Firing(f, pids[f.member(mission)]) for f in sorted(faults, key=lambda f: f.at)]
+        self.firings = [_Firing(f, pids[f.member(mission)]) for f in sorted(faults, key=lambda f: f.at)
+                        if f.kind != "skew"]
+        self.skews = [f for f in faults if f.kind == "skew"]
+        """Clock skews: given to their processes at launch (``--clock-skew``), nothing fires."""
         self._pubs: dict[str, zenoh.Publisher] = {}
         for f in faults:
             if f.kind == "forge":
@@ -344,4 +355,5 @@ class Injector:
         """``faults.json``: one record per fault, in firing order."""
         return [{"kind": x.fault.kind, "target": x.fault.target, "fault": x.fault.text, "at": x.fault.at,
                  "duration": x.fault.duration, "fired": x.fired, "ended": x.ended, **x.detail}
-                for x in self.firings]
+                for x in self.firings] + [{"kind": "skew", "target": f.target, "fault": f.text, "skew": f.skew}
+                                          for f in self.skews]

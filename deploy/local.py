@@ -287,6 +287,9 @@ class Launch:
                     cmd += ["--live", str(o.live)]
                 if not o.mcap:
                     cmd += ["--no-mcap"]
+            skew = sum(f.skew for f in o.faults if f.kind == "skew" and f.member(self.mission) == (role, nid))
+            if skew:
+                cmd += ["--clock-skew", repr(skew)]
             vehicle = role in ("agent", "plant")
             endpoint = o.vehicle_connect.get(nid, router) if vehicle else router
             if (role, nid) in self.relays:
@@ -391,6 +394,9 @@ def check_faults(mission: ms.Mission, opts: LaunchOptions, members: list[tuple[s
     """Every problem of ``--fault`` for this launch, as ``(option, message)``."""
     out = faults_mod.check(list(opts.faults), mission, members)
     for f in opts.faults:
+        if f.kind == "skew" and opts.clock != "realtime":
+            out.append((f"--fault {f.text}", "a clock skew needs --clock realtime (lockstep ticks follow the "
+                                             "clock source, not each process's clock)"))
         if f.kind != "partition":
             continue
         arg = f"--fault {f.text}"

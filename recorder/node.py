@@ -30,7 +30,8 @@ import numpy as np
 from recorder.export import mcap_beside
 from tether import gate, jsonout, wire
 from tether.node import Node
-from tether.runfile import DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
+from tether.rejoin import Rejoin
+from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
 log = logging.getLogger("tether")
 
@@ -78,6 +79,11 @@ class Recording:
             self.world_series = pp, pv, tension, slack
         self.events: list[wire.SafetyEvent] = []
         """Mode changes, as the agents' telemetry reports them."""
+        self.clock: ClockRecord | None = None
+        """Real time: the agents' per-link clock-offset bounds (slots: the plant and the in-neighbours)."""
+        self.clock_slots: list[dict[tuple[str, int], int]] = [{} for _ in range(n)]
+        if not node.clock.lockstep:
+            self.clock = self.run.clock = ClockRecord.empty(T, n, width + 1)
         self.gate: list[tuple[int, dict[str, int]]] = [(-1, {}) for _ in range(n)]
         """Per agent: the newest telemetry's tick and its gate rejections since start, by reason."""
         self.count = np.zeros(T, dtype=np.int64)
@@ -151,6 +157,8 @@ class Recording:
             self.delivery[k, i, n] = link.delivery
             self.age_p50[k, i, n] = link.age_p50
             self.age_p99[k, i, n] = link.age_p99
+        if self.clock is not None:
+            self._clock(k, i, msg.clock)
         rt.drops[k, i] = sum(msg.drops.values())
         rt.meas_age[k, i] = msg.t - msg.meas_t
         r.safety.safety_mode[k, i] = msg.mode
@@ -163,6 +171,19 @@ class Recording:
         rt.late[k, i] = msg.late
         self.count[k] += 1
         self._heard(k)
+
+    def _clock(self, k: int, i: int, links: list[wire.ClockLink]) -> None:
+        rec, slots = self.clock, self.clock_slots[i]
+        if rec is None:
+            return
+        for c in links:
+            slot = slots.get((c.role, c.src))
+            if slot is None:
+                if len(slots) >= rec.src.shape[1]:
+                    continue  # a proximity sender (collision avoidance) beyond the law's in-links
+                slot = slots[c.role, c.src] = len(slots)
+                rec.role[i, slot], rec.src[i, slot] = c.role, c.src
+            rec.offset[k, i, slot] = c.offset
 
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
         """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
@@ -272,7 +293,18 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         now = None if node.clock.lockstep else node.mission_time
         leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
                              on_message=rec.leader, keep=False)
-        leader.admit = gate.for_sender(m, m.leader.id, now).check
+        # a recorder restarted mid-run joins it from the leader's samples (tether/rejoin.py); before
+        # its start, samples are not recorded
+        rejoin = Rejoin(getattr(node.clock, "wall", None))
+        leader_gate = gate.for_sender(m, m.leader.id, now).check
+
+        def admit_leader(msg: wire.State) -> str | None:
+            if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+                rejoin.observe(msg.k, msg.t)
+                return "before start"
+            return leader_gate(msg)
+
+        leader.admit = admit_leader
         producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
             node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
@@ -301,8 +333,14 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                           live, type(exc).__name__, exc)
         if attach:
             log.info("waiting for namespace %r to start (Ctrl-C: stop; nothing is written before a sample)", keys.ns)
-        await node.ready(token=not attach, epoch_hint=(lambda: rec.first) if attach else None)
+            await node.ready(token=False, rejoin=lambda: rec.first if rec.first is not None else rejoin.epoch())
+        else:
+            await node.ready(rejoin=rejoin.epoch)
         rec.cpu_ready = time.process_time()
+        holder["started"] = rec
+        if node.rejoined and not attach:
+            log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "
+                        "the ticks before are missing from the run file", node.mission_time(), rejoin.samples)
         last = m.steps
         if node.clock.lockstep:
             for k in range(last + 1):
@@ -327,18 +365,29 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                 node.token_log.clear()
                 if rec.count[last] >= rec.expected:
                     return True
-                if attach:  # members come and go: over only once none is left after the mission's end
-                    return (seen >= wanted and not any(node.alive.get(w) for w in wanted)
-                            and node.mission_time() > m.duration)
-                return seen >= wanted and (gone & wanted) == wanted
+                # every producer away at once before the end (a router restarting takes them all, and
+                # gives them back; members of a deployed swarm come and go): wait for them until the
+                # mission's end on this clock
+                if not (seen >= wanted and all(node.alive.get(key) is False for key in wanted)):
+                    return False
+                return node.mission_time() >= m.duration
 
-            await node.until(finished, None, "the end of the run")
+            async def poke() -> None:  # re-check while nothing arrives (every producer away)
+                while True:
+                    await asyncio.sleep(0.5)
+                    node.wakeup.notify()
+
+            poker = asyncio.get_running_loop().create_task(poke())
+            try:
+                await node.until(finished, None, "the end of the run")
+            finally:
+                poker.cancel()
         complete = bool(np.all(rec.count >= rec.expected))
         if feed is not None:
             holder.pop("feed", None)
             feed.close()
         rec.save(complete=complete, drops=node.receiver.drops)
-        if rec.count[last] == 0 and not attach:
+        if rec.count[last] == 0 and not attach and node.mission_time() < m.duration:
             # the producers may have left because the run is being stopped (Ctrl-C): then this
             # process's own stop follows within moments, and ends it as stopped, not failed
             try:
@@ -362,6 +411,9 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             return
         if attach and not rec.count.any():
             log.warning("stopped before any sample of namespace %r was heard: no run file written", node.keys.ns)
+            return
+        if "started" not in holder:  # stopped before any start: another process's file stays
+            log.warning("stopped before the run started: no run file written")
             return
         log.info("stopped: writing %s and run.mcap (%d of %d samples)", out / "run.npz", int(rec.count.sum()),
                  rec.expected * len(rec.count))

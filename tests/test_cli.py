@@ -112,5 +112,5 @@ def test_run_file_round_trip(tmp_path: Path) -> None:
     back = Run.load(tmp_path / "r")
     np.testing.assert_array_equal(back.p, run.p)
     np.testing.assert_array_equal(back.agent_ids, [4, 7])
-    assert back.meta.mission == "x" and back.meta.format_version == 2
+    assert back.meta.mission == "x" and back.meta.format_version == 3
     np.testing.assert_array_equal(back.links.delivery, 1.0)

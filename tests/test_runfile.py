@@ -5,11 +5,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
 from tether import wire
-from tether.runfile import (FORMAT_VERSION, NO_SAMPLE, DropCounts, Links, PlantRecord, Run, RunMeta,
+from tether.runfile import (FORMAT_VERSION, NO_SAMPLE, ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta,
                             RuntimeRecord)
 
 T, IDS, DIM = 4, [3, 5, 8], 3
@@ -50,6 +51,10 @@ def _full_run() -> Run:
                 wire.SafetyEvent(k=3, t=0.06, vehicle=8, src=wire.FLYING, dst=wire.ESTOP, reason="operator")]
     s.gate_reasons = np.array(["future", "jump"])
     s.gate_counts = np.array([[0, 1], [2, 0], [0, 0]], dtype=np.int64)
+    run.clock = ClockRecord.empty(T, n, 2)
+    run.clock.role[:] = [["plant", "leader"], ["plant", "agent"], ["plant", ""]]
+    run.clock.src[:] = [[IDS[0], 5], [IDS[1], 3], [IDS[2], 0]]
+    run.clock.offset[1:, :, 0] = rng.normal(size=(T - 1, n)) * 1e-3
     return run
 
 
@@ -57,7 +62,7 @@ def test_every_typed_record_round_trips(tmp_path: Path) -> None:
     run = _full_run()
     run.save(tmp_path / "run.npz")
     back = Run.load(tmp_path)
-    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 2
+    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 3
     assert back.meta.recorder_drops == DropCounts(malformed=2, size=1, other={"new_reason": 4})
     assert back.meta.recorder_drops.total() == 7
     assert back.meta.modes == wire.MODES
@@ -75,7 +80,7 @@ def test_numpy_alone_reads_the_file_and_names_the_modes(tmp_path: Path) -> None:
     _full_run().save(tmp_path / "run.npz")
     with np.load(tmp_path / "run.npz", allow_pickle=False) as z:
         meta = json.loads(str(z["meta"]))
-        assert meta["format_version"] == 2 and meta["recorder_drops"]["malformed"] == 2
+        assert meta["format_version"] == 3 and meta["recorder_drops"]["malformed"] == 2
         names = [meta["modes"][c] for c in z["event_dst"]]
         assert names == ["HOLD", "ESTOP"] and list(z["event_vehicle"]) == [5, 8]
         assert list(z["event_reason"]) == ["leader silent 0.5 s", "operator"]
@@ -113,9 +118,9 @@ def test_a_version_1_file_still_loads(tmp_path: Path) -> None:
 def test_another_version_or_an_unknown_array_is_an_error_that_names_it(tmp_path: Path) -> None:
     run = Run.empty(T, IDS, 2, _meta())
     arrays = run.arrays()
-    np.savez(tmp_path / "v3.npz", meta=np.array(json.dumps({"format_version": 3})), **arrays)
-    with pytest.raises(ValueError, match="format version 3"):
-        Run.load(tmp_path / "v3.npz")
+    np.savez(tmp_path / "v4.npz", meta=np.array(json.dumps({"format_version": 4})), **arrays)
+    with pytest.raises(ValueError, match="format version 4"):
+        Run.load(tmp_path / "v4.npz")
     run.save(tmp_path / "ok.npz")
     with np.load(tmp_path / "ok.npz") as z:
         np.savez(tmp_path / "typo.npz", **{k: z[k] for k in z.files}, link_recieved=np.zeros(1))
@@ -145,3 +150,14 @@ def test_figures_mark_mode_changes_only_when_there_are_events(tmp_path: Path) ->
     run = _full_run()
     paths = figures.run_panels(run, tmp_path)
     assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_a_version_2_file_loads_without_a_clock_record(tmp_path: Path) -> None:
+    """Written as format version 2 did: no ``clock_*`` arrays."""
+    run = _full_run()
+    arrays = {k: v for k, v in run.arrays().items() if not k.startswith("clock_")}
+    meta = json.loads(msgspec.json.encode(run.meta).decode()) | {"format_version": 2}
+    np.savez(tmp_path / "run.npz", meta=np.array(json.dumps(meta)), **arrays)
+    back = Run.load(tmp_path)
+    assert back.meta.format_version == 2 and back.clock is None
+    np.testing.assert_array_equal(back.links.received, run.links.received)

@@ -16,6 +16,7 @@ through functions injected into :class:`RealtimeClock` (the real ones by default
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -138,12 +139,37 @@ class RealtimeClock:
         return max(0.0, lateness)
 
 
-def make(kind: ClockKind, period: float) -> LockstepClock | RealtimeClock:
-    """The clock of a process: the one place that turns a ``--clock`` choice into an object."""
+SKEW_LIMIT = 10.0
+"""The largest clock offset [s] a process may be given (``--clock-skew``, ``--fault skew:...``)."""
+
+
+def check_skew(skew: float, what: str = "--clock-skew") -> str | None:
+    """Why ``skew`` [s] cannot be a process's clock offset (naming ``what``), or None."""
+    if not math.isfinite(skew):
+        return f"{what}: is {skew}; give a finite number of seconds, e.g. +0.05"
+    if abs(skew) > SKEW_LIMIT:
+        return f"{what}: is {skew:g} s; give at most {SKEW_LIMIT:g} s either way (a host that far off is refused no " \
+               "matter what: a start more than an hour off its clock is an error)"
+    return None
+
+
+def make(kind: ClockKind, period: float, skew: float = 0.0) -> LockstepClock | RealtimeClock:
+    """The clock of a process: the one place that turns a ``--clock`` choice into an object.
+
+    ``skew`` [s]: real time only, this process's wall clock reads ``skew`` seconds ahead of the
+    host's (an emulated unsynchronised host: its ticks, its mission time and every sample time it
+    stamps are ``skew`` early). Raises ValueError for a skew :func:`check_skew` refuses, or a
+    non-zero one in lockstep (ticks follow the clock source there, not a clock)."""
+    if (why := check_skew(skew)) is not None:
+        raise ValueError(why)
     if kind == "lockstep":
+        if skew != 0.0:
+            raise ValueError("--clock-skew: lockstep ticks follow the clock source, not a clock; use --clock realtime")
         return LockstepClock()
     if kind == "realtime":
-        return RealtimeClock(period)
+        if skew == 0.0:
+            return RealtimeClock(period)
+        return RealtimeClock(period, wall=lambda: time.time() + skew)
     raise ValueError(f"clock must be 'lockstep' or 'realtime', not {kind!r}")
 
 

@@ -165,6 +165,8 @@ class Node:
         self.token_log: list[tuple[str, bool]] = []
         self.alive: dict[str, bool] = {}
         """Liveliness seen so far, by token key: True while present, False once gone."""
+        self.rejoined = False
+        """Real time: this process joined a run already under way (see :meth:`ready`)."""
 
     # ------------------------------------------------------------------ declarations
     def withdraw(self) -> None:
@@ -259,18 +261,19 @@ class Node:
             self.drain()
 
     async def ready(self, paced: bool = False, phase: float = 0.0, token: bool = True,
-                    epoch_hint: Callable[[], float | None] | None = None) -> None:
+                    rejoin: Callable[[], float | None] | None = None) -> None:
         """Declare liveliness (after every subscription, so a launcher that sees the token knows
         this process hears everything it needs), then wait for the start. ``token=False``: a
         process outside the swarm (``tether record``) declares none, so that no launcher or
-        agent counts it as a member. ``epoch_hint``: real time, for a process that may join a
-        swarm already flying (and so never hear its start): the epoch it infers from the samples
-        it hears, or None while it has heard none.
+        agent counts it as a member (it joins a run under way through ``rejoin``).
 
         In lockstep, only a ``paced`` role (the leader, whose inputs do not depend on the tick)
         follows the clock's grants; every other role is gated by its inputs of tick k, which is
         what makes the run deterministic, and needs only the start. In real time, tick k starts at
-        ``epoch + (k + phase) h``."""
+        ``epoch + (k + phase) h``. ``rejoin`` (real time): returns the start instant of a run
+        already under way, once the role can tell it (a restarted agent, from its plant's samples),
+        else None; the process then joins that run (:attr:`rejoined`) instead of waiting for a start
+        message that was sent before it existed."""
         if self._watched:
             self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
         clock = self.clock
@@ -280,16 +283,21 @@ class Node:
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
         if token:
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
+        joined: list[float] = []
+
         def started() -> bool:
-            return start.newest is not None or (epoch_hint is not None and epoch_hint() is not None)
+            if start.newest is not None:
+                return True
+            if rejoin is not None and not self.clock.lockstep and (e := rejoin()) is not None:
+                joined.append(e)
+                return True
+            return False
 
         await self.until(started, self.args.start_timeout, "the launcher's start message (--start-timeout)")
-        hinted = epoch_hint() if epoch_hint is not None else None
-        epoch = start.newest.epoch if start.newest is not None else hinted
-        if epoch is None:
-            raise Stalled("started without an epoch")  # not reached: started() held
-        if start.newest is None:
-            log.info("joined a swarm already running: tick 0 taken as %.3f from the samples heard", epoch)
+        epoch = start.newest.epoch if start.newest is not None else joined[0]
+        self.rejoined = start.newest is None
+        if self.rejoined:
+            log.info("joined a run already under way: tick 0 taken as %.3f from the samples heard", epoch)
         try:
             self.clock.begin(epoch, phase)
         except ClockError as exc:

@@ -20,8 +20,10 @@ said; T samples, N agents, d dimensions; SI units, world frame):
 The optional groups are typed containers, each with the arrays of its npz names: :class:`Links`
 (``link_*``), :class:`RuntimeRecord` (``plant_p`` ... ``late``), :class:`PlantRecord` (``payload_p``,
 ``tension``, ``attitude`` ...) and :class:`SafetyRecord` (the mode columns, ``event_*``,
-``gate_*``). A run file opens with nothing but numpy: ``numpy.load("run.npz")``. Files of format
-version 1 (before the safety record) still load: their modes read -1 (no sample), with no events.
+``gate_*``) and :class:`ClockRecord` (``clock_*``, real time: per-link clock-offset bounds). A run
+file opens with nothing but numpy: ``numpy.load("run.npz")``. Files of format version 1 (before
+the safety record) still load: their modes read -1 (no sample), with no events; files of version 2
+(before the clock record) load with ``clock`` None.
 """
 
 from __future__ import annotations
@@ -36,8 +38,8 @@ import numpy as np
 
 from tether.wire import MODES, SafetyEvent
 
-FORMAT_VERSION = 2
-READS = (1, 2)
+FORMAT_VERSION = 3
+READS = (1, 2, 3)
 """Format versions :meth:`Run.load` reads (a version-1 file is upgraded on load)."""
 SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d")
 BASE = ("t", "agent_ids", *SERIES, "leader_p", "leader_v", "leader_a")
@@ -193,6 +195,24 @@ class PlantRecord(msgspec.Struct, kw_only=True):
     """``(T, N)`` taut -> slack transitions per cable since the start (float, NaN where missing)."""
 
 
+class ClockRecord(msgspec.Struct, kw_only=True):
+    """Real time: each agent's per-link clock-offset bounds (:mod:`tether.skew`; npz ``clock_<field>``).
+    S slots per agent: its plant and its in-neighbours, in the order their estimates first came."""
+
+    role: np.ndarray
+    """``(N, S)`` str: the sender's role of each slot (``plant``, ``agent``, ``leader``; '' unused)."""
+    src: np.ndarray
+    """``(N, S)`` int64: the sender's id (0 unused)."""
+    offset: np.ndarray
+    """``(T, N, S)``: the estimate at t_k [s]: minimum delay + how far agent i's clock is ahead of the
+    sender's (NaN: none yet)."""
+
+    @classmethod
+    def empty(cls, samples: int, n: int, width: int) -> "ClockRecord":
+        return cls(role=np.full((n, width), "", dtype="<U8"), src=np.zeros((n, width), dtype=np.int64),
+                   offset=np.full((samples, n, width), np.nan))
+
+
 EVENT_FIELDS = ("k", "t", "vehicle", "src", "dst", "reason")
 """:class:`~tether.wire.SafetyEvent`'s fields, stored as arrays ``event_<field>`` of length E."""
 
@@ -225,7 +245,8 @@ def _arrays_of(group: msgspec.Struct | None, prefix: str = "") -> dict[str, np.n
 
 
 _GROUPS: dict[str, tuple[type[msgspec.Struct], str]] = {"links": (Links, "link_"), "runtime": (RuntimeRecord, ""),
-                                        "plant": (PlantRecord, ""), "safety": (SafetyRecord, "")}
+                                        "plant": (PlantRecord, ""), "safety": (SafetyRecord, ""),
+                                        "clock": (ClockRecord, "clock_")}
 """Run attribute -> (container, npz prefix of its fields)."""
 
 
@@ -254,6 +275,7 @@ class Run:
     links: Links | None = None
     runtime: RuntimeRecord | None = None
     plant: PlantRecord = field(default_factory=PlantRecord)
+    clock: ClockRecord | None = None
 
     @classmethod
     def empty(cls, samples: int, agent_ids: list[int], dim: int, meta: RunMeta, mode: int = NO_SAMPLE) -> "Run":

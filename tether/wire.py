@@ -159,6 +159,19 @@ class SafetyEvent(Strict, frozen=True, kw_only=True):
     """Why, in a few words (``leader silent 0.52 s``, ``operator land``, ``geofence``, ...)."""
 
 
+class ClockLink(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One input link's clock-offset bound (:mod:`tether.skew`): the low order statistic of
+    arrival time minus sample time, = minimum delay + how far the receiver's clock is ahead."""
+
+    role: str
+    """The sender's role (``plant``, ``agent``, ``leader``)."""
+    src: int
+    offset: float
+    """[s]; negative: the sender's clock is ahead by at least ``-offset``."""
+    warn: bool = False
+    """``offset`` is below minus half a control period or above one period (:func:`tether.skew.bounds`)."""
+
+
 class Telemetry(_Msg, tag="telemetry", frozen=True):
     """Agent i's tick: what it measured, computed and saw."""
 
@@ -186,6 +199,9 @@ class Telemetry(_Msg, tag="telemetry", frozen=True):
     gate: dict[str, int] = {}
     """Samples the plausibility gate rejected since start, by reason (``future``, ``jump``, ...)."""
     """The emulated links' decisions since the previous tick (only with ``[netem] log = true``)."""
+    clock: list[ClockLink] = []
+    """Real time: each input link's clock-offset bound that has an estimate (:mod:`tether.skew`);
+    absent from older senders' messages."""
 
 
 class Tick(_Msg, tag="tick", frozen=True):
@@ -371,7 +387,8 @@ class Receiver:
             self._drop("sender")
             return None
         if not math.isfinite(msg.t) or (isinstance(msg, Start) and not math.isfinite(msg.epoch)) \
-                or (isinstance(msg, Telemetry) and not math.isfinite(msg.meas_t)):
+                or (isinstance(msg, Telemetry) and not (math.isfinite(msg.meas_t)
+                                                         and all(math.isfinite(c.offset) for c in msg.clock))):
             self._drop("nonfinite")
             return None
         for name in _VECTOR_FIELDS.get(type(msg), ()):

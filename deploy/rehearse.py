@@ -1,0 +1,606 @@
+"""``tether rehearse DEPLOY_DIR --out RUN``: a generated deployment flown on one machine, host by host.
+
+What ``tether deploy-gen`` wrote for companion computers is run here as written, each host in a
+network namespace of its own (root only, like ``ip netns``):
+
+* **Hosts.** Every host directory ``DEPLOY_DIR/hosts/<host>/`` is placed at its address, read from
+  its certificates' subject alternative names (what the hosts file gave, and what the others dial
+  and verify). Host directories with one address are one machine (router, leader and recorder on
+  a ground station): one namespace. Each namespace holds one veth whose other end is a port of a
+  Linux bridge, and the bridge lives in a namespace of its own (the "switch"): nothing is added to
+  this machine's own network, no address, route or interface. Each host address is a /32 with an
+  on-link default route, so addresses of any subnets reach each other over the bridge.
+* **Processes.** Every service unit ``hosts/<host>/systemd/*.service`` is parsed (``ExecStart``,
+  ``Type``, ``Restart``, ``RestartSec``, ``WorkingDirectory``); its command line runs unchanged in its
+  host's namespace, with the configuration files it names, except for what systemd itself would
+  substitute (``%%``, ``%n``, ``%N``, ``%p``, ``%i``, ``%H``) and one thing a test machine lacks: a
+  program path that does not exist here (the hosts file's ``tether`` or ``python``, e.g.
+  ``/opt/tether/venv/bin/tether``) runs as this interpreter (``python -m cli`` for ``tether``).
+  ``User=`` is not applied (the processes run as root, in their namespace). ``--duration S`` adds
+  ``--duration S`` to every tether process (the mission file stays as generated); ``--skew HOST=S``
+  adds ``--clock-skew S`` to every tether process of a host (an unsynchronised host).
+* **Order, as an operator would.** The router's unit first (``tether-router``; until it logs that
+  it listens), then every other long-running unit, then the one-shot ``tether-start`` on the leader's
+  host, which waits for every process's liveliness token and announces tick 0.
+* **Restarts.** ``Restart=on-failure`` restarts a unit that exits with a failure status or a signal
+  after ``RestartSec``; ``Restart=always`` (the router) restarts it on any exit. A unit can be killed
+  (SIGKILL) at a mission time with ``--kill UNIT@T`` to rehearse what its ``Restart=`` does.
+* **The end.** The run ends when every unit but the router has exited and is not due a restart
+  (every process exits 0 after the last tick), or :data:`END_GRACE` after the mission's end (a unit
+  restarted after the run waits for a start that will not come), or after ``--timeout``. Then everything is torn down:
+  every process (SIGTERM, SIGKILL after a grace), whatever still runs in a namespace (by pid), every
+  namespace (which removes its veth and, with the switch, the bridge). The same happens on Ctrl-C
+  or SIGTERM. ``RUN/rehearsal.json`` lists the namespaces, addresses, commands, exits and restarts;
+  ``RUN/logs/<unit>.log`` each unit's output; the recorder's ``run.npz`` (and ``run.mcap``) is copied
+  from its unit's ``--out`` into ``RUN`` (a ``run.npz`` left there by an earlier run is removed
+  first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
+
+Exit status: 0 the run ended and was recorded; 1 a unit failed for good, or the run did not end in
+time, or nothing was recorded; 2 bad input (not root, not a deployment, an address a namespace
+cannot take), before anything starts; 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import json
+import logging
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("tether")
+
+REPO = Path(__file__).resolve().parents[1]
+PREFIX = "tether-rh"
+"""Every namespace a rehearsal makes is named ``tether-rh<pid>-<...>`` (the creating process's pid)."""
+END_GRACE = 30.0
+"""Units still running this long after the mission's end [s] are stopped (and the rehearsal fails)."""
+ROUTER_UP = 30.0
+"""How long to wait for the router's "listening" line [s]."""
+
+
+class RehearseError(ValueError):
+    """The rehearsal cannot start as asked; the message says why and what to do."""
+
+
+# --------------------------------------------------------------------------- units
+@dataclass
+class Unit:
+    """One generated service unit, as systemd would read the parts a rehearsal uses."""
+
+    name: str
+    """``tether-agent-2`` (the file name without ``.service``)."""
+    host: str
+    argv: list[str]
+    """``ExecStart`` split as systemd splits it, specifiers substituted."""
+    kind: str = "simple"
+    """``Type=``: ``simple`` or ``oneshot``."""
+    restart: str = "no"
+    restart_sec: float = 0.1
+    workdir: str | None = None
+
+    @property
+    def role(self) -> str:
+        return self.name.removeprefix("tether-").split("-", 1)[0]
+
+
+_SPECIFIER = re.compile(r"%(.)")
+
+
+def parse_unit(path: Path, host: str) -> Unit:
+    """The rehearsal's view of a unit file: the ``[Service]`` keys it uses. Raises
+    :class:`RehearseError` naming the file for a unit without ``ExecStart``."""
+    name = path.name.removesuffix(".service")
+    values: dict[str, str] = {}
+    section = ""
+    for raw in path.read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            section = line[1:-1]
+            continue
+        key, sep, value = line.partition("=")
+        if sep and section == "Service":
+            values[key.strip()] = value.strip()
+    if "ExecStart" not in values:
+        raise RehearseError(f"{path}: no ExecStart= in [Service]; is this a unit written by tether deploy-gen?")
+    prefix, stem = name.split("@", 1) if "@" in name else (name, "")
+    spec = {"%": "%", "n": path.name, "N": name, "p": prefix, "i": stem, "I": stem, "H": host}
+
+    def sub(mt: re.Match[str]) -> str:
+        if mt.group(1) not in spec:
+            raise RehearseError(f"{path}: specifier %{mt.group(1)} in ExecStart is not one a rehearsal fills "
+                                f"({', '.join('%' + k for k in spec)})")
+        return spec[mt.group(1)]
+
+    line = values["ExecStart"].lstrip("-@:+!")  # systemd's prefixes (ignore failure, argv0, privileges)
+    argv = [_SPECIFIER.sub(sub, a) for a in shlex.split(line)]
+    sec = values.get("RestartSec", "0.1").removesuffix("s")
+    try:
+        restart_sec = float(sec)
+    except ValueError:
+        raise RehearseError(f"{path}: RestartSec={values['RestartSec']} is not a number of seconds") from None
+    return Unit(name, host, argv, values.get("Type", "simple"), values.get("Restart", "no"), restart_sec,
+                values.get("WorkingDirectory"))
+
+
+def host_address(hdir: Path) -> str:
+    """The host's address: the first subject alternative name of a certificate of one of its processes."""
+    for crt in sorted((hdir / "tls").glob("*.crt")):
+        if crt.name == "ca.crt":
+            continue
+        out = subprocess.run(["openssl", "x509", "-in", str(crt), "-noout", "-ext", "subjectAltName"],
+                             capture_output=True, text=True, timeout=10)
+        names = re.findall(r"(?:IP Address|DNS):([^\s,]+)", out.stdout)
+        if names:
+            return names[0]
+    raise RehearseError(f"{hdir}: no certificate with an address (tls/<process>.crt); is this a host directory "
+                        "written by tether deploy-gen?")
+
+
+@dataclass
+class Plan:
+    """What a rehearsal of one deployment runs."""
+
+    deploy: Path
+    hosts: dict[str, str]
+    """Host directory name -> address."""
+    units: list[Unit]
+
+    @property
+    def machines(self) -> dict[str, list[str]]:
+        """Address -> the host directories on it (one namespace each address)."""
+        out: dict[str, list[str]] = {}
+        for host, addr in self.hosts.items():
+            out.setdefault(addr, []).append(host)
+        return out
+
+
+def plan(deploy: Path) -> Plan:
+    """Read a generated deployment. Raises :class:`RehearseError` naming what is wrong and the fix."""
+    root = deploy / "hosts"
+    if not root.is_dir():
+        raise RehearseError(f"{deploy}: no hosts/ directory; give the --out of tether deploy-gen")
+    hosts: dict[str, str] = {}
+    units: list[Unit] = []
+    for hdir in sorted(p for p in root.iterdir() if p.is_dir()):
+        addr = host_address(hdir)
+        try:
+            ip = ipaddress.ip_address(addr)
+        except ValueError:
+            raise RehearseError(f"host {hdir.name}: its address {addr!r} is a name; a rehearsal puts each host at an "
+                                "IP address of its own: give the hosts file IPv4 addresses (e.g. 10.77.0.11) and "
+                                "generate again") from None
+        if ip.version != 4 or ip.is_loopback or ip.is_unspecified or ip.is_multicast:
+            raise RehearseError(f"host {hdir.name}: address {addr} cannot be a host of its own in a namespace (every "
+                                "namespace has its own loopback); give each host a unicast IPv4 address in the hosts "
+                                "file, e.g. 10.77.0.11, and generate again")
+        hosts[hdir.name] = addr
+        for path in sorted((hdir / "systemd").glob("*.service")):
+            units.append(parse_unit(path, hdir.name))
+    if not hosts or not units:
+        raise RehearseError(f"{deploy}: no host directories with service units under hosts/")
+    roles = {u.name for u in units}
+    for need in ("tether-router", "tether-start"):
+        if need not in roles:
+            raise RehearseError(f"{deploy}: no {need}.service among the units; generate the deployment again")
+    return Plan(deploy, hosts, units)
+
+
+TETHER_ROLES = ("agent", "plant", "leader", "recorder", "world")
+"""Units whose program is a tether process (they take ``--duration`` and ``--clock-skew``)."""
+
+
+def command(u: Unit, duration: float | None, skew: float = 0.0) -> list[str]:
+    """The command a unit runs here: its ExecStart, with a program path this machine lacks replaced
+    by this interpreter, and ``--duration`` (and a host's ``--clock-skew``) added to tether
+    processes when asked."""
+    argv = list(u.argv)
+    prog = argv[0]
+    if not (os.path.isfile(prog) and os.access(prog, os.X_OK)):
+        base = os.path.basename(prog)
+        if base == "tether":
+            argv = [sys.executable, "-m", "cli", *argv[1:]]
+        elif base.startswith("python"):
+            argv = [sys.executable, *argv[1:]]
+        else:
+            raise RehearseError(f"unit {u.name}: its program {prog} does not exist here and is neither tether nor "
+                                "python; install it at that path")
+    if duration is not None and u.role in TETHER_ROLES:
+        argv += ["--duration", repr(duration)]
+    if skew and u.role in TETHER_ROLES:
+        argv += ["--clock-skew", repr(skew)]
+    return argv
+
+
+def recorder_out(units: list[Unit]) -> Path | None:
+    for u in units:
+        if u.role == "recorder" and "--out" in u.argv:
+            return Path(u.argv[u.argv.index("--out") + 1])
+    return None
+
+
+# --------------------------------------------------------------------------- namespaces
+def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    done = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=15)
+    if check and done.returncode != 0:
+        raise RuntimeError(f"ip {' '.join(args)}: {done.stderr.strip()}")
+    return done
+
+
+def unavailable() -> str | None:
+    """Why namespaces cannot be made here, or None."""
+    if os.geteuid() != 0:
+        return "needs root: a rehearsal makes network namespaces, veth pairs and a bridge (CAP_NET_ADMIN); run it with sudo"
+    if shutil.which("ip") is None:
+        return "needs the `ip` command (iproute2)"
+    if shutil.which("openssl") is None:
+        return "needs `openssl` to read the hosts' addresses from their certificates"
+    return None
+
+
+def namespaces_of(pid: int) -> list[str]:
+    """The namespaces a rehearsal of process ``pid`` made that still exist."""
+    out = _ip("netns", "list", check=False).stdout
+    return [ln.split()[0] for ln in out.splitlines() if ln.split() and ln.split()[0].startswith(f"{PREFIX}{pid}-")]
+
+
+@dataclass
+class Network:
+    """The switch namespace with its bridge, and one namespace per machine."""
+
+    tag: str = field(default_factory=lambda: f"{PREFIX}{os.getpid()}")
+    spaces: dict[str, str] = field(default_factory=dict)
+    """Address -> namespace name."""
+
+    @property
+    def switch(self) -> str:
+        return f"{self.tag}-sw"
+
+    def create(self, machines: dict[str, list[str]]) -> None:
+        self.destroy()
+        _ip("netns", "add", self.switch)
+        self.spaces["switch"] = self.switch
+        _ip("-n", self.switch, "link", "set", "lo", "up")
+        _ip("-n", self.switch, "link", "add", "br0", "type", "bridge")
+        _ip("-n", self.switch, "link", "set", "br0", "up")
+        for n, (addr, hosts) in enumerate(machines.items()):
+            ns = f"{self.tag}-{n}-{hosts[0]}"[:60]
+            _ip("netns", "add", ns)
+            self.spaces[addr] = ns
+            _ip("-n", self.switch, "link", "add", f"v{n}", "type", "veth", "peer", "name", "eth0", "netns", ns)
+            _ip("-n", self.switch, "link", "set", f"v{n}", "master", "br0")
+            _ip("-n", self.switch, "link", "set", f"v{n}", "up")
+            _ip("-n", ns, "link", "set", "lo", "up")
+            _ip("-n", ns, "addr", "add", f"{addr}/32", "dev", "eth0")
+            _ip("-n", ns, "link", "set", "eth0", "up")
+            _ip("-n", ns, "route", "add", "default", "dev", "eth0")
+
+    def destroy(self) -> None:
+        """Kill whatever still runs inside (by pid), delete every namespace (their veths and the
+        bridge go with them). Idempotent."""
+        names = set(self.spaces.values()) | set(n for n in namespaces_of(os.getpid()) if n.startswith(self.tag + "-"))
+        for ns in names:
+            for p in _ip("netns", "pids", ns, check=False).stdout.split():
+                try:
+                    os.kill(int(p), signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+        for ns in names:
+            _ip("netns", "del", ns, check=False)
+        self.spaces.clear()
+
+
+# --------------------------------------------------------------------------- processes
+@dataclass
+class Running:
+    unit: Unit
+    argv: list[str]
+    log_path: Path
+    proc: subprocess.Popen[bytes] | None = None
+    starts: list[float] = field(default_factory=list)
+    """Wall times [s since the Unix epoch] the unit was (re)started."""
+    pids: list[int] = field(default_factory=list)
+    """The process id of each start."""
+    exits: list[tuple[float, int]] = field(default_factory=list)
+    """(wall time, status) of each exit."""
+    due: float | None = None
+    """Monotonic time a restart is due, if one is."""
+    done: bool = False
+    """Exited and not due a restart."""
+
+    def spawn(self, ns: str, env: dict[str, str]) -> None:
+        cwd = self.unit.workdir if self.unit.workdir and os.path.isdir(self.unit.workdir) else None
+        with open(self.log_path, "ab") as fh:
+            self.proc = subprocess.Popen(["ip", "netns", "exec", ns, *self.argv], cwd=cwd, stdin=subprocess.DEVNULL,
+                                         stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        self.starts.append(time.time())
+        self.pids.append(self.proc.pid)
+        self.due, self.done = None, False
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def signal(self, sig: signal.Signals) -> None:
+        if self.alive() and self.proc is not None:
+            try:
+                os.killpg(self.proc.pid, sig)
+            except ProcessLookupError:
+                pass
+
+
+@dataclass
+class Options:
+    out: Path
+    duration: float | None = None
+    timeout: float | None = None
+    """Give up this long after the start [s]; default the mission's duration plus 120 s."""
+    kills: list[tuple[str, float]] = field(default_factory=list)
+    """(unit, mission time [s]): SIGKILL that unit then."""
+    skews: dict[str, float] = field(default_factory=dict)
+    """Host directory -> clock offset [s] of every tether process on it (an unsynchronised host)."""
+    grace: float = 5.0
+
+
+def _mission_duration(p: Plan, opts: Options) -> float:
+    from tether import mission as ms
+
+    if opts.duration is not None:
+        return opts.duration
+    leader_dir = p.deploy / "hosts" / next(h for h in p.hosts if h != "router")
+    return ms.load(leader_dir / "mission.toml").duration
+
+
+def _epoch(log_text: str) -> float | None:
+    """The start instant a process logged (``real time: tick 0 at <epoch>``)."""
+    mt = re.search(r"real time: tick 0 at ([0-9.]+)", log_text)
+    return float(mt.group(1)) if mt else None
+
+
+def rehearse(deploy: Path, opts: Options) -> int:
+    """Run the rehearsal (see the module docstring); returns the exit status."""
+    why = unavailable()
+    if why is not None:
+        print(f"error: tether rehearse {why}", file=sys.stderr)
+        return 2
+    try:
+        pl = plan(deploy)
+        runs = []
+        logs = opts.out / "logs"
+        for host in opts.skews:
+            if host not in pl.hosts:
+                raise RehearseError(f"--skew {host}: no such host directory; use one of {', '.join(pl.hosts)}")
+        for u in pl.units:
+            runs.append(Running(u, command(u, opts.duration, opts.skews.get(u.host, 0.0)), logs / f"{u.name}.log"))
+        names = {u.name for u in pl.units}
+        for unit, _ in opts.kills:
+            if unit not in names:
+                raise RehearseError(f"--kill {unit}: no such unit; use one of {', '.join(sorted(names))}")
+        duration = _mission_duration(pl, opts)
+    except RehearseError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out_dir = recorder_out(pl.units)
+    logs.mkdir(parents=True, exist_ok=True)
+    net = Network()
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    record: dict[str, Any] = {"deploy": str(deploy), "namespaces": {}, "units": {}, "kills": []}
+    status = 1
+    stopping = False
+    ns_of: dict[str, str] = {}
+    """Host directory -> its namespace."""
+
+    def on_signal(signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        net.create(pl.machines)
+        record["namespaces"] = {net.spaces[a]: {"address": a, "hosts": hs} for a, hs in pl.machines.items()}
+        record["namespaces"][net.switch] = {"bridge": "br0"}
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            (out_dir / "run.npz").unlink(missing_ok=True)
+        ns_of.update({host: net.spaces[addr] for host, addr in pl.hosts.items()})
+        router = [r for r in runs if r.unit.role == "router"]
+        starter = next(r for r in runs if r.unit.name == "tether-start")
+        others = [r for r in runs if r not in router and r is not starter]
+        for r in router:
+            r.spawn(ns_of[r.unit.host], env)
+        deadline = time.monotonic() + ROUTER_UP
+        while not all("listening on" in r.log_path.read_text(errors="replace") for r in router):
+            if any(not r.alive() for r in router) or time.monotonic() > deadline:
+                raise RuntimeError("the router did not come up:\n" + "\n".join(
+                    r.log_path.read_text(errors="replace")[-2000:] for r in router))
+            time.sleep(0.05)
+        log.info("router up in %s", ", ".join(ns_of[r.unit.host] for r in router))
+        for r in others:
+            r.spawn(ns_of[r.unit.host], env)
+        starter.spawn(ns_of[starter.unit.host], env)
+        log.info("%d units started in %d namespaces; %s waits for every process", len(others), len(pl.machines),
+                 starter.unit.name)
+        epoch: float | None = None
+        limit = time.monotonic() + (opts.timeout if opts.timeout is not None else duration + 180.0)
+        kills = sorted(opts.kills, key=lambda x: x[1])
+        while True:
+            now = time.monotonic()
+            for r in runs:
+                if r.proc is None or r.done or r.due is not None:
+                    continue
+                rc = r.proc.poll()
+                if rc is None:
+                    continue
+                r.exits.append((time.time(), rc))
+                failed = rc != 0
+                again = r.unit.restart == "always" or (r.unit.restart == "on-failure" and failed)
+                if again and not stopping:
+                    r.due = now + r.unit.restart_sec
+                    log.warning("%s exited with status %d: restarting in %g s (Restart=%s)", r.unit.name, rc,
+                                r.unit.restart_sec, r.unit.restart)
+                else:
+                    r.done = True
+                    (log.warning if failed else log.info)("%s exited with status %d", r.unit.name, rc)
+            for r in runs:
+                if r.due is not None and now >= r.due:
+                    r.spawn(ns_of[r.unit.host], env)
+                    log.info("%s restarted", r.unit.name)
+            if epoch is None:
+                epoch = next((e for r in others if (e := _epoch(r.log_path.read_text(errors="replace"))) is not None),
+                             None)
+                if epoch is not None:
+                    record["epoch"] = epoch
+            if epoch is not None:
+                while kills and time.time() >= epoch + kills[0][1]:
+                    unit, at = kills.pop(0)
+                    victim = next(r for r in runs if r.unit.name == unit)
+                    victim.signal(signal.SIGKILL)
+                    record["kills"].append({"unit": unit, "at": at, "wall": time.time(), "mission_time": time.time() - epoch})
+                    log.warning("--kill %s@%g: SIGKILL at mission time %.3f s", unit, at, time.time() - epoch)
+            if starter.done and starter.exits[-1][1] != 0:
+                log.error("%s failed (exit %d): %s", starter.unit.name, starter.exits[-1][1],
+                          starter.log_path.read_text(errors="replace")[-1500:])
+                break
+            if all(r.done for r in others) and starter.done:
+                break
+            if epoch is not None and time.time() > epoch + duration + END_GRACE:
+                late = [r.unit.name for r in others if not r.done]
+                log.error("%s still running %g s after the mission's end (restarted after the run, waiting for a "
+                          "start that will not come?): stopping", ", ".join(late), END_GRACE)
+                break
+            if now > limit:
+                log.error("the run did not end in time (--timeout)")
+                break
+            time.sleep(0.05)
+        stopping = True
+        good = starter.done and starter.exits[-1][1] == 0 and all(r.done and r.exits[-1][1] == 0 for r in others)
+        recorded = out_dir is not None and (out_dir / "run.npz").exists()
+        if recorded and out_dir is not None:
+            opts.out.mkdir(parents=True, exist_ok=True)
+            for name in ("run.npz", "run.mcap"):
+                if (out_dir / name).exists() and (out_dir / name).resolve() != (opts.out / name).resolve():
+                    shutil.copyfile(out_dir / name, opts.out / name)
+        status = 0 if good and recorded else 1
+    except KeyboardInterrupt:
+        log.warning("interrupted: tearing down")
+        status = 130
+    except RuntimeError as exc:
+        log.error("%s", exc)
+        status = 1
+    finally:
+        stopping = True
+        for sig in previous:  # a second Ctrl-C must not cut the teardown short
+            signal.signal(sig, signal.SIG_IGN)
+        try:
+            _stop_all(runs, opts.grace)
+            net.destroy()
+        finally:
+            for sig, h in previous.items():
+                signal.signal(sig, h)
+        left = namespaces_of(os.getpid())
+        record["units"] = {r.unit.name: {"host": r.unit.host, "namespace": ns_of.get(r.unit.host),
+                                         "argv": r.argv, "starts": r.starts, "pids": r.pids, "exits": r.exits,
+                                         "restart": r.unit.restart} for r in runs}
+        record["left_behind"] = left
+        opts.out.mkdir(parents=True, exist_ok=True)
+        (opts.out / "rehearsal.json").write_text(json.dumps(record, indent=2) + "\n")
+        if left:
+            log.error("namespaces left behind: %s", left)
+            status = status or 1
+    log.info("rehearsal ended: status %d (%s)", status, opts.out)
+    return status
+
+
+def _stop_all(runs: list[Running], grace: float) -> None:
+    live = [r for r in runs if r.alive()]
+    for r in live:
+        r.signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace
+    for r in live:
+        if r.proc is None:
+            continue
+        try:
+            r.proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            r.signal(signal.SIGKILL)
+            r.proc.wait()
+        if not r.exits or r.exits[-1][0] < r.starts[-1]:
+            r.exits.append((time.time(), r.proc.returncode))
+
+
+# --------------------------------------------------------------------------- command line
+def _kill(text: str) -> tuple[str, float]:
+    unit, sep, at = text.rpartition("@")
+    try:
+        t = float(at)
+    except ValueError:
+        t = float("nan")
+    if not sep or not unit or not (t >= 0 and t < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} is not UNIT@T (a unit name and a mission time >= 0 [s]), "
+                                         "e.g. tether-agent-2@5")
+    return unit.removesuffix(".service"), t
+
+
+def _skew(text: str) -> tuple[str, float]:
+    from tether.clock import check_skew
+
+    host, sep, value = text.partition("=")
+    try:
+        s = float(value)
+    except ValueError:
+        s = float("nan")
+    why = check_skew(s, "the skew")
+    if not sep or not host or why is not None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST=S (a host directory and a clock offset [s]), e.g. "
+                                         f"agent-2=+0.03" + (f"; {why}" if sep and host and why else ""))
+    return host, s
+
+
+def _seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (v > 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds > 0")
+    return v
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("deploy", help="a deployment written by tether deploy-gen (its --out)")
+    p.add_argument("--out", required=True, help="directory for the run file, the units' logs and rehearsal.json")
+    p.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
+    p.add_argument("--timeout", type=_seconds, default=None,
+                   help="give up this long after the units start [s] (default: the duration + 180 s)")
+    p.add_argument("--kill", action="append", type=_kill, default=[], metavar="UNIT@T",
+                   help="SIGKILL a unit's process at mission time T [s] (its Restart= then applies); repeatable")
+    p.add_argument("--skew", action="append", type=_skew, default=[], metavar="HOST=S",
+                   help="every tether process of host directory HOST runs S seconds ahead (--clock-skew): an "
+                        "unsynchronised host; repeatable")
+
+
+def run_args(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s rehearse: %(message)s")
+    return rehearse(Path(args.deploy), Options(out=Path(args.out), duration=args.duration, timeout=args.timeout,
+                                               kills=list(args.kill), skews=dict(args.skew)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="tether rehearse", description=__doc__.splitlines()[0])
+    add_arguments(p)
+    return run_args(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

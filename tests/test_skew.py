@@ -1,0 +1,167 @@
+"""The clock-offset estimator (tether/skew.py), the skew fault's parser and the skewed clock. Pure, fast."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from deploy import faults
+from tether import skew, wire
+from tether.clock import SKEW_LIMIT, RealtimeClock, make
+
+H = 0.01
+
+
+def feed(est: skew.LinkEstimator, offset: float, seconds: float, rng: np.random.Generator,
+         latency: float = 0.001, jitter: float = 0.004) -> None:
+    """Samples of a 100 Hz sender whose clock is ``offset`` behind the receiver's, each delayed by
+    ``latency`` plus an exponential queueing delay of mean ``jitter``."""
+    for k in range(round(seconds / H)):
+        t = k * H
+        est.observe(t, t + offset + latency + rng.exponential(jitter))
+
+
+def test_the_estimate_is_minimum_delay_plus_the_receivers_lead() -> None:
+    rng = np.random.default_rng(0)
+    for offset in (-0.2, -0.05, -0.01, 0.0, 0.001, 0.05):
+        est = skew.LinkEstimator()
+        feed(est, offset, 3.0, rng)
+        e = est.estimate
+        assert e is not None
+        # the minimum of ~25 samples of a delay of 1 ms + Exp(4 ms) is within 1 ms of 1 ms
+        assert offset + 0.001 <= e <= offset + 0.002, (offset, e)
+
+
+def test_no_estimate_before_three_blocks_then_one() -> None:
+    est = skew.LinkEstimator()
+    rng = np.random.default_rng(1)
+    feed(est, 0.0, 0.7, rng)
+    assert est.estimate is None
+    feed(est, 0.0, 1.1, rng)
+    assert est.estimate is not None
+
+
+def test_forged_and_replayed_samples_do_not_move_it() -> None:
+    """A few samples claiming a time far ahead (a forgery: arrival minus time very negative) or far
+    behind (a replay) poison at most the blocks they fall into; the median of the blocks' minima
+    stays put."""
+    rng = np.random.default_rng(2)
+    est = skew.LinkEstimator()
+    feed(est, 0.0, 2.0, rng)
+    before = est.estimate
+    for n in range(3):  # three forgeries in three different blocks
+        now = 2.0 + 0.3 * n
+        est.observe(now + 1.0e3, now)
+        est.observe(now - 5.0, now)
+        for k in range(30):
+            t = now + k * H
+            est.observe(t, t + 0.001 + rng.exponential(0.004))
+    assert before is not None and est.estimate is not None
+    assert abs(est.estimate - before) < 0.001
+
+
+def test_non_finite_times_are_ignored_and_counted() -> None:
+    est = skew.LinkEstimator()
+    est.observe(math.nan, 1.0)
+    est.observe(1.0, math.inf)
+    assert est.ignored == 2 and est.samples == 0
+
+
+def test_the_monitor_flags_above_half_a_period_once_until_it_clears() -> None:
+    rng = np.random.default_rng(3)
+    mon = skew.SkewMonitor(H)
+    assert mon.limits == (-0.005, 0.01)
+    for k in range(300):
+        t = k * H
+        mon.observe("plant", 2, t, t + 0.001 + rng.exponential(0.002))
+        mon.observe("agent", 1, t, t - 0.03 + 0.001)  # agent 1's clock 30 ms ahead
+        mon.observe("leader", 5, t, t + 0.008)  # a link 8 ms slow: not flagged (within a period)
+    report = mon.report()
+    assert [(c.role, c.src, c.warn) for c in report] == [("plant", 2, False), ("agent", 1, True), ("leader", 5, False)]
+    assert [(c.role, c.src) for c in mon.newly_flagged(report)] == [("agent", 1)]
+    assert mon.newly_flagged(mon.report()) == []
+    # a flagged link whose offset moves by more than a period is said again (a loaded start-up's delay
+    # first, the skew after it)
+    moved = [skew.LinkClock("agent", 1, -0.029 + 0.011, True)]
+    assert mon.newly_flagged(moved) == moved and mon.newly_flagged(moved) == []
+    assert mon.newly_flagged([skew.LinkClock("agent", 1, 0.0, False)]) == []
+    assert mon.newly_flagged(moved) == moved  # cleared, then flagged again
+    line = skew.describe(report[1], "agent/2", mon.limits)
+    assert "agent/1's clock is ahead of agent/2's by at least" in line and "29.0 ms" in line
+
+
+def test_pair_splits_offset_and_delay() -> None:
+    lead, delay = skew.pair(0.05 + 0.002, -0.05 + 0.002)  # j 50 ms ahead of i, 2 ms each way
+    assert lead == pytest.approx(0.05) and delay == pytest.approx(0.002)
+
+
+def test_telemetry_carries_the_estimates_and_old_telemetry_still_decodes() -> None:
+    base = dict(sender=2, seq=0, k=0, t=0.0, meas_t=0.0, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0],
+                u=[0.0, 0.0], xi=[0.0, 0.0], zeta=[0.0, 0.0], kp=[1.0, 1.0], kv=[1.0, 1.0], links=[], drops={})
+    rx = wire.Receiver(2)
+    msg = wire.Telemetry(**base, clock=[wire.ClockLink(role="plant", src=2, offset=0.051, warn=True)])
+    back = rx.accept(wire.encode(msg), wire.Telemetry, 2)
+    assert back is not None and back.clock == msg.clock
+    old = msgspec.msgpack.encode({"type": "telemetry", "v": wire.WIRE_VERSION, **base})  # a sender without the field
+    back = rx.accept(old, wire.Telemetry, 2)
+    assert back is not None and back.clock == []
+    bad = wire.Telemetry(**base, clock=[wire.ClockLink(role="plant", src=2, offset=math.nan)])
+    assert rx.accept(wire.encode(bad), wire.Telemetry, 2) is None and rx.drops == {"nonfinite": 1}
+
+
+# --------------------------------------------------------------------------- the skew itself
+@pytest.mark.parametrize(("text", "role", "nid", "offset"), [
+    ("skew:agent/2=+0.05", "agent", 2, 0.05), ("skew:plant/3=-0.2", "plant", 3, -0.2),
+    ("skew:leader=0.001", "leader", None, 0.001), ("skew:recorder=1", "recorder", None, 1.0)])
+def test_skew_faults_parse(text: str, role: str, nid: int | None, offset: float) -> None:
+    f = faults.parse(text)
+    assert (f.kind, f.role, f.node_id, f.skew, f.duration) == ("skew", role, nid, offset, None)
+
+
+@pytest.mark.parametrize(("text", "says"), [
+    ("skew:agent/2", "skew:TARGET=S"), ("skew:agent/2=0.05@3", "takes no @T"),
+    ("skew:agent/2=fast", "not a number of seconds"), ("skew:agent/2=nan", "finite number of seconds"),
+    ("skew:agent/2=inf", "finite number of seconds"), ("skew:agent/2=11", f"at most {SKEW_LIMIT:g} s"),
+    ("skew:agent/2=0", "the skew is 0"), ("skew:agent=0.1", "which agent?"), ("skew:drone/1=0.1", "unknown process")])
+def test_bad_skews_name_the_argument_and_the_fix(text: str, says: str) -> None:
+    with pytest.raises(faults.FaultError) as err:
+        faults.parse(text)
+    assert text in str(err.value) and says in str(err.value)
+
+
+def test_a_skewed_clock_places_the_start_and_every_tick_early() -> None:
+    """Through the injected wall clock alone: a host 50 ms ahead maps the start instant 50 ms
+    earlier onto its monotonic clock, so its mission time reads 50 ms ahead."""
+    mono, wall = [100.0], 1_000_000.0
+    plain = RealtimeClock(H, monotonic=lambda: mono[0], wall=lambda: wall)
+    ahead = RealtimeClock(H, monotonic=lambda: mono[0], wall=lambda: wall + 0.05)
+    for c in (plain, ahead):
+        c.begin(wall + 1.0)
+    mono[0] += 1.5
+    assert plain.now() == pytest.approx(0.5) and ahead.now() == pytest.approx(0.55)
+    assert ahead.start == pytest.approx(plain.start - 0.05)
+    clock = make("realtime", H, 0.05)
+    assert isinstance(clock, RealtimeClock) and abs(clock.wall() - time.time() - 0.05) < 0.01
+    with pytest.raises(ValueError, match="lockstep"):
+        make("lockstep", H, 0.05)
+    with pytest.raises(ValueError, match="finite"):
+        make("realtime", H, math.inf)
+
+
+def test_clock_skew_option_is_checked_before_anything_starts(capsys: pytest.CaptureFixture[str],
+                                                             tmp_path: Path) -> None:
+    from cli import main as cli
+
+    for bad, says in (("nan", "finite"), ("20", "at most")):
+        with pytest.raises(SystemExit) as ex:
+            cli.main(["agent", "--mission", "section4", "--id", "1", "--clock-skew", bad])
+        assert ex.value.code == 2
+        err = capsys.readouterr().err
+        assert "--clock-skew" in err and says in err
+    assert cli.main(["run", "section4", "--out", str(tmp_path / "run"), "--fault", "skew:agent/2=0.05"]) == 2
+    assert "needs --clock realtime" in capsys.readouterr().err
