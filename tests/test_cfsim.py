@@ -24,7 +24,7 @@ import pytest
 
 from plant.cfsim import crtp, firmware, toc
 from plant.quadrotor import Quadrotor, QuadrotorParams
-from tests.support import SoftwareCrazyflies, software_crazyflies
+from tests.support import SoftwareCrazyflies, software_crazyflies, wait_until
 
 pytestmark = pytest.mark.slow  # software Crazyflies over real UDP sockets, flown for seconds
 
@@ -267,7 +267,9 @@ def test_high_level_take_off_and_land(sim: SoftwareCrazyflies) -> None:
         assert max(d["stateEstimate.z"] for _, d in stream.since(0.0)) < 0.55  # no overshoot to speak of
         flying = int(stream.last["supervisor.info"])
         assert flying & (1 << firmware.BIT_FLYING) and flying & (1 << firmware.BIT_HL_ACTIVE)
-        assert {"Is flying", "Can fly", "HL control is active"} <= set(cf.supervisor.read_state_list())
+        # cflib waits only 0.2 s for the answer (an empty list after that): ask again on a loaded machine
+        states = wait_until(lambda: set(cf.supervisor.read_state_list()), 5.0, "the supervisor state")
+        assert {"Is flying", "Can fly", "HL control is active"} <= states
         # go_to, relative, with a quarter turn (yaw counter-clockwise positive, as in the firmware)
         pose = LogStream(cf, ["stateEstimate.x", "stateEstimate.y", "stateEstimate.yaw"])
         x0 = pose.wait(lambda d: True, 2.0, "a pose sample")[1]["stateEstimate.x"]

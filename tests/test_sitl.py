@@ -26,7 +26,9 @@ PORTS = range(19945, 19949)
 def mission(tmp: Path, *, uri0: str | None = None) -> Path:
     text = catalog.builtin_path("exp1_cf").read_text()
     for k, port in enumerate(PORTS):
-        text = text.replace(f"udp://127.0.0.1:{19850 + k}", f"udp://127.0.0.1:{port}")
+        shipped = f"udp://127.0.0.1:{19970 + k}"
+        assert shipped in text, f"exp1_cf no longer uses {shipped}: update this test"
+        text = text.replace(shipped, f"udp://127.0.0.1:{port}")
     if uri0 is not None:
         text = text.replace(f"udp://127.0.0.1:{PORTS[0]}", uri0)
     path = tmp / "exp1_cf_test.toml"

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plant.cfsim import crtp, realism, toc
+from plant.cfsim import crtp, realism, toc, trajectory
 from plant.cfsim.crtp import Packet, Port
 from plant.quadrotor import Quadrotor, wrap_angle
 
@@ -292,7 +292,34 @@ class Spiral:
         return Track(vec3(pos), vec3(vel), vec3(acc), theta)
 
 
-Plan = Segment | Spiral
+@dataclass(slots=True)
+class Uploaded:
+    """An uploaded trajectory (``start_trajectory``) as the planner flies it: the points of
+    :class:`plant.cfsim.trajectory.Piecewise`, read from the trajectory memory at every tick.
+
+    A point that is not finite (the memory was rewritten with garbage while the trajectory flew)
+    ends the trajectory: the vehicle holds the last good point at rest (the firmware would disable
+    its planner and let the watchdog cut the motors)."""
+
+    traj: trajectory.Piecewise
+    last: Track
+    fault: bool = False
+    reported: bool = False
+
+    def finished(self, t: float) -> bool:
+        return self.fault or self.traj.finished(t)
+
+    def eval(self, t: float) -> Track:
+        if not self.fault:
+            pos, vel, acc, yaw = self.traj.point(t)
+            if all(math.isfinite(v) for v in (*pos, *vel, *acc, yaw)):
+                self.last = Track(pos, vel, acc, yaw)
+                return self.last
+            self.fault = True
+        return Track(self.last.pos, _ZERO3, _ZERO3, self.last.yaw)
+
+
+Plan = Segment | Spiral | Uploaded
 
 
 class HlState(enum.Enum):
@@ -323,8 +350,12 @@ LOG_CREATE, LOG_APPEND, LOG_DELETE, LOG_START, LOG_STOP, LOG_RESET = 0, 1, 2, 3,
 LOG_CREATE_V2, LOG_APPEND_V2, LOG_START_V2 = 6, 7, 8
 PARAM_MISC_SETBYNAME, PARAM_MISC_GET_EXTENDED_TYPE_V2, PARAM_MISC_GET_DEFAULT_V2 = 0, 7, 8
 PARAM_MISC_PERSISTENT_STORE, PARAM_MISC_PERSISTENT_GET_STATE, PARAM_MISC_PERSISTENT_CLEAR = 3, 4, 5
-MEM_INFO_VER, MEM_INFO_NBR = 0, 1
+MEM_INFO_VER, MEM_INFO_NBR, MEM_INFO_DETAILS = 0, 1, 2
+MEM_READ_CHANNEL, MEM_WRITE_CHANNEL = 1, 2
+MEM_TRAJ_ID = 0
+"""The trajectory memory's id: the only memory of the simulated vehicle."""
 HL_SET_GROUP_MASK, HL_STOP, HL_TAKEOFF_2, HL_LAND_2, HL_SPIRAL, HL_GO_TO_2 = 0, 3, 7, 8, 11, 12
+HL_START_TRAJECTORY, HL_DEFINE_TRAJECTORY, HL_START_TRAJECTORY_2 = 5, 6, 13
 GENERIC_STOP, GENERIC_FULL_STATE, GENERIC_POSITION, GENERIC_VELOCITY_WORLD = 0, 6, 7, 8
 GENERIC_VELOCITY_WORLD_LEGACY, GENERIC_ZDISTANCE_LEGACY, GENERIC_HOVER_LEGACY = 1, 2, 5
 GENERIC_ZDISTANCE, GENERIC_HOVER, GENERIC_MANUAL = 9, 10, 11
@@ -422,6 +453,9 @@ class Firmware:
         self._segment: Plan | None = None
         self._hl_pos = vec3(self.est_p)
         self._hl_yaw = quad.euler()[2]
+        self.traj_mem = trajectory.TrajectoryMemory()
+        self._traj_defs: dict[int, trajectory.Definition] = {}
+        """``define_trajectory`` slots (undefined slots are absent)."""
         # supervisor
         self._sup = SupState.READY
         self._armed = True
@@ -584,12 +618,33 @@ class Firmware:
         self._sup = SupState.LOCKED
 
     def _mem(self, pkt: Packet) -> list[Packet]:
-        if pkt.channel == crtp.MEM_INFO_CHANNEL:
-            cmd = pkt.data[0]
+        """The memory port (``crtp_mem.c``) with one memory: the trajectory memory, id 0.
+
+        The firmware asserts (and reboots) on an unknown memory id and overruns its packet on a
+        read longer than a packet can carry; the simulator answers those with EIO instead."""
+        ch, d = pkt.channel, pkt.data
+        if ch == crtp.MEM_INFO_CHANNEL:
+            cmd = d[0]
             if cmd == MEM_INFO_NBR:
-                return [Packet(Port.MEM, pkt.channel, bytes((cmd, 0)))]  # no memories
+                return [Packet(Port.MEM, ch, bytes((cmd, 1)))]
+            if cmd == MEM_INFO_DETAILS and d[1] == MEM_TRAJ_ID:
+                body = struct.pack("<BBBI", cmd, MEM_TRAJ_ID, trajectory.MEM_TYPE_TRAJ, trajectory.MEMORY_SIZE)
+                return [Packet(Port.MEM, ch, body + bytes(8))]  # no serial number: 8 zero bytes
             if cmd == MEM_INFO_VER:
-                return [Packet(Port.MEM, pkt.channel, bytes((cmd, 1)))]
+                return [Packet(Port.MEM, ch, bytes((cmd, 1)))]
+            self.ignored += 1
+            return []
+        if ch == MEM_READ_CHANNEL:
+            mem_id, addr, length = struct.unpack("<BIB", d)
+            data = self.traj_mem.read(addr, length) if mem_id == MEM_TRAJ_ID and length <= trajectory.MEM_MAX_READ \
+                else None
+            if data is None:
+                return [Packet(Port.MEM, ch, d[:5] + bytes((errno.EIO,)))]
+            return [Packet(Port.MEM, ch, d[:5] + b"\0" + data)]
+        if ch == MEM_WRITE_CHANNEL:
+            mem_id, addr = struct.unpack_from("<BI", d)
+            ok = mem_id == MEM_TRAJ_ID and self.traj_mem.write(addr, d[5:])
+            return [Packet(Port.MEM, ch, d[:5] + bytes((0 if ok else errno.EIO,)))]
         self.ignored += 1
         return []
 
@@ -860,6 +915,12 @@ class Firmware:
         if cmd == HL_SET_GROUP_MASK:
             self._params[gi] = struct.unpack("<BB", d)[1]
             return 0
+        if cmd == HL_DEFINE_TRAJECTORY:
+            _, ident, location, kind, offset, n_pieces = struct.unpack("<BBBBIB", d)
+            if ident >= trajectory.NUM_DEFINITIONS:
+                return errno.ENOEXEC
+            self._traj_defs[ident] = trajectory.Definition(location, kind, offset, n_pieces)
+            return 0
         group = d[1]
         if group != 0 and not (group & int(self._params[gi])):
             return 0
@@ -912,8 +973,40 @@ class Firmware:
                                     yaw0 + wrap_angle(yaw - yaw0), bool(linear))
             self._hl = HlState.FLYING
             return 0
+        if cmd in (HL_START_TRAJECTORY, HL_START_TRAJECTORY_2):
+            if cmd == HL_START_TRAJECTORY:
+                _, _, relative, reverse, ident, scale = struct.unpack("<BBBBBf", d)
+                relative_yaw = False
+            else:
+                _, _, relative, relative_yaw, reverse, ident, scale = struct.unpack("<BBBBBBf", d)
+            return self._start_trajectory(t, ident, scale, bool(relative), bool(relative_yaw), bool(reverse))
         self.ignored += 1
         return errno.ENOEXEC
+
+    def _start_trajectory(self, t: float, ident: int, scale: float, relative: bool, relative_yaw: bool,
+                          reverse: bool) -> int:
+        """``start_trajectory2``: an undefined id is answered 0 and nothing starts, as in the
+        firmware; a definition the firmware would fly out of memory or into non-finite numbers,
+        and a time scale that is not a positive number, are refused with EINVAL (and a console line)."""
+        d = self._traj_defs.get(ident) if ident < trajectory.NUM_DEFINITIONS else None
+        if d is None or d.location != trajectory.LOCATION_MEM:
+            return 0
+        if d.kind != trajectory.TYPE_POLY4D:
+            self.ignored += 1
+            self.console_print(f"CFSIM: trajectory {ident}: compressed trajectories are not modelled\n")
+            return errno.ENOEXEC
+        why = trajectory.check(self.traj_mem, d)
+        if why is None and not (math.isfinite(scale) and scale > 0.0):
+            why = f"time scale {scale} is not a positive number"
+        if why is not None:
+            self.console_print(f"CFSIM: trajectory {ident} refused: {why}\n")
+            return errno.EINVAL
+        traj = trajectory.Piecewise(self.traj_mem, d, t, float(scale), reverse)
+        traj.start_from(self._hl_pos, self._hl_yaw, relative, relative_yaw)
+        pos, vel, acc, yaw = traj.point(t)
+        self._segment = Uploaded(traj, Track(pos, vel, acc, yaw))
+        self._hl = HlState.FLYING
+        return 0
 
     _handlers: dict[int, Callable[[Firmware, Packet], list[Packet]]] = {
         Port.LINKCTRL: _link,
@@ -953,6 +1046,10 @@ class Firmware:
             else:
                 assert self._segment is not None
                 ev = self._segment.eval(t)
+                seg = self._segment
+                if isinstance(seg, Uploaded) and seg.fault and not seg.reported:
+                    seg.reported = True
+                    self.console_print("CFSIM: trajectory point not finite: holding the last good point\n")
                 if self._hl is HlState.LANDING and self._segment.finished(t):
                     self._hl = HlState.IDLE
                 self._set_setpoint(ev, Priority.HIGH_LEVEL)
