@@ -333,7 +333,8 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                           live, type(exc).__name__, exc)
         if attach:
             log.info("waiting for namespace %r to start (Ctrl-C: stop; nothing is written before a sample)", keys.ns)
-            await node.ready(token=False, rejoin=lambda: rec.first if rec.first is not None else rejoin.epoch())
+            await node.ready(token=False,
+                             rejoin=lambda: rec.first if rec.first is not None else rejoin.epoch())
         else:
             await node.ready(rejoin=rejoin.epoch)
         rec.cpu_ready = time.process_time()
