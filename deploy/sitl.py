@@ -81,11 +81,11 @@ def problems(m: ms.Mission, extra: tuple[str, ...]) -> list[tuple[str, str]]:
         except ValueError:
             port = None
         if u.scheme != "udp" or u.hostname not in LOCAL_HOSTS or port is None:
-            out.append((f"agents[{k}].plant.uri", f"is {a.plant.uri!r}, not a software Crazyflie on this machine; "
+            out.append((f"agent {a.id}.plant.uri", f"is {a.plant.uri!r}, not a software Crazyflie on this machine; "
                                                   "with --sitl give udp://127.0.0.1:PORT (e.g. udp://127.0.0.1:19850)"))
             continue
         if port in ports:
-            out.append((f"agents[{k}].plant.uri", f"uses port {port} like agent {ports[port]}; give each vehicle "
+            out.append((f"agent {a.id}.plant.uri", f"uses port {port} like agent {ports[port]}; give each vehicle "
                                                   "its own port"))
         ports[port] = a.id
     try:

@@ -170,7 +170,7 @@ class CrazyfliePlant:
         cf.open_link(uri)
         try:
             if not ready.wait(self.spec.connect_timeout) or self._lost is not None:
-                raise ConnectionError(f"agents[{ids[0]}].plant.uri: {uri} did not connect within "
+                raise ConnectionError(f"agent {ids[0]}.plant.uri: {uri} did not connect within "
                                       f"{self.spec.connect_timeout:g} s ({self._lost or 'no answer'}); check the "
                                       "vehicle is on and the URI (radio channel, address, udp port)")
             self._start_logs()
@@ -210,7 +210,7 @@ class CrazyfliePlant:
             block.start()
         if not self._wait_fresh(since, self.spec.connect_timeout):
             self._check()
-            raise ConnectionError(f"agents[{self.ids[0]}].plant.uri: {self.spec.uri} sends no state estimate "
+            raise ConnectionError(f"agent {self.ids[0]}.plant.uri: {self.spec.uri} sends no state estimate "
                                   f"within {self.spec.connect_timeout:g} s; is a positioning system running?")
 
     def _wait_fresh(self, since: float, timeout: float) -> bool:

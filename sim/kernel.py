@@ -50,7 +50,10 @@ _BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_
 def supports(dist: DisturbanceBank) -> bool:
     """Whether the kernels evaluate ``dist`` exactly as its own methods do (its layout is known)."""
     return (AVAILABLE and type(dist) is DisturbanceBank
-            and frozenset(f.name for f in dataclasses.fields(dist)) == _BANK_FIELDS)
+            and frozenset(f.name for f in dataclasses.fields(dist)) == _BANK_FIELDS
+            # one layer of each model: a summed disturbance of several sinusoids or random terms
+            # ((L, n, d) and (R, n, M, d) arrays) is evaluated by the numpy path
+            and dist.amp.ndim == 2 and dist.table.ndim == 3 and dist.hold_ticks.ndim == 1)
 
 
 def bank_arrays(dist: DisturbanceBank) -> tuple[Any, ...]:

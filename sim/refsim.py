@@ -31,6 +31,7 @@ run has no ``on_tick`` (a live view paces the run sample by sample: the numpy lo
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Callable, Literal
 
@@ -44,6 +45,8 @@ from plant.disturbance import DisturbanceBank
 from tether import graph, wire
 from tether.mission import Mission
 from tether.runfile import Run, RunMeta, Source
+
+log = logging.getLogger("tether")
 
 Mode = Literal["discrete", "continuous"]
 Engine = Literal["auto", "numpy", "compiled"]
@@ -110,9 +113,18 @@ def simulate(
         raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
     if _compiled(s, engine, on_tick):
         from sim import fast
-        if mode == "discrete":
-            return fast.discrete(s, steps, record, progress, meta)
-        return fast.continuous(s, steps, substeps, record, progress, meta)
+        try:
+            if mode == "discrete":
+                return fast.discrete(s, steps, record, progress, meta)
+            return fast.continuous(s, steps, substeps, record, progress, meta)
+        except OSError as exc:
+            # numba writes its compiled kernels to a cache on first use; a full or read-only disk
+            # makes that write fail before any step ran. "auto" then takes the numpy path, which
+            # gives the same numbers (tests/test_refsim_kernel.py); "compiled" was asked for: say why
+            if engine == "compiled":
+                raise
+            log.warning("compiled kernels unavailable (%s: %s); running the numpy path", type(exc).__name__, exc)
+            s = Setup.of(m)
     if mode == "discrete":
         return _discrete(s, steps, record, progress, meta, on_tick)
     return _continuous(s, steps, substeps, record, progress, meta, on_tick)

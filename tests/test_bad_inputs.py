@@ -325,6 +325,13 @@ def test_a_run_too_big_for_its_agents_is_refused_with_the_estimate(tmp_path: Pat
     assert not (tmp_path / "o").exists()
 
 
+def _no_caches(tmp_path: Path) -> dict[str, str]:
+    """The environment of a child run under a file-size limit: a short write is not an error for
+    Python's bytecode cache or numba's kernel cache, so a truncated ``.pyc`` or kernel would be left
+    for every later process to load; neither cache is written to the source tree from such a child."""
+    return {**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+
+
 def test_a_write_that_fails_part_way_names_the_path_and_errno(tmp_path: Path) -> None:
     """A full disk, emulated by a file-size limit: status 1, the path and the errno named, no ``.part`` left."""
     import signal
@@ -337,7 +344,7 @@ def test_a_write_that_fails_part_way_names_the_path_and_errno(tmp_path: Path) ->
     out = tmp_path / "o"
     r = subprocess.run([sys.executable, "-m", "cli", "simulate", "section4", "--duration", "20", "--out", str(out),
                         "--no-figures"], capture_output=True, text=True, timeout=TIMEOUT, preexec_fn=small_files,
-                       cwd=REPO)
+                       cwd=REPO, env=_no_caches(tmp_path))
     assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
     assert f"{out / 'run.npz'}:" in r.stderr and "EFBIG" in r.stderr
     assert not list(out.glob("*.part"))
@@ -402,7 +409,7 @@ def test_a_run_file_that_cannot_be_written_is_named_by_the_recorder_and_the_laun
     out = tmp_path / "o"
     r = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--out", str(out), "--duration", "3",
                         "--insecure", "--quiet"], capture_output=True, text=True, timeout=120, preexec_fn=small_files,
-                       cwd=REPO)
+                       cwd=REPO, env=_no_caches(tmp_path))
     assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
     assert f"recorder/0: failed: {out / 'run.npz'}: " in r.stderr and "(EFBIG)" in r.stderr, r.stderr
     recorder = (out / "logs" / "recorder-0.log").read_text()

@@ -106,10 +106,10 @@ def test_a_one_term_sum_flies_exactly_as_the_single_model() -> None:
 def test_sum_problems_name_the_term() -> None:
     with pytest.raises(ms.MissionError) as e:
         mission(summed(CONST, 'kind = "sinusoid"\namplitude = [0.1]\nomega = [1.0, 2.0]\n'))
-    assert "agents[0].disturbance.terms[1].amplitude" in str(e.value)
+    assert "agent 1.disturbance.terms[1].amplitude" in str(e.value)
     with pytest.raises(ms.MissionError) as e:
         mission('[agents.disturbance]\nkind = "sum"\nterms = []\n')
-    assert "agents[0].disturbance.terms" in str(e.value)
+    assert "agent 1.disturbance.terms" in str(e.value)
 
 
 def test_hold_then_ramp_is_accepted_and_flown_exactly() -> None:

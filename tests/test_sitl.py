@@ -71,7 +71,7 @@ def test_refused_before_anything_starts(tmp_path: Path) -> None:
     p = tether("run", str(bad), "--sitl", "--out", str(tmp_path / "a"))
     out, _ = p.communicate(timeout=60)
     assert p.returncode == 2, out
-    assert "agents[0].plant.uri" in out and "udp://127.0.0.1:PORT" in out
+    assert "agent 1.plant.uri" in out and "udp://127.0.0.1:PORT" in out
     p = tether("run", str(mission(tmp_path)), "--sitl", "--sitl-args", "--noise -3", "--out", str(tmp_path / "b"))
     out, _ = p.communicate(timeout=60)
     assert p.returncode == 2, out
