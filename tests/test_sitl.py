@@ -87,8 +87,9 @@ def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
     p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(out_dir))
     out, _ = p.communicate(timeout=240)
-    # 0, or 3 when a plant's failsafe briefly held a vehicle on a loaded machine; the run happened
-    assert p.returncode in (0, 3), out
+    # 0, or on a loaded machine 3 (a plant's failsafe briefly held a vehicle) or 5 (a sample lost on
+    # the way to the recorder, in real time): the run happened either way, which is what this checks
+    assert p.returncode in (0, 3, 5), out
     assert "software Crazyflies ready" in out and "software Crazyflies stopped" in out
     assert (out_dir / "run.npz").is_file()
     assert sorted(f.name for f in (out_dir / "logs").glob("cfsim-*.log")) == [f"cfsim-{i}.log" for i in (1, 2, 3, 4)]
