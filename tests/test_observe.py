@@ -285,7 +285,7 @@ def test_record_joins_a_running_swarm_late_with_the_operator_identity(tmp_path: 
                      "--out", str(rec_dir), "--duration", "20")
         code, out = finish(rec, 90)
         assert code == 0, out[-3000:]
-        assert "joined a swarm already running" in out and "the run ended" in out, out[-2000:]
+        assert "joined a run already under way" in out and "the run ended" in out, out[-2000:]
         code, run_out = finish(run)
         assert code in (0, 3, 5), run_out[-3000:]  # clean, a failsafe under load, or samples dropped
     finally:
