@@ -194,7 +194,7 @@ def test_a_flood_is_kept_off_the_control_loops(flood_pair: FloodPair) -> None:
     """What the access rules and the per-link ingress limits guarantee, on any machine: the flood
     reaches every agent only at the order key's limit (CONTROL_RATE a second, rejected and counted,
     where the incident let 255 000 a second into the control loop), and the formation is not lost:
-    within 3x of the clean run (the incident: 16x). The issue's tighter 10 % is the test below."""
+    within 3x of the clean run (the incident: 16x), on a machine too busy for the 10 % below."""
     _clean_is_the_mission(flood_pair)
     drops = flood_pair.drops - flood_pair.clean_drops
     assert (flood_pair.drops > 0).all()  # the flood did reach every agent (rejected and counted)
@@ -204,12 +204,10 @@ def test_a_flood_is_kept_off_the_control_loops(flood_pair: FloodPair) -> None:
     assert got <= 3.0 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
 
 
-@pytest.mark.xfail(strict=False, reason="not met on two shared cores: the flood's CPU (the router's TLS and "
-                   "per-message work for ~111 000 messages/s, and the flooder itself) is taken before the limits "
-                   "act; measured +62 % (docs/deploy.md, 'The flood test and its statistic')")
 def test_a_flood_on_every_process_input_leaves_the_formation_error_within_10_percent(
         flood_pair: FloodPair) -> None:
-    """The issue's target: |flooded - clean| <= 10 % of clean, RMS of ||xi_i|| over 7..14 s."""
+    """|flooded - clean| <= 10 % of clean, RMS of ||xi_i|| over 7..14 s: met with the machine's two
+    cores otherwise idle; not with other real-time runs beside it (docs/deploy.md)."""
     _clean_is_the_mission(flood_pair)
     got, want = flood_pair.got, flood_pair.want
     assert abs(got - want) <= 0.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
