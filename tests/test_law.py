@@ -71,6 +71,24 @@ def test_single_agent_and_all_agent_forms_agree(seed: int) -> None:
         np.testing.assert_allclose(kpi, kp1[i], rtol=0, atol=1e-12)
 
 
+
+@pytest.mark.parametrize("seed", range(8))
+def test_step_on_floats_equals_its_vectorised_form_bit_for_bit(seed: int) -> None:
+    """AgentLaw.step (term by term on Python floats, the hot path) against step_numpy (the same law
+    written with errors(), control() and gain_update()): every output identical, not merely close."""
+    rng = np.random.default_rng(100 + seed)
+    m = random_mission(rng, int(rng.integers(2, 7)))
+    for a in m.agents:
+        al = law.AgentLaw.from_mission(m, a.id)
+        k = len(al.neighbours)
+        p, v = rng.normal(0, 3, m.dim), rng.normal(0, 3, m.dim)
+        nb = rng.normal(0, 3, (3, k, m.dim))
+        kp, kv = rng.uniform(1, 5, m.dim), rng.uniform(1, 5, m.dim)
+        fast = al.step(p, v, nb[0], nb[1], nb[2], kp, kv)
+        ref = al.step_numpy(p, v, nb[0], nb[1], nb[2], kp, kv)
+        for got, want in zip(fast, ref):
+            assert np.array_equal(got, want), (got, want)
+
 def test_errors_match_the_paper_definition() -> None:
     """xi_i = sum_j a_ij (p_i - p_j - delta_ij) computed literally, against the kappa form."""
     rng = np.random.default_rng(5)
