@@ -9,11 +9,8 @@ import io
 import json
 import os
 import signal
-import socket
-import struct
 import subprocess
 import sys
-import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -22,7 +19,6 @@ import pytest
 
 pytest.importorskip("foxglove")
 mcap_reader = pytest.importorskip("mcap.reader")
-ws_client = pytest.importorskip("websockets.sync.client")
 
 from recorder import viz  # noqa: E402
 from sim import lockstep  # noqa: E402
@@ -30,6 +26,8 @@ from tether import catalog  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.progress import Progress  # noqa: E402
 from tether.runfile import Run  # noqa: E402
+
+from tests.foxglove_live import free_port, listen  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FOXGLOVE_TYPES = {"/scene": "foxglove.SceneUpdate", "/tf": "foxglove.FrameTransforms", "/log": "foxglove.Log",
@@ -158,17 +156,6 @@ def test_tether_mcap_converts_an_existing_run(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------- live
-SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
-"""The Foxglove WebSocket protocol's names: foxglove-sdk 0.30's server accepts only the first (the
-protocol's current name; the frames are those of ``foxglove.websocket.v1``), older servers the second."""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow  # real processes
 def test_simulate_live_serves_the_channels_over_the_foxglove_websocket_protocol(tmp_path: Path) -> None:
     port = free_port()
@@ -177,59 +164,17 @@ def test_simulate_live_serves_the_channels_over_the_foxglove_websocket_protocol(
                             cwd=REPO, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
     try:
-        deadline = time.monotonic() + 60
-        ws = None
-        while ws is None:
-            try:
-                ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5)
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    pytest.fail(f"no live server on port {port}: {proc.poll()}")
-                time.sleep(0.2)
-        with ws:
-            assert ws.subprotocol in SUBPROTOCOLS
-            channels: dict[str, dict] = {}
-            info = None
-            got: dict[int, list[tuple[int, bytes]]] = defaultdict(list)
-            subscribed = False
-            clock: list[int] = []
-            wanted = ["/agent/1", "/leader", "/scene", "/tf", "/log"]
-            while time.monotonic() < deadline:
-                try:
-                    frame = ws.recv(timeout=5)
-                except TimeoutError:
-                    continue
-                if isinstance(frame, str):
-                    op = json.loads(frame)
-                    if op["op"] == "serverInfo":
-                        info = op
-                    elif op["op"] == "advertise":
-                        channels.update({c["topic"]: c for c in op["channels"]})
-                    if not subscribed and all(t in channels for t in wanted):
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                            {"id": n, "channelId": channels[t]["id"]} for n, t in enumerate(wanted)]}))
-                        subscribed = True
-                    continue
-                if frame[0] == 0x02:  # time (the Time capability): the run's clock
-                    clock.append(struct.unpack_from("<Q", frame, 1)[0])
-                    continue
-                assert frame[0] == 0x01  # message data
-                sub, stamp_ns = struct.unpack_from("<IQ", frame, 1)
-                got[sub].append((stamp_ns, frame[13:]))
-                if all(len(got[n]) >= 2 for n in range(len(wanted)) if wanted[n] != "/log") and got[0]:
-                    break
-            assert info is not None and info["name"] == "tether"
-            assert channels["/agent/1"]["schemaName"] == "tether.Agent" and channels["/agent/1"]["encoding"] == "json"
-            assert channels["/scene"]["schemaName"] == "foxglove.SceneUpdate"
-            assert channels["/scene"]["encoding"] == "protobuf"
-            for n, topic in enumerate(wanted):
-                if topic != "/log":
-                    assert len(got[n]) >= 2, f"no messages on {topic}"
-            sample = json.loads(got[0][-1][1])
-            assert set(sample) >= {"t", "k", "xi_norm", "xi", "zeta", "kp", "kv", "u", "safety_mode"}
-            assert got[0][-1][0] == viz.stamp(sample["t"])
-            assert sample["t"] < 30.0  # live: while the run goes on
-            assert clock and clock[-1] >= viz.EPOCH_NS
+        wanted = {"/agent/1": 2, "/leader": 2, "/scene": 2, "/tf": 2, "/log": 0}
+        live = listen(port, wanted, timeout=60, alive=lambda: proc.poll() is None)
+        channels, got = live.channels, live.got
+        assert channels["/agent/1"]["schemaName"] == "tether.Agent" and channels["/agent/1"]["encoding"] == "json"
+        assert channels["/scene"]["schemaName"] == "foxglove.SceneUpdate"
+        assert channels["/scene"]["encoding"] == "protobuf"
+        sample = json.loads(got["/agent/1"][-1][1])
+        assert set(sample) >= {"t", "k", "xi_norm", "xi", "zeta", "kp", "kv", "u", "safety_mode"}
+        assert got["/agent/1"][-1][0] == viz.stamp(sample["t"])
+        assert sample["t"] < 30.0  # live: while the run goes on
+        assert live.clock and live.clock[-1] >= viz.EPOCH_NS
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
