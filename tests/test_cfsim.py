@@ -375,24 +375,28 @@ def test_generic_position_full_state_and_velocity_setpoints(sim: SoftwareCrazyfl
                                 "stateEstimate.yaw"])
         pace = threading.Event()
 
-        def stream_for(seconds: float, send: Callable[[], None]) -> None:
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
+        def stream_until(cond: Callable[[dict[str, float]], bool], send: Callable[[], None], what: str,
+                         timeout: float = 15.0) -> None:
+            """Send the setpoint at 50 Hz until the logged state meets ``cond`` (the simulator runs in
+            real time: under load it takes longer, never a different path)."""
+            end = time.monotonic() + timeout
+            while not (stream.last and cond(stream.last)):
+                if time.monotonic() > end:
+                    pytest.fail(f"no {what} within {timeout} s: last {stream.last}")
                 send()
                 pace.wait(0.02)
 
         stream.wait(lambda d: True, 5.0, "the first log packet")
-        stream_for(2.5, lambda: cf.commander.send_position_setpoint(0.0, 0.2, 0.4, 30.0))
-        d = stream.last
-        assert abs(d["stateEstimate.y"] - 0.2) < 0.03 and abs(d["stateEstimate.z"] - 0.4) < 0.03
-        assert abs(d["stateEstimate.yaw"] - 30.0) < 2.0
+        stream_until(lambda d: abs(d["stateEstimate.y"] - 0.2) < 0.03 and abs(d["stateEstimate.z"] - 0.4) < 0.03
+                     and abs(d["stateEstimate.yaw"] - 30.0) < 2.0,
+                     lambda: cf.commander.send_position_setpoint(0.0, 0.2, 0.4, 30.0), "position (0, 0.2, 0.4), yaw 30")
         q = [0.0, 0.0, math.sin(math.radians(-20) / 2), math.cos(math.radians(-20) / 2)]  # x, y, z, w
-        stream_for(2.0, lambda: cf.commander.send_full_state_setpoint((0.1, 0.0, 0.5), (0, 0, 0), (0, 0, 0), q, 0, 0, 0))
-        d = stream.last
-        assert abs(d["stateEstimate.x"] - 0.1) < 0.03 and abs(d["stateEstimate.z"] - 0.5) < 0.03
-        assert abs(d["stateEstimate.yaw"] + 20.0) < 2.0
-        stream_for(1.0, lambda: cf.commander.send_velocity_world_setpoint(0.3, 0.0, 0.0, 0.0))
-        assert abs(stream.last["stateEstimate.vx"] - 0.3) < 0.05
+        stream_until(lambda d: abs(d["stateEstimate.x"] - 0.1) < 0.03 and abs(d["stateEstimate.z"] - 0.5) < 0.03
+                     and abs(d["stateEstimate.yaw"] + 20.0) < 2.0,
+                     lambda: cf.commander.send_full_state_setpoint((0.1, 0.0, 0.5), (0, 0, 0), (0, 0, 0), q, 0, 0, 0),
+                     "full state (0.1, 0, 0.5), yaw -20")
+        stream_until(lambda d: abs(d["stateEstimate.vx"] - 0.3) < 0.05,
+                     lambda: cf.commander.send_velocity_world_setpoint(0.3, 0.0, 0.0, 0.0), "vx 0.3 m/s")
         # back to the high-level commander, which lands from where the vehicle is
         cf.commander.send_notify_setpoint_stop()
         cf.high_level_commander.land(0.0, 1.5)
