@@ -732,11 +732,16 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     interrupted = False
     t0 = time.monotonic()
     sup: Supervision | None = None
+    gateway: subprocess.Popen[bytes] | None = None
+    gateway_log = opts.out / "logs" / "gateway.log"
     try:
         async with tp.open_session(settings) as session:
-            listening = (router, *opts.listen)
+            listening = (router, *opts.listen) if sec is None else (router,)
             log.info("router listening on %s (namespace %s%s)", ", ".join(listening), keys.ns,
                      "" if sec is None else ", TLS with client certificates and access rules")
+            if sec is not None:  # tools attach through a router of their own, at idle CPU priority
+                gateway = localtls.start_gateway(sec, gateway_log, dict(os.environ))
+                log.info("operator gateway (SCHED_IDLE) listening on %s", ", ".join(sec.gateway_endpoints))
             if opts.live is not None:
                 log.info("live view (from the recorder): ws://127.0.0.1:%d (Foxglove: Open connection, "
                          "Foxglove WebSocket; docs/foxglove.md)", opts.live)
@@ -755,6 +760,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             async def body() -> bool:
                 tokens = [keys.token(r, i) for r, i in members]
                 await tp.wait_for_tokens(session, tokens, opts.startup_timeout)
+                if gateway is not None:
+                    try:
+                        await localtls.wait_gateway(gateway, gateway_log, opts.startup_timeout)
+                    except RuntimeError as exc:
+                        raise LaunchFailed(str(exc)) from None
                 log.info("all %d processes are up after %.1f s", len(tokens), time.monotonic() - t0)
                 t1 = time.monotonic()
                 if opts.clock == "lockstep":
@@ -804,6 +814,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                 for relay in launch.relays.values():
                     await relay.close()
     finally:
+        if gateway is not None:
+            localtls.stop_gateway(gateway)
         loop.remove_signal_handler(signal.SIGINT)
         loop.remove_signal_handler(signal.SIGTERM)
         if simulators is not None:
