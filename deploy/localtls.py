@@ -54,6 +54,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from deploy import acl, pki
 from deploy.hosts import is_ip
 from tether import mission as ms
@@ -143,7 +145,26 @@ def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[
     k = wire.Keys(ns)
     control = {k.start: CONTROL_RATE, k.safety: CONTROL_RATE}  # one start; an order is 6 copies over 0.5 s
     keys = sorted({x for g in grants(m, ns) if g.name != "router" for x in g.publish})
-    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys if streams or x in control)
+    recorded = set(recorder_only(m, ns))
+    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys
+                 if x in control or (streams and x not in recorded))
+
+
+def recorder_only(m: ms.Mission, ns: str) -> list[str]:
+    """The published keys that no process of the control loop subscribes to, only the recorder (and
+    the operator's tools): each agent's telemetry, a world's state. They carry no ingress limit, so
+    that the backlog a healed link releases reaches the recording whole (Zenoh's downsampling keeps one
+    message per window and no burst: with the limit, 66 of agent 3's 201 telemetry samples from a 1 s
+    stall to 1 s after it reached the recording; tests/test_partition.py). What bounds them instead:
+    under TLS the access rules, which let only a stream's own process publish on it, and in every mode
+    the recorder's decoding budget (2 s of samples saved, ``tether/node.py``), away from any control
+    loop. The keys the control loops hear keep their limits."""
+    gs = grants(m, ns)
+    heard = [zenoh.KeyExpr(s) for g in gs if g.name not in ("router", OPERATOR, "recorder-0") for s in g.subscribe]
+    rec = [zenoh.KeyExpr(s) for g in gs if g.name == "recorder-0" for s in g.subscribe]
+    keys = sorted({x for g in gs if g.name != "router" for x in g.publish})
+    return [x for x in keys if not any(h.intersects(zenoh.KeyExpr(x)) for h in heard)
+            and any(r.intersects(zenoh.KeyExpr(x)) for r in rec)]
 
 
 def _host_of(endpoint: str) -> str | None:
