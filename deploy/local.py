@@ -11,7 +11,9 @@ link is TLS 1.3 with client certificates, and the router (and, in a mesh, every 
 deployment's deny-by-default access rules (``deploy/localtls.py``, ``deploy/acl.py``): a session
 without a certificate of the run gets no link, and one with a certificate may do only what its
 role does. Tools attach through ``--listen tls/...`` with the operator identity
-``DIR/tls/control-0.json5`` (``--zenoh-config``). ``--insecure`` turns all this off (plain TCP, no
+``DIR/tls/control-0.json5`` (``--zenoh-config``); those endpoints belong to the operator gateway, a
+second router process at ``SCHED_IDLE`` linked to the launcher's, so that a tool's flood costs the
+control traffic's router nothing but the gateway's limited output (``deploy/localtls.py``). ``--insecure`` turns all this off (plain TCP, no
 rules: anyone who reaches the router can move the formation), with a warning. Under TLS,
 ``--vehicle-connect`` is refused (an endpoint of your own holds no certificate of the run) and
 ``--listen`` takes ``tls/`` endpoints only; ``openssl`` must be on PATH (exit 2 otherwise).

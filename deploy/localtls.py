@@ -127,21 +127,20 @@ CONTROL_RATE = 50.0
 def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[str, float], ...]:
     """The listeners' per-link ingress limits of a real-time run of ``m`` (``downsampling``): the start
     and the operator's orders at :data:`CONTROL_RATE` and, with ``streams`` (the launcher's choice in
-    every mode), each other published key of the run at :data:`LIMIT_FACTOR` times the rate. The price
-    of the stream limits: Zenoh's downsampling passes one message per ``1/freq`` window, so the backlog
-    a healed link or a loaded machine delivers at once is cut to its first (measured, Section 4, 8 s,
-    a 1 s partition of agent 3, load average 10-13: 5640 and 5941 of 7209 samples recorded, 66 of agent
-    3's 201 from the cut to 1 s after; without them 7116-7156 of 7209, 201 of 201). They stay on, even
-    authenticated (where the access rules already keep anyone but a stream's own process off its key),
-    because the formation flew worse without them on a loaded machine: RMS of ||xi|| over 7-14 s of
-    20 s authenticated real-time runs, 0.443 and 0.442 m with them (the reference simulator: 0.441 m),
-    17.3, 0.70 and 0.99 m without (one run each, load average 8-16). A flood on one of these keys,
-    from any one session, reaches the subscribers at that rate at most, decided in Zenoh's threads
-    before any Python callback, while every other session's link keeps its own budget. (Not in
-    lockstep, whose ticks go out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule
-    beside them (``tether/<ns>/**`` for "anything else") blocked some of the exact keys' samples
-    altogether (measured), so keys outside the grants are not limited; under TLS no one may
-    publish on them anyway."""
+    every mode), each other published key a control loop hears at :data:`LIMIT_FACTOR` times the rate
+    (not :func:`recorder_only`'s). The price of the stream limits: Zenoh's downsampling passes one
+    message per ``1/freq`` window, so the backlog a healed link or a loaded machine delivers at once is
+    cut to its first (docs/deploy.md, "Floods"). They stay on, even authenticated (where the access
+    rules already keep anyone but a stream's own process off its key), because the formation flew
+    worse without them on a loaded machine: RMS of ||xi|| over 7-14 s of 20 s authenticated real-time
+    runs, 0.443 and 0.442 m with them (the reference simulator: 0.441 m), 17.3, 0.70 and 0.99 m
+    without (one run each, load average 8-16). A flood on one of these keys, from any one session,
+    reaches the subscribers at that rate at most, decided in Zenoh's threads before any Python
+    callback, while every other session's link keeps its own budget. (Not in lockstep, whose ticks go
+    out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule beside them
+    (``tether/<ns>/**`` for "anything else") blocked some of the exact keys' samples altogether
+    (measured), so keys outside the grants are not limited; under TLS no one may publish on them
+    anyway."""
     k = wire.Keys(ns)
     control = {k.start: CONTROL_RATE, k.safety: CONTROL_RATE}  # one start; an order is 6 copies over 0.5 s
     keys = sorted({x for g in grants(m, ns) if g.name != "router" for x in g.publish})
@@ -154,8 +153,8 @@ def recorder_only(m: ms.Mission, ns: str) -> list[str]:
     """The published keys that no process of the control loop subscribes to, only the recorder (and
     the operator's tools): each agent's telemetry, a world's state. They carry no ingress limit, so
     that the backlog a healed link releases reaches the recording whole (Zenoh's downsampling keeps one
-    message per window and no burst: with the limit, 66 of agent 3's 201 telemetry samples from a 1 s
-    stall to 1 s after it reached the recording; tests/test_partition.py). What bounds them instead:
+    message per window and no burst: with the limit, 5 of agent 3's 200 telemetry samples from a 1 s
+    stall to 1 s after it reached the recording, without it 200 of 200; tests/test_partition.py). What bounds them instead:
     under TLS the access rules, which let only a stream's own process publish on it, and in every mode
     the recorder's decoding budget (2 s of samples saved, ``tether/node.py``), away from any control
     loop. The keys the control loops hear keep their limits."""
