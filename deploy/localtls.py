@@ -261,6 +261,7 @@ class Security:
         control router, trusting both CAs (the run's, for that link; the operator CA, for tools)."""
         conf = self.profile(GATEWAY, "router", [self.router_endpoint], self.gateway_endpoints,
                             root="gateway-ca.crt", access=self.gateway_access, limits=self.gateway_limits)
+        conf["scouting"]["gossip"] = {"enabled": False}  # not advertised: a mesh's peers link to the control router
         return self.write(GATEWAY, conf, "the operator gateway (python -m deploy.router --idle)")
 
     def child(self, role: str, nid: int, connect: str, listen: str | None = None) -> Path:

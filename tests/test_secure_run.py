@@ -67,7 +67,15 @@ def test_a_default_run_admits_only_its_own_identities_and_the_operator_lands_it(
         assert all((k.stat().st_mode & 0o077) == 0 for k in tls.glob("*.key"))
         assert "identities made in" in run.launcher_log and "--insecure" not in run.launcher_log
         port = attach.rsplit(":", 1)[1]
+        router = msgspec.json.decode((tls / "router.json5").read_text().split("\n", 1)[1])["listen"]["endpoints"]
+        assert attach not in router  # --listen is the operator gateway's, not the control router's
         attempts = {
+            # the operator's certificate is signed by the operator CA, which the control router does not trust:
+            # a tool holding it, flooding or not, reaches the run through the gateway only
+            "the operator identity at the control router": tp.ZenohSettings(
+                mode="client", connect=(router[0],), tls=tp.TlsFiles(
+                    root_ca_certificate=str(tls / "ca.crt"), connect_certificate=str(tls / "control-0.crt"),
+                    connect_private_key=str(tls / "control-0.key"), enable_mtls=True)),
             "plain TCP": tp.ZenohSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",)),
             "TLS without a client certificate": tp.ZenohSettings(
                 mode="client", connect=(attach,), tls=tp.TlsFiles(root_ca_certificate=str(tls / "ca.crt"))),
