@@ -11,7 +11,9 @@ link is TLS 1.3 with client certificates, and the router (and, in a mesh, every 
 deployment's deny-by-default access rules (``deploy/localtls.py``, ``deploy/acl.py``): a session
 without a certificate of the run gets no link, and one with a certificate may do only what its
 role does. Tools attach through ``--listen tls/...`` with the operator identity
-``DIR/tls/control-0.json5`` (``--zenoh-config``). ``--insecure`` turns all this off (plain TCP, no
+``DIR/tls/control-0.json5`` (``--zenoh-config``); those endpoints belong to the operator gateway, a
+second router process at ``SCHED_IDLE`` linked to the launcher's, so that a tool's flood costs the
+control traffic's router nothing but the gateway's limited output (``deploy/localtls.py``). ``--insecure`` turns all this off (plain TCP, no
 rules: anyone who reaches the router can move the formation), with a warning. Under TLS,
 ``--vehicle-connect`` is refused (an endpoint of your own holds no certificate of the run) and
 ``--listen`` takes ``tls/`` endpoints only; ``openssl`` must be on PATH (exit 2 otherwise).
@@ -732,11 +734,16 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     interrupted = False
     t0 = time.monotonic()
     sup: Supervision | None = None
+    gateway: subprocess.Popen[bytes] | None = None
+    gateway_log = opts.out / "logs" / "gateway.log"
     try:
         async with tp.open_session(settings) as session:
-            listening = (router, *opts.listen)
+            listening = (router, *opts.listen) if sec is None else (router,)
             log.info("router listening on %s (namespace %s%s)", ", ".join(listening), keys.ns,
                      "" if sec is None else ", TLS with client certificates and access rules")
+            if sec is not None:  # tools attach through a router of their own, at idle CPU priority
+                gateway = localtls.start_gateway(sec, gateway_log, dict(os.environ))
+                log.info("operator gateway (SCHED_IDLE) listening on %s", ", ".join(sec.gateway_endpoints))
             if opts.live is not None:
                 log.info("live view (from the recorder): ws://127.0.0.1:%d (Foxglove: Open connection, "
                          "Foxglove WebSocket; docs/foxglove.md)", opts.live)
@@ -755,6 +762,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             async def body() -> bool:
                 tokens = [keys.token(r, i) for r, i in members]
                 await tp.wait_for_tokens(session, tokens, opts.startup_timeout)
+                if gateway is not None:
+                    try:
+                        await localtls.wait_gateway(gateway, gateway_log, opts.startup_timeout)
+                    except RuntimeError as exc:
+                        raise LaunchFailed(str(exc)) from None
                 log.info("all %d processes are up after %.1f s", len(tokens), time.monotonic() - t0)
                 t1 = time.monotonic()
                 if opts.clock == "lockstep":
@@ -804,6 +816,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                 for relay in launch.relays.values():
                     await relay.close()
     finally:
+        if gateway is not None:
+            localtls.stop_gateway(gateway)
         loop.remove_signal_handler(signal.SIGINT)
         loop.remove_signal_handler(signal.SIGTERM)
         if simulators is not None:

@@ -3,38 +3,58 @@
 ``tether run`` (``deploy/local.py``) calls :func:`prepare` before it starts anything, unless
 ``--insecure``. It makes, with ``deploy/pki.py`` (the ``openssl`` command), a throw-away CA and one
 ECDSA key and certificate per process of the run (``CN = <process>.<ns>``, as ``tether deploy-gen``
-does), plus the operator's (``control-0``), and then **deletes the CA's key**: nothing more can be
-signed for this run once it has started. The access rules are ``deploy/acl.py``'s for the mission
-(a ``[payload]`` mission's world process gets the plants' keys, see :func:`grants`). Everything goes
-into ``DIR/tls/`` (``DIR`` is ``--out``):
+does), plus the operator gateway's (``gateway``), and a second throw-away CA, the **operator CA**,
+which signs the operator's certificate (``control-0``) alone; then it **deletes both CAs' keys**:
+nothing more can be signed for this run once it has started. The access rules are
+``deploy/acl.py``'s for the mission (a ``[payload]`` mission's world process gets the plants' keys,
+see :func:`grants`). Everything goes into ``DIR/tls/`` (``DIR`` is ``--out``):
 
-* ``ca.crt``; ``<process>.crt`` and ``<process>.key`` (mode 0600) for ``router``, ``leader-<id>``,
-  ``agent-<i>``, ``plant-<i>`` (or ``world-0``), ``recorder-0`` and ``control-0``;
+* ``ca.crt``, ``operator-ca.crt``; ``<process>.crt`` and ``<process>.key`` (mode 0600) for ``router``,
+  ``gateway``, ``leader-<id>``, ``agent-<i>``, ``plant-<i>`` (or ``world-0``), ``recorder-0`` and
+  ``control-0``;
 * ``<process>.json5``: each child's whole Zenoh configuration (``--zenoh-config``): TLS only
   (``transport/link/protocols = ["tls"]``), mTLS, the name of the router checked on connect, the
   lease; in a ``mesh`` every peer listens and enforces the rules too;
-* ``control-0.json5``: the **operator identity** for tools that attach to the run through the
-  router's ``--listen`` endpoints: ``tether land|estop|netem-set --ns NS --zenoh-config
-  DIR/tls/control-0.json5``. It connects to the first ``--listen`` endpoint (or to the launcher's
-  loopback endpoint without one), and may do what a deployment's ``control-0`` may: start, tick,
-  land/estop orders, netem queries.
+* ``control-0.json5``: the **operator identity** for tools that attach to the run:
+  ``tether land|estop|netem-set --ns NS --zenoh-config DIR/tls/control-0.json5``. It may do what a
+  deployment's ``control-0`` may (start, tick, land/estop orders, netem queries), through the
+  operator gateway only.
 
-The router is the launcher's own session (its configuration, ``router.json5``, is kept for
-reference). Pure apart from the files and the ``openssl`` runs (a few tens of milliseconds each,
-run four at a time).
+**Two routers.** The control router, the launcher's own session (its configuration ``router.json5``
+is kept for reference), carries the run's processes and listens on loopback only; it trusts
+``ca.crt`` alone, so the operator's certificate (signed by the operator CA) cannot even open a link
+to it. Tools attach to the **operator gateway** instead (:func:`start_gateway`): a second router
+process, ``python -m deploy.router --idle``, listening on the ``--listen`` endpoints (or a free
+loopback port without any), linked to the control router under its own identity ``gateway``, which
+holds there the operator's rights and nothing more. It runs at ``SCHED_IDLE``, applies the
+operator's access rules and the order keys' ingress limits (:data:`CONTROL_RATE` a link) itself, and
+passes on what is left. What an operator link's flood costs (TLS, decoding, the access and limit
+checks of every message) is thus paid by a process that gets only the CPU nothing else of the run
+wants, and the control router sees the flood at :data:`CONTROL_RATE` at most. The price: on a
+machine with no idle CPU at all, the operator's orders wait for some (each vehicle's own
+failsafes do not).
+
+Pure apart from the files, the ``openssl`` runs (a few tens of milliseconds each, run four at a
+time) and :func:`start_gateway`.
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import json
+import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import zenoh
 
 from deploy import acl, pki
 from deploy.hosts import is_ip
@@ -78,6 +98,23 @@ def grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
     return [*out, world]
 
 
+GATEWAY = "gateway"
+"""Identity of the operator gateway, the router process that tools attach to."""
+OPERATOR = "control-0"
+"""The operator's identity."""
+
+
+def router_grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
+    """The control router's grants: :func:`grants`, with the operator's rights held by the gateway's
+    identity (no ``control-0`` subject: its certificate is refused anyway, see the module docstring)."""
+    return [dataclasses.replace(g, name=GATEWAY) if g.name == OPERATOR else g for g in grants(m, ns)]
+
+
+def gateway_grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
+    """The gateway's grants: the operator's, and the control router's (its link to the run)."""
+    return [g for g in grants(m, ns) if g.name in ("router", OPERATOR)]
+
+
 LIMIT_FACTOR = 20
 """Real time: a listener passes at most this many times the mission's rate of messages per second
 on each key a process publishes, per link; one sample per period is what a stream sends."""
@@ -90,25 +127,43 @@ CONTROL_RATE = 50.0
 def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[str, float], ...]:
     """The listeners' per-link ingress limits of a real-time run of ``m`` (``downsampling``): the start
     and the operator's orders at :data:`CONTROL_RATE` and, with ``streams`` (the launcher's choice in
-    every mode), each other published key of the run at :data:`LIMIT_FACTOR` times the rate. The price
-    of the stream limits: Zenoh's downsampling passes one message per ``1/freq`` window, so the backlog
-    a healed link or a loaded machine delivers at once is cut to its first (measured, Section 4, 8 s,
-    a 1 s partition of agent 3, load average 10-13: 5640 and 5941 of 7209 samples recorded, 66 of agent
-    3's 201 from the cut to 1 s after; without them 7116-7156 of 7209, 201 of 201). They stay on, even
-    authenticated (where the access rules already keep anyone but a stream's own process off its key),
-    because the formation flew worse without them on a loaded machine: RMS of ||xi|| over 7-14 s of
-    20 s authenticated real-time runs, 0.443 and 0.442 m with them (the reference simulator: 0.441 m),
-    17.3, 0.70 and 0.99 m without (one run each, load average 8-16). A flood on one of these keys,
-    from any one session, reaches the subscribers at that rate at most, decided in Zenoh's threads
-    before any Python callback, while every other session's link keeps its own budget. (Not in
-    lockstep, whose ticks go out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule
-    beside them (``tether/<ns>/**`` for "anything else") blocked some of the exact keys' samples
-    altogether (measured), so keys outside the grants are not limited; under TLS no one may
-    publish on them anyway."""
+    every mode), each other published key a control loop hears at :data:`LIMIT_FACTOR` times the rate
+    (not :func:`recorder_only`'s). The price of the stream limits: Zenoh's downsampling passes one
+    message per ``1/freq`` window, so the backlog a healed link or a loaded machine delivers at once is
+    cut to its first (docs/deploy.md, "Floods"). They stay on, even authenticated (where the access
+    rules already keep anyone but a stream's own process off its key), because the formation flew
+    worse without them on a loaded machine: RMS of ||xi|| over 7-14 s of 20 s authenticated real-time
+    runs, 0.443 and 0.442 m with them (the reference simulator: 0.441 m), 17.3, 0.70 and 0.99 m
+    without (one run each, load average 8-16). A flood on one of these keys, from any one session,
+    reaches the subscribers at that rate at most, decided in Zenoh's threads before any Python
+    callback, while every other session's link keeps its own budget. (Not in lockstep, whose ticks go
+    out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule beside them
+    (``tether/<ns>/**`` for "anything else") blocked some of the exact keys' samples altogether
+    (measured), so keys outside the grants are not limited; under TLS no one may publish on them
+    anyway."""
     k = wire.Keys(ns)
     control = {k.start: CONTROL_RATE, k.safety: CONTROL_RATE}  # one start; an order is 6 copies over 0.5 s
     keys = sorted({x for g in grants(m, ns) if g.name != "router" for x in g.publish})
-    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys if streams or x in control)
+    recorded = set(recorder_only(m, ns))
+    return tuple((x, control.get(x, LIMIT_FACTOR * m.rate)) for x in keys
+                 if x in control or (streams and x not in recorded))
+
+
+def recorder_only(m: ms.Mission, ns: str) -> list[str]:
+    """The published keys that no process of the control loop subscribes to, only the recorder (and
+    the operator's tools): each agent's telemetry, a world's state. They carry no ingress limit, so
+    that the backlog a healed link releases reaches the recording whole (Zenoh's downsampling keeps one
+    message per window and no burst: with the limit, 5 of agent 3's 200 telemetry samples from a 1 s
+    stall to 1 s after it reached the recording, without it 200 of 200; tests/test_partition.py). What bounds them instead:
+    under TLS the access rules, which let only a stream's own process publish on it, and in every mode
+    the recorder's decoding budget (2 s of samples saved, ``tether/node.py``), away from any control
+    loop. The keys the control loops hear keep their limits."""
+    gs = grants(m, ns)
+    heard = [zenoh.KeyExpr(s) for g in gs if g.name not in ("router", OPERATOR, "recorder-0") for s in g.subscribe]
+    rec = [zenoh.KeyExpr(s) for g in gs if g.name == "recorder-0" for s in g.subscribe]
+    keys = sorted({x for g in gs if g.name != "router" for x in g.publish})
+    return [x for x in keys if not any(h.intersects(zenoh.KeyExpr(x)) for h in heard)
+            and any(r.intersects(zenoh.KeyExpr(x)) for r in rec)]
 
 
 def _host_of(endpoint: str) -> str | None:
@@ -153,10 +208,16 @@ class Security:
     configs: dict[str, Path] = field(default_factory=dict)
     limits: tuple[tuple[str, float], ...] = ()
     """Ingress rate limits of every listener (``tether.transport.ZenohSettings.ingress_limits``)."""
+    gateway_access: dict[str, Any] = field(default_factory=dict)
+    """The operator gateway's access rules."""
+    gateway_limits: tuple[tuple[str, float], ...] = ()
+    """The operator gateway's ingress limits (the order keys)."""
+    gateway_endpoints: list[str] = field(default_factory=list)
+    """Where the operator gateway listens: the ``--listen`` endpoints, or a free loopback port."""
 
-    def tls(self, name: str, listening: bool) -> dict[str, Any]:
+    def tls(self, name: str, listening: bool, root: str = "ca.crt") -> dict[str, Any]:
         d = self.dir
-        out: dict[str, Any] = {"root_ca_certificate": str(d / "ca.crt"), "enable_mtls": True,
+        out: dict[str, Any] = {"root_ca_certificate": str(d / root), "enable_mtls": True,
                                "verify_name_on_connect": True,
                                "connect_certificate": str(d / f"{name}.crt"),
                                "connect_private_key": str(d / f"{name}.key")}
@@ -164,21 +225,26 @@ class Security:
             out |= {"listen_certificate": str(d / f"{name}.crt"), "listen_private_key": str(d / f"{name}.key")}
         return out
 
-    def profile(self, name: str, mode: str, connect: list[str], listen: list[str]) -> dict[str, Any]:
+    def profile(self, name: str, mode: str, connect: list[str], listen: list[str], root: str = "ca.crt",
+                access: dict[str, Any] | None = None,
+                limits: tuple[tuple[str, float], ...] | None = None) -> dict[str, Any]:
         strategy = {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
         conf: dict[str, Any] = {
             "mode": mode, "listen": {"endpoints": listen},
             "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True, "autoconnect_strategy": strategy}},
             "transport": {"link": {"protocols": ["tls"], "tx": {"lease": max(1, round(self.lease * 1000)),
                                                                  "keep_alive": 4},
-                                   "tls": self.tls(name, bool(listen))}},
+                                   "tls": self.tls(name, bool(listen), root)}},
         }
         if mode != "router":
             conf["connect"] = {"endpoints": connect}
+        elif connect:  # a router linked to another: open only once linked, or fail
+            conf["connect"] = {"endpoints": connect, "timeout_ms": 10_000, "exit_on_failure": True}
         if listen:
-            conf["access_control"] = self.access
-            if self.limits:
-                conf["downsampling"] = tp.downsampling(self.limits)
+            conf["access_control"] = self.access if access is None else access
+            limits = self.limits if limits is None else limits
+            if limits:
+                conf["downsampling"] = tp.downsampling(limits)
         return conf
 
     def write(self, name: str, conf: dict[str, Any], note: str) -> Path:
@@ -189,6 +255,14 @@ class Security:
 
     def router(self, listen: list[str]) -> Path:
         return self.write("router", self.profile("router", "router", [], listen), "the launcher's router")
+
+    def gateway(self) -> Path:
+        """The operator gateway's configuration: a router on :attr:`gateway_endpoints`, linked to the
+        control router, trusting both CAs (the run's, for that link; the operator CA, for tools)."""
+        conf = self.profile(GATEWAY, "router", [self.router_endpoint], self.gateway_endpoints,
+                            root="gateway-ca.crt", access=self.gateway_access, limits=self.gateway_limits)
+        conf["scouting"]["gossip"] = {"enabled": False}  # not advertised: a mesh's peers link to the control router
+        return self.write(GATEWAY, conf, "the operator gateway (python -m deploy.router --idle)")
 
     def child(self, role: str, nid: int, connect: str, listen: str | None = None) -> Path:
         """The configuration file of child ``role``/``nid``, connecting to ``connect`` (the router, or
@@ -209,25 +283,73 @@ def prepare(m: ms.Mission, ns: str, out: Path, members: list[tuple[str, int]], r
         shutil.rmtree(d)
     d.mkdir(parents=True)
     d.chmod(0o700)
-    access = acl.access_control(grants(m, ns), ns)
-    sec = Security(d.resolve(), ns, lease, access, router_endpoint, limits=limits)
-    router_hosts = ["127.0.0.1", *(h for ep in listen if (h := _host_of(ep)) is not None)]
+    access = acl.access_control(router_grants(m, ns), ns)
+    sec = Security(d.resolve(), ns, lease, access, router_endpoint, limits=limits,
+                   gateway_access=acl.access_control(gateway_grants(m, ns), ns),
+                   gateway_limits=ingress_limits(m, ns, streams=False),
+                   gateway_endpoints=list(listen) or [f"tls/127.0.0.1:{tp.free_tcp_port()}"])
+    gateway_hosts = ["127.0.0.1", *(h for ep in listen if (h := _host_of(ep)) is not None)]
     with tempfile.TemporaryDirectory(prefix="tether-ca-") as tmp:
-        ca = pki.make_ca(Path(tmp), f"tether run {ns} CA", CERT_DAYS)
+        ca = pki.make_ca(Path(tmp) / "run", f"tether run {ns} CA", CERT_DAYS)
+        operator_ca = pki.make_ca(Path(tmp) / "operator", f"tether run {ns} operator CA", CERT_DAYS)
         shutil.copyfile(ca.cert, d / "ca.crt")
-        who = [("router", router_hosts), ("control-0", ["127.0.0.1"]),
-               *((name_of(r, i), ["127.0.0.1"]) for r, i in members)]
+        shutil.copyfile(operator_ca.cert, d / "operator-ca.crt")
+        (d / "gateway-ca.crt").write_text(ca.cert.read_text() + operator_ca.cert.read_text())
+        who = [(ca, "router", ["127.0.0.1"]), (ca, GATEWAY, gateway_hosts), (operator_ca, OPERATOR, ["127.0.0.1"]),
+               *((ca, name_of(r, i), ["127.0.0.1"]) for r, i in members)]
         with ThreadPoolExecutor(max_workers=4) as pool:  # openssl runs in its own process: overlap them
-            for f in [pool.submit(pki.issue_one_step, ca, d, name, acl.common_name(name, ns), hosts, CERT_DAYS)
-                      for name, hosts in who]:
+            for f in [pool.submit(pki.issue_one_step, by, d, name, acl.common_name(name, ns), hosts, CERT_DAYS)
+                      for by, name, hosts in who]:
                 f.result()
-    # the CA's key is gone with the temporary directory: nothing else can be signed for this run
-    sec.router([router_endpoint, *listen])
-    operator_to = listen[0] if listen else router_endpoint
-    if operator_to.startswith("tls/") and _host_of(operator_to) is None:
+    # the CAs' keys are gone with the temporary directory: nothing else can be signed for this run
+    sec.router([router_endpoint])
+    sec.gateway()
+    operator_to = sec.gateway_endpoints[0]
+    if _host_of(operator_to) is None:
         operator_to = "tls/127.0.0.1:" + operator_to.rsplit(":", 1)[1]
-    sec.write("control-0", sec.profile("control-0", "client", [operator_to], []),
+    sec.write(OPERATOR, sec.profile(OPERATOR, "client", [operator_to], []),
               "the operator identity: tether land|estop|netem-set --zenoh-config THIS_FILE")
     sec.identities = len(who)
     sec.seconds = time.monotonic() - t0
     return sec
+
+
+GATEWAY_UP = "listening on"
+"""What ``deploy/router.py`` logs once it listens and is linked to the control router."""
+
+
+def start_gateway(sec: Security, log_path: Path, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    """Start the operator gateway (``python -m deploy.router --idle``) of ``sec``, logging to
+    ``log_path``. It links to the control router, which must be listening already. Does not wait:
+    see :func:`wait_gateway`. The caller stops it (SIGTERM)."""
+    with open(log_path, "wb") as fh:
+        return subprocess.Popen([sys.executable, "-m", "deploy.router", "--idle", "--watch-pid", str(os.getpid()),
+                                 "--config", str(sec.configs[GATEWAY])], stdin=subprocess.DEVNULL, stdout=fh,
+                                stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+async def wait_gateway(proc: subprocess.Popen[bytes], log_path: Path, timeout: float) -> None:
+    """Return once the gateway listens and is linked to the control router; ``RuntimeError`` with
+    its log's last lines if it exits or does not within ``timeout`` [s]."""
+    deadline = time.monotonic() + timeout
+    while True:
+        text = log_path.read_text(errors="replace") if log_path.exists() else ""
+        if GATEWAY_UP in text:
+            return
+        if proc.poll() is not None or time.monotonic() > deadline:
+            why = f"exited with {proc.returncode}" if proc.poll() is not None else f"not up after {timeout:g} s"
+            tail = "\n".join(text.splitlines()[-5:])
+            raise RuntimeError(f"the operator gateway {why} ({log_path}):\n{tail}")
+        await asyncio.sleep(0.05)
+
+
+def stop_gateway(proc: subprocess.Popen[bytes], grace: float = 5.0) -> int:
+    """SIGTERM the gateway, SIGKILL it after ``grace`` [s]; its exit status."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode

@@ -6,7 +6,13 @@ control like zenohd would, and declares nothing itself.
 
     python -m deploy.router --config /etc/tether/router.json5
 
-Prints one line ``router <zid> listening on <endpoints>`` on stderr once it listens. Exit status:
+``--idle`` runs it at the lowest CPU priority the kernel grants without privileges (``SCHED_IDLE``,
+or else nice 19): ``tether run``'s operator gateway (``deploy/localtls.py``), whose links carry no
+control traffic, so that what a flood of them costs to decrypt and check is taken from idle time,
+not from the control loops.
+
+Prints one line ``router <zid> listening on <endpoints>`` on stderr once it listens (and, with
+``connect`` endpoints and ``exit_on_failure``, once it is linked to them). Exit status:
 0 stopped by SIGTERM/SIGINT, 1 Zenoh could not open (address in use, bad certificate, ...), 2 bad
 configuration (not a router configuration, unreadable file).
 """
@@ -16,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -44,8 +51,21 @@ def check_router_config(path: str) -> list[str]:
     return list(endpoints)
 
 
-def serve(path: str) -> int:
-    """Run the router of configuration ``path`` until SIGTERM or SIGINT; returns the exit status.
+def lower_priority() -> str:
+    """Put this process (and the threads it starts from now on) at the lowest CPU priority:
+    ``SCHED_IDLE`` (runs only when no normal process wants the CPU; allowed unprivileged since
+    Linux 2.6.39), else nice 19. Returns what was applied, for the log."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return "SCHED_IDLE"
+    except (AttributeError, OSError):
+        os.nice(19 - os.nice(0))
+        return f"nice {os.nice(0)}"
+
+
+def serve(path: str, watch_pid: int | None = None) -> int:
+    """Run the router of configuration ``path`` until SIGTERM or SIGINT (or, with ``watch_pid``, until
+    its parent, of that id, is gone); returns the exit status.
 
     Blocks. Python's handlers for the stop signals only set an event, which the main thread checks
     at least once a second, so the session is always closed whichever thread the signal hit."""
@@ -65,9 +85,12 @@ def serve(path: str) -> int:
     try:
         with tp.open_session(tp.ZenohSettings(config_file=path)) as session:
             log.info("router %s listening on %s", session.info.zid(), ", ".join(endpoints))
-            while not stop.wait(1.0):
-                pass
-            log.info("stopping on %s", signal.Signals(got[0]).name)
+            while not stop.wait(0.5 if watch_pid else 1.0):
+                if watch_pid and os.getppid() != watch_pid:
+                    log.warning("process %d, which started this router, is gone: stopping", watch_pid)
+                    break
+            else:
+                log.info("stopping on %s", signal.Signals(got[0]).name)
     except tp.TransportError as exc:
         log.error("%s", exc)
         return 1
@@ -80,6 +103,10 @@ def serve(path: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m deploy.router", description=__doc__.splitlines()[0])
     p.add_argument("--config", required=True, help="the router's Zenoh JSON5 file (router.json5 from tether deploy-gen)")
+    p.add_argument("--idle", action="store_true",
+                   help="run at the lowest CPU priority (SCHED_IDLE, else nice 19): a router of non-control links")
+    p.add_argument("--watch-pid", type=int, default=None,
+                   help="stop when the process of this id, which started this router, is gone")
     p.add_argument("--log-level", default="INFO")
     return p
 
@@ -88,7 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s router: %(message)s")
-    return serve(args.config)
+    if args.idle:
+        log.info("CPU priority: %s", lower_priority())
+    return serve(args.config, args.watch_pid)
 
 
 if __name__ == "__main__":

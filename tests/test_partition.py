@@ -327,3 +327,45 @@ def test_a_cut_vehicle_is_seen_gone_and_back_and_rejoins_the_formation(tmp_path:
             w = during(a, b)
             print(f"[{a:5.2f}, {b:5.2f}] s: max ||xi_3|| {peak(xi3, w)}, ||xi_4|| {peak(xi4, w)}, "
                   f"|e_32| {peak(pair32, w)}, |p_i - h_i - p_L| per agent {peak(track, w)}")
+
+
+# =========================================================================== a stall's backlog, recorded
+STALL_AT, STALL_FOR = 3.0, 1.0
+"""Mission time [s] of a stall of agent 3's link, and its length: shorter than the launcher's 2 s
+lease, so that the link survives and the bytes held meanwhile arrive at once when it heals."""
+BACKLOG_SHARE = 0.9
+"""Of agent 3's telemetry from the stall to 1 s after it, at least this share must be recorded
+(measured: 201 of 201, and 66 of 201 while the stream carried an ingress limit; a loaded machine may
+lose a few samples of any DROP stream)."""
+
+
+def test_the_backlog_a_healed_link_releases_reaches_the_recording_whole(tmp_path: Path) -> None:
+    """``--fault partition:agent/3@3+1``: the launcher's relay holds agent 3's link for 1 s, then
+    releases the held bytes at once, a burst of about 100 telemetry samples within milliseconds.
+    Zenoh's downsampling would keep one per window of that burst; agent telemetry, which only the
+    recorder hears, carries no ingress limit (``deploy/localtls.py``, ``recorder_only``), so the
+    recording keeps it. Authenticated (the default): the relay passes TLS through. The keys the
+    control loops hear keep their limits (asserted on the launcher's configuration)."""
+    ns = f"stall-{os.getpid()}"
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "cli", "run", "section4", "--clock", "realtime", "--duration", "8",
+                        "--fault", f"partition:agent/{VEHICLE}@{STALL_AT:g}+{STALL_FOR:g}", "--out", str(out),
+                        "--ns", ns, "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=STARTUP + 60)
+    assert (out / "run.npz").exists(), r.stderr[-3000:]
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    fired = msgspec.json.decode((out / "faults.json").read_bytes())[0]["fired"]
+    run = Run.load(out)
+    i3 = list(run.agent_ids).index(VEHICLE)
+    window = (run.t >= fired) & (run.t <= fired + STALL_FOR + 1.0)
+    got = int((~np.isnan(run.xi[window, i3, 0])).sum())
+    print(f"\nstall of agent {VEHICLE} at {fired:.2f} s for {STALL_FOR:g} s: {got} of {int(window.sum())} of its "
+          f"telemetry samples from the stall to 1 s after recorded; the run {run.meta.samples_recorded} of "
+          f"{run.meta.samples_expected}; exit status {r.returncode}")
+    assert got >= BACKLOG_SHARE * window.sum(), f"{got} of {int(window.sum())} recorded"
+    # what the launcher's router limits: every key a control loop hears, not the recorder's own
+    router = msgspec.json.decode((out / "tls" / "router.json5").read_text().split("\n", 1)[1])
+    limited = {rule["key_expr"] for item in router["downsampling"] for rule in item["rules"]}
+    keys = wire.Keys(ns)
+    assert {keys.topic("agent", VEHICLE, "state"), keys.topic("agent", VEHICLE, "cmd"),
+            keys.topic("plant", VEHICLE, "state"), keys.safety} <= limited
+    assert keys.topic("agent", VEHICLE, "telemetry") not in limited

@@ -67,7 +67,15 @@ def test_a_default_run_admits_only_its_own_identities_and_the_operator_lands_it(
         assert all((k.stat().st_mode & 0o077) == 0 for k in tls.glob("*.key"))
         assert "identities made in" in run.launcher_log and "--insecure" not in run.launcher_log
         port = attach.rsplit(":", 1)[1]
+        router = msgspec.json.decode((tls / "router.json5").read_text().split("\n", 1)[1])["listen"]["endpoints"]
+        assert attach not in router  # --listen is the operator gateway's, not the control router's
         attempts = {
+            # the operator's certificate is signed by the operator CA, which the control router does not trust:
+            # a tool holding it, flooding or not, reaches the run through the gateway only
+            "the operator identity at the control router": tp.ZenohSettings(
+                mode="client", connect=(router[0],), tls=tp.TlsFiles(
+                    root_ca_certificate=str(tls / "ca.crt"), connect_certificate=str(tls / "control-0.crt"),
+                    connect_private_key=str(tls / "control-0.key"), enable_mtls=True)),
             "plain TCP": tp.ZenohSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",)),
             "TLS without a client certificate": tp.ZenohSettings(
                 mode="client", connect=(attach,), tls=tp.TlsFiles(root_ca_certificate=str(tls / "ca.crt"))),
@@ -155,6 +163,32 @@ class FloodPair(NamedTuple):
     """Samples each agent dropped, flooded run."""
     clean_drops: np.ndarray
     """Samples each agent dropped, clean run."""
+    unfit: str | None
+    """Why this pair cannot measure the flood (the machine could not fly the mission), or None."""
+
+
+ATTEMPTS = 3
+"""Pairs flown at most, until one in which the machine could fly the mission (:func:`_unfit`)."""
+BEFORE = (2.0, FLOOD_FROM - 0.5)
+"""Mission time [s] before the flood (the flooder is starting up), checked in both runs of a pair."""
+FIT = 0.10
+"""A run is the mission as flown when its formation error is within this share of the reference
+simulator's: the clean run over the flood's window and before it, the flooded run before it."""
+
+
+def _unfit(clean: Run, flooded: Run, ideal: Run) -> str | None:
+    """Why a pair cannot tell what the flood did, or None. A clean run the machine's load degraded by
+    itself is no measure of the flood; nor is a flooded run that was already off before the flood
+    began (other work on this shared machine starving its processes, not the flood)."""
+    since, until = FLOOD_FROM + 1.0, FLOOD_FROM + FLOOD_FOR
+    checks = (("the clean run", clean, since, until), ("the clean run, before the flood", clean, *BEFORE),
+              ("the flooded run, before the flood", flooded, *BEFORE))
+    for what, run, a, b in checks:
+        got, want = formation_error(run, a, b), formation_error(ideal, a, b)
+        if abs(got - want) > FIT * want:
+            return (f"{what} is {100 * (got / want - 1):+.0f} % off the reference simulator over {a:g}..{b:g} s "
+                    f"({got:.4f} m vs {want:.4f} m): the machine was too loaded for a real-time comparison")
+    return None
 
 
 @pytest.fixture(scope="module")
@@ -162,55 +196,56 @@ def flood_pair(tmp_path_factory: pytest.TempPathFactory) -> FloodPair:
     """The same mission twice, one after the other (two at once overload this machine, flood or not):
     clean, then flooded with junk on the order key, which every agent and plant subscribes to, from mission
     time FLOOD_FROM for FLOOD_FOR seconds. The flooder runs at the lowest priority (an attacker
-    elsewhere: its messages, not its CPU, are tested). Compared from the flood's second second on."""
+    elsewhere, as far as one process on the same two cores can be: its messages are what is tested, and
+    what CPU it still takes counts against the machine). Compared from the flood's second second on.
+    A pair in which the machine could not fly the mission (:func:`_unfit`, checked before and apart
+    from the flood's window of the flooded run) is flown again, ATTEMPTS times at most; the last pair
+    is returned either way, and the tests fail on an unfit one naming why."""
     tmp_path = tmp_path_factory.mktemp("flood")
-    ns = f"flood-{os.getpid()}"
-    clean, clean_report = _flight(tmp_path / "clean", f"{ns}-clean", flood=False)
-    flooded, report = _flight(tmp_path / "flooded", f"{ns}-flooded", flood=True)
+    ideal_run = refsim.simulate(load_mission(SECTION4, 20.0))
     since, until = FLOOD_FROM + 1.0, FLOOD_FROM + FLOOD_FOR
-    got, want = formation_error(flooded, since, until), formation_error(clean, since, until)
-    ideal = formation_error(refsim.simulate(load_mission(SECTION4, 20.0)), since, until)
-    drops = np.nanmax(flooded.runtime.drops, axis=0)  # per agent, since the start
-    clean_drops = np.nanmax(clean.runtime.drops, axis=0)
-    print(f"\nflood: {report} on control/0/safety; reached and dropped by each agent: {drops.astype(int).tolist()}; "
-          f"formation error (RMS of ||xi_i|| over agents and ticks, t = {since:g}..{until:g} s): flooded {got:.4f} m, "
-          f"clean {want:.4f} m ({clean_report}) ({100 * (got / want - 1):+.1f} %), reference simulator "
-          f"{ideal:.4f} m; envelopes (max): flooded {envelope(flooded, since):.4f} m, clean "
-          f"{envelope(clean, since):.4f} m")
-    return FloodPair(got, want, ideal, drops, clean_drops)
+    ideal = formation_error(ideal_run, since, until)
+    for attempt in range(1, ATTEMPTS + 1):
+        ns = f"flood-{os.getpid()}-{attempt}"
+        clean, clean_report = _flight(tmp_path / f"clean-{attempt}", f"{ns}-clean", flood=False)
+        flooded, report = _flight(tmp_path / f"flooded-{attempt}", f"{ns}-flooded", flood=True)
+        got, want = formation_error(flooded, since, until), formation_error(clean, since, until)
+        drops = np.nanmax(flooded.runtime.drops, axis=0)  # per agent, since the start
+        clean_drops = np.nanmax(clean.runtime.drops, axis=0)
+        unfit = _unfit(clean, flooded, ideal_run)
+        print(f"\nflood (pair {attempt}, {os.getloadavg()[0]:.1f} load average): {report} on control/0/safety; reached "
+              f"and dropped by each agent: {drops.astype(int).tolist()}; formation error (RMS of ||xi_i|| over agents and "
+              f"ticks, t = {since:g}..{until:g} s): flooded {got:.4f} m, clean {want:.4f} m ({clean_report}) "
+              f"({100 * (got / want - 1):+.1f} %), reference simulator {ideal:.4f} m; envelopes (max): flooded "
+              f"{envelope(flooded, since):.4f} m, clean {envelope(clean, since):.4f} m"
+              + ("" if unfit is None else f"; unfit: {unfit}"))
+        if unfit is None:
+            break
+    return FloodPair(got, want, ideal, drops, clean_drops, unfit)
 
 
 def _clean_is_the_mission(r: FloodPair) -> None:
     # the clean run must be the mission as flown (it is, on a machine with the CPU for 10 processes at
-    # 100 Hz: within 0.1 % of the reference simulator); one the machine's load degraded by itself is
-    # no measure of what the flood did
-    want, ideal = r.want, r.ideal
-    assert abs(want - ideal) <= 0.10 * ideal, (f"the clean run itself is {100 * (want / ideal - 1):+.0f} % off the "
-                                               f"reference simulator ({want:.4f} m vs {ideal:.4f} m): the machine "
-                                               "was too loaded for a real-time comparison")
+    # 100 Hz: within 0.1 % of the reference simulator), and the flooded one before the flood too
+    assert r.unfit is None, f"in each of {ATTEMPTS} pairs, {r.unfit}"
 
 
 def test_a_flood_is_kept_off_the_control_loops(flood_pair: FloodPair) -> None:
-    """What the access rules and the per-link ingress limits guarantee, on any machine: the flood
-    reaches every agent only at the order key's limit (CONTROL_RATE a second, rejected and counted,
-    where the incident let 255 000 a second into the control loop), and the formation is not lost:
-    within 3x of the clean run (the incident: 16x), on a machine too busy for the 10 % below."""
+    """What the access rules and the per-link ingress limits guarantee: the flood reaches every agent
+    only at the order key's limit (CONTROL_RATE a second, rejected and counted, where the incident let
+    255 000 a second into the control loop), and the formation is not lost."""
     _clean_is_the_mission(flood_pair)
     drops = flood_pair.drops - flood_pair.clean_drops
     assert (flood_pair.drops > 0).all()  # the flood did reach every agent (rejected and counted)
     limit = 2 * localtls.CONTROL_RATE * FLOOD_FOR  # per agent: one flooding link, twice the limit's share
     assert (drops <= limit).all(), f"rejected per agent {drops.tolist()} > {limit:g}: the ingress limit let more in"
-    got, want = flood_pair.got, flood_pair.want
-    assert got <= 3.0 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
 
 
-@pytest.mark.xfail(strict=False, reason="not met reliably on two cores: +0.1 % and +26 % in two runs with the machine "
-                   "otherwise idle, +62 % beside other work; the router's TLS and per-message work and the flooder "
-                   "take CPU before the limits act (docs/deploy.md, 'The flood test and its statistic')")
 def test_a_flood_on_every_process_input_leaves_the_formation_error_within_10_percent(
         flood_pair: FloodPair) -> None:
-    """|flooded - clean| <= 10 % of clean, RMS of ||xi_i|| over 7..14 s: met with the machine's two
-    cores otherwise idle; not with other real-time runs beside it (docs/deploy.md)."""
+    """|flooded - clean| <= 10 % of clean, RMS of ||xi_i|| over 7..14 s. The flood comes through the
+    operator gateway, which runs at SCHED_IDLE (``deploy/localtls.py``): what its messages cost to
+    decrypt and check is taken from idle CPU, not from the control loops (docs/deploy.md)."""
     _clean_is_the_mission(flood_pair)
     got, want = flood_pair.got, flood_pair.want
     assert abs(got - want) <= 0.10 * want, f"flooded {got:.4f} m vs clean {want:.4f} m"
