@@ -28,6 +28,18 @@ def _chunks(steps: int) -> list[tuple[int, int]]:
     return [(k, min(k + every, steps + 1)) for k in range(0, steps + 1, every)]
 
 
+PARALLEL_FROM = 512
+"""The smallest swarm whose discrete steps are split across numba's threads (below, a tick's work
+is shorter than waking a thread)."""
+
+
+def threads(n: int) -> int:
+    """How many blocks of agents a discrete step of ``n`` agents is split into: numba's thread count
+    (``NUMBA_NUM_THREADS``, all cores by default) from :data:`PARALLEL_FROM` agents, else 1."""
+    import numba
+    return numba.get_num_threads() if n >= PARALLEL_FROM else 1
+
+
 def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
     """:func:`sim.refsim.simulate`'s discrete mode, bit for bit."""
     from agent import law
@@ -38,22 +50,28 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
     ticks = np.arange(steps + 1)
     lp, lv, la = s.ref(ticks * h)
     lp, lv, la = (np.array(np.broadcast_to(x, (steps + 1, d)), dtype=float, order="C") for x in (lp, lv, la))
-    pos, vel, acc = np.zeros((2, n + 1, d)), np.zeros((2, n + 1, d)), np.zeros((2, n + 1, d))
-    pos[0, :n], vel[0, :n] = s.p0, s.v0
-    meas = np.zeros((n, d))
-    gains = np.ascontiguousarray(np.stack([np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]), dtype=float)
+    # structure of arrays, axis first (see kernel.discrete)
+    pos, vel, acc = np.zeros((2, d, n + 1)), np.zeros((2, d, n + 1)), np.zeros((2, d, n + 1))
+    pos[0, :, :n], vel[0, :, :n] = s.p0.T, s.v0.T
+    meas = np.zeros((d, n))
+    gains = np.ascontiguousarray(np.stack([np.broadcast_to(prm.kp0, (n, d)).T, np.broadcast_to(prm.kv0, (n, d)).T]),
+                                 dtype=float)
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     kept = ticks if record else ticks[-1:]
     run.t[:] = kept * h
     run.leader_p[:], run.leader_v[:], run.leader_a[:] = lp[kept], lv[kept], la[kept]
     slot_w = np.ascontiguousarray(topo.slot_weight[:, :, 0])
-    bank = kernel.bank_arrays(s.dist)
+    bank = tuple(np.ascontiguousarray(x.T) if isinstance(x, np.ndarray) and x.ndim == 2 else x
+                 for x in kernel.bank_arrays(s.dist))
+    swd = np.ascontiguousarray(s.sum_wdelta.T)
     feed = _FEED[m.law.feedforward]
+    blocks = threads(n)
+    step = kernel.discrete if blocks == 1 else kernel.discrete_parallel
     for k0, k1 in _chunks(steps):
-        kernel.discrete(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, s.sum_wdelta,
-                        feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
-                        pos, vel, acc, meas, gains, *bank, *_outputs(run))
+        step(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, swd,
+             feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
+             pos, vel, acc, meas, gains, *bank, *_outputs(run), blocks)
         if progress is not None and k1 <= steps:
             progress(k0, steps)
     if progress is not None:
