@@ -28,20 +28,9 @@ def _chunks(steps: int) -> list[tuple[int, int]]:
     return [(k, min(k + every, steps + 1)) for k in range(0, steps + 1, every)]
 
 
-PARALLEL_FROM = 512
-"""The smallest swarm whose discrete steps are split across numba's threads (below, a tick's work
-is shorter than waking a thread)."""
-
-
-def threads(n: int) -> int:
-    """How many blocks of agents a discrete step of ``n`` agents is split into: numba's thread count
-    (``NUMBA_NUM_THREADS``, all cores by default) from :data:`PARALLEL_FROM` agents, else 1."""
-    import numba
-    return numba.get_num_threads() if n >= PARALLEL_FROM else 1
-
-
-def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
-    """:func:`sim.refsim.simulate`'s discrete mode, bit for bit."""
+def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta, threads: int = 1) -> Run:
+    """:func:`sim.refsim.simulate`'s discrete mode, bit for bit. ``threads > 1`` splits each tick's agents
+    into that many blocks computed on numba's threads (the same run bit for bit)."""
     from agent import law
 
     m, topo, prm = s.mission, s.topo, s.params
@@ -66,12 +55,13 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
                  for x in kernel.bank_arrays(s.dist))
     swd = np.ascontiguousarray(s.sum_wdelta.T)
     feed = _FEED[m.law.feedforward]
-    blocks = threads(n)
+    u_omega, u_phase, inv = kernel.sine_pairs(bank[2], bank[3])
+    blocks = max(1, min(threads, n))
     step = kernel.discrete if blocks == 1 else kernel.discrete_parallel
     for k0, k1 in _chunks(steps):
         step(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, swd,
              feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
-             pos, vel, acc, meas, gains, *bank, *_outputs(run), blocks)
+             pos, vel, acc, meas, gains, *bank, *_outputs(run), u_omega, u_phase, inv, blocks)
         if progress is not None and k1 <= steps:
             progress(k0, steps)
     if progress is not None:

@@ -80,6 +80,31 @@ def _jit_parallel(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 @_jit
+def _sines(k: int, lo: int, hi: int, steps: int, record: bool, h: float, has_sine: bool, zero_d: bool,
+           u_omega: np.ndarray, u_phase: np.ndarray, snu: np.ndarray, csu: np.ndarray) -> None:
+    """``sin`` and ``cos`` of ``omega (k h) + phase`` for the distinct pairs ``lo .. hi-1`` (see
+    :func:`sine_pairs`): the very operations of ``DisturbanceBank``, once per pair and not once per
+    agent and axis that has it (the same inputs give the same bits)."""
+    last = k == steps
+    if has_sine or ((record or last) and not zero_d):
+        tk = k * h
+        for u in range(lo, hi):
+            snu[u] = math.sin(u_omega[u] * tk + u_phase[u])
+        if has_sine and not last:
+            for u in range(lo, hi):
+                csu[u] = math.cos(u_omega[u] * tk + u_phase[u])
+
+
+def sine_pairs(omega: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct ``(omega, phase)`` pairs of ``(d, n)`` arrays, told apart by their bits (``-0.0``
+    is not ``0.0`` here), and each element's pair: ``u_omega, u_phase`` ``(U,)``, ``inv`` ``(d, n)``."""
+    bits = np.stack([omega.ravel(), phase.ravel()], axis=1).view(np.int64)
+    _, first, inv = np.unique(bits, axis=0, return_index=True, return_inverse=True)
+    return (np.ascontiguousarray(omega.ravel()[first]), np.ascontiguousarray(phase.ravel()[first]),
+            np.ascontiguousarray(inv.reshape(omega.shape), dtype=np.intp))
+
+
+@_jit
 def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: float,
            kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray,
            feed: int, decay: float, gp_gain: float, gv_gain: float,
@@ -90,7 +115,7 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
            out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
            out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray,
            sp: np.ndarray, sv: np.ndarray, sa: np.ndarray, dvb: np.ndarray, dpb: np.ndarray,
-           snb: np.ndarray, csb: np.ndarray) -> None:
+           snb: np.ndarray, csb: np.ndarray, inv: np.ndarray, snu: np.ndarray, csu: np.ndarray) -> None:
     """Tick k of agents ``lo .. hi-1``, axis by axis: the neighbour sums slot by slot (as
     :func:`tether.graph.neighbour_sums`), the disturbance increments, then the law, the gains and
     the plant element-wise. Reads tick k's half of the double buffers, writes tick k+1's half and
@@ -103,7 +128,6 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
     r = k if record else 0
     last = k == steps
     zero_d = not (has_sine or has_random or has_const)
-    tk = k * h
     # every loop below runs over a zero-based view of rows lo .. hi and stores into one array:
     # LLVM then vectorises it across agents (its aliasing checks stay few, no negative-index fix-up)
     m = hi - lo
@@ -138,15 +162,15 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
                 if feed != 2:
                     for i in range(m):
                         us[i] += ws[i] * ac[src[i]]
-        # DisturbanceBank.increments(k), term by term (and the sines again for value(k))
+        # DisturbanceBank.increments(k), term by term (and the sines again for value(k)), each
+        # sine and cosine that of the agent's own (omega, phase), computed once by _sines
         if has_sine or (keep and not zero_d):
-            om = omega[c, lo:hi]
-            ph = phase[c, lo:hi]
+            iv = inv[c, lo:hi]
             for i in range(m):
-                sns[i] = math.sin(om[i] * tk + ph[i])
+                sns[i] = snu[iv[i]]
             if has_sine and not last:
                 for i in range(m):
-                    css[i] = math.cos(om[i] * tk + ph[i])
+                    css[i] = csu[iv[i]]
         if not last:
             if has_random or has_const:
                 cn = const[c, lo:hi]
@@ -248,7 +272,7 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
              has_sine: bool, has_random: bool, has_const: bool,
              out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
              out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray,
-             blocks: int) -> None:
+             u_omega: np.ndarray, u_phase: np.ndarray, inv: np.ndarray, blocks: int) -> None:
     """Ticks ``k0 .. k1-1`` of the discrete mode (``feed``: 0 measured, 1 commanded, 2 none), on
     one thread (``blocks`` is :func:`discrete_parallel`'s, unused here).
 
@@ -259,16 +283,21 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
     d, n = meas.shape
     buf = np.empty((7, n))
     sp, sv, sa, dvb, dpb, snb, csb = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6]
+    pairs = u_omega.shape[0]
+    snu = np.empty(pairs)
+    csu = np.empty(pairs)
+    zero_d = not (has_sine or has_random or has_const)
     for k in range(k0, k1):
         cur = k & 1
         for c in range(d):
             pos[cur, c, n] = lp[k, c]
             vel[cur, c, n] = lv[k, c]
             acc[cur, c, n] = la[k, c]
+        _sines(k, 0, pairs, steps, record, h, has_sine, zero_d, u_omega, u_phase, snu, csu)
         _block(k, 0, n, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, decay, gp_gain, gv_gain,
                pos, vel, acc, meas, gains, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
                has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
-               out_d, sp, sv, sa, dvb, dpb, snb, csb)
+               out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu)
 
 
 @_jit_parallel
@@ -282,13 +311,18 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
                       has_sine: bool, has_random: bool, has_const: bool,
                       out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray,
                       out_xi: np.ndarray, out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray,
-                      out_d: np.ndarray, blocks: int) -> None:
+                      out_d: np.ndarray, u_omega: np.ndarray, u_phase: np.ndarray, inv: np.ndarray,
+                      blocks: int) -> None:
     """:func:`discrete` with each tick's agents split into ``blocks`` runs of agents (multiples of
     8) computed on numba's threads (``prange``); an agent's arithmetic does not depend on the
     split, so the run is the same bit for bit."""
     d, n = meas.shape
     buf = np.empty((7, n))
     sp, sv, sa, dvb, dpb, snb, csb = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6]
+    pairs = u_omega.shape[0]
+    snu = np.empty(pairs)
+    csu = np.empty(pairs)
+    zero_d = not (has_sine or has_random or has_const)
     size = ((n + blocks - 1) // blocks + 7) // 8 * 8
     for k in range(k0, k1):
         cur = k & 1
@@ -296,13 +330,19 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
             pos[cur, c, n] = lp[k, c]
             vel[cur, c, n] = lv[k, c]
             acc[cur, c, n] = la[k, c]
+        if pairs >= 64 * blocks:
+            for b in numba.prange(blocks):
+                _sines(k, b * pairs // blocks, (b + 1) * pairs // blocks, steps, record, h, has_sine, zero_d,
+                       u_omega, u_phase, snu, csu)
+        else:
+            _sines(k, 0, pairs, steps, record, h, has_sine, zero_d, u_omega, u_phase, snu, csu)
         for b in numba.prange(blocks):
             lo = min(b * size, n)
             hi = min(lo + size, n)
             _block(k, lo, hi, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, decay, gp_gain, gv_gain,
                    pos, vel, acc, meas, gains, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
                    has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
-                   out_d, sp, sv, sa, dvb, dpb, snb, csb)
+                   out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu)
 
 
 def stage_times(k0: int, k1: int, h: float, substeps: int) -> np.ndarray:
