@@ -438,6 +438,13 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     b = np.empty((n, d))
     sin0 = np.empty((n, d))
     cos0 = np.empty((n, d))
+    size = y.size
+    yf = y.reshape(size)
+    tmpf = tmp.reshape(size)
+    k1f = k1s.reshape(size)
+    k2f = k2s.reshape(size)
+    k3f = k3s.reshape(size)
+    k4f = k4s.reshape(size)
     for k in range(k0, k1):
         q = k - k0
         t = k * h
@@ -469,31 +476,22 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                 _dist_at(times[q, j, 0], 2 * j, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
                 _rhs(y, ref_p[q, j, 0], ref_v[q, j, 0], ref_a[q, j, 0], kappa, slot_src, slot_w, swd, a_lead,
                      l1_inv, gamma_p, gamma_v, sigma, d0, k1s, xi, zeta, b)
-            for g in range(4):
-                for i in range(n):
-                    for c in range(d):
-                        tmp[g, i, c] = y[g, i, c] + 0.5 * hf * k1s[g, i, c]
+            for e in range(size):
+                tmpf[e] = yf[e] + 0.5 * hf * k1f[e]
             _dist_at(times[q, j, 1], 2 * j + 1, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, dh)
             _rhs(tmp, ref_p[q, j, 1], ref_v[q, j, 1], ref_a[q, j, 1], kappa, slot_src, slot_w, swd, a_lead,
                  l1_inv, gamma_p, gamma_v, sigma, dh, k2s, xi, zeta, b)
-            for g in range(4):
-                for i in range(n):
-                    for c in range(d):
-                        tmp[g, i, c] = y[g, i, c] + 0.5 * hf * k2s[g, i, c]
+            for e in range(size):
+                tmpf[e] = yf[e] + 0.5 * hf * k2f[e]
             _rhs(tmp, ref_p[q, j, 1], ref_v[q, j, 1], ref_a[q, j, 1], kappa, slot_src, slot_w, swd, a_lead,
                  l1_inv, gamma_p, gamma_v, sigma, dh, k3s, xi, zeta, b)
-            for g in range(4):
-                for i in range(n):
-                    for c in range(d):
-                        tmp[g, i, c] = y[g, i, c] + hf * k3s[g, i, c]
+            for e in range(size):
+                tmpf[e] = yf[e] + hf * k3f[e]
             _dist_at(times[q, j, 2], 2 * j + 2, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
             _rhs(tmp, ref_p[q, j, 2], ref_v[q, j, 2], ref_a[q, j, 2], kappa, slot_src, slot_w, swd, a_lead,
                  l1_inv, gamma_p, gamma_v, sigma, d0, k4s, xi, zeta, b)
-            for g in range(4):
-                for i in range(n):
-                    for c in range(d):
-                        y[g, i, c] = y[g, i, c] + (hf / 6.0) * (k1s[g, i, c] + 2.0 * k2s[g, i, c]
-                                                               + 2.0 * k3s[g, i, c] + k4s[g, i, c])
+            for e in range(size):
+                yf[e] = yf[e] + (hf / 6.0) * (k1f[e] + 2.0 * k2f[e] + 2.0 * k3f[e] + k4f[e])
 
 
 def rotation_tables(omega: np.ndarray, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
