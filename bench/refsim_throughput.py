@@ -10,8 +10,9 @@ no two agents share a sine; then none), the sigma law. Prints, per engine
 of ``--repeats`` runs, and the ratio of the medians (of wall time, and of this process's CPU time:
 the figure to compare on a shared machine); then the same for the continuous mode (RK4,
 10 substeps) over ``--continuous-steps`` control steps. ``compiledx2``: the compiled discrete mode
-on two of numba's threads (``--threads``); its wall time is the figure to read, on a quiet machine. The compiled kernels' first call in a fresh
-process (import, compile or cache load) is printed apart, cold and warm, and never enters a median.
+on two of numba's threads (``--threads``); its wall time is the figure to read, on a quiet machine.
+The compiled kernels' first call in a fresh process (import, compile or cache load) is printed
+apart, cold and warm, and never enters a median.
 """
 
 from __future__ import annotations

@@ -8,7 +8,11 @@ arithmetic, operation for operation, agent by agent, without a numpy temporary p
   :meth:`plant.disturbance.DisturbanceBank.increments` and values of ``value``), each product and
   sum in the numpy path's order, so that its runs equal the numpy path's bit for bit
   (``tests/test_refsim.py``). Positions, velocities and shared accelerations are double-buffered
-  (``[k % 2]`` is tick k's), so one pass over the agents reads tick k and writes tick k+1.
+  (``[k % 2]`` is tick k's), so one pass over the agents reads tick k and writes tick k+1. The
+  arrays are laid out axis first and every loop stores into one array over a block of agents, so
+  that LLVM vectorises it across agents; each distinct ``(omega, phase)`` pair's sine and cosine is
+  computed once per tick (:func:`sine_pairs`). :func:`discrete_parallel` runs blocks of agents on
+  numba's threads.
 * :func:`continuous` is the continuous mode's RK4 with the algebraic loop through ``L1^{-1}``, every
   stage in the kernel; the leader's profile is evaluated by numpy beforehand at every stage time
   (:func:`stage_times`). The sinusoids are rotated from their phase at each control tick by the
