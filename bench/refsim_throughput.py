@@ -4,12 +4,15 @@
 
 Missions: N double integrators, 3D, the leader heard by agent 1, every other agent hearing one
 earlier agent (a random tree) plus one random extra in-edge (mean in-degree about 2), sinusoidal
-disturbances on every agent (and, as a second row, none), the sigma law. Prints, per engine
+disturbances on every agent (the same model on each; then each agent its own random phases, so that
+no two agents share a sine; then none), the sigma law. Prints, per engine
 (``numpy``: the reference code; ``compiled``: :mod:`sim.kernel`, numba), the median and the spread
 of ``--repeats`` runs, and the ratio of the medians (of wall time, and of this process's CPU time:
 the figure to compare on a shared machine); then the same for the continuous mode (RK4,
-10 substeps) over ``--continuous-steps`` control steps. The compiled kernels' first call in a fresh
-process (import, compile or cache load) is printed apart, cold and warm, and never enters a median.
+10 substeps) over ``--continuous-steps`` control steps. ``compiledx2``: the compiled discrete mode
+on two of numba's threads (``--threads``); its wall time is the figure to read, on a quiet machine.
+The compiled kernels' first call in a fresh process (import, compile or cache load) is printed
+apart, cold and warm, and never enters a median.
 """
 
 from __future__ import annotations
@@ -29,7 +32,9 @@ from tests.factories import build  # noqa: E402
 from sim import kernel, refsim  # noqa: E402
 
 
-def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):
+def mission(n: int, steps: int, seed: int = 0, disturbance: bool | str = True):
+    """``disturbance``: True the same sinusoid on every agent, ``"phases"`` each agent its own
+    random phases (every agent's sines distinct), False none."""
     rng = np.random.default_rng(seed)
     edges = {(n + 1, 1): 1.0}
     for i in range(2, n + 1):
@@ -39,7 +44,8 @@ def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):
             edges.setdefault((j, i), 0.5)
     sine = {"kind": "sinusoid", "amplitude": [0.3, 0.3, 0.1], "omega": [1.0, 2.0, 3.0]}
     agents = [{"id": i, "p0": rng.normal(0, 1, 3).tolist(), "offset": rng.normal(0, 1, 3).tolist(),
-               "disturbance": sine if disturbance else {"kind": "none"}}
+               "disturbance": ({**sine, "phase": rng.uniform(0, 6, 3).tolist()} if disturbance == "phases" else
+                               sine if disturbance else {"kind": "none"})}
               for i in range(1, n + 1)]
     return build({
         "version": 1, "name": f"bench{n}", "dim": 3, "rate": 100.0, "duration": steps / 100.0,
@@ -49,12 +55,13 @@ def mission(n: int, steps: int, seed: int = 0, disturbance: bool = True):
     })
 
 
-def rate(m, mode: str, engine: str, n: int, steps: int, repeats: int) -> tuple[list[float], list[float]]:
+def rate(m, mode: str, engine: str, n: int, steps: int, repeats: int,
+         threads: int = 1) -> tuple[list[float], list[float]]:
     """Agent-steps per second of wall time and per second of this process's CPU time, per repeat."""
     wall, cpu = [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        refsim.simulate(m, mode, engine=engine, record=False)
+        refsim.simulate(m, mode, engine=engine, record=False, threads=threads)
         wall.append(n * steps / (time.perf_counter() - t0))
         cpu.append(n * steps / max(time.process_time() - c0, 1e-9))
     return wall, cpu
@@ -78,6 +85,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--continuous-steps", type=int, default=200)
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+                    help="also run the compiled discrete mode on this many of numba's threads (1: only one)")
     args = ap.parse_args()
     engines = ["numpy"] + (["compiled"] if kernel.AVAILABLE else [])
     if kernel.AVAILABLE:
@@ -87,20 +96,25 @@ def main() -> None:
         print("numba is not installed: numpy path only (pip install 'tether[fast]')")
     for mode, steps in (("discrete", args.steps), ("continuous", args.continuous_steps)):
         print(f"\n{mode}, {steps} steps; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
-        print(f"{'N':>6} {'disturbance':>12} {'engine':>9} {'median agent-steps/s':>22} {'min':>10} {'max':>10} "
+        print(f"{'N':>6} {'disturbance':>12} {'engine':>11} {'median agent-steps/s':>20} {'min':>10} {'max':>10} "
               f"{'us/step':>9} {'ratio':>7} {'per CPU-s':>10} {'ratio':>7}")
-        for n, dist in [(n, dist) for n in args.sizes for dist in (True, False)]:
+        for n, dist in [(n, dist) for n in args.sizes for dist in (True, "phases", False)]:
             if mode == "continuous" and n > 100:
                 continue  # the numpy RK4 pays Python per stage: minutes at N = 1000
             m = mission(n, steps, disturbance=dist)
-            if "compiled" in engines:
-                refsim.simulate(m, mode, engine="compiled", record=False)  # warm (compiled, loaded)
+            runs = [(e, 1) for e in engines]
+            if "compiled" in engines and mode == "discrete":
+                runs += [("compiled", t) for t in args.threads if t > 1]
+            for engine, threads in runs[1:]:
+                refsim.simulate(m, mode, engine=engine, record=False, threads=threads)  # warm (compiled, loaded)
             base = cbase = None
-            for engine in engines:
-                rates, cpu = rate(m, mode, engine, n, steps, args.repeats)
+            for engine, threads in runs:
+                rates, cpu = rate(m, mode, engine, n, steps, args.repeats, threads)
                 med, cmed = statistics.median(rates), statistics.median(cpu)
                 base, cbase = base or med, cbase or cmed
-                print(f"{n:>6} {'sinusoid' if dist else 'none':>12} {engine:>9} {med:>22.3e} {min(rates):>10.2e} "
+                label = {True: "sinusoid", "phases": "sin, phases", False: "none"}[dist]
+                name = engine if threads == 1 else f"{engine}x{threads}"
+                print(f"{n:>6} {label:>12} {name:>11} {med:>20.3e} {min(rates):>10.2e} "
                       f"{max(rates):>10.2e} {1e6 * n / med:>9.2f} {med / base:>6.1f}x {cmed:>10.2e} "
                       f"{cmed / cbase:>6.1f}x")
 

@@ -28,8 +28,9 @@ def _chunks(steps: int) -> list[tuple[int, int]]:
     return [(k, min(k + every, steps + 1)) for k in range(0, steps + 1, every)]
 
 
-def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
-    """:func:`sim.refsim.simulate`'s discrete mode, bit for bit."""
+def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta, threads: int = 1) -> Run:
+    """:func:`sim.refsim.simulate`'s discrete mode, bit for bit. ``threads > 1`` splits each tick's agents
+    into that many blocks computed on numba's threads (the same run bit for bit)."""
     from agent import law
 
     m, topo, prm = s.mission, s.topo, s.params
@@ -38,22 +39,29 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
     ticks = np.arange(steps + 1)
     lp, lv, la = s.ref(ticks * h)
     lp, lv, la = (np.array(np.broadcast_to(x, (steps + 1, d)), dtype=float, order="C") for x in (lp, lv, la))
-    pos, vel, acc = np.zeros((2, n + 1, d)), np.zeros((2, n + 1, d)), np.zeros((2, n + 1, d))
-    pos[0, :n], vel[0, :n] = s.p0, s.v0
-    meas = np.zeros((n, d))
-    gains = np.ascontiguousarray(np.stack([np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]), dtype=float)
+    # structure of arrays, axis first (see kernel.discrete)
+    pos, vel, acc = np.zeros((2, d, n + 1)), np.zeros((2, d, n + 1)), np.zeros((2, d, n + 1))
+    pos[0, :, :n], vel[0, :, :n] = s.p0.T, s.v0.T
+    meas = np.zeros((d, n))
+    gains = np.ascontiguousarray(np.stack([np.broadcast_to(prm.kp0, (n, d)).T, np.broadcast_to(prm.kv0, (n, d)).T]),
+                                 dtype=float)
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     kept = ticks if record else ticks[-1:]
     run.t[:] = kept * h
     run.leader_p[:], run.leader_v[:], run.leader_a[:] = lp[kept], lv[kept], la[kept]
     slot_w = np.ascontiguousarray(topo.slot_weight[:, :, 0])
-    bank = kernel.bank_arrays(s.dist)
+    bank = tuple(np.ascontiguousarray(x.T) if isinstance(x, np.ndarray) and x.ndim == 2 else x
+                 for x in kernel.bank_arrays(s.dist))
+    swd = np.ascontiguousarray(s.sum_wdelta.T)
     feed = _FEED[m.law.feedforward]
+    u_omega, u_phase, inv = kernel.sine_pairs(bank[2], bank[3])
+    blocks = max(1, min(threads, n))
+    step = kernel.discrete if blocks == 1 else kernel.discrete_parallel
     for k0, k1 in _chunks(steps):
-        kernel.discrete(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, s.sum_wdelta,
-                        feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
-                        pos, vel, acc, meas, gains, *bank, *_outputs(run))
+        step(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, swd,
+             feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
+             pos, vel, acc, meas, gains, *bank, *_outputs(run), u_omega, u_phase, inv, blocks)
         if progress is not None and k1 <= steps:
             progress(k0, steps)
     if progress is not None:

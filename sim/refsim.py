@@ -95,6 +95,7 @@ def simulate(
     progress: Progress | None = None,
     on_tick: OnTick | None = None,
     engine: Engine = "auto",
+    threads: int = 1,
 ) -> Run:
     """Run a mission in one process. ``duration`` overrides the mission's (a whole number of periods).
 
@@ -103,6 +104,9 @@ def simulate(
     called after each recorded sample with the run and the sample's index (``--live``).
     ``engine``: ``"numpy"`` the reference code, ``"compiled"`` the kernels of :mod:`sim.kernel`
     (ValueError without numba), ``"auto"`` the kernels when they can run this mission.
+    ``threads``: the compiled discrete mode splits each tick's agents over that many of numba's
+    threads (``prange``; the same run bit for bit). Each tick ends on a barrier, so this pays only for
+    large swarms on cores nobody else is using; the default is one.
     """
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
@@ -115,7 +119,7 @@ def simulate(
         from sim import fast
         try:
             if mode == "discrete":
-                return fast.discrete(s, steps, record, progress, meta)
+                return fast.discrete(s, steps, record, progress, meta, threads)
             return fast.continuous(s, steps, substeps, record, progress, meta)
         except OSError as exc:
             # numba writes its compiled kernels to a cache on first use; a full or read-only disk
