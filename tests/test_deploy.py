@@ -749,9 +749,9 @@ BAD_HOSTS = [
     ('[[agents]]\nid = 1\naddress = "10.0.0.11"\n[[agents]]\nid = 2\naddress = "10.0.0.12"\n',
      "agents", "lacks agent 3"),
     ('[[agents]]\nid = 1\naddress = "a1"\n[[agents]]\nid = 2\naddress = "a2"\n[[agents]]\nid = 3\naddress = "a3"\n'
-     '[[agents]]\nid = 7\naddress = "a7"\n', "agents[3].id", "not an agent of mission 'trio'; use one of [1, 2, 3]"),
+     '[[agents]]\nid = 7\naddress = "a7"\n', "agent 7.id", "not an agent of mission 'trio'; use one of [1, 2, 3]"),
     ('[[agents]]\nid = 1\naddress = "a1"\n[[agents]]\nid = 1\naddress = "a2"\n[[agents]]\nid = 2\naddress = "a2"\n'
-     '[[agents]]\nid = 3\naddress = "a3"\n', "agents[1].id", "already listed as agents[0]"),
+     '[[agents]]\nid = 3\naddress = "a3"\n', "agent 1 (2nd [[agents]]).id", "listed twice"),
     ('[router]\naddress = "tls/10.0.0.1:7447"\n', "router.address", "no scheme, no port"),
     ('[router]\naddress = "10.0.0.1"\nport = 70000\n', "router.port", "1 to 65535"),
     ('network = "mesh"\n', "network", 'use "client" or "peer"'),
