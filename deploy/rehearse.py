@@ -503,7 +503,7 @@ def rehearse(deploy: Path, opts: Options) -> int:
                 for due in [x for x in heals if time.time() >= x[0]]:
                     heals.remove(due)
                     net.heal(due[1], due[2])
-                    due[3] |= {"heal_wall": time.time(), "heal_mission_time": time.time() - epoch}
+                    due[3].update(heal_wall=time.time(), heal_mission_time=time.time() - epoch)
                     log.warning("--partition %s: healed at mission time %.3f s", ":".join(due[3]["hosts"]),
                                 time.time() - epoch)
             if starter.done and starter.exits[-1][1] != 0:
