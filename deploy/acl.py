@@ -122,9 +122,11 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
-            serves=(k.topic("agent", aid, "netem"),),  # Node.netem_control: run-time netem changes
-            answers=(k.topic("agent", aid, "netem"), every_netem),
-            replies=(k.topic("agent", aid, "netem"),),  # its own key only: never a reply keyed for another
+            # Node.netem_control: run-time netem changes; plant/resume.py: its plant's last state
+            serves=(k.topic("agent", aid, "netem"), k.topic("agent", aid, "lastplant")),
+            answers=(k.topic("agent", aid, "netem"), every_netem, k.topic("agent", aid, "lastplant")),
+            # its own keys only: never a reply keyed for another
+            replies=(k.topic("agent", aid, "netem"), k.topic("agent", aid, "lastplant")),
         ))
         out.append(Grant(
             f"plant-{aid}",
@@ -133,6 +135,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             tokens=(k.token("plant", aid),),
             watch=(every_token,),
             sees=(k.token("agent", aid),),
+            asks=(k.topic("agent", aid, "lastplant"),),  # a restarted plant's last state (plant/resume.py)
         ))
     return out
 

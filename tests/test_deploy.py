@@ -555,7 +555,7 @@ def test_an_agent_can_answer_the_operators_query_only_for_itself(deployment: gen
     assert forged not in got
     assert {(KEYS.topic("agent", 2, "netem"), b"agent 2"), (KEYS.topic("agent", 3, "netem"), b"agent 3")} <= set(got)
     g = {x.name: x for x in acl.grants(ms.load(deployment.host_dir("agent-1") / "mission.toml"), "trio")}
-    assert all(grant.replies == (KEYS.topic("agent", int(name[6:]), "netem"),)
+    assert all(grant.replies == (KEYS.topic("agent", int(name[6:]), "netem"), KEYS.topic("agent", int(name[6:]), "lastplant"))
                for name, grant in g.items() if name.startswith("agent-"))
 
     # counter-check: through a router with the same profile but no access control, the forged reply arrives
