@@ -2,7 +2,11 @@
 
 A strict, versioned TOML schema (msgspec, unknown fields are errors), checked against the mission
 by :func:`plan`, which returns one :class:`Placement` per process. Every error names the field by
-its path in the file (``agents[1].address``) and says how to fix it, as the mission file does.
+its path in the file, an ``[[agents]]`` table by its agent's id (``agent 3.address``,
+``routers[1].connect[0]``), and says how to fix it, as the mission file does.
+
+One ``[router]`` (a single site), or several ``[[routers]]`` with a ``name`` each, linked router to
+router (``connect``: a tree reaching the leader's router), every other host naming its router.
 
 Without a hosts file (:func:`plan` with ``hosts=None``) every host gets a placeholder name
 (``tether-router``, ``tether-leader``, ``tether-recorder``, ``tether-agent-<i>``) that the site's

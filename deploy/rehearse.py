@@ -22,6 +22,9 @@ network namespace of its own (root only, like ``ip netns``):
 * **Order, as an operator would.** The router's unit first (``tether-router``; until it logs that
   it listens), then every other long-running unit, then the one-shot ``tether-start`` on the leader's
   host, which waits for every process's liveliness token and announces tick 0.
+* **Partitions.** ``--partition A:B@T+D`` cuts the machines of host directories A and B apart from
+  mission time T for D seconds (two sites' routers): a blackhole route to the other's address in
+  each namespace (iproute2 only: no netfilter, no kernel netem), removed at T + D.
 * **Restarts.** ``Restart=on-failure`` restarts a unit that exits with a failure status or a signal
   after ``RestartSec``; ``Restart=always`` (the router) restarts it on any exit. A unit can be killed
   (SIGKILL) at a mission time with ``--kill UNIT@T`` to rehearse what its ``Restart=`` does.
