@@ -162,15 +162,15 @@ def test_tether_deploy_gen_exits_2_on_a_router_loop(tmp_path: Path) -> None:
 
 
 # =========================================================================== root: two sites flown, cut, healed
-DURATION = 24.0
+DURATION = 28.0
 CUT_AT, CUT_FOR = 6.0, 5.0
 """The router-to-router link is cut at mission time CUT_AT [s] for CUT_FOR [s]."""
 SEEN_WITHIN = 2.0 + 1.0 + 2.0
 """Cut to agent 3 holding [s]: the lease (2 s, the hosts file's default), neighbour_timeout (1 s),
 and slack for two loaded cores."""
 SETTLED = 6.0
-"""After the heal, the formation error is bounded from this long on [s] (the field vehicles catch up
-a formation that moved on at up to max_accel)."""
+"""After agent 3 flies again, the formation error is bounded from this long on [s] (the field
+vehicles catch up a formation that moved on at up to max_accel)."""
 BOUND = 3.0
 """Bound on ||xi|| [m] before the cut and from SETTLED after the heal (Section 4 flies at <= 1.6 m
 under real-time noise)."""
@@ -220,11 +220,13 @@ def test_two_sites_fly_survive_a_partition_and_rejoin(tmp_path: Path) -> None:
     t_cut, t_heal = cut_wall - epoch, heal_wall - epoch
     norm = np.linalg.norm(run.xi, axis=-1)
     before = norm[(run.t > 3.0) & (run.t < t_cut)]
-    after = norm[run.t >= t_heal + SETTLED]
-    around = norm[(run.t >= t_cut) & (run.t < t_heal + SETTLED)]
-    print(f"max ||xi|| before the cut {np.nanmax(before):.2f} m, from the cut to {SETTLED:g} s after the heal "
+    t_back = back[0] - epoch  # the field side flies again: the routers relinked (their retry period: 1-4 s)
+    after = norm[run.t >= t_back + SETTLED]
+    around = norm[(run.t >= t_cut) & (run.t < t_back + SETTLED)]
+    print(f"max ||xi|| before the cut {np.nanmax(before):.2f} m, from the cut to {SETTLED:g} s after agent 3 flies "
           + ", ".join(f"{a}: {np.nanmax(around[:, col[a]]):.2f} m" for a in (1, 2, 3, 4))
           + f", after {np.nanmax(after):.2f} m")
     assert np.nanmax(before) < BOUND and np.nanmax(after) < BOUND
+    assert t_back + SETTLED < DURATION - 1.0
     assert np.isfinite(after).mean() > 0.8  # the field side's telemetry reaches the recorder again
     assert not [e for e in run.safety.events if e.dst >= 2], "a vehicle landed or stopped"
