@@ -23,6 +23,7 @@ from tether.gate import Gate, for_sender, merged
 from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from netem import control as netem_control
+from plant import resume
 from tether import transport as tp
 from tether import wire
 from tether import skew
@@ -95,6 +96,7 @@ async def run(node: Node) -> None:
     plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
     plant.admit = gate(aid, "plant")
     node.watch("plant", aid, plant)
+    resume.serve(node, aid, plant)  # a restarted plant asks for its last state (plant/resume.py)
     if m.netem is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
     nbrs: list[Source] = []

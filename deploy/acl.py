@@ -71,13 +71,17 @@ def common_name(name: str, ns: str) -> str:
     return f"{name}.{ns}"
 
 
-def grants(m: ms.Mission, ns: str) -> list[Grant]:
+def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> list[Grant]:
     """One grant per process of mission ``m`` in namespace ``ns``, plus the router and the control
     (start) command. Lists exactly what the runtime declares for each role, nothing more.
 
     The control key ``tether/<ns>/control/0/safety`` (``tether land``/``tether estop``) is the
     operator's alone: only ``control-0`` (on the leader host, the ground station) may publish on
-    it; every agent (its safety supervisor) and every plant (its command watchdog) may subscribe."""
+    it; every agent (its safety supervisor) and every plant (its command watchdog) may subscribe.
+
+    ``routers``: the router processes (``router``, or ``router-ground``, ``router-field`` for two
+    sites); each may route everything in the namespace, so that a router-to-router link carries the
+    whole swarm's traffic, which each router has checked at its own edge."""
     k = wire.Keys(ns)
     lid = m.leader.id
     every_token = k.tokens  # @tether/<ns>/**: what Node.watch and wait_for_tokens subscribe to
@@ -90,9 +94,11 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
         return k.token("leader" if j == lid else "agent", j)
 
     out = [
-        Grant("router", publish=(k.everything,), subscribe=(k.everything,), tokens=(every_token,),
+        Grant(r, publish=(k.everything,), subscribe=(k.everything,), tokens=(every_token,),
               watch=(every_token,), sees=(every_token,), serves=(k.everything,), answers=(k.everything,),
-              replies=(k.everything,), asks=(k.everything,), lists=(every_token,)),
+              replies=(k.everything,), asks=(k.everything,), lists=(every_token,)) for r in routers
+    ]
+    out += [
         Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
               subscribe=(k.start, k.tick), tokens=(k.token("leader", lid),)),
         # the operator also watches the swarm (tether record, tether top): it may hear every stream
@@ -116,9 +122,11 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
-            serves=(k.topic("agent", aid, "netem"),),  # Node.netem_control: run-time netem changes
-            answers=(k.topic("agent", aid, "netem"), every_netem),
-            replies=(k.topic("agent", aid, "netem"),),  # its own key only: never a reply keyed for another
+            # Node.netem_control: run-time netem changes; plant/resume.py: its plant's last state
+            serves=(k.topic("agent", aid, "netem"), k.topic("agent", aid, "lastplant")),
+            answers=(k.topic("agent", aid, "netem"), every_netem, k.topic("agent", aid, "lastplant")),
+            # its own keys only: never a reply keyed for another
+            replies=(k.topic("agent", aid, "netem"), k.topic("agent", aid, "lastplant")),
         ))
         out.append(Grant(
             f"plant-{aid}",
@@ -127,6 +135,7 @@ def grants(m: ms.Mission, ns: str) -> list[Grant]:
             tokens=(k.token("plant", aid),),
             watch=(every_token,),
             sees=(k.token("agent", aid),),
+            asks=(k.topic("agent", aid, "lastplant"),),  # a restarted plant's last state (plant/resume.py)
         ))
     return out
 

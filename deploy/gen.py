@@ -84,7 +84,11 @@ def profile(p: Placement, pl: Plan, access: dict[str, Any]) -> dict[str, Any]:
     tls |= {"connect_certificate": f"{tls_dir}/{p.name}.crt", "connect_private_key": f"{tls_dir}/{p.name}.key"}
     conf: dict[str, Any] = {"mode": p.mode, "listen": {"endpoints": [p.listen] if p.listen else []}}
     if p.mode != "router":
-        conf["connect"] = {"endpoints": [pl.router.dial], "timeout_ms": round(h.connect_timeout * 1000)}
+        conf["connect"] = {"endpoints": pl.dials(p), "timeout_ms": round(h.connect_timeout * 1000)}
+    elif pl.dials(p):
+        # a router-to-router link: dialled with the router's own certificate, checked by the other
+        # router's access control like any link; a router retries its connect endpoints for ever
+        conf["connect"] = {"endpoints": pl.dials(p)}
     strategy = {"peer": {"to_router": "always", "to_peer": "greater-zid"}}
     conf["scouting"] = {"multicast": {"enabled": False},
                         "gossip": {"enabled": True, "autoconnect_strategy": strategy}}
@@ -152,7 +156,7 @@ def generate(mission: str | Path, out: str | Path, hosts: str | Path | None = No
         (out / "ca").mkdir(exist_ok=True)
         shutil.copyfile(authority.cert, out / "ca" / "ca.crt")  # for reference; the key stays where it is
 
-    grants = acl.grants(m, pl.ns)
+    grants = acl.grants(m, pl.ns, routers=tuple(r.name for r in pl.routers))
     access = acl.access_control(grants, pl.ns)
     (out / "acl.json5").write_text(_json5(
         [f"access_control of deployment {pl.ns!r} (mission {m.name!r}), as every listener's profile holds it.",
@@ -167,7 +171,7 @@ def generate(mission: str | Path, out: str | Path, hosts: str | Path | None = No
         written = dep.files.setdefault(host, [])
         shutil.copyfile(authority.cert, hdir / "tls" / "ca.crt")
         written.append(hdir / "tls" / "ca.crt")
-        if host != "router":
+        if any(p.role != "router" for p in pl.on(host)):
             (hdir / "mission.toml").write_bytes(mission_text)
             written.append(hdir / "mission.toml")
         for p in pl.on(host):
@@ -179,7 +183,7 @@ def generate(mission: str | Path, out: str | Path, hosts: str | Path | None = No
                 [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
                  f"deployment {pl.ns!r}; written by tether deploy-gen.",
                  f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
-                 + ("" if p.mode == "router" else f", connects to the router at {pl.router.dial}")],
+                 + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
                 profile(p, pl, access)))
             svc = hdir / "systemd" / unit_name(p)
             svc.write_text(unit(p.role, {
@@ -205,7 +209,7 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
     lines = [f"# Deployment of mission `{m.name}` (namespace `{pl.ns}`)", "",
              f"Written by `tether deploy-gen`. Network: **{pl.hosts.network}**; every link is TLS 1.3 with client "
              f"certificates (mTLS) signed by `ca/ca.crt`; certificates expire on "
-             f"{pki.expiry(dep.host_dir('router') / 'tls' / 'router.crt')}. "
+             f"{pki.expiry(dep.host_dir(pl.router.host) / 'tls' / f'{pl.router.name}.crt')}. "
              "Keep `ca/ca.key` offline: it is not needed on any host. The guide is `docs/deploy.md`.", "",
              "| host dir | address | processes | listens on | services |", "|---|---|---|---|---|"]
     for host in pl.host_names:
@@ -213,13 +217,18 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
         listens = ", ".join(p.listen for p in ps if p.listen) or "–"
         lines.append(f"| `hosts/{host}/` → `{pl.config_dir(host)}` | {ps[0].address} | "
                      f"{', '.join(p.name for p in ps)} | {listens} | {', '.join(unit_name(p) for p in ps)} |")
+    links = [(r.name, n) for r in pl.routers for n in r.via.split(",") if n]
+    if links:
+        lines += ["", "Router-to-router links (each dialled by the first, TLS with the same mTLS and access rules): "
+                  + ", ".join(f"`{a}` → `{b}`" for a, b in links) + "."]
     lines += ["", "## Install", "",
               "On each host: copy `hosts/<host>/` to the directory above (owned by root, readable by user "
               f"`{pl.hosts.user}`; the `*.key` files mode 0600 and owned by `{pl.hosts.user}`), install tether "
               f"so that `{pl.hosts.tether}` and `{pl.hosts.python}` exist, then",
               "", "```sh", f"sudo cp {pl.config_dir('<host>')}/systemd/*.service /etc/systemd/system/",
               "sudo systemctl daemon-reload", "```", "", "## Run", "",
-              "1. router host: `sudo systemctl enable --now tether-router`",
+              "1. router host" + ("s" if len(pl.routers) > 1 else "") + ": "
+              + ", ".join(f"`sudo systemctl enable --now tether-{r.name}`" for r in pl.routers),
               "2. every other host: `sudo systemctl start tether-<process>` for each of its services "
               "(each waits for the start)",
               f"3. leader host: `sudo systemctl start tether-start` (or `{pl.hosts.python} -m deploy.start --mission "

@@ -2,7 +2,11 @@
 
 A strict, versioned TOML schema (msgspec, unknown fields are errors), checked against the mission
 by :func:`plan`, which returns one :class:`Placement` per process. Every error names the field by
-its path in the file (``agents[1].address``) and says how to fix it, as the mission file does.
+its path in the file, an ``[[agents]]`` table by its agent's id (``agent 3.address``,
+``routers[1].connect[0]``), and says how to fix it, as the mission file does.
+
+One ``[router]`` (a single site), or several ``[[routers]]`` with a ``name`` each, linked router to
+router (``connect``: a tree reaching the leader's router), every other host naming its router.
 
 Without a hosts file (:func:`plan` with ``hosts=None``) every host gets a placeholder name
 (``tether-router``, ``tether-leader``, ``tether-recorder``, ``tether-agent-<i>``) that the site's
@@ -47,13 +51,32 @@ class Host(Strict, frozen=True):
     certificate's name)."""
 
 
-class AgentHost(Host, kw_only=True, frozen=True):
+class NodeHost(Host, frozen=True):
+    """A host of tether processes (not a router): which router its processes connect to."""
+
+    router: str | None = None
+    """``name`` of the ``[[routers]]`` entry its processes connect to (two sites); default the first
+    router. Not used with a single ``[router]``."""
+
+
+class RouterHost(Host, kw_only=True, frozen=True):
+    """One router of a deployment with several sites (``[[routers]]``)."""
+
+    name: str
+    """The site's name (``ground``, ``field``): the host directory is ``router-<name>``, the process
+    ``router-<name>``, its certificate's CN ``router-<name>.<ns>``."""
+    connect: list[str] = []
+    """Names of the routers this one dials (router-to-router links, TLS with the same mTLS and access
+    rules); every link is listed once, on one side, and the links form a tree (no loop)."""
+
+
+class AgentHost(NodeHost, kw_only=True, frozen=True):
     """The companion computer of one vehicle: agent ``id`` and its plant."""
 
     id: int
 
 
-class RecorderHost(Host, kw_only=True, frozen=True):
+class RecorderHost(NodeHost, kw_only=True, frozen=True):
     out: str = "/var/lib/tether/runs"
     """Directory the recorder writes ``run.npz`` into, on that host."""
 
@@ -85,7 +108,11 @@ class HostsFile(Strict, frozen=True):
     user: str = "tether"
     """Unix user the services run as."""
     router: Host | None = None
-    leader: Host | None = None
+    """The one router of a single-site deployment (host directory ``router``)."""
+    routers: list[RouterHost] | None = None
+    """Several routers linked router-to-router (two sites, e.g. a ground station and a field router),
+    instead of ``[router]``; every other host names its router (``router = "field"``)."""
+    leader: NodeHost | None = None
     """The ground station: the virtual leader and the operator's start command."""
     recorder: RecorderHost | None = None
     agents: list[AgentHost] | None = None
@@ -98,6 +125,8 @@ class HostsError(SchemaError):
 
 # --------------------------------------------------------------------------- placements
 Role = Literal["router", "leader", "control", "recorder", "agent", "plant"]
+ROUTER_NAME = re.compile(r"^[a-z][a-z0-9]{0,23}$")
+"""A site's name: it goes into host directory, unit, file and certificate names."""
 
 
 @dataclass(frozen=True)
@@ -114,11 +143,18 @@ class Placement:
     dial: str | None
     """``tls/<address>:<port>``, the endpoint other hosts connect to when this process listens."""
     mode: Literal["router", "peer", "client"]
+    site: str = ""
+    """A router's site name with several routers (``field``), else empty."""
+    via: str = "router"
+    """Name of the router process this process connects to (``router``, ``router-field``); for a
+    router, the routers it dials, comma-separated (empty for none)."""
 
     @property
     def name(self) -> str:
-        """File stem of this process's files: ``router``, ``agent-3``, ``control-0``..."""
-        return "router" if self.role == "router" else f"{self.role}-{self.node_id}"
+        """File stem of this process's files: ``router``, ``router-field``, ``agent-3``, ``control-0``..."""
+        if self.role == "router":
+            return f"router-{self.site}" if self.site else "router"
+        return f"{self.role}-{self.node_id}"
 
     def common_name(self, ns: str) -> str:
         """The certificate's subject CN, which the access-control rules name: ``agent-3.<ns>``."""
@@ -135,7 +171,21 @@ class Plan:
 
     @property
     def router(self) -> Placement:
+        """The first router (the only one of a single site)."""
         return next(p for p in self.placements if p.role == "router")
+
+    @property
+    def routers(self) -> list[Placement]:
+        return [p for p in self.placements if p.role == "router"]
+
+    def process(self, name: str) -> Placement:
+        """The placement of process ``name`` (``router-field``, ``agent-3``)."""
+        return next(p for p in self.placements if p.name == name)
+
+    def dials(self, p: Placement) -> list[str]:
+        """The endpoints process ``p`` connects to: its router's; a router's, the routers it links to."""
+        names = [n for n in p.via.split(",") if n]
+        return [d for n in names if (d := self.process(n).dial) is not None]
 
     def on(self, host: str) -> list[Placement]:
         return [p for p in self.placements if p.host == host]
@@ -166,7 +216,10 @@ def loads(text: str | bytes, source: str = "<hosts>") -> HostsFile:
     try:
         return msgspec.convert(raw, type=HostsFile)
     except msgspec.ValidationError as exc:
-        raise HostsError(source, [_field_of(exc)]) from None
+        agents = raw.get("agents")
+        ids = [a.get("id") if isinstance(a, dict) and type(a.get("id")) is int else None
+               for a in agents] if isinstance(agents, list) else []
+        raise HostsError(source, ms.by_id([_field_of(exc)], ids, [])) from None
 
 
 def load(path: str | Path) -> HostsFile:
@@ -184,6 +237,7 @@ _FIELDS = {
     "leader": [f.encode_name for f in msgspec.structs.fields(Host)],
     "recorder": [f.encode_name for f in msgspec.structs.fields(RecorderHost)],
     "agents": [f.encode_name for f in msgspec.structs.fields(AgentHost)],
+    "routers": [f.encode_name for f in msgspec.structs.fields(RouterHost)],
 }
 
 
@@ -246,7 +300,7 @@ def _default_hosts(m: ms.Mission) -> HostsFile:
     return HostsFile(
         version=HOSTS_VERSION,
         router=Host(address="tether-router"),
-        leader=Host(address="tether-leader"),
+        leader=NodeHost(address="tether-leader"),
         recorder=RecorderHost(address="tether-recorder"),
         agents=[AgentHost(id=a, address=f"tether-agent-{a}") for a in m.agent_ids],
     )
@@ -287,17 +341,22 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
         out.append(("recorder.out", f"is {h.recorder.out!r}; give an absolute path on the recorder's host"))
 
     defaults = _default_hosts(m)
+    if h.router is not None and h.routers is not None:
+        out.append(("routers", "is given together with [router]; keep [router] for one site, or list every router "
+                               "as [[routers]] (with a name each) for several"))
+    sites = h.routers if h.routers else None
     router = h.router or defaults.router
     leader = h.leader or defaults.leader
     recorder = h.recorder or defaults.recorder
     agents = h.agents if h.agents is not None else defaults.agents
     assert router is not None and leader is not None and recorder is not None and agents is not None
+    if h.routers is not None and not h.routers:
+        out.append(("routers", "is empty; list at least one [[routers]] table, or use [router] for one site"))
 
     listed: dict[int, int] = {}
     for k, a in enumerate(agents):
         if a.id in listed:
-            out.append((f"agents[{k}].id", f"is {a.id}, already listed as agents[{listed[a.id]}]; "
-                                           "list each agent once"))
+            out.append((f"agents[{k}].id", f"is {a.id}, listed twice; list each agent once"))
         elif a.id not in m.agent_ids:
             out.append((f"agents[{k}].id", f"is {a.id}, not an agent of mission {m.name!r}; "
                                            f"use one of {m.agent_ids}"))
@@ -308,7 +367,8 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
                               f"mission {m.name!r}; add one [[agents]] table per agent, e.g. "
                               f"`[[agents]] id = {missing[0]}, address = \"...\"`"))
 
-    tables: list[tuple[str, Host]] = [("router", router), ("leader", leader), ("recorder", recorder)]
+    tables: list[tuple[str, Host]] = [("leader", leader), ("recorder", recorder)]
+    tables = ([(f"routers[{k}]", r) for k, r in enumerate(sites)] if sites else [("router", router)]) + tables
     tables += [(f"agents[{k}]", a) for k, a in enumerate(agents)]
     for where, host in tables:
         if (problem := _address_problem(host.address)) is not None:
@@ -318,28 +378,37 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
         if host.port is not None and not 1 <= host.port <= (65534 if where.startswith("agents") else 65535):
             out.append((f"{where}.port", f"is {host.port}; a TLS port is 1 to 65535 (an agent host's plant "
                                          "takes port + 1)"))
+    nodes: list[tuple[str, NodeHost]] = [("leader", leader), ("recorder", recorder)]
+    nodes += [(f"agents[{k}]", a) for k, a in enumerate(agents)]
+    via = _check_sites(sites, nodes, out)
     if out:
-        raise HostsError(source, out)
+        raise HostsError(source, _by_id(out, agents))
 
     peer = h.network == "peer"
     placements: list[Placement] = []
 
     def place(role: Role, nid: int, host: str, where: Host, port_offset: int, listens: bool,
-              mode: Literal["router", "peer", "client"]) -> None:
+              mode: Literal["router", "peer", "client"], site: str = "", through: str = "router") -> None:
         port = (where.port if where.port is not None else h.port) + port_offset
         listen = _endpoint(where.bind or where.address, port) if listens else None
         dial = _endpoint(where.address, port) if listens else None
-        placements.append(Placement(role, nid, host, where.address, listen, dial, mode))
+        placements.append(Placement(role, nid, host, where.address, listen, dial, mode, site, through))
 
-    place("router", 0, "router", router, 0, True, "router")
+    if sites:
+        for r in sites:
+            place("router", 0, f"router-{r.name}", r, 0, True, "router", r.name,
+                  ",".join(f"router-{n}" for n in r.connect))
+    else:
+        place("router", 0, "router", router, 0, True, "router", "", "")
     node_mode: Literal["peer", "client"] = "peer" if peer else "client"
-    place("leader", m.leader.id, "leader", leader, 0, peer, node_mode)
-    place("control", 0, "leader", leader, 0, False, "client")
-    place("recorder", 0, "recorder", recorder, 0, peer, node_mode)
-    by_id = {a.id: a for a in agents}
+    place("leader", m.leader.id, "leader", leader, 0, peer, node_mode, through=via["leader"])
+    place("control", 0, "leader", leader, 0, False, "client", through=via["leader"])
+    place("recorder", 0, "recorder", recorder, 0, peer, node_mode, through=via["recorder"])
+    by_id = {a.id: (k, a) for k, a in reversed(list(enumerate(agents)))}
     for aid in m.agent_ids:
-        place("agent", aid, f"agent-{aid}", by_id[aid], 0, peer, node_mode)
-        place("plant", aid, f"agent-{aid}", by_id[aid], 1, peer, node_mode)
+        k, a = by_id[aid]
+        place("agent", aid, f"agent-{aid}", a, 0, peer, node_mode, through=via[f"agents[{k}]"])
+        place("plant", aid, f"agent-{aid}", a, 1, peer, node_mode, through=via[f"agents[{k}]"])
 
     # two listeners on one socket address would fail at start on the host: say so now
     seen: dict[str, str] = {}
@@ -347,16 +416,89 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
         if p.listen is None:
             continue
         if p.listen in seen:
-            out.append((_where(p, agents), f"listens on {p.listen} like {seen[p.listen]}; give one of them "
-                                           "another port or address"))
+            out.append((_where(p, agents, sites), f"listens on {p.listen} like {seen[p.listen]}; give one of them "
+                                                  "another port or address"))
         seen.setdefault(p.listen, p.name)
     if out:
-        raise HostsError(source, out)
+        raise HostsError(source, _by_id(out, agents))
     return Plan(ns=ns, hosts=h, placements=tuple(placements))
 
 
-def _where(p: Placement, agents: list[AgentHost]) -> str:
+def _by_id(out: Problems, agents: list[AgentHost]) -> Problems:
+    """``agents[k]…`` fields named by the agent's id, as the mission's errors are (``agent 3.address``)."""
+    return ms.by_id(out, [a.id for a in agents], [])
+
+
+def _check_sites(sites: list[RouterHost] | None, nodes: list[tuple[str, NodeHost]], out: Problems) -> dict[str, str]:
+    """Check the routers of a several-site deployment and which router each host uses; returns the
+    router process each node table (``leader``, ``agents[2]``) connects to. The router links must
+    name known routers, form no loop, and join every router used to the leader's router."""
+    if not sites:
+        for where, host in nodes:
+            if host.router is not None:
+                out.append((f"{where}.router", f"is {host.router!r} but the hosts file has one [router]; remove it, or "
+                                               "list the routers as [[routers]] with a name each"))
+        return {where: "router" for where, _ in nodes}
+    names: dict[str, int] = {}
+    for k, r in enumerate(sites):
+        if not ROUTER_NAME.match(r.name):
+            out.append((f"routers[{k}].name", f"is {r.name!r}; give a short lower-case name of letters and digits, "
+                                              "e.g. \"ground\" or \"field\" (it names files and certificates)"))
+        elif r.name in names:
+            out.append((f"routers[{k}].name", f"is {r.name!r}, already the name of routers[{names[r.name]}]; give "
+                                              "each router its own name"))
+        names.setdefault(r.name, k)
+    # the links, undirected: a loop (or a link listed on both sides) makes routes ambiguous
+    parent = {n: n for n in names}
+
+    def root(n: str) -> str:
+        while parent[n] != n:
+            n = parent[n]
+        return n
+
+    for k, r in enumerate(sites):
+        for j, other in enumerate(r.connect):
+            field = f"routers[{k}].connect[{j}]"
+            if other not in names:
+                out.append((field, f"is {other!r}, not a router of this file; use one of "
+                                   f"{', '.join(repr(n) for n in names)} (each [[routers]] table's name)"))
+            elif other == r.name:
+                out.append((field, f"is {other!r}, this router itself: a loop; remove it"))
+            elif r.name in names and root(other) == root(r.name):
+                out.append((field, f"links {r.name!r} to {other!r}, which are already linked (directly or through "
+                                   "other routers): a loop; list each router-to-router link once, on one side, "
+                                   "and link the routers as a tree"))
+            elif r.name in names:
+                parent[root(other)] = root(r.name)
+    first = sites[0].name
+    via: dict[str, str] = {}
+    for where, host in nodes:
+        name = host.router if host.router is not None else first
+        if name not in names:
+            out.append((f"{where}.router", f"is {name!r}, not a router of this file; use one of "
+                                           f"{', '.join(repr(n) for n in names)}"))
+        via[where] = f"router-{name}"
+    lead = dict(nodes)["leader"].router or first
+    if lead in names and not out:
+        for k, r in enumerate(sites):
+            if root(r.name) != root(lead):
+                out.append((f"routers[{k}].connect", f"does not link router {r.name!r} to the leader's router {lead!r} "
+                                                     "(directly or through other routers); add `connect = "
+                                                     f"[\"{lead}\"]` to it"))
+        for where, host in nodes:
+            name = host.router or first
+            if name in names and root(name) != root(lead):
+                out.append((f"{where}.router", f"is {name!r}, which has no route to the leader's router {lead!r}: no "
+                                               "router-to-router link joins them; add `connect = "
+                                               f"[\"{lead}\"]` to the [[routers]] table named {name!r} (or link it "
+                                               "to a router that is linked to it)"))
+    return via
+
+
+def _where(p: Placement, agents: list[AgentHost], sites: list[RouterHost] | None) -> str:
     if p.role in ("agent", "plant"):
         k = next(k for k, a in enumerate(agents) if a.id == p.node_id)
         return f"agents[{k}].port"
+    if p.role == "router" and sites:
+        return f"routers[{next(k for k, r in enumerate(sites) if r.name == p.site)}].port"
     return f"{p.host}.port"

@@ -22,6 +22,9 @@ network namespace of its own (root only, like ``ip netns``):
 * **Order, as an operator would.** The router's unit first (``tether-router``; until it logs that
   it listens), then every other long-running unit, then the one-shot ``tether-start`` on the leader's
   host, which waits for every process's liveliness token and announces tick 0.
+* **Partitions.** ``--partition A:B@T+D`` cuts the machines of host directories A and B apart from
+  mission time T for D seconds (two sites' routers): a blackhole route to the other's address in
+  each namespace (iproute2 only: no netfilter, no kernel netem), removed at T + D.
 * **Restarts.** ``Restart=on-failure`` restarts a unit that exits with a failure status or a signal
   after ``RestartSec``; ``Restart=always`` (the router) restarts it on any exit. A unit can be killed
   (SIGKILL) at a mission time with ``--kill UNIT@T`` to rehearse what its ``Restart=`` does.
@@ -191,9 +194,9 @@ def plan(deploy: Path) -> Plan:
             units.append(parse_unit(path, hdir.name))
     if not hosts or not units:
         raise RehearseError(f"{deploy}: no host directories with service units under hosts/")
-    roles = {u.name for u in units}
-    for need in ("tether-router", "tether-start"):
-        if need not in roles:
+    roles = {u.role for u in units}
+    for need, role in (("tether-router", "router"), ("tether-start", "start")):
+        if role not in roles:
             raise RehearseError(f"{deploy}: no {need}.service among the units; generate the deployment again")
     return Plan(deploy, hosts, units)
 
@@ -287,6 +290,17 @@ class Network:
             _ip("-n", ns, "link", "set", "eth0", "up")
             _ip("-n", ns, "route", "add", "default", "dev", "eth0")
 
+    def cut(self, a: str, b: str) -> None:
+        """No packet between machines ``a`` and ``b`` (addresses) any more: each drops what it would
+        send the other (a blackhole route: iproute2 alone, no netfilter or netem needed), so their
+        links time out on their leases as over a lost radio link."""
+        _ip("-n", self.spaces[a], "route", "add", "blackhole", f"{b}/32")
+        _ip("-n", self.spaces[b], "route", "add", "blackhole", f"{a}/32")
+
+    def heal(self, a: str, b: str) -> None:
+        _ip("-n", self.spaces[a], "route", "del", "blackhole", f"{b}/32", check=False)
+        _ip("-n", self.spaces[b], "route", "del", "blackhole", f"{a}/32", check=False)
+
     def destroy(self) -> None:
         """Kill whatever still runs inside (by pid), delete every namespace (their veths and the
         bridge go with them). Idempotent."""
@@ -350,6 +364,9 @@ class Options:
     """(unit, mission time [s]): SIGKILL that unit then."""
     skews: dict[str, float] = field(default_factory=dict)
     """Host directory -> clock offset [s] of every tether process on it (an unsynchronised host)."""
+    partitions: list[tuple[str, str, float, float]] = field(default_factory=list)
+    """(host A, host B, mission time [s], duration [s]): no packet passes between the two hosts'
+    machines from then for that long (two sites cut apart: their routers)."""
     grace: float = 5.0
 
 
@@ -383,6 +400,14 @@ def rehearse(deploy: Path, opts: Options) -> int:
                 raise RehearseError(f"--skew {host}: no such host directory; use one of {', '.join(pl.hosts)}")
         for u in pl.units:
             runs.append(Running(u, command(u, opts.duration, opts.skews.get(u.host, 0.0)), logs / f"{u.name}.log"))
+        for a, b, _, _ in opts.partitions:
+            for host in (a, b):
+                if host not in pl.hosts:
+                    raise RehearseError(f"--partition {a}:{b}: no host directory {host}; use two of "
+                                        f"{', '.join(pl.hosts)}")
+            if pl.hosts[a] == pl.hosts[b]:
+                raise RehearseError(f"--partition {a}:{b}: both hosts are one machine ({pl.hosts[a]}); cut two "
+                                    "machines apart, e.g. the routers of two sites")
         names = {u.name for u in pl.units}
         for unit, _ in opts.kills:
             if unit not in names:
@@ -396,7 +421,7 @@ def rehearse(deploy: Path, opts: Options) -> int:
     net = Network()
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
-    record: dict[str, Any] = {"deploy": str(deploy), "namespaces": {}, "units": {}, "kills": []}
+    record: dict[str, Any] = {"deploy": str(deploy), "namespaces": {}, "units": {}, "kills": [], "partitions": []}
     status = 1
     stopping = False
     ns_of: dict[str, str] = {}
@@ -434,6 +459,8 @@ def rehearse(deploy: Path, opts: Options) -> int:
         epoch: float | None = None
         limit = time.monotonic() + (opts.timeout if opts.timeout is not None else duration + 180.0)
         kills = sorted(opts.kills, key=lambda x: x[1])
+        cuts = sorted(opts.partitions, key=lambda x: x[2])
+        heals: list[tuple[float, str, str, dict[str, Any]]] = []
         while True:
             now = time.monotonic()
             for r in runs:
@@ -468,6 +495,20 @@ def rehearse(deploy: Path, opts: Options) -> int:
                     victim.signal(signal.SIGKILL)
                     record["kills"].append({"unit": unit, "at": at, "wall": time.time(), "mission_time": time.time() - epoch})
                     log.warning("--kill %s@%g: SIGKILL at mission time %.3f s", unit, at, time.time() - epoch)
+                while cuts and time.time() >= epoch + cuts[0][2]:
+                    a, b, at, span = cuts.pop(0)
+                    net.cut(pl.hosts[a], pl.hosts[b])
+                    entry = {"hosts": [a, b], "at": at, "for": span, "cut_wall": time.time(),
+                             "cut_mission_time": time.time() - epoch}
+                    record["partitions"].append(entry)
+                    heals.append((epoch + at + span, pl.hosts[a], pl.hosts[b], entry))
+                    log.warning("--partition %s:%s: cut at mission time %.3f s", a, b, time.time() - epoch)
+                for due in [x for x in heals if time.time() >= x[0]]:
+                    heals.remove(due)
+                    net.heal(due[1], due[2])
+                    due[3].update(heal_wall=time.time(), heal_mission_time=time.time() - epoch)
+                    log.warning("--partition %s: healed at mission time %.3f s", ":".join(due[3]["hosts"]),
+                                time.time() - epoch)
             if starter.done and starter.exits[-1][1] != 0:
                 log.error("%s failed (exit %d): %s", starter.unit.name, starter.exits[-1][1],
                           starter.log_path.read_text(errors="replace")[-1500:])
@@ -567,6 +608,20 @@ def _skew(text: str) -> tuple[str, float]:
     return host, s
 
 
+def _partition(text: str) -> tuple[str, str, float, float]:
+    pair, sep, when = text.rpartition("@")
+    a, colon, b = pair.partition(":")
+    at, plus, span = when.partition("+")
+    try:
+        t, d = float(at), float(span)
+    except ValueError:
+        t = d = float("nan")
+    if not (sep and colon and plus and a and b and a != b and 0 <= t < float("inf") and 0 < d < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST_A:HOST_B@T+D (two host directories, a mission time "
+                                         ">= 0 and a duration > 0 [s]), e.g. router-ground:router-field@6+4")
+    return a, b, t, d
+
+
 def _seconds(text: str) -> float:
     try:
         v = float(text)
@@ -588,12 +643,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skew", action="append", type=_skew, default=[], metavar="HOST=S",
                    help="every tether process of host directory HOST runs S seconds ahead (--clock-skew): an "
                         "unsynchronised host; repeatable")
+    p.add_argument("--partition", action="append", type=_partition, default=[], metavar="HOST_A:HOST_B@T+D",
+                   help="no packet passes between the machines of host directories HOST_A and HOST_B from mission "
+                        "time T for D seconds (two sites cut apart); repeatable")
 
 
 def run_args(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s rehearse: %(message)s")
     return rehearse(Path(args.deploy), Options(out=Path(args.out), duration=args.duration, timeout=args.timeout,
-                                               kills=list(args.kill), skews=dict(args.skew)))
+                                               kills=list(args.kill), skews=dict(args.skew),
+                                               partitions=list(args.partition)))
 
 
 def main(argv: list[str] | None = None) -> int:

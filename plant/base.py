@@ -118,6 +118,11 @@ class DoubleIntegratorPlant:
                                                            self._h)
         self._k += 1
 
+    def seek(self, k: int) -> None:
+        """Continue at tick ``k`` (a restarted process resuming a run: :mod:`plant.resume`); the
+        disturbance models take their values there."""
+        self._k = k
+
     def close(self) -> None:
         pass
 
@@ -177,6 +182,10 @@ class VehiclePlant:
             veh.advance(self._h, None if d is None else veh.mass * d[r])
             self._a[r] = veh.accel()
         self._k += 1
+
+    def seek(self, k: int) -> None:
+        """Continue at tick ``k`` (see :meth:`DoubleIntegratorPlant.seek`)."""
+        self._k = k
 
     def close(self) -> None:
         pass

@@ -44,6 +44,10 @@ controller, which needs no link, instead of the firmware levelling out and cutti
 after 2 s). :meth:`CrazyfliePlant.recover` (a coroutine: every blocking cflib call runs in a
 thread) waits ``RELINK_AFTER`` for a quiet link to speak again, then closes it and reconnects with
 backoff (``RECONNECT_ATTEMPTS``, ``RECONNECT_BACKOFF`` doubled each time; every attempt logged).
+A re-opened link that finds the vehicle on the ground and not stopped by its watchdog (it
+restarted: a rebooted Crazyflie, or the software one killed and started again, thrust locked and
+motors off) takes it off again from where it is, as at the start, while no low-level setpoint is
+sent (:meth:`CrazyfliePlant._relaunch`); one found in the air flies on.
 Once the state estimate is back the watchdog flies the agent again if the agent has resumed, and
 lands the vehicle otherwise. If every attempt fails, the plant process withdraws its liveliness
 token (its agent holds, its neighbours count it out) and fails at the mission's end.
@@ -133,6 +137,9 @@ class CrazyfliePlant:
         self._landed = False
         self._stopped = False
         """Motors commanded off (LANDED or ESTOP): never flown again."""
+        self._relaunching = False
+        self.relaunched = 0
+        """Take-offs again after a re-opened link found the vehicle on the ground (it restarted)."""
         self._blind = False
         """The link went down and the vehicle was asked to hold on its own."""
         self.final_position: np.ndarray | None = None
@@ -323,12 +330,39 @@ class CrazyfliePlant:
         return False
 
     def _reconnect(self) -> None:
-        """Close the present link without a zero-thrust setpoint and connect again (blocks, bounded)."""
+        """Close the present link without a zero-thrust setpoint and connect again (blocks, bounded);
+        then take a vehicle found on the ground off again (:meth:`_relaunch`)."""
         _drop_link(self.cf)
         self._connect()
+        self._relaunch()
+
+    def _relaunch(self) -> None:
+        """After a re-opened link: a vehicle in the air flies on; one found on the ground and not
+        stopped (it restarted: a rebooted Crazyflie, a software one killed and started again;
+        its thrust is locked and its motors off) takes off again as at the start, from where it is,
+        while :meth:`step` sends nothing. Blocks, bounded; raises ``TimeoutError`` or
+        :class:`LinkLost` (then the next attempt, or the plant withdraws)."""
+        sp = self.spec
+        self._wait_until(lambda: self._pos is not None and self._vel is not None, STALE_AFTER + 2.0,
+                         "a state estimate after reconnecting")
+        with self._lock:
+            p, v = self._position(), self._velocity()
+        if self._stopped or p[2] >= 0.5 * sp.takeoff_height or float(np.linalg.norm(v)) > 0.3:
+            return
+        log.warning("crazyflie %d: on the ground at %s after the link came back (the vehicle restarted): taking off "
+                    "again", self.ids[0], np.round(p, 3).tolist())
+        self._relaunching = True
+        try:
+            self._take_off()
+        finally:
+            self._relaunching = False
+        self.relaunched += 1
 
     def state(self) -> Sample:
-        """The newest state estimate; raises :class:`LinkLost` while the link is down."""
+        """The newest state estimate; raises :class:`LinkLost` while the link is down, and while a
+        restarted vehicle takes off again (its agent keeps holding until it is back in the air)."""
+        if self._relaunching:
+            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): taking off again after a restart")
         if not self.healthy():
             raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): {self._down()}")
         with self._lock:
@@ -342,7 +376,7 @@ class CrazyfliePlant:
         LANDED and ESTOP. Nothing is sent while the link is down (:meth:`recover`)."""
         from tether.wire import ESTOP, LANDED
 
-        if not self.healthy():
+        if not self.healthy() or self._relaunching:  # a take-off after a restart: the high-level commander flies
             return
         mode = modes[0] if modes is not None else 0
         if mode in (LANDED, ESTOP) or self._stopped:

@@ -22,10 +22,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 
 import numpy as np
 
-from plant import base
+from plant import base, resume
 from plant.crazyflie import CrazyfliePlant, LinkLost
 from plant.rest import Resting
 from plant.watchdog import Watchdog
@@ -88,15 +89,25 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     if world:  # each hosted vehicle is a plant to the agents, the recorder and the launcher
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
     dogs = [Watchdog(m.safety, m.dim) for _ in ids]
-    await node.ready()
+    # real time, one simulated vehicle: a restarted process resumes from its last state (plant/resume.py)
+    resumer = resume.Resumer(node, ids[0], cmds) if not world and isinstance(plant, Resting) else None
+    await node.ready(rejoin=None if resumer is None else resumer.epoch)
+    first = 0
+    if node.rejoined and resumer is not None:
+        first = min(m.steps, math.floor(node.mission_time() / h) + 1)
+        last = await resumer.ask(first)
+        plant = resume.resumed(m, ids[0], last, first)
+        log.warning("rejoined a run under way at tick %d (t = %.2f s): tick 0 at %.3f; resuming from the last state "
+                    "on the wire, tick %d (t = %.2f s) at p = %s", first, first * h, resumer.epoch() or 0.0, last.k,
+                    last.t, last.p)
     cf = plant if isinstance(plant, CrazyfliePlant) else None
     """The real vehicle, the only plant whose link can be lost (LinkLost)."""
     recovering: asyncio.Task[bool] | None = None
     s: base.Sample | None = None
-    for k in range(m.steps + 1):
+    for k in range(first, m.steps + 1):
         await node.tick(k)
         t = k * h
-        if k > 0:
+        if k > first:
             u, modes = [], []
             for aid, src, dog in zip(ids, cmds, dogs):
                 msg = await node.sample(src, k - 1)

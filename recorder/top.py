@@ -3,10 +3,11 @@
 It is a plain Zenoh client that hears the telemetry the agents already publish
 (``tether/<ns>/agent/<i>/telemetry``, :class:`tether.wire.Telemetry`) and the swarm's liveliness
 tokens, and draws with ``rich`` in an ordinary terminal (over SSH too): per vehicle its safety mode,
-‖ξ_i‖, the gains Kp and Kv (per axis), ‖u_i‖, the worst link's delivery ratio and age p99, and the
-last mode change. Trouble is coloured: a mode other than FLYING, an agent whose token is gone or whose
+‖ξ_i‖, the gains Kp and Kv (per axis), ‖u_i‖, the worst link's delivery ratio and age p99, the
+clock-offset estimate of its most offset input link (``Telemetry.clock``, :mod:`tether.skew`;
+``!`` and red when the agent flagged it, as the run's warning does), and the last mode change. Trouble is coloured: a mode other than FLYING, an agent whose token is gone or whose
 telemetry stopped, ‖ξ_i‖ beyond ``xi_warn``, a link delivering less than 90 % or older than
-``age_warn``, a non-finite value. ``q`` or Ctrl-C quits.
+``age_warn``, a clock offset outside :func:`tether.skew.bounds`, a non-finite value. ``q`` or Ctrl-C quits.
 
 :class:`Board` is the monitor's state, fed sample by sample (no I/O; malformed samples are dropped and
 counted, never raised); :func:`run` is the terminal loop around it.
@@ -127,7 +128,7 @@ class Board:
         msg = row.msg
         if msg is None:
             state = "GONE" if row.alive is False else "no telemetry"
-            return ([str(row.vehicle), state] + ["-"] * 6, ["bold", "red" if row.alive is False else "dim"] + [""] * 6)
+            return ([str(row.vehicle), state] + ["-"] * 7, ["bold", "red" if row.alive is False else "dim"] + [""] * 7)
         mode = wire.MODES[msg.mode] if 0 <= msg.mode < len(wire.MODES) else f"mode {msg.mode}"
         styles = ["bold"]
         age = now - row.heard if row.heard is not None else math.inf
@@ -151,12 +152,15 @@ class Board:
         silent = any(s.silent for s in links)
         styles.append("yellow" if silent or (math.isfinite(delivery) and delivery < DELIVERY_WARN) else "")
         styles.append("yellow" if silent or (math.isfinite(p99) and p99 > self.age_warn) else "")
+        clock, cstyle = _clock(msg.clock)
+        styles.append(cstyle)
         ev = row.last_event
         event = "-" if ev is None else f"t={ev.t:.1f}s {_mode(ev.src)}->{_mode(ev.dst)} {ev.reason}"
         styles.append("yellow" if ev is not None else "")
         link_delivery = "-" if not links else f"{delivery:.0%}" + (" silent" if silent else "")
         link_age = "-" if not math.isfinite(p99) else f"{p99 * 1000:.0f} ms"
-        return ([str(row.vehicle), mode, _num(xi, 3), gains, _num(u, 2), link_delivery, link_age, event], styles)
+        return ([str(row.vehicle), mode, _num(xi, 3), gains, _num(u, 2), link_delivery, link_age, clock, event],
+                styles)
 
     def table(self, now: float, where: str = "") -> Table:
         """The monitor as a ``rich`` renderable."""
@@ -172,12 +176,23 @@ class Board:
         t = Table(title=heading, caption=caption, expand=False)
         for name, justify in (("vehicle", "right"), ("mode", "left"), ("|xi| [m]", "right"),
                               ("Kp  Kv (per axis)", "left"), ("|u| [m/s2]", "right"), ("link delivery", "right"),
-                              ("age p99", "right"), ("last event", "left")):
+                              ("age p99", "right"), ("clock", "right"), ("last event", "left")):
             t.add_column(name, justify=justify)  # type: ignore[arg-type]
         for vehicle in sorted(self.rows):
             cells, styles = self.cells(self.rows[vehicle], now)
             t.add_row(*[f"[{s}]{_escape(c)}[/]" if s else _escape(c) for c, s in zip(cells, styles)])
         return t
+
+
+def _clock(links: list[wire.ClockLink]) -> tuple[str, str]:
+    """The clock cell: the input link whose offset bound is largest in size (a flagged one first),
+    as ``agent/1 +31.2 ms``, ``!`` and red when its agent flagged it; ``-`` before any estimate."""
+    finite = [c for c in links if math.isfinite(c.offset)]
+    if not finite:
+        return "-", ""
+    worst = max(finite, key=lambda c: (c.warn, abs(c.offset)))
+    text = f"{worst.role}/{worst.src} {1000 * worst.offset:+.1f} ms"
+    return (text + " !", "bold red") if worst.warn else (text, "")
 
 
 def _escape(text: str) -> str:

@@ -20,6 +20,7 @@ pytest.importorskip("cflib.crtp")
 
 from tests import factories, support  # noqa: E402
 from tests.support import read, wait_until  # noqa: E402
+from tests.test_rehearse import log_time  # noqa: E402
 from sim import metrics  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.catalog import builtin_path  # noqa: E402
@@ -227,3 +228,72 @@ def test_a_frozen_vehicle_link_is_recovered_and_the_vehicle_never_falls(tmp_path
     flew = np.isfinite(run.p[:, 0, 2])
     assert np.nanmax(run.p[run.t >= 9.0, 0, 2]) > 0.8  # flying again after the freeze
     assert flew.mean() > 0.6
+
+
+def test_a_restarted_software_crazyflie_is_reconnected_and_rejoins(tmp_path: Path) -> None:
+    """Kill the software Crazyflie mid-flight and start it again (a rebooted vehicle: on the ground,
+    thrust locked, motors off): the plant re-opens the link through cflib, finds the vehicle on the
+    ground and takes it off again; its agent, holding on its silent plant meanwhile, flies it again
+    through the safety supervisor ("plant recovered"), and the vehicle is back in formation."""
+    port = BASE_PORT + 50
+    kill_at = 4.0
+    m = factories.build({
+        "version": 1, "name": "cfrestart", "dim": 3, "rate": 50.0, "duration": 26.0,
+        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
+        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
+        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
+                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}", "takeoff_height": 1.0}}],
+        "edges": [{"from": 2, "to": 1, "weight": 1.0}],
+        # the agent and the plant's watchdog hold (rather than land) while the vehicle restarts
+        "safety": {"land_after": 60.0, "cmd_cutoff": 60.0}})
+    path = tmp_path / "cfrestart.toml"
+    path.write_text(ms.dumps(m))
+    out = tmp_path / "run"
+    trace = tmp_path / "trace.txt"
+    sim_args = ["--count", "1", "--base-port", str(port), "--instance", "50", "--p0=0,0,0"]
+    with contextlib.ExitStack() as stack:
+        first = stack.enter_context(support.software_crazyflies(sim_args))
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--clock",
+                                 "realtime", "--lease", "1", "--quiet"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            epoch = wait_until(lambda: tick0(out / "logs" / "plant-1.log"), 90, "the run's start")
+            wait_until(lambda: time.time() >= epoch + kill_at or proc.poll() is not None, 30, "4 s of flight")
+            first.proc.kill()
+            first.proc.wait()
+            killed = time.time()
+            stack.enter_context(support.software_crazyflies([*sim_args, "--trace", str(trace)]))  # rebooted
+            restarted = time.time()
+            _, err = proc.communicate(timeout=150)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode in (0, 3), err[-3000:]  # 3: a failsafe fired (the watchdog held): documented
+    log = read(out / "logs" / "plant-1.log")
+    assert re.search(r"reconnected \(attempt \d\)", log), log[-3000:]
+    assert "on the ground at" in log and "taking off again" in log, log[-3000:]
+    airborne = [ln for ln in log.splitlines() if "airborne at" in ln]
+    assert len(airborne) == 2, log[-3000:]  # the start's take-off and the one after the restart
+    agent = read(out / "logs" / "agent-1.log")
+    modes = [(float(t), dst, why) for t, dst, why in re.findall(r"safety: t = ([0-9.]+) s: \w+ -> (\w+): (.*)", agent)]
+    hold = next(e for e in modes if e[0] >= kill_at and e[1] == "HOLD")
+    fly = next(e for e in modes if e[0] > hold[0] and e[1] == "FLYING")
+    assert "plant" in hold[2] and fly[2] == "plant recovered", modes
+    # the agent flies it again once it is back in the air, not during the take-off
+    up = log_time(airborne[1]) - epoch
+    assert fly[0] >= up - 0.1, (fly, up)
+    print(f"\nsoftware Crazyflie killed at {killed - epoch:.2f} s, started again {restarted - killed:.2f} s later; "
+          f"agent 1 HOLD at {hold[0]:.2f} s ({hold[2]}), FLYING at {fly[0]:.2f} s ({fly[2]}): "
+          f"{fly[0] - (killed - epoch):.2f} s from kill to rejoined (airborne again at {up:.2f} s)")
+    assert not [e for e in modes if e[1] in ("LAND", "LANDED", "ESTOP") and e[0] < m.duration - 1.0], modes
+    run = Run.load(out)
+    z = run.p[:, 0, 2]
+    back = run.t >= fly[0] + 3.0
+    assert np.nanmin(z[back & (run.t <= m.duration - 1.0)]) > 0.8  # flying again, at the leader's height
+    xi = np.linalg.norm(run.xi[:, 0], axis=-1)
+    print(f"||xi|| before the kill max {np.nanmax(xi[(run.t > 2.0) & (run.t < kill_at)]):.3f} m, "
+          f"from 3 s after the rejoin max {np.nanmax(xi[back]):.3f} m")
+    assert np.nanmax(xi[back]) < 0.5
+    # the rebooted simulator's own record: it took off again and was never locked by its watchdog
+    rows = np.loadtxt(trace, dtype=object)
+    assert "locked" not in set(rows[:, 9].astype(str)) and rows[:, 4].astype(float).max() > 0.8

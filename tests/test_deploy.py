@@ -555,7 +555,7 @@ def test_an_agent_can_answer_the_operators_query_only_for_itself(deployment: gen
     assert forged not in got
     assert {(KEYS.topic("agent", 2, "netem"), b"agent 2"), (KEYS.topic("agent", 3, "netem"), b"agent 3")} <= set(got)
     g = {x.name: x for x in acl.grants(ms.load(deployment.host_dir("agent-1") / "mission.toml"), "trio")}
-    assert all(grant.replies == (KEYS.topic("agent", int(name[6:]), "netem"),)
+    assert all(grant.replies == (KEYS.topic("agent", int(name[6:]), "netem"), KEYS.topic("agent", int(name[6:]), "lastplant"))
                for name, grant in g.items() if name.startswith("agent-"))
 
     # counter-check: through a router with the same profile but no access control, the forged reply arrives
@@ -749,9 +749,9 @@ BAD_HOSTS = [
     ('[[agents]]\nid = 1\naddress = "10.0.0.11"\n[[agents]]\nid = 2\naddress = "10.0.0.12"\n',
      "agents", "lacks agent 3"),
     ('[[agents]]\nid = 1\naddress = "a1"\n[[agents]]\nid = 2\naddress = "a2"\n[[agents]]\nid = 3\naddress = "a3"\n'
-     '[[agents]]\nid = 7\naddress = "a7"\n', "agents[3].id", "not an agent of mission 'trio'; use one of [1, 2, 3]"),
+     '[[agents]]\nid = 7\naddress = "a7"\n', "agent 7.id", "not an agent of mission 'trio'; use one of [1, 2, 3]"),
     ('[[agents]]\nid = 1\naddress = "a1"\n[[agents]]\nid = 1\naddress = "a2"\n[[agents]]\nid = 2\naddress = "a2"\n'
-     '[[agents]]\nid = 3\naddress = "a3"\n', "agents[1].id", "already listed as agents[0]"),
+     '[[agents]]\nid = 3\naddress = "a3"\n', "agent 1 (2nd [[agents]]).id", "listed twice"),
     ('[router]\naddress = "tls/10.0.0.1:7447"\n', "router.address", "no scheme, no port"),
     ('[router]\naddress = "10.0.0.1"\nport = 70000\n', "router.port", "1 to 65535"),
     ('network = "mesh"\n', "network", 'use "client" or "peer"'),

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -316,7 +317,18 @@ def test_top_board_keeps_each_agents_newest_telemetry_and_drops_the_rest() -> No
     b.telemetry(key(1), telemetry(1, 20, mode=1, xi=(0.6, 0.8), events=[ev]), now=1.0)
     cells, styles = b.cells(b.rows[1], now=1.1)
     assert cells[1] == "HOLD" and styles[1] == "yellow" and styles[2] == "red"
-    assert cells[7] == "t=0.2s FLYING->HOLD leader silent 0.52 s"
+    assert cells[8] == "t=0.2s FLYING->HOLD leader silent 0.52 s"
+    # the clock-offset estimate: the most offset link, flagged as its agent flagged it
+    assert cells[7] == "-"
+    clock = [wire.ClockLink(role="plant", src=1, offset=0.002), wire.ClockLink(role="agent", src=2, offset=-0.004),
+             wire.ClockLink(role="leader", src=5, offset=float("nan"))]
+    b.telemetry(key(1), telemetry(1, 21, mode=1, clock=clock), now=1.0)
+    cells, styles = b.cells(b.rows[1], now=1.1)
+    assert (cells[7], styles[7]) == ("agent/2 -4.0 ms", "")
+    clock.append(wire.ClockLink(role="agent", src=4, offset=0.0312, warn=True))
+    b.telemetry(key(1), telemetry(1, 22, mode=1, clock=clock), now=1.0)
+    cells, styles = b.cells(b.rows[1], now=1.1)
+    assert (cells[7], styles[7]) == ("agent/4 +31.2 ms !", "bold red")
     assert b.cells(b.rows[1], now=3.0)[0][1].startswith("STALE")
     b.token("@tether/s4/agent/1", False)
     b.token("@tether/s4/agent/4", True)
@@ -332,16 +344,26 @@ def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -
         pytest.skip("tmux is not installed (apt-get install tmux): tether top is tested in a real terminal")
     port = tp.free_tcp_port()
     run = tether("run", "section4", "--clock", "realtime", "--duration", "30", "--insecure", "--quiet",
-                 "--listen", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "run"), "--fault", "kill:agent/2@12")
+                 "--listen", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "run"), "--fault", "kill:agent/2@12",
+                 "--fault", "skew:agent/3=+0.015", "--fault", "skew:plant/3=+0.015")
     session = f"tether-top-{os.getpid()}"
     rc = tmp_path / "rc"
-    command = (f"cd {REPO} && PYTHONPATH={REPO} {sys.executable} -m cli top --connect tcp/127.0.0.1:{port} "
-               f"--ns section4; echo $? > {rc}")
-    subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "170", "-y", "30", command], check=True)
+    # without the COLUMNS/LINES a pytest run exports (80), rich reads the window's own size
+    command = (f"cd {REPO} && env -u COLUMNS -u LINES PYTHONPATH={REPO} {sys.executable} -m cli top "
+               f"--connect tcp/127.0.0.1:{port} --ns section4; echo $? > {rc}")
+    tmux = ["tmux", "-L", session, "-f", "/dev/null"]  # a server of its own: its size is the one asked for
+    subprocess.run([*tmux, "new-session", "-d", "-s", session, "-x", "200", "-y", "30", command], check=True)
 
     def pane() -> str:
-        done = subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True, text=True)
+        done = subprocess.run([*tmux, "capture-pane", "-p", "-t", session], capture_output=True, text=True)
         return done.stdout
+
+    def clock(vehicle: str) -> str:
+        for line in pane().splitlines():
+            cells = [c.strip() for c in line.split("│")]
+            if len(cells) > 9 and cells[1] == vehicle:
+                return cells[8]
+        return ""
 
     def rows(mode: str) -> set[str]:
         out = set()
@@ -354,11 +376,22 @@ def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -
     try:
         wait_for(lambda: rows("FLYING") == {"1", "2", "3", "4"}, 90, "a FLYING row for every vehicle", run)
         assert "tether top: namespace 'section4'" in pane()
+        # vehicle 3's host 15 ms ahead (within the gate's 2 periods, so every vehicle flies): agent 4
+        # hears agent 3's samples ~15 ms before their time (less the link's delay), agent 3 hears agent
+        # 2's ~15 ms late (plus the delay); both are outside -5 .. +10 ms, flagged, and top shows it
+        try:
+            wait_for(lambda: re.fullmatch(r"agent/3 -1\d\.\d ms !", clock("4")) is not None, 30,
+                     "vehicle 4's clock cell to show agent 3 ~15 ms ahead, flagged", run)
+            wait_for(lambda: re.fullmatch(r"agent/2 \+[1-9]\d\.\d ms !", clock("3")) is not None, 30,
+                     "vehicle 3's clock cell to show agent 2's samples ~15 ms late, flagged", run)
+        except pytest.fail.Exception as exc:
+            raise AssertionError(f"{exc}:\n{pane()}") from None
+        print(f"\ntether top clock cells: 3: {clock('3')}, 4: {clock('4')}, 1: {clock('1')}")
         wait_for(lambda: "2" in rows("GONE") | rows("STALE"), 60, "vehicle 2 shown gone once killed", run)
-        subprocess.run(["tmux", "send-keys", "-t", session, "q"], check=True)
+        subprocess.run([*tmux, "send-keys", "-t", session, "q"], check=True)
         wait_for(lambda: rc.exists() and rc.read_text().strip() != "", 30, "tether top to quit on q")
         assert rc.read_text().strip() == "0"
     finally:
-        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
+        subprocess.run([*tmux, "kill-server"], capture_output=True)
         os.killpg(run.pid, signal.SIGTERM)
         finish(run)

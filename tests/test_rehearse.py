@@ -491,3 +491,63 @@ def test_a_restarted_recorder_rejoins_and_the_run_file_says_what_it_missed(tmp_p
     assert run.meta.complete is False and run.meta.samples_recorded < run.meta.samples_expected
     assert not recorded[run.t < KILL_AT].any()  # the first recorder's were lost with it
     assert recorded[run.t > rejoined_at + 0.5].mean() > 0.9
+
+
+# =========================================================================== a restarted plant resumes
+@pytest.mark.slow  # a rehearsal with plant 2 killed mid-run and restarted by its unit's Restart=
+def test_a_restarted_plant_resumes_from_its_last_state(tmp_path: Path) -> None:
+    """Plant 2's process SIGKILLed at KILL_AT; its unit brings it back, and the new process learns
+    the start instant from agent 2's commands, asks agent 2 for its last state (the newest sample
+    of plant 2 it holds) and resumes there: no teleport to the mission's initial state, no jump in
+    the recorded position; agent 2 holds on its silent plant meanwhile and flies again once it is
+    back; the survivors stay bounded."""
+    needs_namespaces()
+    out = restart_deployment(tmp_path)
+    run_dir = tmp_path / "run"
+    # 30 s: a restart on two loaded cores took 14 s to come up (load average 14), and the new process
+    # then needs 20 of its agent's commands before it knows the start instant
+    status, output = run_rehearsal(tmp_path / "rehearse.log", str(out), "--out", str(run_dir), "--duration", "30",
+                                   "--kill", f"tether-plant-2@{KILL_AT:g}", timeout=RUN_WITHIN + 40)
+    assert status == 0, output[-4000:]
+    record = json.loads((run_dir / "rehearsal.json").read_text())
+    p2 = record["units"]["tether-plant-2"]
+    assert [rc for _, rc in p2["exits"]] == [-signal.SIGKILL, 0] and len(p2["pids"]) == 2
+    text = read(run_dir / "logs" / "tether-plant-2.log")
+    back = re.search(r"rejoined a run under way at tick (\d+) \(t = ([0-9.]+) s\): tick 0 at ([0-9.]+); resuming from "
+                     r"the last state on the wire, tick (\d+) \(t = ([0-9.]+) s\)", text)
+    assert back is not None, text[-3000:]
+    first, rejoined_at, epoch, last_k = int(back.group(1)), float(back.group(2)), float(back.group(3)), int(back.group(4))
+    print(f"\nplant 2 killed at {KILL_AT:g} s, resumed at {rejoined_at:.2f} s ({rejoined_at - KILL_AT:.2f} s) from its "
+          f"state of t = {float(back.group(5)):.2f} s; start instant learnt {1000 * (epoch - record['epoch']):+.1f} ms "
+          "off the operator's")
+    assert rejoined_at - KILL_AT <= REJOIN_WITHIN and abs(epoch - record["epoch"]) < 0.05
+    run = Run.load(run_dir)
+    col = {int(a): i for i, a in enumerate(run.agent_ids)}
+    assert run.runtime is not None
+    p = run.runtime.plant_p[:, col[2]]
+    seen = np.isfinite(p).all(axis=-1)
+    before = np.flatnonzero(seen & (np.arange(len(run.t)) <= last_k))
+    after = np.flatnonzero(seen & (np.arange(len(run.t)) >= first))
+    assert before.size and after.size, "plant 2's states before the kill and after the restart were recorded"
+    jump = float(np.linalg.norm(p[after[0]] - p[before[-1]]))
+    p0 = np.array(load_mission(SECTION4, DURATION).agent(2).p0)
+    print(f"plant 2's position: last before the kill {p[before[-1]]}, first after the restart {p[after[0]]} "
+          f"(moved {jump:.3f} m; the initial state is {float(np.linalg.norm(p[after[0]] - p0)):.1f} m away)")
+    assert jump < 0.05  # the frozen vehicle: where it was, moved by one period at most
+    assert float(np.linalg.norm(p[before[-1]] - p0)) > 1.0  # a teleport would have shown
+    a2 = read(run_dir / "logs" / "tether-agent-2.log")
+    modes = [(float(t), src, dst, why) for t, src, dst, why in
+             re.findall(r"safety: t = ([0-9.]+) s: (\w+) -> (\w+): (.*)", a2)]
+    hold = next(e for e in modes if e[0] >= KILL_AT and e[2] == "HOLD" and "plant silent" in e[3])
+    fly = next(e for e in modes if e[0] >= rejoined_at - 1e-9 and e[2] == "FLYING")
+    print(f"agent 2: HOLD at {hold[0]:.2f} s ({hold[3]}), FLYING at {fly[0]:.2f} s ({fly[3]})")
+    assert fly[0] >= rejoined_at - 1e-9
+    norm = np.linalg.norm(run.xi, axis=-1)
+    assert not [e for e in run.safety.events if e.dst >= 2], "a vehicle landed or stopped"
+    tail = norm[run.t >= fly[0] + 5.0]
+    around = (run.t >= KILL_AT - 1) & (run.t <= fly[0] + 5.0)
+    print("max ||xi|| per agent from 1 s before the kill to 5 s after agent 2 flies again: "
+          + ", ".join(f"{a}: {np.nanmax(norm[around, col[a]]):.2f} m" for a in (1, 2, 3, 4))
+          + (f"; after: {np.nanmax(tail):.2f} m" if tail.size else ""))
+    for aid in (1, 3, 4):
+        assert np.nanmax(norm[:, col[aid]]) < 500.0, aid

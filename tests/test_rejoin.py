@@ -76,3 +76,40 @@ def test_the_ramp_moves_the_command_by_at_most_its_step_until_it_catches_up() ->
     assert all(np.linalg.norm(u) <= max_accel + 1e-12 for u in sent)
     assert len(sent) - 1 <= round(REJOIN_RAMP / H) + 2  # from about 0 to max_accel in REJOIN_RAMP
     assert np.array_equal(ramp.limit(-law, flying=True), -law)  # caught up: off for good
+
+
+# --------------------------------------------------------------------------- a restarted plant's last state
+def test_a_restarted_plants_last_state_is_checked_before_it_is_resumed() -> None:
+    from plant import resume
+    from tether import wire
+
+    def state(**kw: object) -> bytes:
+        base = dict(sender=2, seq=5, k=400, t=4.0, p=[3.0, 4.0], vel=[1.0, 0.0], a=[0.0, 0.0], d=[0.0, 0.0], mode=1)
+        return wire.encode(wire.PlantState(**(base | kw)))  # type: ignore[arg-type]
+
+    msg, why = resume.check(state(), 2, 2, 500)
+    assert msg is not None and msg.p == [3.0, 4.0] and why == ""
+    for payload, says in ((b"\x93junk", "not a tether message"), (state(sender=3), "plant 3's state, not plant 2's"),
+                          (state(p=[float("nan"), 0.0]), "not finite"), (state(p=[1.0, 2.0, 3.0]), "components"),
+                          (state(k=500), "not before tick 500"), (state(mode=3), "LANDED: a restart does not"),
+                          (state(mode=4), "ESTOP"),
+                          (wire.encode(wire.Ack(sender=2, seq=0, k=0, t=0.0, role="plant")), "not a plant state")):
+        msg, why = resume.check(payload, 2, 2, 500)
+        assert msg is None and says in why, (says, why)
+
+
+def test_a_resumed_plant_starts_where_its_last_state_was() -> None:
+    from plant import resume
+    from tether import wire
+    from tether.catalog import builtin_path
+    from tether.node import load_mission
+
+    m = load_mission(builtin_path("section4"), 10.0)
+    last = wire.PlantState(sender=2, seq=5, k=400, t=4.0, p=[3.0, 4.0], vel=[1.0, -0.5], a=[0.0, 0.0], d=[0.0, 0.0])
+    plant = resume.resumed(m, 2, last, 450)
+    s = plant.state()
+    assert s.p.tolist() == [[3.0, 4.0]] and s.v.tolist() == [[1.0, -0.5]]
+    fresh = resume.resumed(m, 2, last, 0).state()
+    # the disturbance continues at tick 450, not at tick 0 (d_2 = [0.9 cos 4t, 0.2 sin 3t])
+    assert np.allclose(s.d[0], [0.9 * np.cos(4 * 4.5), 0.2 * np.sin(3 * 4.5)], atol=1e-9)
+    assert not np.allclose(s.d[0], fresh.d[0])
