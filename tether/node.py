@@ -108,6 +108,12 @@ class NodeArgs:
     start_timeout: float | None = None
     """Give up (exit 1) when the start message has not come this long after :meth:`Node.ready`
     declared liveliness [s]; None waits for ever (a service waiting for its operator's start)."""
+    colocate: bool = False
+    """Lockstep: an agent computes its simulated plant itself (:mod:`plant.onboard`) and sends the
+    recorder :class:`~tether.wire.Record` messages; the recorder listens for them
+    (``tether run --colocate-plants``)."""
+    record_batch: int = 1
+    """With :attr:`colocate`: ticks an agent's record carries at most (a smaller last one ends the run)."""
 
 
 class Publisher:
@@ -120,6 +126,11 @@ class Publisher:
 
     def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
         msg = cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields)
+        self.seq += 1
+        self._pub.put(wire.encode(msg))
+
+    def put(self, msg: wire.Message) -> None:
+        """Publish a message built by the caller (its sender and sequence number are the caller's)."""
         self.seq += 1
         self._pub.put(wire.encode(msg))
 
