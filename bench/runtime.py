@@ -1217,7 +1217,8 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     report["python_us"] = rows
 
 
-def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25) -> None:
+def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25,
+                colocate: str | None = None) -> None:
     """Run ``tether run`` (launcher in this process) with one child under cProfile and print where its
     time goes. ``who`` is ``role:id`` (``agent:1``, ``recorder:0``, ...). The child is started by the
     launcher exactly as usual but through ``bench/runtime.py _cprofile FILE`` instead of ``-m
@@ -1246,7 +1247,9 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
         return real_popen(cmd, *args, **kwargs)
 
     load_mission(path, duration)
-    opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False)
+    window, batch = (int(x) for x in colocate.split(":")) if colocate else (local.LaunchOptions.window, None)
+    opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False, window=window,
+                               colocate_plants=colocate is not None, record_batch=batch)
     local.subprocess.Popen = popen
     try:
         status = asyncio.run(local.run(path, opts))
@@ -1309,10 +1312,13 @@ def main(argv: list[str]) -> None:
                     help="instead of the cases: one tether run with this process under cProfile (e.g. agent:1)")
     ap.add_argument("--profile-clock", choices=["lockstep", "realtime"], default="lockstep")
     ap.add_argument("--profile-duration", type=float, default=10.0)
+    ap.add_argument("--profile-colocate", metavar="WINDOW:BATCH", default=None,
+                    help="--profile a lockstep run with --colocate-plants, this window and records of BATCH ticks")
     a = ap.parse_args(argv)
     if a.profile:
         work = a.work or Path(tempfile.mkdtemp(prefix="tether-profile-"))
-        return profile_run(a.mission, a.profile_clock, a.profile_duration, a.profile, work)
+        return profile_run(a.mission, a.profile_clock, a.profile_duration, a.profile, work,
+                           colocate=a.profile_colocate)
     QUIET.update(limit=a.quiet_below, timeout=a.quiet_timeout)
     report: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                           "load_at_start": os.getloadavg()}}

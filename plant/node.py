@@ -22,11 +22,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from plant import base
-from plant.crazyflie import CrazyfliePlant, LinkLost
 from plant.rest import Resting
 from plant.watchdog import Watchdog
 from tether import transport as tp
@@ -34,7 +34,14 @@ from tether import wire
 from tether import mission as ms
 from tether.node import Node
 
+if TYPE_CHECKING:  # a simulated plant's process does not load the Crazyflie driver
+    from plant.crazyflie import CrazyfliePlant
+
 log = logging.getLogger("tether")
+
+
+class _NoLinkLost(Exception):
+    """Stands for :class:`plant.crazyflie.LinkLost` in a process without a Crazyflie (never raised)."""
 
 
 async def run(node: Node) -> None:
@@ -53,21 +60,27 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
         raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
     (plant,) = base.build(m, ids, live=live)
-    if isinstance(plant, CrazyfliePlant):
+    real = any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids)
+    if real:  # only then is the driver loaded (base.build has loaded it already)
+        from plant.crazyflie import CrazyfliePlant, LinkLost
+    if real and isinstance(plant, CrazyfliePlant):
         await asyncio.to_thread(plant.open)  # connect and take off: seconds, off the event loop
         vehicle: Resting | CrazyfliePlant = plant
+        lost: type[Exception] = LinkLost
     else:
         vehicle = Resting(plant, m.dim, m.safety.ground)
+        lost = _NoLinkLost
     try:
-        await _fly(node, ids, world, vehicle)
+        await _fly(node, ids, world, vehicle, lost)
     finally:
-        if isinstance(plant, CrazyfliePlant):
+        if not isinstance(vehicle, Resting):
             await asyncio.to_thread(plant.close)  # lands: seconds
         else:
             plant.close()
 
 
-async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | CrazyfliePlant) -> None:
+async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | CrazyfliePlant,
+               link_lost: type[Exception]) -> None:
     m, keys = node.mission, node.keys
     h = m.dt
     cmds = []
@@ -89,8 +102,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
     dogs = [Watchdog(m.safety, m.dim) for _ in ids]
     await node.ready()
-    cf = plant if isinstance(plant, CrazyfliePlant) else None
-    """The real vehicle, the only plant whose link can be lost (LinkLost)."""
+    cf = None if isinstance(plant, Resting) else plant
+    """The real vehicle, the only plant whose link can be lost (``link_lost``: plant.crazyflie.LinkLost)."""
     recovering: asyncio.Task[bool] | None = None
     s: base.Sample | None = None
     for k in range(m.steps + 1):
@@ -111,7 +124,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
             plant.step(np.array(u), modes)
         try:
             s = plant.state()
-        except LinkLost as exc:
+        except link_lost as exc:
             if cf is None:
                 raise
             s = None
@@ -125,7 +138,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                 log.error("%s: withdrawing from the swarm", cf.spec.uri)
                 node.withdraw()
                 await node.tick(m.steps)
-                raise LinkLost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link did not come back")
+                raise link_lost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link did not come back")
             recovering = None
         if s is None:
             continue  # nothing measured: nothing to publish
@@ -138,4 +151,4 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
     if cf is not None and recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()
-        raise LinkLost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")
+        raise link_lost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")
