@@ -74,7 +74,8 @@ async def run(node: Node) -> None:
     rejoin = Rejoin(getattr(node.clock, "wall", None))
 
     def gate(sender: int, role: str) -> Callable[[Any], str | None]:
-        g = for_sender(m, sender, None if node.clock.lockstep else node.mission_time)
+        # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick)
+        g = for_sender(m, sender, None if node.clock.lockstep else node.arrival)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
@@ -84,7 +85,7 @@ async def run(node: Node) -> None:
                     rejoin.observe(msg.k, msg.t)
                 return "before start"
             if clocks is not None:
-                clocks.observe(role, sender, msg.t, node.mission_time())
+                clocks.observe(role, sender, msg.t, node.arrival())
             why = g.check(msg)
             if why is not None and g.rejected[why] in (1, 10, 100, 1000):  # say so, without flooding the log
                 log.warning("gate: sample of %d for tick %d rejected (%s), %d so far", sender, msg.k, why,
@@ -115,7 +116,8 @@ async def run(node: Node) -> None:
     for j in law.neighbours:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
-        src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel)
+        # read at the tick only: their samples do not wake the loop as they arrive (real time)
+        src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel, wake=False)
         src.admit = gate(j, role)
         node.watch(role, j, src)
         nbrs.append(src)
@@ -128,7 +130,7 @@ async def run(node: Node) -> None:
     if avoid:
         for j in m.agent_ids:
             if j != aid and j not in law.neighbours:
-                src = node.source(keys.topic("agent", j, "state"), wire.State, j)
+                src = node.source(keys.topic("agent", j, "state"), wire.State, j, wake=False)
                 src.admit = gate(j, "agent")
                 proximity.append(src)
     vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]

@@ -85,7 +85,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     h = m.dt
     cmds = []
     for aid in ids:
-        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid)
+        # read at the tick only: a command does not wake the loop as it arrives (real time)
+        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid, wake=False)
         node.watch("agent", aid, src)
         cmds.append(src)
     operator: list[str | None] = [None]
