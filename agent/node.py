@@ -45,13 +45,23 @@ async def run(node: Node) -> None:
     law = tick.law
     keys = node.keys
     state = node.publisher(keys.topic("agent", aid, "state"))
+    onboard = None
+    if node.args.colocate:  # lockstep: this process computes its plant (plant/onboard.py); no plant process runs
+        if not node.clock.lockstep:
+            raise ValueError("--colocate-plant is for lockstep runs: in real time the plant is a process of its own")
+        from plant.onboard import Onboard
+
+        onboard = Onboard(m, aid)
+
+    def publish_state(msg: wire.PlantState) -> None:
+        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist(),
+                   mode=tick.supervisor.mode)
 
     def relay(msg: wire.PlantState) -> None:
         if msg is not plant.newest:  # not newer than the last (a replay, a duplicate): never re-published as fresh
             node.count_drop("stale_relay")
             return
-        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist(),
-                   mode=tick.supervisor.mode)
+        publish_state(msg)
 
     sf = m.safety
     gates: list[Gate] = []
@@ -65,7 +75,8 @@ async def run(node: Node) -> None:
     rejoin = Rejoin(getattr(node.clock, "wall", None))
 
     def gate(sender: int, role: str) -> Callable[[Any], str | None]:
-        g = for_sender(m, sender, None if node.clock.lockstep else node.mission_time)
+        # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick)
+        g = for_sender(m, sender, None if node.clock.lockstep else node.arrival)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
@@ -75,7 +86,7 @@ async def run(node: Node) -> None:
                     rejoin.observe(msg.k, msg.t)
                 return "before start"
             if clocks is not None:
-                clocks.observe(role, sender, msg.t, node.mission_time())
+                clocks.observe(role, sender, msg.t, node.arrival())
             why = g.check(msg)
             if why is not None and g.rejected[why] in (1, 10, 100, 1000):  # say so, without flooding the log
                 log.warning("gate: sample of %d for tick %d rejected (%s), %d so far", sender, msg.k, why,
@@ -93,10 +104,13 @@ async def run(node: Node) -> None:
             operator.append(msg.action)
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
-    plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
-    plant.admit = gate(aid, "plant")
-    node.watch("plant", aid, plant)
-    resume.serve(node, aid, plant)  # a restarted plant asks for its last state (plant/resume.py)
+    own_inputs: list[Source] = []
+    if onboard is None:
+        plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
+        plant.admit = gate(aid, "plant")
+        node.watch("plant", aid, plant)
+        own_inputs.append(plant)
+        resume.serve(node, aid, plant)  # a restarted plant asks for its last state (plant/resume.py)
     if m.netem is not None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
     nbrs: list[Source] = []
@@ -104,7 +118,8 @@ async def run(node: Node) -> None:
     for j in law.neighbours:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
-        src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel)
+        # read at the tick only: their samples do not wake the loop as they arrive (real time)
+        src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel, wake=False)
         src.admit = gate(j, role)
         node.watch(role, j, src)
         nbrs.append(src)
@@ -117,13 +132,20 @@ async def run(node: Node) -> None:
     if avoid:
         for j in m.agent_ids:
             if j != aid and j not in law.neighbours:
-                src = node.source(keys.topic("agent", j, "state"), wire.State, j)
+                src = node.source(keys.topic("agent", j, "state"), wire.State, j, wake=False)
                 src.admit = gate(j, "agent")
                 proximity.append(src)
     vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]
     netem_control.serve(node)
-    cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND)
-    tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY)
+    cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND) if onboard is None else None
+    tele = node.publisher(keys.topic("agent", aid, "telemetry"), tp.TELEMETRY) if onboard is None else None
+    records = node.publisher(keys.topic("agent", aid, "record")) if onboard is not None else None
+    batch = max(1, node.args.record_batch)
+    pending: tuple[list[wire.PlantState], list[wire.Telemetry]] = ([], [])
+    """With a co-located plant: the plant samples and telemetry not yet sent to the recorder."""
+    last_cmd: wire.Command | None = None
+    """With a co-located plant: the command of the previous tick, which its plant flies next."""
+    tele_seq = 0
     await node.ready(phase=AGENT_PHASE, rejoin=rejoin.epoch)
     first = 0
     rejoining = node.rejoined
@@ -140,7 +162,12 @@ async def run(node: Node) -> None:
     for k in range(first, m.steps + 1):
         await node.tick(k)
         t = k * m.dt
-        own, *got = await node.aligned([plant, *nbrs, *proximity], k)
+        if onboard is not None:
+            own = onboard.advance(k, last_cmd, _order(operator))
+            publish_state(own)
+            got = await node.aligned([*nbrs, *proximity], k)
+        else:
+            own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
         clock: list[wire.ClockLink] = []
         if clocks is not None:
             estimates = clocks.report()
@@ -153,7 +180,7 @@ async def run(node: Node) -> None:
         # the vehicle is gone (its plant withdrew or died) or its measurements stopped: the
         # supervisor holds on the last one it had (its plant's own watchdog holds the vehicle too);
         # the agent relays nothing meanwhile, so its neighbours count it out
-        plant_silent = not lockstep and k < m.steps and (plant.silent_at(k) or t - own.t > sf.cmd_timeout)
+        plant_silent = not lockstep and k < m.steps and (own_inputs[0].silent_at(k) or t - own.t > sf.cmd_timeout)
         if plant_silent != holding:
             log.warning("plant %d is %s at t = %.2f s", aid, "silent: holding" if plant_silent else "back", t)
             holding = plant_silent
@@ -188,7 +215,10 @@ async def run(node: Node) -> None:
                 ramp = None
         else:
             u = out.u.tolist()
-        cmd.send(wire.Command, k, t, u=u, mode=out.mode)
+        if cmd is not None:
+            cmd.send(wire.Command, k, t, u=u, mode=out.mode)
+        else:
+            last_cmd = wire.Command(sender=aid, seq=k, k=k, t=t, u=u, mode=out.mode)
         events = tick.supervisor.take_events()
         for ev in events:
             log.warning("safety: t = %.2f s: %s -> %s: %s", ev.t, wire.MODES[ev.src], wire.MODES[ev.dst], ev.reason)
@@ -204,10 +234,25 @@ async def run(node: Node) -> None:
                 delivery=(received - s.duplicates) / sent if sent else 0.0, age_p50=p50, age_p99=p99))
         decisions = [wire.LinkDecision(src=j, seq=d.seq, now=d.now, event=d.event, at=d.at)
                      for j, ch in channels for d in ch.link.take_decisions()]
-        tele.send(wire.Telemetry, k, t, clock=clock, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel, a=own.a, u=u,
-                  xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(), links=links,
-                  drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
-                  gate=merged(gates))
+        report = wire.Telemetry(
+            sender=aid, seq=tele_seq, k=k, t=t, clock=clock, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel,
+            a=own.a, u=u, xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(),
+            links=links, drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
+            gate=merged(gates))
+        tele_seq += 1
+        if tele is not None:
+            tele.put(report)
+        elif records is not None:
+            # one message per `batch` ticks for the recorder, within the clock's window: the
+            # recorder acknowledges tick k (and the clock grants further) only once it holds it
+            pending[0].append(own)
+            pending[1].append(report)
+            if len(pending[1]) >= batch or k == m.steps:
+                records.send(wire.Record, k, t, plant=pending[0][:], telemetry=pending[1][:])
+                pending[0].clear()
+                pending[1].clear()
+    if onboard is not None:
+        onboard.close()
 
 
 class Ramp:

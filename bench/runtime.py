@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/runtime.py                        # every case (about 7 minutes)
     .venv/bin/python bench/runtime.py --cases lockstep --repeats 5
+    .venv/bin/python bench/runtime.py --cases colocate --repeats 3 --colocate-windows 16:4 16:8 32:16
     .venv/bin/python bench/runtime.py --cases scale --sizes 4 8 16 32 --scale-repeats 2
     .venv/bin/python bench/runtime.py --cases latency cpu --json /tmp/bench.json
     .venv/bin/python bench/runtime.py --profile agent:1 [--profile-clock realtime --mission FILE]
@@ -560,12 +561,13 @@ def _tether_cmd() -> list[str]:
 
 
 def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, work: Path,
-               probe: bool = False, timeout: float = 300.0, launcher: list[str] | None = None) -> Result:
-    """``tether run MISSION --clock CLOCK --duration S --quiet``, measured from outside (``launcher``
-    replaces the ``tether`` command, for experiments with a patched runtime)."""
+               probe: bool = False, timeout: float = 300.0, launcher: list[str] | None = None,
+               extra: tuple[str, ...] = ()) -> Result:
+    """``tether run MISSION --clock CLOCK --duration S --quiet [EXTRA]``, measured from outside
+    (``launcher`` replaces the ``tether`` command, for experiments with a patched runtime)."""
     out = work / f"tether-{clock}-{m.n}-{time.monotonic_ns()}"
     cmd = [*(launcher or _tether_cmd()), "run", str(mission_path), "--out", str(out), "--clock", clock,
-           "--duration", repr(duration), "--quiet"]
+           "--duration", repr(duration), "--quiet", *extra]
     res = Result("tether", m.n, clock, m.rate)
     t_start = time.monotonic()
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=launcher_env(),
@@ -885,6 +887,77 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
                           "window": WINDOW, "runs": rows, "median": mm}
 
 
+def colocate_structures(windows: list[str]) -> list[tuple[str, dict[str, Any], tuple[str, ...]]]:
+    """Case ``colocate``: (name, bare baseline variant, ``tether run`` options) of each structure,
+    the same on both sides: separate plant processes (window 8); plants co-located, the recorder's
+    samples every tick (tether: one record per tick, the bare baseline two messages); then for
+    each ``WINDOW:BATCH`` of ``windows``, co-located with records of BATCH ticks and that window."""
+    out: list[tuple[str, dict[str, Any], tuple[str, ...]]] = [
+        ("separate, w8", {}, ()),
+        ("co-located, w8", {"colocate": True}, ("--colocate-plants", "--record-batch", "1")),
+    ]
+    for spec in windows:
+        w, b = (int(x) for x in spec.split(":"))
+        out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w},
+                    ("--colocate-plants", "--record-batch", str(b), "--window", str(w))))
+    return out
+
+
+def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
+    """Lockstep, tether beside the bare baseline with the same structure (plants in separate
+    processes or co-located in their agents, the recorder's samples per tick or batched, the grant
+    window), one pair after the other in each repeat: speed, CPU per tick of all processes and of
+    the median agent, and tether / bare of each, in the same run."""
+    from tether.node import load_mission
+
+    path = catalog.resolve(a.mission)
+    m = load_mission(path, a.lockstep_duration)
+    ticks = m.steps + 1
+    structs = colocate_structures(a.colocate_windows)
+    say(f"\n== 1b. lockstep by structure: {a.mission} ({m.n} agents, {m.rate:g} Hz), {a.lockstep_duration:g} s of mission "
+        f"time per run, {a.repeats} repeats; tether run with the structure's options beside the bare baseline with the "
+        "same structure; speed = mission s / wall s; CPU per tick from /proc (all processes / median agent)")
+    rows: dict[str, list[dict[str, Any]]] = {name: [] for name, _, _ in structs}
+    for i in range(a.repeats):
+        for name, variant, opts in structs:
+            settle()
+            rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, extra=opts)
+            settle()
+            rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant)
+            bad = [f"{r.kind} failed: {r.why}" for r in (rt, rb) if not r.ok]
+            ct, cb = _per_tick(rt, ticks), _per_tick(rb, ticks)
+            row = {"tether": rt.speed if rt.ok else float("nan"), "baseline": rb.speed if rb.ok else float("nan"),
+                   "tether_us": ct["total_us"], "baseline_us": cb["total_us"], "tether_agent_us": ct["agent"]["us"],
+                   "baseline_agent_us": cb["agent"]["us"], "tether_cpu": ct, "baseline_cpu": cb,
+                   "foreign_pct": [rt.foreign_pct, rb.foreign_pct], "load": os.getloadavg()[0]}
+            rows[name].append(row)
+            noisy = " NOISY" if max(row["foreign_pct"]) >= NOISY else ""
+            say(f"   run {i + 1} {name:17} tether {row['tether']:5.2f} x  bare {row['baseline']:5.2f} x  "
+                f"({ratio(row['tether'], row['baseline']):.2f}) | CPU/tick {row['tether_us'] / 1e3:.2f} vs "
+                f"{row['baseline_us'] / 1e3:.2f} ms ({ratio(row['tether_us'], row['baseline_us']):.2f}) | agent "
+                f"{row['tether_agent_us']:.0f} vs {row['baseline_agent_us']:.0f} us | other {rt.foreign_pct:.0f} / "
+                f"{rb.foreign_pct:.0f} % | load {row['load']:.1f}{noisy}" + ("".join(f"\n      {x}" for x in bad)))
+    say(f"   medians over the quiet runs (other load < {NOISY:g} %, or all runs when none is quiet):")
+    say(f"   {'structure':17} {'tether x':>9} {'bare x':>7} {'ratio':>6} {'CPU/tick ms':>12} {'bare':>6} {'ratio':>6} "
+        f"{'agent us':>9} {'bare':>6} {'ratio':>6}")
+    med_rows = {}
+    for name, _, _ in structs:
+        use = _quiet(rows[name])
+        mm = {k: med([r[k] for r in use]) for k in ("tether", "baseline", "tether_us", "baseline_us",
+                                                      "tether_agent_us", "baseline_agent_us", "load")}
+        med_rows[name] = mm
+        say(f"   {name:17} {mm['tether']:>9.2f} {mm['baseline']:>7.2f} {ratio(mm['tether'], mm['baseline']):>6.2f} "
+            f"{mm['tether_us'] / 1e3:>12.2f} {mm['baseline_us'] / 1e3:>6.2f} {ratio(mm['tether_us'], mm['baseline_us']):>6.2f} "
+            f"{mm['tether_agent_us']:>9.0f} {mm['baseline_agent_us']:>6.0f} "
+            f"{ratio(mm['tether_agent_us'], mm['baseline_agent_us']):>6.2f}")
+    best = max(med_rows, key=lambda n: med_rows[n]["tether"])
+    say(f"   fastest tether structure: {best} ({med_rows[best]['tether']:.2f} x real time; target >= 20 x; its bare "
+        f"ceiling {med_rows[best]['baseline']:.2f} x); separate plants: {med_rows[structs[0][0]]['tether']:.2f} x")
+    _role_table(rows[best][len(rows[best]) // 2]["tether_cpu"], rows[best][len(rows[best]) // 2]["baseline_cpu"],
+                f"{best}, CPU per tick by role [us] (one run), thread kinds: asyncio main / callback / Zenoh runtime")
+    report["colocate"] = {"mission": a.mission, "duration": a.lockstep_duration, "runs": rows, "median": med_rows}
+
+
 def _rt_row(rt: Result, rb: Result) -> dict[str, Any]:
     """What a real-time pair (tether, baseline) gives: late ticks, CPU, memory, ages, losses."""
     ticks = rt.rate * rt.mission_s + 1 if rt.mission_s == rt.mission_s else float("nan")
@@ -1144,7 +1217,8 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     report["python_us"] = rows
 
 
-def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25) -> None:
+def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25,
+                colocate: str | None = None) -> None:
     """Run ``tether run`` (launcher in this process) with one child under cProfile and print where its
     time goes. ``who`` is ``role:id`` (``agent:1``, ``recorder:0``, ...). The child is started by the
     launcher exactly as usual but through ``bench/runtime.py _cprofile FILE`` instead of ``-m
@@ -1173,7 +1247,9 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
         return real_popen(cmd, *args, **kwargs)
 
     load_mission(path, duration)
-    opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False)
+    window, batch = (int(x) for x in colocate.split(":")) if colocate else (local.LaunchOptions.window, None)
+    opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False, window=window,
+                               colocate_plants=colocate is not None, record_batch=batch)
     local.subprocess.Popen = popen
     try:
         status = asyncio.run(local.run(path, opts))
@@ -1209,7 +1285,7 @@ def main(argv: list[str]) -> None:
         ep, ns, rate, kind, n, steps, out = argv[1:8]
         return run_probe(ep, ns, float(rate), kind, int(n), int(steps), out)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", choices=["lockstep", "scale", "latency", "cpu", "python"],
+    ap.add_argument("--cases", nargs="+", choices=["lockstep", "colocate", "scale", "latency", "cpu", "python"],
                     default=["lockstep", "scale", "latency", "cpu", "python"])
     ap.add_argument("--repeats", type=int, default=3, help="runs per figure in cases 1 and 3 (medians)")
     ap.add_argument("--mission", default="section4", help="case 1's mission (N = 4, 100 Hz)")
@@ -1223,6 +1299,8 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--latency-rate", type=float, default=100.0)
     ap.add_argument("--latency-duration", type=float, default=10.0)
     ap.add_argument("--no-variants", action="store_true", help="case 1: skip the co-located baseline experiment")
+    ap.add_argument("--colocate-windows", nargs="*", default=["16:4", "16:8", "32:16"], metavar="WINDOW:BATCH",
+                    help="case colocate: co-located structures with records of BATCH ticks and this grant window")
     ap.add_argument("--baseline-wake", action="store_true",
                     help="real-time baseline wakes its loop on every sample, as tether's nodes do")
     ap.add_argument("--quiet-below", type=float, default=0.5,
@@ -1234,10 +1312,13 @@ def main(argv: list[str]) -> None:
                     help="instead of the cases: one tether run with this process under cProfile (e.g. agent:1)")
     ap.add_argument("--profile-clock", choices=["lockstep", "realtime"], default="lockstep")
     ap.add_argument("--profile-duration", type=float, default=10.0)
+    ap.add_argument("--profile-colocate", metavar="WINDOW:BATCH", default=None,
+                    help="--profile a lockstep run with --colocate-plants, this window and records of BATCH ticks")
     a = ap.parse_args(argv)
     if a.profile:
         work = a.work or Path(tempfile.mkdtemp(prefix="tether-profile-"))
-        return profile_run(a.mission, a.profile_clock, a.profile_duration, a.profile, work)
+        return profile_run(a.mission, a.profile_clock, a.profile_duration, a.profile, work,
+                           colocate=a.profile_colocate)
     QUIET.update(limit=a.quiet_below, timeout=a.quiet_timeout)
     report: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                           "load_at_start": os.getloadavg()}}
@@ -1250,6 +1331,8 @@ def main(argv: list[str]) -> None:
         t0 = time.monotonic()
         if "lockstep" in a.cases:
             case_lockstep(a, work, report)
+        if "colocate" in a.cases:
+            case_colocate(a, work, report)
         if "scale" in a.cases:
             case_scale(a, work, report, pairs)
         if "latency" in a.cases:

@@ -317,7 +317,8 @@ def _node_args(args: argparse.Namespace, role: str, node_id: int) -> NodeArgs:
     settings = _zenoh_settings(args)
     return NodeArgs(mission_path=catalog.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
                     zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
-                    duration=args.duration, start_timeout=args.start_timeout)
+                    duration=args.duration, start_timeout=args.start_timeout,
+                    colocate=getattr(args, "colocate_plant", False), record_batch=getattr(args, "record_batch", 1))
 
 
 def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[Node], Awaitable[None]],
@@ -497,6 +498,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
                                vehicle_connect=dict(args.vehicle_connect), faults=injected,
                                insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
+                               colocate_plants=args.colocate_plants, record_batch=args.record_batch,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return asyncio.run(local.run(path, opts))
 
@@ -681,6 +683,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="serve the run over the Foxglove WebSocket protocol while it goes on, from the recorder "
                          "(default port 8765; docs/foxglove.md)")
     rn.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
+    rn.add_argument("--colocate-plants", action="store_true",
+                    help="lockstep, simulated plants: each agent computes its own plant (no plant processes; "
+                         "the same run bit for bit, faster: docs/benchmarks.md)")
+    rn.add_argument("--record-batch", type=_positive_int, default=None, metavar="TICKS",
+                    help="with --colocate-plants: ticks per message to the recorder, at most --window "
+                         "(default: half the window)")
     rn.set_defaults(func=cmd_run)
 
     for role, fn, helptext in (("leader", cmd_leader, "the virtual leader's process"),
@@ -692,6 +700,13 @@ def build_parser() -> argparse.ArgumentParser:
         _process_options(rp)
         if role in ("agent", "plant"):
             rp.add_argument("--id", type=int, required=True)
+        if role in ("agent", "recorder"):
+            rp.add_argument("--colocate-plant", action="store_true",
+                            help="lockstep: the agent computes its simulated plant itself (no plant process) and "
+                                 "sends the recorder batched records; the recorder listens for them")
+        if role == "agent":
+            rp.add_argument("--record-batch", type=_positive_int, default=1, metavar="TICKS",
+                            help="with --colocate-plant: ticks per record sent to the recorder")
         if role == "recorder":
             rp.add_argument("--out", required=True)
             rp.add_argument("--live", type=int, default=None, metavar="PORT",

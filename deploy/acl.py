@@ -105,19 +105,20 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
         # the recorder hears, and publish none of them
         Grant("control-0", publish=(k.start, k.tick, k.safety),
               subscribe=(k.acks, k.start, k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
-                         f"tether/{ns}/plant/*/state", k.topic("world", 0, "state")),
+                         f"tether/{ns}/agent/*/record", f"tether/{ns}/plant/*/state", k.topic("world", 0, "state")),
               watch=(every_token,), sees=(every_token,),
               asks=(every_netem,), lists=(k.token("agent", "*"),)),
         Grant("recorder-0", publish=(k.topic("recorder", 0, "ack"),),
               subscribe=(k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
-                         f"tether/{ns}/plant/*/state", k.start),
+                         f"tether/{ns}/agent/*/record", f"tether/{ns}/plant/*/state", k.start),
               tokens=(k.token("recorder", 0),), watch=(every_token,), sees=(every_token,)),
     ]
     for aid in m.agent_ids:
         nbrs = [j for j, _ in graph.in_neighbours(m, aid)]  # the keys the agent subscribes to
         out.append(Grant(
             f"agent-{aid}",
-            publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry")),
+            # record: lockstep with the plant co-located in the agent (--colocate-plants)
+            publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry", "record")),
             subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),

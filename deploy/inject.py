@@ -127,6 +127,8 @@ class Monitor:
             tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", self.fifo),
             tp.declare_subscriber(session, f"tether/{ns}/plant/*/state", self.fifo),
             tp.declare_subscriber(session, f"tether/{ns}/leader/*/state", self.fifo),
+            # a plant co-located in its agent (--colocate-plants): both streams in one record
+            tp.declare_subscriber(session, f"tether/{ns}/agent/*/record", self.fifo),
             tp.watch_tokens(session, keys.tokens, self.token_events),
         ]
         if forge_agents:  # an agent's state is only needed to forge it
@@ -150,40 +152,21 @@ class Monitor:
         return ev
 
     def poll(self) -> None:
-        sf = self.mission.safety
         for rec in self.fifo.drain():
             try:
                 role, nid, topic = wire.Keys.parse(rec.key)
                 msg = self._decoder.decode(rec.payload)
             except (ValueError, msgspec.DecodeError, msgspec.ValidationError):
                 continue
-            name = _name(role, nid)
-            self.heard.add(name)
-            if topic == "state":
-                self.newest[rec.key] = rec.payload
-            if isinstance(msg, wire.Telemetry) or isinstance(msg, wire.PlantState):
-                mode = msg.mode
-                before = self.modes.get(name, wire.FLYING)
-                self.modes[name] = mode
-                if mode != before:
-                    why = "; ".join(e.reason for e in getattr(msg, "events", []) if e.dst == mode)
-                    self.report(name, "failsafe" if mode != wire.FLYING else "back",
-                                f"mode {wire.MODES[before] if 0 <= before < 5 else before} -> "
-                                f"{wire.MODES[mode] if 0 <= mode < 5 else mode}" + (f" ({why})" if why else ""),
-                                t=msg.t)
-            if isinstance(msg, wire.Telemetry):
-                for c in msg.clock:
-                    if c.warn and (name, c.role, c.src) not in self._skewed:
-                        self._skewed.add((name, c.role, c.src))
-                        self.report(name, "skew", f"link {c.role}/{c.src}: clock offset bound {1000 * c.offset:+.1f} ms "
-                                                  "(arrival minus sample time; tether/skew.py)", t=msg.t)
-            if isinstance(msg, wire.Telemetry) and name not in self._diverged:
-                xi = math.sqrt(sum(x * x for x in msg.xi))
-                gains = max([*msg.kp, *msg.kv], default=0.0)
-                if not math.isfinite(xi) or xi > sf.max_formation_error or not gains <= sf.gain_cap:
-                    self._diverged.add(name)
-                    self.report(name, "diverged", f"|xi| = {xi:.3g} m (limit {sf.max_formation_error:g}), "
-                                                  f"largest gain {gains:.3g} (cap {sf.gain_cap:g})", t=msg.t)
+            if isinstance(msg, wire.Record):  # the plant's samples, then the agent's telemetry
+                items: list[tuple[str, wire.Message]] = [(_name("plant", nid), x) for x in msg.plant]
+                items += [(_name("agent", nid), x) for x in msg.telemetry]
+            else:
+                items = [(_name(role, nid), msg)]
+                if topic == "state":
+                    self.newest[rec.key] = rec.payload
+            for name, msg in items:
+                self._observe(name, msg)
         for ev in self.token_events.drain():
             try:
                 role, nid = wire.Keys.parse_token(ev.key)
@@ -215,6 +198,34 @@ class Monitor:
                                            "(stopped, cut off, or hung)", t=t)
             elif self.alive_token.get(name):
                 self.report(name, "back", "its liveliness token is back")
+
+    def _observe(self, name: str, msg: wire.Message) -> None:
+        """What one agent's telemetry or one plant's state says: mode changes, skew, divergence."""
+        sf = self.mission.safety
+        self.heard.add(name)
+        if isinstance(msg, wire.Telemetry) or isinstance(msg, wire.PlantState):
+            mode = msg.mode
+            before = self.modes.get(name, wire.FLYING)
+            self.modes[name] = mode
+            if mode != before:
+                why = "; ".join(e.reason for e in getattr(msg, "events", []) if e.dst == mode)
+                self.report(name, "failsafe" if mode != wire.FLYING else "back",
+                            f"mode {wire.MODES[before] if 0 <= before < 5 else before} -> "
+                            f"{wire.MODES[mode] if 0 <= mode < 5 else mode}" + (f" ({why})" if why else ""),
+                            t=msg.t)
+        if isinstance(msg, wire.Telemetry):
+            for c in msg.clock:
+                if c.warn and (name, c.role, c.src) not in self._skewed:
+                    self._skewed.add((name, c.role, c.src))
+                    self.report(name, "skew", f"link {c.role}/{c.src}: clock offset bound {1000 * c.offset:+.1f} ms "
+                                              "(arrival minus sample time; tether/skew.py)", t=msg.t)
+        if isinstance(msg, wire.Telemetry) and name not in self._diverged:
+            xi = math.sqrt(sum(x * x for x in msg.xi))
+            gains = max([*msg.kp, *msg.kv], default=0.0)
+            if not math.isfinite(xi) or xi > sf.max_formation_error or not gains <= sf.gain_cap:
+                self._diverged.add(name)
+                self.report(name, "diverged", f"|xi| = {xi:.3g} m (limit {sf.max_formation_error:g}), "
+                                              f"largest gain {gains:.3g} (cap {sf.gain_cap:g})", t=msg.t)
 
     def vehicles_settled(self, live: set[str]) -> bool:
         """Every live agent and plant reports a final mode (LANDED or ESTOP)."""

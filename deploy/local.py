@@ -166,6 +166,12 @@ class LaunchOptions:
     """Serve the run over the Foxglove WebSocket protocol on this port, from the recorder (``--live``)."""
     mcap: bool = True
     """The recorder writes ``run.mcap`` beside ``run.npz`` (``--no-mcap``: not)."""
+    colocate_plants: bool = False
+    """Lockstep, simulated plants: each agent computes its own plant (``plant/onboard.py``) and no
+    plant process runs; agents send the recorder one record per :attr:`record_batch` ticks
+    (``--colocate-plants``)."""
+    record_batch: int | None = None
+    """With :attr:`colocate_plants`: ticks per record, at most :attr:`window`; None: :func:`record_batch`."""
 
 
 @dataclass
@@ -259,6 +265,8 @@ class Launch:
 
     def members(self) -> list[tuple[str, int]]:
         m = self.mission
+        if self.opts.colocate_plants:  # each plant inside its agent
+            return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("recorder", 0)]
         if m.payload is not None:  # one world hosts every vehicle and the payload
             return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("world", 0), ("recorder", 0)]
         return [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")], ("recorder", 0)]
@@ -283,6 +291,10 @@ class Launch:
                 cmd += ["--duration", repr(o.duration)]
             if role in ("agent", "plant"):
                 cmd += ["--id", str(nid)]
+            if o.colocate_plants and role in ("agent", "recorder"):
+                cmd += ["--colocate-plant"]
+                if role == "agent":
+                    cmd += ["--record-batch", str(record_batch(o))]
             if role == "recorder":
                 cmd += ["--out", str(o.out)]
                 if o.live is not None:
@@ -373,6 +385,38 @@ def write_grace(m: ms.Mission, ticks: int) -> float:
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
 EXIT_INCOMPLETE, EXIT_TERMINATED = 5, 143
 """Exit statuses of ``tether run`` (see the module docstring)."""
+
+
+def record_batch(o: LaunchOptions) -> int:
+    """Ticks per record with ``--colocate-plants``: :attr:`LaunchOptions.record_batch`, by default
+    half the window (measured best, ``docs/benchmarks.md``)."""
+    return o.record_batch if o.record_batch is not None else max(1, o.window // 2)
+
+
+def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
+    """Why ``--colocate-plants`` (or ``--record-batch``) cannot run this mission as asked."""
+    from plant import onboard
+
+    if not o.colocate_plants:
+        return [("--record-batch", "batches the records of co-located plants: give it with --colocate-plants")] \
+            if o.record_batch is not None else []
+    fix = "drop --colocate-plants"
+    if o.clock != "lockstep":
+        return [("--colocate-plants", f"is for lockstep runs (in real time each plant is a process of its own): "
+                                      f"{fix}, or run with --clock lockstep")]
+    out = []
+    for a in m.agents:
+        why = onboard.problem(m, a.id)
+        if why is not None:
+            out.append(("--colocate-plants", f"agent {a.id}'s plant {why}: {fix}"))
+            break
+    if o.window < 1:
+        out.append(("--window", "must be at least 1"))
+    elif not 1 <= record_batch(o) <= o.window:
+        out.append(("--record-batch", f"{record_batch(o)} ticks per record must be between 1 and the window "
+                                      f"({o.window}): the clock grants a tick only once the recorder holds the "
+                                      "ticks a window before it; give a smaller --record-batch or a larger --window"))
+    return out
 
 
 def check_vehicle_options(mission: ms.Mission, opts: LaunchOptions) -> list[tuple[str, str]]:
@@ -665,7 +709,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
 
     m = load_mission(mission_path, opts.duration)
     launch = Launch(mission_path.resolve(), m, opts)
-    problems = check_vehicle_options(m, opts) + check_faults(m, opts, launch.members())
+    problems = check_colocate(m, opts) + check_vehicle_options(m, opts) + check_faults(m, opts, launch.members())
     if opts.clock == "lockstep":
         problems += [(f"agent {a.id}.plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")

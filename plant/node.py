@@ -23,11 +23,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from plant import base, resume
-from plant.crazyflie import CrazyfliePlant, LinkLost
 from plant.rest import Resting
 from plant.watchdog import Watchdog
 from tether import transport as tp
@@ -35,7 +35,14 @@ from tether import wire
 from tether import mission as ms
 from tether.node import Node
 
+if TYPE_CHECKING:  # a simulated plant's process does not load the Crazyflie driver
+    from plant.crazyflie import CrazyfliePlant
+
 log = logging.getLogger("tether")
+
+
+class _NoLinkLost(Exception):
+    """Stands for :class:`plant.crazyflie.LinkLost` in a process without a Crazyflie (never raised)."""
 
 
 async def run(node: Node) -> None:
@@ -54,26 +61,33 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
         raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
     (plant,) = base.build(m, ids, live=live)
-    if isinstance(plant, CrazyfliePlant):
+    real = any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids)
+    if real:  # only then is the driver loaded (base.build has loaded it already)
+        from plant.crazyflie import CrazyfliePlant, LinkLost
+    if real and isinstance(plant, CrazyfliePlant):
         await asyncio.to_thread(plant.open)  # connect and take off: seconds, off the event loop
         vehicle: Resting | CrazyfliePlant = plant
+        lost: type[Exception] = LinkLost
     else:
         vehicle = Resting(plant, m.dim, m.safety.ground)
+        lost = _NoLinkLost
     try:
-        await _fly(node, ids, world, vehicle)
+        await _fly(node, ids, world, vehicle, lost)
     finally:
-        if isinstance(plant, CrazyfliePlant):
+        if not isinstance(vehicle, Resting):
             await asyncio.to_thread(plant.close)  # lands: seconds
         else:
             plant.close()
 
 
-async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | CrazyfliePlant) -> None:
+async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | CrazyfliePlant,
+               link_lost: type[Exception]) -> None:
     m, keys = node.mission, node.keys
     h = m.dt
     cmds = []
     for aid in ids:
-        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid)
+        # read at the tick only: a command does not wake the loop as it arrives (real time)
+        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid, wake=False)
         node.watch("agent", aid, src)
         cmds.append(src)
     operator: list[str | None] = [None]
@@ -100,8 +114,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         log.warning("rejoined a run under way at tick %d (t = %.2f s): tick 0 at %.3f; resuming from the last state "
                     "on the wire, tick %d (t = %.2f s) at p = %s", first, first * h, resumer.epoch() or 0.0, last.k,
                     last.t, last.p)
-    cf = plant if isinstance(plant, CrazyfliePlant) else None
-    """The real vehicle, the only plant whose link can be lost (LinkLost)."""
+    cf = None if isinstance(plant, Resting) else plant
+    """The real vehicle, the only plant whose link can be lost (``link_lost``: plant.crazyflie.LinkLost)."""
     recovering: asyncio.Task[bool] | None = None
     s: base.Sample | None = None
     for k in range(first, m.steps + 1):
@@ -122,7 +136,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
             plant.step(np.array(u), modes)
         try:
             s = plant.state()
-        except LinkLost as exc:
+        except link_lost as exc:
             if cf is None:
                 raise
             s = None
@@ -136,7 +150,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                 log.error("%s: withdrawing from the swarm", cf.spec.uri)
                 node.withdraw()
                 await node.tick(m.steps)
-                raise LinkLost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link did not come back")
+                raise link_lost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link did not come back")
             recovering = None
         if s is None:
             continue  # nothing measured: nothing to publish
@@ -149,4 +163,4 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
     if cf is not None and recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()
-        raise LinkLost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")
+        raise link_lost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")

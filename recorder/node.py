@@ -273,6 +273,31 @@ class Feed:
         log.info("live view: sent %d ticks in %.3f s of CPU", self.sent, self.cpu)
 
 
+def _records(node: Node, rec: Recording, src: Any, plant_gate: Callable[[wire.PlantState], str | None]
+             ) -> Callable[[wire.Record], None]:
+    """What the recorder does with one agent's :class:`~tether.wire.Record` (its plant co-located):
+    each plant sample passes the plausibility gate as a plant's own would, then both streams are
+    recorded as if they had come alone. A record not newer than the newest (a replay, a duplicate)
+    is dropped and counted (``stale_record``): its ticks are recorded once. A record that was lost
+    or dropped leaves its ticks short of samples, which the run file's counts show."""
+
+    def take(msg: wire.Record) -> None:
+        if msg is not src.newest:
+            node.count_drop("stale_record")
+            return
+        for p in msg.plant:
+            why = plant_gate(p)
+            if why is not None:
+                node.count_drop("gate")
+                log.warning("record of agent %d: plant sample of tick %d rejected (%s)", msg.sender, p.k, why)
+                continue
+            rec.plant(p)
+        for t in msg.telemetry:
+            rec.telemetry(t)
+
+    return take
+
+
 def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
          live_host: str = "127.0.0.1") -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node], None]]:
     """The recorder role writing to ``out``, and its stop hook (writes a partial file).
@@ -306,18 +331,28 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
 
         leader.admit = admit_leader
         producers = [("leader", m.leader.id)]
+        colocated = node.args.colocate
         for aid in m.agent_ids:
+            plant_gate = gate.for_sender(m, aid, now).check
+            if colocated:  # lockstep, plants inside their agents: both streams in the agent's records
+                src = node.source(keys.topic("agent", aid, "record"), wire.Record, aid, subscribe=False, keep=False)
+                src.on_message = _records(node, rec, src, plant_gate)
+                producers.append(("agent", aid))
+                continue
             node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
                         subscribe=False, keep=False)
             plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
                                 subscribe=False, keep=False)
-            plant.admit = gate.for_sender(m, aid, now).check
+            plant.admit = plant_gate
             producers += [("agent", aid), ("plant", aid)]
         if m.payload is not None:
             node.source(keys.topic("world", 0, "state"), wire.WorldState, 0, on_message=rec.world, keep=False)
             producers.append(("world", 0))
-        node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
-        node.subscribe(f"tether/{keys.ns}/plant/*/state")
+        if colocated:
+            node.subscribe(f"tether/{keys.ns}/agent/*/record")
+        else:
+            node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
+            node.subscribe(f"tether/{keys.ns}/plant/*/state")
         ack = None if attach else node.publisher(keys.topic("recorder", node.args.node_id, "ack"))
         seen: set[str] = set()
         gone: set[str] = set()

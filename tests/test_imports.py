@@ -43,6 +43,15 @@ def test_a_process_loads_no_study_no_plotting_and_no_emulator(module: str) -> No
     assert not bad, f"import {module} loads {', '.join(bad)}; import them inside the function that needs them"
 
 
+@pytest.mark.parametrize("module", ["plant.node", "agent.node"])
+def test_a_simulated_plant_or_an_agent_loads_no_crazyflie_driver(module: str) -> None:
+    """The Crazyflie driver (``plant.crazyflie``, its simulator ``plant.cfsim``, the quadrotor model
+    it brings) is loaded by the process of a mission that flies one, inside the function that needs it."""
+    names = loaded_modules(module)
+    bad = sorted({n for n in names if re.match(r"^plant\.(crazyflie|cfsim|quadrotor|payload)(\.|$)", n)})
+    assert not bad, f"import {module} loads {', '.join(bad)}"
+
+
 def test_the_check_itself_sees_a_forbidden_import() -> None:
     """The report parsing is not vacuous: the figures load matplotlib, an emulated link its channel."""
     assert "matplotlib" in loaded_modules("sim.figures")

@@ -43,11 +43,18 @@ SAMPLES: dict[type, wire.Message] = {
                                      tension=[0.05, 0.05, 0.0, 0.05], slack_events=[0, 1, 2, 0]),
     wire.SafetyCommand: wire.SafetyCommand(sender=0, seq=2, k=0, t=0.0, action="land", reason="test"),
 }
+_TELE = SAMPLES[wire.Telemetry]
+_PLANT = SAMPLES[wire.PlantState]
+SAMPLES[wire.Record] = wire.Record(
+    sender=1, seq=3, k=12, t=0.12,
+    plant=[msgspec.structs.replace(_PLANT, sender=1, seq=k, k=k, t=k / 100) for k in (11, 12)],
+    telemetry=[msgspec.structs.replace(_TELE, seq=k, k=k, t=k / 100, meas_t=k / 100) for k in (11, 12)])
 """One message of every type, with the sender id its key would carry."""
 
 EXPECTED_TAGS = {wire.State: "state", wire.PlantState: "plant_state", wire.Command: "cmd",
                  wire.Telemetry: "telemetry", wire.Tick: "tick", wire.Ack: "ack", wire.Start: "start",
-                 wire.NetemSet: "netem_set", wire.WorldState: "world_state", wire.SafetyCommand: "safety"}
+                 wire.NetemSet: "netem_set", wire.WorldState: "world_state", wire.SafetyCommand: "safety",
+                 wire.Record: "record"}
 
 
 def same(a: wire.Message, b: wire.Message) -> bool:

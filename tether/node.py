@@ -108,6 +108,12 @@ class NodeArgs:
     start_timeout: float | None = None
     """Give up (exit 1) when the start message has not come this long after :meth:`Node.ready`
     declared liveliness [s]; None waits for ever (a service waiting for its operator's start)."""
+    colocate: bool = False
+    """Lockstep: an agent computes its simulated plant itself (:mod:`plant.onboard`) and sends the
+    recorder :class:`~tether.wire.Record` messages; the recorder listens for them
+    (``tether run --colocate-plants``)."""
+    record_batch: int = 1
+    """With :attr:`colocate`: ticks an agent's record carries at most (a smaller last one ends the run)."""
 
 
 class Publisher:
@@ -120,6 +126,11 @@ class Publisher:
 
     def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
         msg = cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields)
+        self.seq += 1
+        self._pub.put(wire.encode(msg))
+
+    def put(self, msg: wire.Message) -> None:
+        """Publish a message built by the caller (its sender and sequence number are the caller's)."""
         self.seq += 1
         self._pub.put(wire.encode(msg))
 
@@ -167,6 +178,8 @@ class Node:
         """Liveliness seen so far, by token key: True while present, False once gone."""
         self.rejoined = False
         """Real time: this process joined a run already under way (see :meth:`ready`)."""
+        self._arrival = math.nan
+        """The callback's stamp of the sample being accepted (:meth:`arrival`); NaN otherwise."""
 
     # ------------------------------------------------------------------ declarations
     def withdraw(self) -> None:
@@ -198,20 +211,29 @@ class Node:
 
     def source(self, key: str, expect: type, sender: int | None,
                on_message: Callable[[Any], None] | None = None, channel: Link | None = None,
-               subscribe: bool = True, keep: bool = True) -> Source:
+               subscribe: bool = True, keep: bool = True, wake: bool = True) -> Source:
         """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``channel``: the
         emulated link the samples cross from ``sender`` to this node (``[netem]``; built by the role
         with :class:`netem.link.Channel`, so that only a mission with a ``[netem]`` section loads
         the emulator; an ideal link delivers every sample at its own time: the run is then the
-        same as without the section, bit for bit)."""
+        same as without the section, bit for bit).
+
+        ``wake=False`` (real time; an input read only at the tick, without ``on_message`` or
+        ``channel``): its samples do not wake the event loop as they arrive; they are decoded at
+        the next drain (the tick's), and each is stamped with its arrival time in the callback,
+        which is what the plausibility gate and the clock-offset monitor see (:meth:`arrival`).
+        Lockstep ignores it: a tick waits for its inputs."""
         src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep,
                      channel=channel)
         self.sources[key] = src
         if subscribe:
             sink: handoff.Sink[tp.Received] = self.fifo
+            stamp = None
             if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
-                sink = self.inputs[key] = handoff.InputQueue(self._capacity, self.wakeup)
-            self._declared.append(tp.declare_subscriber(self.session, key, sink))
+                quiet = not wake and on_message is None and channel is None
+                sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup)
+                stamp = getattr(self.clock, "monotonic", None) if quiet else None
+            self._declared.append(tp.declare_subscriber(self.session, key, sink, stamp))
         return src
 
     def queryable(self, key: str, handle: Callable[[zenoh.Query], None]) -> None:
@@ -336,6 +358,14 @@ class Node:
                 elif not ev.alive and src.silent:
                     log.warning("%s went silent (liveliness token gone)", ev.key)
 
+    def arrival(self) -> float:
+        """Real time: when the sample being accepted arrived [s, mission time] (its callback's
+        stamp, for an input that does not wake the loop), else now (:meth:`mission_time`)."""
+        at, origin = self._arrival, getattr(self.clock, "origin", None)
+        if at == at and origin is not None:  # stamped (not NaN)
+            return at - origin
+        return self.clock.now()
+
     def _accept(self, rec: tp.Received, realtime: bool) -> None:
         src = self.sources.get(rec.key)
         if src is None:
@@ -344,7 +374,11 @@ class Node:
         if msg is None:
             return
         if src.channel is None:
-            src.offer(msg)
+            self._arrival = rec.at
+            try:
+                src.offer(msg)
+            finally:
+                self._arrival = math.nan
             return
         src.raw_k = max(src.raw_k, msg.k)
         src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)

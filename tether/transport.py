@@ -25,7 +25,7 @@ import math
 import random
 import re
 import socket
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import Any, Literal, NamedTuple, TypeVar
 
@@ -469,16 +469,26 @@ class Received(NamedTuple):
     """The concrete key it was published on."""
     payload: bytes
     """The payload bytes (decode them on the asyncio side)."""
+    at: float = math.nan
+    """When the callback got it [s, on the stamping clock] (NaN: not stamped)."""
 
 
-def declare_subscriber(session: zenoh.Session, key_expr: str, sink: Sink[Received]) -> zenoh.Subscriber[None]:
+def declare_subscriber(session: zenoh.Session, key_expr: str, sink: Sink[Received],
+                       stamp: Callable[[], float] | None = None) -> zenoh.Subscriber[None]:
     """Subscribe to ``key_expr``; every sample is handed to ``sink.put`` as a :class:`Received`.
 
     The callback runs on a Python thread that zenoh-python starts for this subscriber (fed by a
     Zenoh channel of 256 samples, which blocks Zenoh's receive path only if that thread starves).
     It copies key and payload and calls ``sink.put`` — nothing else. DELETE samples are handed off
-    too (with an empty payload) and fail decoding like any malformed message.
+    too (with an empty payload) and fail decoding like any malformed message. ``stamp``: a clock
+    (``time.monotonic``) read in the callback, into :attr:`Received.at`, for a sink that is drained
+    later than samples arrive.
     """
+    if stamp is not None:
+        def on_stamped(sample: zenoh.Sample) -> None:
+            sink.put(Received(str(sample.key_expr), sample.payload.to_bytes(), stamp()))
+
+        return session.declare_subscriber(key_expr, on_stamped)
 
     def on_sample(sample: zenoh.Sample) -> None:
         sink.put(Received(str(sample.key_expr), sample.payload.to_bytes()))

@@ -7,6 +7,8 @@ Keys (one scheme, also in ``docs/runtime.md``)::
     tether/<ns>/agent/<id>/cmd           Command    u_i(t_k) for plant i
     tether/<ns>/agent/<id>/telemetry     Telemetry  xi, zeta, Kp, Kv, u, link and drop statistics
     tether/<ns>/plant/<id>/state         PlantState plant i's measurement at t_k (+ the true d, for records)
+    tether/<ns>/agent/<id>/record        Record     lockstep, plant co-located in agent i: its plant samples and
+                                                    telemetry of consecutive ticks, for the recorder
     tether/<ns>/clock/0/tick             Tick       lockstep: ticks up to ``grant`` may run
     tether/<ns>/<role>/<id>/ack          Ack        lockstep: ``<role> <id>`` has finished tick k
     tether/<ns>/control/0/start          Start      real time: the common start instant
@@ -255,7 +257,18 @@ class NetemSet(_Msg, tag="netem_set", frozen=True):
     already past when it arrives takes effect at once (the receiving agent logs how late)."""
 
 
-Message = State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState | SafetyCommand
+class Record(_Msg, tag="record", frozen=True):
+    """Lockstep, plant co-located in its agent (``tether run --colocate-plants``): what the recorder
+    would otherwise hear on ``plant/<id>/state`` and ``agent/<id>/telemetry``, for consecutive
+    ticks ending at ``k``, in one message (``--record-batch`` ticks at most). Every item is checked
+    as if it had come alone (sender, vector sizes, finiteness); one bad item drops the whole record."""
+
+    plant: list[PlantState]
+    telemetry: list[Telemetry]
+
+
+Message = (State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState | SafetyCommand
+           | Record)
 M = TypeVar("M", bound=Message)
 
 _ENCODER = msgspec.msgpack.Encoder()
@@ -345,6 +358,8 @@ class Keys:
 
 
 # --------------------------------------------------------------------------- checked receive
+RECORD_MAX = 256
+"""The most ticks one :class:`Record` may carry (a larger one is dropped as ``size``)."""
 _VECTOR_FIELDS = {State: ("p", "vel", "a"), PlantState: ("p", "vel", "a"), Command: ("u",),
                   Telemetry: ("p", "vel", "a", "u", "xi", "zeta", "kp", "kv"), WorldState: ("p", "vel")}
 
@@ -356,7 +371,8 @@ class Receiver:
     Reasons: ``malformed`` (not msgpack or not a known message), ``version`` (another wire
     version), ``type`` (a message of the wrong type for the key), ``sender`` (sender id differs
     from the key's), ``size`` (a vector of the wrong dimension), ``nonfinite`` (NaN/Inf where a
-    number must be finite).
+    number must be finite), ``record`` (a :class:`Record` whose items are not one of each stream
+    per tick for consecutive ticks ending at its ``k``).
     """
 
     dim: int
@@ -386,17 +402,43 @@ class Receiver:
         if sender is not None and msg.sender != sender:
             self._drop("sender")
             return None
+        if isinstance(msg, Record):
+            items: list[Message] = [*msg.plant, *msg.telemetry]
+            if len(msg.plant) != len(msg.telemetry) or not items or len(items) > 2 * RECORD_MAX:
+                self._drop("size")
+                return None
+            first = msg.k - len(msg.plant) + 1
+            if any(p.k != first + n or q.k != first + n for n, (p, q) in enumerate(zip(msg.plant, msg.telemetry))):
+                self._drop("record")  # not one sample of each stream per tick, for consecutive ticks ending at k
+                return None
+            for item in items:
+                if item.v != WIRE_VERSION:
+                    self._drop("version")
+                    return None
+                if item.sender != msg.sender:
+                    self._drop("sender")
+                    return None
+                why = self._check(item)
+                if why is not None:
+                    self._drop(why)
+                    return None
+            return msg
+        why = self._check(msg)
+        if why is not None:
+            self._drop(why)
+            return None
+        return msg
+
+    def _check(self, msg: Message) -> str | None:
+        """Why ``msg``'s numbers cannot be used (``nonfinite``, ``size``), or None."""
         if not math.isfinite(msg.t) or (isinstance(msg, Start) and not math.isfinite(msg.epoch)) \
                 or (isinstance(msg, Telemetry) and not (math.isfinite(msg.meas_t)
                                                          and all(math.isfinite(c.offset) for c in msg.clock))):
-            self._drop("nonfinite")
-            return None
+            return "nonfinite"
         for name in _VECTOR_FIELDS.get(type(msg), ()):
             vec = getattr(msg, name)
             if len(vec) != self.dim:
-                self._drop("size")
-                return None
+                return "size"
             if not all(map(math.isfinite, vec)):
-                self._drop("nonfinite")
-                return None
-        return msg
+                return "nonfinite"
+        return None

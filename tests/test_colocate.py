@@ -1,0 +1,285 @@
+"""``tether run --colocate-plants``: lockstep with each simulated plant computed inside its agent's
+process (``plant/onboard.py``), and the recorder's samples batched in ``wire.Record`` messages.
+
+The run must be the one the separate plant processes give, byte for byte in every array of the run
+file, and so the reference simulator's; a co-located plant flies only what its command watchdog
+lets through (saturated, finite); a malformed, forged, replayed or lost record is dropped and
+counted, and the run file says which ticks lack samples. Real processes, real Zenoh sessions on
+loopback ports picked free at run time, one key namespace per run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from plant.onboard import Onboard, problem
+from sim import refsim
+from tests.factories import one_agent
+from tests.support import read
+from tests.test_runtime import ATOL, LEADER, REPO, SECTION4, STARTUP, WAIT, differing_arrays, launch, stop, tether_cmd
+from tether import handoff
+from tether import transport as tp
+from tether import wire
+from tether.catalog import builtin_path
+from tether.node import load_mission
+from tether.runfile import SERIES, Run
+
+AGENTS = (1, 2, 3, 4)
+
+
+# =========================================================================== the same run, fewer processes
+@pytest.fixture(scope="module")
+def section4_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str, str]:
+    """Section 4 over 5 s in lockstep, twice at the same time: plants co-located (4 ticks per
+    record: 501 ticks end on a record of one), and plant processes as usual."""
+    base = tmp_path_factory.mktemp("colocate")
+    ns = f"colocate-{os.getpid()}"
+    with launch(base / "co", f"{ns}-co", "--duration", "5", "--colocate-plants", "--record-batch", "4") as co, \
+            launch(base / "sep", f"{ns}-sep", "--duration", "5") as sep:
+        for run in (co, sep):
+            run.wait(STARTUP + 60)
+            assert run.status == 0, run.launcher_log
+        return co.out, sep.out, co.launcher_log, sep.launcher_log
+
+
+def test_colocated_run_starts_no_plant_process_and_is_complete(section4_runs: tuple[Path, Path, str, str]) -> None:
+    co, _, log, _ = section4_runs
+    assert "all 6 processes are up" in log, log
+    assert sorted(p.name for p in (co / "logs").iterdir()) == sorted(
+        ["leader-5.log", "recorder-0.log", *[f"agent-{i}.log" for i in AGENTS]])
+    rec = Run.load(co)
+    assert rec.meta.complete is True
+    assert rec.meta.samples_recorded == rec.meta.samples_expected == (1 + 2 * len(AGENTS)) * 501
+    assert rec.meta.recorder_drops.total() == 0
+    assert np.all(rec.safety.plant_mode == wire.FLYING) and np.all(rec.safety.safety_mode == wire.FLYING)
+
+
+def test_colocated_run_file_equals_the_plant_processes_run_file_in_every_array(
+        section4_runs: tuple[Path, Path, str, str]) -> None:
+    co, sep, _, _ = section4_runs
+    assert differing_arrays(co, sep) == []
+
+
+def test_colocated_run_equals_the_reference_simulator(section4_runs: tuple[Path, Path, str, str]) -> None:
+    run = Run.load(section4_runs[0])
+    ref = refsim.simulate(load_mission(SECTION4, 5.0))
+    pairs = {name: (getattr(run, name), getattr(ref, name)) for name in SERIES}
+    for name in ("p", "v", "a"):
+        pairs[f"plant_{name}"] = (getattr(run.runtime, f"plant_{name}"), getattr(ref, name))
+    for name, (got, want) in pairs.items():
+        assert np.isfinite(got).all(), name
+        np.testing.assert_allclose(got, want, rtol=0, atol=ATOL, err_msg=name)
+    assert not np.allclose(run.kp[-1], run.kp[0])
+
+
+def test_colocated_quadrotors_equal_their_plant_processes_bit_for_bit(tmp_path: Path) -> None:
+    """Experiment 1's quadrotors (their 500 Hz inner loop, with mass and attitude), 1 s."""
+    ns = f"colocate-q-{os.getpid()}"
+    outs = []
+    for tag, extra in (("co", ("--colocate-plants", "--record-batch", "3")), ("sep", ())):
+        out = tmp_path / tag
+        r = subprocess.run(tether_cmd("run", "exp1", "--out", str(out), "--ns", f"{ns}-{tag}", "--duration", "1",
+                                      "--quiet", *extra), cwd=REPO, capture_output=True, text=True,
+                           timeout=STARTUP + 60)
+        assert r.returncode == 0, r.stderr
+        outs.append(out)
+    assert Run.load(outs[0]).meta.complete is True
+    assert differing_arrays(outs[0], outs[1]) == []
+
+
+# =========================================================================== refused before anything starts
+@pytest.mark.parametrize("mission, args, names, fix", [
+    ("section4", ["--clock", "realtime"], "--colocate-plants", "--clock lockstep"),
+    ("section4", ["--record-batch", "9"], "--record-batch", "smaller --record-batch or a larger --window"),
+    ("section4", ["--window", "4", "--record-batch", "5"], "--record-batch", "between 1 and the window (4)"),
+    ("exp2", [], "--colocate-plants", "[payload] world"),
+    ("exp1_cf", [], "--colocate-plants", "crazyflie"),
+])
+def test_colocate_plants_refuses_what_it_cannot_run_with_exit_2(tmp_path: Path, mission: str, args: list[str],
+                                                                names: str, fix: str) -> None:
+    r = subprocess.run(tether_cmd("run", mission, "--out", str(tmp_path / "out"), "--quiet", "--colocate-plants",
+                                  *args), cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    line = next(x for x in r.stderr.splitlines() if names in x)
+    assert fix in line, r.stderr
+    assert names == "--record-batch" or "drop --colocate-plants" in line, r.stderr
+    assert not (tmp_path / "out" / "logs").exists() or not any((tmp_path / "out" / "logs").iterdir())
+
+
+def test_record_batch_without_colocate_plants_exits_2(tmp_path: Path) -> None:
+    r = subprocess.run(tether_cmd("run", "section4", "--out", str(tmp_path / "out"), "--record-batch", "2"),
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--record-batch" in r.stderr and "--colocate-plants" in r.stderr, r.stderr
+
+
+def test_problem_names_the_plants_that_cannot_be_co_located() -> None:
+    assert problem(load_mission(builtin_path("section4")), 1) is None
+    assert problem(load_mission(builtin_path("exp1")), 1) is None
+    assert "crazyflie" in (problem(load_mission(builtin_path("exp1_cf")), 1) or "")
+    assert "payload" in (problem(load_mission(builtin_path("exp2")), 1) or "")
+    with pytest.raises(ValueError, match="cannot be co-located"):
+        Onboard(load_mission(builtin_path("exp2")), 1)
+
+
+# =========================================================================== the co-located plant's safety
+def _cmd(k: int, u: list[float]) -> wire.Command:
+    return wire.Command(sender=1, seq=k, k=k, t=k * 0.01, u=u)
+
+
+def test_a_co_located_plant_never_flies_a_non_finite_or_over_limit_command() -> None:
+    """The plant process's command watchdog, in front of the model: a command over ``max_accel``
+    is saturated to it, a non-finite or absurd one is rejected (counted) and the last valid one
+    flies on; the model's state stays finite throughout."""
+    m = one_agent()
+    limit = m.safety.max_accel
+    plant = Onboard(m, 1)
+    s0 = plant.advance(0, None, None)
+    assert s0.p == [0.0, 0.0] and s0.mode == wire.FLYING
+    s1 = plant.advance(1, _cmd(0, [3 * limit, 0.0]), None)  # over the limit, under the absurd bound
+    assert math.isclose(math.hypot(*s1.a), limit, rel_tol=1e-12), s1.a
+    s2 = plant.advance(2, _cmd(1, [math.nan, 0.0]), None)
+    s3 = plant.advance(3, _cmd(2, [1e9, 0.0]), None)
+    s4 = plant.advance(4, _cmd(3, [0.0, math.inf]), None)
+    assert plant.dog.invalid == {"nonfinite": 2, "absurd": 1}
+    for s in (s2, s3, s4):
+        assert all(map(math.isfinite, [*s.p, *s.vel, *s.a])), s
+        assert math.hypot(*s.a) <= limit * (1 + 1e-12)
+    # the operator's e-stop reaches the co-located plant too
+    s5 = plant.advance(5, _cmd(4, [1.0, 0.0]), "estop")
+    assert s5.mode == wire.ESTOP
+
+
+def test_a_co_located_plant_holds_when_its_commands_stop() -> None:
+    m = one_agent()
+    plant = Onboard(m, 1)
+    plant.advance(0, None, None)
+    ticks = math.ceil(m.safety.cmd_timeout * m.rate) + 2
+    modes = [plant.advance(k, _cmd(0, [1.0, 0.0]) if k == 1 else None, None).mode for k in range(1, ticks + 1)]
+    assert modes[0] == wire.FLYING and modes[-1] == wire.HOLD
+
+
+# =========================================================================== records on the wire
+def _record(k0: int, n: int, sender: int = 1, dim: int = 2, p: list[float] | None = None) -> wire.Record:
+    """Ticks ``k0 .. k0 + n - 1`` of a vehicle at rest at ``p``."""
+    z = [0.0] * dim
+    p = p or z
+    plant = [wire.PlantState(sender=sender, seq=k, k=k, t=k / 100, p=p, vel=z, a=z, d=z) for k in range(k0, k0 + n)]
+    tele = [wire.Telemetry(sender=sender, seq=k, k=k, t=k / 100, meas_t=k / 100, p=p, vel=z, a=z, u=z, xi=z, zeta=z,
+                           kp=z, kv=z, links=[], drops={}) for k in range(k0, k0 + n)]
+    return wire.Record(sender=sender, seq=k0, k=k0 + n - 1, t=(k0 + n - 1) / 100, plant=plant, telemetry=tele)
+
+
+def _with(rec: wire.Record, **changes: object) -> bytes:
+    return wire.encode(msgspec.structs.replace(rec, **changes))
+
+
+def test_a_record_is_checked_item_by_item_and_dropped_whole_for_one_bad_item() -> None:
+    good = _record(4, 3)
+    rx = wire.Receiver(2)
+    assert rx.accept(wire.encode(good), wire.Record, 1) == good
+    nan_item = msgspec.structs.replace(good.plant[1], p=[math.nan, 0.0])
+    other_sender = msgspec.structs.replace(good.telemetry[2], sender=2)
+    wrong_size = msgspec.structs.replace(good.telemetry[0], u=[0.0, 0.0, 0.0])
+    bad_meas_t = msgspec.structs.replace(good.telemetry[0], meas_t=math.inf)
+    cases = [
+        (_with(good, plant=[good.plant[0], nan_item, good.plant[2]]), "nonfinite"),
+        (_with(good, telemetry=[*good.telemetry[:2], other_sender]), "sender"),
+        (_with(good, telemetry=[wrong_size, *good.telemetry[1:]]), "size"),
+        (_with(good, telemetry=[bad_meas_t, *good.telemetry[1:]]), "nonfinite"),
+        (_with(good, plant=good.plant[:2]), "size"),  # one stream short
+        (_with(good, plant=[], telemetry=[]), "size"),  # empty
+        (_with(good, k=9), "record"),  # items do not end at k
+        (_with(good, plant=[good.plant[0], good.plant[0], good.plant[2]]), "record"),  # a tick twice
+        (wire.encode(_record(0, wire.RECORD_MAX + 1)), "size"),
+        (wire.encode(good)[:-7], "malformed"),
+    ]
+    for payload, reason in cases:
+        before = dict(rx.drops)
+        assert rx.accept(payload, wire.Record, 1) is None, reason
+        assert rx.drops.get(reason, 0) == before.get(reason, 0) + 1, (reason, rx.drops)
+    assert rx.accept(wire.encode(good), wire.Record, 2) is None and rx.drops["sender"] == 2  # on agent 2's key
+
+
+# =========================================================================== the recorder, fed by hand
+@pytest.mark.asyncio
+async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which_ticks_lack_samples(
+        tmp_path: Path) -> None:
+    """The recorder alone (``--colocate-plant``, lockstep), around this test's router session: the
+    test plays the leader and the four agents. Junk, a record with a non-finite item, one forged on
+    another agent's key and a replayed one are dropped and counted; agent 3's last record never
+    comes (lost), so the recorder stalls on its first tick, acknowledges none of them, and writes a
+    file that is marked incomplete and holds every other sample."""
+    ns = f"recorder-alone-{os.getpid()}"
+    keys = wire.Keys(ns)
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    steps, batch = 9, 4  # ticks 0..9: records of 0-3, 4-7, 8-9
+    m = load_mission(SECTION4)
+    p0 = {a.id: list(a.p0) for a in m.agents}  # where the plausibility gate expects each vehicle
+    out = tmp_path / "out"
+    log = tmp_path / "recorder.log"
+    async with tp.open_session(tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0)) as session:
+        wakeup = handoff.Wakeup()
+        acks: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096, wakeup)
+        sub = tp.declare_subscriber(session, keys.acks, acks)
+        with open(log, "wb") as fh:
+            proc = subprocess.Popen(
+                tether_cmd("recorder", "--mission", "section4", "--clock", "lockstep", "--ns", ns, "--out", str(out),
+                           "--colocate-plant", "--no-mcap", "--duration", str(steps / 100), "--stall-timeout", "3",
+                           "--zenoh-mode", "client", "--connect", endpoint),
+                cwd=REPO, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            await tp.wait_for_tokens(session, [keys.token("recorder", 0)], STARTUP)
+            pubs = {key: tp.declare_publisher(session, key, tp.SYNC) for key in
+                    (keys.start, keys.topic("leader", LEADER, "state"),
+                     *(keys.topic("agent", i, "record") for i in AGENTS))}
+            for pub in pubs.values():
+                await tp.wait_for_subscribers(pub, WAIT)
+            pubs[keys.start].put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=time.time())))
+            zero = [0.0, 0.0]
+            for k in range(steps + 1):
+                pubs[keys.topic("leader", LEADER, "state")].put(wire.encode(wire.State(
+                    sender=LEADER, seq=k, k=k, t=k / 100, p=zero, vel=zero, a=zero)))
+            rec1 = keys.topic("agent", 1, "record")
+            pubs[rec1].put(b"\x93\x01\x02")  # junk
+            nan = _record(0, batch, p=p0[1])
+            pubs[rec1].put(_with(nan, plant=[*nan.plant[:3], msgspec.structs.replace(nan.plant[3], vel=[math.inf, 0])]))
+            pubs[rec1].put(wire.encode(_record(0, batch, sender=2, p=p0[2])))  # agent 2's, forged on agent 1's key
+            for i in AGENTS:
+                for seq, k0 in enumerate(range(0, steps + 1, batch)):
+                    if i == 3 and k0 == 8:
+                        continue  # lost
+                    r = msgspec.structs.replace(_record(k0, min(batch, steps + 1 - k0), sender=i, p=p0[i]), seq=seq)
+                    pubs[keys.topic("agent", i, "record")].put(wire.encode(r))
+                    if i == 1 and seq == 1:
+                        pubs[rec1].put(wire.encode(r))  # replayed
+            status = await asyncio.to_thread(proc.wait, WAIT + 30)
+            acked = set()
+            for rec in acks.drain():
+                msg = wire.Receiver(2).accept(rec.payload, wire.Ack, 0)
+                if msg is not None:
+                    acked.add(msg.k)
+        finally:
+            stop(proc)
+            sub.undeclare()
+    text = read(log)
+    assert status == 1 and "stalled" in text and "tick 8" in text, text
+    assert acked == set(range(8)), (acked, text)
+    run = Run.load(out)
+    assert run.meta.complete is False
+    assert run.meta.samples_expected == 9 * (steps + 1)
+    assert run.meta.samples_recorded == 9 * (steps + 1) - 2 * 2  # agent 3's plant and telemetry of ticks 8, 9
+    drops = run.meta.recorder_drops
+    assert (drops.malformed, drops.nonfinite, drops.sender, drops.other) == (1, 1, 1, {"stale_record": 1}), drops
+    col = run.agent_ids.tolist().index(3)
+    assert np.isnan(run.p[8:, col]).all() and np.isnan(run.runtime.plant_p[8:, col]).all()
+    assert np.isfinite(np.delete(run.p, col, axis=1)).all() and np.isfinite(run.p[:8]).all()
+    assert "Traceback" not in text
