@@ -55,7 +55,7 @@ def test_colocated_run_starts_no_plant_process_and_is_complete(section4_runs: tu
     co, _, log, _ = section4_runs
     assert "all 6 processes are up" in log, log
     assert sorted(p.name for p in (co / "logs").iterdir()) == sorted(
-        ["leader-5.log", "recorder-0.log", *[f"agent-{i}.log" for i in AGENTS]])
+        ["gateway.log", "leader-5.log", "recorder-0.log", *[f"agent-{i}.log" for i in AGENTS]])
     rec = Run.load(co)
     assert rec.meta.complete is True
     assert rec.meta.samples_recorded == rec.meta.samples_expected == (1 + 2 * len(AGENTS)) * 501

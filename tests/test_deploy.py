@@ -298,7 +298,8 @@ def test_the_acl_grants_exactly_what_the_roles_declare(deployment: gen.Deploymen
     m = ms.load(deployment.host_dir("agent-1") / "mission.toml")
     g = {x.name: x for x in acl.grants(m, "trio")}
     a2 = g["agent-2"]
-    assert a2.publish == ("tether/trio/agent/2/state", "tether/trio/agent/2/cmd", "tether/trio/agent/2/telemetry")
+    assert a2.publish == ("tether/trio/agent/2/state", "tether/trio/agent/2/cmd", "tether/trio/agent/2/telemetry",
+                          "tether/trio/agent/2/record")  # record: its co-located plant's (--colocate-plants)
     assert set(a2.subscribe) == {"tether/trio/plant/2/state", "tether/trio/agent/1/state",
                                  "tether/trio/control/0/start", "tether/trio/control/0/safety"}
     assert set(a2.sees) == {"@tether/trio/plant/2", "@tether/trio/agent/1"}
