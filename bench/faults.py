@@ -137,8 +137,8 @@ def free_port() -> int:
 class Tap:
     """A Zenoh client of the run's router: wall-stamped arrivals of start, cmd, telemetry, plant state."""
 
-    def __init__(self, endpoint: str, ns: str):
-        self.endpoint, self.ns = endpoint, ns
+    def __init__(self, endpoint: str, ns: str, config_file: Path | None = None):
+        self.endpoint, self.ns, self.config_file = endpoint, ns, config_file
         self.arrivals: list[tuple[float, str, bytes]] = []
         self.epoch: float | None = None
         self.session: zenoh.Session | None = None
@@ -147,9 +147,25 @@ class Tap:
         self._pub = None
 
     def open(self, timeout: float = 20.0) -> None:
-        cfg = tp.zenoh_config(tp.ZenohSettings(mode="client", connect=(self.endpoint,), lease=2.0,
-                                               connect_timeout=timeout))
-        self.session = zenoh.open(cfg)
+        if self.config_file is not None:  # the run's operator identity (through its operator gateway)
+            deadline = time.monotonic() + timeout
+            while not self.config_file.exists():
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{self.config_file} was not written within {timeout} s")
+                time.sleep(0.05)
+            cfg = tp.zenoh_config(tp.ZenohSettings(config_file=str(self.config_file)))
+        else:
+            cfg = tp.zenoh_config(tp.ZenohSettings(mode="client", connect=(self.endpoint,), lease=2.0,
+                                                   connect_timeout=timeout))
+        deadline = time.monotonic() + timeout
+        while True:  # the operator gateway may listen a moment after its configuration is written
+            try:
+                self.session = zenoh.open(cfg)
+                break
+            except zenoh.ZError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
         ns = self.ns
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -239,11 +255,13 @@ class RunResult:
 
 
 def launch(out: Path, duration: float, faults: list[str], order: tuple[str, float] | None = None,
-           timeout: float = 180.0) -> RunResult:
+           timeout: float = 180.0, tls: bool = False) -> RunResult:
+    """One run. ``tls``: authenticated as ``tether run`` is by default, the tap attaching with the
+    operator identity through the operator gateway; otherwise ``--insecure`` with a plain TCP tap."""
     port = free_port()
-    ep = f"tcp/127.0.0.1:{port}"
+    ep = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
     cmd = [sys.executable, "-m", "cli", "run", MISSION, "--clock", "realtime", "--out", str(out),
-           "--duration", repr(duration), "--quiet", "--listen", ep]
+           "--duration", repr(duration), "--quiet", "--listen", ep, *(() if tls else ("--insecure",))]
     for f in faults:
         cmd += ["--fault", f]
     env = dict(os.environ)
@@ -262,7 +280,7 @@ def launch(out: Path, duration: float, faults: list[str], order: tuple[str, floa
 
     th = threading.Thread(target=reader, daemon=True)
     th.start()
-    tap = Tap(ep, MISSION)
+    tap = Tap(ep, MISSION, out / "tls" / "control-0.json5" if tls else None)
     time.sleep(0.3)
     tap.open()
     if order is not None:
@@ -564,7 +582,8 @@ def cli_latency(action: str, duration: float, at: float, work: Path) -> float:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     p = subprocess.Popen([sys.executable, "-m", "cli", "run", MISSION, "--clock", "realtime", "--out",
-                          str(work / f"cli-{action}-{port}"), "--duration", repr(duration), "--quiet", "--listen", ep],
+                          str(work / f"cli-{action}-{port}"), "--duration", repr(duration), "--quiet", "--listen", ep,
+                          "--insecure"],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=REPO)
     try:
         time.sleep(at + 3.0)
@@ -619,6 +638,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--latency-reps", type=int, default=5, help="runs per order (default 5)")
     ap.add_argument("--order-at", type=float, default=5.0, help="when the tap orders land / estop [s] (default 5)")
     ap.add_argument("--cli-latency", action="store_true", help="also time the tether estop / land commands")
+    ap.add_argument("--tls", action="store_true",
+                    help="authenticated runs (tether run's default): orders go through the operator gateway")
     ap.add_argument("--work", default=None, help="directory for the runs (default: a temporary one, kept)")
     ap.add_argument("--json", default=None, help="write every figure of every run here")
     ap.add_argument("--reanalyse", default=None, metavar="WORK",
@@ -674,7 +695,7 @@ def main(argv: list[str] | None = None) -> int:
         for action in ("estop", "land"):
             for rep in range(lreps):
                 out = work / f"order-{action}-{rep}"
-                res = launch(out, 12.0, [], order=(action, args.order_at))
+                res = launch(out, 12.0, [], order=(action, args.order_at), tls=args.tls)
                 r = latency(res, action)
                 lat.setdefault(action, []).append(r)
                 report["latency"].setdefault(action, []).append(r)
