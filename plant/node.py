@@ -85,9 +85,12 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     m, keys = node.mission, node.keys
     h = m.dt
     cmds = []
+    # a process that may be a restart (real time, one simulated vehicle: plant/resume.py) learns the
+    # run's start instant from the commands it hears before its own start: those must wake the loop
+    resumable = not world and isinstance(plant, Resting)
     for aid in ids:
-        # read at the tick only: a command does not wake the loop as it arrives (real time)
-        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid, wake=False)
+        # otherwise read at the tick only: a command does not wake the loop as it arrives (real time)
+        src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid, wake=resumable)
         node.watch("agent", aid, src)
         cmds.append(src)
     operator: list[str | None] = [None]
