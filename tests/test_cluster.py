@@ -313,13 +313,15 @@ def test_a_study_interrupted_at_half_and_resumed_equals_an_uninterrupted_one(tmp
 @pytest.mark.slow  # a real `tether sweep` interrupted with SIGINT, then resumed
 def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_resumes(tmp_path: Path) -> None:
     out = tmp_path / "s"
-    # 60 cells: the compiled engines run 8 of them in about a second, before a SIGINT sent after the
-    # first could land
     cells = 60
     args = ["sweep", "section4", "--out", str(out), "--loss", ",".join(str(x) for x in range(0, 75, 5)),
             "--delay", "0,50,100,200", "--laws", "sigma", "--duration", str(DURATION), "--jobs", "2"]
+    # Ctrl-C's default in the child: a shell that started the tests in the background without job
+    # control ignores SIGINT for them, and a Python started with SIGINT ignored keeps ignoring it
+    # (the study then ran all its cells and exited 0)
     p = subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         results = out / "study.jsonl"
         wait_until(lambda: results.exists() and len(results.read_text().splitlines()) >= 2, 90, "a finished cell")
