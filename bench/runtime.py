@@ -1132,7 +1132,7 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
         say(f"   {rt.n:>3} {rt.rate:>4g} " + " ".join(cells))
     if rows:
         summary = {k: med([r[k][2] for r in rows]) for k in rows[0] if k not in ("n", "rate")}
-        say(f"   median ratios: agent CPU {summary['agent_cpu']:.2f} (target <= 1.3), agent RSS {summary['agent_rss']:.2f} "
+        say(f"   median ratios: agent CPU {summary['agent_cpu']:.2f} (target <= 1.2), agent RSS {summary['agent_rss']:.2f} "
             f"(target <= 1.1), PSS {summary['agent_pss']:.2f}, USS {summary['agent_uss']:.2f}; plant CPU "
             f"{summary['plant_cpu']:.2f}, recorder CPU {summary['recorder_cpu']:.2f}")
         report["cpu"] = {"rows": rows, "median_ratios": summary}

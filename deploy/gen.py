@@ -36,6 +36,7 @@ from deploy import acl, pki
 from deploy.hosts import HostsError, Placement, Plan, load, plan
 from tether import catalog
 from tether import mission as ms
+from tether import transport as tp
 
 UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "control": "tether-start.service",
          "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service"}
@@ -94,6 +95,8 @@ def profile(p: Placement, pl: Plan, access: dict[str, Any]) -> dict[str, Any]:
                         "gossip": {"enabled": True, "autoconnect_strategy": strategy}}
     conf["transport"] = {"link": {"protocols": ["tls"], "tx": {"lease": round(h.lease * 1000), "keep_alive": 4},
                                   "tls": tls}}
+    if p.mode == "router":
+        conf["transport"]["link"]["tx"]["queue"] = {"size": dict(tp.ROUTER_TX_QUEUE)}
     if p.listen is not None:
         conf["access_control"] = access
     return conf

@@ -261,6 +261,7 @@ def test_every_generated_profile_is_a_zenoh_configuration(deployment: gen.Deploy
         assert get("mode") == p.mode
         assert get("transport/link/protocols") == ["tls"]
         assert get("scouting/multicast/enabled") is False
+        assert (get("transport/link/tx/queue/size")["interactive_high"] == 16) == (p.mode == "router")
         tls = get("transport/link/tls")
         assert tls["enable_mtls"] is True and tls["verify_name_on_connect"] is True
         for k in ("root_ca_certificate", "connect_certificate", "connect_private_key"):

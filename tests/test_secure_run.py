@@ -69,6 +69,9 @@ def test_a_default_run_admits_only_its_own_identities_and_the_operator_lands_it(
         port = attach.rsplit(":", 1)[1]
         router = msgspec.json.decode((tls / "router.json5").read_text().split("\n", 1)[1])["listen"]["endpoints"]
         assert attach not in router  # --listen is the operator gateway's, not the control router's
+        for name in ("router", "gateway"):  # both routers queue a tick's burst (tether/transport.py), read by Zenoh
+            conf = tp.zenoh_config(tp.ZenohSettings(config_file=str(tls / f"{name}.json5")))
+            assert msgspec.json.decode(conf.get_json("transport/link/tx/queue/size")) == tp.ROUTER_TX_QUEUE, name
         attempts = {
             # the operator's certificate is signed by the operator CA, which the control router does not trust:
             # a tool holding it, flooding or not, reaches the run through the gateway only

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import signal
 import subprocess
 import sys
@@ -330,6 +331,19 @@ def test_config_carries_the_verified_keys() -> None:
     assert c.get_json("scouting/delay") == "250"
     assert c.get_json("connect/timeout_ms") == "2000"
     assert c.get_json("transport/link/tls/root_ca_certificate") == '"/etc/tether/ca.pem"'
+
+
+def test_a_router_queues_bursts_of_the_streams_and_a_client_keeps_zenohs_queue() -> None:
+    """A router's links to a process that hears many streams (the recorder hears every plant, all
+    publishing at the same phase) must hold one tick's burst of express samples: :data:`ROUTER_TX_QUEUE`."""
+    router = tp.zenoh_config(ZenohSettings(mode="router", listen=("tcp/127.0.0.1:0",)))
+    size = json.loads(router.get_json("transport/link/tx/queue/size"))
+    assert size == tp.ROUTER_TX_QUEUE
+    assert size["interactive_high"] == size["real_time"] == size["data_low"] == 16  # the streams' priorities
+    assert [tp.STATE.priority, tp.COMMAND.priority, tp.TELEMETRY.priority] == [
+        zenoh.Priority.INTERACTIVE_HIGH, zenoh.Priority.REAL_TIME, zenoh.Priority.DATA_LOW]
+    client = tp.zenoh_config(ZenohSettings(mode="client", connect=("tcp/127.0.0.1:7447",)))
+    assert json.loads(client.get_json("transport/link/tx/queue/size"))["interactive_high"] == 2  # Zenoh's
 
 
 @pytest.mark.parametrize(
