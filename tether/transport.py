@@ -446,13 +446,14 @@ class StreamQos(NamedTuple):
 ROUTER_TX_QUEUE = {"control": 2, "real_time": 16, "interactive_high": 16, "interactive_low": 2, "data_high": 2,
                    "data": 2, "data_low": 16, "background": 2}
 """A router's transmission queue per link, in batches per priority (``transport/link/tx/queue/size``):
-16 (Zenoh's largest) on the three priorities the streams use, Zenoh's 2 elsewhere. Express samples
+16 on the three priorities the streams use, Zenoh's 2 elsewhere. Express samples
 (states, commands) take a batch each, so with Zenoh's 2 the router's link to a process that hears
 many streams (the recorder hears every plant, which all publish at the same phase) overflowed
 whenever the burst of one tick outran its transmission thread by a moment: after ~1 ms (DROP's
-``wait_before_drop``) the sample was dropped. Measured, a ring of 8 at 50 Hz on an idle machine,
-insecure: 62 of 12 767 samples lost with 2, none with 16; the control loops never saw the losses
-(each agent hears only its own plant). The queues are allocated lazily: memory is spent only by a
+``wait_before_drop``) the sample was dropped. Measured, a ring of 8 at 50 Hz on an idle machine:
+55-71 of 12 767 samples lost with 2, 0-19 with 16 (four runs, with and without TLS; what is left is
+the odd tick whose every plant sample was lost at once, a stall); the control loops never saw the
+losses (each agent hears only its own plant). The queues are allocated lazily: memory is spent only by a
 link that has queued that much."""
 
 COMMAND = StreamQos(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.DROP, express=True)
