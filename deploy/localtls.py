@@ -240,8 +240,8 @@ class Security:
             conf["connect"] = {"endpoints": connect}
         else:
             conf["transport"]["link"]["tx"]["queue"] = {"size": dict(tp.ROUTER_TX_QUEUE)}
-        if mode == "router" and connect:  # a router linked to another: open only once linked, or fail
-            conf["connect"] = {"endpoints": connect, "timeout_ms": 10_000, "exit_on_failure": True}
+            if connect:  # a router linked to another: open only once linked, or fail
+                conf["connect"] = {"endpoints": connect, "timeout_ms": 10_000, "exit_on_failure": True}
         if listen:
             conf["access_control"] = self.access if access is None else access
             limits = self.limits if limits is None else limits

@@ -532,14 +532,15 @@ def test_a_restarted_plant_resumes_from_its_last_state(tmp_path: Path) -> None:
     assert before.size and after.size, "plant 2's states before the kill and after the restart were recorded"
     resumed = np.array(json.loads(back.group(6)))
     jump = float(np.linalg.norm(p[after[0]] - p[before[-1]]))
-    p0 = np.array(load_mission(SECTION4, DURATION).agent(2).p0)
+    mission = load_mission(SECTION4, DURATION)
+    p0 = np.array(mission.agent(2).p0)
     print(f"plant 2's position: last recorded before the kill {p[before[-1]]} (tick {before[-1]}), resumed at "
           f"{resumed} (tick {last_k}'s), first recorded after the restart {p[after[0]]} (tick {after[0]}; moved "
           f"{jump:.3f} m; the initial state is {float(np.linalg.norm(p[after[0]] - p0)):.1f} m away)")
     # the state resumed from is the plant's own last sample: the very one recorded, when the recorder
     # heard it; a frozen vehicle otherwise, moved since only by the ticks the recorder missed on either
     # side (real time loses samples: a CI run's recording of plant 2 was 0.078 m away around tick 402), at most the recorded speed
-    h = load_mission(SECTION4, DURATION).dt
+    h = mission.dt
     speed = float(np.nanmax(np.linalg.norm(run.runtime.plant_v[:, col[2]], axis=-1)))
     if seen[last_k]:
         assert np.array_equal(p[last_k], resumed), (p[last_k], resumed)
