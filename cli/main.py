@@ -144,11 +144,23 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "--substeps", f"is {args.substeps}: {m.steps} steps x {args.substeps} substeps x {m.n} agents = "
                           f"{m.steps * args.substeps * m.n:.3g} agent-substeps, beyond the limit of "
                           f"{MAX_AGENT_TICKS:.0e}; use fewer substeps (10 is plenty for RK4) or a shorter --duration")])
-    if args.mode == "continuous" and m.n > DENSE_MAX:  # the continuous mode inverts L1, N x N
-        raise ms.MissionError(str(args.mission), [(
-            "--mode", f"is continuous, which inverts the dense {m.n} x {m.n} matrix L1 (about "
-                      f"{8 * m.n * m.n / 2**30:.3g} GiB and O(N^3) time); use --mode discrete (sparse, the "
-                      f"runtime's semantics), or at most {DENSE_MAX} agents")])
+    if args.mode == "continuous" and m.n > DENSE_MAX:
+        # the numpy path inverts the dense N x N matrix L1; the compiled kernel only each strongly
+        # connected block of the agents' graph (sim.kernel.solve_plan)
+        from sim import kernel
+
+        s = Setup.of(m)
+        block = kernel.largest_block(m.n, s.topo.src, s.topo.dst)
+        compiled = (args.engine != "numpy" and args.live is None and kernel.AVAILABLE and kernel.supports(s.dist))
+        if not compiled or block > DENSE_MAX:
+            why = (f"inverts the dense {m.n} x {m.n} matrix L1 (about {8 * m.n * m.n / 2**30:.3g} GiB and O(N^3) "
+                   f"time) on the numpy path (--engine numpy, --live, numba missing or a disturbance it does "
+                   f"not know)" if not compiled else
+                   f"inverts the largest strongly connected block of the agents' graph, {block} agents here")
+            raise ms.MissionError(str(args.mission), [(
+                "--mode", f"is continuous, which {why}; use --mode discrete (sparse, the runtime's semantics), "
+                          f"or at most {DENSE_MAX} agents in one strongly connected block with the compiled "
+                          f"engine")])
     out = _writable_dir("--out", args.out, ("run.npz", "metrics.json"))
     prog = Progress()
     live = None

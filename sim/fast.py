@@ -11,7 +11,7 @@ import numpy as np
 
 from sim import kernel
 from sim.refsim import Progress, Setup, check_continuous
-from tether import graph, wire
+from tether import wire
 from tether.runfile import Run, RunMeta
 
 _FEED = {"measured": 0, "commanded": 1, "none": 2}
@@ -74,11 +74,20 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     m, topo, prm = s.mission, s.topo, s.params
     check_continuous(m)
     n, d, h = m.n, m.dim, m.dt
-    a_lead = np.ascontiguousarray(topo.adjacency[:n, n], dtype=float)
-    l1, _ = graph.partition(topo.adjacency)
-    l1_inv = np.ascontiguousarray(np.linalg.inv(l1))
+    plan = kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa)
+    perm = plan.perm  # the kernel numbers the agents in solving order: agent perm[q] at position q
+    position = np.empty(n + 1, dtype=np.intp)
+    position[perm], position[n] = np.arange(n), n
+
+    def axis_first(x: np.ndarray) -> np.ndarray:  # (N, d) per agent -> (d, N) in solving order
+        return np.ascontiguousarray(np.asarray(x, dtype=float)[perm].T)
+
     meta = msgspec.structs.replace(meta, substeps=substeps)
-    y = np.stack([s.p0, s.v0, np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]).astype(float)
+    # structure of arrays, axis first, column N the leader's (set by the kernel at every stage)
+    y = np.ones((2, 4, d, n + 1))  # [0] the state [p, v, Kp, Kv], [1] a stage's input
+    y[0, 0, :, :n], y[0, 1, :, :n] = axis_first(s.p0), axis_first(s.v0)
+    y[0, 2, :, :n] = axis_first(np.broadcast_to(prm.kp0, (n, d)))
+    y[0, 3, :, :n] = axis_first(np.broadcast_to(prm.kv0, (n, d)))
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     ticks = np.arange(steps + 1)
@@ -86,17 +95,24 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     run.t[:] = kept * h
     lead = s.ref(kept * h)
     run.leader_p[:], run.leader_v[:], run.leader_a[:] = (np.broadcast_to(x, (len(kept), d)) for x in lead)
-    slot_w = np.ascontiguousarray(topo.slot_weight[:, :, 0])
+    slot_src = np.ascontiguousarray(position[topo.slot_src[:, perm]])
+    slot_w = np.ascontiguousarray(topo.slot_weight[:, perm, 0])
+    kappa = np.ascontiguousarray(topo.kappa[perm])
+    a_lead = np.zeros(n)  # a_i0, from the edge arrays (topo.adjacency is N^2)
+    a_lead[topo.dst[topo.src == n]] = topo.weight[topo.src == n]
+    a_lead = np.ascontiguousarray(a_lead[perm])
     bank = kernel.bank_arrays(s.dist)
-    const, amp, omega, phase, table, hold, has_random = *bank[:6], bank[11]
+    const, amp, omega, phase = (axis_first(x) for x in bank[:4])
+    table, hold, has_random = np.ascontiguousarray(bank[4][perm]), np.ascontiguousarray(bank[5][perm]), bank[11]
+    swd = axis_first(s.sum_wdelta)
     sin_m, cos_m = kernel.rotation_tables(omega, h, substeps)
     for k0, k1 in _chunks(steps):
         times = kernel.stage_times(k0, k1, h, substeps)
         ref = s.ref(times.ravel())
         ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d))).reshape(*times.shape, d)
                                for x in ref)
-        kernel.continuous(k0, k1, steps, record, h, substeps, y, ref_p, ref_v, ref_a, times, topo.kappa,
-                          topo.slot_src, slot_w, s.sum_wdelta, a_lead, l1_inv, prm.gamma_p, prm.gamma_v,
+        kernel.continuous(k0, k1, steps, record, h, substeps, y, ref_p, ref_v, ref_a, times, kappa,
+                          slot_src, slot_w, swd, a_lead, *plan.kernel_args(), prm.gamma_p, prm.gamma_v,
                           prm.sigma, const, amp, omega, phase, table, hold, has_random, sin_m, cos_m, *_outputs(run))
         if progress is not None and k1 <= steps:
             progress(k0, steps)

@@ -13,12 +13,13 @@ arithmetic, operation for operation, agent by agent, without a numpy temporary p
   that LLVM vectorises it across agents; each distinct ``(omega, phase)`` pair's sine and cosine is
   computed once per tick (:func:`sine_pairs`). :func:`discrete_parallel` runs blocks of agents on
   numba's threads.
-* :func:`continuous` is the continuous mode's RK4 with the algebraic loop through ``L1^{-1}``, every
-  stage in the kernel; the leader's profile is evaluated by numpy beforehand at every stage time
-  (:func:`stage_times`). The sinusoids are rotated from their phase at each control tick by the
-  angle-addition formula (two sines a control step per axis instead of forty) and the two mid-step
-  stages share theirs, and the matrix-vector product sums in a fixed order where numpy calls BLAS:
-  it equals the numpy path to round-off, not bit for bit.
+* :func:`continuous` is the continuous mode's RK4, every stage in one function body; the leader's
+  profile is evaluated by numpy beforehand at every stage time (:func:`stage_times`). The algebraic
+  loop ``L1 a = b`` is solved block by block over the graph's strongly connected components
+  (:class:`SolvePlan`; the whole ``L1^{-1}`` for a few agents), the sinusoids are rotated from their
+  phase at each control tick by the angle-addition formula (two sines a control step per axis
+  instead of forty) and the two mid-step stages share theirs: it equals the numpy path to
+  round-off, not bit for bit.
 
 The disturbance bank is read from its arrays (:func:`bank_arrays`); a bank whose layout this module
 does not know (a model added to :mod:`plant.disturbance` since) makes :func:`supports` say no, and
@@ -36,6 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from plant.disturbance import DisturbanceBank
+from tether import graph
 
 numba: Any
 try:  # the [fast] extra
@@ -359,146 +361,298 @@ def stage_times(k0: int, k1: int, h: float, substeps: int) -> np.ndarray:
     return np.stack([ts, ts + 0.5 * hf, ts + hf], axis=2)
 
 
-@_jit
-def _dist_at(t: float, m: int, sin0: np.ndarray, cos0: np.ndarray, sin_m: np.ndarray, cos_m: np.ndarray,
-             h: float, const: np.ndarray, amp: np.ndarray, table: np.ndarray, hold: np.ndarray, has_random: bool,
-             out: np.ndarray) -> None:
-    """``d(t)`` (``DisturbanceBank.value_at``) at ``t = t_k + m hf / 2`` into ``out``: the sinusoids by
-    the angle-addition formula from ``sin0, cos0`` (their phase at ``t_k``) and the tables
-    ``sin_m, cos_m`` of ``omega m hf / 2`` (a few ulp from ``sin(omega t + phase)``: round-off)."""
-    n, d = out.shape
-    kd = int(math.floor(t / h + 1e-9)) if has_random else 0
-    for i in range(n):
-        for c in range(d):
-            sn = sin0[i, c] * cos_m[m, i, c] + cos0[i, c] * sin_m[m, i, c]
-            out[i, c] = const[i, c] + amp[i, c] * sn + (_random(table, hold, i, kd, c) if has_random else 0.0)
+def _jit_numpy_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
+    # the continuous kernel divides only by kappa_i > 0 (tether.graph.topology checks it): numpy's
+    # error model drops the zero-division test, which otherwise slows the small loops around it
+    return fn if numba is None else numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
 
 
-@_jit
-def _rhs(y: np.ndarray, lp: np.ndarray, lv: np.ndarray, la: np.ndarray,
-         kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
-         l1_inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float, dist: np.ndarray,
-         dy: np.ndarray, xi: np.ndarray, zeta: np.ndarray, rhs_b: np.ndarray) -> None:
-    """The continuous closed loop's right-hand side into ``dy`` (and the errors); ``y`` is
-    ``(4, N, d)`` [p, v, Kp, Kv]; the leader's sample ``lp, lv, la``; the disturbance ``dist``."""
-    _, n, d = y.shape
-    slots = slot_src.shape[0]
-    for i in range(n):
-        ki = kappa[i]
-        for c in range(d):
-            sp = 0.0
-            sv = 0.0
-            for s in range(slots):
-                j = slot_src[s, i]
-                w = slot_w[s, i]
-                pj = lp[c] if j == n else y[0, j, c]
-                vj = lv[c] if j == n else y[1, j, c]
-                if s == 0:
-                    sp = w * pj
-                    sv = w * vj
-                else:
-                    sp += w * pj
-                    sv += w * vj
-            e = ki * y[0, i, c] - sp - swd[i, c]
-            z = ki * y[1, i, c] - sv
-            xi[i, c] = e
-            zeta[i, c] = z
-            rhs_b[i, c] = a_lead[i] * la[c] + ki * dist[i, c] - y[2, i, c] * e - y[3, i, c] * z
-    for i in range(n):
-        for c in range(d):
-            acc = 0.0
-            for j in range(n):
-                acc += l1_inv[i, j] * rhs_b[j, c]
-            dy[0, i, c] = y[1, i, c]
-            dy[1, i, c] = acc
-            dy[2, i, c] = -sigma * (y[2, i, c] - 1.0) + gamma_p * (xi[i, c] * xi[i, c])
-            dy[3, i, c] = -sigma * (y[3, i, c] - 1.0) + gamma_v * (zeta[i, c] * zeta[i, c])
+DENSE_SOLVE = 32
+"""Up to this many agents :func:`continuous` applies the whole ``L1^{-1}`` (N^2 products, in loops
+that stay small); beyond, block by block (see :func:`solve_plan`)."""
+
+DENSE_MAX = graph.DENSE_MAX
+"""The largest strongly connected block (and the largest N with one block holding more than half
+the agents, which :func:`solve_plan` then solves whole) whose inverse is formed: ``N^2`` doubles."""
 
 
-@_jit
+def largest_block(n: int, src: np.ndarray, dst: np.ndarray) -> int:
+    """The size of the largest strongly connected block among the agents (:func:`strong_blocks`)."""
+    return max(len(b) for b in strong_blocks(n, src, dst))
+
+
+@dataclasses.dataclass(frozen=True)
+class SolvePlan:
+    """How :func:`continuous` solves ``L1 a = b`` (``L1 = diag(kappa) - A`` among the agents).
+
+    The agents are renumbered in solving order (``perm[q]`` is the agent at position q): the
+    strongly connected components of their graph, each component after every component it hears.
+    Agent i's row is ``kappa_i a_i - sum_j a_ij a_j = b_i``: the sum over earlier blocks is added to
+    ``b_i``, then the block's own small system is solved with its inverse (``1 / kappa_i`` for an
+    agent alone in its block, as on a tree or a chain). O(N + edges + sum of block sizes squared)
+    per solve, where ``L1^{-1} b`` is O(N^2). With few agents (:data:`DENSE_SOLVE`) or one block
+    holding more than half of them, ``dense``: a single block, the whole inverse.
+
+    Positions are ``q``: block b is ``block_ptr[b] .. block_ptr[b + 1] - 1``; the in-edges from
+    earlier blocks of position q are ``ext_src[ext_ptr[q]:ext_ptr[q + 1]]`` (positions) with
+    weights ``ext_w``; block b's inverse is row-major at ``inv[inv_ptr[b]:]`` (empty for a
+    singleton)."""
+
+    perm: np.ndarray
+    dense: bool
+    block_ptr: np.ndarray
+    ext_ptr: np.ndarray
+    ext_src: np.ndarray
+    ext_w: np.ndarray
+    inv_ptr: np.ndarray
+    inv: np.ndarray
+
+    def kernel_args(self) -> tuple[Any, ...]:
+        return (self.perm, self.dense, self.block_ptr, self.ext_ptr, self.ext_src, self.ext_w, self.inv_ptr,
+                self.inv)
+
+
+def strong_blocks(n: int, src: np.ndarray, dst: np.ndarray) -> list[list[int]]:
+    """The strongly connected components of the agents' graph (edges ``src -> dst``; node ``n``, the
+    leader, left out), each after every component it has an in-edge from (Tarjan's algorithm,
+    iterative, walking from an agent to its in-neighbours)."""
+    ins: list[list[int]] = [[] for _ in range(n)]
+    for s_, d_ in zip(src.tolist(), dst.tolist()):
+        if s_ < n:
+            ins[d_].append(s_)
+    index = [-1] * n
+    low = [0] * n
+    on_stack = [False] * n
+    stack: list[int] = []
+    blocks: list[list[int]] = []
+    counter = 0
+    for root in range(n):
+        if index[root] >= 0:
+            continue
+        work = [(root, 0)]
+        while work:
+            v, pos = work[-1]
+            if pos == 0:
+                index[v] = low[v] = counter
+                counter += 1
+                stack.append(v)
+                on_stack[v] = True
+            if pos < len(ins[v]):
+                work[-1] = (v, pos + 1)
+                w = ins[v][pos]
+                if index[w] < 0:
+                    work.append((w, 0))
+                elif on_stack[w]:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                u = work[-1][0]
+                low[u] = min(low[u], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on_stack[w] = False
+                    comp.append(w)
+                    if w == v:
+                        break
+                blocks.append(sorted(comp))
+    return blocks
+
+
+def solve_plan(n: int, src: np.ndarray, dst: np.ndarray, weight: np.ndarray, kappa: np.ndarray) -> SolvePlan:
+    """The :class:`SolvePlan` of a mission's graph (``src, dst, weight`` its edges, node ``n`` the
+    leader, whose edges are not in ``L1``; ``kappa`` the in-degrees)."""
+    blocks = strong_blocks(n, src, dst)
+    perm = np.array([i for b in blocks for i in b], dtype=np.intp)
+    dense = n <= DENSE_SOLVE or (max(len(b) for b in blocks) * 2 > n and n <= DENSE_MAX)
+    if dense:
+        blocks = [perm.tolist()]
+    position = np.empty(n, dtype=np.intp)
+    position[perm] = np.arange(n)
+    block_of = np.empty(n, dtype=np.intp)
+    block_ptr = np.zeros(len(blocks) + 1, dtype=np.intp)
+    for b, comp in enumerate(blocks):
+        block_of[position[comp]] = b
+        block_ptr[b + 1] = block_ptr[b] + len(comp)
+    ext: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+    mats = [np.diag(kappa[comp].astype(float)) for comp in blocks]
+    for s_, d_, w_ in zip(src.tolist(), dst.tolist(), weight.tolist()):
+        if s_ >= n:
+            continue
+        qs, qd = int(position[s_]), int(position[d_])
+        b = int(block_of[qd])
+        if block_of[qs] == b:
+            lo = int(block_ptr[b])
+            mats[b][qd - lo, qs - lo] -= w_
+        else:
+            ext[qd].append((qs, w_))
+    ext_ptr = np.zeros(n + 1, dtype=np.intp)
+    for q in range(n):
+        ext_ptr[q + 1] = ext_ptr[q] + len(ext[q])
+    inv_ptr = np.zeros(len(blocks) + 1, dtype=np.intp)
+    parts = [np.zeros(0)]
+    for b, mat in enumerate(mats):
+        size = len(mat) if len(mat) > 1 or dense else 0
+        inv_ptr[b + 1] = inv_ptr[b] + size * size
+        if size:
+            parts.append(np.linalg.inv(mat).ravel())
+    return SolvePlan(perm, dense, block_ptr, ext_ptr,
+                     np.array([q for e in ext for q, _ in e], dtype=np.intp),
+                     np.array([w_ for e in ext for _, w_ in e], dtype=float), inv_ptr, np.concatenate(parts))
+
+
+@_jit_numpy_errors
 def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: int, y: np.ndarray,
                ref_p: np.ndarray, ref_v: np.ndarray, ref_a: np.ndarray, times: np.ndarray,
                kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
-               l1_inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float,
+               perm: np.ndarray, dense: bool, block_ptr: np.ndarray, ext_ptr: np.ndarray, ext_src: np.ndarray,
+               ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float,
                const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
                hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
                out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
                out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray) -> None:
     """Control steps ``k0 .. k1-1`` of the continuous mode: record tick k's sample, then ``substeps``
-    RK4 steps of ``y`` in place. ``ref_*`` and ``times`` are ``(k1 - k0, substeps, 3, ...)`` (see
-    :func:`stage_times`); ``sin_m, cos_m`` ``(2 substeps + 1, N, d)`` the sine and cosine of
-    ``omega m hf / 2``. The disturbance is shared by the two mid-step stages (the same time)."""
-    _, n, d = y.shape
+    RK4 steps in place.
+
+    Structure of arrays, axis first, agents in solving order (:class:`SolvePlan`; agent
+    ``perm[q]`` at position q, the samples written back in the mission's order): ``y``
+    ``(2, 4, d, N+1)``, ``y[0]`` the state [p, v, Kp, Kv] and ``y[1]`` a stage's input, column N the
+    leader's position and velocity at that stage; the bank's and the law's arrays ``(d, N)``;
+    ``ref_*`` and ``times`` ``(k1 - k0, substeps, 3, ...)`` (:func:`stage_times`); ``sin_m, cos_m``
+    ``(2 substeps + 1, d, N)`` the sine and cosine of ``omega m hf / 2``.
+
+    Per stage: the disturbance ``d(t)`` (``DisturbanceBank.value_at``), its sinusoids rotated from
+    their phase at ``t_k`` by the angle-addition formula (a few ulp from ``sin(omega t + phase)``)
+    and shared by the two mid-step stages; the errors, the gains' rates and ``b`` agent by agent;
+    then ``L1 a = b``. One function body, every array indexed in place: a sub-call or an array
+    view costs reference counts on each array it touches, which at a few agents was most of the
+    time."""
+    d = y.shape[2]
+    n = y.shape[3] - 1
+    slots = slot_src.shape[0]
+    blocks = block_ptr.shape[0] - 1
+    last_row = table.shape[1] - 1
     hf = h / substeps
-    k1s = np.empty_like(y)
-    k2s = np.empty_like(y)
-    k3s = np.empty_like(y)
-    k4s = np.empty_like(y)
-    tmp = np.empty_like(y)
-    xi = np.empty((n, d))
-    zeta = np.empty((n, d))
-    d0 = np.empty((n, d))
-    dh = np.empty((n, d))
-    b = np.empty((n, d))
-    sin0 = np.empty((n, d))
-    cos0 = np.empty((n, d))
-    size = y.size
-    yf = y.reshape(size)
-    tmpf = tmp.reshape(size)
-    k1f = k1s.reshape(size)
-    k2f = k2s.reshape(size)
-    k3f = k3s.reshape(size)
-    k4f = k4s.reshape(size)
+    w6 = hf / 6.0
+    kk = np.empty((4, 4, d, n))  # the four stages' slopes [p, v, Kp, Kv]
+    xi = np.empty((d, n))
+    zeta = np.empty((d, n))
+    bb = np.empty((d, n))
+    dist = np.empty((2, d, n))  # d(t) at the step's ends [0] and its middle [1]
+    sin0 = np.empty((d, n))
+    cos0 = np.empty((d, n))
+    rr = np.empty(n)
+    coef = (0.0, 0.5 * hf, 0.5 * hf, hf)
     for k in range(k0, k1):
         q = k - k0
         t = k * h
-        for i in range(n):
-            for c in range(d):
-                th = omega[i, c] * t + phase[i, c]
-                sin0[i, c] = math.sin(th)
-                cos0[i, c] = math.cos(th)
-        _dist_at(t, 0, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
-        _rhs(y, ref_p[q, 0, 0], ref_v[q, 0, 0], ref_a[q, 0, 0], kappa, slot_src, slot_w, swd, a_lead, l1_inv,
-             gamma_p, gamma_v, sigma, d0, k1s, xi, zeta, b)
-        if record or k == steps:
-            r = k if record else 0
+        for c in range(d):
             for i in range(n):
-                for c in range(d):
-                    out_p[r, i, c] = y[0, i, c]
-                    out_v[r, i, c] = y[1, i, c]
-                    out_a[r, i, c] = k1s[1, i, c]
-                    out_u[r, i, c] = k1s[1, i, c] - d0[i, c]
-                    out_xi[r, i, c] = xi[i, c]
-                    out_zeta[r, i, c] = zeta[i, c]
-                    out_kp[r, i, c] = y[2, i, c]
-                    out_kv[r, i, c] = y[3, i, c]
-                    out_d[r, i, c] = d0[i, c]
-        if k == steps:
-            break
+                th = omega[c, i] * t + phase[c, i]
+                sin0[c, i] = math.sin(th)
+                cos0[c, i] = math.cos(th)
         for j in range(substeps):
-            if j:
-                _dist_at(times[q, j, 0], 2 * j, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
-                _rhs(y, ref_p[q, j, 0], ref_v[q, j, 0], ref_a[q, j, 0], kappa, slot_src, slot_w, swd, a_lead,
-                     l1_inv, gamma_p, gamma_v, sigma, d0, k1s, xi, zeta, b)
-            for e in range(size):
-                tmpf[e] = yf[e] + 0.5 * hf * k1f[e]
-            _dist_at(times[q, j, 1], 2 * j + 1, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, dh)
-            _rhs(tmp, ref_p[q, j, 1], ref_v[q, j, 1], ref_a[q, j, 1], kappa, slot_src, slot_w, swd, a_lead,
-                 l1_inv, gamma_p, gamma_v, sigma, dh, k2s, xi, zeta, b)
-            for e in range(size):
-                tmpf[e] = yf[e] + 0.5 * hf * k2f[e]
-            _rhs(tmp, ref_p[q, j, 1], ref_v[q, j, 1], ref_a[q, j, 1], kappa, slot_src, slot_w, swd, a_lead,
-                 l1_inv, gamma_p, gamma_v, sigma, dh, k3s, xi, zeta, b)
-            for e in range(size):
-                tmpf[e] = yf[e] + hf * k3f[e]
-            _dist_at(times[q, j, 2], 2 * j + 2, sin0, cos0, sin_m, cos_m, h, const, amp, table, hold, has_random, d0)
-            _rhs(tmp, ref_p[q, j, 2], ref_v[q, j, 2], ref_a[q, j, 2], kappa, slot_src, slot_w, swd, a_lead,
-                 l1_inv, gamma_p, gamma_v, sigma, d0, k4s, xi, zeta, b)
-            for e in range(size):
-                yf[e] = yf[e] + (hf / 6.0) * (k1f[e] + 2.0 * k2f[e] + 2.0 * k3f[e] + k4f[e])
+            for st in range(4):
+                src = 0 if st == 0 else 1
+                at = 0 if st == 0 else (1 if st < 3 else 2)  # the stage's time: ts, ts + hf/2, ts + hf
+                dk = 1 if at == 1 else 0
+                if st:
+                    a = coef[st]
+                    for r4 in range(4):
+                        for c in range(d):
+                            for i in range(n):
+                                y[1, r4, c, i] = y[0, r4, c, i] + a * kk[st - 1, r4, c, i]
+                for c in range(d):
+                    y[src, 0, c, n] = ref_p[q, j, at, c]
+                    y[src, 1, c, n] = ref_v[q, j, at, c]
+                if st != 2:  # the second mid-step stage has the first's disturbance
+                    m = 2 * j + at
+                    kd = int(math.floor(times[q, j, at] / h + 1e-9))
+                    for c in range(d):
+                        for i in range(n):
+                            dist[dk, c, i] = const[c, i] + amp[c, i] * (sin0[c, i] * cos_m[m, c, i]
+                                                                        + cos0[c, i] * sin_m[m, c, i])
+                        if has_random:
+                            for i in range(n):
+                                idx = kd // hold[i]
+                                dist[dk, c, i] += table[i, idx if idx < last_row else last_row, c]
+                for c in range(d):
+                    lac = ref_a[q, j, at, c]
+                    for i in range(n):
+                        s_ = slot_src[0, i]
+                        w = slot_w[0, i]
+                        sp = w * y[src, 0, c, s_]
+                        sv = w * y[src, 1, c, s_]
+                        for s in range(1, slots):
+                            s_ = slot_src[s, i]
+                            w = slot_w[s, i]
+                            sp += w * y[src, 0, c, s_]
+                            sv += w * y[src, 1, c, s_]
+                        ki = kappa[i]
+                        e = ki * y[src, 0, c, i] - sp - swd[c, i]
+                        z = ki * y[src, 1, c, i] - sv
+                        xi[c, i] = e
+                        zeta[c, i] = z
+                        bb[c, i] = (a_lead[i] * lac + ki * dist[dk, c, i] - y[src, 2, c, i] * e
+                                    - y[src, 3, c, i] * z)
+                        kk[st, 0, c, i] = y[src, 1, c, i]
+                        kk[st, 2, c, i] = -sigma * (y[src, 2, c, i] - 1.0) + gamma_p * (e * e)
+                        kk[st, 3, c, i] = -sigma * (y[src, 3, c, i] - 1.0) + gamma_v * (z * z)
+                    # the accelerations: L1 a = b (SolvePlan)
+                    if dense:
+                        for r_ in range(n):
+                            acc = 0.0
+                            row = r_ * n
+                            for x in range(n):
+                                acc += inv[row + x] * bb[c, x]
+                            kk[st, 1, c, r_] = acc
+                    else:
+                        for blk in range(blocks):
+                            lo = block_ptr[blk]
+                            hi = block_ptr[blk + 1]
+                            for p_ in range(lo, hi):
+                                acc = bb[c, p_]
+                                for x in range(ext_ptr[p_], ext_ptr[p_ + 1]):
+                                    acc += ext_w[x] * kk[st, 1, c, ext_src[x]]
+                                rr[p_] = acc
+                            if hi - lo == 1:
+                                kk[st, 1, c, lo] = rr[lo] / kappa[lo]
+                            else:
+                                size = hi - lo
+                                off = inv_ptr[blk]
+                                for r_ in range(size):
+                                    acc = 0.0
+                                    row = off + r_ * size
+                                    for x in range(size):
+                                        acc += inv[row + x] * rr[lo + x]
+                                    kk[st, 1, c, lo + r_] = acc
+                if st == 0 and j == 0:
+                    if record or k == steps:  # tick k's sample
+                        r = k if record else 0
+                        for i in range(n):
+                            ag = perm[i]
+                            for c in range(d):
+                                out_p[r, ag, c] = y[0, 0, c, i]
+                                out_v[r, ag, c] = y[0, 1, c, i]
+                                out_a[r, ag, c] = kk[0, 1, c, i]
+                                out_u[r, ag, c] = kk[0, 1, c, i] - dist[0, c, i]
+                                out_xi[r, ag, c] = xi[c, i]
+                                out_zeta[r, ag, c] = zeta[c, i]
+                                out_kp[r, ag, c] = y[0, 2, c, i]
+                                out_kv[r, ag, c] = y[0, 3, c, i]
+                                out_d[r, ag, c] = dist[0, c, i]
+                    if k == steps:
+                        return
+            for r4 in range(4):
+                for c in range(d):
+                    for i in range(n):
+                        y[0, r4, c, i] = y[0, r4, c, i] + w6 * (kk[0, r4, c, i] + 2.0 * kk[1, r4, c, i]
+                                                                + 2.0 * kk[2, r4, c, i] + kk[3, r4, c, i])
 
 
 def rotation_tables(omega: np.ndarray, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
-    """``sin, cos`` of ``omega m hf / 2`` for ``m = 0 .. 2 substeps``, ``(2 substeps + 1, N, d)``."""
+    """``sin, cos`` of ``omega m hf / 2`` for ``m = 0 .. 2 substeps``, ``(2 substeps + 1, *omega.shape)``."""
     x = omega[None] * (np.arange(2 * substeps + 1)[:, None, None] * (0.5 * h / substeps))
     return np.ascontiguousarray(np.sin(x)), np.ascontiguousarray(np.cos(x))

@@ -298,7 +298,9 @@ def test_check_of_a_10000_agent_chain_is_fast_and_small(tmp_path: Path) -> None:
 @pytest.mark.slow  # about 10 s of one core
 def test_simulate_of_a_10000_agent_chain_is_fast_and_small(tmp_path: Path) -> None:
     """Once 924 MB (the offsets summed through the dense adjacency) and O(N^2) agent look-ups; now the
-    engine is O(N + edges) per tick. The continuous mode, which inverts L1, is refused up front."""
+    engine is O(N + edges) per tick. The continuous mode's compiled kernel solves the chain agent by
+    agent (no N x N matrix); its numpy path, which inverts L1, and a graph whose strongly connected
+    block is too large to invert are refused up front."""
     path = tmp_path / "chain.toml"
     path.write_text(_chain(BIG_CHAIN))
     out = tmp_path / "o"
@@ -307,9 +309,21 @@ def test_simulate_of_a_10000_agent_chain_is_fast_and_small(tmp_path: Path) -> No
     assert (out / "run.npz").is_file() and (out / "run.mcap").is_file()
     assert seconds < CHAIN_SECONDS, seconds
     assert rss < CHAIN_RSS, f"peak RSS {rss / 2**20:.0f} MiB"
-    status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(tmp_path / "c"), "--mode", "continuous")
+    status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(tmp_path / "c"), "--mode", "continuous",
+                                            "--no-figures", "--no-mcap")
+    assert status == 0 and "Traceback" not in err, err
+    assert seconds < CHAIN_SECONDS, seconds
+    assert rss < CHAIN_RSS, f"peak RSS {rss / 2**20:.0f} MiB"  # one dense N x N matrix is 800 MB
+    status, _, err, seconds, rss = measured("simulate", str(path), "--out", str(tmp_path / "n"), "--mode", "continuous",
+                                            "--engine", "numpy")
     _assert_refused(subprocess.CompletedProcess([], status, "", err), ["--mode", "GiB", "--mode discrete"])
-    assert not (tmp_path / "c").exists()
+    assert not (tmp_path / "n").exists()
+    ring = tmp_path / "ring.toml"  # the chain closed: one strongly connected block of every agent
+    ring.write_text(_chain(BIG_CHAIN) + f"\n[[edges]]\nfrom = {BIG_CHAIN}\nto = 1\n")
+    status, _, err, seconds, rss = measured("simulate", str(ring), "--out", str(tmp_path / "r"), "--mode", "continuous")
+    _assert_refused(subprocess.CompletedProcess([], status, "", err),
+                    ["--mode", f"strongly connected block of the agents' graph, {BIG_CHAIN} agents", "--mode discrete"])
+    assert not (tmp_path / "r").exists()
 
 
 def test_a_run_too_big_for_its_agents_is_refused_with_the_estimate(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ import pytest
 
 from plant.disturbance import DisturbanceBank
 from sim import refsim
-from tests.factories import random_mission
+from tests.factories import build, random_mission
 from tether import mission as ms
 
 pytest.importorskip("numba")
@@ -107,6 +107,79 @@ def test_continuous_kernel_equals_the_numpy_path_to_round_off(law: str, disturba
     # the recorded disturbance is evaluated at the tick itself, as the numpy path does: exactly
     np.testing.assert_array_equal(b.d, a.d)
     np.testing.assert_array_equal(b.leader_p, a.leader_p)
+
+
+def _graph_mission(n: int, edges: dict[tuple[int, int], float], rng: np.random.Generator) -> ms.Mission:
+    """``n`` agents (3D, sinusoids and random gusts mixed) on these edges, the leader ``n + 1``."""
+    m = random_mission(rng, n, dim=3, disturbance="sinusoid", duration=1.0, profile={"kind": "hold"})
+    raw = msgspec.to_builtins(_mixed(m, rng))
+    raw["edges"] = [{"from": s, "to": d, "weight": w} for (s, d), w in edges.items()]
+    return build(raw)
+
+
+def _chain_with_short_cycles(n: int, rng: np.random.Generator) -> dict[tuple[int, int], float]:
+    """A tree hanging from the leader, each agent hearing one of the five before it, plus a few
+    agents hearing the agent two after them (cycles of two or three)."""
+    edges = {(n + 1, 1): 1.0}
+    for i in range(2, n + 1):
+        edges[(int(rng.integers(max(1, i - 5), i)), i)] = float(rng.uniform(0.5, 2.0))
+    for i in rng.choice(np.arange(1, n - 2), size=n // 8, replace=False).tolist():
+        edges.setdefault((i + 2, i), 0.5)
+    return edges
+
+
+def test_the_solve_plan_orders_blocks_after_what_they_hear_and_solves_l1() -> None:
+    from tether import graph
+
+    rng = np.random.default_rng(11)
+    n = 60
+    for edges, dense in ((_chain_with_short_cycles(n, rng), False),
+                         ({(n + 1, 1): 1.0, **{(i, i % n + 1): 1.0 for i in range(1, n + 1)}}, True),  # a ring
+                         ({(n + 1, 1): 1.0, **{(i, i + 1): 1.0 for i in range(1, n)}}, False)):  # a chain
+        topo = refsim.Setup.of(_graph_mission(n, edges, rng)).topo
+        plan = kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa)
+        assert plan.dense is dense
+        assert sorted(plan.perm.tolist()) == list(range(n))
+        # every in-edge from outside a block comes from an earlier position
+        for b in range(len(plan.block_ptr) - 1):
+            lo, hi = plan.block_ptr[b], plan.block_ptr[b + 1]
+            assert np.all(plan.ext_src[plan.ext_ptr[lo]:plan.ext_ptr[hi]] < lo)
+        # the plan solves L1 a = b (as the kernel does, in Python)
+        l1, _ = graph.partition(topo.adjacency)
+        rhs = rng.normal(size=n)
+        bq = rhs[plan.perm]
+        a = np.zeros(n)
+        for b in range(len(plan.block_ptr) - 1):
+            lo, hi = int(plan.block_ptr[b]), int(plan.block_ptr[b + 1])
+            r = np.array([bq[q] + sum(plan.ext_w[x] * a[plan.ext_src[x]]
+                                      for x in range(plan.ext_ptr[q], plan.ext_ptr[q + 1])) for q in range(lo, hi)])
+            size = hi - lo
+            if size == 1 and not plan.dense:
+                a[lo] = r[0] / topo.kappa[plan.perm[lo]]
+            else:
+                inv = plan.inv[plan.inv_ptr[b]:plan.inv_ptr[b] + size * size].reshape(size, size)
+                a[lo:hi] = inv @ r
+        out = np.empty(n)
+        out[plan.perm] = a
+        np.testing.assert_allclose(out, np.linalg.solve(l1, rhs), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("graph_kind", ["chain with short cycles", "ring"])
+def test_continuous_kernel_equals_the_numpy_path_on_large_graphs(graph_kind: str) -> None:
+    """Beyond DENSE_SOLVE agents: block by block (a tree with short cycles) and one strongly
+    connected graph (a ring, the whole inverse); agents renumbered in solving order."""
+    rng = np.random.default_rng(zlib.crc32(graph_kind.encode()))
+    n = kernel.DENSE_SOLVE + 8
+    edges = (_chain_with_short_cycles(n, rng) if graph_kind != "ring" else
+             {(n + 1, 1): 1.0, **{(i, i % n + 1): 1.0 for i in range(1, n + 1)}})
+    m = _graph_mission(n, edges, rng)
+    topo = refsim.Setup.of(m).topo
+    assert kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa).dense is (graph_kind == "ring")
+    a, b = _pair(m, "continuous", substeps=4)
+    for f in FIELDS:
+        x, y = getattr(a, f), getattr(b, f)
+        np.testing.assert_allclose(y, x, rtol=1e-11, atol=1e-11 * max(1.0, float(np.abs(x).max())), err_msg=f)
+    np.testing.assert_array_equal(b.d, a.d)
 
 
 def test_continuous_kernel_refuses_what_the_continuous_mode_refuses() -> None:
