@@ -175,6 +175,8 @@ class BoundedFifo(Generic[T]):
 
     def drain(self) -> list[T]:
         """Every queued item, oldest first; empties the queue."""
+        if not self._items:  # the usual case at a drain; a put racing this is taken at the next one
+            return []
         with self._lock:
             out = list(self._items)
             self._items.clear()

@@ -400,6 +400,8 @@ class Node:
                 q.muted = False
         waiting = False
         for key, q in self.inputs.items():
+            if not len(q):  # nothing since the last drain (nor dropped: a drop leaves the queue full)
+                continue
             left = self._budget.get(key, cap)  # a new key starts with a full budget
             items = q.take(int(left))
             self._budget[key] = left - len(items)
