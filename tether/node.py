@@ -53,6 +53,13 @@ delivers in a burst. A stream brings one sample per period and uses one of its :
 so its bucket is full when the burst comes, and the burst is taken whole, not cut to the newest few."""
 
 
+LINGER = 0.25
+"""Real time: how long a process that ran to its last tick keeps its session open before closing
+it [s], so that the samples of its last ticks leave before the session goes (closed at once, it
+lost them: the recorder, which waits for every producer's last tick or its token's going, then
+wrote an incomplete run)."""
+
+
 BACKLOG_ROLES = frozenset({"recorder"})
 """The roles whose inputs hold and take a :data:`BACKLOG`: the recorder, which wants every sample
 and runs no control loop. A role that flies (agent, plant, leader, world) holds the newest
@@ -594,6 +601,9 @@ async def _run_tasks(node: Node, role: Callable[[Node], Awaitable[None]]) -> int
         nonlocal failed, work_done
         try:
             await role(node)
+            work_done = True  # a stop during the linger is not a stop of the work
+            if not node.clock.lockstep and node.args.role not in BACKLOG_ROLES:
+                await asyncio.sleep(LINGER)  # the last samples leave first (a stop ends this at once)
         except Stalled as exc:
             log.error("stalled: %s", exc)
             failed = True
