@@ -88,6 +88,12 @@ class Recording:
         """Per agent: the newest telemetry's tick and its gate rejections since start, by reason."""
         self.count = np.zeros(T, dtype=np.int64)
         self.expected = 1 + 2 * n + (m.payload is not None)
+        self.have = np.zeros((T, self.expected), dtype=bool)
+        """Which sample of each tick is in: column 0 the leader's, 1 .. n the plants', n+1 .. 2n the
+        agents' telemetry, 2n+1 the world's. A tick's count counts each once, so that a sample heard
+        twice (a replay) cannot stand in for another that is missing."""
+        self.duplicates = 0
+        """Samples not recorded because their tick already held one from their producer (the first is kept)."""
         self.saved = False
         self.failed: OSError | None = None
         """Why :meth:`save` could not write the run file, if it could not."""
@@ -100,6 +106,15 @@ class Recording:
         self.newest = -1
         """The newest tick of which a sample was recorded."""
 
+    def _take(self, k: int, slot: int) -> bool:
+        """Whether the sample of tick ``k`` in ``slot`` (see :attr:`have`) is the first heard; if so it is counted."""
+        if self.have[k, slot]:
+            self.duplicates += 1
+            return False
+        self.have[k, slot] = True
+        self.count[k] += 1
+        return True
+
     def _heard(self, k: int) -> None:
         if k > self.newest:
             self.newest = k
@@ -107,35 +122,33 @@ class Recording:
             self.oldest = k
 
     def leader(self, msg: wire.State) -> None:
-        if 0 <= msg.k < len(self.count):
+        if 0 <= msg.k < len(self.count) and self._take(msg.k, 0):
             r = self.run
             r.leader_p[msg.k], r.leader_v[msg.k], r.leader_a[msg.k] = msg.p, msg.vel, msg.a
-            self.count[msg.k] += 1
             self._heard(msg.k)
 
     def plant(self, msg: wire.PlantState) -> None:
-        if 0 <= msg.k < len(self.count):
+        if 0 <= msg.k < len(self.count) and self._take(msg.k, 1 + self.col[msg.sender]):
             i, rt = self.col[msg.sender], self.rt
             rt.plant_p[msg.k, i], rt.plant_v[msg.k, i], rt.plant_a[msg.k, i] = msg.p, msg.vel, msg.a
             self.run.d[msg.k, i] = msg.d
             self.run.safety.plant_mode[msg.k, i] = msg.mode
-            self.count[msg.k] += 1
             self._heard(msg.k)
 
     def world(self, msg: wire.WorldState) -> None:
         series = self.world_series
         if (series is not None and 0 <= msg.k < len(self.count)
-                and len(msg.tension) == self.mission.n == len(msg.slack_events)):
+                and len(msg.tension) == self.mission.n == len(msg.slack_events)
+                and self._take(msg.k, 1 + 2 * self.mission.n)):
             pp, pv, tension, slack = series
             pp[msg.k], pv[msg.k] = msg.p, msg.vel
             tension[msg.k], slack[msg.k] = msg.tension, msg.slack_events
-            self.count[msg.k] += 1
             self._heard(msg.k)
 
     def telemetry(self, msg: wire.Telemetry) -> None:
         k = msg.k
-        if not 0 <= k < len(self.count):
-            return
+        if not 0 <= k < len(self.count) or not self._take(k, 1 + self.mission.n + self.col[msg.sender]):
+            return  # outside the run, or its tick's telemetry from this agent is in (its events once)
         if self.first is None and abs(msg.t - k * self.mission.dt) <= 0.5 * self.mission.dt:
             # an agent publishes tick k's telemetry about half a period after t_k: one period
             # earlier than its arrival is an epoch never behind the swarm's (tether record, late);
@@ -169,7 +182,6 @@ class Recording:
             self.netem.append({"dst": msg.sender, "src": d.src, "seq": d.seq, "now": d.now, "event": d.event,
                                "at": d.at})
         rt.late[k, i] = msg.late
-        self.count[k] += 1
         self._heard(k)
 
     def _clock(self, k: int, i: int, links: list[wire.ClockLink]) -> None:
@@ -199,6 +211,10 @@ class Recording:
     def _save(self, complete: bool, drops: dict[str, int]) -> Path:
         meta, safety = self.run.meta, self.run.safety
         meta.complete = complete
+        if self.duplicates:
+            drops = {**drops, "duplicate_sample": self.duplicates}
+            log.warning("%d samples heard again for a tick that had them (a replay?): each recorded once",
+                        self.duplicates)
         meta.recorder_drops = DropCounts.of(drops)
         meta.samples_recorded = int(self.count.sum())
         meta.samples_expected = int(self.expected * len(self.count))

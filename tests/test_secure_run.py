@@ -260,13 +260,15 @@ def test_replayed_samples_are_counted_not_relayed_and_delivery_stays_at_most_1(t
     keys = wire.Keys(ns)
     attach = tp.loopback_endpoint(tp.free_tcp_port())
     plant1, agent1, agent4 = keys.topic("plant", 1, "state"), keys.topic("agent", 1, "state"), keys.topic("agent", 4, "state")
+    tele4 = keys.topic("agent", 4, "telemetry")  # only the recorder hears it
     with launch(tmp_path, ns, "--clock", "realtime", "--duration", "12", "--insecure", "--listen", attach) as run:
         wait_for_realtime_start(run)
         client = PlainClient(attach)
         try:
             client.subscribe(plant1)
             client.subscribe(agent4)
-            recorded: dict[str, list[bytes]] = {plant1: [], agent4: []}
+            client.subscribe(tele4)
+            recorded: dict[str, list[bytes]] = {plant1: [], agent4: [], tele4: []}
             deadline = time.monotonic() + WAIT + 20
             while min(len(v) for v in recorded.values()) < 100:  # a second of each
                 assert time.monotonic() < deadline, "did not hear a second of plant 1 and agent 4"
@@ -298,6 +300,13 @@ def test_replayed_samples_are_counted_not_relayed_and_delivery_stays_at_most_1(t
     assert delivery is not None and np.nanmax(delivery) <= 1.0, np.nanmax(delivery)
     d = rt.links.duplicates[:, i1]  # cumulative per tick; the last tick's telemetry may be lost (NaN)
     assert np.nanmax(d) > 0  # the replayed neighbour samples were counted as duplicates
+    # the recorder heard plant 1's samples again too: each tick's is recorded once, and a replay
+    # cannot make up for a sample that is missing (the counts never exceed what was expected)
+    drops = rt.meta.recorder_drops
+    assert drops is not None and rt.meta.samples_recorded is not None and rt.meta.samples_expected is not None
+    # 3 x 100 replayed telemetry samples of agent 4 (its 100 originals in, or one copy standing in for a lost one)
+    assert drops.other.get("duplicate_sample", 0) >= 200, drops
+    assert rt.meta.samples_recorded <= rt.meta.samples_expected, (rt.meta.samples_recorded, rt.meta.samples_expected)
 
 
 def _take(client: PlainClient, into: list, key: str) -> None:
