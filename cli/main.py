@@ -151,7 +151,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
         s = Setup.of(m)
         block = kernel.largest_block(m.n, s.topo.src, s.topo.dst)
-        compiled = (args.engine != "numpy" and args.live is None and kernel.AVAILABLE and kernel.supports(s.dist))
+        try:
+            compiled = refsim.takes_kernel(s, args.engine, None) and args.live is None
+        except ValueError:  # --engine compiled where it cannot run: refused below as the numpy path
+            compiled = False
         if not compiled or block > DENSE_MAX:
             why = (f"inverts the dense {m.n} x {m.n} matrix L1 (about {8 * m.n * m.n / 2**30:.3g} GiB and O(N^3) "
                    f"time) on the numpy path (--engine numpy, --live, numba missing or a disturbance it does "

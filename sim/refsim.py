@@ -115,7 +115,7 @@ def simulate(
                    seed=m.seed)
     if mode not in ("discrete", "continuous"):
         raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
-    if _compiled(s, engine, on_tick):
+    if takes_kernel(s, engine, on_tick):
         from sim import fast
         try:
             if mode == "discrete":
@@ -134,8 +134,9 @@ def simulate(
     return _continuous(s, steps, substeps, record, progress, meta, on_tick)
 
 
-def _compiled(s: Setup, engine: Engine, on_tick: OnTick | None) -> bool:
-    """Whether this run takes the compiled kernels."""
+def takes_kernel(s: Setup, engine: Engine, on_tick: OnTick | None) -> bool:
+    """Whether a run of ``s`` with ``engine`` takes the compiled kernels (``on_tick``: a live view,
+    which only the numpy path serves); raises ``ValueError`` where ``engine="compiled"`` cannot run."""
     if engine == "numpy":
         return False
     from sim import kernel

@@ -204,11 +204,11 @@ def test_a_bank_layout_the_kernels_do_not_know_keeps_the_numpy_path() -> None:
     odd = _Gusts(d.h, d.const, d.amp, d.omega, d.phase, d.table, d.hold_ticks, gust=1.0)
     assert not kernel.supports(odd)
     odd_setup = refsim.Setup(s.mission, s.topo, s.params, s.ref, odd, s.offsets, s.sum_wdelta, s.p0, s.v0)
-    assert not refsim._compiled(odd_setup, "auto", None)
+    assert not refsim.takes_kernel(odd_setup, "auto", None)
     with pytest.raises(ValueError, match="cannot run"):
-        refsim._compiled(odd_setup, "compiled", None)
+        refsim.takes_kernel(odd_setup, "compiled", None)
     # a live view (on_tick) is served sample by sample by the numpy loop
-    assert not refsim._compiled(s, "auto", lambda run, r: None)
+    assert not refsim.takes_kernel(s, "auto", lambda run, r: None)
 
 
 def test_without_numba_the_numpy_path_runs() -> None:
