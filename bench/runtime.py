@@ -1049,7 +1049,9 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
     rows = []
     for i in range(a.repeats):
         settle()
-        rt = run_tether(path, m, "realtime", a.latency_duration, work, probe=True)
+        # --insecure: the probe is a plain Zenoh client on the launcher's endpoint (TLS with client
+        # certificates, the default, refuses it), and the bare baseline has no TLS either
+        rt = run_tether(path, m, "realtime", a.latency_duration, work, probe=True, extra=("--insecure",))
         settle()
         rb = run_baseline(m, "realtime", a.latency_duration, work, probe=True, wake=a.baseline_wake)
         pairs.append((rt, rb))
