@@ -46,8 +46,10 @@ thread) waits ``RELINK_AFTER`` for a quiet link to speak again, then closes it a
 backoff (``RECONNECT_ATTEMPTS``, ``RECONNECT_BACKOFF`` doubled each time; every attempt logged).
 A re-opened link that finds the vehicle on the ground and not stopped by its watchdog (it
 restarted: a rebooted Crazyflie, or the software one killed and started again, thrust locked and
-motors off) takes it off again from where it is, as at the start, while no low-level setpoint is
-sent (:meth:`CrazyfliePlant._relaunch`); one found in the air flies on.
+motors off) takes it off again from where it is, as at the start (:meth:`CrazyfliePlant._relaunch`);
+one found in the air flies on. From before the link re-opens until that is decided and done, the
+plant measures nothing and sends no low-level setpoint, though the re-opened link is healthy: its
+agent cannot fly a restarted vehicle that is still on the ground.
 Once the state estimate is back the watchdog flies the agent again if the agent has resumed, and
 lands the vehicle otherwise. If every attempt fails, the plant process withdraws its liveliness
 token (its agent holds, its neighbours count it out) and fails at the mission's end.
@@ -137,7 +139,9 @@ class CrazyfliePlant:
         self._landed = False
         self._stopped = False
         """Motors commanded off (LANDED or ESTOP): never flown again."""
-        self._relaunching = False
+        self._relinking = False
+        """A reconnection is under way (:meth:`_reconnect`): from before the link re-opens until the
+        vehicle is known to be in the air again, nothing is measured and nothing is sent."""
         self.relaunched = 0
         """Take-offs again after a re-opened link found the vehicle on the ground (it restarted)."""
         self._blind = False
@@ -332,9 +336,16 @@ class CrazyfliePlant:
     def _reconnect(self) -> None:
         """Close the present link without a zero-thrust setpoint and connect again (blocks, bounded);
         then take a vehicle found on the ground off again (:meth:`_relaunch`)."""
-        _drop_link(self.cf)
-        self._connect()
-        self._relaunch()
+        # Set before the link re-opens: a re-opened link is healthy (fresh logs) before it is known
+        # whether the vehicle restarted, and a sample or a setpoint in that gap would let the agent
+        # fly a vehicle still on the ground.
+        self._relinking = True
+        try:
+            _drop_link(self.cf)
+            self._connect()
+            self._relaunch()
+        finally:
+            self._relinking = False
 
     def _relaunch(self) -> None:
         """After a re-opened link: a vehicle in the air flies on; one found on the ground and not
@@ -351,18 +362,15 @@ class CrazyfliePlant:
             return
         log.warning("crazyflie %d: on the ground at %s after the link came back (the vehicle restarted): taking off "
                     "again", self.ids[0], np.round(p, 3).tolist())
-        self._relaunching = True
-        try:
-            self._take_off()
-        finally:
-            self._relaunching = False
+        self._take_off()
         self.relaunched += 1
 
     def state(self) -> Sample:
         """The newest state estimate; raises :class:`LinkLost` while the link is down, and while a
         restarted vehicle takes off again (its agent keeps holding until it is back in the air)."""
-        if self._relaunching:
-            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): taking off again after a restart")
+        if self._relinking:
+            raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): re-opening the link (a restarted vehicle "
+                           "takes off again first)")
         if not self.healthy():
             raise LinkLost(f"crazyflie {self.ids[0]} ({self.spec.uri}): {self._down()}")
         with self._lock:
@@ -376,7 +384,7 @@ class CrazyfliePlant:
         LANDED and ESTOP. Nothing is sent while the link is down (:meth:`recover`)."""
         from tether.wire import ESTOP, LANDED
 
-        if not self.healthy() or self._relaunching:  # a take-off after a restart: the high-level commander flies
+        if not self.healthy() or self._relinking:  # a take-off after a restart: the high-level commander flies
             return
         mode = modes[0] if modes is not None else 0
         if mode in (LANDED, ESTOP) or self._stopped:

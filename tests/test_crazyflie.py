@@ -90,6 +90,73 @@ def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int)
     assert issubclass(LinkLost, RuntimeError)
 
 
+def test_a_reopened_link_neither_measures_nor_commands_before_a_restart_is_handled() -> None:
+    """A killed and restarted software Crazyflie, driven directly: once :meth:`recover` has
+    re-opened the link (healthy, fresh logs) and before it has found the vehicle on the ground,
+    :meth:`state` still raises and :meth:`step` sends nothing (an agent flying that gap would command
+    a vehicle on the ground); after the take-off the plant measures and commands again."""
+    import asyncio
+
+    from plant.crazyflie import CrazyfliePlant, LinkLost
+
+    port = BASE_PORT + 12
+    m = factories.build({
+        "version": 1, "name": "cfgap", "dim": 3, "rate": 50.0, "duration": 10.0,
+        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
+        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
+        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
+                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}", "takeoff_height": 0.8}}],
+        "edges": [{"from": 2, "to": 1, "weight": 1.0}]})
+    args = ["--count", "1", "--base-port", str(port), "--instance", "12", "--p0=0,0,0"]
+    seen: list[str] = []
+    with contextlib.ExitStack() as stack:
+        first = stack.enter_context(support.software_crazyflies(args))
+        plant = CrazyfliePlant(m, [1]).open()
+        try:
+            first.proc.kill()
+            first.proc.wait()
+
+            def lost() -> bool:
+                try:
+                    plant.state()
+                except LinkLost:
+                    return True
+                return False
+
+            wait_until(lost, 10, "the plant to see its link go")
+            stack.enter_context(support.software_crazyflies(args))  # rebooted: on the ground, thrust locked
+            relaunch = plant._relaunch
+
+            def probed() -> None:  # the gap: the link re-opened, the restart not yet found
+                assert plant.healthy()  # fresh logs on the new link
+                try:
+                    s = plant.state()
+                    seen.append(f"state() gave a sample at z = {s.p[0, 2]:.2f} m")
+                except LinkLost:
+                    pass
+                sent: list[str] = []
+                cmd = plant.cf.commander
+                for name in ("send_setpoint", "send_full_state_setpoint", "send_stop_setpoint"):
+                    setattr(cmd, name, lambda *a, name=name: sent.append(name))
+                try:
+                    plant.step(np.array([[0.0, 0.0, 5.0]]))
+                finally:
+                    for name in ("send_setpoint", "send_full_state_setpoint", "send_stop_setpoint"):
+                        delattr(cmd, name)
+                seen.extend(f"step() sent {n}" for n in sent)
+                seen.append("probed")
+                relaunch()
+
+            plant._relaunch = probed  # type: ignore[method-assign]
+            assert asyncio.run(plant.recover())
+            assert seen == ["probed"], seen
+            assert plant.relaunched == 1
+            assert plant.state().p[0, 2] >= 0.7  # airborne again, measured again
+        finally:
+            plant.close()
+    assert plant.final_position is not None and plant.final_position[2] <= 0.05
+
+
 def tick0(log: Path) -> float | None:
     """The run's tick-0 instant [s since the epoch] as a process logged it, once it has."""
     found = re.search(r"real time: tick 0 at ([0-9.]+)", read(log))
