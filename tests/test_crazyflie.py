@@ -90,6 +90,19 @@ def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int)
     assert issubclass(LinkLost, RuntimeError)
 
 
+def one_crazyflie(name: str, port: int, duration: float, takeoff_height: float = 1.0, **extra: object) -> ms.Mission:
+    """One Crazyflie on ``port`` following a leader that hovers at 1 m (the benchmark law, 50 Hz);
+    ``extra``: more mission tables (``safety=...``)."""
+    return factories.build({
+        "version": 1, "name": name, "dim": 3, "rate": 50.0, "duration": duration,
+        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
+        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
+        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
+                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}",
+                              "takeoff_height": takeoff_height}}],
+        "edges": [{"from": 2, "to": 1, "weight": 1.0}], **extra})
+
+
 def test_a_reopened_link_neither_measures_nor_commands_before_a_restart_is_handled() -> None:
     """A killed and restarted software Crazyflie, driven directly: once :meth:`recover` has
     re-opened the link (healthy, fresh logs) and before it has found the vehicle on the ground,
@@ -100,13 +113,7 @@ def test_a_reopened_link_neither_measures_nor_commands_before_a_restart_is_handl
     from plant.crazyflie import CrazyfliePlant, LinkLost
 
     port = BASE_PORT + 12
-    m = factories.build({
-        "version": 1, "name": "cfgap", "dim": 3, "rate": 50.0, "duration": 10.0,
-        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
-        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
-        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
-                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}", "takeoff_height": 0.8}}],
-        "edges": [{"from": 2, "to": 1, "weight": 1.0}]})
+    m = one_crazyflie("cfgap", port, 10.0, takeoff_height=0.8)
     args = ["--count", "1", "--base-port", str(port), "--instance", "12", "--p0=0,0,0"]
     seen: list[str] = []
     with contextlib.ExitStack() as stack:
@@ -246,13 +253,7 @@ def test_a_frozen_vehicle_link_is_recovered_and_the_vehicle_never_falls(tmp_path
     own record of the vehicle (``--trace``): never locked, never a free fall, motors off on the ground."""
     port = BASE_PORT + 40  # (test_plants uses BASE_PORT + 30)
     trace = tmp_path / "trace.txt"
-    m = factories.build({
-        "version": 1, "name": "cffreeze", "dim": 3, "rate": 50.0, "duration": 14.0,
-        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
-        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
-        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
-                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}", "takeoff_height": 1.0}}],
-        "edges": [{"from": 2, "to": 1, "weight": 1.0}]})
+    m = one_crazyflie("cffreeze", port, 14.0)
     path = tmp_path / "cffreeze.toml"
     path.write_text(ms.dumps(m))
     out = tmp_path / "run"
@@ -304,15 +305,8 @@ def test_a_restarted_software_crazyflie_is_reconnected_and_rejoins(tmp_path: Pat
     through the safety supervisor ("plant recovered"), and the vehicle is back in formation."""
     port = BASE_PORT + 50
     kill_at = 4.0
-    m = factories.build({
-        "version": 1, "name": "cfrestart", "dim": 3, "rate": 50.0, "duration": 26.0,
-        "law": {"kind": "benchmark", "kp0": 1.5, "kv0": 1.2, "gamma_p": 0.1, "gamma_v": 0.05},
-        "leader": {"id": 2, "p0": [0.0, 0.0, 1.0]},
-        "agents": [{"id": 1, "p0": [0.0, 0.0, 0.0], "offset": [0.0, 0.0, 0.0],
-                    "plant": {"kind": "crazyflie", "uri": f"udp://127.0.0.1:{port}", "takeoff_height": 1.0}}],
-        "edges": [{"from": 2, "to": 1, "weight": 1.0}],
-        # the agent and the plant's watchdog hold (rather than land) while the vehicle restarts
-        "safety": {"land_after": 60.0, "cmd_cutoff": 60.0}})
+    # the agent and the plant's watchdog hold (rather than land) while the vehicle restarts
+    m = one_crazyflie("cfrestart", port, 26.0, safety={"land_after": 60.0, "cmd_cutoff": 60.0})
     path = tmp_path / "cfrestart.toml"
     path.write_text(ms.dumps(m))
     out = tmp_path / "run"
