@@ -111,6 +111,10 @@ class DoubleIntegratorPlant:
     def state(self) -> Sample:
         return Sample(self._p.copy(), self._v.copy(), self._a.copy(), self._dist.value(self._k))
 
+    def positions(self) -> np.ndarray:
+        """``state().p`` without the rest of the sample (read-only: a view of the plant's own)."""
+        return self._p
+
     def step(self, u: np.ndarray) -> None:
         dv, dp = self._dist.increments(self._k)
         # all rows at once: element-wise, each row's arithmetic is one plant process's

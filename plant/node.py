@@ -109,6 +109,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     # real time, one simulated vehicle: a restarted process resumes from its last state (plant/resume.py)
     resumer = resume.Resumer(node, ids[0], cmds) if not world and isinstance(plant, Resting) else None
     await node.ready(rejoin=None if resumer is None else resumer.epoch)
+    for src in cmds:  # started: the commands are read at the tick, and need not wake the loop any more
+        node.quieten(src)
     first = 0
     if node.rejoined and resumer is not None:
         first = min(m.steps, math.floor(node.mission_time() / h) + 1)

@@ -102,13 +102,16 @@ class Resting:
         floor): the ground does not let a vehicle below it, whoever commands the descent."""
         if self._dim < 3:
             return
-        after = self.inner.state()
+        # the positions alone when the plant can give them (a double integrator): a whole sample
+        # evaluates the disturbance models too, which the next state() does anyway
+        fast = getattr(self.inner, "positions", None)
+        after = fast() if fast is not None else self.inner.state().p
         for row in range(len(self.ids)):
             if row in self._rest:
                 continue
-            z = after.p[row, -1]
+            z = after[row, -1]
             if z < self._ground or (row in falling and z <= self._ground):
-                self._settle(row, after.p[row])
+                self._settle(row, after[row])
 
     def close(self) -> None:
         self.inner.close()

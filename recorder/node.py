@@ -45,6 +45,7 @@ class Recording:
 
     def __init__(self, node: Node, out: Path, mcap: bool = True):
         m = node.mission
+        self.node = node
         self.mcap = mcap
         """Write ``run.mcap`` beside ``run.npz`` (``--no-mcap``: not, e.g. to measure its cost)."""
         self.mission = m
@@ -152,8 +153,9 @@ class Recording:
         if self.first is None and abs(msg.t - k * self.mission.dt) <= 0.5 * self.mission.dt:
             # an agent publishes tick k's telemetry about half a period after t_k: one period
             # earlier than its arrival is an epoch never behind the swarm's (tether record, late);
-            # only from a sample whose tick and time agree and lie within the mission
-            self.first = time.time() - msg.t - self.mission.dt
+            # only from a sample whose tick and time agree and lie within the mission (its arrival:
+            # it may be drained up to a period later)
+            self.first = time.time() - self.node.arrived_ago() - msg.t - self.mission.dt
         i, r, lk, rt = self.col[msg.sender], self.run, self.lk, self.rt
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
@@ -331,7 +333,9 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
         # the record passes the same plausibility gate as the agents (tether/gate.py): a forged far-off
         # sample for a coming tick must not take the real one's place in the file
-        now = None if node.clock.lockstep else node.mission_time
+        # real time: a sample is judged at its arrival (the wildcard streams below are drained up to
+        # a period later: they do not wake the loop)
+        now = None if node.clock.lockstep else node.arrival
         leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
                              on_message=rec.leader, keep=False)
         # a recorder restarted mid-run joins it from the leader's samples (tether/rejoin.py); before
@@ -367,8 +371,10 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         if colocated:
             node.subscribe(f"tether/{keys.ns}/agent/*/record")
         else:
-            node.subscribe(f"tether/{keys.ns}/agent/*/telemetry")
-            node.subscribe(f"tether/{keys.ns}/plant/*/state")
+            # real time: a tick's samples are recorded in one drain a period at most after they
+            # arrive, not one wake-up each (the recorder reacts to none of them)
+            node.subscribe(f"tether/{keys.ns}/agent/*/telemetry", wake=False)
+            node.subscribe(f"tether/{keys.ns}/plant/*/state", wake=False)
         ack = None if attach else node.publisher(keys.topic("recorder", node.args.node_id, "ack"))
         seen: set[str] = set()
         gone: set[str] = set()

@@ -47,6 +47,12 @@ class Wakeup:
         except RuntimeError:  # the loop is closed: nobody is left to wake
             pass
 
+    def notify_here(self) -> None:
+        """:meth:`notify` from the loop's own thread (no self-pipe write)."""
+        with self._lock:
+            self._pending = True
+        self._event.set()
+
     async def wait(self, timeout: float | None = None) -> bool:
         """Sleep until notified (or ``timeout`` [s]); ``True`` if notified. Re-arms before returning."""
         if not self._event.is_set():
@@ -227,6 +233,10 @@ class InputQueue(BoundedFifo[T]):
             self._written += 1
         if self._wakeup is not None and not self.muted:
             self._wakeup.notify()
+
+    def quieten(self) -> None:
+        """Wake nobody from now on (the reader drains this queue on its own schedule)."""
+        self._wakeup = None
 
     def take(self, n: int) -> list[T]:
         """At most ``n`` queued items, oldest first."""

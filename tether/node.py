@@ -156,6 +156,9 @@ class Node:
         self.receiver = wire.Receiver(mission.dim)
         self.wakeup = handoff.Wakeup()
         self.fifo: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY, self.wakeup)
+        self.deferred: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY)
+        """Real time: samples of :meth:`subscribe` ``(wake=False)`` subscriptions, which wake nobody;
+        drained with the rest, at the latest one control period after they arrive (:meth:`_pace`)."""
         self.tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(4096, self.wakeup)
         self.queries: handoff.BoundedFifo[tuple[Callable[[zenoh.Query], None], zenoh.Query]] = \
             handoff.BoundedFifo(64, self.wakeup)
@@ -171,6 +174,7 @@ class Node:
         self._period = -1
         self._rearm: asyncio.Handle | None = None
         self._watched: dict[str, list[Source]] = {}
+        self._deferring = False
         self._declared: list[Any] = []
         self._token: Any = None
         self.clock = clock
@@ -211,9 +215,21 @@ class Node:
         self._declared.append(pub)
         return Publisher(pub, self.args.node_id if sender is None else sender)
 
-    def subscribe(self, pattern: str) -> None:
+    def subscribe(self, pattern: str, wake: bool = True) -> None:
         """One subscription (one callback thread) for many inputs: samples on keys matching
-        ``pattern`` reach the sources declared with ``subscribe=False``; others are ignored."""
+        ``pattern`` reach the sources declared with ``subscribe=False``; others are ignored.
+
+        ``wake=False`` (real time; lockstep ignores it, a tick waits for its inputs): its samples do
+        not wake the event loop as they arrive; each is stamped with its arrival time in the
+        callback (what a source's plausibility gate sees through :meth:`arrival`) and decoded at
+        the next drain, which comes at the latest one control period later (:meth:`_pace`). For a
+        role that reacts to no single sample (the recorder): a burst of a tick's samples then
+        costs one wake-up instead of one per sample."""
+        if not wake and not self.clock.lockstep:
+            self._declared.append(tp.declare_subscriber(self.session, pattern, self.deferred,
+                                                        getattr(self.clock, "monotonic", None)))
+            self._deferring = True
+            return
         self._declared.append(tp.declare_subscriber(self.session, pattern, self.fifo))
 
     def source(self, key: str, expect: type, sender: int | None,
@@ -242,6 +258,14 @@ class Node:
                 stamp = getattr(self.clock, "monotonic", None) if quiet else None
             self._declared.append(tp.declare_subscriber(self.session, key, sink, stamp))
         return src
+
+    def quieten(self, src: Source) -> None:
+        """Real time: ``src``'s samples no longer wake the event loop; they are decoded at the next
+        drain (for an input that must wake the loop only for a while: a plant's commands, until
+        its start). Lockstep: nothing changes."""
+        q = self.inputs.get(src.key)
+        if q is not None:
+            q.quieten()
 
     def queryable(self, key: str, handle: Callable[[zenoh.Query], None]) -> None:
         """Answer queries on ``key`` with ``handle`` (called on the event loop, from :meth:`drain`;
@@ -289,6 +313,13 @@ class Node:
             await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
+    async def _pace(self) -> None:
+        """Real time: once per control period, wake the loop if deferred samples wait (:meth:`subscribe`)."""
+        while True:
+            await asyncio.sleep(self.mission.dt)
+            if len(self.deferred):
+                self.wakeup.notify_here()
+
     async def ready(self, paced: bool = False, phase: float = 0.0, token: bool = True,
                     rejoin: Callable[[], float | None] | None = None) -> None:
         """Declare liveliness (after every subscription, so a launcher that sees the token knows
@@ -335,6 +366,8 @@ class Node:
             if self.tasks is None:
                 raise RuntimeError("Node.ready: real time needs serve()'s task group for the input pump")
             self.tasks.create_task(self.pump(), name="input pump")
+            if self._deferring:
+                self.tasks.create_task(self._pace(), name="deferred inputs")
             log.info("real time: tick 0 at %.3f, phase %.2f", epoch, phase)
 
     # ------------------------------------------------------------------ inputs
@@ -349,6 +382,8 @@ class Node:
         time in real time) and reaches its source when the link delivers it (:meth:`release`)."""
         realtime = not self.clock.lockstep
         for rec in self.fifo.drain():
+            self._accept(rec, realtime)
+        for rec in self.deferred.drain():
             self._accept(rec, realtime)
         if self.inputs:
             self._drain_inputs(realtime)
@@ -372,6 +407,12 @@ class Node:
         if at == at and origin is not None:  # stamped (not NaN)
             return at - origin
         return self.clock.now()
+
+    def arrived_ago(self) -> float:
+        """Real time: how long ago [s] the sample being accepted arrived (its callback's stamp), for
+        one drained later than it arrived; else 0."""
+        at, monotonic = self._arrival, getattr(self.clock, "monotonic", None)
+        return monotonic() - at if at == at and monotonic is not None else 0.0
 
     def _accept(self, rec: tp.Received, realtime: bool) -> None:
         src = self.sources.get(rec.key)
