@@ -1,0 +1,140 @@
+"""Inputs that do not wake the event loop (``tether/node.py``), real time, over real Zenoh sessions
+on loopback: a :class:`~tether.node.Node` (router session) and a client session that publishes.
+
+* ``Node.subscribe(pattern, wake=False)`` (the recorder's wildcard streams): a sample that arrives
+  wakes nobody; it waits, stamped with its arrival, until the per-period timer (``Node._pace``)
+  wakes the loop, at most one period later; the source's gate then sees the stamped arrival, not
+  the (later) drain;
+* ``Node.quieten(src)`` (a plant's commands once it has started): the source's samples stop
+  waking the loop from then on and are decoded at the next drain, none lost;
+* lockstep ignores both: a tick waits for its inputs, so every sample must wake the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+
+import pytest
+
+from tether import node as nd
+from tether import transport as tp
+from tether import wire
+from tether.catalog import builtin_path
+from tether.clock import ClockKind, LockstepClock, RealtimeClock
+
+pytestmark = pytest.mark.asyncio
+
+WAIT = 10.0
+
+
+def state(sender: int, k: int, h: float) -> bytes:
+    return wire.encode(wire.State(sender=sender, seq=k, k=k, t=k * h, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0]))
+
+
+async def until(ready: Callable[[], bool], what: str) -> None:
+    deadline = time.monotonic() + WAIT
+    while not ready():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.01)
+
+
+def make_node(role: str, clock_kind: ClockKind, endpoint: str) -> tuple[nd.NodeArgs, tp.ZenohSettings]:
+    args = nd.NodeArgs(mission_path=builtin_path("section4"), role=role, node_id=0, clock=clock_kind,
+                       zenoh=tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0))
+    return args, tp.ZenohSettings(mode="client", connect=(endpoint,), scouting_delay=0.0)
+
+
+async def test_a_deferred_subscription_wakes_nobody_and_is_drained_within_a_period_at_its_arrival() -> None:
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    args, client = make_node("recorder", "realtime", endpoint)
+    m = nd.load_mission(args.mission_path)
+    h = m.dt
+    clock = RealtimeClock(h)
+    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
+        node = nd.Node(args, m, session, clock)
+        try:
+            keys = node.keys
+            key = keys.topic("agent", 1, "state")
+            seen: list[tuple[float, float]] = []  # (what the gate saw as arrival, the drain's now)
+
+            def admit(msg: wire.State) -> str | None:
+                seen.append((node.arrival(), clock.now()))
+                return None
+
+            src = node.source(key, wire.State, 1, subscribe=False, keep=False)
+            src.admit = admit
+            node.subscribe(f"tether/{keys.ns}/agent/*/state", wake=False)
+            clock.begin(time.time())
+            pub = tp.declare_publisher(other, key, tp.STATE)
+            await tp.wait_for_subscribers(pub, WAIT)
+            pub.put(state(1, 0, h))
+            await until(lambda: len(node.deferred) == 1, "the sample in the deferred queue")
+            assert not node.wakeup._event.is_set() and not node.wakeup._pending  # it woke nobody
+            arrived = clock.now()
+            pacer = asyncio.get_running_loop().create_task(node._pace())
+            t0 = time.monotonic()
+            assert await node.wakeup.wait(WAIT)  # the period's timer
+            assert time.monotonic() - t0 < 1.0  # a period (10 ms) after the timer started, give or take a loaded machine
+            await asyncio.sleep(0.2 * h)  # the drain comes later than the arrival
+            node.drain()
+            assert src.received == 1 and len(node.deferred) == 0
+            (at, now), = seen
+            assert at <= arrived + 1e-6 < now  # judged at its arrival, stamped in the callback
+            pacer.cancel()
+            pub.undeclare()
+        finally:
+            node.close()
+
+
+async def test_a_quietened_source_stops_waking_the_loop_and_loses_nothing() -> None:
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    args, client = make_node("plant", "realtime", endpoint)
+    m = nd.load_mission(args.mission_path)
+    h = m.dt
+    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
+        node = nd.Node(args, m, session, RealtimeClock(h))
+        try:
+            key = node.keys.topic("agent", 1, "cmd")
+            src = node.source(key, wire.State, 1)
+            pub = tp.declare_publisher(other, key, tp.COMMAND)
+            await tp.wait_for_subscribers(pub, WAIT)
+            pub.put(state(1, 0, h))
+            assert await node.wakeup.wait(WAIT)  # before: each sample wakes the loop
+            node.drain()
+            assert src.received == 1
+            node.quieten(src)
+            for k in range(1, 4):
+                pub.put(state(1, k, h))
+            await until(lambda: len(node.inputs[key]) == 3, "three samples queued")
+            assert not node.wakeup._event.is_set() and not node.wakeup._pending  # after: nobody woken
+            node.drain()
+            assert src.received == 4 and src.newest.k == 3
+            pub.undeclare()
+        finally:
+            node.close()
+
+
+async def test_lockstep_ignores_both_every_sample_wakes_the_loop() -> None:
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    args, client = make_node("recorder", "lockstep", endpoint)
+    m = nd.load_mission(args.mission_path)
+    h = m.dt
+    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
+        node = nd.Node(args, m, session, LockstepClock())
+        try:
+            keys = node.keys
+            key = keys.topic("agent", 1, "state")
+            src = node.source(key, wire.State, 1, subscribe=False)
+            node.subscribe(f"tether/{keys.ns}/agent/*/state", wake=False)
+            pub = tp.declare_publisher(other, key, tp.SYNC)
+            await tp.wait_for_subscribers(pub, WAIT)
+            pub.put(state(1, 0, h))
+            assert await node.wakeup.wait(WAIT)
+            node.drain()
+            assert src.received == 1 and len(node.deferred) == 0
+            pub.undeclare()
+        finally:
+            node.close()
