@@ -54,8 +54,7 @@ async def run(node: Node) -> None:
         onboard = Onboard(m, aid)
 
     def publish_state(msg: wire.PlantState) -> None:
-        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(np.asarray(msg.a)).tolist(),
-                   mode=tick.supervisor.mode)
+        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared_list(msg.a), mode=tick.supervisor.mode)
 
     def relay(msg: wire.PlantState) -> None:
         if msg is not plant.newest:  # not newer than the last (a replay, a duplicate): never re-published as fresh
@@ -159,6 +158,8 @@ async def run(node: Node) -> None:
     lockstep = node.clock.lockstep
     holding = False
     neighbours = set(law.neighbours)
+    clock: list[wire.ClockLink] = []
+    reported: list[skew.LinkClock] | None = None
     for k in range(first, m.steps + 1):
         await node.tick(k)
         t = k * m.dt
@@ -168,12 +169,13 @@ async def run(node: Node) -> None:
             got = await node.aligned([*nbrs, *proximity], k)
         else:
             own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
-        clock: list[wire.ClockLink] = []
         if clocks is not None:
             estimates = clocks.report()
-            clock = [wire.ClockLink(role=c.role, src=c.src, offset=c.offset, warn=c.warn) for c in estimates]
-            for c in clocks.newly_flagged(estimates):
-                log.warning("%s", skew.describe(c, f"agent/{aid}", clocks.limits))
+            if estimates is not reported:  # an estimate moved (once a block at most): said anew
+                reported = estimates
+                clock = [wire.ClockLink(role=c.role, src=c.src, offset=c.offset, warn=c.warn) for c in estimates]
+                for c in clocks.newly_flagged(estimates):
+                    log.warning("%s", skew.describe(c, f"agent/{aid}", clocks.limits))
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue

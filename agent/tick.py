@@ -102,6 +102,10 @@ class AgentTick:
         measured one (``feedforward = "measured"``), else its previous command."""
         return measured if self.feedforward == "measured" else self.last_u
 
+    def shared_list(self, measured: list[float]) -> list[float]:
+        """:meth:`shared` for a sample as it came on the wire (a list), as a list (no array in between)."""
+        return measured if self.feedforward == "measured" else self.last_u.tolist()
+
     def step(self, k: int, t: float, p: np.ndarray, v: np.ndarray, a_measured: np.ndarray,
              heard: Sequence[Heard | None], status: Status = NOMINAL,
              near: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> TickResult:

@@ -175,6 +175,10 @@ class Node:
         self._rearm: asyncio.Handle | None = None
         self._watched: dict[str, list[Source]] = {}
         self._deferring = False
+        self._gone: dict[str, frozenset[int]] = {}
+        """:meth:`gone`'s answers since the last token event."""
+        self._linked: list[Source] = []
+        """The sources behind an emulated link (:meth:`release` looks at these only, every drain)."""
         self._declared: list[Any] = []
         self._token: Any = None
         self.clock = clock
@@ -249,6 +253,8 @@ class Node:
         src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep,
                      channel=channel)
         self.sources[key] = src
+        if channel is not None:
+            self._linked.append(src)
         if subscribe:
             sink: handoff.Sink[tp.Received] = self.fifo
             stamp = None
@@ -287,8 +293,15 @@ class Node:
         """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
         self.receiver.drops[reason] = self.receiver.drops.get(reason, 0) + 1
 
-    def gone(self, role: str) -> set[int]:
-        """Ids of ``role`` whose liveliness token was seen and is gone now."""
+    def gone(self, role: str) -> frozenset[int]:
+        """Ids of ``role`` whose liveliness token was seen and is gone now (kept between token
+        events: an agent asks every tick)."""
+        cached = self._gone.get(role)
+        if cached is None:
+            cached = self._gone[role] = frozenset(self._gone_now(role))
+        return cached
+
+    def _gone_now(self, role: str) -> set[int]:
         out = set()
         for key, up in self.alive.items():
             if not up:
@@ -393,6 +406,7 @@ class Node:
         for ev in self.tokens.drain():
             self.token_log.append((ev.key, ev.alive))
             self.alive[ev.key] = ev.alive
+            self._gone.clear()
             for src in self._watched.get(ev.key, ()):
                 was_gone, src.gone = src.gone, not ev.alive
                 if ev.alive and was_gone:
@@ -474,7 +488,7 @@ class Node:
     def release(self, now: float, only: Source | None = None) -> None:
         """Hand the copies that emulated links deliver by ``now`` to their sources. A corrupted
         copy fails its checksum: dropped and counted as ``corrupt``."""
-        for src in (only,) if only is not None else self.sources.values():
+        for src in (only,) if only is not None else self._linked:
             if src.channel is None:
                 continue
             bad = src.deliver(now, lambda payload: self.receiver.accept(payload, src.expect, src.sender))
@@ -483,7 +497,7 @@ class Node:
 
     def next_delivery(self) -> float | None:
         """The earliest time [s, mission time] an emulated link will deliver a copy, if any."""
-        times = [t for s in self.sources.values() if s.channel is not None and (t := s.channel.next_at) is not None]
+        times = [t for s in self._linked if s.channel is not None and (t := s.channel.next_at) is not None]
         return min(times) if times else None
 
     async def until(self, ready: Callable[[], bool], timeout: float | None, what: str) -> None:

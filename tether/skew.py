@@ -80,6 +80,8 @@ class LinkEstimator:
     """Samples observed (finite times only)."""
     ignored: int = 0
     """Samples with a non-finite time."""
+    changes: int = 0
+    """Blocks completed so far (the estimate can change only then)."""
 
     def observe(self, t: float, now: float) -> None:
         """One sample of time ``t`` [s, sender's mission time] arrived at ``now`` [s, receiver's]."""
@@ -96,6 +98,7 @@ class LinkEstimator:
                 self.minima.append(self.current_min)
                 while len(self.minima) > self.blocks:
                     self.minima.popleft()
+                self.changes += 1
             self.current, self.current_min = b, math.inf
         self.samples += 1
         d = now - t
@@ -133,6 +136,7 @@ class SkewMonitor:
     links: dict[tuple[str, int], LinkEstimator] = field(default_factory=dict)
     warned: dict[tuple[str, int], float] = field(default_factory=dict)
     """Flagged links, with the offset last said."""
+    _reported: tuple[tuple[int, int], list[LinkClock]] | None = field(default=None, repr=False)
 
     def link(self, role: str, src: int) -> LinkEstimator:
         est = self.links.get((role, src))
@@ -148,13 +152,19 @@ class SkewMonitor:
         return bounds(self.period)
 
     def report(self) -> list[LinkClock]:
-        """Every link that has an estimate, in the order the links were first seen."""
+        """Every link that has an estimate, in the order the links were first seen. The same list
+        (not to be changed) as at the previous call while no estimate can have changed: an
+        estimate moves only when a block completes, and an agent asks every tick."""
+        version = (len(self.links), sum(est.changes for est in self.links.values()))
+        if self._reported is not None and self._reported[0] == version:
+            return self._reported[1]
         lo, hi = self.limits
         out = []
         for (role, src), est in self.links.items():
             e = est.estimate
             if e is not None:
                 out.append(LinkClock(role, src, e, not lo <= e <= hi))
+        self._reported = (version, out)
         return out
 
     def newly_flagged(self, now: list[LinkClock]) -> list[LinkClock]:
