@@ -95,6 +95,37 @@ def test_the_monitor_flags_above_half_a_period_once_until_it_clears() -> None:
     assert "agent/1's clock is ahead of agent/2's by at least" in line and "29.0 ms" in line
 
 
+def test_the_report_asked_every_tick_is_always_the_current_estimates() -> None:
+    """:meth:`SkewMonitor.report` keeps its list between block ends; asked after every sample,
+    it must equal the estimates computed afresh (a new link, each completed block, a link whose
+    offset jumps), and be the same object only while nothing could have changed."""
+    rng = np.random.default_rng(5)
+    mon = skew.SkewMonitor(H)
+    fresh = skew.SkewMonitor(H)
+    kept = changed = 0
+    previous = None
+    for k in range(1200):
+        t = k * H
+        lead = 0.0 if k < 700 else 0.04  # agent 1's clock jumps 40 ms ahead at k = 700
+        samples = [("plant", 2, t, t + 0.001 + rng.exponential(0.002)), ("agent", 1, t, t - lead + 0.002)]
+        if k >= 400:
+            samples.append(("leader", 5, t, t + 0.003))  # a link that starts late
+        for role, src, ts, now in samples:
+            mon.observe(role, src, ts, now)
+            fresh.observe(role, src, ts, now)
+            got = mon.report()
+            fresh._reported = None  # the reference: every estimate computed again
+            assert got == fresh.report(), k
+            if got is previous:
+                kept += 1
+            else:
+                changed += 1
+            previous = got
+    assert kept > 20 * changed  # kept between block ends, which are rare
+    assert [(c.role, c.src, c.warn) for c in mon.report()] == [("plant", 2, False), ("agent", 1, True),
+                                                              ("leader", 5, False)]
+
+
 def test_pair_splits_offset_and_delay() -> None:
     lead, delay = skew.pair(0.05 + 0.002, -0.05 + 0.002)  # j 50 ms ahead of i, 2 ms each way
     assert lead == pytest.approx(0.05) and delay == pytest.approx(0.002)
