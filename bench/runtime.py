@@ -1100,6 +1100,10 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
                          "agent_phase": AGENT_PHASE, "quiet_runs": len(use)}
 
 
+KINDS = ("main", "callback", "zenoh")
+"""Thread kinds (:func:`thread_cpu`), in the order the tables print them."""
+
+
 def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:
     if not pairs:
         path, m = mission_file(work, 8, a.scale_rate, a.rt_duration)
@@ -1135,8 +1139,16 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
             cells.append(f"{x:.1f}/{y:.1f}={ratio(x, y):.2f}".rjust(width))
         rows.append(row)
         say(f"   {rt.n:>3} {rt.rate:>4g} " + " ".join(cells))
+        # where each role's CPU goes: its asyncio thread, zenoh-python's callback threads, Zenoh's own
+        split = []
+        for ro in ("agent", "plant", "recorder"):
+            x, y = rt.thread_pct(ro), rb.thread_pct(ro)
+            row[f"{ro}_threads"] = {"tether": x, "baseline": y}
+            split.append(f"{ro} " + "/".join(f"{x[k]:.1f}" for k in KINDS) + " vs "
+                         + "/".join(f"{y[k]:.1f}" for k in KINDS))
+        say("        by thread (main / callback / Zenoh) [% of a core], tether vs bare: " + "; ".join(split))
     if rows:
-        summary = {k: med([r[k][2] for r in rows]) for k in rows[0] if k not in ("n", "rate")}
+        summary = {k: med([r[k][2] for r in rows]) for k in rows[0] if k not in ("n", "rate") and not k.endswith("_threads")}
         say(f"   median ratios: agent CPU {summary['agent_cpu']:.2f} (target <= 1.2), agent RSS {summary['agent_rss']:.2f} "
             f"(target <= 1.1), PSS {summary['agent_pss']:.2f}, USS {summary['agent_uss']:.2f}; plant CPU "
             f"{summary['plant_cpu']:.2f}, recorder CPU {summary['recorder_cpu']:.2f}")
