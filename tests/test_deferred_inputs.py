@@ -18,6 +18,7 @@ from collections.abc import Callable
 
 import pytest
 
+from tether import handoff
 from tether import node as nd
 from tether import transport as tp
 from tether import wire
@@ -136,5 +137,35 @@ async def test_lockstep_ignores_both_every_sample_wakes_the_loop() -> None:
             node.drain()
             assert src.received == 1 and len(node.deferred) == 0
             pub.undeclare()
+        finally:
+            node.close()
+
+
+async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest() -> None:
+    """More samples within a period than the deferred queue holds: the oldest are dropped and
+    counted as ``overflow`` (what the recorder writes into its run file's drop counts), the newest
+    decoded, in order; said once in the log."""
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    args, _ = make_node("recorder", "realtime", endpoint)
+    m = nd.load_mission(args.mission_path)
+    h = m.dt
+    clock = RealtimeClock(h)
+    async with tp.open_session(args.zenoh) as session:
+        node = nd.Node(args, m, session, clock)
+        try:
+            node.deferred = handoff.BoundedFifo(4)  # FIFO_CAPACITY's role, small
+            key = node.keys.topic("agent", 1, "state")
+            src = node.source(key, wire.State, 1, subscribe=False, keep=False)
+            node.subscribe(f"tether/{node.keys.ns}/agent/*/state", wake=False)
+            clock.begin(time.time())
+            for k in range(6):
+                node.deferred.put(tp.Received(key, state(1, k, h), time.monotonic()))
+            node.drain()
+            assert node.receiver.drops == {"overflow": 2}
+            assert src.received == 4 and src.newest.k == 5 and src.stale == 0
+            for k in range(6, 8):  # within capacity: nothing more counted
+                node.deferred.put(tp.Received(key, state(1, k, h), time.monotonic()))
+            node.drain()
+            assert node.receiver.drops == {"overflow": 2} and src.received == 6
         finally:
             node.close()

@@ -175,6 +175,7 @@ class Node:
         self._rearm: asyncio.Handle | None = None
         self._watched: dict[str, list[Source]] = {}
         self._deferring = False
+        self._deferred_lost = 0
         self._gone: dict[str, frozenset[int]] = {}
         """:meth:`gone`'s answers since the last token event."""
         self._linked: list[Source] = []
@@ -398,6 +399,13 @@ class Node:
             self._accept(rec, realtime)
         for rec in self.deferred.drain():
             self._accept(rec, realtime)
+        lost = self.deferred.dropped - self._deferred_lost
+        if lost:  # more than FIFO_CAPACITY samples within a period (a flood): the oldest went, counted
+            if not self._deferred_lost:
+                log.warning("deferred inputs: more than %d samples between two drains; the oldest are dropped "
+                            "(counted as 'overflow')", self.deferred.capacity)
+            self._deferred_lost += lost
+            self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
         if self.inputs:
             self._drain_inputs(realtime)
         if realtime:
