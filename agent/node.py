@@ -1,7 +1,8 @@
 """Agent i's process: Eq. 17 on what it hears from its plant and its in-neighbours only.
 
 Its plant's measurement is relayed as agent i's state (what its out-neighbours use) as soon as it
-arrives, stamped with the measurement's own tick and sample time. Tick k: take the plant's
+arrives, stamped with the measurement's own tick and sample time: in real time on Zenoh's callback
+thread, without waiting for the event loop (:mod:`agent.relay`), in lockstep from the loop. Tick k: take the plant's
 measurement of tick k and each in-neighbour's state of tick k (lockstep: exactly those; real
 time: the newest held), run the agent's tick (:meth:`agent.tick.AgentTick.step`: the law, then the
 safety supervisor, then collision avoidance when the mission asks for it), publish the command to
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from tether.gate import Gate, for_sender, merged
+from agent.relay import Relay
 from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from netem import control as netem_control
@@ -27,6 +29,7 @@ from plant import resume
 from tether import transport as tp
 from tether import wire
 from tether import skew
+from tether.clock import RealtimeClock
 from tether.inputs import Source
 from tether.rejoin import Rejoin
 from tether.skew import SkewMonitor
@@ -62,6 +65,7 @@ async def run(node: Node) -> None:
             return
         publish_state(msg)
 
+    lockstep = node.clock.lockstep
     sf = m.safety
     gates: list[Gate] = []
 
@@ -104,8 +108,19 @@ async def run(node: Node) -> None:
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
     own_inputs: list[Source] = []
+    relay_rt: Relay | None = None
     if onboard is None:
-        plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=relay)
+        key = keys.topic("plant", aid, "state")
+        if lockstep:
+            plant = node.source(key, wire.PlantState, aid, on_message=relay)
+        else:
+            # real time: relayed on Zenoh's callback thread as it arrives (agent/relay.py); the tick
+            # reads it at its drain (until the start each sample wakes the loop: a restarted agent
+            # learns the run's start from them)
+            relay_rt = Relay(aid, m.dim, m.dt, for_sender(m, aid, None), lambda: getattr(node.clock, "origin", None),
+                             publish_state, node.count_drop)
+            relay_rt.alive_at = math.inf  # no stall before the first tick (it relays nothing before the start)
+            plant = node.source(key, wire.PlantState, aid, tap=relay_rt)
         plant.admit = gate(aid, "plant")
         node.watch("plant", aid, plant)
         own_inputs.append(plant)
@@ -146,6 +161,12 @@ async def run(node: Node) -> None:
     """With a co-located plant: the command of the previous tick, which its plant flies next."""
     tele_seq = 0
     await node.ready(phase=AGENT_PHASE, rejoin=rejoin.epoch)
+    rt_clock = node.clock if isinstance(node.clock, RealtimeClock) else None
+    if relay_rt is not None and rt_clock is not None:
+        # started: the plant's samples are relayed by the tap and read at the tick; the relay goes on
+        # while this loop ticks (from its first tick's instant)
+        relay_rt.alive_at = max(rt_clock.start, rt_clock.monotonic())
+        node.quieten(plant)
     first = 0
     rejoining = node.rejoined
     ramp = Ramp(sf.max_accel * m.dt / REJOIN_RAMP, m.dim) if node.rejoined else None
@@ -155,13 +176,14 @@ async def run(node: Node) -> None:
                     "samples of plant %d; gains K(0); holding until every input is fresh", first, first * m.dt,
                     rejoin.epoch() or 0.0, rejoin.samples, aid)
 
-    lockstep = node.clock.lockstep
     holding = False
     neighbours = set(law.neighbours)
     clock: list[wire.ClockLink] = []
     reported: list[skew.LinkClock] | None = None
     for k in range(first, m.steps + 1):
         await node.tick(k)
+        if relay_rt is not None and rt_clock is not None:
+            relay_rt.alive_at = rt_clock.monotonic()
         t = k * m.dt
         if onboard is not None:
             own = onboard.advance(k, last_cmd, _order(operator))

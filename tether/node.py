@@ -123,6 +123,23 @@ class NodeArgs:
     """With :attr:`colocate`: ticks an agent's record carries at most (a smaller last one ends the run)."""
 
 
+class _Tapped:
+    """A sink that queues each sample, then hands it to ``tap`` on the same (Zenoh's) thread."""
+
+    def __init__(self, queue: handoff.InputQueue[tp.Received], tap: Callable[[tp.Received], None], node: "Node"):
+        self.queue, self.tap, self.node = queue, tap, node
+
+    def put(self, item: tp.Received, /) -> None:
+        self.queue.put(item)
+        try:
+            self.tap(item)
+        except Exception:  # noqa: BLE001 - no input may crash Zenoh's thread; said and counted
+            drops = self.node.receiver.drops  # this key is written by taps only
+            n = drops["tap_error"] = drops.get("tap_error", 0) + 1
+            if n in (1, 10, 100, 1000):
+                log.exception("input %s: its tap failed (%d so far)", item.key, n)
+
+
 class Publisher:
     """A publisher that stamps sender, sequence number, tick and sample time on every message."""
 
@@ -239,7 +256,8 @@ class Node:
 
     def source(self, key: str, expect: type, sender: int | None,
                on_message: Callable[[Any], None] | None = None, channel: Link | None = None,
-               subscribe: bool = True, keep: bool = True, wake: bool = True) -> Source:
+               subscribe: bool = True, keep: bool = True, wake: bool = True,
+               tap: Callable[[tp.Received], None] | None = None) -> Source:
         """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``channel``: the
         emulated link the samples cross from ``sender`` to this node (``[netem]``; built by the role
         with :class:`netem.link.Channel`, so that only a mission with a ``[netem]`` section loads
@@ -250,7 +268,12 @@ class Node:
         ``channel``): its samples do not wake the event loop as they arrive; they are decoded at
         the next drain (the tick's), and each is stamped with its arrival time in the callback,
         which is what the plausibility gate and the clock-offset monitor see (:meth:`arrival`).
-        Lockstep ignores it: a tick waits for its inputs."""
+        Lockstep ignores it: a tick waits for its inputs.
+
+        ``tap`` (real time): also called with each sample, stamped, on Zenoh's callback thread right
+        after it is queued, for work that must not wait for the event loop (an agent relaying its
+        plant's measurement: :mod:`agent.relay`). It runs beside the loop: it may touch only what
+        it owns. An exception in it is logged and counted (``tap_error``), never raised into Zenoh."""
         src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep,
                      channel=channel)
         self.sources[key] = src
@@ -262,7 +285,9 @@ class Node:
             if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
                 quiet = not wake and on_message is None and channel is None
                 sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup)
-                stamp = getattr(self.clock, "monotonic", None) if quiet else None
+                stamp = getattr(self.clock, "monotonic", None) if quiet or tap is not None else None
+                if tap is not None:
+                    sink = _Tapped(sink, tap, self)
             self._declared.append(tp.declare_subscriber(self.session, key, sink, stamp))
         return src
 
