@@ -540,14 +540,21 @@ def probe_stats(probe: dict, rate: float) -> dict[str, Any]:
     return out
 
 
-def _spawn_probe(endpoint: str, ns: str, rate: float, kind: str, n: int, steps: int, out: Path) -> subprocess.Popen:
+def _spawn_probe(endpoint: str, ns: str, rate: float, kind: str, n: int, steps: int, out: Path,
+                 wait: bool = True) -> subprocess.Popen:
+    """Start the probe; ``wait``: until it has subscribed (else call :func:`_probe_ready`)."""
     p = subprocess.Popen([PY, __file__, "_probe", endpoint, ns, repr(rate), kind, str(n), str(steps), str(out)],
                          env=child_env(), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
                          start_new_session=True)
+    if wait:
+        _probe_ready(p)
+    return p
+
+
+def _probe_ready(p: subprocess.Popen) -> None:
     line = p.stdout.readline().strip()
     if line != "ready":
         raise RuntimeError(f"probe did not start (said {line!r})")
-    return p
 
 
 # =========================================================================== tether runs
@@ -571,26 +578,28 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
     cmd = [*(launcher or _tether_cmd()), "run", str(mission_path), "--out", str(out), "--clock", clock,
            "--duration", repr(duration), "--quiet", *extra]
     res = Result("tether", m.n, clock, m.rate)
+    probe_proc = None
+    probe_out = out.with_suffix(".probe.json")
+    if probe:
+        # the probe starts before the run, on an endpoint the launcher listens on (it connects as soon
+        # as the launcher's router is up), so that it has subscribed long before the start message
+        # (started once the first child was seen, it lost that race under load: 'no probe data')
+        ep = tp.loopback_endpoint(tp.free_tcp_port())
+        cmd += ["--listen", ep]
+        probe_proc = _spawn_probe(ep, m.name, m.rate, "tether", m.n, int(round(duration * m.rate)), probe_out,
+                                  wait=False)
     t_start = time.monotonic()
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=launcher_env(),
                          cwd=REPO)
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=_reader, args=(p.stderr, lines), daemon=True).start()
     log: list[str] = []
-    probe_proc = None
-    probe_out = out.with_suffix(".probe.json")
     timer = None
     try:
+        if probe_proc is not None:
+            _probe_ready(probe_proc)
         deadline = time.monotonic() + timeout
         while True:
-            if probe and probe_proc is None:
-                for c in children_of(p.pid):
-                    args = cmdline(c)
-                    if "--connect" in args:
-                        ep = args[args.index("--connect") + 1]
-                        steps = int(round(duration * m.rate))
-                        probe_proc = _spawn_probe(ep, m.name, m.rate, "tether", m.n, steps, probe_out)
-                        break
             try:
                 line = lines.get(timeout=0.02)
             except queue.Empty:
