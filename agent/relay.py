@@ -29,10 +29,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from tether import wire
 from tether.gate import Gate
-from tether.transport import Received
+
+if TYPE_CHECKING:  # the type only: this module does not load Zenoh
+    from tether.transport import Received
 
 STALL = 4
 """Periods after its loop's last tick that the relay still relays (the tick comes half a period
