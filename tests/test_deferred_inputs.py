@@ -169,3 +169,54 @@ async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest(
             assert node.receiver.drops == {"overflow": 2} and src.received == 6
         finally:
             node.close()
+
+
+async def test_a_tap_runs_on_each_sample_its_failures_are_counted_and_it_stops_when_the_node_closes() -> None:
+    """A source's ``tap`` gets each sample on Zenoh's thread; a tap that raises is logged and
+    counted (``tap_error``), never raised into Zenoh; once the node closes (its publishers going
+    away under a relay) no tap runs, and one that raced the close is not an error."""
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    args, client = make_node("agent", "realtime", endpoint)
+    m = nd.load_mission(args.mission_path)
+    h = m.dt
+    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
+        node = nd.Node(args, m, session, RealtimeClock(h))
+        tapped: list[tp.Received] = []
+        fail = [False]
+
+        def tap(rec: tp.Received) -> None:
+            if fail[0]:
+                raise RuntimeError("a tap that fails")
+            tapped.append(rec)
+
+        try:
+            key = node.keys.topic("plant", 1, "state")
+            node.source(key, wire.State, 1, tap=tap)
+            pub = tp.declare_publisher(other, key, tp.STATE)
+            await tp.wait_for_subscribers(pub, WAIT)
+            pub.put(state(1, 0, h))
+            await until(lambda: len(tapped) == 1, "the tap's first sample")
+            assert tapped[0].at == tapped[0].at  # stamped
+            fail[0] = True
+            pub.put(state(1, 1, h))
+            await until(lambda: node.receiver.drops.get("tap_error") == 1, "the failing tap counted")
+            assert len(node.inputs[key]) == 2  # both queued all the same
+            sink = nd._Tapped(node.inputs[key], tap, node)
+            node.close()
+            fail[0] = False
+            sink.put(tp.Received(key, state(1, 2, h), 0.0))  # after the close: the tap is not called
+            assert len(tapped) == 1 and node.receiver.drops == {"tap_error": 1}
+            fail[0] = True
+            node.closing = False  # a tap that was already running when the close began ...
+            real_tap = sink.tap
+
+            def racing(rec: tp.Received) -> None:
+                node.closing = True  # ... and whose publisher went away under it
+                real_tap(rec)
+
+            sink.tap = racing
+            sink.put(tp.Received(key, state(1, 3, h), 0.0))
+            assert node.receiver.drops == {"tap_error": 1}  # not an error
+            pub.undeclare()
+        finally:
+            node.close()

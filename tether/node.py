@@ -131,9 +131,13 @@ class _Tapped:
 
     def put(self, item: tp.Received, /) -> None:
         self.queue.put(item)
+        if self.node.closing:
+            return  # the node is closing: its publishers are going (a relay would put on an undeclared one)
         try:
             self.tap(item)
         except Exception:  # noqa: BLE001 - no input may crash Zenoh's thread; said and counted
+            if self.node.closing:
+                return  # it raced the close (its publisher was undeclared under it): nothing wrong
             drops = self.node.receiver.drops  # this key is written by taps only
             n = drops["tap_error"] = drops.get("tap_error", 0) + 1
             if n in (1, 10, 100, 1000):
@@ -193,6 +197,8 @@ class Node:
         self._watched: dict[str, list[Source]] = {}
         self._deferring = False
         self._deferred_lost = 0
+        self.closing = False
+        """Set when :meth:`close` begins: a source's ``tap`` is no longer called."""
         self._gone: dict[str, frozenset[int]] = {}
         """:meth:`gone`'s answers since the last token event."""
         self._linked: list[Source] = []
@@ -606,6 +612,7 @@ class Node:
         return late
 
     def close(self) -> None:
+        self.closing = True  # taps stop first: one may be running on Zenoh's thread (see _Tapped)
         if self._rearm is not None:
             self._rearm.cancel()
         for obj in reversed(self._declared):
