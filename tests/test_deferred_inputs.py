@@ -14,16 +14,18 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 
 import pytest
+import zenoh
 
 from tether import handoff
 from tether import node as nd
 from tether import transport as tp
 from tether import wire
 from tether.catalog import builtin_path
-from tether.clock import ClockKind, LockstepClock, RealtimeClock
+from tether.clock import LockstepClock, RealtimeClock
 
 pytestmark = pytest.mark.asyncio
 
@@ -42,181 +44,158 @@ async def until(ready: Callable[[], bool], what: str) -> None:
         await asyncio.sleep(0.01)
 
 
-def make_node(role: str, clock_kind: ClockKind, endpoint: str) -> tuple[nd.NodeArgs, tp.ZenohSettings]:
-    args = nd.NodeArgs(mission_path=builtin_path("section4"), role=role, node_id=0, clock=clock_kind,
+@asynccontextmanager
+async def live(role: str, clock: RealtimeClock | LockstepClock) -> AsyncIterator[tuple[nd.Node, zenoh.Session]]:
+    """A node of ``role`` on Section 4 around a router session on a fresh loopback port, and a client
+    session connected to it (what the test publishes from); the node is closed at the end."""
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    args = nd.NodeArgs(mission_path=builtin_path("section4"), role=role, node_id=0, clock=clock.kind,
                        zenoh=tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0))
-    return args, tp.ZenohSettings(mode="client", connect=(endpoint,), scouting_delay=0.0)
+    client = tp.ZenohSettings(mode="client", connect=(endpoint,), scouting_delay=0.0)
+    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
+        node = nd.Node(args, nd.load_mission(args.mission_path), session, clock)
+        try:
+            yield node, other
+        finally:
+            node.close()
+
+
+def woke_nobody(node: nd.Node) -> bool:
+    return not node.wakeup._event.is_set() and not node.wakeup._pending
+
+
+H = nd.load_mission(builtin_path("section4")).dt
 
 
 async def test_a_deferred_subscription_wakes_nobody_and_is_drained_within_a_period_at_its_arrival() -> None:
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    args, client = make_node("recorder", "realtime", endpoint)
-    m = nd.load_mission(args.mission_path)
-    h = m.dt
-    clock = RealtimeClock(h)
-    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
-        node = nd.Node(args, m, session, clock)
-        try:
-            keys = node.keys
-            key = keys.topic("agent", 1, "state")
-            seen: list[tuple[float, float]] = []  # (what the gate saw as arrival, the drain's now)
+    clock = RealtimeClock(H)
+    async with live("recorder", clock) as (node, other):
+        keys = node.keys
+        key = keys.topic("agent", 1, "state")
+        seen: list[tuple[float, float]] = []  # (what the gate saw as arrival, the drain's now)
 
-            def admit(msg: wire.State) -> str | None:
-                seen.append((node.arrival(), clock.now()))
-                return None
+        def admit(msg: wire.State) -> str | None:
+            seen.append((node.arrival(), clock.now()))
+            return None
 
-            src = node.source(key, wire.State, 1, subscribe=False, keep=False)
-            src.admit = admit
-            node.subscribe(f"tether/{keys.ns}/agent/*/state", wake=False)
-            clock.begin(time.time())
-            pub = tp.declare_publisher(other, key, tp.STATE)
-            await tp.wait_for_subscribers(pub, WAIT)
-            pub.put(state(1, 0, h))
-            await until(lambda: len(node.deferred) == 1, "the sample in the deferred queue")
-            assert not node.wakeup._event.is_set() and not node.wakeup._pending  # it woke nobody
-            arrived = clock.now()
-            pacer = asyncio.get_running_loop().create_task(node._pace())
-            t0 = time.monotonic()
-            assert await node.wakeup.wait(WAIT)  # the period's timer
-            assert time.monotonic() - t0 < 1.0  # a period (10 ms) after the timer started, give or take a loaded machine
-            await asyncio.sleep(0.2 * h)  # the drain comes later than the arrival
-            node.drain()
-            assert src.received == 1 and len(node.deferred) == 0
-            (at, now), = seen
-            assert at <= arrived + 1e-6 < now  # judged at its arrival, stamped in the callback
-            pacer.cancel()
-            pub.undeclare()
-        finally:
-            node.close()
+        src = node.source(key, wire.State, 1, subscribe=False, keep=False)
+        src.admit = admit
+        node.subscribe(f"tether/{keys.ns}/agent/*/state", wake=False)
+        clock.begin(time.time())
+        pub = tp.declare_publisher(other, key, tp.STATE)
+        await tp.wait_for_subscribers(pub, WAIT)
+        pub.put(state(1, 0, H))
+        await until(lambda: len(node.deferred) == 1, "the sample in the deferred queue")
+        assert woke_nobody(node)
+        arrived = clock.now()
+        pacer = asyncio.get_running_loop().create_task(node._pace())
+        t0 = time.monotonic()
+        assert await node.wakeup.wait(WAIT)  # the period's timer
+        assert time.monotonic() - t0 < 1.0  # a period (10 ms) after the timer started, give or take a loaded machine
+        await asyncio.sleep(0.2 * H)  # the drain comes later than the arrival
+        node.drain()
+        assert src.received == 1 and len(node.deferred) == 0
+        (at, now), = seen
+        assert at <= arrived + 1e-6 < now  # judged at its arrival, stamped in the callback
+        pacer.cancel()
+        pub.undeclare()
 
 
 async def test_a_quietened_source_stops_waking_the_loop_and_loses_nothing() -> None:
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    args, client = make_node("plant", "realtime", endpoint)
-    m = nd.load_mission(args.mission_path)
-    h = m.dt
-    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
-        node = nd.Node(args, m, session, RealtimeClock(h))
-        try:
-            key = node.keys.topic("agent", 1, "cmd")
-            src = node.source(key, wire.State, 1)
-            pub = tp.declare_publisher(other, key, tp.COMMAND)
-            await tp.wait_for_subscribers(pub, WAIT)
-            pub.put(state(1, 0, h))
-            assert await node.wakeup.wait(WAIT)  # before: each sample wakes the loop
-            node.drain()
-            assert src.received == 1
-            node.quieten(src)
-            for k in range(1, 4):
-                pub.put(state(1, k, h))
-            await until(lambda: len(node.inputs[key]) == 3, "three samples queued")
-            assert not node.wakeup._event.is_set() and not node.wakeup._pending  # after: nobody woken
-            node.drain()
-            assert src.received == 4 and src.newest.k == 3
-            pub.undeclare()
-        finally:
-            node.close()
+    async with live("plant", RealtimeClock(H)) as (node, other):
+        key = node.keys.topic("agent", 1, "cmd")
+        src = node.source(key, wire.State, 1)
+        pub = tp.declare_publisher(other, key, tp.COMMAND)
+        await tp.wait_for_subscribers(pub, WAIT)
+        pub.put(state(1, 0, H))
+        assert await node.wakeup.wait(WAIT)  # before: each sample wakes the loop
+        node.drain()
+        assert src.received == 1
+        node.quieten(src)
+        for k in range(1, 4):
+            pub.put(state(1, k, H))
+        await until(lambda: len(node.inputs[key]) == 3, "three samples queued")
+        assert woke_nobody(node)  # after
+        node.drain()
+        assert src.received == 4 and src.newest.k == 3
+        pub.undeclare()
 
 
 async def test_lockstep_ignores_both_every_sample_wakes_the_loop() -> None:
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    args, client = make_node("recorder", "lockstep", endpoint)
-    m = nd.load_mission(args.mission_path)
-    h = m.dt
-    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
-        node = nd.Node(args, m, session, LockstepClock())
-        try:
-            keys = node.keys
-            key = keys.topic("agent", 1, "state")
-            src = node.source(key, wire.State, 1, subscribe=False)
-            node.subscribe(f"tether/{keys.ns}/agent/*/state", wake=False)
-            pub = tp.declare_publisher(other, key, tp.SYNC)
-            await tp.wait_for_subscribers(pub, WAIT)
-            pub.put(state(1, 0, h))
-            assert await node.wakeup.wait(WAIT)
-            node.drain()
-            assert src.received == 1 and len(node.deferred) == 0
-            pub.undeclare()
-        finally:
-            node.close()
+    async with live("recorder", LockstepClock()) as (node, other):
+        keys = node.keys
+        key = keys.topic("agent", 1, "state")
+        src = node.source(key, wire.State, 1, subscribe=False)
+        node.subscribe(f"tether/{keys.ns}/agent/*/state", wake=False)
+        pub = tp.declare_publisher(other, key, tp.SYNC)
+        await tp.wait_for_subscribers(pub, WAIT)
+        pub.put(state(1, 0, H))
+        assert await node.wakeup.wait(WAIT)
+        node.drain()
+        assert src.received == 1 and len(node.deferred) == 0
+        pub.undeclare()
 
 
 async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest() -> None:
     """More samples within a period than the deferred queue holds: the oldest are dropped and
     counted as ``overflow`` (what the recorder writes into its run file's drop counts), the newest
     decoded, in order; said once in the log."""
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    args, _ = make_node("recorder", "realtime", endpoint)
-    m = nd.load_mission(args.mission_path)
-    h = m.dt
-    clock = RealtimeClock(h)
-    async with tp.open_session(args.zenoh) as session:
-        node = nd.Node(args, m, session, clock)
-        try:
-            node.deferred = handoff.BoundedFifo(4)  # FIFO_CAPACITY's role, small
-            key = node.keys.topic("agent", 1, "state")
-            src = node.source(key, wire.State, 1, subscribe=False, keep=False)
-            node.subscribe(f"tether/{node.keys.ns}/agent/*/state", wake=False)
-            clock.begin(time.time())
-            for k in range(6):
-                node.deferred.put(tp.Received(key, state(1, k, h), time.monotonic()))
-            node.drain()
-            assert node.receiver.drops == {"overflow": 2}
-            assert src.received == 4 and src.newest.k == 5 and src.stale == 0
-            for k in range(6, 8):  # within capacity: nothing more counted
-                node.deferred.put(tp.Received(key, state(1, k, h), time.monotonic()))
-            node.drain()
-            assert node.receiver.drops == {"overflow": 2} and src.received == 6
-        finally:
-            node.close()
+    clock = RealtimeClock(H)
+    async with live("recorder", clock) as (node, _):
+        node.deferred = handoff.BoundedFifo(4)  # FIFO_CAPACITY's role, small
+        key = node.keys.topic("agent", 1, "state")
+        src = node.source(key, wire.State, 1, subscribe=False, keep=False)
+        node.subscribe(f"tether/{node.keys.ns}/agent/*/state", wake=False)
+        clock.begin(time.time())
+        for k in range(6):
+            node.deferred.put(tp.Received(key, state(1, k, H), time.monotonic()))
+        node.drain()
+        assert node.receiver.drops == {"overflow": 2}
+        assert src.received == 4 and src.newest.k == 5 and src.stale == 0
+        for k in range(6, 8):  # within capacity: nothing more counted
+            node.deferred.put(tp.Received(key, state(1, k, H), time.monotonic()))
+        node.drain()
+        assert node.receiver.drops == {"overflow": 2} and src.received == 6
 
 
 async def test_a_tap_runs_on_each_sample_its_failures_are_counted_and_it_stops_when_the_node_closes() -> None:
     """A source's ``tap`` gets each sample on Zenoh's thread; a tap that raises is logged and
     counted (``tap_error``), never raised into Zenoh; once the node closes (its publishers going
     away under a relay) no tap runs, and one that raced the close is not an error."""
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    args, client = make_node("agent", "realtime", endpoint)
-    m = nd.load_mission(args.mission_path)
-    h = m.dt
-    async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
-        node = nd.Node(args, m, session, RealtimeClock(h))
-        tapped: list[tp.Received] = []
-        fail = [False]
+    tapped: list[tp.Received] = []
+    fail = [False]
 
-        def tap(rec: tp.Received) -> None:
-            if fail[0]:
-                raise RuntimeError("a tap that fails")
-            tapped.append(rec)
+    def tap(rec: tp.Received) -> None:
+        if fail[0]:
+            raise RuntimeError("a tap that fails")
+        tapped.append(rec)
 
-        try:
-            key = node.keys.topic("plant", 1, "state")
-            node.source(key, wire.State, 1, tap=tap)
-            pub = tp.declare_publisher(other, key, tp.STATE)
-            await tp.wait_for_subscribers(pub, WAIT)
-            pub.put(state(1, 0, h))
-            await until(lambda: len(tapped) == 1, "the tap's first sample")
-            assert tapped[0].at == tapped[0].at  # stamped
-            fail[0] = True
-            pub.put(state(1, 1, h))
-            await until(lambda: node.receiver.drops.get("tap_error") == 1, "the failing tap counted")
-            assert len(node.inputs[key]) == 2  # both queued all the same
-            sink = nd._Tapped(node.inputs[key], tap, node)
-            node.close()
-            fail[0] = False
-            sink.put(tp.Received(key, state(1, 2, h), 0.0))  # after the close: the tap is not called
-            assert len(tapped) == 1 and node.receiver.drops == {"tap_error": 1}
-            fail[0] = True
-            node.closing = False  # a tap that was already running when the close began ...
-            real_tap = sink.tap
+    async with live("agent", RealtimeClock(H)) as (node, other):
+        key = node.keys.topic("plant", 1, "state")
+        node.source(key, wire.State, 1, tap=tap)
+        pub = tp.declare_publisher(other, key, tp.STATE)
+        await tp.wait_for_subscribers(pub, WAIT)
+        pub.put(state(1, 0, H))
+        await until(lambda: len(tapped) == 1, "the tap's first sample")
+        assert tapped[0].at == tapped[0].at  # stamped
+        fail[0] = True
+        pub.put(state(1, 1, H))
+        await until(lambda: node.receiver.drops.get("tap_error") == 1, "the failing tap counted")
+        assert len(node.inputs[key]) == 2  # both queued all the same
+        pub.undeclare()
+        sink = nd._Tapped(node.inputs[key], tap, node)
+        node.close()
+        fail[0] = False
+        sink.put(tp.Received(key, state(1, 2, H), 0.0))  # after the close: the tap is not called
+        assert len(tapped) == 1 and node.receiver.drops == {"tap_error": 1}
+        fail[0] = True
+        node.closing = False  # a tap that was already running when the close began ...
+        real_tap = sink.tap
 
-            def racing(rec: tp.Received) -> None:
-                node.closing = True  # ... and whose publisher went away under it
-                real_tap(rec)
+        def racing(rec: tp.Received) -> None:
+            node.closing = True  # ... and whose publisher went away under it
+            real_tap(rec)
 
-            sink.tap = racing
-            sink.put(tp.Received(key, state(1, 3, h), 0.0))
-            assert node.receiver.drops == {"tap_error": 1}  # not an error
-            pub.undeclare()
-        finally:
-            node.close()
+        sink.tap = racing
+        sink.put(tp.Received(key, state(1, 3, H), 0.0))
+        assert node.receiver.drops == {"tap_error": 1}  # not an error
