@@ -64,7 +64,6 @@ class Relay:
         self.count = count
         self.newest: int | None = None
         """Sequence number of the newest sample relayed."""
-        self.relayed = 0
 
     def __call__(self, rec: Received) -> None:
         origin = self.origin()
@@ -84,4 +83,3 @@ class Relay:
             return
         self.newest = msg.seq
         self.publish(msg)
-        self.relayed += 1
