@@ -83,11 +83,11 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
         return np.ascontiguousarray(np.asarray(x, dtype=float)[perm].T)
 
     meta = msgspec.structs.replace(meta, substeps=substeps)
-    # structure of arrays, axis first, column N the leader's (set by the kernel at every stage)
-    y = np.ones((2, 4, d, n + 1))  # [0] the state [p, v, Kp, Kv], [1] a stage's input
-    y[0, 0, :, :n], y[0, 1, :, :n] = axis_first(s.p0), axis_first(s.v0)
-    y[0, 2, :, :n] = axis_first(np.broadcast_to(prm.kp0, (n, d)))
-    y[0, 3, :, :n] = axis_first(np.broadcast_to(prm.kv0, (n, d)))
+    # structure of arrays, axis first: the state [p, v, Kp, Kv] (column N unused, see kernel.continuous)
+    y = np.ones((4, d, n + 1))
+    y[0, :, :n], y[1, :, :n] = axis_first(s.p0), axis_first(s.v0)
+    y[2, :, :n] = axis_first(np.broadcast_to(prm.kp0, (n, d)))
+    y[3, :, :n] = axis_first(np.broadcast_to(prm.kv0, (n, d)))
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     ticks = np.arange(steps + 1)

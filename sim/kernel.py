@@ -13,13 +13,14 @@ arithmetic, operation for operation, agent by agent, without a numpy temporary p
   that LLVM vectorises it across agents; each distinct ``(omega, phase)`` pair's sine and cosine is
   computed once per tick (:func:`sine_pairs`). :func:`discrete_parallel` runs blocks of agents on
   numba's threads.
-* :func:`continuous` is the continuous mode's RK4, every stage in one function body; the leader's
+* :func:`continuous` is the continuous mode's RK4, every stage in one function body, one axis
+  after the other (the law's gains are per axis and ``L1`` acts on each axis alone); the leader's
   profile is evaluated by numpy beforehand at every stage time (:func:`stage_times`). The algebraic
   loop ``L1 a = b`` is solved block by block over the graph's strongly connected components
-  (:class:`SolvePlan`; the whole ``L1^{-1}`` for a few agents), the sinusoids are rotated from their
-  phase at each control tick by the angle-addition formula (two sines a control step per axis
-  instead of forty) and the two mid-step stages share theirs: it equals the numpy path to
-  round-off, not bit for bit.
+  (:class:`SolvePlan`; the whole ``L1^{-1}`` for a few agents, forward substitution when no agent
+  is on a cycle), the sinusoids are rotated from their phase at each control tick by the
+  angle-addition formula (two sines a control step per axis instead of forty) and the stages at
+  one time share theirs: it equals the numpy path to round-off, not bit for bit.
 
 The disturbance bank is read from its arrays (:func:`bank_arrays`); a bank whose layout this module
 does not know (a model added to :mod:`plant.disturbance` since) makes :func:`supports` say no, and
@@ -518,107 +519,155 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
 
     Structure of arrays, axis first, agents in solving order (:class:`SolvePlan`; agent
     ``perm[q]`` at position q, the samples written back in the mission's order): ``y``
-    ``(2, 4, d, N+1)``, ``y[0]`` the state [p, v, Kp, Kv] and ``y[1]`` a stage's input, column N the
-    leader's position and velocity at that stage; the bank's and the law's arrays ``(d, N)``;
-    ``ref_*`` and ``times`` ``(k1 - k0, substeps, 3, ...)`` (:func:`stage_times`); ``sin_m, cos_m``
-    ``(2 substeps + 1, d, N)`` the sine and cosine of ``omega m hf / 2``.
+    ``(4, d, N+1)`` the state [p, v, Kp, Kv] (column N unused: the leader's comes from ``ref_*``);
+    the bank's and the law's arrays ``(d, N)``; ``ref_*`` and ``times`` ``(k1 - k0, substeps, 3,
+    ...)`` (:func:`stage_times`); ``sin_m, cos_m`` ``(2 substeps + 1, d, N)`` the sine and cosine
+    of ``omega m hf / 2``.
 
-    Per stage: the disturbance ``d(t)`` (``DisturbanceBank.value_at``), its sinusoids rotated from
-    their phase at ``t_k`` by the angle-addition formula (a few ulp from ``sin(omega t + phase)``)
-    and shared by the two mid-step stages; the errors, the gains' rates and ``b`` agent by agent;
-    then ``L1 a = b``. One function body, every array indexed in place: a sub-call or an array
-    view costs reference counts on each array it touches, which at a few agents was most of the
-    time."""
-    d = y.shape[2]
-    n = y.shape[3] - 1
+    The law's gains are per axis and ``L1`` acts on each axis alone, so the axes are independent:
+    each control step integrates one axis after the other, over vectors of N agents. Per stage:
+    the stage's input (``y + coef k_prev``) of the positions and velocities, which the neighbours
+    read; the disturbance ``d(t)`` (``DisturbanceBank.value_at``), its sinusoids rotated from their
+    phase at ``t_k`` by the angle-addition formula (a few ulp from ``sin(omega t + phase)``) and
+    shared by the two mid-step stages; agent by agent, the errors, the gains' stage input and
+    rates and ``b``; then ``L1 a = b``. RK4's weighted sum ``k1 + 2 k2 + 2 k3 + k4`` is accumulated
+    stage by stage in that order, so that each operation rounds as the numpy path's does. One
+    function body, every array indexed in place: a sub-call or an array view costs reference
+    counts on each array it touches, which at a few agents was most of the time."""
+    d = y.shape[1]
+    n = y.shape[2] - 1
     slots = slot_src.shape[0]
     blocks = block_ptr.shape[0] - 1
     last_row = table.shape[1] - 1
     hf = h / substeps
     w6 = hf / 6.0
-    kk = np.empty((4, 4, d, n))  # the four stages' slopes [p, v, Kp, Kv]
-    xi = np.empty((d, n))
-    zeta = np.empty((d, n))
-    bb = np.empty((d, n))
-    dist = np.empty((2, d, n))  # d(t) at the step's ends [0] and its middle [1]
-    sin0 = np.empty((d, n))
-    cos0 = np.empty((d, n))
+    # one axis's stage: the inputs the neighbours read (column n the leader's) ...
+    pin = np.empty(n + 1)
+    vin = np.empty(n + 1)
+    # ... the previous stage's slopes (the position's is the previous vin), RK4's running sums
+    sl_v = np.empty(n)
+    sl_kp = np.empty(n)
+    sl_kv = np.empty(n)
+    ac_p = np.empty(n)
+    ac_v = np.empty(n)
+    ac_kp = np.empty(n)
+    ac_kv = np.empty(n)
+    xi = np.empty(n)
+    zeta = np.empty(n)
+    bb = np.empty(n)
     rr = np.empty(n)
+    dist0 = np.empty(n)  # d(t) at the step's ends
+    dist1 = np.empty(n)  # and its middle
+    sin0 = np.empty(n)
+    cos0 = np.empty(n)
     coef = (0.0, 0.5 * hf, 0.5 * hf, hf)
+    wsum = (1.0, 2.0, 2.0, 1.0)
     for k in range(k0, k1):
         q = k - k0
         t = k * h
+        final = k == steps
         for c in range(d):
             for i in range(n):
                 th = omega[c, i] * t + phase[c, i]
-                sin0[c, i] = math.sin(th)
-                cos0[c, i] = math.cos(th)
-        for j in range(substeps):
-            for st in range(4):
-                src = 0 if st == 0 else 1
-                at = 0 if st == 0 else (1 if st < 3 else 2)  # the stage's time: ts, ts + hf/2, ts + hf
-                dk = 1 if at == 1 else 0
-                if st:
-                    a = coef[st]
-                    for r4 in range(4):
-                        for c in range(d):
-                            for i in range(n):
-                                y[1, r4, c, i] = y[0, r4, c, i] + a * kk[st - 1, r4, c, i]
-                for c in range(d):
-                    y[src, 0, c, n] = ref_p[q, j, at, c]
-                    y[src, 1, c, n] = ref_v[q, j, at, c]
-                if st != 2:  # the second mid-step stage has the first's disturbance
-                    m = 2 * j + at
-                    kd = int(math.floor(times[q, j, at] / h + 1e-9))
-                    for c in range(d):
+                sin0[i] = math.sin(th)
+                cos0[i] = math.cos(th)
+            for j in range(substeps):
+                for st in range(4):
+                    at = 0 if st == 0 else (1 if st < 3 else 2)  # the stage's time: ts, ts + hf/2, ts + hf
+                    if st == 0:
                         for i in range(n):
-                            dist[dk, c, i] = const[c, i] + amp[c, i] * (sin0[c, i] * cos_m[m, c, i]
-                                                                        + cos0[c, i] * sin_m[m, c, i])
+                            pin[i] = y[0, c, i]
+                            vin[i] = y[1, c, i]
+                    else:
+                        a = coef[st]
+                        for i in range(n):
+                            pin[i] = y[0, c, i] + a * vin[i]  # the position's slope is the stage's velocity
+                            vin[i] = y[1, c, i] + a * sl_v[i]
+                    pin[n] = ref_p[q, j, at, c]
+                    vin[n] = ref_v[q, j, at, c]
+                    # the second mid-step stage has the first's disturbance; without random terms, a
+                    # substep's first stage has the previous substep's last (the same time, rotation m)
+                    if st != 2 and (st != 0 or j == 0 or has_random):
+                        m = 2 * j + at
+                        if at == 1:
+                            for i in range(n):
+                                dist1[i] = const[c, i] + amp[c, i] * (sin0[i] * cos_m[m, c, i]
+                                                                      + cos0[i] * sin_m[m, c, i])
+                        else:
+                            for i in range(n):
+                                dist0[i] = const[c, i] + amp[c, i] * (sin0[i] * cos_m[m, c, i]
+                                                                      + cos0[i] * sin_m[m, c, i])
                         if has_random:
+                            kd = int(math.floor(times[q, j, at] / h + 1e-9))
                             for i in range(n):
                                 idx = kd // hold[i]
-                                dist[dk, c, i] += table[i, idx if idx < last_row else last_row, c]
-                for c in range(d):
+                                if at == 1:
+                                    dist1[i] += table[i, idx if idx < last_row else last_row, c]
+                                else:
+                                    dist0[i] += table[i, idx if idx < last_row else last_row, c]
                     lac = ref_a[q, j, at, c]
+                    a = coef[st]
+                    ws = wsum[st]
                     for i in range(n):
                         s_ = slot_src[0, i]
                         w = slot_w[0, i]
-                        sp = w * y[src, 0, c, s_]
-                        sv = w * y[src, 1, c, s_]
+                        sp = w * pin[s_]
+                        sv = w * vin[s_]
                         for s in range(1, slots):
                             s_ = slot_src[s, i]
                             w = slot_w[s, i]
-                            sp += w * y[src, 0, c, s_]
-                            sv += w * y[src, 1, c, s_]
+                            sp += w * pin[s_]
+                            sv += w * vin[s_]
                         ki = kappa[i]
-                        e = ki * y[src, 0, c, i] - sp - swd[c, i]
-                        z = ki * y[src, 1, c, i] - sv
-                        xi[c, i] = e
-                        zeta[c, i] = z
-                        bb[c, i] = (a_lead[i] * lac + ki * dist[dk, c, i] - y[src, 2, c, i] * e
-                                    - y[src, 3, c, i] * z)
-                        kk[st, 0, c, i] = y[src, 1, c, i]
-                        kk[st, 2, c, i] = -sigma * (y[src, 2, c, i] - 1.0) + gamma_p * (e * e)
-                        kk[st, 3, c, i] = -sigma * (y[src, 3, c, i] - 1.0) + gamma_v * (z * z)
+                        e = ki * pin[i] - sp - swd[c, i]
+                        z = ki * vin[i] - sv
+                        xi[i] = e
+                        zeta[i] = z
+                        if st == 0:
+                            kpi = y[2, c, i]
+                            kvi = y[3, c, i]
+                        else:
+                            kpi = y[2, c, i] + a * sl_kp[i]
+                            kvi = y[3, c, i] + a * sl_kv[i]
+                        di = dist1[i] if at == 1 else dist0[i]
+                        bb[i] = a_lead[i] * lac + ki * di - kpi * e - kvi * z
+                        gkp = -sigma * (kpi - 1.0) + gamma_p * (e * e)
+                        gkv = -sigma * (kvi - 1.0) + gamma_v * (z * z)
+                        sl_kp[i] = gkp
+                        sl_kv[i] = gkv
+                        if st == 0:
+                            ac_p[i] = vin[i]
+                            ac_kp[i] = gkp
+                            ac_kv[i] = gkv
+                        else:
+                            ac_p[i] = ac_p[i] + ws * vin[i]
+                            ac_kp[i] = ac_kp[i] + ws * gkp
+                            ac_kv[i] = ac_kv[i] + ws * gkv
                     # the accelerations: L1 a = b (SolvePlan)
                     if dense:
                         for r_ in range(n):
                             acc = 0.0
                             row = r_ * n
                             for x in range(n):
-                                acc += inv[row + x] * bb[c, x]
-                            kk[st, 1, c, r_] = acc
+                                acc += inv[row + x] * bb[x]
+                            sl_v[r_] = acc
+                    elif blocks == n:  # every block a single agent (a tree, a chain): forward substitution
+                        for p_ in range(n):
+                            acc = bb[p_]
+                            for x in range(ext_ptr[p_], ext_ptr[p_ + 1]):
+                                acc += ext_w[x] * sl_v[ext_src[x]]
+                            sl_v[p_] = acc / kappa[p_]
                     else:
                         for blk in range(blocks):
                             lo = block_ptr[blk]
                             hi = block_ptr[blk + 1]
                             for p_ in range(lo, hi):
-                                acc = bb[c, p_]
+                                acc = bb[p_]
                                 for x in range(ext_ptr[p_], ext_ptr[p_ + 1]):
-                                    acc += ext_w[x] * kk[st, 1, c, ext_src[x]]
+                                    acc += ext_w[x] * sl_v[ext_src[x]]
                                 rr[p_] = acc
                             if hi - lo == 1:
-                                kk[st, 1, c, lo] = rr[lo] / kappa[lo]
+                                sl_v[lo] = rr[lo] / kappa[lo]
                             else:
                                 size = hi - lo
                                 off = inv_ptr[blk]
@@ -627,29 +676,37 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                                     row = off + r_ * size
                                     for x in range(size):
                                         acc += inv[row + x] * rr[lo + x]
-                                    kk[st, 1, c, lo + r_] = acc
-                if st == 0 and j == 0:
-                    if record or k == steps:  # tick k's sample
+                                    sl_v[lo + r_] = acc
+                    if st == 0:
+                        for i in range(n):
+                            ac_v[i] = sl_v[i]
+                    else:
+                        for i in range(n):
+                            ac_v[i] = ac_v[i] + ws * sl_v[i]
+                    if st == 0 and j == 0 and (record or final):  # tick k's sample
                         r = k if record else 0
                         for i in range(n):
                             ag = perm[i]
-                            for c in range(d):
-                                out_p[r, ag, c] = y[0, 0, c, i]
-                                out_v[r, ag, c] = y[0, 1, c, i]
-                                out_a[r, ag, c] = kk[0, 1, c, i]
-                                out_u[r, ag, c] = kk[0, 1, c, i] - dist[0, c, i]
-                                out_xi[r, ag, c] = xi[c, i]
-                                out_zeta[r, ag, c] = zeta[c, i]
-                                out_kp[r, ag, c] = y[0, 2, c, i]
-                                out_kv[r, ag, c] = y[0, 3, c, i]
-                                out_d[r, ag, c] = dist[0, c, i]
-                    if k == steps:
-                        return
-            for r4 in range(4):
-                for c in range(d):
-                    for i in range(n):
-                        y[0, r4, c, i] = y[0, r4, c, i] + w6 * (kk[0, r4, c, i] + 2.0 * kk[1, r4, c, i]
-                                                                + 2.0 * kk[2, r4, c, i] + kk[3, r4, c, i])
+                            out_p[r, ag, c] = pin[i]
+                            out_v[r, ag, c] = vin[i]
+                            out_a[r, ag, c] = sl_v[i]
+                            out_u[r, ag, c] = sl_v[i] - dist0[i]
+                            out_xi[r, ag, c] = xi[i]
+                            out_zeta[r, ag, c] = zeta[i]
+                            out_kp[r, ag, c] = y[2, c, i]
+                            out_kv[r, ag, c] = y[3, c, i]
+                            out_d[r, ag, c] = dist0[i]
+                    if final:
+                        break
+                if final:
+                    break
+                for i in range(n):
+                    y[0, c, i] = y[0, c, i] + w6 * ac_p[i]
+                    y[1, c, i] = y[1, c, i] + w6 * ac_v[i]
+                    y[2, c, i] = y[2, c, i] + w6 * ac_kp[i]
+                    y[3, c, i] = y[3, c, i] + w6 * ac_kv[i]
+        if final:
+            return
 
 
 def rotation_tables(omega: np.ndarray, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:

@@ -164,17 +164,25 @@ def test_the_solve_plan_orders_blocks_after_what_they_hear_and_solves_l1() -> No
         np.testing.assert_allclose(out, np.linalg.solve(l1, rhs), rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("graph_kind", ["chain with short cycles", "ring"])
+@pytest.mark.parametrize("graph_kind", ["chain with short cycles", "ring", "tree"])
 def test_continuous_kernel_equals_the_numpy_path_on_large_graphs(graph_kind: str) -> None:
-    """Beyond DENSE_SOLVE agents: block by block (a tree with short cycles) and one strongly
-    connected graph (a ring, the whole inverse); agents renumbered in solving order."""
+    """Beyond DENSE_SOLVE agents: block by block (a tree with short cycles), one strongly
+    connected graph (a ring, the whole inverse) and a graph without cycles (a tree, every block a
+    single agent: forward substitution); agents renumbered in solving order."""
     rng = np.random.default_rng(zlib.crc32(graph_kind.encode()))
     n = kernel.DENSE_SOLVE + 8
-    edges = (_chain_with_short_cycles(n, rng) if graph_kind != "ring" else
-             {(n + 1, 1): 1.0, **{(i, i % n + 1): 1.0 for i in range(1, n + 1)}})
+    if graph_kind == "ring":
+        edges = {(n + 1, 1): 1.0, **{(i, i % n + 1): 1.0 for i in range(1, n + 1)}}
+    elif graph_kind == "tree":  # each agent hears one or two earlier agents, weights not 1 (kappa_i != 1)
+        edges = {(n + 1, 1): 1.0, **{(int(j), i): float(rng.uniform(0.5, 2.0))
+                                     for i in range(2, n + 1) for j in rng.choice(np.arange(1, i), size=min(i - 1, 2))}}
+    else:
+        edges = _chain_with_short_cycles(n, rng)
     m = _graph_mission(n, edges, rng)
     topo = refsim.Setup.of(m).topo
-    assert kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa).dense is (graph_kind == "ring")
+    plan = kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa)
+    assert plan.dense is (graph_kind == "ring")
+    assert (len(plan.block_ptr) - 1 == n) is (graph_kind == "tree")
     a, b = _pair(m, "continuous", substeps=4)
     for f in FIELDS:
         x, y = getattr(a, f), getattr(b, f)
