@@ -11,7 +11,10 @@ test says. What is asserted:
 * a flood on one key costs at most :data:`~tether.node.INPUT_BUDGET` decodes per period once its
   budget is spent (and one bucket's worth once); the key is muted meanwhile; the other keys keep
   theirs and every one of their samples;
-* what a key's queue cannot hold is dropped oldest first and counted (``Node.overflow``).
+* what a key's queue cannot hold is dropped oldest first and counted (``Node.overflow``); the
+  recorder also counts it as ``overflow`` in its drop counts (its run file's ``recorder_drops``), a
+  role that flies does not (it keeps the newest few by design);
+* what the FIFO of the other subscriptions cannot hold is counted as ``overflow`` in every role.
 """
 
 from __future__ import annotations
@@ -101,11 +104,36 @@ async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> N
             assert decoded[1:] == [nd.INPUT_BUDGET] * 9  # ... then the budget per period
             assert node.overflow[flooded] == 10 * 1000 - cap - 9 * nd.INPUT_BUDGET - len(node.inputs[flooded])
             assert stream not in node.overflow and src.received == 260  # the other key lost nothing
+            # the recorder lost samples it should have recorded: its drop counts (its run file's
+            # recorder_drops) say how many, as 'overflow'
+            assert node.receiver.drops == {"overflow": node.overflow[flooded]}
+
+            # a role that flies keeps the newest few by design: what it lets go is no lost record
+            own = flying.source(stream, wire.State, 1)
+            for j in range(nd.INPUT_BUDGET + 5):
+                flying.inputs[stream].put(tp.Received(stream, state(1, j, h)))
+            flying._drain_inputs(True)
+            assert flying.overflow[stream] == 5 and own.newest.k == nd.INPUT_BUDGET + 4
+            assert flying.receiver.drops == {}
 
             # after the flood the flooded key's budget refills at INPUT_BUDGET per period
             node.inputs[flooded].take(10_000)
             t.advance(3)  # four periods after the last drain
             node._drain_inputs(True)
             assert node._budget[flooded] == 4 * nd.INPUT_BUDGET
+
+            # the FIFO of every other subscription, flooded beyond its capacity between two drains:
+            # the oldest go, counted as 'overflow' in any role
+            lost = node.receiver.drops["overflow"]
+            for _ in range(nd.FIFO_CAPACITY + 7):
+                node.fifo.put(tp.Received("elsewhere", b""))
+            flying.fifo.put(tp.Received("elsewhere", b""))
+            node.drain()
+            flying.drain()
+            assert node.receiver.drops["overflow"] == lost + 7 and flying.receiver.drops == {}
+            for _ in range(nd.FIFO_CAPACITY + 3):
+                flying.fifo.put(tp.Received("elsewhere", b""))
+            flying.drain()
+            assert flying.receiver.drops == {"overflow": 3}
         finally:
             node.close()

@@ -72,7 +72,9 @@ formation error of 17 m against 0.44-0.70 m without it, on a loaded machine)."""
 def input_capacity(rate: float) -> int:
     """Samples one input key's queue holds between two drains, and the most its budget saves up:
     :data:`BACKLOG` seconds of a stream at ``rate`` [Hz], at least :data:`INPUT_BUDGET`. Older ones
-    are dropped (oldest first), counted per key in :attr:`Node.overflow` and logged once."""
+    are dropped (oldest first), counted per key in :attr:`Node.overflow` and logged once; in the
+    recorder also as ``overflow`` in its drop counts (the run file's ``recorder_drops``), where each
+    of them is a sample the run file lacks."""
     return max(INPUT_BUDGET, math.ceil(BACKLOG * rate))
 
 
@@ -196,7 +198,8 @@ class Node:
         self._rearm: asyncio.Handle | None = None
         self._watched: dict[str, list[Source]] = {}
         self._deferring = False
-        self._deferred_lost = 0
+        self._fifo_lost = {"inputs": 0, "deferred inputs": 0}
+        """Samples each FIFO had dropped at the last drain (the rest are new, counted as ``overflow``)."""
         self.closing = False
         """Set when :meth:`close` begins: a source's ``tap`` is no longer called."""
         self._gone: dict[str, frozenset[int]] = {}
@@ -430,13 +433,14 @@ class Node:
             self._accept(rec, realtime)
         for rec in self.deferred.drain():
             self._accept(rec, realtime)
-        lost = self.deferred.dropped - self._deferred_lost
-        if lost:  # more than FIFO_CAPACITY samples within a period (a flood): the oldest went, counted
-            if not self._deferred_lost:
-                log.warning("deferred inputs: more than %d samples between two drains; the oldest are dropped "
-                            "(counted as 'overflow')", self.deferred.capacity)
-            self._deferred_lost += lost
-            self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
+        for name, fifo in (("inputs", self.fifo), ("deferred inputs", self.deferred)):
+            lost = fifo.dropped - self._fifo_lost[name]
+            if lost:  # more than FIFO_CAPACITY samples between two drains (a flood, or a stalled loop)
+                if not self._fifo_lost[name]:
+                    log.warning("%s: more than %d samples between two drains; the oldest are dropped "
+                                "(counted as 'overflow')", name, fifo.capacity)
+                self._fifo_lost[name] += lost
+                self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
         if self.inputs:
             self._drain_inputs(realtime)
         if realtime:
@@ -513,8 +517,12 @@ class Node:
                 waiting = True
             if q.dropped and key not in self._overflow:  # once per key: a flood, or this loop stalled
                 log.warning("input %s: more than %d samples between two drains; the oldest are dropped "
-                            "(counted in Node.overflow)", key, cap)
+                            "(counted in Node.overflow%s)", key, cap,
+                            " and as 'overflow'" if self.args.role in BACKLOG_ROLES else "")
             if q.dropped:
+                lost = q.dropped - self._overflow.get(key, 0)
+                if lost and self.args.role in BACKLOG_ROLES:  # a sample to record lost: the run file says why
+                    self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
                 self._overflow[key] = q.dropped
         if waiting and self._rearm is None and monotonic is not None:
             delay = (period + 1) * h - monotonic()
