@@ -382,9 +382,11 @@ def cmd_world(args: argparse.Namespace) -> int:
     from plant import node
 
     m = _load(args.mission)
-    if m.payload is None:
-        raise ms.MissionError(str(args.mission), [("payload", "is missing: a world hosts a [payload] mission's "
-                                                              "vehicles; run `tether plant --id I` per agent instead")])
+    real = [a.id for a in m.agents if isinstance(a.plant, ms.CrazyfliePlant)]
+    if real:
+        raise ms.MissionError(str(args.mission), [(f"agent {real[0]}.plant", "is a crazyflie, a real vehicle: a "
+                                                   "world hosts simulated vehicles only; run `tether plant --id I` "
+                                                   "for each crazyflie")])
     return _serve(args, "world", 0, node.run_world)
 
 
@@ -514,6 +516,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                vehicle_connect=dict(args.vehicle_connect), faults=injected,
                                insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
                                colocate_plants=args.colocate_plants, record_batch=args.record_batch,
+                               shared_plants=args.shared_plants,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return asyncio.run(local.run(path, opts))
 
@@ -701,6 +704,10 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--colocate-plants", action="store_true",
                     help="lockstep, simulated plants: each agent computes its own plant (no plant processes; "
                          "the same run bit for bit, faster: docs/benchmarks.md)")
+    rn.add_argument("--shared-plants", action="store_true",
+                    help="simulated plants: one world process steps every vehicle, each with its own watchdog, "
+                         "instead of one process per vehicle (fewer processes for many agents on one machine; "
+                         "one point of failure for every vehicle; no crazyflie)")
     rn.add_argument("--record-batch", type=_positive_int, default=None, metavar="TICKS",
                     help="with --colocate-plants: ticks per message to the recorder, at most --window "
                          "(default: half the window)")
@@ -709,7 +716,7 @@ def build_parser() -> argparse.ArgumentParser:
     for role, fn, helptext in (("leader", cmd_leader, "the virtual leader's process"),
                                ("agent", cmd_agent, "one agent's process"),
                                ("plant", cmd_plant, "one simulated plant's process"),
-                               ("world", cmd_world, "a payload world's process: every vehicle and the payload"),
+                               ("world", cmd_world, "a world's process: every simulated vehicle (and the payload, if any)"),
                                ("recorder", cmd_recorder, "the recorder's process")):
         rp = sub.add_parser(role, help=helptext)
         _process_options(rp)

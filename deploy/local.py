@@ -172,6 +172,9 @@ class LaunchOptions:
     (``--colocate-plants``)."""
     record_batch: int | None = None
     """With :attr:`colocate_plants`: ticks per record, at most :attr:`window`; None: :func:`record_batch`."""
+    shared_plants: bool = False
+    """Simulated plants: one world process steps every vehicle (:class:`plant.base.Fleet`, each
+    vehicle with its own watchdog) instead of one plant process per vehicle (``--shared-plants``)."""
 
 
 @dataclass
@@ -267,7 +270,7 @@ class Launch:
         m = self.mission
         if self.opts.colocate_plants:  # each plant inside its agent
             return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("recorder", 0)]
-        if m.payload is not None:  # one world hosts every vehicle and the payload
+        if m.payload is not None or self.opts.shared_plants:  # one world hosts every vehicle (and the payload)
             return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("world", 0), ("recorder", 0)]
         return [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")], ("recorder", 0)]
 
@@ -417,6 +420,22 @@ def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
                                       f"({o.window}): the clock grants a tick only once the recorder holds the "
                                       "ticks a window before it; give a smaller --record-batch or a larger --window"))
     return out
+
+
+def check_shared(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
+    """Why ``--shared-plants`` cannot run this mission as asked."""
+    if not o.shared_plants:
+        return []
+    if o.colocate_plants:
+        return [("--shared-plants", "and --colocate-plants both say where the plants run (one world process; "
+                                    "inside each agent): give one of them")]
+    if m.payload is not None:
+        return [("--shared-plants", "a [payload] mission's vehicles share one world process already: drop it")]
+    real = [a.id for a in m.agents if isinstance(a.plant, ms.CrazyfliePlant)]
+    if real:
+        return [("--shared-plants", f"agent {real[0]}'s plant is a crazyflie, a real vehicle, whose own plant "
+                                    "process talks to it: drop --shared-plants")]
+    return []
 
 
 def check_vehicle_options(mission: ms.Mission, opts: LaunchOptions) -> list[tuple[str, str]]:
@@ -616,7 +635,10 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
         if not start_checked and now > epoch + STARTED_WITHIN:
             start_checked = True
             for c in launch.children:
-                if c.role != "recorder" and c.name not in mon.heard and c.proc.poll() is None:
+                # a world is heard through the vehicles it hosts (their plant/<id>/state)
+                heard = (any(f"plant/{a}" in mon.heard for a in m.agent_ids) if c.role == "world"
+                         else c.name in mon.heard)
+                if c.role != "recorder" and not heard and c.proc.poll() is None:
                     mon.report(c.name, "silent", f"no sample heard {STARTED_WITHIN:g} s after tick 0: "
                                                  "it did not start (see its log)")
         if interrupted.is_set():
@@ -709,7 +731,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
 
     m = load_mission(mission_path, opts.duration)
     launch = Launch(mission_path.resolve(), m, opts)
-    problems = check_colocate(m, opts) + check_vehicle_options(m, opts) + check_faults(m, opts, launch.members())
+    problems = (check_colocate(m, opts) + check_shared(m, opts) + check_vehicle_options(m, opts)
+                + check_faults(m, opts, launch.members()))
     if opts.clock == "lockstep":
         problems += [(f"agent {a.id}.plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")

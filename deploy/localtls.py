@@ -71,18 +71,19 @@ def name_of(role: str, nid: int) -> str:
     return f"{role}-{nid}"
 
 
-def grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
-    """The deployment's grants for ``m``; for a ``[payload]`` mission, whose vehicles live in one
-    world process, the plants' grants become ``world-0``'s, and the recorder may also hear the
-    world's state."""
+def grants(m: ms.Mission, ns: str, world: bool = False) -> list[acl.Grant]:
+    """The deployment's grants for ``m``; where the vehicles live in one world process (a
+    ``[payload]`` mission, or ``world``: ``--shared-plants``), the plants' grants become
+    ``world-0``'s, and with a payload the recorder may also hear the world's state."""
     gs = acl.grants(m, ns)
-    if m.payload is None:
+    if m.payload is None and not world:
         return gs
     k = wire.Keys(ns)
     plants = [g for g in gs if g.name.startswith("plant-")]
-    world = acl.Grant(
+    payload = (k.topic("world", 0, "state"),) if m.payload is not None else ()
+    world_grant = acl.Grant(
         "world-0",
-        publish=(*(p for g in plants for p in g.publish), k.topic("world", 0, "state")),
+        publish=(*(p for g in plants for p in g.publish), *payload),
         subscribe=tuple(dict.fromkeys(s for g in plants for s in g.subscribe)),
         tokens=(k.token("world", 0), *(t for g in plants for t in g.tokens)),
         watch=(k.tokens,),
@@ -93,9 +94,9 @@ def grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
         if g.name.startswith("plant-"):
             continue
         if g.name == "recorder-0":
-            g = dataclasses.replace(g, subscribe=(*g.subscribe, k.topic("world", 0, "state")))
+            g = dataclasses.replace(g, subscribe=(*g.subscribe, *payload))
         out.append(g)
-    return [*out, world]
+    return [*out, world_grant]
 
 
 GATEWAY = "gateway"
@@ -104,10 +105,10 @@ OPERATOR = "control-0"
 """The operator's identity."""
 
 
-def router_grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
+def router_grants(m: ms.Mission, ns: str, world: bool = False) -> list[acl.Grant]:
     """The control router's grants: :func:`grants`, with the operator's rights held by the gateway's
     identity (no ``control-0`` subject: its certificate is refused anyway, see the module docstring)."""
-    return [dataclasses.replace(g, name=GATEWAY) if g.name == OPERATOR else g for g in grants(m, ns)]
+    return [dataclasses.replace(g, name=GATEWAY) if g.name == OPERATOR else g for g in grants(m, ns, world)]
 
 
 def gateway_grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
@@ -285,7 +286,7 @@ def prepare(m: ms.Mission, ns: str, out: Path, members: list[tuple[str, int]], r
         shutil.rmtree(d)
     d.mkdir(parents=True)
     d.chmod(0o700)
-    access = acl.access_control(router_grants(m, ns), ns)
+    access = acl.access_control(router_grants(m, ns, world=("world", 0) in members), ns)
     sec = Security(d.resolve(), ns, lease, access, router_endpoint, limits=limits,
                    gateway_access=acl.access_control(gateway_grants(m, ns), ns),
                    gateway_limits=ingress_limits(m, ns, streams=False),

@@ -248,6 +248,47 @@ class PayloadPlant:
         pass
 
 
+class Fleet:
+    """Several plants stepped as one: a world process hosting many vehicles without a payload
+    (``tether run --shared-plants``). Each vehicle keeps its own plant, the very object its own
+    process would step, so that its arithmetic is that process's; the rows are the plants' rows,
+    in order."""
+
+    def __init__(self, plants: list[Plant]):
+        if not plants:
+            raise ValueError("a fleet hosts at least one plant")
+        self.plants = plants
+        self.ids = tuple(i for p in plants for i in p.ids)
+        rows, start = [], 0
+        for p in plants:
+            rows.append(slice(start, start + len(p.ids)))
+            start += len(p.ids)
+        self._rows = rows
+
+    def state(self) -> Sample:
+        ss = [p.state() for p in self.plants]
+        attitude = None
+        if any(s.attitude is not None for s in ss):  # a vehicle without attitude (a double integrator): NaN
+            attitude = np.concatenate([s.attitude if s.attitude is not None else np.full((len(s.p), 3), np.nan)
+                                       for s in ss])
+        return Sample(np.concatenate([s.p for s in ss]), np.concatenate([s.v for s in ss]),
+                      np.concatenate([s.a for s in ss]), np.concatenate([s.d for s in ss]), attitude=attitude)
+
+    def positions(self) -> np.ndarray:
+        """``state().p`` (a plant that can give its positions alone does: see ``DoubleIntegratorPlant``)."""
+        return np.concatenate([fast() if (fast := getattr(p, "positions", None)) is not None else p.state().p
+                               for p in self.plants])
+
+    def step(self, u: np.ndarray) -> None:
+        u = np.asarray(u, dtype=float)
+        for p, rows in zip(self.plants, self._rows):
+            p.step(u[rows])
+
+    def close(self) -> None:
+        for p in self.plants:
+            p.close()
+
+
 def build(m: ms.Mission, ids: list[int] | None = None, live: bool = False) -> list[Plant]:
     """The plants hosting agents ``ids`` (all by default): one :class:`PayloadPlant` for a payload
     mission (which must host all of them), else one plant per agent. ``live``: the caller runs in

@@ -1,6 +1,7 @@
 """A plant's process (``plant``: one vehicle) or a world's (``world``: every vehicle of a
-``[payload]`` mission and the payload), around :func:`plant.base.build` and one command watchdog
-per vehicle (:mod:`plant.watchdog`).
+``[payload]`` mission and the payload, or every simulated vehicle of a mission without one when
+``tether run --shared-plants`` asks, as a :class:`plant.base.Fleet`), around :func:`plant.base.build`
+and one command watchdog per vehicle (:mod:`plant.watchdog`).
 
 Tick k: advance ``[t_{k-1}, t_k]`` with what each vehicle's watchdog decides from its agent's
 command of tick k-1 (lockstep: exactly that one, which always arrives, so the watchdog only acts on
@@ -11,7 +12,8 @@ then publish each vehicle's measurement of tick k with its watchdog's mode on it
 ``plant/<id>/state`` key, stamped with its id. Every mode change is logged with its reason. What
 LANDED and ESTOP do to a simulated vehicle is :class:`plant.rest.Resting`'s; a Crazyflie does it
 itself. A world also declares each vehicle's ``plant`` liveliness token and publishes the
-payload's state on ``world/0/state``: agents cannot tell a world from single plants.
+payload's state (if any) on ``world/0/state``: agents cannot tell a world from single plants. A
+world never hosts a Crazyflie: each real vehicle has a process of its own.
 
 A Crazyflie's blocking cflib calls (connect and take-off, landing and close) run in a thread; a
 Crazyflie whose link goes down publishes nothing until it is back (:meth:`~plant.crazyflie.CrazyfliePlant.recover`
@@ -60,8 +62,13 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     live = not node.clock.lockstep
     if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
         raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
-    (plant,) = base.build(m, ids, live=live)
     real = any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids)
+    if world and real:
+        raise ValueError("a crazyflie is a real vehicle: its own plant process talks to it (tether plant --id I), "
+                         "never a world hosting others")
+    built = base.build(m, ids, live=live)
+    # a [payload] world is one plant; a world of simulated vehicles without one (--shared-plants), a fleet
+    plant = built[0] if len(built) == 1 else base.Fleet(built)
     if real:  # only then is the driver loaded (base.build has loaded it already)
         from plant.crazyflie import CrazyfliePlant, LinkLost
     if real and isinstance(plant, CrazyfliePlant):
@@ -101,8 +108,9 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
             operator[0] = msg.action
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=on_safety, keep=False)
-    states = [node.publisher(keys.topic("plant", aid, "state"), sender=aid) for aid in ids]
-    payload = node.publisher(keys.topic("world", 0, "state")) if world else None
+    qos = tp.FLEET_STATE if len(ids) > 1 else tp.STATE  # one session's burst: batched (see FLEET_STATE)
+    states = [node.publisher(keys.topic("plant", aid, "state"), qos, sender=aid) for aid in ids]
+    payload = node.publisher(keys.topic("world", 0, "state")) if world and m.payload is not None else None
     if world:  # each hosted vehicle is a plant to the agents, the recorder and the launcher
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
     dogs = [Watchdog(m.safety, m.dim) for _ in ids]
