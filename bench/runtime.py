@@ -1007,6 +1007,9 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
     say("   over the quiet runs) and every run ended well. CPU = sum over every process (launcher/router included)")
     say("   over the mission window [% of one core]; recorded = samples the recorder got of those sent;")
     say("   other = other users' CPU during the run (tether / baseline)")
+    if a.scale_shared:
+        say("   tether runs with --shared-plants: one world process steps every vehicle (the baseline keeps one "
+            "process per plant)")
     say(f"   {'N':>3} {'procs':>5} {'late %':>7} {'worst':>6} {'bl late':>7} {'CPU':>6} {'bl CPU':>6} {'ratio':>5} "
         f"{'recorded %':>12} {'link age ms':>12} {'other %':>8}")
     rows = []
@@ -1016,7 +1019,8 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
         runs = []
         for _ in range(a.scale_repeats):
             settle()
-            rt = run_tether(path, m, "realtime", a.rt_duration, work)
+            rt = run_tether(path, m, "realtime", a.rt_duration, work,
+                            extra=("--shared-plants",) if a.scale_shared else ())
             settle()
             rb = run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)
             pairs.append((rt, rb))
@@ -1320,6 +1324,8 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--scale-rate", type=float, default=50.0)
     ap.add_argument("--scale-repeats", type=int, default=1, help="case 2: runs per N (median late share)")
     ap.add_argument("--scale-all", action="store_true", help="case 2: run every N of --sizes, also past one that fails")
+    ap.add_argument("--scale-shared", action="store_true",
+                    help="case 2: tether runs with --shared-plants (one world process for every vehicle)")
     ap.add_argument("--rt-duration", type=float, default=15.0, help="case 2 (and 4): mission seconds per run")
     ap.add_argument("--latency-n", type=int, default=8)
     ap.add_argument("--latency-rate", type=float, default=100.0)
