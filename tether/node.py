@@ -326,7 +326,7 @@ class Node:
 
     def count_drop(self, reason: str) -> None:
         """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
-        self.receiver.drops[reason] = self.receiver.drops.get(reason, 0) + 1
+        self.receiver.count(reason)
 
     def gone(self, role: str) -> frozenset[int]:
         """Ids of ``role`` whose liveliness token was seen and is gone now (kept between token
@@ -440,7 +440,7 @@ class Node:
                     log.warning("%s: more than %d samples between two drains; the oldest are dropped "
                                 "(counted as 'overflow')", name, fifo.capacity)
                 self._fifo_lost[name] += lost
-                self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
+                self.receiver.count("overflow", lost)
         if self.inputs:
             self._drain_inputs(realtime)
         if realtime:
@@ -522,7 +522,7 @@ class Node:
             if q.dropped:
                 lost = q.dropped - self._overflow.get(key, 0)
                 if lost and self.args.role in BACKLOG_ROLES:  # a sample to record lost: the run file says why
-                    self.receiver.drops["overflow"] = self.receiver.drops.get("overflow", 0) + lost
+                    self.receiver.count("overflow", lost)
                 self._overflow[key] = q.dropped
         if waiting and self._rearm is None and monotonic is not None:
             delay = (period + 1) * h - monotonic()
@@ -540,7 +540,7 @@ class Node:
                 continue
             bad = src.deliver(now, lambda payload: self.receiver.accept(payload, src.expect, src.sender))
             if bad:
-                self.receiver.drops["corrupt"] = self.receiver.drops.get("corrupt", 0) + bad
+                self.receiver.count("corrupt", bad)
 
     def next_delivery(self) -> float | None:
         """The earliest time [s, mission time] an emulated link will deliver a copy, if any."""

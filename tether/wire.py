@@ -378,8 +378,13 @@ class Receiver:
     dim: int
     drops: dict[str, int] = field(default_factory=dict)
 
+    def count(self, reason: str, n: int = 1) -> None:
+        """Count ``n`` samples dropped for ``reason`` (also for drops decided outside :meth:`accept`:
+        a queue's overflow, an emulated link's corrupt copy)."""
+        self.drops[reason] = self.drops.get(reason, 0) + n
+
     def _drop(self, reason: str) -> None:
-        self.drops[reason] = self.drops.get(reason, 0) + 1
+        self.count(reason)
 
     def accept(self, payload: bytes, expect: type[M], sender: int | None) -> M | None:
         try:
