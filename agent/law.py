@@ -7,6 +7,12 @@ process and the vectorised reference simulator run the same arithmetic.
 Neighbour information enters only through weighted sums over the in-neighbours ``j`` of ``i``:
 ``sum_wp = sum_j a_ij p_j``, ``sum_wv = sum_j a_ij v_j``, ``sum_wa = sum_j a_ij a_j`` (the
 neighbours' accelerations, Eq. 17's feed-forward) and the constant ``sum_wdelta = sum_j a_ij delta_ij``.
+Every such sum is taken term after term in row order (:func:`weighted_sum`), as
+:func:`tether.graph.neighbour_sums` and the compiled kernels take it, never by a BLAS product: a
+matrix-vector product rounds with fused multiply-adds and in an order of its own kernel's choosing
+(OpenBLAS's, from 4 terms on, differs from the plain sum), which would make an agent with 4 or more
+in-neighbours compute a different last bit from the reference simulator, and on another CPU a
+different one again.
 
 Eq. 8, 9:  xi_i   = sum_j a_ij (p_i - p_j - delta_ij) = kappa_i p_i - sum_wp - sum_wdelta
            zeta_i = sum_j a_ij (v_i - v_j)            = kappa_i v_i - sum_wv
@@ -18,7 +24,8 @@ Eq. 30:    the same with sigma = 0 (the benchmark law: no leakage, its gains can
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,6 +60,18 @@ class LawParams:
             kp0=np.array(per_axis(law.kp0, m.dim)),
             kv0=np.array(per_axis(law.kv0, m.dim)),
         )
+
+
+def weighted_sum(w: Sequence[float], rows: Sequence[Sequence[float]]) -> list[float]:
+    """``sum_j w_j x_j``, component by component, the terms added one after the other in row order
+    (``(w_0 x_0 + w_1 x_1) + w_2 x_2 ...``): each product and sum rounded once, on any platform.
+    ``rows`` holds the ``x_j`` (at least one)."""
+    w0 = w[0]
+    acc = [w0 * x for x in rows[0]]
+    for k in range(1, len(w)):
+        wk = w[k]
+        acc = [a + wk * x for a, x in zip(acc, rows[k])]
+    return acc
 
 
 def errors(
@@ -120,7 +139,7 @@ class AgentLaw:
         neighbours: ids of the in-neighbours j (the leader's id included when ``a_i,N+1 > 0``),
             in the order of ``weights``.
         weights: ``(m,)`` the ``a_ij``.
-        kappa: ``sum_j a_ij``.
+        kappa: ``sum_j a_ij`` (added in row order, as :func:`tether.graph.topology` adds them).
         sum_wdelta: ``(d,)`` ``sum_j a_ij delta_ij`` [m].
         deltas: ``(m, d)`` the offsets ``delta_ij = h_i - h_j`` [m], rows in ``neighbours`` order.
     """
@@ -133,6 +152,12 @@ class AgentLaw:
     params: LawParams
     gains: GainStep
     deltas: np.ndarray
+    _w: list[float] = field(init=False, repr=False, compare=False)
+    _sum_wdelta: list[float] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:  # the hot path's floats, taken once
+        object.__setattr__(self, "_w", self.weights.tolist())
+        object.__setattr__(self, "_sum_wdelta", self.sum_wdelta.tolist())
 
     @classmethod
     def from_mission(cls, m: Mission, agent_id: int) -> "AgentLaw":
@@ -143,18 +168,18 @@ class AgentLaw:
         nbrs = tuple(src for src, _ in ins)
         w = np.array([wt for _, wt in ins], dtype=float)
         h_i = np.array(me.offset, dtype=float)
-        kappa = float(w.sum())
+        kappa = _total(w.tolist())
         h_nb = np.array([offsets[j] for j in nbrs])
-        sum_wdelta = kappa * h_i - w @ h_nb
+        sum_wdelta = kappa * h_i - np.array(weighted_sum(w.tolist(), h_nb.tolist()))
         params = LawParams.from_mission(m)
         return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt), h_i - h_nb)
 
     def without(self, lost: frozenset[int]) -> "AgentLaw":
         """The law with the edges from the ``lost`` in-neighbours dropped and kappa_i re-normalised
         over the others (their rows stay, with weight 0, so samples keep the same order)."""
-        w = np.array([0.0 if j in lost else wt for j, wt in zip(self.neighbours, self.weights)])
-        return AgentLaw(self.agent_id, self.neighbours, w, float(w.sum()), w @ self.deltas, self.params,
-                        self.gains, self.deltas)
+        w = [0.0 if j in lost else wt for j, wt in zip(self.neighbours, self.weights.tolist())]
+        return AgentLaw(self.agent_id, self.neighbours, np.array(w), _total(w),
+                        np.array(weighted_sum(w, self.deltas.tolist())), self.params, self.gains, self.deltas)
 
     def step(
         self,
@@ -178,16 +203,15 @@ class AgentLaw:
         """
         # errors(), control() and gain_update() term by term on Python floats: the same IEEE
         # operations in the same order as numpy's elementwise ones (bit for bit, tests/test_law.py),
-        # without a numpy temporary per operation on a 2- or 3-vector. The weighted sums stay
-        # numpy's (its matrix-vector product rounds as it does, fused multiply-adds included).
-        w = self.weights
+        # without a numpy temporary per operation on a 2- or 3-vector.
+        w = self._w
         ka = self.kappa
         prm, gs = self.params, self.gains
         decay, gp, gv = gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain
         xi, zeta, u, kp_next, kv_next = [], [], [], [], []
-        for pc, vc, sp, sv, sa, sd, kpc, kvc in zip(p.tolist(), v.tolist(), (w @ nb_p).tolist(), (w @ nb_v).tolist(),
-                                                    (w @ nb_a).tolist(), self.sum_wdelta.tolist(), kp.tolist(),
-                                                    kv.tolist()):
+        for pc, vc, sp, sv, sa, sd, kpc, kvc in zip(p.tolist(), v.tolist(), weighted_sum(w, nb_p.tolist()),
+                                                    weighted_sum(w, nb_v.tolist()), weighted_sum(w, nb_a.tolist()),
+                                                    self._sum_wdelta, kp.tolist(), kv.tolist()):
             e = ka * pc - sp - sd
             z = ka * vc - sv
             xi.append(e)
@@ -209,11 +233,28 @@ class AgentLaw:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`step` written with this module's vectorised functions (the readable form; tested equal)."""
         w = self.weights
-        xi, zeta = errors(self.kappa, p, v, w @ nb_p, w @ nb_v, self.sum_wdelta)
-        u = control(self.kappa, w @ nb_a, xi, zeta, kp, kv)
+        xi, zeta = errors(self.kappa, p, v, _rows_sum(w, nb_p), _rows_sum(w, nb_v), self.sum_wdelta)
+        u = control(self.kappa, _rows_sum(w, nb_a), xi, zeta, kp, kv)
         prm = self.params
         return (u, xi, zeta, gain_update(kp, xi, prm.gamma_p, self.gains),
                 gain_update(kv, zeta, prm.gamma_v, self.gains))
+
+
+def _total(w: Sequence[float]) -> float:
+    """``sum_j w_j`` added in order from 0 (``np.bincount``'s order; ``ndarray.sum`` adds 8 or more
+    terms pairwise)."""
+    acc = 0.0
+    for x in w:
+        acc += x
+    return acc
+
+
+def _rows_sum(w: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """:func:`weighted_sum` in numpy: ``w[0] x[0] + w[1] x[1] + ...`` one row at a time."""
+    acc = w[0] * x[0]
+    for k in range(1, len(w)):
+        acc = acc + w[k] * x[k]
+    return acc
 
 
 def neighbour_sample(

@@ -30,9 +30,12 @@ def random_mission(
     duration: float = 60.0,
     rate: float = 100.0,
     profile: dict[str, Any] | None = None,
+    dense: bool = False,
 ) -> ms.Mission:
     """A valid random mission: a random spanning tree rooted at the leader plus random extra edges,
-    weights in [0.5, 2], random offsets and initial states."""
+    weights in [0.5, 2], random offsets and initial states. ``dense``: every agent hears every
+    other agent and the leader (in-degree N), weights in [0.5, 2], each agent starting within 0.3 m of
+    its slot (a dense graph's first commands stay under the safety's max_accel)."""
     leader = n + 1
     order = rng.permutation(n) + 1
     edges: dict[tuple[int, int], float] = {}
@@ -45,6 +48,11 @@ def random_mission(
         src, dst = int(rng.integers(1, n + 2)), int(rng.integers(1, n + 1))
         if src != dst:
             edges.setdefault((src, dst), float(rng.uniform(0.5, 2.0)))
+    if dense:
+        for src in range(1, n + 2):
+            for dst in range(1, n + 1):
+                if src != dst:
+                    edges.setdefault((src, dst), float(rng.uniform(0.5, 2.0)))
     agents = []
     for aid in range(1, n + 1):
         a: dict[str, Any] = {
@@ -53,6 +61,8 @@ def random_mission(
             "v0": rng.uniform(-0.5, 0.5, dim).tolist(),
             "offset": rng.uniform(-2, 2, dim).tolist(),
         }
+        if dense:
+            a["p0"] = (np.array(a["offset"]) + rng.uniform(-0.3, 0.3, dim)).tolist()
         if disturbance == "bounded_random":
             a["disturbance"] = {"kind": "bounded_random", "bound": float(d0 / np.sqrt(dim)), "hold": 0.5}
         elif disturbance == "sinusoid":
