@@ -54,6 +54,9 @@ Once the state estimate is back the watchdog flies the agent again if the agent 
 lands the vehicle otherwise. If every attempt fails, the plant process withdraws its liveliness
 token (its agent holds, its neighbours count it out) and fails at the mission's end.
 
+cflib's latency pings are stopped once a link is up (:func:`_stop_pings`): the thread that sends
+them can deadlock cflib's own link-error handling, and with it every setpoint after a lost link.
+
 Closing a link that may still reach the vehicle never goes through cflib's ``close_link`` alone:
 that sends ``send_setpoint(0, 0, 0, 0)``, zero thrust, which would drop a vehicle in flight.
 """
@@ -184,6 +187,7 @@ class CrazyfliePlant:
                 raise ConnectionError(f"agent {ids[0]}.plant.uri: {uri} did not connect within "
                                       f"{self.spec.connect_timeout:g} s ({self._lost or 'no answer'}); check the "
                                       "vehicle is on and the URI (radio channel, address, udp port)")
+            _stop_pings(cf)
             self._start_logs()
         except BaseException:
             _drop_link(cf)
@@ -438,6 +442,18 @@ class CrazyfliePlant:
                 self.cf.close_link()  # its zero-thrust setpoint is harmless on the ground
             else:
                 _drop_link(self.cf)
+
+
+def _stop_pings(cf: Any) -> None:
+    """Stop the latency pings cflib sends from a thread of its own once connected (10 a second;
+    tether reads no latency from them). A link error is handled on whichever thread's send or
+    receive meets it, inside ``Crazyflie.send_packet`` with its non-reentrant send lock held, and
+    the handling joins that ping thread: met on the ping thread itself, the join raises and the
+    lock is never released; met on another sender while the ping thread waits for the lock, the
+    join never returns. Either way every later setpoint blocks forever, and the plant's loop with
+    it (seen once: a software Crazyflie killed mid-flight left its plant process wedged, neither
+    flying nor withdrawn). Without the ping thread the handling finds nothing to join."""
+    cf.link_statistics.stop()
 
 
 def _drop_link(cf: Any) -> None:

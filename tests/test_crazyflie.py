@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -70,6 +71,9 @@ def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int)
         m = msgspec.structs.replace(path_m, agents=[msgspec.structs.replace(a, plant=spec) for a in path_m.agents])
         plant = CrazyfliePlant(m, [1]).open()
         try:
+            # cflib's ping thread is stopped: a link error met on it (or while it waits for the send
+            # lock) would leave cflib's send lock taken and every later setpoint blocked forever
+            assert "ping_thread" not in {t.name for t in threading.enumerate()}
             s = plant.state()
             assert s.p.shape == (1, 3) and 0.7 <= s.p[0, 2] <= 1.0  # airborne at the take-off height
             x0 = s.p[0, 0]
@@ -162,6 +166,52 @@ def test_a_reopened_link_neither_measures_nor_commands_before_a_restart_is_handl
         finally:
             plant.close()
     assert plant.final_position is not None and plant.final_position[2] <= 0.05
+
+
+def test_a_vehicle_dying_under_load_never_blocks_the_plant_in_cflib() -> None:
+    """A software Crazyflie killed while its state estimates stream in and two threads keep the GIL
+    busy: cflib meets the link error on whichever thread sends or receives next. With cflib's
+    latency-ping thread running, its error handling joined that thread with cflib's send lock held,
+    and the plant's next setpoint blocked forever (6 of 20 trials of the same sequence outside the
+    plant); here every trial's plant goes on stepping, sees its link lost and closes."""
+    from plant.crazyflie import CrazyfliePlant, LinkLost
+
+    trials = 8
+    for trial in range(trials):
+        port = BASE_PORT + 41 + trial  # 19921..19928
+        m = one_crazyflie("cfdie", port, 10.0, takeoff_height=0.5)
+        with support.software_crazyflies(["--count", "1", "--base-port", str(port), "--instance", str(41 + trial),
+                                          "--p0=0,0,0"]) as sim:
+            plant = CrazyfliePlant(m, [1]).open()
+            busy = threading.Event()
+
+            def spin() -> None:
+                x = 0
+                while not busy.is_set():
+                    x += 1
+
+            stepped = threading.Event()
+
+            def fly() -> None:  # the plant process's loop: a setpoint every few milliseconds
+                for _ in range(400):
+                    plant.step(np.array([[0.0, 0.0, 0.0]]))
+                    time.sleep(0.003)
+                stepped.set()
+
+            spinners = [threading.Thread(target=spin, daemon=True) for _ in range(2)]
+            for t in spinners:
+                t.start()
+            try:
+                sim.proc.kill()
+                sim.proc.wait()
+                threading.Thread(target=fly, daemon=True).start()
+                assert stepped.wait(20), f"trial {trial}: the plant's setpoints blocked after the vehicle died"
+            finally:
+                busy.set()
+            wait_until(lambda: not plant.healthy(), 10, "the plant to see its link go")
+            with pytest.raises(LinkLost):
+                plant.state()
+            plant.close()  # returns: nothing left blocked in cflib
 
 
 def tick0(log: Path) -> float | None:
