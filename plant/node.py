@@ -35,7 +35,7 @@ from plant.watchdog import Watchdog
 from tether import transport as tp
 from tether import wire
 from tether import mission as ms
-from tether.node import Node
+from tether.node import Node, report_drops
 
 if TYPE_CHECKING:  # a simulated plant's process does not load the Crazyflie driver
     from plant.crazyflie import CrazyfliePlant
@@ -174,6 +174,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
             ex = s.extra
             payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
+    for aid, dog in zip(ids, dogs):
+        report_drops(dog.invalid, f"vehicle {aid}: commands rejected by its watchdog")
     if cf is not None and recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()
         raise link_lost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")

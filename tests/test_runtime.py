@@ -100,7 +100,7 @@ def children_of(launcher: int) -> dict[str, int]:
         if "--parent-pid" not in argv or argv[argv.index("--parent-pid") + 1] != str(launcher):
             continue
         role = argv[argv.index("cli") + 1]
-        node = {"leader": LEADER, "recorder": 0}.get(role)
+        node = {"leader": LEADER, "recorder": 0, "world": 0}.get(role)
         if node is None:
             node = int(argv[argv.index("--id") + 1])
         found[f"{role}/{node}"] = int(entry.name)

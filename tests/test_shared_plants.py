@@ -18,8 +18,13 @@ per run.
 
 from __future__ import annotations
 
+import contextlib
+import math
 import os
+import queue
+import re
 import subprocess
+import time
 from pathlib import Path
 
 import msgspec
@@ -30,7 +35,9 @@ from deploy import acl, localtls
 from plant import base
 from tests.factories import random_mission
 from tests.support import read
-from tests.test_runtime import REPO, STARTUP, differing_arrays, exit_statuses, launch, tether_cmd
+from tests.support import wait_until
+from tests.test_runtime import (REPO, STARTUP, PlainClient, children_of, count, differing_arrays, exit_statuses, launch,
+                                raw, router_of, tether_cmd)
 from tether import mission as ms
 from tether import wire
 from tether.catalog import builtin_path
@@ -121,6 +128,72 @@ def test_the_world_holds_and_lands_the_vehicle_whose_agent_died_while_the_others
         assert np.all(mine[mine >= 0] == wire.FLYING), (aid, np.unique(mine))
     world_log = read(run.out / "logs" / "world-0.log")
     assert "vehicle 3:" in world_log and "vehicle 1:" not in world_log, world_log
+
+
+# =========================================================================== real time: forged commands for one vehicle
+@pytest.mark.slow
+def test_a_world_drops_forged_commands_and_never_flies_a_non_finite_or_over_limit_one(tmp_path: Path) -> None:
+    """A third party's commands on vehicle 2's command key, while the world flies every vehicle:
+    the undecodable, non-finite, wrong-sized and wrongly-signed ones are dropped and counted by the
+    world's receiver; an absurd one that decodes is rejected by vehicle 2's own watchdog; the world
+    says so at its end, and no vehicle ever flies a non-finite command or one beyond max_accel."""
+    ns = f"shared-forged-{os.getpid()}"
+    with launch(tmp_path, ns, "--clock", "realtime", "--duration", "6", "--insecure", "--shared-plants") as run:
+        wait_until(lambda: "real time: tick 0" in run.child_log("world/0") or run.proc.poll() is not None, STARTUP,
+                   "the world's first tick")
+        run.children = children_of(run.proc.pid)
+        client = PlainClient(router_of(run.children))
+        try:
+            state2 = wire.Keys(ns).topic("plant", 2, "state")
+            client.subscribe(state2)
+            _, now = client.next_matching(lambda key, msg: key == state2 and msg.k >= 50, 30, "vehicle 2 at tick 50")
+            pub = client.publisher(wire.Keys(ns).topic("agent", 2, "cmd"))
+            # for a tick 1 s ahead: held until the world reads it then (in place of the agent's own)
+            k = now.k + 100
+            good = wire.Command(sender=2, seq=10**6, k=k, t=k / 100, u=[0.0, 0.0])
+            forged = [
+                (b"\xc1not msgpack", "malformed"),
+                (raw(good, u=[math.nan, 0.0]), "nonfinite"),
+                (raw(good, u=[0.0, math.inf]), "nonfinite"),
+                (raw(good, u=[0.0, 0.0, 0.0]), "size"),
+                (raw(good, sender=3), "sender"),
+            ]
+            absurd = wire.encode(msgspec.structs.replace(good, seq=10**6 + 1, u=[1e9, 0.0]))  # decodes
+            window = 1.0 / (localtls.LIMIT_FACTOR * 100.0)
+            for payload in [*(f for f, _ in forged), absurd]:
+                pub.put(payload)
+                sent = time.monotonic()
+                # paced: the router's ingress limit on a command key passes one message per window
+                # (1 / (LIMIT_FACTOR rate)) per link and drops the rest of a burst, a flood's defence;
+                # and the world has ticked since
+                with contextlib.suppress(queue.Empty):
+                    while True:  # what came before this put
+                        client.samples.get_nowait()
+                client.next_matching(lambda key, msg: key == state2, 30, "vehicle 2's next tick")
+                wait_until(lambda: time.monotonic() - sent > 4 * window, 1, "the ingress limit's window", poll=window)
+            # the session stays open until the world has flown past the forged tick (a session
+            # closed right after its puts may not have sent them)
+            client.next_matching(lambda key, msg: key == state2 and msg.k >= k + 2, 30, f"vehicle 2 past tick {k}")
+        finally:
+            client.close()
+        assert run.wait(STARTUP + 60) in (0, 5), run.launcher_log  # 5: a sample lost on the way (real time)
+    world = run.child_log("world/0")
+    want = count([why for _, why in forged])
+    said = re.search(r"inputs dropped: (.*)", world)
+    assert said is not None, world
+    got = {r: int(n) for r, n in (part.rsplit(" ", 1) for part in said[1].split(", "))}
+    assert all(got.get(r, 0) >= n for r, n in want.items()), (got, want)
+    assert re.search(r"vehicle 2: commands rejected by its watchdog: .*absurd 1", world), world
+    assert "Traceback" not in world
+    rec = Run.load(run.out)
+    flown = rec.a - rec.d  # what each vehicle's plant flew: its acceleration less its disturbance
+    # where the plant's own sample was recorded (its acceleration also comes with its agent's
+    # telemetry; its disturbance only with the plant's sample, lost on the way in an exit-5 run)
+    seen = np.isfinite(rec.a).all(axis=-1) & np.isfinite(rec.d).all(axis=-1)
+    assert seen.mean() > 0.9
+    odd = seen & ~np.isfinite(flown).all(axis=-1)
+    assert not odd.any(), [(rec.t[t], rec.agent_ids[i], rec.a[t, i], rec.d[t, i]) for t, i in np.argwhere(odd)[:5]]
+    assert np.linalg.norm(flown[seen], axis=-1).max() <= ms.Safety().max_accel * (1 + 1e-9)
 
 
 # =========================================================================== refused before anything starts

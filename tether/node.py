@@ -679,6 +679,7 @@ async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
             loop.add_signal_handler(sig, node.stop.set)
         try:
             status = await _run_tasks(node, role)
+            report_drops(node.receiver.drops)
             if on_stop is not None:
                 try:
                     on_stop(node)
@@ -742,6 +743,13 @@ async def _run_tasks(node: Node, role: Callable[[Node], Awaitable[None]]) -> int
     finally:
         node.tasks = None
     return EXIT_FAILED if failed else EXIT_STOPPED if stopped else EXIT_OK
+
+
+def report_drops(drops: dict[str, int], what: str = "inputs dropped") -> None:
+    """Log, once at the end, what a process dropped and counted, by reason (every role: a plant's
+    or a world's drops reach no run file otherwise). Nothing dropped, nothing said."""
+    if any(drops.values()):
+        log.warning("%s: %s", what, ", ".join(f"{reason} {n}" for reason, n in sorted(drops.items()) if n))
 
 
 def setup_logging(role: str, node_id: int, level: str = "INFO") -> None:
