@@ -54,8 +54,11 @@ Once the state estimate is back the watchdog flies the agent again if the agent 
 lands the vehicle otherwise. If every attempt fails, the plant process withdraws its liveliness
 token (its agent holds, its neighbours count it out) and fails at the mission's end.
 
-cflib's latency pings are stopped once a link is up (:func:`_stop_pings`): the thread that sends
-them can deadlock cflib's own link-error handling, and with it every setpoint after a lost link.
+cflib's own ping thread is stopped once a link is up and the plant pings from a thread of its own
+(:func:`_ping_instead`): cflib's thread can deadlock cflib's link-error handling, and with it every
+setpoint after a lost link; the pings themselves stay, because a send is what finds a dead
+``udp://`` endpoint at once (the closed port's ICMP error), before a vehicle restarted at the same
+address could hear anything meant for the old one.
 
 Closing a link that may still reach the vehicle never goes through cflib's ``close_link`` alone:
 that sends ``send_setpoint(0, 0, 0, 0)``, zero thrust, which would drop a vehicle in flight.
@@ -187,7 +190,7 @@ class CrazyfliePlant:
                 raise ConnectionError(f"agent {ids[0]}.plant.uri: {uri} did not connect within "
                                       f"{self.spec.connect_timeout:g} s ({self._lost or 'no answer'}); check the "
                                       "vehicle is on and the URI (radio channel, address, udp port)")
-            _stop_pings(cf)
+            _ping_instead(cf, lambda: self.cf is cf)
             self._start_logs()
         except BaseException:
             _drop_link(cf)
@@ -444,16 +447,34 @@ class CrazyfliePlant:
                 _drop_link(self.cf)
 
 
-def _stop_pings(cf: Any) -> None:
-    """Stop the latency pings cflib sends from a thread of its own once connected (10 a second;
-    tether reads no latency from them). A link error is handled on whichever thread's send or
-    receive meets it, inside ``Crazyflie.send_packet`` with its non-reentrant send lock held, and
-    the handling joins that ping thread: met on the ping thread itself, the join raises and the
-    lock is never released; met on another sender while the ping thread waits for the lock, the
-    join never returns. Either way every later setpoint blocks forever, and the plant's loop with
-    it (seen once: a software Crazyflie killed mid-flight left its plant process wedged, neither
-    flying nor withdrawn). Without the ping thread the handling finds nothing to join."""
+PING_PERIOD = 0.1
+"""Seconds between the link pings the plant sends (cflib's own ping thread's period)."""
+
+
+def _ping_instead(cf: Any, current: Callable[[], bool]) -> None:
+    """Stop cflib's ping thread and ping from a thread of the plant's own, every
+    :data:`PING_PERIOD`, while ``current()`` holds and the link is open.
+
+    cflib handles a link error on whichever thread's send or receive meets it, inside
+    ``Crazyflie.send_packet`` with its non-reentrant send lock held, and that handling joins cflib's
+    ping thread: met on the ping thread itself, the join raises and the lock is never released; met
+    on another sender while the ping thread waits for the lock, the join never returns. Either way
+    every later setpoint blocks forever, and the plant's loop with it (seen once: a software
+    Crazyflie killed mid-flight left its plant process wedged, neither flying nor withdrawn). cflib
+    joins no thread it did not start, so the same pings (``Latency.ping``, an echo request
+    the firmware answers) from this thread keep finding a dead link at once without that hazard."""
     cf.link_statistics.stop()
+
+    def run() -> None:
+        while current() and cf.link is not None:
+            try:
+                cf.link_statistics.latency.ping()
+            except Exception as exc:  # a send on a dead link: cflib reports it through connection_lost
+                log.debug("link ping: %s", exc)
+                return
+            time.sleep(PING_PERIOD)
+
+    threading.Thread(target=run, name="tether-link-ping", daemon=True).start()
 
 
 def _drop_link(cf: Any) -> None:
