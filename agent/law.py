@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tether.graph import in_neighbours
+from tether.vec import floats, rows
 from tether.mission import Mission, per_axis
 
 
@@ -62,15 +63,15 @@ class LawParams:
         )
 
 
-def weighted_sum(w: Sequence[float], rows: Sequence[Sequence[float]]) -> list[float]:
+def weighted_sum(w: Sequence[float], xs: Sequence[Sequence[float]]) -> list[float]:
     """``sum_j w_j x_j``, component by component, the terms added one after the other in row order
     (``(w_0 x_0 + w_1 x_1) + w_2 x_2 ...``): each product and sum rounded once, on any platform.
-    ``rows`` holds the ``x_j`` (at least one)."""
+    ``xs`` holds the ``x_j`` (at least one)."""
     w0 = w[0]
-    acc = [w0 * x for x in rows[0]]
+    acc = [w0 * x for x in xs[0]]
     for k in range(1, len(w)):
         wk = w[k]
-        acc = [a + wk * x for a, x in zip(acc, rows[k])]
+        acc = [a + wk * x for a, x in zip(acc, xs[k])]
     return acc
 
 
@@ -183,19 +184,20 @@ class AgentLaw:
 
     def step(
         self,
-        p: np.ndarray,
-        v: np.ndarray,
-        nb_p: np.ndarray,
-        nb_v: np.ndarray,
-        nb_a: np.ndarray,
-        kp: np.ndarray,
-        kv: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """One control tick of agent i.
+        p: Sequence[float],
+        v: Sequence[float],
+        nb_p: Sequence[Sequence[float]],
+        nb_v: Sequence[Sequence[float]],
+        nb_a: Sequence[Sequence[float]],
+        kp: Sequence[float],
+        kv: Sequence[float],
+    ) -> tuple[list[float], list[float], list[float], list[float], list[float]]:
+        """One control tick of agent i, on Python floats (lists; numpy arrays are taken too).
 
         Args:
-            p, v: own position [m] and velocity [m/s], ``(d,)``.
-            nb_p, nb_v, nb_a: the neighbours' samples, ``(m, d)``, rows in ``neighbours`` order.
+            p, v: own position [m] and velocity [m/s], ``d`` floats.
+            nb_p, nb_v, nb_a: the neighbours' samples, one row of ``d`` per neighbour, rows in
+                ``neighbours`` order.
             kp, kv: the gains ``K(t_k)``.
         Returns:
             ``(u, xi, zeta, kp_next, kv_next)``: the command for this tick, the errors, and the
@@ -209,9 +211,9 @@ class AgentLaw:
         prm, gs = self.params, self.gains
         decay, gp, gv = gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain
         xi, zeta, u, kp_next, kv_next = [], [], [], [], []
-        for pc, vc, sp, sv, sa, sd, kpc, kvc in zip(p.tolist(), v.tolist(), weighted_sum(w, nb_p.tolist()),
-                                                    weighted_sum(w, nb_v.tolist()), weighted_sum(w, nb_a.tolist()),
-                                                    self._sum_wdelta, kp.tolist(), kv.tolist()):
+        for pc, vc, sp, sv, sa, sd, kpc, kvc in zip(floats(p), floats(v), weighted_sum(w, rows(nb_p)),
+                                                    weighted_sum(w, rows(nb_v)), weighted_sum(w, rows(nb_a)),
+                                                    self._sum_wdelta, floats(kp), floats(kv)):
             e = ka * pc - sp - sd
             z = ka * vc - sv
             xi.append(e)
@@ -219,7 +221,7 @@ class AgentLaw:
             u.append((sa - kpc * e - kvc * z) / ka)
             kp_next.append(1.0 + (kpc - 1.0) * decay + gp * (e * e))
             kv_next.append(1.0 + (kvc - 1.0) * decay + gv * (z * z))
-        return np.array(u), np.array(xi), np.array(zeta), np.array(kp_next), np.array(kv_next)
+        return u, xi, zeta, kp_next, kv_next
 
     def step_numpy(
         self,
@@ -258,10 +260,11 @@ def _rows_sum(w: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def neighbour_sample(
-    p: np.ndarray, v: np.ndarray, a: np.ndarray, delta: np.ndarray,
-    sample: tuple[np.ndarray, np.ndarray, np.ndarray] | None, age: float, max_age: float, compensate: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-    """What agent i uses for in-neighbour j at a tick: ``(p_j, v_j, a_j, used)``.
+    p: Sequence[float], v: Sequence[float], a: Sequence[float], delta: Sequence[float],
+    sample: tuple[Sequence[float], Sequence[float], Sequence[float]] | None, age: float, max_age: float,
+    compensate: bool,
+) -> tuple[list[float], list[float], list[float], bool]:
+    """What agent i uses for in-neighbour j at a tick: ``(p_j, v_j, a_j, used)``, lists of floats.
 
     ``sample`` is j's newest sample ``(p, v, a)`` and ``age`` how old it is [s]. A sample older
     than ``max_age``, or none, is replaced by j "in formation and not accelerating":
@@ -274,8 +277,10 @@ def neighbour_sample(
     extrapolation).
     """
     if sample is None or not age <= max_age:
-        return p - delta, v, np.zeros_like(a), False
+        return [pc - dc for pc, dc in zip(p, delta)], list(v), [0.0] * len(a), False
     pj, vj, aj = sample
     if compensate and age > 0.0:
-        return pj + vj * age + (0.5 * age * age) * aj, vj + aj * age, aj, True
-    return pj, vj, aj, True
+        half = 0.5 * age * age
+        return ([pc + vc * age + half * ac for pc, vc, ac in zip(pj, vj, aj)],
+                [vc + ac * age for vc, ac in zip(vj, aj)], list(aj), True)
+    return list(pj), list(vj), list(aj), True

@@ -18,14 +18,13 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from tether.gate import Gate, for_sender, merged
 from agent.relay import Relay
 from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from netem import control as netem_control
 from plant import resume
+from tether import vec
 from tether import transport as tp
 from tether import wire
 from tether import skew
@@ -57,7 +56,7 @@ async def run(node: Node) -> None:
         onboard = Onboard(m, aid)
 
     def publish_state(msg: wire.PlantState) -> None:
-        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared_list(msg.a), mode=tick.supervisor.mode)
+        state.send(wire.State, msg.k, msg.t, p=msg.p, vel=msg.vel, a=tick.shared(msg.a), mode=tick.supervisor.mode)
 
     def relay(msg: wire.PlantState) -> None:
         if msg is not plant.newest:  # not newer than the last (a replay, a duplicate): never re-published as fresh
@@ -208,8 +207,7 @@ async def run(node: Node) -> None:
         if plant_silent != holding:
             log.warning("plant %d is %s at t = %.2f s", aid, "silent: holding" if plant_silent else "back", t)
             holding = plant_silent
-        heard: list[Heard | None] = [
-            None if msg is None else (msg.t, np.array(msg.p), np.array(msg.vel), np.array(msg.a)) for msg in got]
+        heard: list[Heard | None] = [None if msg is None else (msg.t, msg.p, msg.vel, msg.a) for msg in got]
         stopped = [msg is not None and msg.mode != wire.FLYING for msg in got]
         if lockstep or k == m.steps:
             # lockstep: a tick waits for its inputs, so nothing can be silent; the last tick:
@@ -222,23 +220,22 @@ async def run(node: Node) -> None:
             status = Status(gone=[s.silent_at(k) for s in nbrs], stopped=stopped, others_gone=frozenset(gone),
                             operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode,
                             rejoining=rejoining)
-        near: list[tuple[np.ndarray, np.ndarray]] = []
+        near: list[tuple[list[float], list[float]]] = []
         if avoid:
             seen = [got[n] for n in vehicles] + far
-            near = [(np.array(msg.p), np.array(msg.vel)) for msg in seen
-                    if msg is not None and t - msg.t <= m.links.max_age]
-        out = tick.step(k, t, np.array(own.p), np.array(own.vel), np.array(own.a), heard, status, near)
+            near = [(msg.p, msg.vel) for msg in seen if msg is not None and t - msg.t <= m.links.max_age]
+        out = tick.step(k, t, own.p, own.vel, own.a, heard, status, near)
         if rejoining and t - own.t <= m.dt and all(msg is not None and t - msg.t <= m.dt for msg in got):
             rejoining = False  # every input fresh (the first tick always holds): the supervisor may fly again
             log.warning("rejoin: every input fresh at t = %.2f s", t)
         if ramp is not None:
             ramp.u = ramp.limit(out.u, out.mode == wire.FLYING)
-            u = ramp.u.tolist()
+            u = ramp.u
             if not ramp.active and out.mode == wire.FLYING:
                 log.warning("rejoin: the command has caught up with the law's at t = %.2f s", t)
                 ramp = None
         else:
-            u = out.u.tolist()
+            u = out.u
         if cmd is not None:
             cmd.send(wire.Command, k, t, u=u, mode=out.mode)
         else:
@@ -260,7 +257,7 @@ async def run(node: Node) -> None:
                      for j, ch in channels for d in ch.link.take_decisions()]
         report = wire.Telemetry(
             sender=aid, seq=tele_seq, k=k, t=t, clock=clock, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel,
-            a=own.a, u=u, xi=out.xi.tolist(), zeta=out.zeta.tolist(), kp=out.kp.tolist(), kv=out.kv.tolist(),
+            a=own.a, u=u, xi=out.xi, zeta=out.zeta, kp=out.kp, kv=out.kv,
             links=links, drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
             gate=merged(gates))
         tele_seq += 1
@@ -287,19 +284,20 @@ class Ramp:
 
     def __init__(self, step: float, dim: int):
         self.step = step
-        self.u = np.zeros(dim)
+        self.u = [0.0] * dim
         """The command sent last (before the first: zero, what a plant holding at rest flies)."""
         self.active = True
 
-    def limit(self, want: np.ndarray, flying: bool) -> np.ndarray:
+    def limit(self, want: list[float], flying: bool) -> list[float]:
         if not flying or not self.active:
             return want
-        du = want - self.u
-        size = float(np.linalg.norm(du))
+        du = [w - u for w, u in zip(want, self.u)]
+        size = math.sqrt(vec.dot(du, du))
         if size <= self.step:
             self.active = False
             return want
-        return self.u + du * (self.step / size)
+        scale = self.step / size
+        return [u + d * scale for u, d in zip(self.u, du)]
 
 
 REJOIN_RAMP = 1.0

@@ -39,9 +39,10 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-import numpy as np
 
 from tether import failsafe
+from tether import vec
+from tether.vec import Vec
 from tether.mission import Mission, Safety
 from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES, SafetyEvent
 
@@ -115,7 +116,7 @@ class Supervisor:
         """In-neighbours (agents) lost at the last tick, reachable or not."""
         self.since = 0.0
         """When the current mode (or HOLD's cause) began [s]."""
-        self.p_hold: np.ndarray | None = None
+        self.p_hold: list[float] | None = None
         self.lost: frozenset[int] = frozenset()
         """In-neighbours (agents) whose edges are dropped."""
         self.events: list[SafetyEvent] = []
@@ -158,26 +159,26 @@ class Supervisor:
         return self.lost, reachable, leader_silent
 
     # ------------------------------------------------------------------ decision
-    def command(self, k: int, t: float, p: np.ndarray, v: np.ndarray, u: np.ndarray, xi: np.ndarray,
-                kp: np.ndarray, kv: np.ndarray, reachable: bool, leader_silent: bool,
-                status: Status = NOMINAL) -> np.ndarray:
+    def command(self, k: int, t: float, p: Vec, v: Vec, u: Vec, xi: Vec, kp: Vec, kv: Vec, reachable: bool,
+                leader_silent: bool, status: Status = NOMINAL) -> list[float]:
         """The command that leaves the agent at tick k (finite, norm <= ``max_accel``), given the
-        law's ``u`` and errors. Moves the mode; the law's gains should advance only while the mode
-        is FLYING (:attr:`flying`)."""
+        law's ``u`` and errors (sequences of floats: lists, or numpy arrays). Moves the mode; the
+        law's gains should advance only while the mode is FLYING (:attr:`flying`)."""
         cfg = self.cfg
+        zero = [0.0] * len(p)
         if self.mode in (LANDED, ESTOP):
             if self.mode == LANDED and status.operator == "estop":
                 self._go(k, t, ESTOP, "operator estop", p)
-            return np.zeros_like(p)
+            return zero
         # orders and hard limits, strongest first
         if status.operator == "estop":
             self._go(k, t, ESTOP, "operator estop", p)
-            return np.zeros_like(p)
+            return zero
         if status.operator == "land" and self.mode != LAND:
             self._go(k, t, LAND, "operator land", p)
         if status.plant_mode == ESTOP:
             self._go(k, t, ESTOP, "plant stopped its motors", p)
-            return np.zeros_like(p)
+            return zero
         if status.plant_mode in (LAND, LANDED) and self.mode in (FLYING, HOLD):
             # the plant's watchdog has taken over to land (it never flies again): follow it down
             self._go(k, t, LAND, "plant landing (its watchdog took over)", p)
@@ -190,10 +191,10 @@ class Supervisor:
             elif (breach := self._fence_breach(p, v)) is not None:
                 self._act(k, t, cfg.geofence.action if cfg.geofence is not None else "land", breach, p)
         if self.mode == ESTOP:
-            return np.zeros_like(p)
+            return zero
         if self.mode in (FLYING, HOLD):
             cause, why = "", ""
-            speed = _norm(v)
+            speed = vec.norm(v)
             if speed > cfg.max_speed:
                 cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
             elif status.plant_silent:
@@ -228,7 +229,7 @@ class Supervisor:
         # LAND
         if failsafe.landed(p, v, cfg.ground):
             self._go(k, t, LANDED, "touched down", p)
-            return np.zeros_like(p)
+            return zero
         return failsafe.land(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
 
     @property
@@ -241,34 +242,34 @@ class Supervisor:
         return out
 
     # ------------------------------------------------------------------ helpers
-    def _diverged(self, u: np.ndarray, xi: np.ndarray, kp: np.ndarray, kv: np.ndarray) -> str | None:
+    def _diverged(self, u: Vec, xi: Vec, kp: Vec, kv: Vec) -> str | None:
         cfg = self.cfg
-        err = _norm(xi)
+        err = vec.norm(xi)
         if not err <= cfg.max_formation_error:
             return f"divergence: |xi| {err:.3g} m beyond {cfg.max_formation_error:g} m"
-        top = max(_max(kp.tolist()), _max(kv.tolist()))
+        top = max(_max(kp), _max(kv))
         if not top <= cfg.gain_cap:
             return f"divergence: gain {top:.3g} beyond gain_cap {cfg.gain_cap:g}"
-        if not math.isfinite(float(u @ u)) and not np.isfinite(u).all():
+        if not math.isfinite(vec.dot(u, u)) and not all(map(math.isfinite, u)):
             return "divergence: non-finite command"
         return None
 
-    def _fence_breach(self, p: np.ndarray, v: np.ndarray) -> str | None:
+    def _fence_breach(self, p: Vec, v: Vec) -> str | None:
         fence = self.cfg.geofence
         if fence is None:
             return None
         cfg = self.cfg
-        speed = _norm(v)
+        speed = vec.norm(v)
         # where the vehicle would stop if it braked now: HOLD's brake settles within about
         # 1/hold_kv seconds of travel at the current speed, more if saturated
         reach = speed / cfg.hold_kv + speed * speed / (2.0 * cfg.max_accel)
-        ahead = p + (v / speed) * reach if speed > 0 and math.isfinite(reach) else p
+        ahead = [pc + (vc / speed) * reach for pc, vc in zip(p, v)] if speed > 0 and math.isfinite(reach) else p
         for where in (p, ahead):
             if not all(lo <= x <= hi for x, lo, hi in zip(where, fence.min, fence.max)):
                 return "geofence: " + ("outside" if where is p else "would leave the box braking from here")
         return None
 
-    def _act(self, k: int, t: float, action: str, why: str, p: np.ndarray) -> None:
+    def _act(self, k: int, t: float, action: str, why: str, p: Vec) -> None:
         target = {"hold": HOLD, "land": LAND, "estop": ESTOP}[action]
         if target == HOLD:
             self.latched = True
@@ -276,11 +277,12 @@ class Supervisor:
         if self.mode != target:
             self._go(k, t, target, why, p)
 
-    def _go(self, k: int, t: float, mode: int, why: str, p: np.ndarray) -> None:
+    def _go(self, k: int, t: float, mode: int, why: str, p: Vec) -> None:
         if mode == self.mode:
             return
         if mode in (HOLD, LAND) and (self.p_hold is None or self.mode == FLYING):
-            self.p_hold = np.array(p, dtype=float) if np.all(np.isfinite(p)) else np.zeros_like(p)
+            held = [float(x) for x in p]
+            self.p_hold = held if all(map(math.isfinite, held)) else [0.0] * len(held)
         self._event(k, t, mode, why)
         self.mode = mode
         self.since = t
@@ -291,14 +293,7 @@ class Supervisor:
         self._new.append(ev)
 
 
-def _norm(x: np.ndarray) -> float:
-    """``|x|``, infinite if a component is not finite (a NaN component makes ``x @ x`` NaN, an
-    infinite one makes it infinite: one dot product, no element-wise check)."""
-    sq = float(x @ x)
-    return math.sqrt(sq) if sq == sq else math.inf
-
-
-def _max(xs: list[float]) -> float:
+def _max(xs: Vec) -> float:
     """``ndarray.max()`` of a short list: NaN if any element is."""
     return math.nan if any(x != x for x in xs) else max(xs)
 

@@ -34,12 +34,13 @@ from agent.law import AgentLaw, neighbour_sample
 from agent.safety import NOMINAL, Status, Supervisor
 from tether import failsafe
 from tether.mission import LinkPolicy, Mission
+from tether.vec import Vec, floats
 from tether.wire import HOLD, LAND
 
 AGE_WINDOW = 500
 """Ticks over which each link's age-of-information percentiles are taken (5 s at 100 Hz)."""
 
-Heard = tuple[float, np.ndarray, np.ndarray, np.ndarray]
+Heard = tuple[float, Vec, Vec, Vec]
 """An in-neighbour's newest sample as the tick takes it: ``(t_j [s], p_j [m], v_j [m/s], a_j [m/s^2])``."""
 
 
@@ -48,20 +49,20 @@ class TickResult(NamedTuple):
     frozen dataclass).
 
     Attributes:
-        u: the command that leaves the agent at this tick [m/s^2; world frame], ``(d,)``
+        u: the command that leaves the agent at this tick [m/s^2; world frame], ``d`` floats
             (the supervisor's: the law's saturated while FLYING).
-        xi, zeta: the errors (Eq. 8, 9), ``(d,)``.
-        kp, kv: the gains used for ``u`` (``K(t_k)``), ``(d,)``.
+        xi, zeta: the errors (Eq. 8, 9), ``d`` floats.
+        kp, kv: the gains used for ``u`` (``K(t_k)``), ``d`` floats.
         ages: per in-neighbour, the age of its newest sample [s] (NaN: none held).
         used: per in-neighbour, whether its sample was used (else it was substituted).
         mode: the supervisor's mode after this tick (a code of :data:`tether.wire.MODES`).
     """
 
-    u: np.ndarray
-    xi: np.ndarray
-    zeta: np.ndarray
-    kp: np.ndarray
-    kv: np.ndarray
+    u: list[float]
+    xi: list[float]
+    zeta: list[float]
+    kp: list[float]
+    kv: list[float]
     ages: list[float]
     used: list[bool]
     mode: int
@@ -77,9 +78,9 @@ class AgentTick:
         self._laws: dict[frozenset[int], AgentLaw] = {frozenset(): law}
         self.policy = policy
         self.feedforward = feedforward
-        self.kp = law.params.kp0.copy()
-        self.kv = law.params.kv0.copy()
-        self.last_u = np.zeros(dim)
+        self.kp: list[float] = law.params.kp0.tolist()
+        self.kv: list[float] = law.params.kv0.tolist()
+        self.last_u: list[float] = [0.0] * dim
         """The command of the previous tick: what the agent shares as its acceleration with
         ``feedforward = "commanded"`` (the plant's sample of tick k comes after the command of k-1)."""
         m = len(law.neighbours)
@@ -90,39 +91,37 @@ class AgentTick:
         self._sorted: list[list[float]] = [[] for _ in range(m)]
         """The same ages, kept sorted (one insertion and one removal per tick: the percentiles are
         then two look-ups, where sorting the window every tick was a third of an agent's CPU)."""
-        self._nb = np.zeros((3, m, dim))
+        self._deltas: list[list[float]] = law.deltas.tolist()
 
     @classmethod
     def from_mission(cls, m: Mission, agent_id: int) -> "AgentTick":
         law = AgentLaw.from_mission(m, agent_id)
         return cls(law, m.links, m.law.feedforward, m.dim, Supervisor(m, agent_id, law.neighbours))
 
-    def shared(self, measured: np.ndarray) -> np.ndarray:
+    def shared(self, measured: Vec) -> Vec:
         """The acceleration this agent shares with its out-neighbours for their feed-forward: its
-        measured one (``feedforward = "measured"``), else its previous command."""
+        measured one (``feedforward = "measured"``), else its previous command (a list)."""
         return measured if self.feedforward == "measured" else self.last_u
 
-    def shared_list(self, measured: list[float]) -> list[float]:
-        """:meth:`shared` for a sample as it came on the wire (a list), as a list (no array in between)."""
-        return measured if self.feedforward == "measured" else self.last_u.tolist()
-
-    def step(self, k: int, t: float, p: np.ndarray, v: np.ndarray, a_measured: np.ndarray,
+    def step(self, k: int, t: float, p: Vec, v: Vec, a_measured: Vec,
              heard: Sequence[Heard | None], status: Status = NOMINAL,
-             near: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> TickResult:
+             near: Sequence[tuple[Vec, Vec]] = ()) -> TickResult:
         """Tick ``k`` at time ``t`` [s] with the own sample ``p, v, a_measured`` and, per
         in-neighbour in ``law.neighbours`` order, its newest sample (or None); ``status`` is what
         the process knows of its inputs' liveliness and the operator; ``near``, the positions and
         velocities of other vehicles that collision avoidance (``[safety.avoid]``) may hear,
-        kept apart from the law's inputs. Advances the gains while FLYING."""
+        kept apart from the law's inputs. Vectors are sequences of floats (lists as they come off the
+        wire, or numpy arrays); the results are lists. Advances the gains while FLYING."""
         policy = self.policy
         max_age, compensate = policy.max_age, policy.compensate
-        a = a_measured if self.feedforward == "measured" else self.last_u
-        nb = self._nb
-        nb_p, nb_v, nb_a = nb[0], nb[1], nb[2]
+        p, v = floats(p), floats(v)
+        a = floats(a_measured) if self.feedforward == "measured" else self.last_u
+        nb_p: list[list[float]] = []
+        nb_v: list[list[float]] = []
+        nb_a: list[list[float]] = []
         ages: list[float] = []
         oks: list[bool] = []
-        law = self.law
-        deltas = law.deltas
+        deltas = self._deltas
         used = self.used
         for n, sample in enumerate(heard):
             if sample is None:
@@ -130,14 +129,17 @@ class AgentTick:
             else:
                 age = t - sample[0]
                 got = sample[1:]
-            nb_p[n], nb_v[n], nb_a[n], ok = neighbour_sample(p, v, a, deltas[n], got, age, max_age, compensate)
+            pj, vj, aj, ok = neighbour_sample(p, v, a, deltas[n], got, age, max_age, compensate)
+            nb_p.append(pj)
+            nb_v.append(vj)
+            nb_a.append(aj)
             if ok:
                 used[n] += 1
                 self._remember(n, age)
             ages.append(age)
             oks.append(ok)
         if self.feedforward == "none":
-            nb_a.fill(0.0)
+            nb_a = [[0.0] * len(p) for _ in nb_a]
         sup = self.supervisor
         lost, reachable, leader_silent = sup.links(k, t, ages, status)
         cached = self._laws.get(lost)
@@ -146,8 +148,11 @@ class AgentTick:
         u = sup.command(k, t, p, v, u_law, xi, self.kp, self.kv, reachable, leader_silent, status)
         av = sup.cfg.avoid
         if av is not None and near and (sup.flying or sup.mode in (HOLD, LAND)):
-            safe = failsafe.saturate(filter_command(u, p, v, near, av.radius, av.sensing, av.gain, av.brake),
-                                     sup.cfg.max_accel)
+            # collision avoidance's quadratic program stays numpy's
+            filtered = filter_command(np.array(u), np.array(p), np.array(v),
+                                      [(np.asarray(q, dtype=float), np.asarray(w, dtype=float)) for q, w in near],
+                                      av.radius, av.sensing, av.gain, av.brake)
+            safe = failsafe.saturate(filtered.tolist(), sup.cfg.max_accel)
             u = u if safe is None else safe
         out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks, sup.mode)
         if sup.flying:

@@ -58,15 +58,19 @@ def main() -> None:
     nb_a = np.zeros((nb, d))
     kp, kv = law.params.kp0.copy(), law.params.kv0.copy()
     h = m.dt
+    # the tick takes samples as they come off the wire: lists of floats
+    pl, vl, al = p.tolist(), v.tolist(), a.tolist()
+    heard_l = [(t0, hp.tolist(), hv.tolist(), ha.tolist()) for t0, hp, hv, ha in heard]
+    nb_pl, nb_vl, nb_al, kpl, kvl = nb_p.tolist(), nb_v.tolist(), nb_a.tolist(), kp.tolist(), kv.tolist()
 
     def law_only(k: int) -> None:
-        law.step(p, v, nb_p, nb_v, nb_a, kp, kv)
+        law.step(pl, vl, nb_pl, nb_vl, nb_al, kpl, kvl)
 
     fresh = AgentTick.from_mission(m, aid)  # the full tick on its own state
 
     def full_tick(k: int) -> None:
         t = k * h
-        fresh.step(k, t, p, v, a, [(t, hp, hv, ha) for _, hp, hv, ha in heard], NOMINAL)
+        fresh.step(k, t, pl, vl, al, [(t, hp, hv, ha) for _, hp, hv, ha in heard_l], NOMINAL)
 
     gate = Gate(h, m.safety.max_speed, m.safety.jump_margin, p.tolist())
     msgs = [wire.State(sender=1, seq=k, k=k, t=k * h, p=p.tolist(), vel=v.tolist(), a=a.tolist()) for k in range(256)]

@@ -35,12 +35,14 @@ leaves the watchdog is finite and within ``max_accel``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from tether import failsafe
 from tether import mission as ms
+from tether.vec import dot, floats
 from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES
 
 ABSURD = 10.0
@@ -68,8 +70,8 @@ class Decision:
     """What one vehicle does over the coming period."""
 
     mode: int
-    u: np.ndarray
-    """``(d,)`` the acceleration command to fly [m/s^2; world frame]: finite, norm <= max_accel
+    u: list[float]
+    """The acceleration command to fly, ``d`` floats [m/s^2; world frame]: finite, norm <= max_accel
     (zero in LANDED and ESTOP)."""
     events: tuple[Event, ...] = ()
 
@@ -84,11 +86,11 @@ class Watchdog:
     dim: int
     t0: float = 0.0
     mode: int = FLYING
-    p_hold: np.ndarray | None = None
+    p_hold: list[float] | None = None
     """Where HOLD (or LAND) began [m], the position it keeps."""
     invalid: dict[str, int] = field(default_factory=dict)
     """Commands rejected, by reason (``nonfinite``, ``absurd``, ``future``, ``size``)."""
-    _u: np.ndarray | None = None
+    _u: list[float] | None = None
     _t: float = -math.inf
     _seq: tuple[int, float] | None = None
     _operator_land: bool = False
@@ -98,7 +100,7 @@ class Watchdog:
     """HOLD began, or went on, without a measurement."""
 
     def __post_init__(self) -> None:
-        self._u = np.zeros(self.dim)
+        self._u = [0.0] * self.dim
         self._t = self.t0
 
     @property
@@ -113,7 +115,7 @@ class Watchdog:
     def _reject(self, reason: str) -> None:
         self.invalid[reason] = self.invalid.get(reason, 0) + 1
 
-    def offer(self, u: np.ndarray | list[float] | None, stamp: float, k: int, k_now: int,
+    def offer(self, u: Sequence[float] | np.ndarray | None, stamp: float, k: int, k_now: int,
               mode: int = FLYING) -> bool:
         """Consider the newest command: ``u`` [m/s^2] stamped ``stamp`` [s] for tick ``k``, seen at
         the plant's tick ``k_now``, with its agent's supervisor ``mode``. Returns whether it is valid (and so the newest valid one). The
@@ -123,14 +125,19 @@ class Watchdog:
         if self._seq == (k, stamp):
             return False
         self._seq = (k, stamp)
-        u = np.asarray(u, dtype=float)
-        if u.shape != (self.dim,):
+        try:
+            if isinstance(u, np.ndarray) and u.shape != (self.dim,):
+                raise ValueError
+            ul = [float(x) for x in u]
+        except (TypeError, ValueError):  # not a vector of numbers
+            ul = []
+        if len(ul) != self.dim:
             self._reject("size")
             return False
-        if not (np.all(np.isfinite(u)) and math.isfinite(stamp)):
+        if not (all(map(math.isfinite, ul)) and math.isfinite(stamp)):
             self._reject("nonfinite")
             return False
-        if math.sqrt(float(u @ u)) > ABSURD * self.safety.max_accel:
+        if math.sqrt(dot(ul, ul)) > ABSURD * self.safety.max_accel:
             self._reject("absurd")
             return False
         if k > k_now:
@@ -138,10 +145,11 @@ class Watchdog:
             return False
         if stamp < self._t:
             return False  # older than the newest valid command (reordered)
-        self._u, self._t, self._agent_mode = u, stamp, mode
+        self._u, self._t, self._agent_mode = ul, stamp, mode
         return True
 
-    def step(self, t: float, p: np.ndarray | None, v: np.ndarray | None, operator: str | None = None) -> Decision:
+    def step(self, t: float, p: Sequence[float] | np.ndarray | None, v: Sequence[float] | np.ndarray | None,
+             operator: str | None = None) -> Decision:
         """Decide the mode and command for the period starting at the plant's tick time ``t`` [s]
         from the commands offered so far, the operator's last action (``"land"``, ``"estop"`` or
         None) and the measurement ``p`` [m], ``v`` [m/s] (None: the plant has none this tick)."""
@@ -154,6 +162,8 @@ class Watchdog:
                 self.mode = dst
 
         measured = p is not None and v is not None
+        pl = floats(p) if p is not None else None
+        vl = floats(v) if v is not None else None
         if operator == "estop":
             go(ESTOP, "operator estop")
         elif self._agent_mode == ESTOP:
@@ -164,7 +174,7 @@ class Watchdog:
             self._operator_land = True
             if self.mode in (FLYING, HOLD):
                 if self.mode == FLYING and measured:
-                    self.p_hold = np.array(p, dtype=float)
+                    self.p_hold = pl
                 go(LAND, "operator land")
         age = self.age(t)
         if self.mode == FLYING:
@@ -172,7 +182,7 @@ class Watchdog:
                 self._blind = True
                 go(HOLD, "no own measurement")
             elif age > s.cmd_timeout:
-                self.p_hold = np.array(p, dtype=float)
+                self.p_hold = pl
                 go(HOLD, f"no valid command for {age:.2f} s")
         elif self.mode == HOLD:
             if not measured:
@@ -182,25 +192,25 @@ class Watchdog:
                 go(FLYING, f"command back ({age:.2f} s old)")
             elif self._blind:  # the measurement is back but the agent is not: land now
                 self._blind = False
-                self.p_hold = np.array(p, dtype=float)
+                self.p_hold = pl
                 go(LAND, f"measurement back, no valid command for {age:.2f} s")
             elif age >= s.cmd_cutoff:
                 go(LAND, f"no valid command for {age:.2f} s")
         if self.mode in (HOLD, LAND) and self.p_hold is None and measured:
-            self.p_hold = np.array(p, dtype=float)  # HOLD began without a measurement
-        if self.mode == LAND and measured and failsafe.landed(np.asarray(p, float), np.asarray(v, float), s.ground):
+            self.p_hold = pl  # HOLD began without a measurement
+        if self.mode == LAND and pl is not None and vl is not None and failsafe.landed(pl, vl, s.ground):
             go(LANDED, "on the ground" if self.dim == 3 else "still")
-        zero = np.zeros(self.dim)
+        u: list[float] | None
         if self.mode == FLYING:
             u = failsafe.saturate(self._u, s.max_accel) if self._u is not None else None
-            u = zero if u is None else u
-        elif self.mode in (HOLD, LAND) and measured:
-            pa, va = np.asarray(p, dtype=float), np.asarray(v, dtype=float)
-            at = self.p_hold if self.p_hold is not None else pa  # set just above when measured
+            u = [0.0] * self.dim if u is None else u
+        elif self.mode in (HOLD, LAND) and pl is not None and vl is not None:
+            at = self.p_hold if self.p_hold is not None else pl  # set just above when measured
             if self.mode == HOLD:
-                u = failsafe.hold(pa, va, at, s.hold_kp, s.hold_kv, s.max_accel)
+                u = failsafe.hold(pl, vl, at, s.hold_kp, s.hold_kv, s.max_accel)
             else:
-                u = failsafe.land(pa, va, at, s.hold_kp, s.hold_kv, s.max_accel, s.land_speed, s.ground)
+                u = failsafe.land(pl, vl, at, s.hold_kp, s.hold_kv, s.max_accel, s.land_speed, s.ground)
         else:
-            u = zero
+            u = [0.0] * self.dim
         return Decision(self.mode, u, tuple(events))
+

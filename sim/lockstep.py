@@ -120,18 +120,20 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         t = k * h
         states = [host.state() for host in hosts]
         by_host = {id(host): st for host, st in zip(hosts, states)}
+        # the agents' ticks take plain floats (agent/tick.py): each tick's samples as lists, once
         if single:
             st = states[0]
-            p, v, a, dist = list(st.p), list(st.v), list(st.a), list(st.d)
+            p, v, a = st.p.tolist(), st.v.tolist(), st.a.tolist()
+            dist: np.ndarray | list[np.ndarray] = st.d
         else:
             picked = [(by_host[id(host)], r) for host, r in order]
-            p = [st.p[r] for st, r in picked]
-            v = [st.v[r] for st, r in picked]
-            a = [st.a[r] for st, r in picked]
+            p = [st.p[r].tolist() for st, r in picked]
+            v = [st.v[r].tolist() for st, r in picked]
+            a = [st.a[r].tolist() for st, r in picked]
             dist = [st.d[r] for st, r in picked]
-        lp, lv, la = lead_p[k], lead_v[k], lead_a[k]
+        lp, lv, la = lead_p[k].tolist(), lead_v[k].tolist(), lead_a[k].tolist()
         # what each sender publishes at tick k: the leader's reference, each agent's relayed sample
-        sent: dict[int, tuple[float, np.ndarray, np.ndarray, np.ndarray]] = {lid: (t, lp, lv, la)}
+        sent: dict[int, Heard] = {lid: (t, lp, lv, la)}
         modes = {lid: wire.FLYING}  # each sender's mode, as its state message carries it
         for i, aid in enumerate(ids):  # what each agent shares for the feed-forward
             sent[aid] = (t, p[i], v[i], ticks[i].shared(a[i]))
@@ -140,8 +142,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         if net is not None:
             for j in senders:
                 tj, pj, vj, aj = sent[j]
-                payloads[j] = wire.encode(wire.State(sender=j, seq=k, k=k, t=tj, p=pj.tolist(),
-                                                     vel=vj.tolist(), a=aj.tolist(), mode=modes[j]))
+                payloads[j] = wire.encode(wire.State(sender=j, seq=k, k=k, t=tj, p=list(pj), vel=list(vj), a=list(aj),
+                                                     mode=modes[j]))
         r = k if record else 0
         keep = record or k == steps
         us = []
@@ -158,13 +160,12 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 lk.channel.send(t, payloads[lk.src])
                 lk.source.deliver(t, wire.decode)  # a corrupted copy fails its checksum, counted
                 newest = lk.source.newest
-                heard.append(None if newest is None else
-                             (newest.t, np.array(newest.p), np.array(newest.vel), np.array(newest.a)))
+                heard.append(None if newest is None else (newest.t, newest.p, newest.vel, newest.a))
                 stopped.append(newest is not None and newest.mode != wire.FLYING)
             near = [(p[j], v[j]) for j in range(n) if j != i] if avoid else ()
             out = tk.step(k, t, p[i], v[i], a[i], heard, Status(stopped=stopped), near=near)
             us.append(out.u)
-            worst = max(worst, _abs_max(out.xi.tolist()))
+            worst = max(worst, _abs_max(out.xi))
             if keep:
                 if width:
                     ages[r, i, :len(row)] = [age if ok else math.nan for age, ok in zip(out.ages, out.used)]

@@ -2,8 +2,8 @@
 
 They live in the core because both sides of the command link need them: an agent in HOLD or LAND
 commands them itself, and a plant whose agent has gone silent flies the very same laws on its own
-measurement (``docs/safety.md``). Vectors are ``(d,)`` [SI units; world frame]; in 3D the last axis
-is up.
+measurement (``docs/safety.md``). Vectors are sequences of ``d`` floats [SI units; world frame]
+(:mod:`tether.vec`), every result a list; in 3D the last axis is up.
 
 * :func:`saturate` — the command scaled down to a norm of at most ``max_accel``; a command that is
   not finite becomes None (the caller must fail safe, never pass it on);
@@ -18,51 +18,52 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
+from tether.vec import Vec, dot, floats
 
 STILL = 0.05
 """A vehicle slower than this [m/s] counts as still (2D LAND ends, a landing has settled)."""
 TOUCHDOWN = 0.02
 """A 3D vehicle within this height of the ground [m] has touched down."""
 
-
-def saturate(u: np.ndarray, max_accel: float) -> np.ndarray | None:
+def saturate(u: Vec, max_accel: float) -> list[float] | None:
     """``u`` scaled down to norm ``max_accel`` where it exceeds it; None if ``u`` is not finite."""
-    uu = float(u @ u)  # finite only if every component is (checked element-wise only where not)
-    if not math.isfinite(uu) and not np.isfinite(u).all():
+    u = floats(u)
+    uu = dot(u, u)  # finite only if every component is (checked one by one only where not)
+    if not math.isfinite(uu) and not all(map(math.isfinite, u)):
         return None
-    norm = math.sqrt(uu)
-    if norm <= max_accel:
+    n = math.sqrt(uu)
+    if n <= max_accel:
         return u
-    return u * (max_accel / norm)
+    scale = max_accel / n
+    return [c * scale for c in u]
 
 
-def hold(p: np.ndarray, v: np.ndarray, p_hold: np.ndarray, kp: float, kv: float, max_accel: float) -> np.ndarray:
+def hold(p: Vec, v: Vec, p_hold: Vec, kp: float, kv: float, max_accel: float) -> list[float]:
     """HOLD's command: brake to zero velocity and return to ``p_hold``, at most ``max_accel``.
     Non-finite measurements give a zero command (nothing better is known)."""
-    u = saturate(-kv * v - kp * (p - p_hold), max_accel)
-    return np.zeros_like(p) if u is None else u
+    u = saturate([-kv * vc - kp * (pc - hc) for pc, vc, hc in zip(p, v, p_hold)], max_accel)
+    return [0.0] * len(p) if u is None else u
 
 
-def land(p: np.ndarray, v: np.ndarray, p_hold: np.ndarray, kp: float, kv: float, max_accel: float,
-         land_speed: float, ground: float) -> np.ndarray:
+def land(p: Vec, v: Vec, p_hold: Vec, kp: float, kv: float, max_accel: float,
+         land_speed: float, ground: float) -> list[float]:
     """LAND's command: HOLD horizontally; in 3D descend at ``land_speed``, slowing in the last
     ``2 land_speed / kv`` metres and touching down at :data:`STILL` (vertical velocity tracking)."""
-    if p.shape[0] < 3:
+    if len(p) < 3:
         return hold(p, v, p_hold, kp, kv, max_accel)
-    u = -kv * v - kp * (p - p_hold)
+    u = [-kv * vc - kp * (pc - hc) for pc, vc, hc in zip(p, v, p_hold)]
     height = float(p[-1] - ground)
     # the last metres: v_want = -(kv/2) height (damping ratio 0.7 with the velocity loop), down to a
     # touch-down speed of STILL, so the vehicle reaches the ground in finite time and slowly
     v_want = -min(land_speed, max(STILL, max(height, 0.0) * 0.5 * kv))
     u[-1] = kv * (v_want - v[-1])
     out = saturate(u, max_accel)
-    return np.zeros_like(p) if out is None else out
+    return [0.0] * len(p) if out is None else out
 
 
-def landed(p: np.ndarray, v: np.ndarray, ground: float) -> bool:
+def landed(p: Vec, v: Vec, ground: float) -> bool:
     """On the ground and settled (3D), or still (2D)."""
-    speed = math.sqrt(float(v @ v)) if np.all(np.isfinite(v)) else math.inf
-    if p.shape[0] < 3:
+    speed = math.sqrt(dot(v, v)) if all(map(math.isfinite, v)) else math.inf
+    if len(p) < 3:
         return speed < STILL
     return bool(p[-1] - ground <= TOUCHDOWN) and speed < 2 * STILL

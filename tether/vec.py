@@ -1,0 +1,46 @@
+"""Short vectors (a vehicle's 2 or 3 axes) as lists of Python floats. Pure.
+
+The agent's tick, its supervisor, the failsafe laws and a plant's watchdog work on samples as they
+come off the wire (lists), one IEEE operation at a time in the order numpy's element-wise
+operations take: a numpy temporary per operation on a 3-vector cost more than the arithmetic.
+A dot product adds its terms in order, as numpy's does for vectors this short (``d <= 8``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+Vec = Sequence[float]
+"""``d`` floats: a list, or anything with ``tolist`` (a numpy array)."""
+
+
+def floats(x: Vec | Any) -> list[float]:
+    """``x`` as a new list of Python floats (an array's ``tolist``)."""
+    tolist = getattr(x, "tolist", None)
+    return tolist() if tolist is not None else [float(c) for c in x]
+
+
+def rows(x: Sequence[Vec] | Any) -> list[list[float]]:
+    """A sequence of vectors (or a 2-D array) as lists of Python floats."""
+    tolist = getattr(x, "tolist", None)
+    return tolist() if tolist is not None else [floats(r) for r in x]
+
+
+def dot(x: Vec, y: Vec) -> float:
+    """``x . y``, the products added in order (NaN or infinite exactly when a term is)."""
+    acc = 0.0
+    first = True
+    for a, b in zip(x, y):
+        if first:
+            acc, first = a * b, False
+        else:
+            acc += a * b
+    return acc
+
+
+def norm(x: Vec) -> float:
+    """``|x|``; infinite if a component is not finite (a NaN one makes ``x . x`` NaN)."""
+    sq = dot(x, x)
+    return math.sqrt(sq) if sq == sq else math.inf
