@@ -39,7 +39,6 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-
 from tether import failsafe
 from tether import vec
 from tether.vec import Vec
