@@ -25,6 +25,7 @@ STILL = 0.05
 TOUCHDOWN = 0.02
 """A 3D vehicle within this height of the ground [m] has touched down."""
 
+
 def saturate(u: Vec, max_accel: float) -> list[float] | None:
     """``u`` scaled down to norm ``max_accel`` where it exceeds it; None if ``u`` is not finite."""
     u = floats(u)
