@@ -162,7 +162,7 @@ class Watchdog:
                 self.mode = dst
 
         measured = p is not None and v is not None
-        pl = floats(p) if p is not None else None
+        pl = list(floats(p)) if p is not None else None  # its own copy: p_hold may keep it
         vl = floats(v) if v is not None else None
         if operator == "estop":
             go(ESTOP, "operator estop")

@@ -17,13 +17,17 @@ Vec = Sequence[float]
 
 
 def floats(x: Vec | Any) -> list[float]:
-    """``x`` as a new list of Python floats (an array's ``tolist``)."""
+    """``x`` as a list of Python floats: ``x`` itself if it is a list already (samples off the
+    wire, the tick's own vectors: not copied again on the hot path), an array's ``tolist``, else a
+    new list. A caller that keeps the result while ``x`` may change copies it."""
+    if type(x) is list:
+        return x
     tolist = getattr(x, "tolist", None)
     return tolist() if tolist is not None else [float(c) for c in x]
 
 
 def rows(x: Sequence[Vec] | Any) -> list[list[float]]:
-    """A sequence of vectors (or a 2-D array) as lists of Python floats."""
+    """A sequence of vectors (or a 2-D array) as lists of Python floats (lists kept as they are)."""
     tolist = getattr(x, "tolist", None)
     return tolist() if tolist is not None else [floats(r) for r in x]
 
