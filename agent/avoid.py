@@ -26,53 +26,55 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import numpy as np
+from tether.vec import Vec, dot, floats
 
 ITERATIONS = 200
 """Hildreth sweeps at most (a handful of constraints converge in a few)."""
 
 
-def constraints(p: np.ndarray, v: np.ndarray, near: Sequence[tuple[np.ndarray, np.ndarray]], radius: float,
-                sensing: float, gain: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
-    """The half-planes ``A u <= b`` agent i keeps against each vehicle ``(p_j, v_j)`` within ``sensing``."""
-    rows, rhs = [], []
+def constraints(p: Vec, v: Vec, near: Sequence[tuple[Vec, Vec]], radius: float,
+                sensing: float, gain: float, alpha: float) -> tuple[list[list[float]], list[float]]:
+    """The half-planes ``A u <= b`` agent i keeps against each vehicle ``(p_j, v_j)`` within
+    ``sensing``: the rows of ``A`` and ``b`` (lists; empty when nobody is within ``sensing``)."""
+    p, v = floats(p), floats(v)
+    rows: list[list[float]] = []
+    rhs: list[float] = []
     for pj, vj in near:
-        dp, dv = p - pj, v - vj
-        dist = math.sqrt(float(dp @ dp))
+        dp = [a - b for a, b in zip(p, floats(pj))]
+        dv = [a - b for a, b in zip(v, floats(vj))]
+        dist = math.sqrt(dot(dp, dp))
         if not (dist < sensing) or dist == 0.0:
             continue
         gap = dist - radius
-        proj = float(dp @ dv) / dist
+        proj = dot(dp, dv) / dist
         if gap <= 0.0:  # already too close: push apart as hard as the vehicle may brake
-            rows.append(-dp / dist)
+            rows.append([-c / dist for c in dp])
             rhs.append(-alpha)
             continue
         root = math.sqrt(4.0 * alpha * gap)
         h = root + proj
-        b = gain * h ** 3 * dist - proj * proj + float(dv @ dv) + 2.0 * alpha * proj / root
-        rows.append(-dp)
+        b = gain * h ** 3 * dist - proj * proj + dot(dv, dv) + 2.0 * alpha * proj / root
+        rows.append([-c for c in dp])
         rhs.append(0.5 * b)
-    if not rows:
-        return np.zeros((0, p.shape[0])), np.zeros(0)
-    return np.array(rows), np.array(rhs)
+    return rows, rhs
 
 
-def project(u: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float = 1e-12) -> np.ndarray:
-    """``argmin |x - u|`` subject to ``a x <= b`` (Hildreth). ``u`` itself when it is feasible."""
-    if a.shape[0] == 0 or np.all(a @ u <= b):
+def project(u: Vec, a: Sequence[Vec], b: Sequence[float], tol: float = 1e-12) -> Vec:
+    """``argmin |x - u|`` subject to ``a x <= b`` (Hildreth), a new list; ``u`` itself when it is feasible."""
+    if not a or all(dot(row, u) <= bi for row, bi in zip(a, b)):
         return u
-    lam = np.zeros(a.shape[0])
-    norms = np.einsum("ij,ij->i", a, a)
-    x = u.copy()
+    lam = [0.0] * len(a)
+    norms = [dot(row, row) for row in a]
+    x = list(floats(u))
     for _ in range(ITERATIONS):
         moved = 0.0
-        for i in range(a.shape[0]):
+        for i, row in enumerate(a):
             if norms[i] == 0.0:
                 continue
-            new = max(0.0, lam[i] + (float(a[i] @ x) - b[i]) / norms[i])
+            new = max(0.0, lam[i] + (dot(row, x) - b[i]) / norms[i])
             step = new - lam[i]
             if step:
-                x -= step * a[i]
+                x = [xc - step * ac for xc, ac in zip(x, row)]
                 lam[i] = new
                 moved = max(moved, abs(step))
         if moved <= tol:
@@ -80,9 +82,10 @@ def project(u: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float = 1e-12) -> 
     return x
 
 
-def filter_command(u: np.ndarray, p: np.ndarray, v: np.ndarray, near: Sequence[tuple[np.ndarray, np.ndarray]],
-                   radius: float, sensing: float, gain: float, alpha: float) -> np.ndarray:
-    """The law's ``u`` made safe against the vehicles ``near`` (``u`` itself when nothing is near)."""
+def filter_command(u: Vec, p: Vec, v: Vec, near: Sequence[tuple[Vec, Vec]],
+                   radius: float, sensing: float, gain: float, alpha: float) -> Vec:
+    """The law's ``u`` made safe against the vehicles ``near`` (``u`` itself when nothing is near,
+    else a new list)."""
     if not near:
         return u
     a, b = constraints(p, v, near, radius, sensing, gain, alpha)

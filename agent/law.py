@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from tether.graph import in_neighbours
+from tether.mission import Mission, in_neighbours, per_axis
 from tether.vec import floats, rows
-from tether.mission import Mission, per_axis
+
+if TYPE_CHECKING:  # the agent process never loads numpy (13 MiB of its memory); the simulators pass arrays
+    import numpy as np
 
 
 @dataclass(frozen=True)
@@ -41,14 +42,14 @@ class LawParams:
     Attributes:
         sigma: leakage [1/s]; 0 selects the benchmark law (Eq. 30).
         gamma_p, gamma_v: adaptation rates (> 0).
-        kp0, kv0: initial per-axis gains, shape ``(d,)``.
+        kp0, kv0: initial per-axis gains, ``d`` floats.
     """
 
     sigma: float
     gamma_p: float
     gamma_v: float
-    kp0: np.ndarray
-    kv0: np.ndarray
+    kp0: tuple[float, ...]
+    kv0: tuple[float, ...]
 
     @classmethod
     def from_mission(cls, m: Mission) -> "LawParams":
@@ -58,8 +59,8 @@ class LawParams:
             sigma=sigma,
             gamma_p=float(law.gamma_p),
             gamma_v=float(law.gamma_v),
-            kp0=np.array(per_axis(law.kp0, m.dim)),
-            kv0=np.array(per_axis(law.kv0, m.dim)),
+            kp0=tuple(map(float, per_axis(law.kp0, m.dim))),
+            kv0=tuple(map(float, per_axis(law.kv0, m.dim))),
         )
 
 
@@ -81,7 +82,7 @@ def errors(
     v: np.ndarray,
     sum_wp: np.ndarray,
     sum_wv: np.ndarray,
-    sum_wdelta: np.ndarray,
+    sum_wdelta: np.ndarray | Sequence[float],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Formation error ``xi`` [m] (Eq. 8) and velocity error ``zeta`` [m/s] (Eq. 9)."""
     xi = kappa * p - sum_wp - sum_wdelta
@@ -139,48 +140,42 @@ class AgentLaw:
     Attributes:
         neighbours: ids of the in-neighbours j (the leader's id included when ``a_i,N+1 > 0``),
             in the order of ``weights``.
-        weights: ``(m,)`` the ``a_ij``.
+        weights: the ``a_ij``, one per in-neighbour.
         kappa: ``sum_j a_ij`` (added in row order, as :func:`tether.graph.topology` adds them).
-        sum_wdelta: ``(d,)`` ``sum_j a_ij delta_ij`` [m].
-        deltas: ``(m, d)`` the offsets ``delta_ij = h_i - h_j`` [m], rows in ``neighbours`` order.
+        sum_wdelta: ``sum_j a_ij delta_ij`` [m], ``d`` floats.
+        deltas: the offsets ``delta_ij = h_i - h_j`` [m], ``d`` floats per in-neighbour, rows in
+            ``neighbours`` order.
     """
 
     agent_id: int
     neighbours: tuple[int, ...]
-    weights: np.ndarray
+    weights: tuple[float, ...]
     kappa: float
-    sum_wdelta: np.ndarray
+    sum_wdelta: tuple[float, ...]
     params: LawParams
     gains: GainStep
-    deltas: np.ndarray
-    _w: list[float] = field(init=False, repr=False, compare=False)
-    _sum_wdelta: list[float] = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:  # the hot path's floats, taken once
-        object.__setattr__(self, "_w", self.weights.tolist())
-        object.__setattr__(self, "_sum_wdelta", self.sum_wdelta.tolist())
+    deltas: tuple[tuple[float, ...], ...]
 
     @classmethod
     def from_mission(cls, m: Mission, agent_id: int) -> "AgentLaw":
-        me = m.agent(agent_id)
-        offsets = {a.id: np.array(a.offset, dtype=float) for a in m.agents}
-        offsets[m.leader.id] = np.zeros(m.dim)
+        offsets = {a.id: tuple(map(float, a.offset)) for a in m.agents}
+        offsets[m.leader.id] = (0.0,) * m.dim
         ins = in_neighbours(m, agent_id)
         nbrs = tuple(src for src, _ in ins)
-        w = np.array([wt for _, wt in ins], dtype=float)
-        h_i = np.array(me.offset, dtype=float)
-        kappa = _total(w.tolist())
-        h_nb = np.array([offsets[j] for j in nbrs])
-        sum_wdelta = kappa * h_i - np.array(weighted_sum(w.tolist(), h_nb.tolist()))
+        w = tuple(float(wt) for _, wt in ins)
+        h_i = offsets[agent_id]
+        kappa = _total(w)
+        sum_wdelta = tuple(kappa * hc - sc for hc, sc in zip(h_i, weighted_sum(w, [offsets[j] for j in nbrs])))
+        deltas = tuple(tuple(hc - jc for hc, jc in zip(h_i, offsets[j])) for j in nbrs)
         params = LawParams.from_mission(m)
-        return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt), h_i - h_nb)
+        return cls(agent_id, nbrs, w, kappa, sum_wdelta, params, GainStep.over(params.sigma, m.dt), deltas)
 
     def without(self, lost: frozenset[int]) -> "AgentLaw":
         """The law with the edges from the ``lost`` in-neighbours dropped and kappa_i re-normalised
         over the others (their rows stay, with weight 0, so samples keep the same order)."""
-        w = [0.0 if j in lost else wt for j, wt in zip(self.neighbours, self.weights.tolist())]
-        return AgentLaw(self.agent_id, self.neighbours, np.array(w), _total(w),
-                        np.array(weighted_sum(w, self.deltas.tolist())), self.params, self.gains, self.deltas)
+        w = tuple(0.0 if j in lost else wt for j, wt in zip(self.neighbours, self.weights))
+        return AgentLaw(self.agent_id, self.neighbours, w, _total(w), tuple(weighted_sum(w, self.deltas)),
+                        self.params, self.gains, self.deltas)
 
     def step(
         self,
@@ -206,14 +201,14 @@ class AgentLaw:
         # errors(), control() and gain_update() term by term on Python floats: the same IEEE
         # operations in the same order as numpy's elementwise ones (bit for bit, tests/test_law.py),
         # without a numpy temporary per operation on a 2- or 3-vector.
-        w = self._w
+        w = self.weights
         ka = self.kappa
         prm, gs = self.params, self.gains
         decay, gp, gv = gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain
         xi, zeta, u, kp_next, kv_next = [], [], [], [], []
         for pc, vc, sp, sv, sa, sd, kpc, kvc in zip(floats(p), floats(v), weighted_sum(w, rows(nb_p)),
                                                     weighted_sum(w, rows(nb_v)), weighted_sum(w, rows(nb_a)),
-                                                    self._sum_wdelta, floats(kp), floats(kv)):
+                                                    self.sum_wdelta, floats(kp), floats(kv)):
             e = ka * pc - sp - sd
             z = ka * vc - sv
             xi.append(e)
@@ -251,7 +246,7 @@ def _total(w: Sequence[float]) -> float:
     return acc
 
 
-def _rows_sum(w: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _rows_sum(w: Sequence[float], x: np.ndarray) -> np.ndarray:
     """:func:`weighted_sum` in numpy: ``w[0] x[0] + w[1] x[1] + ...`` one row at a time."""
     acc = w[0] * x[0]
     for k in range(1, len(w)):

@@ -27,8 +27,6 @@ from collections import deque
 from collections.abc import Sequence
 from typing import NamedTuple
 
-import numpy as np
-
 from agent.avoid import filter_command
 from agent.law import AgentLaw, neighbour_sample
 from agent.safety import NOMINAL, Status, Supervisor
@@ -78,8 +76,8 @@ class AgentTick:
         self._laws: dict[frozenset[int], AgentLaw] = {frozenset(): law}
         self.policy = policy
         self.feedforward = feedforward
-        self.kp: list[float] = law.params.kp0.tolist()
-        self.kv: list[float] = law.params.kv0.tolist()
+        self.kp: list[float] = list(law.params.kp0)
+        self.kv: list[float] = list(law.params.kv0)
         self.last_u: list[float] = [0.0] * dim
         """The command of the previous tick: what the agent shares as its acceleration with
         ``feedforward = "commanded"`` (the plant's sample of tick k comes after the command of k-1)."""
@@ -91,7 +89,7 @@ class AgentTick:
         self._sorted: list[list[float]] = [[] for _ in range(m)]
         """The same ages, kept sorted (one insertion and one removal per tick: the percentiles are
         then two look-ups, where sorting the window every tick was a third of an agent's CPU)."""
-        self._deltas: list[list[float]] = law.deltas.tolist()
+        self._deltas: list[list[float]] = [list(r) for r in law.deltas]
 
     @classmethod
     def from_mission(cls, m: Mission, agent_id: int) -> "AgentTick":
@@ -148,11 +146,8 @@ class AgentTick:
         u = sup.command(k, t, p, v, u_law, xi, self.kp, self.kv, reachable, leader_silent, status)
         av = sup.cfg.avoid
         if av is not None and near and (sup.flying or sup.mode in (HOLD, LAND)):
-            # collision avoidance's quadratic program stays numpy's
-            filtered = filter_command(np.array(u), np.array(p), np.array(v),
-                                      [(np.asarray(q, dtype=float), np.asarray(w, dtype=float)) for q, w in near],
-                                      av.radius, av.sensing, av.gain, av.brake)
-            safe = failsafe.saturate(filtered.tolist(), sup.cfg.max_accel)
+            filtered = filter_command(u, p, v, near, av.radius, av.sensing, av.gain, av.brake)
+            safe = failsafe.saturate(filtered, sup.cfg.max_accel)
             u = u if safe is None else safe
         out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks, sup.mode)
         if sup.flying:

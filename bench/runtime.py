@@ -1214,7 +1214,7 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
         sender=1, seq=1, k=1, t=0.01, **dict(zip(("p", "vel", "a"), (x.tolist() for x in ref(0.05)))))))
     law = AgentLaw.from_mission(m, m.agent_ids[0])
     nb = np.zeros((len(law.neighbours), d))
-    kp, kv = law.params.kp0.copy(), law.params.kv0.copy()
+    kp, kv = np.array(law.params.kp0), np.array(law.params.kv0)
     rows["AgentLaw.step (numpy, d = 3)"] = us(lambda: law.step(p0, p0, nb, nb, nb, kp, kv))
     rows["isfinite over a 3-vector: generator / map"] = us(lambda: all(math.isfinite(x) for x in vec))
     rows["  ... all(map(math.isfinite, v))"] = us(lambda: all(map(math.isfinite, vec)))

@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from tether import graph
 from tether import mission as ms
 from tether import wire
 
@@ -114,7 +113,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
               tokens=(k.token("recorder", 0),), watch=(every_token,), sees=(every_token,)),
     ]
     for aid in m.agent_ids:
-        nbrs = [j for j, _ in graph.in_neighbours(m, aid)]  # the keys the agent subscribes to
+        nbrs = [j for j, _ in ms.in_neighbours(m, aid)]  # the keys the agent subscribes to
         out.append(Grant(
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from tether import graph
+from tether.mission import in_neighbours
 from tests.factories import random_mission
 
 
@@ -51,11 +52,11 @@ def test_in_neighbours_are_the_topology_rows_in_row_order(seed: int) -> None:
     topo = graph.topology(m)
     ids = [*m.agent_ids, m.leader.id]
     for i, aid in enumerate(m.agent_ids):
-        ins = graph.in_neighbours(m, aid)
+        ins = in_neighbours(m, aid)
         assert [m.index_of(j) for j, _ in ins] == list(topo.src[topo.dst == i])  # ascending rows
         assert [w for _, w in ins] == list(topo.weight[topo.dst == i])
         assert {j for j, _ in ins} <= set(ids)
-    assert graph.in_neighbours(m, m.leader.id) == []
+    assert in_neighbours(m, m.leader.id) == []
 
 
 def test_topology_is_sparse_and_lemma3_dense_only_for_small_n() -> None:

@@ -56,3 +56,12 @@ def test_the_check_itself_sees_a_forbidden_import() -> None:
     """The report parsing is not vacuous: the figures load matplotlib, an emulated link its channel."""
     assert "matplotlib" in loaded_modules("sim.figures")
     assert "netem.channel" in loaded_modules("netem.link")
+
+
+@pytest.mark.parametrize("module", ["agent.node", "cli.main"])
+def test_an_agent_loads_no_numpy(module: str) -> None:
+    """An agent's tick runs on Python floats (``tether.vec``): numpy, 13 MiB of an agent's memory,
+    is for the simulators, the plants and the run file (``tests/test_runtime.py`` checks a running
+    agent's memory map too)."""
+    bad = sorted({n for n in loaded_modules(module) if re.match(r"^numpy(\.|$)", n)})
+    assert not bad, f"import {module} loads numpy ({len(bad)} modules)"

@@ -488,6 +488,9 @@ class Interrupted:
     seconds_to_exit: float
     survivors: list[str | int]
     """Children still alive after the launcher exited, by name, and any other process naming the run's namespace."""
+    numpy_mapped: dict[str, bool]
+    """Per child, whether numpy's core library is mapped into it, read after a second of flight
+    with malformed input handled."""
 
 
 @pytest.fixture(scope="module")
@@ -535,13 +538,15 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
         finally:
             client.close()
         assert run.proc.poll() is None, f"the launcher ended early:\n{run.launcher_log}"
+        numpy_mapped = {name: "_multiarray_umath" in Path(f"/proc/{pid}/maps").read_text()
+                        for name, pid in run.children.items()}
         assert len(processes_naming(ns)) == 1 + len(CHILDREN)  # the survivor check below sees them all
         sent = time.monotonic()
         run.proc.send_signal(signal.SIGINT)
         run.wait(30)
         took = time.monotonic() - sent
         survivors = [name for name, pid in run.children.items() if alive(pid)] + processes_naming(ns)
-        yield Interrupted(run, live, dict(tele.drops), expected, recorder_expected, took, survivors)
+        yield Interrupted(run, live, dict(tele.drops), expected, recorder_expected, took, survivors, numpy_mapped)
 
 
 def test_ctrl_c_stops_every_process_within_seconds_and_keeps_a_partial_run(interrupted: Interrupted) -> None:
@@ -563,6 +568,16 @@ def test_ctrl_c_stops_every_process_within_seconds_and_keeps_a_partial_run(inter
     assert 0 < rec.meta.samples_recorded < rec.meta.samples_expected
     # the second of run waited for before SIGINT is in the file (real-time streams may drop a sample)
     assert np.isfinite(rec.leader_p).all(axis=1).sum() >= 90
+
+
+def test_an_agent_process_never_loads_numpy(interrupted: Interrupted) -> None:
+    """An agent runs on Python floats (``tether.vec``); numpy would be 13 MiB of its memory. The
+    plants, the leader and the recorder use it (dynamics, profiles, the run file), which shows the
+    check reads the maps it means to."""
+    mapped = interrupted.numpy_mapped
+    assert set(mapped) == set(CHILDREN)
+    assert not any(mapped[f"agent/{i}"] for i in AGENTS), mapped
+    assert all(mapped[f"plant/{i}"] for i in AGENTS) and mapped["recorder/0"], mapped
 
 
 def test_a_plain_zenoh_client_decodes_live_samples_with_the_schema_alone(interrupted: Interrupted) -> None:

@@ -45,7 +45,6 @@ from tether.mission import (
     per_axis,
 )
 from tether.netprofile import validate_network
-from tether.runfile import SERIES
 from tether.schema import Problems
 from tether.wire import Keys
 
@@ -75,8 +74,9 @@ MAX_SEED = 2**63 - 1
 MIN_AGE = 1e-3
 """Smallest ``links.max_age`` and ``[safety]`` timeout [s]: 1 ms, below any network's delivery
 time, so a smaller value would throw away every real-time sample."""
-SERIES_RECORDED = len(SERIES) + 3
-"""Per-agent ``(T, N, d)`` series of a run file: the engines' (``tether.runfile.SERIES``) and the
+SERIES_RECORDED = 9 + 3
+"""Per-agent ``(T, N, d)`` series of a run file: the engines' nine (``tether.runfile.SERIES``; a
+number here, so that a process checking its mission does not load the run file's numpy) and the
 recorder's three plant measurements."""
 LINK_SERIES = 10
 """Per-edge ``(T, edges)`` link statistics the recorder keeps."""

@@ -52,14 +52,6 @@ class Topology:
         return a
 
 
-def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
-    """The nodes agent ``agent_id`` hears, as ``(node id, a_ij)`` pairs in row order
-    (:meth:`Mission.index_of`: agents in file order, the leader last), the order
-    ``agent.law.AgentLaw`` sums its neighbours in. Empty for an id that hears nobody."""
-    ins = sorted((m.index_of(e.src), e.src, e.weight) for e in m.edges if e.dst == agent_id)
-    return [(src, weight) for _, src, weight in ins]
-
-
 def rows(m: Mission) -> dict[int, int]:
     """Node id -> row (:meth:`Mission.index_of` for every node at once: agents in file order, the leader last)."""
     out = {a.id: k for k, a in enumerate(m.agents)}

@@ -827,6 +827,14 @@ def per_axis(v: PerAxis, dim: int) -> list[float]:
 
 
 
+def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
+    """The nodes agent ``agent_id`` hears, as ``(node id, a_ij)`` pairs in row order
+    (:meth:`Mission.index_of`: agents in file order, the leader last), the order
+    ``agent.law.AgentLaw`` sums its neighbours in. Empty for an id that hears nobody."""
+    ins = sorted((m.index_of(e.src), e.src, e.weight) for e in m.edges if e.dst == agent_id)
+    return [(src, weight) for _, src, weight in ins]
+
+
 def validate(m: Mission) -> Problems:
     """Every semantic problem of a decoded mission: :func:`tether.checks.validate` (kept here for its
     many callers)."""
