@@ -64,6 +64,21 @@ def _positive_int(text: str) -> int:
     return x
 
 
+def _rt_priority(text: str) -> int:
+    """An argparse type: a real-time priority, 1..99 (``SCHED_RR``), or 0 (the normal policy)."""
+    from tether import sched
+
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give {sched.RR_MIN}..{sched.RR_MAX}, "
+                                         "e.g. 10") from None
+    why = sched.check_priority(x, "")
+    if why is not None:
+        raise argparse.ArgumentTypeError(why.removeprefix(": "))
+    return x
+
+
 def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
     """Check, before anything runs, that directory ``text`` (option ``arg``) can be written in: it
     is a directory, or does not exist yet below a writable one (a probe file is made and removed
@@ -343,6 +358,16 @@ def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[No
     from tether.node import serve, setup_logging
 
     setup_logging(role, node_id, args.log_level)
+    if args.rt_priority is not None:  # first: the threads started from now on (Zenoh's) inherit it
+        from tether import sched
+
+        import logging
+
+        try:
+            applied = sched.apply(args.rt_priority)
+        except sched.SchedError as exc:
+            raise BadArgument(str(exc)) from None
+        logging.getLogger("tether").info("CPU scheduling: %s", applied)
     return asyncio.run(serve(_node_args(args, role, node_id), body, on_stop, clock=_skewed_clock(args)))
 
 
@@ -516,7 +541,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                vehicle_connect=dict(args.vehicle_connect), faults=injected,
                                insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
                                colocate_plants=args.colocate_plants, record_batch=args.record_batch,
-                               shared_plants=args.shared_plants,
+                               shared_plants=args.shared_plants, rt_priority=args.rt_priority,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return asyncio.run(local.run(path, opts))
 
@@ -613,6 +638,9 @@ def _process_options(p: argparse.ArgumentParser) -> None:
                    help="real time: this process's clock reads S seconds ahead (negative: behind) of the host's, "
                         "to rehearse unsynchronised hosts (tether run --fault skew:ROLE/ID=S)")
     p.add_argument("--log-level", default="INFO")
+    p.add_argument("--rt-priority", type=_rt_priority, default=None, metavar="P",
+                   help="run this process at real-time priority P (SCHED_RR, 1..99; 0: the normal policy), set "
+                        "before its threads start; needs root, CAP_SYS_NICE or an rtprio limit (docs/runtime.md)")
     _zenoh_options(p)
 
 
@@ -696,6 +724,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="no certificates and no access rules (plain TCP): anyone who reaches the router can "
                          "publish on the run's keys. Default: mTLS, one identity per process, deny-by-default "
                          "rules; tools attach to --listen tls/... with --zenoh-config OUT/tls/control-0.json5")
+    rn.add_argument("--rt-priority", type=_rt_priority, default=None, metavar="P",
+                    help="run the control processes (the launcher's router, leader, agents, plants or world, and "
+                         "--sitl's software Crazyflies) at real-time priority P (SCHED_RR, 1..99, e.g. 10), so that "
+                         "other work on the machine does not delay their ticks; the recorder keeps the normal policy "
+                         "and the operator gateway its idle one. Needs root, CAP_SYS_NICE or an rtprio limit "
+                         "(docs/runtime.md)")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                     help="serve the run over the Foxglove WebSocket protocol while it goes on, from the recorder "

@@ -99,7 +99,7 @@ from deploy.inject import describe_exit
 from deploy.relay import Relay
 from tether import mission as ms
 from tether import transport as tp
-from tether import handoff, jsonout
+from tether import handoff, jsonout, sched
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
 from tether.progress import Progress
@@ -175,6 +175,10 @@ class LaunchOptions:
     shared_plants: bool = False
     """Simulated plants: one world process steps every vehicle (:class:`plant.base.Fleet`, each
     vehicle with its own watchdog) instead of one plant process per vehicle (``--shared-plants``)."""
+    rt_priority: int | None = None
+    """Run the launcher (its router), the leader, agents, plants or world and ``--sitl``'s
+    simulators at this ``SCHED_RR`` priority, the recorder at the normal policy (``--rt-priority``;
+    :mod:`tether.sched`); None: every process keeps the launcher's policy."""
 
 
 @dataclass
@@ -292,6 +296,8 @@ class Launch:
                    "--lease", str(o.lease), "--log-level", o.log_level]
             if o.duration is not None:
                 cmd += ["--duration", repr(o.duration)]
+            if o.rt_priority is not None:  # the recorder is no control loop: normal policy (it writes the run at the end)
+                cmd += ["--rt-priority", str(0 if role == "recorder" else o.rt_priority)]
             if role in ("agent", "plant"):
                 cmd += ["--id", str(nid)]
             if o.colocate_plants and role in ("agent", "recorder"):
@@ -743,6 +749,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         problems += localtls.problems(opts.listen, opts.vehicle_connect)
     if problems:
         raise ms.MissionError(f"tether run {mission_path}", problems)
+    if opts.rt_priority is not None:  # the launcher's router first (its threads inherit it), before anything starts
+        try:
+            log.info("CPU scheduling of the control processes: %s", sched.apply(opts.rt_priority))
+        except sched.SchedError as exc:
+            raise ms.MissionError(f"tether run {mission_path}", [("--rt-priority", str(exc).split(": ", 1)[1])]) from None
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
     # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound

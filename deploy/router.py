@@ -28,6 +28,7 @@ import sys
 import threading
 
 from tether import transport as tp
+from tether.sched import lower_priority
 
 log = logging.getLogger("tether")
 
@@ -49,18 +50,6 @@ def check_router_config(path: str) -> list[str]:
         raise tp.SettingsError([("listen.endpoints", f"is empty in {path}; a router must listen, "
                                                      "e.g. [\"tls/0.0.0.0:7447\"]")])
     return list(endpoints)
-
-
-def lower_priority() -> str:
-    """Put this process (and the threads it starts from now on) at the lowest CPU priority:
-    ``SCHED_IDLE`` (runs only when no normal process wants the CPU; allowed unprivileged since
-    Linux 2.6.39), else nice 19. Returns what was applied, for the log."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        return "SCHED_IDLE"
-    except (AttributeError, OSError):
-        os.nice(19 - os.nice(0))
-        return f"nice {os.nice(0)}"
 
 
 def serve(path: str, watch_pid: int | None = None) -> int:

@@ -30,6 +30,13 @@ def wait_until(ready: Callable[[], Any], timeout: float, what: str, poll: float 
         time.sleep(poll)
 
 
+def rt_permitted(priority: int = 10) -> bool:
+    """Whether a process of this user may take ``SCHED_RR`` ``priority`` (root, CAP_SYS_NICE or an
+    rtprio limit): tried in a child, which changes nothing here."""
+    code = f"import os; os.sched_setscheduler(0, os.SCHED_RR, os.sched_param({priority}))"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60).returncode == 0
+
+
 def read(path: Path) -> str:
     """A log file's text so far ('' while it does not exist)."""
     try:

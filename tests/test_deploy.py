@@ -336,6 +336,9 @@ def test_units_run_the_entry_points_with_arguments_they_accept(deployment: gen.D
             args = cli.build_parser().parse_args(argv[1:])
             assert args.clock == "realtime" and args.ns == "trio"
         assert Path(getattr(args, "zenoh_config", None) or args.config).is_file(), u
+        # the control loop at a real-time priority, set by systemd at exec; the recorder and the start tool not
+        control = u.name.startswith(("tether-agent", "tether-plant", "tether-leader", "tether-router"))
+        assert ("CPUSchedulingPolicy=rr" in text and "CPUSchedulingPriority=10" in text) == control, u
 
 
 # --------------------------------------------------------------------------- mTLS

@@ -1,0 +1,81 @@
+"""CPU scheduling of a process: real-time priority for the control loop, idle priority for tools.
+
+Linux only (``os.sched_setscheduler``). A policy set on a process's main thread before it starts
+others (its Zenoh session's, cflib's) is inherited by each of them, so every role sets its own
+policy first thing, before its session opens.
+
+Why the control processes may run at a real-time priority (``tether run --rt-priority``): under
+the default policy a process that wakes up on a CPU held by another job waits for the scheduler's
+next tick to preempt it (a few ms on this kernel), at every hop of a sample: timer, Zenoh's
+threads, the router, the subscriber's threads, the event loop. Measured on a 2-vCPU machine with
+two CPU-bound jobs beside Section 4 in real time, even at ``nice 19``: an agent's own measurement
+was up to 1.1 s old, 30-63 % of the agents' ticks had inputs older than a period and failsafes
+fired; at ``SCHED_RR`` priority 10, 99.6-100 % of the ticks had fresh inputs, the oldest
+measurement was 10-20 ms old and the formation-error envelope matched the lockstep run's to 0.1 %
+(``docs/runtime.md``, *Real-time priority*). A ``SCHED_RR`` process preempts every normal one at once; the kernel's
+real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % of each second by default)
+still leaves the others some CPU should one spin.
+"""
+
+from __future__ import annotations
+
+import os
+
+RR_MIN, RR_MAX = 1, 99
+"""The ``SCHED_RR`` priorities Linux grants (``sched_get_priority_min/max``)."""
+
+
+class SchedError(RuntimeError):
+    """The policy cannot be applied here: ``"<what>: <why>; <how to fix it>"``."""
+
+
+def check_priority(priority: int, what: str = "--rt-priority") -> str | None:
+    """Why ``priority`` cannot be a real-time priority (naming ``what``), or None. 0 means the
+    normal policy (``SCHED_OTHER``, nice 0)."""
+    if not (priority == 0 or RR_MIN <= priority <= RR_MAX):
+        return f"{what}: is {priority}; give {RR_MIN}..{RR_MAX} (SCHED_RR, e.g. 10), or 0 for the normal policy"
+    return None
+
+
+def apply(priority: int, what: str = "--rt-priority") -> str:
+    """Put this process's main thread (and the threads it starts from now on) at ``SCHED_RR``
+    ``priority``, or back at the normal policy for 0. Returns what was applied, for the log;
+    :class:`SchedError` if the range is wrong or the system refuses (no privilege)."""
+    why = check_priority(priority, what)
+    if why is not None:
+        raise SchedError(why)
+    if not hasattr(os, "sched_setscheduler"):
+        raise SchedError(f"{what}: this system has no sched_setscheduler (Linux only); run without it")
+    if priority == 0:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # lowering is always allowed
+        return "SCHED_OTHER"
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+    except PermissionError:
+        raise SchedError(f"{what}: real-time scheduling is not permitted for this user (it needs root, "
+                         f"CAP_SYS_NICE, or an rtprio limit of at least {priority}: `ulimit -r`, "
+                         "/etc/security/limits.conf); run without it") from None
+    except OSError as exc:
+        raise SchedError(f"{what}: SCHED_RR {priority} refused ({exc.strerror}); run without it") from None
+    return f"SCHED_RR {priority}"
+
+
+def lower_priority() -> str:
+    """Put this process (and the threads it starts from now on) at the lowest CPU priority:
+    ``SCHED_IDLE`` (runs only when no normal process wants the CPU; allowed unprivileged since
+    Linux 2.6.39), else nice 19. Returns what was applied, for the log."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return "SCHED_IDLE"
+    except (AttributeError, OSError):
+        os.nice(19 - os.nice(0))
+        return f"nice {os.nice(0)}"
+
+
+def describe(pid: int) -> str:
+    """The policy of process ``pid`` (its main thread), e.g. ``SCHED_RR 10``, for logs and tests."""
+    policy = os.sched_getscheduler(pid)
+    names = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_RR: "SCHED_RR", os.SCHED_FIFO: "SCHED_FIFO",
+             os.SCHED_IDLE: "SCHED_IDLE", os.SCHED_BATCH: "SCHED_BATCH"}
+    name = names.get(policy, f"policy {policy}")
+    return f"{name} {os.sched_getparam(pid).sched_priority}" if policy in (os.SCHED_RR, os.SCHED_FIFO) else name
