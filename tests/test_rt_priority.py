@@ -27,6 +27,8 @@ from tether.runfile import Run
 pytestmark = pytest.mark.slow
 
 PRIORITY = 10
+HOG_SECONDS = STARTUP + 120
+"""The longest a CPU-bound process of the fixture runs (start-up, the 20 s run, its end)."""
 SCHED_OTHER, SCHED_RR, SCHED_IDLE = 0, 2, 5  # the policy numbers /proc/<pid>/task/<tid>/stat gives (field 41)
 
 
@@ -68,7 +70,9 @@ def loaded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Loaded]:
     if not rt_permitted(PRIORITY):
         pytest.skip("this user may not use real-time scheduling (root, CAP_SYS_NICE or `ulimit -r` >= 10)")
     n = os.cpu_count() or 2
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL) for _ in range(n)]
+    # each ends by itself after HOG_SECONDS, should this test process die before it kills them
+    burn = f"import time\nend = time.monotonic() + {HOG_SECONDS}\nwhile time.monotonic() < end: pass"
+    hogs = [subprocess.Popen([sys.executable, "-c", burn], stdin=subprocess.DEVNULL) for _ in range(n)]
     try:
         ns = f"rtprio-{os.getpid()}"
         with launch(tmp_path_factory.mktemp("rtprio"), ns, "--clock", "realtime", "--duration", "20",
