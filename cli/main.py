@@ -359,9 +359,9 @@ def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[No
 
     setup_logging(role, node_id, args.log_level)
     if args.rt_priority is not None:  # first: the threads started from now on (Zenoh's) inherit it
-        from tether import sched
-
         import logging
+
+        from tether import sched
 
         try:
             applied = sched.apply(args.rt_priority)

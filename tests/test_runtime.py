@@ -683,7 +683,7 @@ def envelope(run: Run, since: float, fresh: np.ndarray | None = None) -> float:
 
 def fresh_ticks(run: Run) -> np.ndarray:
     """``(T, N)``: agent i's tick k used an own measurement and in-neighbour samples at most one
-    period old, as a lockstep tick does (its are of tick k itself).
+    period old (a lockstep tick uses those of tick k itself).
 
     An agent's xi (Eq. 8) is computed from the samples it holds: one of the leader's 20 ms old
     moves the leader's neighbour's xi by about 0.14 m in Section 4. A process the machine leaves
