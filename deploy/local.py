@@ -931,18 +931,46 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         log.warning("the launcher dropped %d malformed message(s): %s", sum(sup.dropped.values()),
                     ", ".join(f"{n} {why}" for why, n in sorted(sup.dropped.items())))
     if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
-        status = _recorded(opts.out / "run.npz", status)
+        status = _recorded(opts.out / "run.npz", status, opts)
     return status
 
 
-def _recorded(path: Path, status: int) -> int:
+LATE_WARN = 0.01
+"""Real time: above this share of an agent's ticks started more than a period late, the launcher
+says so at the end (the issue's mark for a rate that holds)."""
+
+
+def late_report(late: np.ndarray, ticks: int, rt_priority: int | None) -> str | None:
+    """What to say of the agents' late ticks at the end of a real-time run, or None: ``late`` is the
+    run file's ``(T, N)`` running count (its last finite value per agent is the run's), ``ticks``
+    the ticks run. Names the remedy where the control processes ran at the normal policy."""
+    counts = [float(c[np.isfinite(c)][-1]) for c in np.asarray(late, dtype=float).T if np.isfinite(c).any()]
+    if not counts or ticks <= 0 or max(counts) <= LATE_WARN * ticks:
+        return None
+    lo, hi = min(counts), max(counts)
+    text = (f"real time: {lo:.0f}-{hi:.0f} of each agent's {ticks} ticks started more than a period late "
+            f"({100 * lo / ticks:.1f}-{100 * hi / ticks:.1f} %)")
+    if rt_priority is None or rt_priority == 0:
+        text += ("; if other work shares this machine, fly with --rt-priority 10 (docs/runtime.md, "
+                 "Real-time priority)")
+    else:
+        text += f" at --rt-priority {rt_priority}: the machine is short of CPU for this swarm"
+    return text
+
+
+def _recorded(path: Path, status: int, opts: LaunchOptions | None = None) -> int:
     """Tell what the run file holds; a clean run whose file lacks samples is :data:`EXIT_INCOMPLETE`,
-    one without a run file :data:`EXIT_FAILED`."""
+    one without a run file :data:`EXIT_FAILED`. In real time, also how many of the agents' ticks
+    were late (:func:`late_report`)."""
     from tether import runfile
 
     try:
         with np.load(path, allow_pickle=False) as run:
             meta = runfile.decode_meta(str(run["meta"]))
+            if opts is not None and opts.clock == "realtime" and "late" in run.files:
+                said = late_report(run["late"], len(run["t"]), opts.rt_priority)
+                if said is not None:
+                    log.warning("%s", said)
     except (OSError, KeyError, ValueError, msgspec.MsgspecError) as exc:
         log.error("no readable run file at %s (%s): see logs/recorder-0.log", path, exc)
         try:  # the usual cause, which the recorder's own log (on the same disk) may not hold

@@ -24,8 +24,6 @@ from tests.test_runtime import (AGENTS, CHILDREN, SECTION4, STARTUP, WAIT, Launc
 from tether.node import load_mission
 from tether.runfile import Run
 
-pytestmark = pytest.mark.slow
-
 PRIORITY = 10
 HOG_SECONDS = STARTUP + 120
 """The longest a CPU-bound process of the fixture runs (start-up, the 20 s run, its end)."""
@@ -99,6 +97,7 @@ def loaded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Loaded]:
             h.wait()
 
 
+@pytest.mark.slow
 def test_every_thread_of_the_control_processes_runs_at_the_real_time_priority(loaded: Loaded) -> None:
     """Leader, agents, plants: every thread (Zenoh's included, started after the policy was set).
     The launcher: its router's threads (one idle BLAS thread numpy started before may stay
@@ -112,6 +111,7 @@ def test_every_thread_of_the_control_processes_runs_at_the_real_time_priority(lo
     assert set(pol["gateway"].values()) == {SCHED_IDLE}, pol["gateway"]
 
 
+@pytest.mark.slow
 def test_beside_cpu_bound_work_the_swarm_keeps_its_ticks_and_its_formation(loaded: Loaded) -> None:
     """Without the priority, the same run beside two such processes had inputs older than a period
     at 30-63 % of the agents' ticks and fired failsafes (measured, ``docs/runtime.md``)."""
@@ -132,6 +132,7 @@ def test_beside_cpu_bound_work_the_swarm_keeps_its_ticks_and_its_formation(loade
     assert all(run.child_log(f"agent/{i}").count("CPU scheduling: SCHED_RR 10") == 1 for i in AGENTS)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(os.geteuid() == 0 and shutil.which("setpriv") is None,
                     reason="root needs setpriv (util-linux) to drop CAP_SYS_NICE")
 def test_a_launcher_not_permitted_real_time_scheduling_is_refused_before_anything_starts(tmp_path: Path) -> None:
@@ -147,6 +148,7 @@ def test_a_launcher_not_permitted_real_time_scheduling_is_refused_before_anythin
     assert not (out / "logs").exists() and not (out / "run.npz").exists(), "something started"
 
 
+@pytest.mark.slow
 def test_a_process_not_permitted_real_time_scheduling_exits_2_naming_the_option(tmp_path: Path) -> None:
     drop = ["setpriv", "--bounding-set=-sys_nice", "--inh-caps=-sys_nice"] if os.geteuid() == 0 else []
     if drop and shutil.which("setpriv") is None:
@@ -157,3 +159,18 @@ def test_a_process_not_permitted_real_time_scheduling_exits_2_naming_the_option(
                        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 2, r.stderr
     assert "--rt-priority" in r.stderr and "not permitted" in r.stderr, r.stderr
+
+
+# --------------------------------------------------------------------------- what the launcher says at the end
+def test_late_ticks_beyond_one_percent_are_reported_with_the_remedy() -> None:
+    from deploy.local import late_report
+
+    late = np.full((2001, 4), np.nan)
+    late[:, :] = np.linspace(0, 1, 2001)[:, None] * np.array([99, 154, 102, 118])
+    late[-1, 2] = np.nan  # an agent's last sample lost: its last recorded count stands
+    said = late_report(late, 2001, None)
+    assert said is not None and "99-154 of each agent's 2001 ticks" in said and "--rt-priority 10" in said, said
+    assert "short of CPU" in (late_report(late, 2001, 10) or "")
+    assert late_report(np.zeros((2001, 4)), 2001, None) is None
+    assert late_report(np.full((2001, 4), 20.0), 2001, None) is None  # 1 % and below: nothing to say
+    assert late_report(np.full((2001, 4), np.nan), 2001, None) is None  # nothing recorded
