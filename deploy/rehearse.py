@@ -16,7 +16,9 @@ network namespace of its own (root only, like ``ip netns``):
   substitute (``%%``, ``%n``, ``%N``, ``%p``, ``%i``, ``%H``) and one thing a test machine lacks: a
   program path that does not exist here (the hosts file's ``tether`` or ``python``, e.g.
   ``/opt/tether/venv/bin/tether``) runs as this interpreter (``python -m cli`` for ``tether``).
-  ``User=`` is not applied (the processes run as root, in their namespace). ``--duration S`` adds
+  ``CPUSchedulingPolicy=`` and ``CPUSchedulingPriority=`` are applied as systemd applies them, with
+  ``chrt`` (the control units run at ``SCHED_RR``). ``User=`` is not applied (the processes run as
+  root, in their namespace). ``--duration S`` adds
   ``--duration S`` to every tether process (the mission file stays as generated); ``--skew HOST=S``
   adds ``--clock-skew S`` to every tether process of a host (an unsynchronised host).
 * **Order, as an operator would.** The router's unit first (``tether-router``; until it logs that
@@ -91,6 +93,9 @@ class Unit:
     restart: str = "no"
     restart_sec: float = 0.1
     workdir: str | None = None
+    scheduling: tuple[str, int] | None = None
+    """``CPUSchedulingPolicy=`` (``rr``, ``fifo``, ``other``, ``batch``, ``idle``) and
+    ``CPUSchedulingPriority=``, if the unit sets a policy."""
 
     @property
     def role(self) -> str:
@@ -135,7 +140,32 @@ def parse_unit(path: Path, host: str) -> Unit:
     except ValueError:
         raise RehearseError(f"{path}: RestartSec={values['RestartSec']} is not a number of seconds") from None
     return Unit(name, host, argv, values.get("Type", "simple"), values.get("Restart", "no"), restart_sec,
-                values.get("WorkingDirectory"))
+                values.get("WorkingDirectory"), _scheduling(path, values))
+
+
+SCHED_POLICIES = ("other", "batch", "idle", "fifo", "rr")
+"""systemd's ``CPUSchedulingPolicy=`` values (``chrt``'s options of the same names)."""
+
+
+def _scheduling(path: Path, values: dict[str, str]) -> tuple[str, int] | None:
+    """A unit's ``CPUSchedulingPolicy=`` and ``CPUSchedulingPriority=`` (None without a policy)."""
+    policy = values.get("CPUSchedulingPolicy")
+    if policy is None:
+        if "CPUSchedulingPriority" in values:
+            raise RehearseError(f"{path}: CPUSchedulingPriority= without CPUSchedulingPolicy=; give both")
+        return None
+    if policy not in SCHED_POLICIES:
+        raise RehearseError(f"{path}: CPUSchedulingPolicy={policy} is not one of {', '.join(SCHED_POLICIES)}")
+    text = values.get("CPUSchedulingPriority", "0")
+    try:
+        priority = int(text)
+    except ValueError:
+        raise RehearseError(f"{path}: CPUSchedulingPriority={text} is not an integer") from None
+    realtime = policy in ("fifo", "rr")
+    if not (1 <= priority <= 99 if realtime else priority == 0):
+        raise RehearseError(f"{path}: CPUSchedulingPriority={priority} with CPUSchedulingPolicy={policy}: give "
+                            + ("1..99" if realtime else "0 (or none)"))
+    return policy, priority
 
 
 def host_address(hdir: Path) -> str:
@@ -198,6 +228,10 @@ def plan(deploy: Path) -> Plan:
     for need, role in (("tether-router", "router"), ("tether-start", "start")):
         if role not in roles:
             raise RehearseError(f"{deploy}: no {need}.service among the units; generate the deployment again")
+    scheduled = [u.name for u in units if u.scheduling is not None]
+    if scheduled and shutil.which("chrt") is None:
+        raise RehearseError(f"unit {scheduled[0]} sets CPUSchedulingPolicy=, which a rehearsal applies with chrt "
+                            "(util-linux): install it")
     return Plan(deploy, hosts, units)
 
 
@@ -337,7 +371,9 @@ class Running:
     def spawn(self, ns: str, env: dict[str, str]) -> None:
         cwd = self.unit.workdir if self.unit.workdir and os.path.isdir(self.unit.workdir) else None
         with open(self.log_path, "ab") as fh:
-            self.proc = subprocess.Popen(["ip", "netns", "exec", ns, *self.argv], cwd=cwd, stdin=subprocess.DEVNULL,
+            sched = self.unit.scheduling
+            chrt = [] if sched is None else ["chrt", f"--{sched[0]}", str(sched[1])]  # as systemd would, at exec
+            self.proc = subprocess.Popen(["ip", "netns", "exec", ns, *chrt, *self.argv], cwd=cwd, stdin=subprocess.DEVNULL,
                                          stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         self.starts.append(time.time())
         self.pids.append(self.proc.pid)

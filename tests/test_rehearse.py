@@ -146,6 +146,9 @@ def test_units_are_read_as_systemd_reads_them(tmp_path: Path) -> None:
     assert a2.argv[:2] == ["/opt/tether/venv/bin/tether", "agent"]
     assert a2.argv[a2.argv.index("--zenoh-config") + 1] == str(dep.config("agent-2"))
     assert (units["tether-router"].restart, units["tether-start"].kind) == ("always", "oneshot")
+    # the control units at SCHED_RR 10, as systemd sets it at exec; the recorder and the start tool not
+    assert {n: u.scheduling for n, u in units.items() if u.scheduling is not None} == {
+        n: ("rr", 10) for n in units if n.startswith(("tether-agent", "tether-plant", "tether-leader", "tether-router"))}
     here = rehearse.command(a2, 5.0)
     assert here[:3] == [sys.executable, "-m", "cli"] and here[3:-2] == a2.argv[1:] and here[-2:] == ["--duration", "5.0"]
     assert rehearse.command(units["tether-router"], 5.0)[:3] == [sys.executable, "-m", "deploy.router"]
@@ -174,6 +177,16 @@ def test_specifiers_are_filled_as_systemd_would(tmp_path: Path) -> None:
     unit.write_text("[Service]\nType=simple\n")
     with pytest.raises(rehearse.RehearseError, match="no ExecStart"):
         rehearse.parse_unit(unit, "h")
+    for sched, says in (("CPUSchedulingPolicy=rt\n", "not one of"), ("CPUSchedulingPolicy=rr\n", "1..99"),
+                        ("CPUSchedulingPolicy=rr\nCPUSchedulingPriority=100\n", "1..99"),
+                        ("CPUSchedulingPolicy=idle\nCPUSchedulingPriority=5\n", "give 0"),
+                        ("CPUSchedulingPolicy=rr\nCPUSchedulingPriority=ten\n", "not an integer"),
+                        ("CPUSchedulingPriority=10\n", "without CPUSchedulingPolicy")):
+        unit.write_text(f"[Service]\nExecStart=/bin/true\n{sched}")
+        with pytest.raises(rehearse.RehearseError, match=says):
+            rehearse.parse_unit(unit, "h")
+    unit.write_text("[Service]\nExecStart=/bin/true\nCPUSchedulingPolicy=fifo\nCPUSchedulingPriority=20\n")
+    assert rehearse.parse_unit(unit, "h").scheduling == ("fifo", 20)
 
 
 @pytest.mark.parametrize(("address", "says"), [("127.0.0.1", "own loopback"), ("uav1.local", "is a name")])
