@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from tether.vec import Vec, dot, floats
+from tether.vec import Vec, dot, floats, norm
 
 ITERATIONS = 200
 """Hildreth sweeps at most (a handful of constraints converge in a few)."""
@@ -42,7 +42,7 @@ def constraints(p: Vec, v: Vec, near: Sequence[tuple[Vec, Vec]], radius: float,
     for pj, vj in near:
         dp = [a - b for a, b in zip(p, floats(pj))]
         dv = [a - b for a, b in zip(v, floats(vj))]
-        dist = math.sqrt(dot(dp, dp))
+        dist = norm(dp)
         if not (dist < sensing) or dist == 0.0:
             continue
         gap = dist - radius

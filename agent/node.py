@@ -292,7 +292,7 @@ class Ramp:
         if not flying or not self.active:
             return want
         du = [w - u for w, u in zip(want, self.u)]
-        size = math.sqrt(vec.dot(du, du))
+        size = vec.norm(du)
         if size <= self.step:
             self.active = False
             return want

@@ -73,9 +73,9 @@ def _rt_priority(text: str) -> int:
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give {sched.RR_MIN}..{sched.RR_MAX}, "
                                          "e.g. 10") from None
-    why = sched.check_priority(x, "")
+    why = sched.check_priority(x)
     if why is not None:
-        raise argparse.ArgumentTypeError(why.removeprefix(": "))
+        raise argparse.ArgumentTypeError(why)
     return x
 
 
@@ -366,7 +366,7 @@ def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[No
         try:
             applied = sched.apply(args.rt_priority)
         except sched.SchedError as exc:
-            raise BadArgument(str(exc)) from None
+            raise BadArgument(f"--rt-priority: {exc}") from None
         logging.getLogger("tether").info("CPU scheduling: %s", applied)
     return asyncio.run(serve(_node_args(args, role, node_id), body, on_stop, clock=_skewed_clock(args)))
 

@@ -753,7 +753,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         try:
             log.info("CPU scheduling of the control processes: %s", sched.apply(opts.rt_priority))
         except sched.SchedError as exc:
-            raise ms.MissionError(f"tether run {mission_path}", [("--rt-priority", str(exc).split(": ", 1)[1])]) from None
+            raise ms.MissionError(f"tether run {mission_path}", [("--rt-priority", str(exc))]) from None
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
     # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound

@@ -63,6 +63,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tether import sched
+
 log = logging.getLogger("tether")
 
 REPO = Path(__file__).resolve().parents[1]
@@ -162,9 +164,9 @@ def _scheduling(path: Path, values: dict[str, str]) -> tuple[str, int] | None:
     except ValueError:
         raise RehearseError(f"{path}: CPUSchedulingPriority={text} is not an integer") from None
     realtime = policy in ("fifo", "rr")
-    if not (1 <= priority <= 99 if realtime else priority == 0):
+    if not (sched.RR_MIN <= priority <= sched.RR_MAX if realtime else priority == 0):
         raise RehearseError(f"{path}: CPUSchedulingPriority={priority} with CPUSchedulingPolicy={policy}: give "
-                            + ("1..99" if realtime else "0 (or none)"))
+                            + (f"{sched.RR_MIN}..{sched.RR_MAX}" if realtime else "0 (or none)"))
     return policy, priority
 
 
@@ -371,8 +373,8 @@ class Running:
     def spawn(self, ns: str, env: dict[str, str]) -> None:
         cwd = self.unit.workdir if self.unit.workdir and os.path.isdir(self.unit.workdir) else None
         with open(self.log_path, "ab") as fh:
-            sched = self.unit.scheduling
-            chrt = [] if sched is None else ["chrt", f"--{sched[0]}", str(sched[1])]  # as systemd would, at exec
+            policy = self.unit.scheduling
+            chrt = [] if policy is None else ["chrt", f"--{policy[0]}", str(policy[1])]  # as systemd would, at exec
             self.proc = subprocess.Popen(["ip", "netns", "exec", ns, *chrt, *self.argv], cwd=cwd, stdin=subprocess.DEVNULL,
                                          stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         self.starts.append(time.time())

@@ -42,7 +42,7 @@ import numpy as np
 
 from tether import failsafe
 from tether import mission as ms
-from tether.vec import dot, floats
+from tether.vec import floats, norm
 from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES
 
 ABSURD = 10.0
@@ -137,7 +137,7 @@ class Watchdog:
         if not (all(map(math.isfinite, ul)) and math.isfinite(stamp)):
             self._reject("nonfinite")
             return False
-        if math.sqrt(dot(ul, ul)) > ABSURD * self.safety.max_accel:
+        if norm(ul) > ABSURD * self.safety.max_accel:
             self._reject("absurd")
             return False
         if k > k_now:

@@ -161,3 +161,12 @@ def test_a_version_2_file_loads_without_a_clock_record(tmp_path: Path) -> None:
     back = Run.load(tmp_path)
     assert back.meta.format_version == 2 and back.clock is None
     np.testing.assert_array_equal(back.links.received, run.links.received)
+
+
+def test_the_mission_checks_count_the_run_file_s_series() -> None:
+    """``tether.checks`` sizes a run from a number of its own (so that a process checking its mission
+    does not load the run file's numpy): the engines' series and the recorder's three plant ones."""
+    from tether import checks, runfile
+
+    assert checks.SERIES_RECORDED == len(runfile.SERIES) + len(("plant_p", "plant_v", "plant_a"))
+    assert {"plant_p", "plant_v", "plant_a"} <= set(runfile.RuntimeRecord.__struct_fields__)

@@ -26,37 +26,37 @@ RR_MIN, RR_MAX = 1, 99
 
 
 class SchedError(RuntimeError):
-    """The policy cannot be applied here: ``"<what>: <why>; <how to fix it>"``."""
+    """The policy cannot be applied here: ``"<why>; <how to fix it>"`` (the caller names its option)."""
 
 
-def check_priority(priority: int, what: str = "--rt-priority") -> str | None:
-    """Why ``priority`` cannot be a real-time priority (naming ``what``), or None. 0 means the
-    normal policy (``SCHED_OTHER``, nice 0)."""
+def check_priority(priority: int) -> str | None:
+    """Why ``priority`` cannot be a real-time priority, or None. 0 means the normal policy
+    (``SCHED_OTHER``, nice 0)."""
     if not (priority == 0 or RR_MIN <= priority <= RR_MAX):
-        return f"{what}: is {priority}; give {RR_MIN}..{RR_MAX} (SCHED_RR, e.g. 10), or 0 for the normal policy"
+        return f"is {priority}; give {RR_MIN}..{RR_MAX} (SCHED_RR, e.g. 10), or 0 for the normal policy"
     return None
 
 
-def apply(priority: int, what: str = "--rt-priority") -> str:
+def apply(priority: int) -> str:
     """Put this process's main thread (and the threads it starts from now on) at ``SCHED_RR``
     ``priority``, or back at the normal policy for 0. Returns what was applied, for the log;
     :class:`SchedError` if the range is wrong or the system refuses (no privilege)."""
-    why = check_priority(priority, what)
+    why = check_priority(priority)
     if why is not None:
         raise SchedError(why)
     if not hasattr(os, "sched_setscheduler"):
-        raise SchedError(f"{what}: this system has no sched_setscheduler (Linux only); run without it")
+        raise SchedError("this system has no sched_setscheduler (Linux only); run without it")
     if priority == 0:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # lowering is always allowed
         return "SCHED_OTHER"
     try:
         os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
     except PermissionError:
-        raise SchedError(f"{what}: real-time scheduling is not permitted for this user (it needs root, "
-                         f"CAP_SYS_NICE, or an rtprio limit of at least {priority}: `ulimit -r`, "
-                         "/etc/security/limits.conf); run without it") from None
+        raise SchedError(f"real-time scheduling is not permitted for this user (it needs root, CAP_SYS_NICE, "
+                         f"or an rtprio limit of at least {priority}: `ulimit -r`, /etc/security/limits.conf); "
+                         "run without it") from None
     except OSError as exc:
-        raise SchedError(f"{what}: SCHED_RR {priority} refused ({exc.strerror}); run without it") from None
+        raise SchedError(f"SCHED_RR {priority} refused ({exc.strerror}); run without it") from None
     return f"SCHED_RR {priority}"
 
 
@@ -71,11 +71,3 @@ def lower_priority() -> str:
         os.nice(19 - os.nice(0))
         return f"nice {os.nice(0)}"
 
-
-def describe(pid: int) -> str:
-    """The policy of process ``pid`` (its main thread), e.g. ``SCHED_RR 10``, for logs and tests."""
-    policy = os.sched_getscheduler(pid)
-    names = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_RR: "SCHED_RR", os.SCHED_FIFO: "SCHED_FIFO",
-             os.SCHED_IDLE: "SCHED_IDLE", os.SCHED_BATCH: "SCHED_BATCH"}
-    name = names.get(policy, f"policy {policy}")
-    return f"{name} {os.sched_getparam(pid).sched_priority}" if policy in (os.SCHED_RR, os.SCHED_FIFO) else name
