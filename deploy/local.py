@@ -944,7 +944,10 @@ def late_report(late: np.ndarray, ticks: int, rt_priority: int | None) -> str | 
     """What to say of the agents' late ticks at the end of a real-time run, or None: ``late`` is the
     run file's ``(T, N)`` running count (its last finite value per agent is the run's), ``ticks``
     the ticks run. Names the remedy where the control processes ran at the normal policy."""
-    counts = [float(c[np.isfinite(c)][-1]) for c in np.asarray(late, dtype=float).T if np.isfinite(c).any()]
+    late = np.asarray(late, dtype=float)
+    if late.ndim != 2:  # not a run file's (T, N): nothing to say from it
+        return None
+    counts = [float(c[np.isfinite(c)][-1]) for c in late.T if np.isfinite(c).any()]
     if not counts or ticks <= 0 or max(counts) <= LATE_WARN * ticks:
         return None
     lo, hi = min(counts), max(counts)

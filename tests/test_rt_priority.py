@@ -174,3 +174,4 @@ def test_late_ticks_beyond_one_percent_are_reported_with_the_remedy() -> None:
     assert late_report(np.zeros((2001, 4)), 2001, None) is None
     assert late_report(np.full((2001, 4), 20.0), 2001, None) is None  # 1 % and below: nothing to say
     assert late_report(np.full((2001, 4), np.nan), 2001, None) is None  # nothing recorded
+    assert late_report(np.full(2001, 500.0), 2001, None) is None  # not a (T, N) array: no report, no crash
