@@ -6,7 +6,9 @@
 ``bench/runtime.py`` writes SPEC.json and starts these processes; they are not meant to be run by
 hand. Each one does what the tether process of the same role does on the wire — same keys, same
 payload sizes, same QoS, same star topology (a router session in the hub, every other process a
-client), same liveliness handshake, same ``ZENOH_RUNTIME`` as the launcher gives its children —
+client), same liveliness handshake, same ``ZENOH_RUNTIME`` as the launcher gives its children, the
+same transport (mTLS with the run's certificates, access rules and ingress limits, or plain TCP as
+``tether run --insecure``: ``bench/runtime.py`` writes the configurations) —
 but its "work" is trivial: a payload is 16 header bytes ``<qq`` (tick k, send time
 [ns, CLOCK_MONOTONIC]) padded with zeros to the size of the tether message it stands for, and
 nothing is decoded beyond ``k``.
@@ -85,8 +87,11 @@ class Bare:
         self.h = 1.0 / spec["rate"]
         self.steps = spec["steps"]
         self.sizes = spec["sizes"]
-        cfg = zenoh.Config.from_json5(spec["client_config"])
-        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        if "tls" in spec:  # the run's identity of this process: its whole configuration (router included)
+            cfg = zenoh.Config.from_file(spec["tls"][f"{role}-{nid}"])
+        else:
+            cfg = zenoh.Config.from_json5(spec["client_config"])
+            cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
         self.session = zenoh.open(cfg)
         self.loop = asyncio.get_running_loop()
         self.queue: collections.deque = collections.deque()
@@ -199,7 +204,8 @@ class Bare:
                 self.subscribe(self.key(role, j, "state"), 1 + n)
             for topic in ("state", "telemetry"):
                 self.publisher(topic, self.key("agent", nid, topic))
-            self.publisher("plant_state", self.key("plant", nid, "state"))
+            # its plant's state for the recorder, on the key of tether's co-located records
+            self.publisher("plant_state", self.key("agent", nid, "record"))
         elif self.role == "agent":
             self.subscribe(self.key("plant", nid, "state"), 0, wake=True)  # relayed on arrival
             for n, (role, j) in enumerate(spec["nbrs"][str(nid)]):
@@ -210,7 +216,9 @@ class Bare:
             self.subscribe(self.key("leader", spec["leader"], "state"), 0)
             for aid in spec["agents"]:
                 self.subscribe(self.key("agent", aid, "telemetry"), 1)
-                if not spec.get("batch"):
+                if spec.get("colocate") and not spec.get("batch"):
+                    self.subscribe(self.key("agent", aid, "record"), 2)
+                elif not spec.get("batch"):
                     self.subscribe(self.key("plant", aid, "state"), 2)
             self.publisher("ack", self.key("recorder", nid, "ack"))
         t0 = await self.ready()
@@ -371,8 +379,11 @@ async def hub(spec: dict, endpoint: str) -> None:
 
     Prints ``listening``, then ``up <s>`` when every token is in, ``start <epoch>``, and at the end
     ``ran <mission s> <wall s>`` (wall time from the first grant / from tick 0 to the last tick)."""
-    cfg = zenoh.Config.from_json5(spec["router_config"])
-    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    if "tls" in spec:
+        cfg = zenoh.Config.from_file(spec["tls"]["router"])
+    else:
+        cfg = zenoh.Config.from_json5(spec["router_config"])
+        cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
     session = zenoh.open(cfg)
     loop = asyncio.get_running_loop()
     event = asyncio.Event()

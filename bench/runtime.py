@@ -64,6 +64,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench import missions  # noqa: E402
+from deploy import localtls  # noqa: E402
 from deploy.local import HANDOVER  # noqa: E402
 
 try:  # real time: agents tick this fraction of a period after plants and the leader (if the runtime does)
@@ -429,7 +430,9 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
     v = variant or {}
     placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
     client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
-    router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0)
+    # real time: the router's per-link ingress limits, as deploy.local gives the launcher's router
+    limits = localtls.ingress_limits(m, m.name) if clock == "realtime" else ()
+    router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0, ingress_limits=limits)
     configs = []
     for settings in (client, router):
         cfg = tp.zenoh_config(settings)
@@ -571,12 +574,13 @@ def _tether_cmd() -> list[str]:
 
 def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, work: Path,
                probe: bool = False, timeout: float = 300.0, launcher: list[str] | None = None,
-               extra: tuple[str, ...] = ()) -> Result:
-    """``tether run MISSION --clock CLOCK --duration S --quiet [EXTRA]``, measured from outside
-    (``launcher`` replaces the ``tether`` command, for experiments with a patched runtime)."""
+               extra: tuple[str, ...] = (), secure: bool = True) -> Result:
+    """``tether run MISSION --clock CLOCK --duration S --quiet [EXTRA]`` (and ``--insecure`` unless
+    ``secure``), measured from outside (``launcher`` replaces the ``tether`` command, for experiments
+    with a patched runtime)."""
     out = work / f"tether-{clock}-{m.n}-{time.monotonic_ns()}"
     cmd = [*(launcher or _tether_cmd()), "run", str(mission_path), "--out", str(out), "--clock", clock,
-           "--duration", repr(duration), "--quiet", *extra]
+           "--duration", repr(duration), "--quiet", *extra, *(() if secure else ("--insecure",))]
     res = Result("tether", m.n, clock, m.rate)
     probe_proc = None
     probe_out = out.with_suffix(".probe.json")
@@ -663,15 +667,30 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
 
 # =========================================================================== baseline runs
 def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: bool = False,
-                 wake: bool = False, variant: dict[str, Any] | None = None) -> Result:
-    """The same run with ``bench/baseline_node.py`` processes (hub = router + clock, like the launcher)."""
+                 wake: bool = False, variant: dict[str, Any] | None = None, secure: bool = True) -> Result:
+    """The same run with ``bench/baseline_node.py`` processes (hub = router + clock, like the launcher).
+
+    ``secure`` (what ``tether run`` does without ``--insecure``): every process's session is the one
+    ``deploy.localtls`` gives the launcher's children, made for this run the same way: mTLS with one
+    certificate per process, the router's access rules and ingress limits (so the baseline pays for
+    the transport what tether pays). Otherwise plain TCP (tether with ``--insecure``)."""
     spec = baseline_spec(m, clock, duration, wake, variant)
     env = child_env(handover=(variant or {}).get("handover", True))
     tag = f"baseline-{clock}-{m.n}-{time.monotonic_ns()}"
     spec_path = work / f"{tag}.json"
-    spec_path.write_text(json.dumps(spec))
     res = Result("baseline", m.n, clock, m.rate)
     endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    roles = ("agent",) if spec.get("colocate") else ("agent", "plant")
+    members = [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in roles], ("recorder", 0)]
+    if secure:
+        if probe:
+            raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
+        endpoint = "tls/" + endpoint.split("/", 1)[1]
+        limits = localtls.ingress_limits(m, m.name) if clock == "realtime" else ()
+        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, limits)
+        spec["tls"] = {"router": str(sec.configs["router"]),
+                       **{f"{r}-{i}": str(sec.child(r, i, endpoint)) for r, i in members}}
+    spec_path.write_text(json.dumps(spec))
     t_start = time.monotonic()
     hub = subprocess.Popen([PY, BASELINE, str(spec_path), "hub", endpoint], stdout=subprocess.PIPE,
                            stdin=subprocess.DEVNULL, text=True, env=launcher_env(), start_new_session=True)
@@ -681,8 +700,6 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
     try:
         if hub.stdout.readline().strip() != "listening":
             raise RuntimeError("baseline hub did not start")
-        roles = ("agent",) if spec.get("colocate") else ("agent", "plant")
-        members = [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in roles], ("recorder", 0)]
         if probe:
             probe_proc = _spawn_probe(endpoint, m.name, m.rate, "bare", m.n, spec["steps"], probe_out)
         for role, nid in members:
@@ -750,6 +767,22 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
 
 
 # =========================================================================== helpers
+def compile_tree() -> int:
+    """Compile the tree's bytecode into ``__pycache__``, as ``pip install`` does for a package: the
+    baseline's libraries are compiled, and a process that compiles tether's modules at every start
+    (``PYTHONDONTWRITEBYTECODE``, or a tree never imported) pays the compiler's CPU and keeps its
+    memory (1.6 MiB more RSS per agent, measured). Returns how many files were compiled."""
+    import compileall
+    import contextlib
+    import io
+    packages = ("agent", "cli", "deploy", "leader", "netem", "plant", "recorder", "sim", "tether")
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        for pkg in packages:
+            compileall.compile_dir(str(REPO / pkg), quiet=0)
+    return sum(1 for line in out.getvalue().splitlines() if line.startswith("Compiling"))
+
+
 def med(xs: list[float]) -> float:
     xs = [x for x in xs if x == x]
     return statistics.median(xs) if xs else float("nan")
@@ -844,16 +877,16 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
     rows = []
     for i in range(a.repeats):
         settle()
-        rt = run_tether(path, m, "lockstep", a.lockstep_duration, work)
+        rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, secure=a.secure)
         settle()
-        rb = run_baseline(m, "lockstep", a.lockstep_duration, work)
+        rb = run_baseline(m, "lockstep", a.lockstep_duration, work, secure=a.secure)
         rc = rcb = None
         if not a.no_variants:
             settle()
-            rc = run_baseline(m, "lockstep", a.lockstep_duration, work, variant={"colocate": True})
+            rc = run_baseline(m, "lockstep", a.lockstep_duration, work, variant={"colocate": True}, secure=a.secure)
             settle()
             rcb = run_baseline(m, "lockstep", a.lockstep_duration, work,
-                               variant={"colocate": True, "batch": 4, "window": 16})
+                               variant={"colocate": True, "batch": 4, "window": 16}, secure=a.secure)
         t0 = time.perf_counter()
         refsim.simulate(m, "discrete")
         ref = m.duration / (time.perf_counter() - t0)
@@ -932,9 +965,9 @@ def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
     for i in range(a.repeats):
         for name, variant, opts in structs:
             settle()
-            rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, extra=opts)
+            rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, extra=opts, secure=a.secure)
             settle()
-            rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant)
+            rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant, secure=a.secure)
             bad = [f"{r.kind} failed: {r.why}" for r in (rt, rb) if not r.ok]
             ct, cb = _per_tick(rt, ticks), _per_tick(rb, ticks)
             row = {"tether": rt.speed if rt.ok else float("nan"), "baseline": rb.speed if rb.ok else float("nan"),
@@ -1020,9 +1053,9 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
         for _ in range(a.scale_repeats):
             settle()
             rt = run_tether(path, m, "realtime", a.rt_duration, work,
-                            extra=("--shared-plants",) if a.scale_shared else ())
+                            extra=("--shared-plants",) if a.scale_shared else (), secure=a.secure)
             settle()
-            rb = run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)
+            rb = run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake, secure=a.secure)
             pairs.append((rt, rb))
             row = _rt_row(rt, rb)
             runs.append(row)
@@ -1064,9 +1097,9 @@ def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -
         settle()
         # --insecure: the probe is a plain Zenoh client on the launcher's endpoint (TLS with client
         # certificates, the default, refuses it), and the bare baseline has no TLS either
-        rt = run_tether(path, m, "realtime", a.latency_duration, work, probe=True, extra=("--insecure",))
+        rt = run_tether(path, m, "realtime", a.latency_duration, work, probe=True, secure=False)
         settle()
-        rb = run_baseline(m, "realtime", a.latency_duration, work, probe=True, wake=a.baseline_wake)
+        rb = run_baseline(m, "realtime", a.latency_duration, work, probe=True, wake=a.baseline_wake, secure=False)
         pairs.append((rt, rb))
         row = _rt_row(rt, rb)
         row["tether_probe"], row["baseline_probe"] = probe_stats(rt.probe, rate), probe_stats(rb.probe, rate)
@@ -1121,9 +1154,9 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
     if not pairs:
         path, m = mission_file(work, 8, a.scale_rate, a.rt_duration)
         settle()
-        rt = run_tether(path, m, "realtime", a.rt_duration, work)
+        rt = run_tether(path, m, "realtime", a.rt_duration, work, secure=a.secure)
         settle()
-        pairs.append((rt, run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake)))
+        pairs.append((rt, run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake, secure=a.secure)))
     say("\n== 4. per agent process, real time: CPU [% of one core] and memory [MiB] (median process; tether / "
         "baseline = ratio)")
     say("   RSS counts shared library pages in full in every process; PSS divides them among their users;")
@@ -1333,6 +1366,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--no-variants", action="store_true", help="case 1: skip the co-located baseline experiment")
     ap.add_argument("--colocate-windows", nargs="*", default=["16:4", "16:8", "32:16"], metavar="WINDOW:BATCH",
                     help="case colocate: co-located structures with records of BATCH ticks and this grant window")
+    ap.add_argument("--insecure", action="store_true",
+                    help="tether run --insecure, and the baseline on plain TCP too (default: both authenticated, "
+                         "mTLS with the run's access rules; the latency case is plain either way: its probe is)")
     ap.add_argument("--baseline-wake", action="store_true",
                     help="real-time baseline wakes its loop on every sample, as tether's nodes do")
     ap.add_argument("--quiet-below", type=float, default=0.5,
@@ -1347,6 +1383,8 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--profile-colocate", metavar="WINDOW:BATCH", default=None,
                     help="--profile a lockstep run with --colocate-plants, this window and records of BATCH ticks")
     a = ap.parse_args(argv)
+    a.secure = not a.insecure
+    compiled = compile_tree()
     if a.profile:
         work = a.work or Path(tempfile.mkdtemp(prefix="tether-profile-"))
         return profile_run(a.mission, a.profile_clock, a.profile_duration, a.profile, work,
@@ -1356,6 +1394,9 @@ def main(argv: list[str]) -> None:
                                           "load_at_start": os.getloadavg()}}
     say(f"bench/runtime.py: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, load average at start "
         + " ".join(f"{x:.2f}" for x in os.getloadavg()))
+    say(f"   transport: {'mTLS, access rules' if a.secure else 'plain TCP (--insecure)'} for tether and the "
+        f"baseline alike (the latency case: plain); bytecode of this tree compiled first ({compiled} files "
+        "were stale), as an installed package has it")
     pairs: list = []
     with tempfile.TemporaryDirectory(prefix="tether-bench-") as tmp:
         work = a.work or Path(tmp)

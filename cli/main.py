@@ -15,7 +15,6 @@ import math
 import os
 import shlex
 import sys
-import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -93,6 +92,8 @@ def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
     if not base.is_dir():
         raise BadArgument(f"{arg}: {base} is a file, so {out} cannot be made; give another directory")
     try:
+        import tempfile  # here: every process starts through this module
+
         with tempfile.NamedTemporaryFile(dir=base, prefix=".tether-probe-"):
             pass
     except OSError as exc:
@@ -644,9 +645,18 @@ def _process_options(p: argparse.ArgumentParser) -> None:
     _zenoh_options(p)
 
 
-def build_parser() -> argparse.ArgumentParser:
+PROCESSES = ("leader", "agent", "plant", "world", "recorder")
+"""The process commands: what the launcher and the deployment's units start, one per process."""
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; for ``command`` one of :data:`PROCESSES`, without the subcommands that
+    live in modules of their own (studies, deployment, recording, top), which a control process
+    would otherwise load at every start for nothing (1 MiB of its memory: ``deploy.gen`` alone brings
+    ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
     p = argparse.ArgumentParser(prog="tether", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
+    everything = command not in PROCESSES
 
     c = sub.add_parser("check", help="validate a mission file and print a summary")
     c.add_argument("mission", help="mission file, or the name of a shipped mission (" + ", ".join(catalog.builtin_names()) + ")")
@@ -786,9 +796,10 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
                     help="latency compensation on every agent (default: as the mission's [links] says)")
     sw.set_defaults(func=cmd_sweep)
-    from cli import study as study_cli
+    if everything:
+        from cli import study as study_cli
 
-    study_cli.extend(sub, sw)  # --executor, --seeds, --sigma/--gamma-p/--gamma-v, and `tether montecarlo`
+        study_cli.extend(sub, sw)  # --executor, --seeds, --sigma/--gamma-p/--gamma-v, and `tether montecarlo`
 
     nc = sub.add_parser("netem-set", help="change the emulated links of a running swarm (its mission needs [netem])")
     nc.add_argument("profile", help='a preset (wifi, wifi-lossy, ...) or an inline TOML table, e.g. "{ loss = { p = 0.3 } }"')
@@ -810,19 +821,20 @@ def build_parser() -> argparse.ArgumentParser:
         _zenoh_options(op)
         op.set_defaults(func=cmd_safety, action=action, zenoh_mode="client", connect_timeout=5.0)
 
-    from deploy import gen as deploy_gen
+    if everything:
+        from deploy import gen as deploy_gen
 
-    dg = sub.add_parser("deploy-gen", help="companion computers: every host's Zenoh profiles, mTLS certificates, "
-                                           "access control and service units, from a mission")
-    deploy_gen.add_arguments(dg)
-    dg.set_defaults(func=deploy_gen.run_args)
+        dg = sub.add_parser("deploy-gen", help="companion computers: every host's Zenoh profiles, mTLS certificates, "
+                                               "access control and service units, from a mission")
+        deploy_gen.add_arguments(dg)
+        dg.set_defaults(func=deploy_gen.run_args)
 
-    from deploy import rehearse
+        from deploy import rehearse
 
-    rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
-                                         "namespace of its own (root)")
-    rehearse.add_arguments(rh)
-    rh.set_defaults(func=rehearse.run_args)
+        rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
+                                             "namespace of its own (root)")
+        rehearse.add_arguments(rh)
+        rh.set_defaults(func=rehearse.run_args)
 
     mc = sub.add_parser("mcap", help="write a run's Foxglove file (run.mcap) from its run file")
     mc.add_argument("run", help="a run.npz or the directory holding it")
@@ -831,10 +843,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="rate of the 3D scene (default 25; 0: every tick)")
     mc.set_defaults(func=cmd_mcap)
 
-    from cli import record, top
+    if everything:
+        from cli import record, top
 
-    record.add_parser(sub)
-    top.add_parser(sub)
+        record.add_parser(sub)
+        top.add_parser(sub)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file (safety mode changes marked)")
     pl.add_argument("run", help="a run.npz or the directory holding it")
@@ -844,7 +857,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     from tether.schema import SchemaError
 

@@ -65,3 +65,47 @@ def test_an_agent_loads_no_numpy(module: str) -> None:
     agent's memory map too)."""
     bad = sorted({n for n in loaded_modules(module) if re.match(r"^numpy(\.|$)", n)})
     assert not bad, f"import {module} loads numpy ({len(bad)} modules)"
+
+
+LEAN = re.compile(r"^(deploy\.(gen|rehearse|pki|acl)|cli\.(study|record|top)|tempfile|difflib|random|importlib\.resources"
+                  r"|subprocess|hashlib)(\.|$)")
+"""What a control process has no use for: the other subcommands' modules, and the standard library
+they (or ``importlib.resources``, or a mistake's spelling suggestion) bring."""
+
+
+def loaded_by_command(argv: list[str]) -> list[str]:
+    """Every module loaded by building the command line for ``argv`` and parsing it, as
+    ``python -m cli ARGV`` does before it runs the command (which is not run here)."""
+    code = ("import sys; from cli import main; main.build_parser(sys.argv[1] if len(sys.argv) > 1 else None)"
+            ".parse_args(sys.argv[1:])")
+    r = subprocess.run([sys.executable, "-X", "importtime", "-c", code, *argv], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, f"parsing {argv} failed:\n{r.stderr[-2000:]}"
+    return [line.rsplit("|", 1)[1].strip() for line in r.stderr.splitlines()
+            if line.startswith("import time:") and "|" in line]
+
+
+@pytest.mark.parametrize("role", ["agent", "plant", "leader", "recorder", "world"])
+def test_a_control_process_loads_no_other_subcommand(role: str) -> None:
+    """A process command builds only its own part of the command line: the study, deployment,
+    recording and terminal subcommands (and ``subprocess``, ``hashlib``, ``tempfile`` they bring) cost
+    every process about 1 MiB of memory (docs/benchmarks.md, "An agent's memory")."""
+    argv = [role, "--mission", "section4"] + (["--id", "1"] if role in ("agent", "plant") else []) \
+        + (["--out", "run"] if role == "recorder" else [])
+    names = loaded_by_command(argv)
+    assert "cli.main" in names
+    bad = sorted({n for n in names if LEAN.match(n)})
+    assert not bad, f"tether {role} loads {', '.join(bad)}"
+    assert "deploy.gen" in loaded_by_command(["check", "section4"]), \
+        "the check is vacuous: the full command line loads deploy.gen"
+
+
+def test_the_full_command_line_still_has_every_subcommand() -> None:
+    from cli import main
+
+    text = main.build_parser().format_help()
+    for command in ("deploy-gen", "rehearse", "record", "top", "montecarlo", "sweep", "agent", "plant"):
+        assert command in text, f"{command} is missing from tether --help"
+    with pytest.raises(SystemExit) as exc:
+        main.main(["agent", "--mission", "section4", "--id", "1", "--bogus"])
+    assert exc.value.code == 2  # a process command's own parser still refuses an unknown option

@@ -1,19 +1,23 @@
-"""The missions shipped with tether, and how a mission argument is resolved (no heavy imports)."""
+"""The missions shipped with tether, and how a mission argument is resolved (no heavy imports:
+every process resolves its mission, so not ``importlib.resources``, which loads ``tempfile``,
+``shutil``, ``bz2`` and ``lzma``; tether is installed as files, and its missions are files beside
+this module)."""
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
+
+MISSIONS = Path(__file__).resolve().parent / "missions"
+"""Where the shipped missions are."""
 
 
 def builtin_path(name: str) -> Path:
     """Path of a mission shipped with tether (``tether/missions/<name>.toml``)."""
-    return Path(str(resources.files("tether") / "missions" / f"{name}.toml"))
+    return MISSIONS / f"{name}.toml"
 
 
 def builtin_names() -> list[str]:
-    root = resources.files("tether") / "missions"
-    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+    return sorted(p.name[:-5] for p in MISSIONS.iterdir() if p.name.endswith(".toml"))
 
 
 def resolve(arg: str) -> Path:

@@ -14,7 +14,6 @@ The file format, field by field, is documented in ``docs/mission.md``.
 
 from __future__ import annotations
 
-import difflib
 import json
 import math
 import re
@@ -639,7 +638,7 @@ def _field_of(msg: str | msgspec.ValidationError, raw: object = None) -> tuple[s
     dim: int = raw["dim"] if isinstance(raw, dict) and raw.get("dim") in (2, 3) else 3
     if issue.kind == "unknown_field" and issue.name is not None:
         known = _field_names(_type_at(path, raw))
-        close = difflib.get_close_matches(issue.name, known, n=1)
+        close = _close_matches(issue.name, known, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
         listing = (f"the fields here are {', '.join(known)}" if len(known) > 1
                    else f"this table takes only `{known[0]}`" if known else "this table takes no fields")
@@ -883,3 +882,10 @@ def _inline(v: object) -> str:
     if isinstance(v, float):
         return "inf" if v == math.inf else "-inf" if v == -math.inf else "nan" if v != v else repr(v)
     return _toml(v)
+
+
+def _close_matches(word: str, choices: list[str], n: int) -> list[str]:
+    """``difflib.get_close_matches``, loaded when a mistake is being explained, not in every process."""
+    import difflib
+
+    return difflib.get_close_matches(word, choices, n=n)

@@ -22,12 +22,11 @@ from __future__ import annotations
 
 import asyncio
 import math
-import random
 import re
 import socket
 from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
-from typing import Any, Literal, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar
 
 import msgspec
 import zenoh
@@ -35,6 +34,9 @@ import zenoh
 from tether import wire
 from tether.handoff import BoundedFifo, Sink, Wakeup
 from tether.schema import Problems, SchemaError, Strict, read_issue
+
+if TYPE_CHECKING:
+    import random
 
 __all__ = [
     "COMMAND",
@@ -361,7 +363,10 @@ def free_tcp_port(rng: random.Random | None = None) -> int:
     A race with another process choosing the same port remains possible but unlikely; the caller
     should bind soon. ``rng`` is for reproducible tests; by default a fresh OS-seeded generator.
     """
-    rng = rng or random.Random()
+    if rng is None:
+        import random  # here: only a launcher picks ports, and every process loads this module
+
+        rng = random.Random()
     high = _ephemeral_low() - 1
     low = max(1024, min(10000, high - 1000))
     for _ in range(200):
