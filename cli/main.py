@@ -650,14 +650,23 @@ PROCESSES = ("leader", "agent", "plant", "world", "recorder")
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The whole command line; for ``command`` one of :data:`PROCESSES`, without the subcommands that
-    live in modules of their own (studies, deployment, recording, top), which a control process
-    would otherwise load at every start for nothing (1 MiB of its memory: ``deploy.gen`` alone brings
-    ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
+    """The whole command line; for ``command`` one of :data:`PROCESSES` (how every process of a run
+    is started), the process commands alone. The others would cost each control process about
+    1.3 MiB of memory for nothing: their argparse objects, and the modules some of them live in
+    (``deploy.gen`` alone brings ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
     p = argparse.ArgumentParser(prog="tether", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
-    everything = command not in PROCESSES
+    if command in PROCESSES:
+        _process_commands(sub)
+        return p
+    _run_commands(sub)
+    _process_commands(sub)
+    _study_and_tool_commands(sub)
+    return p
 
+
+def _run_commands(sub: argparse._SubParsersAction) -> None:
+    """check, simulate, reproduce, demo, run."""
     c = sub.add_parser("check", help="validate a mission file and print a summary")
     c.add_argument("mission", help="mission file, or the name of a shipped mission (" + ", ".join(catalog.builtin_names()) + ")")
     c.set_defaults(func=cmd_check)
@@ -757,6 +766,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                          "(default: half the window)")
     rn.set_defaults(func=cmd_run)
 
+
+def _process_commands(sub: argparse._SubParsersAction) -> None:
+    """The processes of a run (:data:`PROCESSES`)."""
     for role, fn, helptext in (("leader", cmd_leader, "the virtual leader's process"),
                                ("agent", cmd_agent, "one agent's process"),
                                ("plant", cmd_plant, "one simulated plant's process"),
@@ -780,6 +792,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             rp.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
         rp.set_defaults(func=fn)
 
+
+def _study_and_tool_commands(sub: argparse._SubParsersAction) -> None:
+    """Studies, operator tools, deployment, recording, files."""
     sw = sub.add_parser("sweep", help="degradation study: a mission over a grid of link loss and delay, both laws")
     sw.add_argument("mission")
     sw.add_argument("--out", required=True, help="directory for sweep.csv, sweep.md, heatmaps and each point's mission")
@@ -796,10 +811,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sw.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
                     help="latency compensation on every agent (default: as the mission's [links] says)")
     sw.set_defaults(func=cmd_sweep)
-    if everything:
-        from cli import study as study_cli
+    from cli import study as study_cli
 
-        study_cli.extend(sub, sw)  # --executor, --seeds, --sigma/--gamma-p/--gamma-v, and `tether montecarlo`
+    study_cli.extend(sub, sw)  # --executor, --seeds, --sigma/--gamma-p/--gamma-v, and `tether montecarlo`
 
     nc = sub.add_parser("netem-set", help="change the emulated links of a running swarm (its mission needs [netem])")
     nc.add_argument("profile", help='a preset (wifi, wifi-lossy, ...) or an inline TOML table, e.g. "{ loss = { p = 0.3 } }"')
@@ -821,20 +835,19 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         _zenoh_options(op)
         op.set_defaults(func=cmd_safety, action=action, zenoh_mode="client", connect_timeout=5.0)
 
-    if everything:
-        from deploy import gen as deploy_gen
+    from deploy import gen as deploy_gen
 
-        dg = sub.add_parser("deploy-gen", help="companion computers: every host's Zenoh profiles, mTLS certificates, "
-                                               "access control and service units, from a mission")
-        deploy_gen.add_arguments(dg)
-        dg.set_defaults(func=deploy_gen.run_args)
+    dg = sub.add_parser("deploy-gen", help="companion computers: every host's Zenoh profiles, mTLS certificates, "
+                                           "access control and service units, from a mission")
+    deploy_gen.add_arguments(dg)
+    dg.set_defaults(func=deploy_gen.run_args)
 
-        from deploy import rehearse
+    from deploy import rehearse
 
-        rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
-                                             "namespace of its own (root)")
-        rehearse.add_arguments(rh)
-        rh.set_defaults(func=rehearse.run_args)
+    rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
+                                         "namespace of its own (root)")
+    rehearse.add_arguments(rh)
+    rh.set_defaults(func=rehearse.run_args)
 
     mc = sub.add_parser("mcap", help="write a run's Foxglove file (run.mcap) from its run file")
     mc.add_argument("run", help="a run.npz or the directory holding it")
@@ -843,17 +856,15 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                     help="rate of the 3D scene (default 25; 0: every tick)")
     mc.set_defaults(func=cmd_mcap)
 
-    if everything:
-        from cli import record, top
+    from cli import record, top
 
-        record.add_parser(sub)
-        top.add_parser(sub)
+    record.add_parser(sub)
+    top.add_parser(sub)
 
     pl = sub.add_parser("plot", help="draw a run's figures from its run file (safety mode changes marked)")
     pl.add_argument("run", help="a run.npz or the directory holding it")
     pl.add_argument("--out", default=None)
     pl.set_defaults(func=cmd_plot)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

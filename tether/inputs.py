@@ -18,6 +18,10 @@ RECENT_SEQS = 256
 it remembers every sequence number received in that window. A sample further behind is too old
 to be a reordering and counts as a duplicate (a replay, or a copy too late to matter), so that
 ``received - duplicates`` never exceeds the samples sent."""
+_WINDOW = (1 << (RECENT_SEQS + 1)) - 1
+"""The bits of :attr:`Source.recent`: the newest and the :data:`RECENT_SEQS` before it."""
+_FRESH = RECENT_SEQS + 1
+"""A shift that starts :attr:`Source.recent` afresh."""
 
 
 class Copy(Protocol):
@@ -69,9 +73,10 @@ class Source:
     (overtaken by a newer one on the way)."""
     corrupt: int = 0
     """Copies an emulated link corrupted (they fail the receiver's checksum and are dropped)."""
-    recent: set[int] = field(default_factory=set)
-    """The sequence numbers received within :data:`RECENT_SEQS` of the newest, to tell a duplicate
-    from a reordered sample."""
+    recent: int = 0
+    """Which sequence numbers within :data:`RECENT_SEQS` of the newest were received, to tell a
+    duplicate from a reordered sample: bit ``i`` stands for ``newest.seq - i`` (a few machine words
+    however many samples come; a set of the numbers themselves held 30-50 kB per input)."""
     last: int = -1
     """The producer's last tick (the mission's), when known."""
     channel: Link | None = None
@@ -110,19 +115,21 @@ class Source:
             self.rejected += 1
             return
         self.received += 1
-        if self.newest is not None and msg.seq <= self.newest.seq:
+        newest = self.newest
+        if newest is not None and msg.seq <= newest.seq:
             self.stale += 1
-            if msg.seq in self.recent or msg.seq < self.newest.seq - RECENT_SEQS:
+            behind = newest.seq - msg.seq
+            if behind > RECENT_SEQS or self.recent >> behind & 1:
                 self.duplicates += 1
             else:
                 self.reordered += 1
-                self.recent.add(msg.seq)
+                self.recent |= 1 << behind
         else:
+            # a jump beyond the window (a first sample, a forged sequence number) starts it afresh:
+            # never a shift by an absurd count
+            ahead = msg.seq - newest.seq if newest is not None else _FRESH
+            self.recent = (self.recent << ahead | 1) & _WINDOW if ahead <= RECENT_SEQS else 1
             self.newest = msg
-            self.recent.add(msg.seq)
-            if len(self.recent) > 2 * RECENT_SEQS:
-                floor = msg.seq - RECENT_SEQS
-                self.recent = {q for q in self.recent if q >= floor}
         if self.keep:
             self.by_tick.setdefault(msg.k, msg)
         if self.on_message is not None:
