@@ -26,7 +26,7 @@ import msgspec.inspect
 import msgspec.structs
 
 from tether.netprofile import Network
-from tether.schema import KeyPath, Kind, Problems, SchemaError, Strict, read_issue
+from tether.schema import KeyPath, Kind, Problems, SchemaError, Strict, close_matches, read_issue
 
 SCHEMA_VERSION = 1
 """The mission-file version this release reads."""
@@ -638,7 +638,7 @@ def _field_of(msg: str | msgspec.ValidationError, raw: object = None) -> tuple[s
     dim: int = raw["dim"] if isinstance(raw, dict) and raw.get("dim") in (2, 3) else 3
     if issue.kind == "unknown_field" and issue.name is not None:
         known = _field_names(_type_at(path, raw))
-        close = _close_matches(issue.name, known, n=1)
+        close = close_matches(issue.name, known, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
         listing = (f"the fields here are {', '.join(known)}" if len(known) > 1
                    else f"this table takes only `{known[0]}`" if known else "this table takes no fields")
@@ -882,10 +882,3 @@ def _inline(v: object) -> str:
     if isinstance(v, float):
         return "inf" if v == math.inf else "-inf" if v == -math.inf else "nan" if v != v else repr(v)
     return _toml(v)
-
-
-def _close_matches(word: str, choices: list[str], n: int) -> list[str]:
-    """``difflib.get_close_matches``, loaded when a mistake is being explained, not in every process."""
-    import difflib
-
-    return difflib.get_close_matches(word, choices, n=n)

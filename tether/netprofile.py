@@ -24,7 +24,7 @@ from typing import Literal
 import msgspec
 import msgspec.structs
 
-from tether.schema import Kind, Problems, SchemaError, Strict, join, read_issue
+from tether.schema import Kind, Problems, SchemaError, Strict, close_matches, join, read_issue
 
 # --------------------------------------------------------------------------- delay
 Distribution = Literal["uniform", "normal", "pareto"]
@@ -286,7 +286,7 @@ def _from_validation_error(exc: msgspec.ValidationError, path: str) -> tuple[str
     inner = join(path, issue.where) if issue.where else path
     where = inner or "<profile>"
     if issue.kind == "unknown_field" and issue.name is not None:
-        close = _close_matches(issue.name, _FIELD_NAMES, n=1)
+        close = close_matches(issue.name, _FIELD_NAMES, n=1)
         fix = f"rename it to `{close[0]}` if that is what you meant, or remove it" if close else "remove it"
         return join(inner, issue.name), f"is not a known field; {fix} (see docs/netem.md)"
     if issue.kind == "missing_field" and issue.name == "kind":
@@ -374,7 +374,7 @@ def preset(name: str) -> LinkProfile:
 
 
 def _not_a_preset(name: str) -> str:
-    close = _close_matches(name, list(PRESETS), n=1)
+    close = close_matches(name, list(PRESETS), n=1)
     hint = f"did you mean `{close[0]}`? " if close else ""
     return f"is {name!r}, not a preset; {hint}use one of {', '.join(PRESETS)} or write the profile inline"
 
@@ -467,10 +467,3 @@ def profile_at(net: Network, src: int, dst: int, t: float) -> LinkProfile:
             break
         current = prof
     return current
-
-
-def _close_matches(word: str, choices: list[str], n: int) -> list[str]:
-    """``difflib.get_close_matches``, loaded when a mistake is being explained, not in every process."""
-    import difflib
-
-    return difflib.get_close_matches(word, choices, n=n)

@@ -157,3 +157,11 @@ def read_issue(exc: msgspec.ValidationError | str) -> Issue:
     if m := _BAD_VALUE.match(text):
         return issue("invalid_value", value=m["value"])
     return issue("other")
+
+
+def close_matches(word: str, choices: list[str], n: int = 1) -> list[str]:
+    """``difflib.get_close_matches``: the spelling suggestion of a message about a mistake. Imported
+    here, when a mistake is being explained, not by every process that reads a mission."""
+    import difflib
+
+    return difflib.get_close_matches(word, choices, n=n)
