@@ -1153,10 +1153,12 @@ KINDS = ("main", "callback", "zenoh")
 def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:
     if not pairs:
         path, m = mission_file(work, 8, a.scale_rate, a.rt_duration)
-        settle()
-        rt = run_tether(path, m, "realtime", a.rt_duration, work, secure=a.secure)
-        settle()
-        pairs.append((rt, run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake, secure=a.secure)))
+        for _ in range(a.cpu_repeats):  # pairs one right after the other; the medians are over them
+            settle()
+            rt = run_tether(path, m, "realtime", a.rt_duration, work, secure=a.secure)
+            settle()
+            pairs.append((rt, run_baseline(m, "realtime", a.rt_duration, work, wake=a.baseline_wake,
+                                           secure=a.secure)))
     say("\n== 4. per agent process, real time: CPU [% of one core] and memory [MiB] (median process; tether / "
         "baseline = ratio)")
     say("   RSS counts shared library pages in full in every process; PSS divides them among their users;")
@@ -1195,7 +1197,7 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
         say("        by thread (main / callback / Zenoh) [% of a core], tether vs bare: " + "; ".join(split))
     if rows:
         summary = {k: med([r[k][2] for r in rows]) for k in rows[0] if k not in ("n", "rate") and not k.endswith("_threads")}
-        say(f"   median ratios: agent CPU {summary['agent_cpu']:.2f} (target <= 1.2), agent RSS {summary['agent_rss']:.2f} "
+        say(f"   median ratios: agent CPU {summary['agent_cpu']:.3f} (target <= 1.2), agent RSS {summary['agent_rss']:.3f} "
             f"(target <= 1.1), PSS {summary['agent_pss']:.2f}, USS {summary['agent_uss']:.2f}; plant CPU "
             f"{summary['plant_cpu']:.2f}, recorder CPU {summary['recorder_cpu']:.2f}")
         report["cpu"] = {"rows": rows, "median_ratios": summary}
@@ -1360,6 +1362,8 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--scale-shared", action="store_true",
                     help="case 2: tether runs with --shared-plants (one world process for every vehicle)")
     ap.add_argument("--rt-duration", type=float, default=15.0, help="case 2 (and 4): mission seconds per run")
+    ap.add_argument("--cpu-repeats", type=int, default=1,
+                    help="case 4 on its own: N = 8 pairs run one after the other (median ratios over them)")
     ap.add_argument("--latency-n", type=int, default=8)
     ap.add_argument("--latency-rate", type=float, default=100.0)
     ap.add_argument("--latency-duration", type=float, default=10.0)
