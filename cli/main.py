@@ -652,7 +652,7 @@ PROCESSES = ("leader", "agent", "plant", "world", "recorder")
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; for ``command`` one of :data:`PROCESSES` (how every process of a run
     is started), the process commands alone. The others would cost each control process about
-    1.3 MiB of memory for nothing: their argparse objects, and the modules some of them live in
+    1 MiB of memory for nothing: their argparse objects, and the modules some of them live in
     (``deploy.gen`` alone brings ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
     p = argparse.ArgumentParser(prog="tether", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
