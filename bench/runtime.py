@@ -431,7 +431,7 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
     placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
     client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
     # real time: the router's per-link ingress limits, as deploy.local gives the launcher's router
-    limits = localtls.ingress_limits(m, m.name) if clock == "realtime" else ()
+    limits = localtls.run_limits(m, m.name, clock)
     router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0, ingress_limits=limits)
     configs = []
     for settings in (client, router):
@@ -686,8 +686,7 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
         if probe:
             raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
         endpoint = "tls/" + endpoint.split("/", 1)[1]
-        limits = localtls.ingress_limits(m, m.name) if clock == "realtime" else ()
-        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, limits)
+        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, localtls.run_limits(m, m.name, clock))
         spec["tls"] = {"router": str(sec.configs["router"]),
                        **{f"{r}-{i}": str(sec.child(r, i, endpoint)) for r, i in members}}
     spec_path.write_text(json.dumps(spec))

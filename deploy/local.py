@@ -757,7 +757,7 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
     # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound
-    limits = localtls.ingress_limits(m, keys.ns) if opts.clock == "realtime" else ()
+    limits = localtls.run_limits(m, keys.ns, opts.clock)
     settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease,
                                 ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
