@@ -18,7 +18,7 @@ import sys
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from tether import catalog, jsonout
 from tether import mission as ms
@@ -649,12 +649,44 @@ PROCESSES = ("leader", "agent", "plant", "world", "recorder")
 """The process commands: what the launcher and the deployment's units start, one per process."""
 
 
+class _Formatter(argparse.HelpFormatter):
+    """argparse's help layout, measuring the terminal as ``shutil.get_terminal_size`` does without
+    importing ``shutil``: argparse imports it for every argument it adds, and with it ``bz2``,
+    ``lzma`` and their libraries, 0.34 MiB of every control process's memory for nothing."""
+
+    def __init__(self, prog: str, indent_increment: int = 2, max_help_position: int = 24,
+                 width: int | None = None) -> None:
+        super().__init__(prog, indent_increment, max_help_position,
+                         _terminal_columns() - 2 if width is None else width)
+
+
+def _terminal_columns() -> int:
+    try:
+        columns = int(os.environ.get("COLUMNS", "0"))
+    except ValueError:
+        columns = 0
+    if columns <= 0:
+        try:
+            columns = os.get_terminal_size(sys.__stdout__.fileno()).columns  # type: ignore[union-attr]
+        except (AttributeError, ValueError, OSError):
+            columns = 0
+    return columns if columns > 0 else 80
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser laid out by :class:`_Formatter` (its subparsers are of this class too)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", _Formatter)
+        super().__init__(**kwargs)
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; for ``command`` one of :data:`PROCESSES` (how every process of a run
     is started), the process commands alone. The others would cost each control process about
     1 MiB of memory for nothing: their argparse objects, and the modules some of them live in
     (``deploy.gen`` alone brings ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
-    p = argparse.ArgumentParser(prog="tether", description=__doc__.splitlines()[0])
+    p = _Parser(prog="tether", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
     if command in PROCESSES:
         _process_commands(sub)

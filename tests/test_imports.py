@@ -68,7 +68,7 @@ def test_an_agent_loads_no_numpy(module: str) -> None:
 
 
 LEAN = re.compile(r"^(deploy\.(gen|rehearse|pki|acl)|cli\.(study|record|top)|tempfile|difflib|random|importlib\.resources"
-                  r"|subprocess|hashlib)(\.|$)")
+                  r"|subprocess|hashlib|shutil|bz2|lzma)(\.|$)")
 """What a control process has no use for: the other subcommands' modules, and the standard library
 they (or ``importlib.resources``, or a mistake's spelling suggestion) bring."""
 

@@ -488,9 +488,9 @@ class Interrupted:
     seconds_to_exit: float
     survivors: list[str | int]
     """Children still alive after the launcher exited, by name, and any other process naming the run's namespace."""
-    numpy_mapped: dict[str, bool]
-    """Per child, whether numpy's core library is mapped into it, read after a second of flight
-    with malformed input handled."""
+    mapped: dict[str, set[str]]
+    """Per child, which of :data:`MARKERS` are mapped into it, read after a second of flight with
+    malformed input handled."""
 
 
 @pytest.fixture(scope="module")
@@ -538,15 +538,15 @@ def interrupted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Interrupte
         finally:
             client.close()
         assert run.proc.poll() is None, f"the launcher ended early:\n{run.launcher_log}"
-        numpy_mapped = {name: "_multiarray_umath" in Path(f"/proc/{pid}/maps").read_text()
-                        for name, pid in run.children.items()}
+        mapped = {name: {lib for lib in MARKERS if f"/{lib}." in Path(f"/proc/{pid}/maps").read_text()}
+                  for name, pid in run.children.items()}
         assert len(processes_naming(ns)) == 1 + len(CHILDREN)  # the survivor check below sees them all
         sent = time.monotonic()
         run.proc.send_signal(signal.SIGINT)
         run.wait(30)
         took = time.monotonic() - sent
         survivors = [name for name, pid in run.children.items() if alive(pid)] + processes_naming(ns)
-        yield Interrupted(run, live, dict(tele.drops), expected, recorder_expected, took, survivors, numpy_mapped)
+        yield Interrupted(run, live, dict(tele.drops), expected, recorder_expected, took, survivors, mapped)
 
 
 def test_ctrl_c_stops_every_process_within_seconds_and_keeps_a_partial_run(interrupted: Interrupted) -> None:
@@ -570,14 +570,29 @@ def test_ctrl_c_stops_every_process_within_seconds_and_keeps_a_partial_run(inter
     assert np.isfinite(rec.leader_p).all(axis=1).sum() >= 90
 
 
+MARKERS = ("_multiarray_umath", "_lzma", "_bz2")
+"""Extension modules looked for in each process's memory map: numpy's core, and the compressors that
+``shutil`` brings (argparse imports it to measure the terminal)."""
+
+
 def test_an_agent_process_never_loads_numpy(interrupted: Interrupted) -> None:
     """An agent runs on Python floats (``tether.vec``); numpy would be 13 MiB of its memory. The
     plants, the leader and the recorder use it (dynamics, profiles, the run file), which shows the
     check reads the maps it means to."""
-    mapped = interrupted.numpy_mapped
+    mapped = interrupted.mapped
     assert set(mapped) == set(CHILDREN)
-    assert not any(mapped[f"agent/{i}"] for i in AGENTS), mapped
-    assert all(mapped[f"plant/{i}"] for i in AGENTS) and mapped["recorder/0"], mapped
+    assert not any("_multiarray_umath" in mapped[f"agent/{i}"] for i in AGENTS), mapped
+    assert all("_multiarray_umath" in mapped[f"plant/{i}"] for i in AGENTS), mapped
+    assert "_multiarray_umath" in mapped["recorder/0"], mapped
+
+
+def test_an_agent_process_loads_no_compressor(interrupted: Interrupted) -> None:
+    """``bz2`` and ``lzma`` with their libraries are 0.34 MiB of an agent's memory, brought by
+    ``shutil`` (argparse's help layout: ``cli.main._Formatter`` measures the terminal without it).
+    Matched in the maps as numpy's core is, which the plants show mapped."""
+    mapped = interrupted.mapped
+    assert not any(mapped[f"agent/{i}"] & {"_lzma", "_bz2"} for i in AGENTS), mapped
+    assert all("_multiarray_umath" in mapped[f"plant/{i}"] for i in AGENTS), mapped
 
 
 def test_a_plain_zenoh_client_decodes_live_samples_with_the_schema_alone(interrupted: Interrupted) -> None:
