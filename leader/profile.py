@@ -2,8 +2,8 @@
 
 Every profile is evaluated in closed form, so the leader process and the reference simulator read
 the same numbers at the same sample times. ``t`` may be a float or an array of shape ``(T,)``;
-results have shape ``(d,)`` or ``(T, d)``: position [m], velocity [m/s], acceleration [m/s^2], all
-in the world frame.
+results have shape ``(d,)`` or ``(T, d)`` (possibly a view of a ``(d, T)`` array: read, never
+written): position [m], velocity [m/s], acceleration [m/s^2], all in the world frame.
 """
 
 from __future__ import annotations
@@ -38,20 +38,29 @@ class ExpAccel:
     decay: float
 
     def __call__(self, t: float | np.ndarray) -> Sample:
-        tc = _col(t)
+        if np.ndim(t) == 0:
+            tc = _col(t)
+            e, i1, i2 = self._integrals(tc)
+            p = self.p0 + self.v0 * tc + self.a0 * i2
+            v = self.v0 + self.a0 * i1
+            a = self.a0 * e
+            return _squeeze(t, p, v, a)
+        # many times: computed axis by axis, (d, T), and returned as (T, d) views of those: numpy's
+        # loops over a (T, d) result run d elements at a time, five times slower at d = 3 (the
+        # continuous mode evaluates 30 stage times per control step). The same operations on the
+        # same numbers: the same bits.
+        tt = np.asarray(t, dtype=float)
+        e, i1, i2 = self._integrals(tt)
+        p0, v0, a0 = self.p0[:, None], self.v0[:, None], self.a0[:, None]
+        return (p0 + v0 * tt + a0 * i2).T, (v0 + a0 * i1).T, (a0 * e).T
+
+    def _integrals(self, tc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``exp(-decay t)`` and its first and second integrals from 0."""
         if self.decay == 0.0:
-            e = np.ones_like(tc)
-            i1 = tc  # int_0^t e
-            i2 = 0.5 * tc * tc  # int_0^t int_0^s e
-        else:
-            lam = self.decay
-            e = np.exp(-lam * tc)
-            i1 = -np.expm1(-lam * tc) / lam
-            i2 = (tc - i1) / lam
-        p = self.p0 + self.v0 * tc + self.a0 * i2
-        v = self.v0 + self.a0 * i1
-        a = self.a0 * e
-        return _squeeze(t, p, v, a)
+            return np.ones_like(tc), tc, 0.5 * tc * tc
+        lam = self.decay
+        i1 = -np.expm1(-lam * tc) / lam
+        return np.exp(-lam * tc), i1, (tc - i1) / lam
 
 
 @dataclass(frozen=True)

@@ -83,7 +83,7 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
         return np.ascontiguousarray(np.asarray(x, dtype=float)[perm].T)
 
     meta = msgspec.structs.replace(meta, substeps=substeps)
-    # structure of arrays, axis first: the state [p, v, Kp, Kv] (column N unused, see kernel.continuous)
+    # structure of arrays, axis first: the state [p, v, Kp, Kv] (column N the leader's, unused: kernel.continuous)
     y = np.ones((4, d, n + 1))
     y[0, :, :n], y[1, :, :n] = axis_first(s.p0), axis_first(s.v0)
     y[2, :, :n] = axis_first(np.broadcast_to(prm.kp0, (n, d)))
@@ -102,18 +102,26 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     a_lead[topo.dst[topo.src == n]] = topo.weight[topo.src == n]
     a_lead = np.ascontiguousarray(a_lead[perm])
     bank = kernel.bank_arrays(s.dist)
-    const, amp, omega, phase = (axis_first(x) for x in bank[:4])
+
+    def flat(x: np.ndarray) -> np.ndarray:  # (N, d) per agent -> (d (N+1),), the leader's elements zero
+        out = np.zeros((d, n + 1))
+        out[:, :n] = axis_first(x)
+        return out.ravel()
+
+    const, amp, omega, phase = (flat(x) for x in bank[:4])
     table, hold, has_random = np.ascontiguousarray(bank[4][perm]), np.ascontiguousarray(bank[5][perm]), bank[11]
-    swd = axis_first(s.sum_wdelta)
+    swd = flat(s.sum_wdelta)
     sin_m, cos_m = kernel.rotation_tables(omega, h, substeps)
+    sines = kernel.sine_pairs(omega, phase)  # the leader's elements (0, 0): sin 0, amplitude 0
+    state = y.reshape(4, d * (n + 1))  # a view: the kernel's flat layout
     for k0, k1 in _chunks(steps):
         times = kernel.stage_times(k0, k1, h, substeps)
         ref = s.ref(times.ravel())
-        ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d))).reshape(*times.shape, d)
-                               for x in ref)
-        kernel.continuous(k0, k1, steps, record, h, substeps, y, ref_p, ref_v, ref_a, times, kappa,
+        # axis first, (d, stages): for ExpAccel's (T, d) views of (d, T) arrays, no copy
+        ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d)).T) for x in ref)
+        kernel.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, times, kappa,
                           slot_src, slot_w, swd, a_lead, *plan.kernel_args(), prm.gamma_p, prm.gamma_v,
-                          prm.sigma, const, amp, omega, phase, table, hold, has_random, sin_m, cos_m, *_outputs(run))
+                          prm.sigma, const, amp, *sines, table, hold, has_random, sin_m, cos_m, *_outputs(run))
         if progress is not None and k1 <= steps:
             progress(k0, steps)
     if progress is not None:

@@ -510,206 +510,217 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
                perm: np.ndarray, dense: bool, block_ptr: np.ndarray, ext_ptr: np.ndarray, ext_src: np.ndarray,
                ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float,
-               const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
-               hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
+               const: np.ndarray, amp: np.ndarray, u_omega: np.ndarray, u_phase: np.ndarray, u_inv: np.ndarray,
+               table: np.ndarray, hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
                out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
                out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray) -> None:
     """Control steps ``k0 .. k1-1`` of the continuous mode: record tick k's sample, then ``substeps``
     RK4 steps in place.
 
-    Structure of arrays, axis first, agents in solving order (:class:`SolvePlan`; agent
-    ``perm[q]`` at position q, the samples written back in the mission's order): ``y``
-    ``(4, d, N+1)`` the state [p, v, Kp, Kv] (column N unused: the leader's comes from ``ref_*``);
-    the bank's and the law's arrays ``(d, N)``; ``ref_*`` and ``times`` ``(k1 - k0, substeps, 3,
-    ...)`` (:func:`stage_times`); ``sin_m, cos_m`` ``(2 substeps + 1, d, N)`` the sine and cosine
-    of ``omega m hf / 2``.
+    Structure of arrays, axis first and flat: element ``x = c (N+1) + i`` is agent i's axis c, agents
+    in solving order (:class:`SolvePlan`; agent ``perm[q]`` at position q, the samples written back
+    in the mission's order), ``x = c (N+1) + N`` the leader's. ``y`` ``(4, d (N+1))`` the state
+    [p, v, Kp, Kv] (the leader's elements unused: its come from ``ref_*``); the bank's and the
+    law's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; ``times`` ``(k1 - k0,
+    substeps, 3)`` (:func:`stage_times`) and the leader's reference at those times, ``ref_*``
+    ``(d, (k1 - k0) substeps 3)``; ``sin_m, cos_m`` ``(2 substeps + 1, d (N+1))`` the sine and
+    cosine of ``omega m hf / 2``; ``u_omega, u_phase, u_inv`` the distinct sinusoids and each
+    element's (:func:`sine_pairs`: each sine and cosine of a control step once per distinct pair,
+    and not once per agent and axis that has it).
 
-    The law's gains are per axis and ``L1`` acts on each axis alone, so the axes are independent:
-    each control step integrates one axis after the other, over vectors of N agents. Per stage:
-    the stage's input (``y + coef k_prev``) of the positions and velocities, which the neighbours
-    read; the disturbance ``d(t)`` (``DisturbanceBank.value_at``), its sinusoids rotated from their
-    phase at ``t_k`` by the angle-addition formula (a few ulp from ``sin(omega t + phase)``) and
-    shared by the two mid-step stages; agent by agent, the errors, the gains' stage input and
-    rates and ``b``; then ``L1 a = b``. RK4's weighted sum ``k1 + 2 k2 + 2 k3 + k4`` is accumulated
-    stage by stage in that order, so that each operation rounds as the numpy path's does. One
-    function body, every array indexed in place: a sub-call or an array view costs reference
-    counts on each array it touches, which at a few agents was most of the time."""
-    d = y.shape[1]
-    n = y.shape[2] - 1
+    The law's gains are per axis and ``L1`` acts on each axis alone: the axes are independent, and
+    every element-wise step of a stage runs over all axes at once, in one loop of ``d (N+1)``
+    (a few agents: one loop of 15 instead of three of 4), the leader's elements computed and then
+    overwritten; the neighbour sums and ``L1 a = b`` go axis by axis. Per stage: the stage's input
+    (``y + coef k_prev``) of the positions and velocities, which the neighbours read; the
+    disturbance ``d(t)`` (``DisturbanceBank.value_at``), its sinusoids rotated from their phase at
+    ``t_k`` by the angle-addition formula (a few ulp from ``sin(omega t + phase)``) and shared by
+    the two mid-step stages; agent by agent, the errors, the gains' stage input and rates and
+    ``b``; then ``L1 a = b``. RK4's weighted sum ``k1 + 2 k2 + 2 k3 + k4`` is accumulated stage by
+    stage in that order, so that each operation rounds as the numpy path's does. One function body,
+    every array indexed in place: a sub-call or an array view costs reference counts on each array
+    it touches, which at a few agents was most of the time."""
+    d = ref_p.shape[0]
+    n1 = y.shape[1] // d
+    n = n1 - 1
+    nx = d * n1
     slots = slot_src.shape[0]
     blocks = block_ptr.shape[0] - 1
     last_row = table.shape[1] - 1
     hf = h / substeps
     w6 = hf / 6.0
-    # one axis's stage: the inputs the neighbours read (column n the leader's) ...
-    pin = np.empty(n + 1)
-    vin = np.empty(n + 1)
-    # ... the previous stage's slopes (the position's is the previous vin), RK4's running sums
-    sl_v = np.empty(n)
-    sl_kp = np.empty(n)
-    sl_kv = np.empty(n)
-    ac_p = np.empty(n)
-    ac_v = np.empty(n)
-    ac_kp = np.empty(n)
-    ac_kv = np.empty(n)
-    xi = np.empty(n)
-    zeta = np.empty(n)
-    bb = np.empty(n)
-    rr = np.empty(n)
-    dist0 = np.empty(n)  # d(t) at the step's ends
-    dist1 = np.empty(n)  # and its middle
-    sin0 = np.empty(n)
-    cos0 = np.empty(n)
+    # a stage's inputs, which the neighbours read (the leader's elements from ref_*) ...
+    pin = np.zeros(nx)
+    vin = np.zeros(nx)
+    # ... the previous stage's slopes (the position's is the previous vin), RK4's running sums;
+    # zero at first, so that the leader's elements stay finite
+    sl_v = np.zeros(nx)
+    sl_kp = np.zeros(nx)
+    sl_kv = np.zeros(nx)
+    ac_p = np.zeros(nx)
+    ac_v = np.zeros(nx)
+    ac_kp = np.zeros(nx)
+    ac_kv = np.zeros(nx)
+    xi = np.zeros(nx)
+    zeta = np.zeros(nx)
+    bb = np.zeros(nx)
+    rr = np.zeros(n)
+    dist0 = np.zeros(nx)  # d(t) at the step's ends
+    dist1 = np.zeros(nx)  # and its middle
+    sin0 = np.empty(nx)
+    cos0 = np.empty(nx)
+    snu = np.empty(u_omega.shape[0])
+    csu = np.empty(u_omega.shape[0])
     coef = (0.0, 0.5 * hf, 0.5 * hf, hf)
     wsum = (1.0, 2.0, 2.0, 1.0)
     for k in range(k0, k1):
         q = k - k0
         t = k * h
         final = k == steps
-        for c in range(d):
-            for i in range(n):
-                th = omega[c, i] * t + phase[c, i]
-                sin0[i] = math.sin(th)
-                cos0[i] = math.cos(th)
-            for j in range(substeps):
-                for st in range(4):
-                    at = 0 if st == 0 else (1 if st < 3 else 2)  # the stage's time: ts, ts + hf/2, ts + hf
-                    if st == 0:
-                        for i in range(n):
-                            pin[i] = y[0, c, i]
-                            vin[i] = y[1, c, i]
+        for u in range(u_omega.shape[0]):
+            th = u_omega[u] * t + u_phase[u]
+            snu[u] = math.sin(th)
+            csu[u] = math.cos(th)
+        for x in range(nx):
+            sin0[x] = snu[u_inv[x]]
+            cos0[x] = csu[u_inv[x]]
+        for j in range(substeps):
+            for st in range(4):
+                at = 0 if st == 0 else (1 if st < 3 else 2)  # the stage's time: ts, ts + hf/2, ts + hf
+                ix = (q * substeps + j) * 3 + at  # its index in ref_*
+                a = coef[st]
+                ws = wsum[st]
+                if st == 0:
+                    for x in range(nx):
+                        pin[x] = y[0, x]
+                        vin[x] = y[1, x]
+                else:
+                    for x in range(nx):
+                        pin[x] = y[0, x] + a * vin[x]  # the position's slope is the stage's velocity
+                        vin[x] = y[1, x] + a * sl_v[x]
+                for c in range(d):
+                    pin[c * n1 + n] = ref_p[c, ix]
+                    vin[c * n1 + n] = ref_v[c, ix]
+                # the second mid-step stage has the first's disturbance; without random terms, a
+                # substep's first stage has the previous substep's last (the same time, rotation m)
+                if st != 2 and (st != 0 or j == 0 or has_random):
+                    m = 2 * j + at
+                    if at == 1:
+                        for x in range(nx):
+                            dist1[x] = const[x] + amp[x] * (sin0[x] * cos_m[m, x] + cos0[x] * sin_m[m, x])
                     else:
-                        a = coef[st]
-                        for i in range(n):
-                            pin[i] = y[0, c, i] + a * vin[i]  # the position's slope is the stage's velocity
-                            vin[i] = y[1, c, i] + a * sl_v[i]
-                    pin[n] = ref_p[q, j, at, c]
-                    vin[n] = ref_v[q, j, at, c]
-                    # the second mid-step stage has the first's disturbance; without random terms, a
-                    # substep's first stage has the previous substep's last (the same time, rotation m)
-                    if st != 2 and (st != 0 or j == 0 or has_random):
-                        m = 2 * j + at
-                        if at == 1:
-                            for i in range(n):
-                                dist1[i] = const[c, i] + amp[c, i] * (sin0[i] * cos_m[m, c, i]
-                                                                      + cos0[i] * sin_m[m, c, i])
-                        else:
-                            for i in range(n):
-                                dist0[i] = const[c, i] + amp[c, i] * (sin0[i] * cos_m[m, c, i]
-                                                                      + cos0[i] * sin_m[m, c, i])
-                        if has_random:
-                            kd = int(math.floor(times[q, j, at] / h + 1e-9))
+                        for x in range(nx):
+                            dist0[x] = const[x] + amp[x] * (sin0[x] * cos_m[m, x] + cos0[x] * sin_m[m, x])
+                    if has_random:
+                        kd = int(math.floor(times[q, j, at] / h + 1e-9))
+                        for c in range(d):
                             for i in range(n):
                                 idx = kd // hold[i]
                                 if at == 1:
-                                    dist1[i] += table[i, idx if idx < last_row else last_row, c]
+                                    dist1[c * n1 + i] += table[i, idx if idx < last_row else last_row, c]
                                 else:
-                                    dist0[i] += table[i, idx if idx < last_row else last_row, c]
-                    lac = ref_a[q, j, at, c]
-                    a = coef[st]
-                    ws = wsum[st]
+                                    dist0[c * n1 + i] += table[i, idx if idx < last_row else last_row, c]
+                for c in range(d):
+                    base = c * n1
+                    lac = ref_a[c, ix]
                     for i in range(n):
-                        s_ = slot_src[0, i]
+                        x = base + i
+                        s_ = base + slot_src[0, i]
                         w = slot_w[0, i]
                         sp = w * pin[s_]
                         sv = w * vin[s_]
                         for s in range(1, slots):
-                            s_ = slot_src[s, i]
+                            s_ = base + slot_src[s, i]
                             w = slot_w[s, i]
                             sp += w * pin[s_]
                             sv += w * vin[s_]
                         ki = kappa[i]
-                        e = ki * pin[i] - sp - swd[c, i]
-                        z = ki * vin[i] - sv
-                        xi[i] = e
-                        zeta[i] = z
+                        e = ki * pin[x] - sp - swd[x]
+                        z = ki * vin[x] - sv
+                        xi[x] = e
+                        zeta[x] = z
                         if st == 0:
-                            kpi = y[2, c, i]
-                            kvi = y[3, c, i]
+                            kpi = y[2, x]
+                            kvi = y[3, x]
                         else:
-                            kpi = y[2, c, i] + a * sl_kp[i]
-                            kvi = y[3, c, i] + a * sl_kv[i]
-                        di = dist1[i] if at == 1 else dist0[i]
-                        bb[i] = a_lead[i] * lac + ki * di - kpi * e - kvi * z
-                        gkp = -sigma * (kpi - 1.0) + gamma_p * (e * e)
-                        gkv = -sigma * (kvi - 1.0) + gamma_v * (z * z)
-                        sl_kp[i] = gkp
-                        sl_kv[i] = gkv
-                        if st == 0:
-                            ac_p[i] = vin[i]
-                            ac_kp[i] = gkp
-                            ac_kv[i] = gkv
-                        else:
-                            ac_p[i] = ac_p[i] + ws * vin[i]
-                            ac_kp[i] = ac_kp[i] + ws * gkp
-                            ac_kv[i] = ac_kv[i] + ws * gkv
-                    # the accelerations: L1 a = b (SolvePlan)
+                            kpi = y[2, x] + a * sl_kp[x]
+                            kvi = y[3, x] + a * sl_kv[x]
+                        di = dist1[x] if at == 1 else dist0[x]
+                        bb[x] = a_lead[i] * lac + ki * di - kpi * e - kvi * z
+                        sl_kp[x] = -sigma * (kpi - 1.0) + gamma_p * (e * e)
+                        sl_kv[x] = -sigma * (kvi - 1.0) + gamma_v * (z * z)
+                    # the accelerations: L1 a = b (SolvePlan), this axis
                     if dense:
                         for r_ in range(n):
                             acc = 0.0
                             row = r_ * n
-                            for x in range(n):
-                                acc += inv[row + x] * bb[x]
-                            sl_v[r_] = acc
+                            for i in range(n):
+                                acc += inv[row + i] * bb[base + i]
+                            sl_v[base + r_] = acc
                     elif blocks == n:  # every block a single agent (a tree, a chain): forward substitution
                         for p_ in range(n):
-                            acc = bb[p_]
-                            for x in range(ext_ptr[p_], ext_ptr[p_ + 1]):
-                                acc += ext_w[x] * sl_v[ext_src[x]]
-                            sl_v[p_] = acc / kappa[p_]
+                            acc = bb[base + p_]
+                            for e_ in range(ext_ptr[p_], ext_ptr[p_ + 1]):
+                                acc += ext_w[e_] * sl_v[base + ext_src[e_]]
+                            sl_v[base + p_] = acc / kappa[p_]
                     else:
                         for blk in range(blocks):
                             lo = block_ptr[blk]
                             hi = block_ptr[blk + 1]
                             for p_ in range(lo, hi):
-                                acc = bb[p_]
-                                for x in range(ext_ptr[p_], ext_ptr[p_ + 1]):
-                                    acc += ext_w[x] * sl_v[ext_src[x]]
+                                acc = bb[base + p_]
+                                for e_ in range(ext_ptr[p_], ext_ptr[p_ + 1]):
+                                    acc += ext_w[e_] * sl_v[base + ext_src[e_]]
                                 rr[p_] = acc
                             if hi - lo == 1:
-                                sl_v[lo] = rr[lo] / kappa[lo]
+                                sl_v[base + lo] = rr[lo] / kappa[lo]
                             else:
                                 size = hi - lo
                                 off = inv_ptr[blk]
                                 for r_ in range(size):
                                     acc = 0.0
                                     row = off + r_ * size
-                                    for x in range(size):
-                                        acc += inv[row + x] * rr[lo + x]
-                                    sl_v[lo + r_] = acc
-                    if st == 0:
+                                    for i in range(size):
+                                        acc += inv[row + i] * rr[lo + i]
+                                    sl_v[base + lo + r_] = acc
+                # RK4's running sums (the leader's elements too: finite, unused)
+                if st == 0:
+                    for x in range(nx):
+                        ac_p[x] = vin[x]
+                        ac_v[x] = sl_v[x]
+                        ac_kp[x] = sl_kp[x]
+                        ac_kv[x] = sl_kv[x]
+                else:
+                    for x in range(nx):
+                        ac_p[x] = ac_p[x] + ws * vin[x]
+                        ac_v[x] = ac_v[x] + ws * sl_v[x]
+                        ac_kp[x] = ac_kp[x] + ws * sl_kp[x]
+                        ac_kv[x] = ac_kv[x] + ws * sl_kv[x]
+                if st == 0 and j == 0 and (record or final):  # tick k's sample
+                    r = k if record else 0
+                    for c in range(d):
                         for i in range(n):
-                            ac_v[i] = sl_v[i]
-                    else:
-                        for i in range(n):
-                            ac_v[i] = ac_v[i] + ws * sl_v[i]
-                    if st == 0 and j == 0 and (record or final):  # tick k's sample
-                        r = k if record else 0
-                        for i in range(n):
+                            x = c * n1 + i
                             ag = perm[i]
-                            out_p[r, ag, c] = pin[i]
-                            out_v[r, ag, c] = vin[i]
-                            out_a[r, ag, c] = sl_v[i]
-                            out_u[r, ag, c] = sl_v[i] - dist0[i]
-                            out_xi[r, ag, c] = xi[i]
-                            out_zeta[r, ag, c] = zeta[i]
-                            out_kp[r, ag, c] = y[2, c, i]
-                            out_kv[r, ag, c] = y[3, c, i]
-                            out_d[r, ag, c] = dist0[i]
-                    if final:
-                        break
+                            out_p[r, ag, c] = pin[x]
+                            out_v[r, ag, c] = vin[x]
+                            out_a[r, ag, c] = sl_v[x]
+                            out_u[r, ag, c] = sl_v[x] - dist0[x]
+                            out_xi[r, ag, c] = xi[x]
+                            out_zeta[r, ag, c] = zeta[x]
+                            out_kp[r, ag, c] = y[2, x]
+                            out_kv[r, ag, c] = y[3, x]
+                            out_d[r, ag, c] = dist0[x]
                 if final:
-                    break
-                for i in range(n):
-                    y[0, c, i] = y[0, c, i] + w6 * ac_p[i]
-                    y[1, c, i] = y[1, c, i] + w6 * ac_v[i]
-                    y[2, c, i] = y[2, c, i] + w6 * ac_kp[i]
-                    y[3, c, i] = y[3, c, i] + w6 * ac_kv[i]
-        if final:
-            return
+                    return
+            for x in range(nx):
+                y[0, x] = y[0, x] + w6 * ac_p[x]
+                y[1, x] = y[1, x] + w6 * ac_v[x]
+                y[2, x] = y[2, x] + w6 * ac_kp[x]
+                y[3, x] = y[3, x] + w6 * ac_kv[x]
 
 
 def rotation_tables(omega: np.ndarray, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
     """``sin, cos`` of ``omega m hf / 2`` for ``m = 0 .. 2 substeps``, ``(2 substeps + 1, *omega.shape)``."""
-    x = omega[None] * (np.arange(2 * substeps + 1)[:, None, None] * (0.5 * h / substeps))
+    x = omega[None] * (np.arange(2 * substeps + 1).reshape(-1, *(1,) * omega.ndim) * (0.5 * h / substeps))
     return np.ascontiguousarray(np.sin(x)), np.ascontiguousarray(np.cos(x))

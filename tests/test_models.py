@@ -92,8 +92,10 @@ def test_profiles_are_self_consistent(tbl: dict) -> None:
     p, v, a = ref(t)
     np.testing.assert_allclose((p1 - p0) / (2 * eps), v, rtol=0, atol=1e-6)
     np.testing.assert_allclose((v1 - v0) / (2 * eps), a, rtol=0, atol=1e-5)
-    ps, vs, as_ = ref(float(t[17]))  # scalar evaluation agrees with the vectorised one
-    np.testing.assert_array_equal(ps, p[17])
+    # a leader process evaluates one time at a time, the simulators many at once: the same bits
+    for k in range(0, len(t), 7):
+        for one, many in zip(ref(float(t[k])), (p, v, a)):
+            assert one.shape == (3,) and one.tobytes() == np.ascontiguousarray(many[k]).tobytes(), k
 
 
 def test_eq31_velocity_schedule() -> None:
