@@ -116,6 +116,14 @@ class Recording:
         self.count[k] += 1
         return True
 
+    def missing(self, k: int) -> str:
+        """The samples of tick ``k`` not in yet, named by producer (for a stall report)."""
+        ids = self.mission.agent_ids
+        names = [f"leader {self.mission.leader.id}", *(f"plant {i}" for i in ids),
+                 *(f"telemetry of agent {i}" for i in ids), "world"][:self.expected]
+        gone = [name for name, got in zip(names, self.have[k]) if not got]
+        return ", ".join(gone[:8]) + (f" and {len(gone) - 8} more" if len(gone) > 8 else "")
+
     def _heard(self, k: int) -> None:
         if k > self.newest:
             self.newest = k
@@ -403,7 +411,8 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         if node.clock.lockstep:
             for k in range(last + 1):
                 await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
-                                 f"every sample of tick {k} (have {rec.count[k]} of {rec.expected})")
+                                 lambda: f"every sample of tick {k} (have {rec.count[k]} of {rec.expected}; "
+                                         f"missing: {rec.missing(k)})")
                 if ack is not None:
                     ack.send(wire.Ack, k, k * m.dt, role="recorder")
                 if feed is not None:

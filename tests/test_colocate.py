@@ -272,6 +272,7 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
             sub.undeclare()
     text = read(log)
     assert status == 1 and "stalled" in text and "tick 8" in text, text
+    assert "(have 7 of 9; missing: plant 3, telemetry of agent 3)" in text, text  # what it lacks at the stall
     assert acked == set(range(8)), (acked, text)
     run = Run.load(out)
     assert run.meta.complete is False
