@@ -1008,7 +1008,7 @@ def _rt_row(rt: Result, rb: Result) -> dict[str, Any]:
     def mem(res: Result) -> dict[str, float]:
         return {kind: med(res.mem_mib("agent", kind)) for kind in ("rss", "pss", "uss")}
 
-    return {"n": rt.n, "rate": rt.rate, "tether_ok": rt.ok, "tether_why": rt.why.strip()[-300:],
+    return {"n": rt.n, "rate": rt.rate, "tether_ok": rt.ok, "tether_status": rt.status, "tether_why": rt.why.strip()[-300:],
             "baseline_ok": rb.ok, "tether_late": rt.late, "tether_late_max": rt.late_max, "baseline_late": rb.late,
             "tether_total_cpu": rt.total_cpu_pct(), "baseline_total_cpu": rb.total_cpu_pct(),
             "tether_cpu_by_role": {ro: med(rt.cpu_pct(ro)) for ro in ROLES},
@@ -1025,6 +1025,15 @@ def _rt_row(rt: Result, rb: Result) -> dict[str, Any]:
             "startup_s": [rt.startup_s, rb.startup_s]}
 
 
+def _lost(recorded: str) -> str:
+    """``"2 of 24783"`` from a run's ``"24781/24783"`` (samples recorded of those sent)."""
+    try:
+        got, want = (int(x) for x in recorded.split("/"))
+    except ValueError:
+        return "?"
+    return f"{want - got} of {want}"
+
+
 def _frac(recorded: str) -> float:
     try:
         got, want = recorded.split("/")
@@ -1035,8 +1044,9 @@ def _frac(recorded: str) -> float:
 
 def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:
     say(f"\n== 2. real-time scale: ring missions, 3D, {a.scale_rate:g} Hz, {a.rt_duration:g} s per run, "
-        f"{a.scale_repeats} run(s) per N; holds = under 1 % of agent ticks late (started > 1 period late, median")
-    say("   over the quiet runs) and every run ended well. CPU = sum over every process (launcher/router included)")
+        f"{a.scale_repeats} run(s) per N; on time = under 1 % of agent ticks late (started > 1 period late, median")
+    say("   over the quiet runs) and every run went to its end (exit 0, or 5: samples lost on the way); holds = on time")
+    say("   and every run ended clean (exit 0). CPU = sum over every process (launcher/router included)"),
     say("   over the mission window [% of one core]; recorded = samples the recorder got of those sent;")
     say("   other = other users' CPU during the run (tether / baseline)")
     if a.scale_shared:
@@ -1045,7 +1055,7 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
     say(f"   {'N':>3} {'procs':>5} {'late %':>7} {'worst':>6} {'bl late':>7} {'CPU':>6} {'bl CPU':>6} {'ratio':>5} "
         f"{'recorded %':>12} {'link age ms':>12} {'other %':>8}")
     rows = []
-    largest = None
+    largest = largest_on_time = None
     for n in a.sizes:
         path, m = mission_file(work, n, a.scale_rate, a.rt_duration)
         runs = []
@@ -1068,19 +1078,26 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
                 + ("" if rt.ok else f"  FAILED ({rt.why.strip()[-160:]})"))
         use = _quiet(runs)
         late = med([r["tether_late"] for r in use])
-        holds = all(r["tether_ok"] for r in runs) and late == late and late < 0.01
-        rows.append({"n": n, "runs": runs, "late": late, "holds": holds,
+        on_time = all(r["tether_status"] in (0, 5) for r in runs) and late == late and late < 0.01
+        holds = on_time and all(r["tether_ok"] for r in runs)
+        lost = [_lost(r["tether_recorded"]) for r in runs if r["tether_status"] == 5]
+        rows.append({"n": n, "runs": runs, "late": late, "holds": holds, "on_time": on_time,
                      "tether_total_cpu": med([r["tether_total_cpu"] for r in use]),
                      "baseline_total_cpu": med([r["baseline_total_cpu"] for r in use])})
         say(f"   {n:>3} agents: median late {100 * late:.2f} %, CPU {rows[-1]['tether_total_cpu']:.0f} % vs "
             f"{rows[-1]['baseline_total_cpu']:.0f} % (ratio {ratio(rows[-1]['tether_total_cpu'], rows[-1]['baseline_total_cpu']):.2f})"
-            f" -> {'holds' if holds else 'does NOT hold'} {a.scale_rate:g} Hz")
+            f" -> {'holds' if holds else 'on time' if on_time else 'does NOT hold'} {a.scale_rate:g} Hz"
+            + (f" (samples lost on the way in {len(lost)} of {len(runs)} runs: {', '.join(lost)})" if lost else ""))
         if holds:
             largest = n
+        if on_time:
+            largest_on_time = n
         elif not a.scale_all:
             break
-    say(f"   largest N holding {a.scale_rate:g} Hz here: {largest}")
-    report["scale"] = {"rate": a.scale_rate, "duration": a.rt_duration, "rows": rows, "largest": largest}
+    say(f"   largest N holding {a.scale_rate:g} Hz here: {largest}; on time (< 1 % late, every run to its end): "
+        f"{largest_on_time}")
+    report["scale"] = {"rate": a.scale_rate, "duration": a.rt_duration, "rows": rows, "largest": largest,
+                       "largest_on_time": largest_on_time}
 
 
 def case_latency(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:
