@@ -131,11 +131,15 @@ def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[
     every mode), each other published key a control loop hears at :data:`LIMIT_FACTOR` times the rate
     (not :func:`recorder_only`'s). The price of the stream limits: Zenoh's downsampling passes one
     message per ``1/freq`` window, so the backlog a healed link or a loaded machine delivers at once is
-    cut to its first (docs/deploy.md, "Floods"). They stay on, even authenticated (where the access
-    rules already keep anyone but a stream's own process off its key), because the formation flew
-    worse without them on a loaded machine: RMS of ||xi|| over 7-14 s of 20 s authenticated real-time
-    runs, 0.443 and 0.442 m with them (the reference simulator: 0.441 m), 17.3, 0.70 and 0.99 m
-    without (one run each, load average 8-16). A flood on one of these keys, from any one session,
+    cut to its first (docs/deploy.md, "Floods"), and two samples a loaded publisher sends in one batch
+    lose the second (a ring of 16 at 50 Hz: 3 of 6 runs lost 1-8 samples with the limits, 0 of 5
+    without). They stay on, even authenticated (where the access rules already keep anyone but a
+    stream's own process off its key), as the flood defence. Whether the formation flies better with
+    them on a loaded machine is not settled: RMS of ||xi|| over 7-14 s of 20 s authenticated real-time
+    runs of Section 4 was 0.443 and 0.442 m with them (the reference simulator: 0.441 m) and 17.3, 0.70
+    and 0.99 m without (one run each, load average 8-16); in a later sitting beside two CPU-bound
+    processes, 0.69, 1.11 and 1.20 m with them and 0.46, 0.74 and 0.45 m without (docs/benchmarks.md,
+    "This sitting"). A flood on one of these keys, from any one session,
     reaches the subscribers at that rate at most, decided in Zenoh's threads before any Python
     callback, while every other session's link keeps its own budget. (Not in lockstep, whose ticks go
     out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule beside them
