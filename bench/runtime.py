@@ -86,7 +86,7 @@ REALTIME_QOS = {"cmd": "COMMAND", "telemetry": "TELEMETRY"}
 """Real time: the presets ``agent/node.py`` declares its command and telemetry publishers with (every
 other stream, and every stream in lockstep, gets what ``Node.publisher`` gives: STATE / SYNC)."""
 START_LEAD = 1.0  # deploy.local.LaunchOptions.start_lead: tick 0 comes this long after "all up"
-WINDOW = 8  # deploy.local.LaunchOptions.window (tether run's default)
+WINDOW = 8  # deploy.local.WINDOW: tether run's window with one process per plant
 
 
 # =========================================================================== /proc
@@ -868,7 +868,8 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
     m = load_mission(path, a.lockstep_duration)
     ticks = m.steps + 1
     say(f"\n== 1. lockstep speed: {a.mission} ({m.n} agents, {m.dim}D, {m.rate:g} Hz), {a.lockstep_duration:g} s of "
-        f"mission time per run, window {WINDOW}, {a.repeats} repeats; speed = mission s / wall s")
+        f"mission time per run, window {WINDOW}, one process per plant on both sides (--separate-plants: tether run "
+        f"co-locates them by default in lockstep, case 1b), {a.repeats} repeats; speed = mission s / wall s")
     if not a.no_variants:
         say("   experiments on the bare baseline: 'co-located' = each plant computed inside its agent process (one")
         say("   Zenoh hop per tick on the critical path instead of three); '+batched' = co-located, and each agent")
@@ -876,7 +877,9 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
     rows = []
     for i in range(a.repeats):
         settle()
-        rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, secure=a.secure)
+        # the baseline's structure: one process per plant (tether run co-locates them by default in lockstep)
+        rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, extra=("--separate-plants", "--window", str(WINDOW)),
+                        secure=a.secure)
         settle()
         rb = run_baseline(m, "lockstep", a.lockstep_duration, work, secure=a.secure)
         rc = rcb = None
@@ -936,7 +939,7 @@ def colocate_structures(windows: list[str]) -> list[tuple[str, dict[str, Any], t
     samples every tick (tether: one record per tick, the bare baseline two messages); then for
     each ``WINDOW:BATCH`` of ``windows``, co-located with records of BATCH ticks and that window."""
     out: list[tuple[str, dict[str, Any], tuple[str, ...]]] = [
-        ("separate, w8", {}, ()),
+        ("separate, w8", {}, ("--separate-plants", "--window", "8")),
         ("co-located, w8", {"colocate": True}, ("--colocate-plants", "--record-batch", "1")),
     ]
     for spec in windows:
@@ -1328,7 +1331,7 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
         return real_popen(cmd, *args, **kwargs)
 
     load_mission(path, duration)
-    window, batch = (int(x) for x in colocate.split(":")) if colocate else (local.LaunchOptions.window, None)
+    window, batch = (int(x) for x in colocate.split(":")) if colocate else (local.WINDOW, None)
     opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False, window=window,
                                colocate_plants=colocate is not None, record_batch=batch)
     local.subprocess.Popen = popen

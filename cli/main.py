@@ -265,7 +265,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _load(str(path), args.duration)
     m = load_mission(path, args.duration)
     out = _writable_dir("--out", args.out, ("run.npz",))
-    opts = local.LaunchOptions(out=out, clock="lockstep", duration=args.duration)
+    # the architecture as deployed: one process per plant (tether run co-locates them by default in lockstep)
+    opts = local.LaunchOptions(out=out, clock="lockstep", duration=args.duration, colocate_plants=False)
     status = asyncio.run(local.run(path, opts))
     if status != 0:
         return status
@@ -534,6 +535,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     if args.sitl_args and not args.sitl:
         raise BadArgument("--sitl-args: give it with --sitl")
+    if args.colocate_plants and args.separate_plants:
+        raise BadArgument("--separate-plants: and --colocate-plants both say where the plants run; give one of them")
     clock: Literal["lockstep", "realtime"] = args.clock or ("realtime" if args.sitl else "lockstep")
     opts = local.LaunchOptions(out=Path(args.out), clock=clock, network=args.network, window=args.window,
                                ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
@@ -541,7 +544,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                                listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
                                vehicle_connect=dict(args.vehicle_connect), faults=injected,
                                insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
-                               colocate_plants=args.colocate_plants, record_batch=args.record_batch,
+                               colocate_plants=True if args.colocate_plants else False if args.separate_plants else None,
+                               record_batch=args.record_batch,
                                shared_plants=args.shared_plants, rt_priority=args.rt_priority,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return asyncio.run(local.run(path, opts))
@@ -742,7 +746,8 @@ def _run_commands(sub: argparse._SubParsersAction) -> None:
                     help="lockstep (default) or realtime (the default with --sitl)")
     rn.add_argument("--network", choices=["star", "mesh"], default="star",
                     help="star: clients around one router session (default); mesh: peers")
-    rn.add_argument("--window", type=int, default=8, help="lockstep ticks in flight")
+    rn.add_argument("--window", type=int, default=None,
+                    help="lockstep ticks in flight (default: 16 with the plants co-located, else 8)")
     rn.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     rn.add_argument("--no-handover", action="store_true",
                     help="leave Zenoh's runtime threads as they are (default: hand them over, ZENOH_RUNTIME)")
@@ -788,7 +793,11 @@ def _run_commands(sub: argparse._SubParsersAction) -> None:
     rn.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
     rn.add_argument("--colocate-plants", action="store_true",
                     help="lockstep, simulated plants: each agent computes its own plant (no plant processes; "
-                         "the same run bit for bit, faster: docs/benchmarks.md)")
+                         "the same run bit for bit, faster: docs/benchmarks.md). The default in lockstep when "
+                         "every plant is simulated and no --fault, --wrap, --vehicle-connect, --listen, --sitl or "
+                         "--shared-plants is given; with this flag, a run that cannot is refused (exit 2)")
+    rn.add_argument("--separate-plants", action="store_true",
+                    help="lockstep: one process per plant even where the plants could run inside their agents")
     rn.add_argument("--shared-plants", action="store_true",
                     help="simulated plants: one world process steps every vehicle, each with its own watchdog, "
                          "instead of one process per vehicle (fewer processes for many agents on one machine; "

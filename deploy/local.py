@@ -1,7 +1,10 @@
 """One command, one machine: start every process of a mission, run it, stop them all, keep the run.
 
 ``tether run MISSION --out DIR`` starts the leader, one agent and one plant per vehicle, and the
-recorder, each its own process (``subprocess``: nothing is forked after Zenoh is loaded), waits
+recorder, each its own process (``subprocess``: nothing is forked after Zenoh is loaded); in
+lockstep, where every plant is simulated and nothing given acts on the plant processes, each plant
+is computed inside its agent instead (the same run bit for bit, 2-3 times faster: :func:`resolve`;
+``--separate-plants`` keeps one process per plant). It waits
 for every liveliness token, runs the mission (lockstep: this process is the clock source; real
 time: it announces the common start instant), shows progress, and stops everything at the end or
 on Ctrl-C. Children get their own session (process group) and stop when the launcher is gone.
@@ -80,6 +83,7 @@ import subprocess
 import sys
 import time
 import shutil
+import dataclasses
 from dataclasses import dataclass, field
 from typing import BinaryIO
 from pathlib import Path
@@ -114,8 +118,9 @@ class LaunchOptions:
     out: Path
     clock: ClockKind = "lockstep"
     network: Network = "star"
-    window: int = 8
-    """Lockstep ticks in flight at once (see :class:`tether.clock.LockstepSource`)."""
+    window: int | None = None
+    """Lockstep ticks in flight at once (see :class:`tether.clock.LockstepSource`); None:
+    :data:`COLOCATED_WINDOW` with the plants co-located, else :data:`WINDOW` (:func:`resolve`)."""
     ns: str | None = None
     startup_timeout: float = 60.0
     """How long to wait for every liveliness token [s]."""
@@ -166,10 +171,11 @@ class LaunchOptions:
     """Serve the run over the Foxglove WebSocket protocol on this port, from the recorder (``--live``)."""
     mcap: bool = True
     """The recorder writes ``run.mcap`` beside ``run.npz`` (``--no-mcap``: not)."""
-    colocate_plants: bool = False
+    colocate_plants: bool | None = None
     """Lockstep, simulated plants: each agent computes its own plant (``plant/onboard.py``) and no
     plant process runs; agents send the recorder one record per :attr:`record_batch` ticks
-    (``--colocate-plants``)."""
+    (``--colocate-plants``: True; ``--separate-plants``: False). None: co-located wherever
+    :func:`separate_plants_needed` finds nothing against it (:func:`resolve`)."""
     record_batch: int | None = None
     """With :attr:`colocate_plants`: ticks per record, at most :attr:`window`; None: :func:`record_batch`."""
     shared_plants: bool = False
@@ -396,10 +402,48 @@ EXIT_INCOMPLETE, EXIT_TERMINATED = 5, 143
 """Exit statuses of ``tether run`` (see the module docstring)."""
 
 
+WINDOW = 8
+"""Lockstep ticks in flight by default with one process per plant."""
+
+COLOCATED_WINDOW = 16
+"""Lockstep ticks in flight by default with the plants co-located (records of half of it):
+section4 ran 9.4x real time with 16 (records of 8) against 7.1x with 8 (records of 1) and 9.1x
+with 32 (records of 16) in one sitting (``bench/runtime.py --cases colocate``, docs/benchmarks.md)."""
+
+
+def separate_plants_needed(m: ms.Mission, o: LaunchOptions) -> str | None:
+    """Why a run of ``m`` keeps one process per plant by default, or None: a lockstep run whose
+    plants are all simulated computes each inside its agent (the same run bit for bit, several
+    times faster, ``tests/test_colocate.py``), unless something asked of the run acts on the plant
+    processes themselves or on the links between them and their agents."""
+    from plant import onboard
+
+    if o.clock != "lockstep":
+        return "real time: each plant is a process of its own"
+    for a in m.agents:
+        why = onboard.problem(m, a.id)
+        if why is not None:
+            return f"agent {a.id}'s plant {why}"
+    for given, name in ((o.shared_plants, "--shared-plants"), (o.faults, "--fault"), (o.wrap, "--wrap"),
+                        (o.vehicle_connect, "--vehicle-connect"), (o.listen, "--listen"),
+                        (o.sitl is not None, "--sitl")):
+        if given:
+            return f"{name} was given (it acts on, or attaches beside, the plant processes)"
+    return None
+
+
+def resolve(m: ms.Mission, o: LaunchOptions) -> LaunchOptions:
+    """``o`` with its defaults decided for ``m``: where the plants run (:attr:`LaunchOptions.colocate_plants`
+    None: inside their agents unless :func:`separate_plants_needed` says why not) and the window."""
+    colocate = o.colocate_plants if o.colocate_plants is not None else separate_plants_needed(m, o) is None
+    window = o.window if o.window is not None else COLOCATED_WINDOW if colocate else WINDOW
+    return dataclasses.replace(o, colocate_plants=colocate, window=window)
+
+
 def record_batch(o: LaunchOptions) -> int:
     """Ticks per record with ``--colocate-plants``: :attr:`LaunchOptions.record_batch`, by default
     half the window (measured best, ``docs/benchmarks.md``)."""
-    return o.record_batch if o.record_batch is not None else max(1, o.window // 2)
+    return o.record_batch if o.record_batch is not None else max(1, (o.window or WINDOW) // 2)
 
 
 def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
@@ -407,7 +451,9 @@ def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
     from plant import onboard
 
     if not o.colocate_plants:
-        return [("--record-batch", "batches the records of co-located plants: give it with --colocate-plants")] \
+        why = separate_plants_needed(m, o)
+        return [("--record-batch", "batches the records of co-located plants, and this run has plant processes "
+                                   f"({'--separate-plants was given' if why is None else why})")] \
             if o.record_batch is not None else []
     fix = "drop --colocate-plants"
     if o.clock != "lockstep":
@@ -419,11 +465,12 @@ def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
         if why is not None:
             out.append(("--colocate-plants", f"agent {a.id}'s plant {why}: {fix}"))
             break
-    if o.window < 1:
+    window = o.window or WINDOW
+    if window < 1:
         out.append(("--window", "must be at least 1"))
-    elif not 1 <= record_batch(o) <= o.window:
+    elif not 1 <= record_batch(o) <= window:
         out.append(("--record-batch", f"{record_batch(o)} ticks per record must be between 1 and the window "
-                                      f"({o.window}): the clock grants a tick only once the recorder holds the "
+                                      f"({window}): the clock grants a tick only once the recorder holds the "
                                       "ticks a window before it; give a smaller --record-batch or a larger --window"))
     return out
 
@@ -539,7 +586,7 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
     m, o, keys = launch.mission, launch.opts, launch.keys
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
-    src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=o.window)
+    src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=o.window or WINDOW)
     wake = handoff.Wakeup()
     acks: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(1 << 20, wake)
     sub = tp.declare_subscriber(session, keys.acks, acks)
@@ -736,6 +783,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     from tether.node import load_mission
 
     m = load_mission(mission_path, opts.duration)
+    auto = opts.colocate_plants is None
+    opts = resolve(m, opts)
     launch = Launch(mission_path.resolve(), m, opts)
     problems = (check_colocate(m, opts) + check_shared(m, opts) + check_vehicle_options(m, opts)
                 + check_faults(m, opts, launch.members()))
@@ -749,6 +798,13 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         problems += localtls.problems(opts.listen, opts.vehicle_connect)
     if problems:
         raise ms.MissionError(f"tether run {mission_path}", problems)
+    if auto and opts.clock == "lockstep":
+        if opts.colocate_plants:
+            log.info("plants computed inside their agents (lockstep, simulated plants: the same run as with plant "
+                     "processes, faster), window %d, records of %d ticks; --separate-plants for one process per plant",
+                     opts.window, record_batch(opts))
+        else:
+            log.info("one process per plant: %s", separate_plants_needed(m, opts))
     if opts.rt_priority is not None:  # the launcher's router first (its threads inherit it), before anything starts
         try:
             log.info("CPU scheduling of the control processes: %s", sched.apply(opts.rt_priority))

@@ -520,7 +520,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     Structure of arrays, axis first and flat: element ``x = c (N+1) + i`` is agent i's axis c, agents
     in solving order (:class:`SolvePlan`; agent ``perm[q]`` at position q, the samples written back
     in the mission's order), ``x = c (N+1) + N`` the leader's. ``y`` ``(4, d (N+1))`` the state
-    [p, v, Kp, Kv] (the leader's elements unused: its come from ``ref_*``); the bank's and the
+    [p, v, Kp, Kv] (the leader's elements unused: its state comes from ``ref_*``); the bank's and the
     law's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; ``times`` ``(k1 - k0,
     substeps, 3)`` (:func:`stage_times`) and the leader's reference at those times, ``ref_*``
     ``(d, (k1 - k0) substeps 3)``; ``sin_m, cos_m`` ``(2 substeps + 1, d (N+1))`` the sine and

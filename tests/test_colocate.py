@@ -1,5 +1,7 @@
-"""``tether run --colocate-plants``: lockstep with each simulated plant computed inside its agent's
-process (``plant/onboard.py``), and the recorder's samples batched in ``wire.Record`` messages.
+"""Lockstep with each simulated plant computed inside its agent's process (``plant/onboard.py``), and
+the recorder's samples batched in ``wire.Record`` messages: ``tether run``'s default in lockstep
+where every plant is simulated (``deploy.local.resolve``), ``--colocate-plants`` to insist on it,
+``--separate-plants`` for one process per plant.
 
 The run must be the one the separate plant processes give, byte for byte in every array of the run
 file, and so the reference simulator's; a co-located plant flies only what its command watchdog
@@ -39,12 +41,13 @@ AGENTS = (1, 2, 3, 4)
 # =========================================================================== the same run, fewer processes
 @pytest.fixture(scope="module")
 def section4_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str, str]:
-    """Section 4 over 5 s in lockstep, twice at the same time: plants co-located (4 ticks per
-    record: 501 ticks end on a record of one), and plant processes as usual."""
+    """Section 4 over 5 s in lockstep, twice at the same time: as ``tether run`` does by default
+    (plants co-located, window 16, 8 ticks per record: 501 ticks end on a record of five), and with
+    ``--separate-plants``, one process per plant."""
     base = tmp_path_factory.mktemp("colocate")
     ns = f"colocate-{os.getpid()}"
-    with launch(base / "co", f"{ns}-co", "--duration", "5", "--colocate-plants", "--record-batch", "4") as co, \
-            launch(base / "sep", f"{ns}-sep", "--duration", "5") as sep:
+    with launch(base / "co", f"{ns}-co", "--duration", "5") as co, \
+            launch(base / "sep", f"{ns}-sep", "--duration", "5", "--separate-plants") as sep:
         for run in (co, sep):
             run.wait(STARTUP + 60)
             assert run.status == 0, run.launcher_log
@@ -52,8 +55,10 @@ def section4_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path,
 
 
 def test_colocated_run_starts_no_plant_process_and_is_complete(section4_runs: tuple[Path, Path, str, str]) -> None:
-    co, _, log, _ = section4_runs
+    co, _, log, sep_log = section4_runs
+    assert "plants computed inside their agents" in log and "window 16, records of 8 ticks" in log, log
     assert "all 6 processes are up" in log, log
+    assert "all 10 processes are up" in sep_log and "plants computed inside" not in sep_log, sep_log
     assert sorted(p.name for p in (co / "logs").iterdir()) == sorted(
         ["gateway.log", "leader-5.log", "recorder-0.log", *[f"agent-{i}.log" for i in AGENTS]])
     rec = Run.load(co)
@@ -85,7 +90,7 @@ def test_colocated_quadrotors_equal_their_plant_processes_bit_for_bit(tmp_path: 
     """Experiment 1's quadrotors (their 500 Hz inner loop, with mass and attitude), 1 s."""
     ns = f"colocate-q-{os.getpid()}"
     outs = []
-    for tag, extra in (("co", ("--colocate-plants", "--record-batch", "3")), ("sep", ())):
+    for tag, extra in (("co", ("--colocate-plants", "--record-batch", "3")), ("sep", ("--separate-plants",))):
         out = tmp_path / tag
         r = subprocess.run(tether_cmd("run", "exp1", "--out", str(out), "--ns", f"{ns}-{tag}", "--duration", "1",
                                       "--quiet", *extra), cwd=REPO, capture_output=True, text=True,
@@ -99,7 +104,7 @@ def test_colocated_quadrotors_equal_their_plant_processes_bit_for_bit(tmp_path: 
 # =========================================================================== refused before anything starts
 @pytest.mark.parametrize("mission, args, names, fix", [
     ("section4", ["--clock", "realtime"], "--colocate-plants", "--clock lockstep"),
-    ("section4", ["--record-batch", "9"], "--record-batch", "smaller --record-batch or a larger --window"),
+    ("section4", ["--record-batch", "17"], "--record-batch", "smaller --record-batch or a larger --window"),
     ("section4", ["--window", "4", "--record-batch", "5"], "--record-batch", "between 1 and the window (4)"),
     ("exp2", [], "--colocate-plants", "[payload] world"),
     ("exp1_cf", [], "--colocate-plants", "crazyflie"),
@@ -115,10 +120,54 @@ def test_colocate_plants_refuses_what_it_cannot_run_with_exit_2(tmp_path: Path, 
     assert not (tmp_path / "out" / "logs").exists() or not any((tmp_path / "out" / "logs").iterdir())
 
 
-def test_record_batch_without_colocate_plants_exits_2(tmp_path: Path) -> None:
-    r = subprocess.run(tether_cmd("run", "section4", "--out", str(tmp_path / "out"), "--record-batch", "2"),
+@pytest.mark.parametrize("args, why", [
+    (["--separate-plants"], "--separate-plants was given"),
+    (["--clock", "realtime"], "real time"),
+    (["--listen", "tls/127.0.0.1:9"], "--listen was given"),
+])
+def test_record_batch_with_plant_processes_exits_2(tmp_path: Path, args: list[str], why: str) -> None:
+    r = subprocess.run(tether_cmd("run", "section4", "--out", str(tmp_path / "out"), "--record-batch", "2", *args),
                        cwd=REPO, capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "--record-batch" in r.stderr and "--colocate-plants" in r.stderr, r.stderr
+    assert r.returncode == 2, r.stderr
+    line = next(x for x in r.stderr.splitlines() if "--record-batch" in x)
+    assert "plant processes" in line and why in line, r.stderr
+
+
+def test_colocate_and_separate_plants_together_exit_2(tmp_path: Path) -> None:
+    r = subprocess.run(tether_cmd("run", "section4", "--out", str(tmp_path / "out"), "--colocate-plants",
+                                  "--separate-plants"), cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "--separate-plants" in r.stderr and "give one of them" in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_lockstep_co_locates_by_default_where_nothing_needs_plant_processes() -> None:
+    """``deploy.local.resolve``: co-located in lockstep with simulated plants and nothing that acts on
+    the plant processes; else one process per plant, and why; the window follows the structure."""
+    from deploy import faults
+    from deploy.local import COLOCATED_WINDOW, WINDOW, LaunchOptions, resolve, separate_plants_needed
+
+    m, out = load_mission(SECTION4), Path("out")
+    assert separate_plants_needed(m, LaunchOptions(out=out)) is None
+    got = resolve(m, LaunchOptions(out=out))
+    assert got.colocate_plants is True and got.window == COLOCATED_WINDOW
+    cases = {
+        "real time": LaunchOptions(out=out, clock="realtime"),
+        "--fault": LaunchOptions(out=out, faults=(faults.parse("kill:plant/2@1"),)),
+        "--wrap": LaunchOptions(out=out, wrap={2: ("nice",)}),
+        "--listen": LaunchOptions(out=out, listen=("tls/127.0.0.1:9",)),
+        "--shared-plants": LaunchOptions(out=out, shared_plants=True),
+        "--sitl": LaunchOptions(out=out, sitl=()),
+    }
+    for name, o in cases.items():
+        why = separate_plants_needed(m, o)
+        assert why is not None and name in why, (name, why)
+        got = resolve(m, o)
+        assert got.colocate_plants is False and got.window == WINDOW, name
+    assert "[payload] world" in (separate_plants_needed(load_mission(builtin_path("exp2")), LaunchOptions(out=out)) or "")
+    # what is given is kept
+    assert resolve(m, LaunchOptions(out=out, colocate_plants=False)).colocate_plants is False
+    assert resolve(m, LaunchOptions(out=out, window=4)).window == 4
+    assert resolve(m, LaunchOptions(out=out, clock="realtime", colocate_plants=True)).colocate_plants is True
 
 
 def test_problem_names_the_plants_that_cannot_be_co_located() -> None:

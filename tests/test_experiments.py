@@ -106,7 +106,7 @@ def test_experiment2_carries_the_payload_and_the_plain_law_sags() -> None:
 
 def _run(path: Path, out: Path, duration: float) -> Run:
     r = subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--duration",
-                        str(duration), "--quiet"], capture_output=True, text=True, timeout=240)
+                        str(duration), "--quiet", "--separate-plants"], capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr[-3000:]
     return Run.load(out)
 

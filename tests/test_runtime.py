@@ -301,10 +301,12 @@ class Finished:
 
 @pytest.fixture(scope="module")
 def lockstep(tmp_path_factory: pytest.TempPathFactory) -> tuple[Finished, Finished]:
-    """Two lockstep runs of Section 4 over 5 s, started at the same time (one router each)."""
+    """Two lockstep runs of Section 4 over 5 s, started at the same time (one router each), one
+    process per plant (``tether run`` co-locates them by default in lockstep: tests/test_colocate.py)."""
     base = tmp_path_factory.mktemp("lockstep")
     ns = f"lockstep-{os.getpid()}"
-    with launch(base / "a", f"{ns}-a", "--duration", "5") as a, launch(base / "b", f"{ns}-b", "--duration", "5") as b:
+    sep = ("--duration", "5", "--separate-plants")
+    with launch(base / "a", f"{ns}-a", *sep) as a, launch(base / "b", f"{ns}-b", *sep) as b:
         runs = []
         for run in (a, b):
             run.wait(STARTUP + 60)
