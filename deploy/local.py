@@ -443,7 +443,8 @@ def resolve(m: ms.Mission, o: LaunchOptions) -> LaunchOptions:
 def record_batch(o: LaunchOptions) -> int:
     """Ticks per record with ``--colocate-plants``: :attr:`LaunchOptions.record_batch`, by default
     half the window (measured best, ``docs/benchmarks.md``)."""
-    return o.record_batch if o.record_batch is not None else max(1, (o.window or WINDOW) // 2)
+    window = o.window if o.window is not None else WINDOW
+    return o.record_batch if o.record_batch is not None else max(1, window // 2)
 
 
 def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
@@ -465,10 +466,8 @@ def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
         if why is not None:
             out.append(("--colocate-plants", f"agent {a.id}'s plant {why}: {fix}"))
             break
-    window = o.window or WINDOW
-    if window < 1:
-        out.append(("--window", "must be at least 1"))
-    elif not 1 <= record_batch(o) <= window:
+    window = o.window if o.window is not None else WINDOW
+    if window >= 1 and not 1 <= record_batch(o) <= window:
         out.append(("--record-batch", f"{record_batch(o)} ticks per record must be between 1 and the window "
                                       f"({window}): the clock grants a tick only once the recorder holds the "
                                       "ticks a window before it; give a smaller --record-batch or a larger --window"))
@@ -586,7 +585,8 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
     m, o, keys = launch.mission, launch.opts, launch.keys
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
-    src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=o.window or WINDOW)
+    window = o.window if o.window is not None else WINDOW
+    src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=window)
     wake = handoff.Wakeup()
     acks: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(1 << 20, wake)
     sub = tp.declare_subscriber(session, keys.acks, acks)
@@ -788,6 +788,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     launch = Launch(mission_path.resolve(), m, opts)
     problems = (check_colocate(m, opts) + check_shared(m, opts) + check_vehicle_options(m, opts)
                 + check_faults(m, opts, launch.members()))
+    if opts.clock == "lockstep" and opts.window is not None and opts.window < 1:
+        problems.append(("--window", f"is {opts.window}: lockstep ticks in flight, at least 1 (default "
+                                     f"{COLOCATED_WINDOW} with the plants co-located, else {WINDOW})"))
     if opts.clock == "lockstep":
         problems += [(f"agent {a.id}.plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "
                                             "run with --clock realtime")
