@@ -1028,21 +1028,25 @@ def _rt_row(rt: Result, rb: Result) -> dict[str, Any]:
             "startup_s": [rt.startup_s, rb.startup_s]}
 
 
-def _lost(recorded: str) -> str:
-    """``"2 of 24783"`` from a run's ``"24781/24783"`` (samples recorded of those sent)."""
+def _recorded(recorded: str) -> tuple[int, int] | None:
+    """``(got, sent)`` from a run's ``"24781/24783"`` (samples recorded of those sent), None if unreadable."""
     try:
         got, want = (int(x) for x in recorded.split("/"))
     except ValueError:
-        return "?"
-    return f"{want - got} of {want}"
+        return None
+    return got, want
+
+
+def _lost(recorded: str) -> str:
+    """``"2 of 24783"`` from a run's ``"24781/24783"``."""
+    pair = _recorded(recorded)
+    return "?" if pair is None else f"{pair[1] - pair[0]} of {pair[1]}"
 
 
 def _frac(recorded: str) -> float:
-    try:
-        got, want = recorded.split("/")
-        return 100 * int(got) / int(want)
-    except (ValueError, ZeroDivisionError):
-        return float("nan")
+    """The share recorded [%] of a run's ``"24781/24783"`` (NaN if unreadable or nothing was sent)."""
+    pair = _recorded(recorded)
+    return 100 * pair[0] / pair[1] if pair is not None and pair[1] else float("nan")
 
 
 def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> None:

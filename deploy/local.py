@@ -432,19 +432,23 @@ def separate_plants_needed(m: ms.Mission, o: LaunchOptions) -> str | None:
     return None
 
 
+def window(o: LaunchOptions) -> int:
+    """The window of ``o`` (:func:`resolve` decides it; :data:`WINDOW` for options not resolved)."""
+    return o.window if o.window is not None else WINDOW
+
+
 def resolve(m: ms.Mission, o: LaunchOptions) -> LaunchOptions:
     """``o`` with its defaults decided for ``m``: where the plants run (:attr:`LaunchOptions.colocate_plants`
     None: inside their agents unless :func:`separate_plants_needed` says why not) and the window."""
     colocate = o.colocate_plants if o.colocate_plants is not None else separate_plants_needed(m, o) is None
-    window = o.window if o.window is not None else COLOCATED_WINDOW if colocate else WINDOW
-    return dataclasses.replace(o, colocate_plants=colocate, window=window)
+    ticks = o.window if o.window is not None else COLOCATED_WINDOW if colocate else WINDOW
+    return dataclasses.replace(o, colocate_plants=colocate, window=ticks)
 
 
 def record_batch(o: LaunchOptions) -> int:
     """Ticks per record with ``--colocate-plants``: :attr:`LaunchOptions.record_batch`, by default
     half the window (measured best, ``docs/benchmarks.md``)."""
-    window = o.window if o.window is not None else WINDOW
-    return o.record_batch if o.record_batch is not None else max(1, window // 2)
+    return o.record_batch if o.record_batch is not None else max(1, window(o) // 2)
 
 
 def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
@@ -466,10 +470,10 @@ def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
         if why is not None:
             out.append(("--colocate-plants", f"agent {a.id}'s plant {why}: {fix}"))
             break
-    window = o.window if o.window is not None else WINDOW
-    if window >= 1 and not 1 <= record_batch(o) <= window:
+    ticks = window(o)
+    if ticks >= 1 and not 1 <= record_batch(o) <= ticks:
         out.append(("--record-batch", f"{record_batch(o)} ticks per record must be between 1 and the window "
-                                      f"({window}): the clock grants a tick only once the recorder holds the "
+                                      f"({ticks}): the clock grants a tick only once the recorder holds the "
                                       "ticks a window before it; give a smaller --record-batch or a larger --window"))
     return out
 
@@ -585,8 +589,7 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
     m, o, keys = launch.mission, launch.opts, launch.keys
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
-    window = o.window if o.window is not None else WINDOW
-    src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=window)
+    src = LockstepSource(frozenset({("recorder", 0)}), last=m.steps, window=window(o))
     wake = handoff.Wakeup()
     acks: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(1 << 20, wake)
     sub = tp.declare_subscriber(session, keys.acks, acks)
