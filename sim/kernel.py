@@ -93,13 +93,18 @@ def _sines(k: int, lo: int, hi: int, steps: int, record: bool, h: float, has_sin
     :func:`sine_pairs`): the very operations of ``DisturbanceBank``, once per pair and not once per
     agent and axis that has it (the same inputs give the same bits)."""
     last = k == steps
-    if has_sine or ((record or last) and not zero_d):
-        tk = k * h
+    tk = k * h
+    if has_sine and not last:
+        # sine and cosine of one argument in one loop body: LLVM calls libm's sincos once for the
+        # pair, in about two thirds of the two calls' time; glibc's sincos shares sin's and cos's
+        # code and gives their bits (tests/test_refsim_kernel.py checks this libm's, at every scale)
+        for u in range(lo, hi):
+            x = u_omega[u] * tk + u_phase[u]
+            snu[u] = math.sin(x)
+            csu[u] = math.cos(x)
+    elif has_sine or ((record or last) and not zero_d):
         for u in range(lo, hi):
             snu[u] = math.sin(u_omega[u] * tk + u_phase[u])
-        if has_sine and not last:
-            for u in range(lo, hi):
-                csu[u] = math.cos(u_omega[u] * tk + u_phase[u])
 
 
 def sine_pairs(omega: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

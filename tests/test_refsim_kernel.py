@@ -274,3 +274,17 @@ def test_discrete_kernel_with_shared_and_distinct_sinusoids_equals_the_numpy_pat
     a, b = _pair(m)
     for f in FIELDS:
         np.testing.assert_array_equal(getattr(b, f), getattr(a, f), err_msg=f)
+
+
+def test_the_kernels_sines_are_numpys_bits_over_every_argument_scale() -> None:
+    # the kernel takes sine and cosine of one argument in one loop body, which LLVM turns into one
+    # call of libm's sincos: its bits must be np.sin's and np.cos's, small arguments and huge ones
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.uniform(-s, s, 40_000) for s in (1e-8, 1.0, 10.0, 1e3, 1e6, 1e12, 1e300)]
+                       + [np.array([0.0, -0.0, np.pi, -np.pi / 2, 2.0 ** 30, 1e308])])
+    omega, phase = np.ones_like(x), x
+    snu, csu = np.empty_like(x), np.empty_like(x)
+    kernel._sines(0, 0, len(x), 10, True, 0.01, True, False, omega, phase, snu, csu)
+    arg = omega * 0.0 + phase  # as the bank computes it at t = 0 (-0.0 becomes 0.0)
+    np.testing.assert_array_equal(snu.view(np.int64), np.sin(arg).view(np.int64))
+    np.testing.assert_array_equal(csu.view(np.int64), np.cos(arg).view(np.int64))
