@@ -99,10 +99,10 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
     ]
     out += [
         Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
-              subscribe=(k.start, k.tick), tokens=(k.token("leader", lid),)),
+              subscribe=(k.start, k.tick, k.recorded), tokens=(k.token("leader", lid),)),
         # the operator also watches the swarm (tether record, tether top): it may hear every stream
         # the recorder hears, and publish none of them
-        Grant("control-0", publish=(k.start, k.tick, k.safety),
+        Grant("control-0", publish=(k.start, k.tick, k.recorded, k.safety),
               subscribe=(k.acks, k.start, k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
                          f"tether/{ns}/agent/*/record", f"tether/{ns}/plant/*/state", k.topic("world", 0, "state")),
               watch=(every_token,), sees=(every_token,),
@@ -118,7 +118,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)
             publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry", "record")),
-            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start, k.safety),
+            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start, k.recorded, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
@@ -131,7 +131,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
         out.append(Grant(
             f"plant-{aid}",
             publish=(k.topic("plant", aid, "state"),),
-            subscribe=(k.topic("agent", aid, "cmd"), k.start, k.safety),
+            subscribe=(k.topic("agent", aid, "cmd"), k.start, k.recorded, k.safety),
             tokens=(k.token("plant", aid),),
             watch=(every_token,),
             sees=(k.token("agent", aid),),

@@ -85,7 +85,7 @@ import time
 import shutil
 import dataclasses
 from dataclasses import dataclass, field
-from typing import BinaryIO
+from typing import BinaryIO, Callable
 from pathlib import Path
 from typing import Literal
 
@@ -585,7 +585,11 @@ def _check_children(launch: Launch, sup: Supervision, lockstep: bool) -> None:
         log.warning("%s: the others carry on; its log ends:\n%s", c.name, c.tail())
 
 
-async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress | None, sup: Supervision) -> None:
+async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress | None,
+                    sup: Supervision) -> Callable[[], None]:
+    """Grant ticks as the recorder acknowledges them, to the last. Returns the announcement that the
+    recorder holds every sample (:class:`~tether.wire.Recorded`), made once here; the caller repeats
+    it (idempotent) while it waits for the processes, which close their sessions on hearing it."""
     m, o, keys = launch.mission, launch.opts, launch.keys
     # The recorder hears every process's output of tick k, so its acknowledgement of k stands for
     # everyone's; the leader, the only process not gated by inputs of the same tick, follows grants.
@@ -611,6 +615,14 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
         granted = g
         pub.put(wire.encode(wire.Tick(sender=0, seq=seq, k=g, t=g * m.dt, grant=g)))
         seq += 1
+
+    recorded = tp.declare_publisher(session, keys.recorded, tp.SYNC)
+    said = 0
+
+    def announce() -> None:
+        nonlocal said
+        recorded.put(wire.encode(wire.Recorded(sender=0, seq=said, k=m.steps, t=m.steps * m.dt)))
+        said += 1
 
     start = tp.declare_publisher(session, keys.start, tp.SYNC)
     start.put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=time.time())))
@@ -659,6 +671,8 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
                 grant()
                 if progress is not None:
                     progress(src.done, m.steps, f"{m.name} lockstep")
+        announce()
+        return announce
     finally:
         sub.undeclare()
         pub.undeclare()
@@ -909,8 +923,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                         raise LaunchFailed(str(exc)) from None
                 log.info("all %d processes are up after %.1f s", len(tokens), time.monotonic() - t0)
                 t1 = time.monotonic()
+                announce: Callable[[], None] | None = None
                 if opts.clock == "lockstep":
-                    await _lockstep(launch, session, progress, sup)
+                    announce = await _lockstep(launch, session, progress, sup)
                 else:
                     if await _realtime(launch, session, progress, sup, first_sigint):
                         await _land_then_stop(launch, session, sup)
@@ -920,11 +935,15 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                 log.info("ran %g s of mission time in %.2f s of wall time", m.duration, time.monotonic() - t1)
                 deadline = time.monotonic() + EXIT_GRACE
                 writing = deadline + write_grace(m, m.steps)  # the recorder writes run.npz and run.mcap now
+                said = time.monotonic()
                 while any(c.proc.poll() is None for c in launch.children):
                     others = any(c.proc.poll() is None for c in launch.children if c.role != "recorder")
                     if time.monotonic() > (deadline if others else writing):
                         sup.monitor.report("launcher", "silent", "some processes did not exit after the last tick")
                         break
+                    if announce is not None and others and time.monotonic() - said > 0.5:
+                        announce()  # again, for a process that lost it with its link
+                        said = time.monotonic()
                     await asyncio.sleep(0.05)
                 return False
 

@@ -301,14 +301,16 @@ def test_the_acl_grants_exactly_what_the_roles_declare(deployment: gen.Deploymen
     a2 = g["agent-2"]
     assert a2.publish == ("tether/trio/agent/2/state", "tether/trio/agent/2/cmd", "tether/trio/agent/2/telemetry",
                           "tether/trio/agent/2/record")  # record: its co-located plant's (--colocate-plants)
+    # recorded: lockstep, the launcher's word that the recorder holds every sample (then it closes)
     assert set(a2.subscribe) == {"tether/trio/plant/2/state", "tether/trio/agent/1/state",
-                                 "tether/trio/control/0/start", "tether/trio/control/0/safety"}
+                                 "tether/trio/control/0/start", "tether/trio/control/0/recorded",
+                                 "tether/trio/control/0/safety"}
     assert set(a2.sees) == {"@tether/trio/plant/2", "@tether/trio/agent/1"}
     assert a2.tokens == ("@tether/trio/agent/2",)
     assert set(g["agent-1"].subscribe) >= {"tether/trio/leader/4/state", "tether/trio/agent/3/state"}
     assert g["plant-3"].publish == ("tether/trio/plant/3/state",)
     assert set(g["plant-3"].subscribe) == {"tether/trio/agent/3/cmd", "tether/trio/control/0/start",
-                                           "tether/trio/control/0/safety"}
+                                           "tether/trio/control/0/recorded", "tether/trio/control/0/safety"}
     # no agent or plant may publish outside its own keys
     for name, grant in g.items():
         role, _, nid = name.partition("-")

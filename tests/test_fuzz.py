@@ -203,6 +203,7 @@ VALID = [
     wire.Tick(sender=0, seq=0, k=0, t=0.0, grant=8),
     wire.Ack(sender=3, seq=0, k=0, t=0.0, role="agent"),
     wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=1.7e9),
+    wire.Recorded(sender=0, seq=0, k=8, t=0.08),
     wire.SafetyCommand(sender=0, seq=0, k=0, t=0.0, action="land", reason="fuzz"),
     wire.Telemetry(sender=3, seq=0, k=1, t=0.01, meas_t=0.01, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0],
                    u=[0.0, 0.0], xi=[0.0, 0.0], zeta=[0.0, 0.0], kp=[1.0, 1.0], kv=[1.0, 1.0],

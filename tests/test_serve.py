@@ -8,6 +8,8 @@ The in-process cases open a real, isolated Zenoh session (a peer listening on lo
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import logging
 import subprocess
 import sys
 import time
@@ -20,7 +22,7 @@ from tether import catalog
 from tether import transport as tp
 from tether import wire
 from tether.clock import ClockKind
-from tether.node import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, EXIT_STOPPED, Node, NodeArgs, serve
+from tether.node import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, EXIT_STOPPED, LINGER, Node, NodeArgs, serve
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -128,6 +130,88 @@ async def test_the_real_time_input_pump_is_owned_by_the_group_and_ends_with_the_
 
     assert await serve_checked(node_args("serve-pump", clock="realtime"), role) == EXIT_OK
     assert len(pumps) == 1 and pumps[0].cancelled()
+
+
+@pytest.mark.asyncio
+async def test_a_lockstep_member_closes_only_on_the_launchers_word_that_every_sample_is_recorded() -> None:
+    """After its last tick a lockstep process keeps its session open until the launcher says the
+    recorder holds every sample (``Recorded``), however long that takes: a forged word (another
+    sender) and a malformed one are dropped and counted, and it keeps waiting; the launcher's own
+    word ends the wait, exit 0."""
+    args = node_args("serve-recorded")
+    done: dict[str, float] = {}
+    checks: list[asyncio.Task[None]] = []
+
+    async def role(node: Node) -> None:
+        start = node.publisher(node.keys.start, sender=0)
+        word = node.publisher(node.keys.recorded, sender=0)
+        forged = node.publisher(node.keys.recorded, sender=3)
+        m = node.mission
+
+        async def announce() -> None:  # the launcher's start, repeated until heard
+            while True:
+                start.send(wire.Start, 0, 0.0, epoch=time.time())
+                await asyncio.sleep(0.05)
+
+        async def launcher_at_the_end() -> None:
+            forged.send(wire.Recorded, m.steps, m.duration)
+            node.session.put(node.keys.recorded, b"\xc1 not msgpack")
+            drops = node.receiver.drops
+            async with asyncio.timeout(20):
+                while drops.get("sender", 0) < 1 or drops.get("malformed", 0) < 1:
+                    await asyncio.sleep(0.01)
+                # well past the 0.25 s the process used to wait on a timer
+                while time.monotonic() < done["role"] + 4 * LINGER:
+                    await asyncio.sleep(0.01)
+            assert not serving.done(), "closed before the launcher's word"
+            done["word"] = time.monotonic()
+            word.send(wire.Recorded, m.steps, m.duration)
+
+        announcer = asyncio.create_task(announce())
+        try:
+            async with asyncio.timeout(20):
+                await node.ready()
+        finally:
+            announcer.cancel()
+        done["role"] = time.monotonic()
+        checks.append(asyncio.create_task(launcher_at_the_end()))
+
+    serving = asyncio.create_task(serve(args, role))
+    async with asyncio.timeout(60):
+        status = await serving
+    assert "word" in done, "the process closed before the launcher's word"
+    await checks[0]  # its own assertions
+    assert status == EXIT_OK
+
+
+@pytest.mark.asyncio
+async def test_a_lockstep_member_without_the_launchers_word_closes_after_the_stall_timeout(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """No launcher to say the run is recorded (it is gone; the run has failed by then): the process
+    closes after ``--stall-timeout``, says so, and its own work ended well (exit 0)."""
+    args = dataclasses.replace(node_args("serve-no-word"), stall_timeout=1.0)
+    ended: list[float] = []
+
+    async def role(node: Node) -> None:
+        start = node.publisher(node.keys.start, sender=0)
+
+        async def announce() -> None:
+            while True:
+                start.send(wire.Start, 0, 0.0, epoch=time.time())
+                await asyncio.sleep(0.05)
+
+        announcer = asyncio.create_task(announce())
+        try:
+            async with asyncio.timeout(20):
+                await node.ready()
+        finally:
+            announcer.cancel()
+        ended.append(time.monotonic())
+
+    with caplog.at_level(logging.WARNING, logger="tether"):
+        assert await serve_checked(args, role) == EXIT_OK
+    assert time.monotonic() - ended[0] >= 1.0
+    assert "waited 1 s for the launcher's word that every sample is recorded: closing anyway" in caplog.text
 
 
 def test_a_process_that_never_hears_the_start_fails_after_its_start_timeout() -> None:

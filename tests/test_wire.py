@@ -37,6 +37,7 @@ SAMPLES: dict[type, wire.Message] = {
     wire.Tick: wire.Tick(sender=0, seq=4, k=40, t=0.4, grant=40),
     wire.Ack: wire.Ack(sender=0, seq=40, k=40, t=0.4, role="recorder"),
     wire.Start: wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=1.7e9),
+    wire.Recorded: wire.Recorded(sender=0, seq=1, k=2000, t=20.0),
     wire.NetemSet: wire.NetemSet(sender=0, seq=0, k=0, t=0.0, at=12.5,
                                  rules=[LinkRule(profile="wifi-lossy", src=2, dst=3)]),
     wire.WorldState: wire.WorldState(sender=0, seq=7, k=7, t=0.07, p=[0.0, 0.1], vel=[0.0, 0.0],
@@ -54,7 +55,7 @@ SAMPLES[wire.Record] = wire.Record(
 EXPECTED_TAGS = {wire.State: "state", wire.PlantState: "plant_state", wire.Command: "cmd",
                  wire.Telemetry: "telemetry", wire.Tick: "tick", wire.Ack: "ack", wire.Start: "start",
                  wire.NetemSet: "netem_set", wire.WorldState: "world_state", wire.SafetyCommand: "safety",
-                 wire.Record: "record"}
+                 wire.Record: "record", wire.Recorded: "recorded"}
 
 
 def same(a: wire.Message, b: wire.Message) -> bool:
@@ -216,13 +217,14 @@ def test_keys_build_the_documented_scheme() -> None:
     assert k.everything == "tether/section4/**"
     assert k.tick == "tether/section4/clock/0/tick"
     assert k.start == "tether/section4/control/0/start"
+    assert k.recorded == "tether/section4/control/0/recorded"
     assert k.acks == "tether/section4/*/*/ack"
 
 
 @pytest.mark.parametrize(("role", "node", "topic"),
                          [("agent", 1, "state"), ("agent", 12, "cmd"), ("agent", 3, "telemetry"),
                           ("plant", 4, "state"), ("leader", 5, "state"), ("clock", 0, "tick"),
-                          ("recorder", 0, "ack"), ("control", 0, "start")])
+                          ("recorder", 0, "ack"), ("control", 0, "start"), ("control", 0, "recorded")])
 def test_keys_parse_what_they_build(role: str, node: int, topic: str) -> None:
     k = Keys("run-7_b")
     assert Keys.parse(k.topic(role, node, topic)) == (role, node, topic)

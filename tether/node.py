@@ -54,13 +54,13 @@ so its bucket is full when the burst comes, and the burst is taken whole, not cu
 
 
 LINGER = 0.25
-"""How long a process that ran to its last tick keeps its session open before closing it [s], so
-that the samples of its last ticks leave before the session goes. Closed at once, it lost them: in
-real time the recorder, which waits for every producer's last tick or its token's going, then
-wrote an incomplete run; in lockstep (plants co-located, records of 8 ticks) an agent's
-second-to-last record never reached the recorder although its last did, and the recorder stalled
-for 30 s and failed the run: 4 of 8 runs of Section 4 beside three CPU-bound processes, 0 of 10
-with the linger."""
+"""Real time: how long a process that ran to its last tick keeps its session open before closing it
+[s], so that the samples of its last ticks leave before the session goes. Closed at once, it lost
+them: the recorder, which waits for every producer's last tick or its token's going, then wrote an
+incomplete run. Lockstep waits for the launcher's word instead (:meth:`Node.linger`): there, closed
+at once, an agent's second-to-last record (plants co-located, records of 8 ticks) never reached the
+recorder although its last did, and the recorder stalled for 30 s and failed the run (4 of 8 runs
+of Section 4 beside three CPU-bound processes)."""
 
 
 BACKLOG_ROLES = frozenset({"recorder"})
@@ -213,6 +213,8 @@ class Node:
         self._token: Any = None
         self.clock = clock
         self._start: Source | None = None
+        self._recorded: Source | None = None
+        """Lockstep, a member of the swarm: the launcher's word that every sample is recorded."""
         self._paced = False
         self.tasks: asyncio.TaskGroup | None = None
         """The task group that owns this process's tasks (set by :func:`serve`); :meth:`ready`
@@ -392,6 +394,8 @@ class Node:
         if isinstance(clock, LockstepClock) and paced:
             self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
+        if isinstance(clock, LockstepClock) and token and self.args.role not in BACKLOG_ROLES:
+            self._recorded = self.source(self.keys.recorded, wire.Recorded, 0, keep=False)
         if token:
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
         joined: list[float] = []
@@ -623,6 +627,23 @@ class Node:
         self.drain()
         return late
 
+    async def linger(self) -> None:
+        """Keep the session open after the last tick until this process's last samples have left.
+
+        Lockstep (a member of the swarm): until the launcher says the recorder holds every sample
+        of the run (:class:`~tether.wire.Recorded`), at most ``stall_timeout`` (the launcher has
+        failed the run by then: no acknowledgement for that long); a deterministic end, whatever
+        the load. Real time, or a lockstep process outside the swarm: :data:`LINGER` seconds."""
+        got = self._recorded
+        if got is None:
+            await asyncio.sleep(LINGER)
+            return
+        try:
+            await self.until(lambda: got.newest is not None, self.args.stall_timeout,
+                             "the launcher's word that every sample is recorded")
+        except Stalled as exc:
+            log.warning("%s: closing anyway", exc)
+
     def close(self) -> None:
         self.closing = True  # taps stop first: one may be running on Zenoh's thread (see _Tapped)
         if self._rearm is not None:
@@ -711,7 +732,7 @@ async def _run_tasks(node: Node, role: Callable[[Node], Awaitable[None]]) -> int
             await role(node)
             work_done = True  # a stop during the linger is not a stop of the work
             if node.args.role not in BACKLOG_ROLES:
-                await asyncio.sleep(LINGER)  # the last samples leave first (a stop ends this at once)
+                await node.linger()  # the last samples leave first (a stop ends this at once)
         except Stalled as exc:
             log.error("stalled: %s", exc)
             failed = True

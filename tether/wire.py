@@ -12,6 +12,8 @@ Keys (one scheme, also in ``docs/runtime.md``)::
     tether/<ns>/clock/0/tick             Tick       lockstep: ticks up to ``grant`` may run
     tether/<ns>/<role>/<id>/ack          Ack        lockstep: ``<role> <id>`` has finished tick k
     tether/<ns>/control/0/start          Start      real time: the common start instant
+    tether/<ns>/control/0/recorded       Recorded   lockstep: the recorder holds every sample up to tick k;
+                                                    the producers may close their sessions
     tether/<ns>/control/0/safety         SafetyCommand  operator: land every vehicle, or stop every motor
     @tether/<ns>/<role>/<id>             liveliness token of every process (hermetic: ``**`` never matches ``@``)
 
@@ -218,6 +220,12 @@ class Ack(_Msg, tag="ack", frozen=True):
     role: str
 
 
+class Recorded(_Msg, tag="recorded", frozen=True):
+    """Lockstep: the recorder holds every process's output of every tick up to and including k (the
+    launcher's word, once the recorder has acknowledged the last tick): a producer that ran its last
+    tick may close its session now without losing a sample on the way."""
+
+
 class Start(_Msg, tag="start", frozen=True):
     """Real time: tick 0 is at ``epoch`` [s since the Unix epoch, UTC]; tick k at epoch + k h."""
 
@@ -268,7 +276,7 @@ class Record(_Msg, tag="record", frozen=True):
 
 
 Message = (State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState | SafetyCommand
-           | Record)
+           | Record | Recorded)
 M = TypeVar("M", bound=Message)
 
 _ENCODER = msgspec.msgpack.Encoder()
@@ -336,6 +344,10 @@ class Keys:
     @property
     def netem(self) -> str:
         return self.topic("control", 0, "netem")
+
+    @property
+    def recorded(self) -> str:
+        return self.topic("control", 0, "recorded")
 
     @property
     def safety(self) -> str:
