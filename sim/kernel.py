@@ -127,11 +127,14 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
            out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
            out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray,
            sp: np.ndarray, sv: np.ndarray, sa: np.ndarray, dvb: np.ndarray, dpb: np.ndarray,
-           snb: np.ndarray, csb: np.ndarray, inv: np.ndarray, snu: np.ndarray, csu: np.ndarray) -> None:
+           snb: np.ndarray, csb: np.ndarray, inv: np.ndarray, snu: np.ndarray, csu: np.ndarray,
+           own: bool = False) -> None:
     """Tick k of agents ``lo .. hi-1``, axis by axis: the neighbour sums slot by slot (as
     :func:`tether.graph.neighbour_sums`), the disturbance increments, then the law, the gains and
     the plant element-wise. Reads tick k's half of the double buffers, writes tick k+1's half and
-    the rows ``lo .. hi`` of everything else: blocks of agents can run at the same time."""
+    the rows ``lo .. hi`` of everything else: blocks of agents can run at the same time. The sines
+    are those of :func:`_sines` (``snu, csu``), or with ``own`` computed here for these agents
+    alone, from the same inputs (the same bits; for blocks on threads when few agents share one)."""
     d = meas.shape[0]
     slots = slot_src.shape[0]
     cur = k & 1
@@ -176,7 +179,19 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
                         us[i] += ws[i] * ac[src[i]]
         # DisturbanceBank.increments(k), term by term (and the sines again for value(k)), each
         # sine and cosine that of the agent's own (omega, phase), computed once by _sines
-        if has_sine or (keep and not zero_d):
+        if own and (has_sine or (keep and not zero_d)):
+            om = omega[c, lo:hi]
+            ph = phase[c, lo:hi]
+            tk = k * h
+            if has_sine and not last:
+                for i in range(m):
+                    x = om[i] * tk + ph[i]
+                    sns[i] = math.sin(x)
+                    css[i] = math.cos(x)
+            else:
+                for i in range(m):
+                    sns[i] = math.sin(om[i] * tk + ph[i])
+        elif has_sine or (keep and not zero_d):
             iv = inv[c, lo:hi]
             for i in range(m):
                 sns[i] = snu[iv[i]]
@@ -336,17 +351,16 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
     csu = np.empty(pairs)
     zero_d = not (has_sine or has_random or has_const)
     size = ((n + blocks - 1) // blocks + 7) // 8 * 8
+    # most agents with sines of their own: each block takes its agents' sines itself (one parallel
+    # region a tick, where a shared pass first was two); else the distinct ones first, once
+    own = 2 * pairs > n * d
     for k in range(k0, k1):
         cur = k & 1
         for c in range(d):
             pos[cur, c, n] = lp[k, c]
             vel[cur, c, n] = lv[k, c]
             acc[cur, c, n] = la[k, c]
-        if pairs >= 64 * blocks:
-            for b in numba.prange(blocks):
-                _sines(k, b * pairs // blocks, (b + 1) * pairs // blocks, steps, record, h, has_sine, zero_d,
-                       u_omega, u_phase, snu, csu)
-        else:
+        if not own:
             _sines(k, 0, pairs, steps, record, h, has_sine, zero_d, u_omega, u_phase, snu, csu)
         for b in numba.prange(blocks):
             lo = min(b * size, n)
@@ -354,7 +368,7 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
             _block(k, lo, hi, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, decay, gp_gain, gv_gain,
                    pos, vel, acc, meas, gains, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
                    has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
-                   out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu)
+                   out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu, own)
 
 
 def stage_times(k0: int, k1: int, h: float, substeps: int) -> np.ndarray:

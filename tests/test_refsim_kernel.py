@@ -288,3 +288,20 @@ def test_the_kernels_sines_are_numpys_bits_over_every_argument_scale() -> None:
     arg = omega * 0.0 + phase  # as the bank computes it at t = 0 (-0.0 becomes 0.0)
     np.testing.assert_array_equal(snu.view(np.int64), np.sin(arg).view(np.int64))
     np.testing.assert_array_equal(csu.view(np.int64), np.cos(arg).view(np.int64))
+
+
+def test_discrete_kernel_on_threads_with_every_agent_its_own_sines_equals_the_numpy_path() -> None:
+    # most sines distinct: each block of agents takes its own agents' sines (kernel.discrete_parallel's `own`)
+    rng = np.random.default_rng(91)
+    m = random_mission(rng, 29, disturbance="sinusoid", duration=2.0, profile=PROFILES["exp_accel"])
+    s = refsim.Setup.of(m)
+    u_omega, _, _ = kernel.sine_pairs(s.dist.omega.T, s.dist.phase.T)
+    assert 2 * len(u_omega) > m.n * m.dim  # the path under test
+    a = refsim.simulate(m, engine="numpy")
+    for threads in (2, 3):
+        b = refsim.simulate(m, engine="compiled", threads=threads)
+        for f in FIELDS:
+            np.testing.assert_array_equal(getattr(b, f), getattr(a, f), err_msg=f)
+        last = refsim.simulate(m, engine="compiled", record=False, threads=threads)
+        for f in FIELDS:
+            np.testing.assert_array_equal(getattr(last, f)[0], getattr(a, f)[-1], err_msg=f)
