@@ -136,8 +136,8 @@ async def test_the_real_time_input_pump_is_owned_by_the_group_and_ends_with_the_
 async def test_a_lockstep_member_closes_only_on_the_launchers_word_that_every_sample_is_recorded() -> None:
     """After its last tick a lockstep process keeps its session open until the launcher says the
     recorder holds every sample (``Recorded``), however long that takes: a forged word (another
-    sender) and a malformed one are dropped and counted, and it keeps waiting; the launcher's own
-    word ends the wait, exit 0."""
+    sender) and a malformed one are dropped and counted, a word for an earlier tick is not the end,
+    and it keeps waiting; the launcher's own word for the last tick ends the wait, exit 0."""
     args = node_args("serve-recorded")
     done: dict[str, float] = {}
     checks: list[asyncio.Task[None]] = []
@@ -156,9 +156,11 @@ async def test_a_lockstep_member_closes_only_on_the_launchers_word_that_every_sa
         async def launcher_at_the_end() -> None:
             forged.send(wire.Recorded, m.steps, m.duration)
             node.session.put(node.keys.recorded, b"\xc1 not msgpack")
+            word.send(wire.Recorded, m.steps - 1, m.duration - m.dt)
             drops = node.receiver.drops
+            heard = node.sources[node.keys.recorded]
             async with asyncio.timeout(20):
-                while drops.get("sender", 0) < 1 or drops.get("malformed", 0) < 1:
+                while drops.get("sender", 0) < 1 or drops.get("malformed", 0) < 1 or heard.received < 1:
                     await asyncio.sleep(0.01)
                 # well past the 0.25 s the process used to wait on a timer
                 while time.monotonic() < done["role"] + 4 * LINGER:

@@ -638,8 +638,10 @@ class Node:
         if got is None:
             await asyncio.sleep(LINGER)
             return
+        last = self.mission.steps
         try:
-            await self.until(lambda: got.newest is not None, self.args.stall_timeout,
+            # a word for an earlier tick is not the end (no launcher sends one: a replay, or a bug)
+            await self.until(lambda: got.newest is not None and got.newest.k >= last, self.args.stall_timeout,
                              "the launcher's word that every sample is recorded")
         except Stalled as exc:
             log.warning("%s: closing anyway", exc)
