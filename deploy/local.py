@@ -935,15 +935,15 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                 log.info("ran %g s of mission time in %.2f s of wall time", m.duration, time.monotonic() - t1)
                 deadline = time.monotonic() + EXIT_GRACE
                 writing = deadline + write_grace(m, m.steps)  # the recorder writes run.npz and run.mcap now
-                said = time.monotonic()
+                announced = time.monotonic()
                 while any(c.proc.poll() is None for c in launch.children):
                     others = any(c.proc.poll() is None for c in launch.children if c.role != "recorder")
                     if time.monotonic() > (deadline if others else writing):
                         sup.monitor.report("launcher", "silent", "some processes did not exit after the last tick")
                         break
-                    if announce is not None and others and time.monotonic() - said > 0.5:
+                    if announce is not None and others and time.monotonic() - announced > 0.5:
                         announce()  # again, for a process that lost it with its link
-                        said = time.monotonic()
+                        announced = time.monotonic()
                     await asyncio.sleep(0.05)
                 return False
 

@@ -239,11 +239,9 @@ def test_without_numba_the_numpy_path_runs() -> None:
     assert "refused:" in done.stdout and "numba" in done.stdout
 
 
-@pytest.mark.parametrize("threads", [2, 3])
-def test_discrete_kernel_on_threads_equals_the_numpy_path_bit_for_bit(threads: int) -> None:
-    # blocks of agents on numba's threads (prange): an agent's arithmetic does not depend on the split
-    rng = np.random.default_rng(40 + threads)
-    m = _mixed(random_mission(rng, 37, duration=2.0, profile=PROFILES["exp_accel"]), rng)
+def _threads_equal_numpy(m: ms.Mission, threads: int) -> None:
+    """The compiled discrete mode on ``threads`` of numba's threads equals the numpy path bit for bit,
+    recorded and unrecorded."""
     a = refsim.simulate(m, engine="numpy")
     b = refsim.simulate(m, engine="compiled", threads=threads)
     for f in FIELDS:
@@ -251,6 +249,14 @@ def test_discrete_kernel_on_threads_equals_the_numpy_path_bit_for_bit(threads: i
     last = refsim.simulate(m, engine="compiled", record=False, threads=threads)
     for f in FIELDS:
         np.testing.assert_array_equal(getattr(last, f)[0], getattr(a, f)[-1], err_msg=f)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_discrete_kernel_on_threads_equals_the_numpy_path_bit_for_bit(threads: int) -> None:
+    # blocks of agents on numba's threads (prange): an agent's arithmetic does not depend on the split
+    rng = np.random.default_rng(40 + threads)
+    m = _mixed(random_mission(rng, 37, duration=2.0, profile=PROFILES["exp_accel"]), rng)
+    _threads_equal_numpy(m, threads)
 
 
 def test_sine_pairs_tell_apart_what_the_bits_tell_apart() -> None:
@@ -297,11 +303,5 @@ def test_discrete_kernel_on_threads_with_every_agent_its_own_sines_equals_the_nu
     s = refsim.Setup.of(m)
     u_omega, _, _ = kernel.sine_pairs(s.dist.omega.T, s.dist.phase.T)
     assert 2 * len(u_omega) > m.n * m.dim  # the path under test
-    a = refsim.simulate(m, engine="numpy")
     for threads in (2, 3):
-        b = refsim.simulate(m, engine="compiled", threads=threads)
-        for f in FIELDS:
-            np.testing.assert_array_equal(getattr(b, f), getattr(a, f), err_msg=f)
-        last = refsim.simulate(m, engine="compiled", record=False, threads=threads)
-        for f in FIELDS:
-            np.testing.assert_array_equal(getattr(last, f)[0], getattr(a, f)[-1], err_msg=f)
+        _threads_equal_numpy(m, threads)

@@ -37,6 +37,24 @@ def others() -> set[asyncio.Task[object]]:
     return {t for t in asyncio.all_tasks() if t is not asyncio.current_task()}
 
 
+async def ready_on_start(node: Node, lead: float = 0.0) -> None:
+    """``node.ready()``, with the launcher's part played here: the start (tick 0 ``lead`` seconds
+    ahead), repeated until it is heard."""
+    start = node.publisher(node.keys.start, sender=0)
+
+    async def announce() -> None:
+        while True:
+            start.send(wire.Start, 0, 0.0, epoch=time.time() + lead)
+            await asyncio.sleep(0.05)
+
+    announcer = asyncio.create_task(announce())
+    try:
+        async with asyncio.timeout(20):
+            await node.ready()
+    finally:
+        announcer.cancel()
+
+
 async def serve_checked(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
                         on_stop: Callable[[Node], None] | None = None) -> int:
     before = others()
@@ -112,19 +130,7 @@ async def test_the_real_time_input_pump_is_owned_by_the_group_and_ends_with_the_
     pumps: list[asyncio.Task[object]] = []
 
     async def role(node: Node) -> None:
-        start = node.publisher(node.keys.start, sender=0)
-
-        async def announce() -> None:  # the launcher's part: repeat the start until it is heard
-            while True:
-                start.send(wire.Start, 0, 0.0, epoch=time.time() + 0.05)
-                await asyncio.sleep(0.05)
-
-        announcer = asyncio.create_task(announce())
-        try:
-            async with asyncio.timeout(20):
-                await node.ready()
-        finally:
-            announcer.cancel()
+        await ready_on_start(node, lead=0.05)
         pumps.extend(t for t in asyncio.all_tasks() if t.get_name() == "input pump")
         assert len(pumps) == 1 and not pumps[0].done()
 
@@ -143,15 +149,9 @@ async def test_a_lockstep_member_closes_only_on_the_launchers_word_that_every_sa
     checks: list[asyncio.Task[None]] = []
 
     async def role(node: Node) -> None:
-        start = node.publisher(node.keys.start, sender=0)
         word = node.publisher(node.keys.recorded, sender=0)
         forged = node.publisher(node.keys.recorded, sender=3)
         m = node.mission
-
-        async def announce() -> None:  # the launcher's start, repeated until heard
-            while True:
-                start.send(wire.Start, 0, 0.0, epoch=time.time())
-                await asyncio.sleep(0.05)
 
         async def launcher_at_the_end() -> None:
             forged.send(wire.Recorded, m.steps, m.duration)
@@ -169,12 +169,7 @@ async def test_a_lockstep_member_closes_only_on_the_launchers_word_that_every_sa
             done["word"] = time.monotonic()
             word.send(wire.Recorded, m.steps, m.duration)
 
-        announcer = asyncio.create_task(announce())
-        try:
-            async with asyncio.timeout(20):
-                await node.ready()
-        finally:
-            announcer.cancel()
+        await ready_on_start(node)
         done["role"] = time.monotonic()
         checks.append(asyncio.create_task(launcher_at_the_end()))
 
@@ -195,19 +190,7 @@ async def test_a_lockstep_member_without_the_launchers_word_closes_after_the_sta
     ended: list[float] = []
 
     async def role(node: Node) -> None:
-        start = node.publisher(node.keys.start, sender=0)
-
-        async def announce() -> None:
-            while True:
-                start.send(wire.Start, 0, 0.0, epoch=time.time())
-                await asyncio.sleep(0.05)
-
-        announcer = asyncio.create_task(announce())
-        try:
-            async with asyncio.timeout(20):
-                await node.ready()
-        finally:
-            announcer.cancel()
+        await ready_on_start(node)
         ended.append(time.monotonic())
 
     with caplog.at_level(logging.WARNING, logger="tether"):
