@@ -377,6 +377,45 @@ def open_executor(address: str | None, jobs: int, timeout: float = CONNECT_TIMEO
 Progress = Callable[..., None]
 
 
+class _HeldInterrupt:
+    """Ctrl-C held off while a finished cell is written and counted, then raised: the file and the
+    count a study reports on interrupt always agree. Elsewhere (waiting on the workers) Ctrl-C
+    raises at once. Only where Python's own Ctrl-C handler is in place, on the main thread; anywhere
+    else the handler is left alone and nothing is held."""
+
+    def __init__(self) -> None:
+        self._held = False
+        self._pending = False
+        self._old: Any = None
+
+    def __enter__(self) -> _HeldInterrupt:
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._old = signal.signal(signal.SIGINT, self._on_sigint)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+            self._old = None
+
+    def _on_sigint(self, signum: int, frame: object) -> None:
+        if self._held:
+            self._pending = True
+        else:
+            raise KeyboardInterrupt
+
+    def hold(self) -> None:
+        self._held = True
+
+    def release(self) -> None:
+        """End the hold; a Ctrl-C that came during it is raised now."""
+        self._held = False
+        if self._pending:
+            self._pending = False
+            raise KeyboardInterrupt
+
+
 @dataclass
 class Outcome:
     """A study's result: ``records`` by digest (every finished cell, resumed ones included), the
@@ -416,47 +455,50 @@ def run(cells: Sequence[Cell], results: StudyFile, engine: Engine, *, meta: dict
     todo = [c for c in cells if c.digest not in done]
     pending: dict[Future, Cell] = {}
     tell()
-    try:
-        it = iter(todo)
-        # keep a bounded queue in flight: twice the workers, so an interrupt loses little and a
-        # long study does not hold every future at once
-        window = max(2 * engine.workers, 2) if engine.kind != "inline" else 1
-        while True:
-            while len(pending) < window:
-                c = next(it, None)
-                if c is None:
+    with _HeldInterrupt() as sigint:
+        try:
+            it = iter(todo)
+            # keep a bounded queue in flight: twice the workers, so an interrupt loses little and a
+            # long study does not hold every future at once
+            window = max(2 * engine.workers, 2) if engine.kind != "inline" else 1
+            while True:
+                while len(pending) < window:
+                    c = next(it, None)
+                    if c is None:
+                        break
+                    pending[engine.executor.submit(run_cell, c.text, c.engine, workdir(c))] = c
+                if not pending:
                     break
-                pending[engine.executor.submit(run_cell, c.text, c.engine, workdir(c))] = c
-            if not pending:
-                break
-            finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
-            for fut in finished:
-                c = pending.pop(fut)
-                try:
-                    res = fut.result()
-                except BrokenExecutor:
-                    raise
-                except Exception as exc:  # the cell raised, or the engine gave up on it (a KilledWorker)
-                    failed[c.name] = f"{type(exc).__name__}: {exc}"
-                    continue
-                rec = {"digest": c.digest, "cell": c.name, "row": res["row"], "worker": res["worker"],
-                       "wall_s": res["wall_s"]}
-                results.append(rec)
-                done[c.digest] = rec
-                per_worker[res["worker"]] += 1
-                ran += 1
-                tell()
-                if stop_after is not None and ran >= stop_after:
-                    raise KeyboardInterrupt
-    except KeyboardInterrupt:
-        for fut in pending:
-            fut.cancel()
-        results.close()
-        raise StudyInterrupted(len(done), total, results.path) from None
-    except BrokenExecutor as exc:
-        results.close()
-        raise StudyBroken(f"the {engine.kind} executor broke ({exc}); {len(done)} of {total} cells done and kept "
-                          f"in {results.path}; run the same command again to resume") from None
+                finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    c = pending.pop(fut)
+                    try:
+                        res = fut.result()
+                    except BrokenExecutor:
+                        raise
+                    except Exception as exc:  # the cell raised, or the engine gave up on it (a KilledWorker)
+                        failed[c.name] = f"{type(exc).__name__}: {exc}"
+                        continue
+                    rec = {"digest": c.digest, "cell": c.name, "row": res["row"], "worker": res["worker"],
+                           "wall_s": res["wall_s"]}
+                    sigint.hold()  # written and counted together, or neither
+                    results.append(rec)
+                    done[c.digest] = rec
+                    per_worker[res["worker"]] += 1
+                    ran += 1
+                    sigint.release()
+                    tell()
+                    if stop_after is not None and ran >= stop_after:
+                        raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            for fut in pending:
+                fut.cancel()
+            results.close()
+            raise StudyInterrupted(len(done), total, results.path) from None
+        except BrokenExecutor as exc:
+            results.close()
+            raise StudyBroken(f"the {engine.kind} executor broke ({exc}); {len(done)} of {total} cells done and kept "
+                              f"in {results.path}; run the same command again to resume") from None
     results.close()
     return Outcome(done, failed, ran, resumed, per_worker, time.perf_counter() - t0)
 

@@ -109,6 +109,34 @@ def test_the_study_key_is_the_set_of_cells_not_their_order() -> None:
     assert study.study_key(cells) != study.study_key(cells[:2])
 
 
+class _CtrlCWhileWriting(study.StudyFile):
+    """A results file that delivers Ctrl-C to this process in the middle of writing its ``at``-th
+    cell: after the line is on disk, before the study has counted it."""
+
+    def __init__(self, path: Path, at: int) -> None:
+        super().__init__(path)
+        self.at, self.writes = at, 0
+
+    def append(self, record: dict) -> None:
+        super().append(record)
+        self.writes += 1
+        if self.writes == self.at:
+            signal.raise_signal(signal.SIGINT)
+
+
+@pytest.mark.parametrize("at", [1, 2])
+def test_ctrl_c_while_a_cell_is_written_reports_what_the_file_holds(tmp_path: Path, at: int) -> None:
+    """Ctrl-C between a cell's line reaching the disk and the study counting it: the count it
+    reports (and the rerun's message) is the file's, never one short."""
+    cells = _cells()
+    f = _CtrlCWhileWriting(tmp_path / "study.jsonl", at)
+    with study.open_executor(None, 1) as engine, pytest.raises(study.StudyInterrupted) as info:
+        study.run(cells, f, engine, meta={})
+    kept = len((tmp_path / "study.jsonl").read_text().splitlines()) - 1
+    assert kept == at and info.value.done == at and info.value.total == len(cells)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Python's own handler is back
+
+
 # --------------------------------------------------------------------------- Monte Carlo
 def test_a_replicate_is_a_pure_function_of_the_mission_and_its_index() -> None:
     m = load_mission(builtin_path("section4"))
