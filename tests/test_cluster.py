@@ -130,11 +130,17 @@ def test_ctrl_c_while_a_cell_is_written_reports_what_the_file_holds(tmp_path: Pa
     reports (and the rerun's message) is the file's, never one short."""
     cells = _cells()
     f = _CtrlCWhileWriting(tmp_path / "study.jsonl", at)
-    with study.open_executor(None, 1) as engine, pytest.raises(study.StudyInterrupted) as info:
-        study.run(cells, f, engine, meta={})
+    # Python's own Ctrl-C handler, as in a terminal (a test run started in the background without job
+    # control inherits SIGINT ignored)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with study.open_executor(None, 1) as engine, pytest.raises(study.StudyInterrupted) as info:
+            study.run(cells, f, engine, meta={})
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Python's own handler is back
+    finally:
+        signal.signal(signal.SIGINT, before)
     kept = len((tmp_path / "study.jsonl").read_text().splitlines()) - 1
     assert kept == at and info.value.done == at and info.value.total == len(cells)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Python's own handler is back
 
 
 # --------------------------------------------------------------------------- Monte Carlo
