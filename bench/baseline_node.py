@@ -29,7 +29,12 @@ Lockstep per tick k (the dependency pattern of tether's roles):
 * agent i: on plant(k) publish state(k) (the relay), then once every in-neighbour's state(k) is
   in, publish cmd(k) and telemetry(k);
 * recorder: once leader(k), every plant(k) and every telemetry(k) are in, publish ack(k);
-* hub (the launcher's twin): on ack(k) grant k + window.
+* hub (the launcher's twin): on ack(k) grant k + window; once the last tick is acknowledged, say
+  so on ``control/0/recorded`` (again every 0.5 s while a producer's token remains), and every
+  producer keeps its session open until it hears that, as tether's do (``Node.linger``): a session
+  closed right after its last put can lose it, which left the recorder short of the last batch. The
+  recorder, which tether's access rules keep off that key, stays open :data:`RECORDER_LINGER` after
+  its last acknowledgement (tether's writes the run file then).
 
 Real time: every process ticks at ``epoch + k h`` (agents at ``epoch + (k + agent_phase) h``, as
 tether's agents do); the leader and the plants publish their state at each tick, each agent relays
@@ -56,6 +61,9 @@ import time
 import zenoh
 
 HEADER = struct.Struct("<qq")  # tick k, send time [ns, CLOCK_MONOTONIC]
+
+RECORDER_LINGER = 0.25
+"""Lockstep: how long [s] the recorder stays open after acknowledging the last tick."""
 
 
 PRESETS = {  # tether.transport's presets, spelled out
@@ -221,9 +229,26 @@ class Bare:
                 elif not spec.get("batch"):
                     self.subscribe(self.key("plant", aid, "state"), 2)
             self.publisher("ack", self.key("recorder", nid, "ack"))
+        recorded: list[int] = []
+        if self.clock == "lockstep" and self.role != "recorder":
+            def on_recorded(sample: zenoh.Sample) -> None:
+                recorded.append(HEADER.unpack_from(sample.payload.to_bytes())[0])
+                self._notify()
+
+            self.declared.append(self.session.declare_subscriber(self.key("control", 0, "recorded"), on_recorded))
         t0 = await self.ready()
         if self.clock == "lockstep":
             await getattr(self, f"_lockstep_{self.role}")()
+            if self.role == "recorder":
+                await asyncio.sleep(RECORDER_LINGER)
+            else:
+                try:  # linger until the hub's word that the last tick is recorded
+                    async with asyncio.timeout(self.spec.get("stall_timeout", 30.0)):
+                        while not any(k >= self.steps for k in recorded):
+                            await self.wait()
+                except TimeoutError:
+                    print(f"{self.role} {nid}: no word that the run is recorded; closing anyway", file=sys.stderr,
+                          flush=True)
         else:
             await self._realtime(t0)
         return {"role": self.role, "id": nid, "late": self.late, "received": self.received}
@@ -465,6 +490,22 @@ async def hub(spec: dict, endpoint: str) -> None:
                 tick.put(HEADER.pack(min(steps, done + window), time.monotonic_ns()) + tick_pad)
                 seq += 1
         print(f"ran {steps * h:g} {time.monotonic() - t1:.3f}", flush=True)
+        # the word that every sample is in: the producers close only then (repeated while any remains)
+        recorded = session.declare_publisher(f"tether/{ns}/control/0/recorded", **_qos("lockstep"))
+        declared.append(recorded)
+        producers = members - {f"@tether/{ns}/recorder/0"}
+        end = time.monotonic() + spec.get("stall_timeout", 30.0)
+        while alive & producers and time.monotonic() < end:
+            recorded.put(HEADER.pack(steps, time.monotonic_ns()) + tick_pad)
+            try:
+                async with asyncio.timeout(0.5):
+                    await event.wait()
+            except TimeoutError:
+                pass
+            event.clear()
+            while q:
+                _, key, up = q.popleft()
+                (alive.add if up else alive.discard)(key)
     finally:
         for d in reversed(declared):
             try:
