@@ -16,6 +16,14 @@ For exact zero-order-hold plants, :meth:`DisturbanceBank.increments` returns, ov
 
 in closed form for every model. Random values change only on tick boundaries (``hold`` is a whole
 number of control periods), so their increments are exact too.
+
+Both depend on the tick alone, so :meth:`DisturbanceBank.value` and
+:meth:`DisturbanceBank.increments` compute them for a block of ticks at once (:data:`CACHE_NUMBERS`
+numbers a block, at most :data:`CACHE_TICKS` ticks) and hand out read-only rows of it: the same
+element-wise operations in the same order as one tick at a time (:meth:`DisturbanceBank.value_of`,
+:meth:`DisturbanceBank.increments_of`, kept as the readable form and tested equal bit for bit),
+without a dozen numpy calls on a 2- or 3-vector every tick, which were most of a one-vehicle
+plant's step.
 """
 
 from __future__ import annotations
@@ -25,6 +33,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tether import mission as ms
+
+CACHE_NUMBERS = 1 << 16
+"""Numbers of ``d(t_k)`` a bank computes at once, per block of ticks (``n d`` per tick and layer)."""
+
+CACHE_TICKS = 1024
+"""Most ticks of one block (a one-vehicle plant: about 50 KiB for the three series)."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +71,8 @@ class DisturbanceBank:
     _has_sine: bool = field(init=False, repr=False, compare=False)
     _has_random: bool = field(init=False, repr=False, compare=False)
     _has_const: bool = field(init=False, repr=False, compare=False)
+    _block: dict = field(init=False, repr=False, compare=False)
+    """The block of ticks computed last: ``k0`` and ``d(t_k)``, ``dv``, ``dp`` as ``(ticks, n, d)``."""
 
     @classmethod
     def from_mission(cls, m: ms.Mission, agent_ids: list[int] | None = None) -> "DisturbanceBank":
@@ -121,6 +137,7 @@ class DisturbanceBank:
         object.__setattr__(self, "_has_sine", bool(np.any(self.amp != 0.0)))
         object.__setattr__(self, "_has_random", bool(np.any(self.table != 0.0)))
         object.__setattr__(self, "_has_const", bool(np.any(self.const != 0.0)))
+        object.__setattr__(self, "_block", {"k0": 0, "ticks": 0})
 
     @property
     def is_zero(self) -> bool:
@@ -147,7 +164,11 @@ class DisturbanceBank:
         return out
 
     def value(self, k: int) -> np.ndarray:
-        """``d(t_k)``, shape ``(n, d)``."""
+        """``d(t_k)``, shape ``(n, d)`` (read-only: a row of the block holding tick ``k``)."""
+        return self._rows(k)[0]
+
+    def value_of(self, k: int) -> np.ndarray:
+        """:meth:`value` computed for tick ``k`` alone (the readable form; the same bits)."""
         t = k * self.h
         return self.const + self._sine(t) + self._random(k)
 
@@ -157,7 +178,57 @@ class DisturbanceBank:
         return self.const + self._sine(t) + self._random(k)
 
     def increments(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Exact ``(dv, dp)`` over tick k, each ``(n, d)`` (see the module docstring)."""
+        """Exact ``(dv, dp)`` over tick k, each ``(n, d)`` (see the module docstring; read-only rows
+        of the block holding tick ``k``)."""
+        _, dv, dp = self._rows(k)
+        return dv, dp
+
+    def _rows(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = self._block
+        r = k - b["k0"]
+        if not 0 <= r < b["ticks"]:
+            self._fill(k)
+            r = 0
+        return b["value"][r], b["dv"][r], b["dp"][r]
+
+    def _fill(self, k0: int) -> None:
+        """Compute the block of ticks from ``k0``: :meth:`value_of` and :meth:`increments_of` with a
+        leading axis of ticks, every element's operations those of its own tick."""
+        per_tick = max(1, self.amp.size, self.const.size)
+        ticks = max(1, min(CACHE_TICKS, CACHE_NUMBERS // per_tick))
+        ks = np.arange(k0, k0 + ticks)
+        h = self.h
+        t = ks * h  # each k * h as Python computes it (exact int to float below 2^53, then one product)
+        theta = self.omega * t.reshape((ticks,) + (1,) * self.omega.ndim) + self.phase
+        rnd = self._random_block(ks)
+        value = self.const + _layers(self.amp * np.sin(theta), 1) + rnd
+        if self._has_random or self._has_const:
+            held = self.const + rnd
+            dv, dp = held * h, held * (0.5 * h * h)
+            if self._has_sine:
+                sv, sp = self._sine_increments(theta)
+                dv, dp = dv + sv, dp + sp
+        elif not self._has_sine:
+            dv = dp = np.zeros((ticks, *self.const.shape))
+        else:
+            dv, dp = self._sine_increments(theta)
+        for x in (value, dv, dp):
+            x.flags.writeable = False
+        self._block.update(k0=k0, ticks=ticks, value=value, dv=dv, dp=dp)
+
+    def _random_block(self, ks: np.ndarray) -> np.ndarray:
+        """:meth:`_random` of every tick of ``ks``, ``(len(ks), n, d)``."""
+        if self.table.ndim == 3:
+            idx = np.minimum(ks[:, None] // self.hold_ticks[None, :], self.table.shape[1] - 1)
+            return self.table[np.arange(self.table.shape[0])[None, :], idx]
+        rows = np.arange(self.table.shape[1])[None, :]
+        out = np.zeros((len(ks), *self.const.shape))
+        for table, hold in zip(self.table, self.hold_ticks):
+            out = out + table[rows, np.minimum(ks[:, None] // hold[None, :], table.shape[1] - 1)]
+        return out
+
+    def increments_of(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`increments` computed for tick ``k`` alone (the readable form; the same bits)."""
         h = self.h
         theta0 = self.omega * (k * h) + self.phase if self._has_sine else None
         if self._has_random or self._has_const:
@@ -173,11 +244,20 @@ class DisturbanceBank:
         return dv + sv, dp + sp
 
     def _sine_increments(self, theta0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The sinusoids' ``(dv, dp)`` from their angles at the start of the tick: ``(n, d)`` or
+        ``(L, n, d)`` for one tick; with a leading axis of ticks for a block."""
         s0, c0 = np.sin(theta0), np.cos(theta0)
         dv, dp = s0 * self._cv_s + c0 * self._cv_c, s0 * self._cp_s + c0 * self._cp_c
-        if dv.ndim == 2:
-            return dv, dp
-        sv, sp = dv[0], dp[0]
-        for lv, lp in zip(dv[1:], dp[1:]):
-            sv, sp = sv + lv, sp + lp
-        return sv, sp
+        return _layers(dv, theta0.ndim - self._cv_s.ndim), _layers(dp, theta0.ndim - self._cv_s.ndim)
+
+
+def _layers(x: np.ndarray, lead: int) -> np.ndarray:
+    """The sum of sinusoid layers, added in order (``x[0] + x[1] + ...`` along the layer axis), of
+    ``x`` shaped ``(*lead, n, d)`` (one layer: ``x`` itself) or ``(*lead, L, n, d)``, ``lead`` the
+    number of leading axes (1 for a block of ticks)."""
+    if x.ndim - lead == 2:
+        return x
+    out = x[(slice(None),) * lead + (0,)]
+    for j in range(1, x.shape[lead]):
+        out = out + x[(slice(None),) * lead + (j,)]
+    return out

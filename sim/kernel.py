@@ -50,7 +50,7 @@ AVAILABLE = numba is not None
 """Whether the compiled kernels can run here (numba imports)."""
 
 _BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s",
-                          "_cp_c", "_has_sine", "_has_random", "_has_const"})
+                          "_cp_c", "_has_sine", "_has_random", "_has_const", "_block"})
 """The :class:`DisturbanceBank` layout the kernels evaluate."""
 
 

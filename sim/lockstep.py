@@ -257,7 +257,7 @@ def _branches(m: Mission, host: plants.Plant) -> tuple | None:
 
 
 _BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s",
-                          "_cp_c", "_has_sine", "_has_random", "_has_const"})
+                          "_cp_c", "_has_sine", "_has_random", "_has_const", "_block"})
 """The bank layout whose branches :func:`_branches` knows (another makes every plant its own host)."""
 
 

@@ -133,3 +133,31 @@ def test_a_later_ramp_still_may_not_start_before_the_previous_ends() -> None:
     with pytest.raises(ms.MissionError) as e:
         ms.loads(text)
     assert "leader.profile.segments[2].t" in str(e.value) and "5.0 s" in str(e.value)
+
+
+MIXED = [("none", ""), ("constant", single(CONST)), ("sinusoid", single(SINE)), ("random", single(RAND)),
+         ("sum of two sinusoids", summed(SINE, SINE2)), ("constant + sinusoid + random", summed(CONST, SINE, RAND)),
+         ("two randoms", summed(RAND, CONST, RAND))]
+
+
+@pytest.mark.parametrize("name,body", MIXED, ids=[n for n, _ in MIXED])
+@pytest.mark.parametrize("rows", ["one vehicle", "both"])
+def test_the_banks_blocks_of_ticks_are_its_one_tick_arithmetic_bit_for_bit(name: str, body: str, rows: str) -> None:
+    """``value`` and ``increments`` hand out rows of a block of ticks computed at once: every number
+    (sign of zero included) is the one ``value_of`` and ``increments_of`` compute for that tick
+    alone, across block edges, after a jump (a restarted plant's ``seek``) and back, and the rows
+    cannot be written (a caller changing one would change every later reader's disturbance)."""
+    from plant import disturbance as dm
+
+    m = mission(body, single(SINE2))
+    bank = DisturbanceBank.from_mission(m, [1] if rows == "one vehicle" else None)
+    per_block = min(dm.CACHE_TICKS, dm.CACHE_NUMBERS // max(1, bank.amp.size, bank.const.size))
+    ticks = [*range(0, 2 * per_block + 3), 5 * per_block + 7, 3, per_block - 1, per_block]
+    for k in ticks:
+        for got, want in zip((bank.value(k), *bank.increments(k)), (bank.value_of(k), *bank.increments_of(k))):
+            assert got.shape == want.shape and got.dtype == want.dtype
+            assert got.tobytes() == want.tobytes(), (name, k)
+    with pytest.raises(ValueError):
+        bank.value(0)[0, 0] = 1.0
+    with pytest.raises(ValueError):
+        bank.increments(0)[0][0, 0] = 1.0
