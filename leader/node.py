@@ -13,8 +13,11 @@ async def run(node: Node) -> None:
     lid = m.leader.id
     state = node.publisher(node.keys.topic("leader", lid, "state"))
     await node.ready(paced=True)
+    rows: tuple[list[list[float]], ...] = ([],)
+    first = 0  # the tick of rows' first
     for k in range(m.steps + 1):
         await node.tick(k)
-        t = k * m.dt
-        p, v, a = ref(t)
-        state.send(wire.State, k, t, p=p.tolist(), vel=v.tolist(), a=a.tolist())
+        if k - first >= len(rows[0]):  # the next block of the reference, computed at once
+            first, rows = k, profile.at_ticks(ref, m.dt, k, min(m.steps + 1, k + profile.BLOCK), m.dim)
+        i = k - first
+        state.send(wire.State, k, k * m.dt, p=rows[0][i], vel=rows[1][i], a=rows[2][i])

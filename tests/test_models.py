@@ -98,6 +98,24 @@ def test_profiles_are_self_consistent(tbl: dict) -> None:
             assert one.shape == (3,) and one.tobytes() == np.ascontiguousarray(many[k]).tobytes(), k
 
 
+@pytest.mark.parametrize("tbl", [
+    {"kind": "exp_accel", "a0": [1.0, -0.5, 0.2], "decay": 0.3},
+    {"kind": "hold"},
+    {"kind": "velocity_schedule", "ramp": 1.5, "segments": [{"t": 0.0, "v": [0.1, 0, 0]}, {"t": 4.0, "v": [0.3, -0.2, 0.05]}]},
+    {"kind": "waypoints", "points": [{"t": 0.0, "p": [0.0, 0, 0]}, {"t": 3.0, "p": [1.0, 2, -1]}, {"t": 7.0, "p": [0.0, 2, 0]}]},
+])
+def test_the_leaders_blocks_of_ticks_are_its_one_call_per_tick(tbl: dict) -> None:
+    """The leader process sends ``at_ticks``' rows: each tick's floats are those of ``ref(k h)``
+    alone (signs of zero included), in blocks that start anywhere and end at the mission's end."""
+    ref, h = _leader(tbl, p0=[0.5, -1.0, 1.0]), 0.01
+    for k0, k1 in ((0, 1100), (1100, 1101), (395, 420)):
+        rows = profile.at_ticks(ref, h, k0, k1, 3)
+        assert [len(r) for r in rows] == [k1 - k0] * 3
+        for k in range(k0, k1):
+            for got, want in zip(rows, ref(k * h)):
+                assert np.array(got[k - k0]).tobytes() == want.tobytes(), (k, got[k - k0], want)
+
+
 def test_eq31_velocity_schedule() -> None:
     tbl = {"kind": "velocity_schedule", "segments": [
         {"t": 0.0, "v": [0.0, 0.0, 0.0]}, {"t": 5.0, "v": [0.3, 0.0, 0.0]}, {"t": 15.0, "v": [0.0, 0.3, 0.0]}]}
