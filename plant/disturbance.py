@@ -145,23 +145,10 @@ class DisturbanceBank:
         return not (self._has_sine or self._has_random or self._has_const)
 
     def _random(self, k: int) -> np.ndarray:
-        if self.table.ndim == 3:
-            idx = np.minimum(k // self.hold_ticks, self.table.shape[1] - 1)
-            return self.table[np.arange(self.table.shape[0]), idx]
-        rows = np.arange(self.table.shape[1])
-        out = np.zeros(self.const.shape)
-        for table, hold in zip(self.table, self.hold_ticks):
-            out = out + table[rows, np.minimum(k // hold, table.shape[1] - 1)]
-        return out
+        return self._random_block(np.array([k]))[0]
 
     def _sine(self, t: float) -> np.ndarray:
-        s = self.amp * np.sin(self.omega * t + self.phase)
-        if s.ndim == 2:
-            return s
-        out = s[0]
-        for layer in s[1:]:
-            out = out + layer
-        return out
+        return _layers(self.amp * np.sin(self.omega * t + self.phase), 0)
 
     def value(self, k: int) -> np.ndarray:
         """``d(t_k)``, shape ``(n, d)`` (read-only: a row of the block holding tick ``k``)."""
@@ -200,18 +187,19 @@ class DisturbanceBank:
         h = self.h
         t = ks * h  # each k * h as Python computes it (exact int to float below 2^53, then one product)
         theta = self.omega * t.reshape((ticks,) + (1,) * self.omega.ndim) + self.phase
+        s0 = np.sin(theta)  # for d(t_k) and, with the cosines, the increments
         rnd = self._random_block(ks)
-        value = self.const + _layers(self.amp * np.sin(theta), 1) + rnd
+        value = self.const + _layers(self.amp * s0, 1) + rnd
         if self._has_random or self._has_const:
             held = self.const + rnd
             dv, dp = held * h, held * (0.5 * h * h)
             if self._has_sine:
-                sv, sp = self._sine_increments(theta)
+                sv, sp = self._sine_increments(s0, np.cos(theta))
                 dv, dp = dv + sv, dp + sp
         elif not self._has_sine:
             dv = dp = np.zeros((ticks, *self.const.shape))
         else:
-            dv, dp = self._sine_increments(theta)
+            dv, dp = self._sine_increments(s0, np.cos(theta))
         for x in (value, dv, dp):
             x.flags.writeable = False
         self._block.update(k0=k0, ticks=ticks, value=value, dv=dv, dp=dp)
@@ -239,16 +227,16 @@ class DisturbanceBank:
         elif theta0 is None:
             return np.zeros_like(self.const), np.zeros_like(self.const)
         else:
-            return self._sine_increments(theta0)
-        sv, sp = self._sine_increments(theta0)
+            return self._sine_increments(np.sin(theta0), np.cos(theta0))
+        sv, sp = self._sine_increments(np.sin(theta0), np.cos(theta0))
         return dv + sv, dp + sp
 
-    def _sine_increments(self, theta0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The sinusoids' ``(dv, dp)`` from their angles at the start of the tick: ``(n, d)`` or
-        ``(L, n, d)`` for one tick; with a leading axis of ticks for a block."""
-        s0, c0 = np.sin(theta0), np.cos(theta0)
+    def _sine_increments(self, s0: np.ndarray, c0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The sinusoids' ``(dv, dp)`` from the sines and cosines of their angles at the start of the
+        tick: ``(n, d)`` or ``(L, n, d)`` for one tick; with a leading axis of ticks for a block."""
         dv, dp = s0 * self._cv_s + c0 * self._cv_c, s0 * self._cp_s + c0 * self._cp_c
-        return _layers(dv, theta0.ndim - self._cv_s.ndim), _layers(dp, theta0.ndim - self._cv_s.ndim)
+        lead = s0.ndim - self._cv_s.ndim
+        return _layers(dv, lead), _layers(dp, lead)
 
 
 def _layers(x: np.ndarray, lead: int) -> np.ndarray:

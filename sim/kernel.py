@@ -179,18 +179,8 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
                         us[i] += ws[i] * ac[src[i]]
         # DisturbanceBank.increments(k), term by term (and the sines again for value(k)), each
         # sine and cosine that of the agent's own (omega, phase), computed once by _sines
-        if own and (has_sine or (keep and not zero_d)):
-            om = omega[c, lo:hi]
-            ph = phase[c, lo:hi]
-            tk = k * h
-            if has_sine and not last:
-                for i in range(m):
-                    x = om[i] * tk + ph[i]
-                    sns[i] = math.sin(x)
-                    css[i] = math.cos(x)
-            else:
-                for i in range(m):
-                    sns[i] = math.sin(om[i] * tk + ph[i])
+        if own:  # these agents' own (omega, phase), as _sines takes the distinct pairs
+            _sines(k, 0, m, steps, record, h, has_sine, zero_d, omega[c, lo:hi], phase[c, lo:hi], sns, css)
         elif has_sine or (keep and not zero_d):
             iv = inv[c, lo:hi]
             for i in range(m):
