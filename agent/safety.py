@@ -23,7 +23,8 @@ Transitions:
 * FLYING/HOLD → LAND (or the configured action): the operator's ``land``; divergence
   (‖ξ‖ > ``max_formation_error``, a gain beyond ``gain_cap``, a non-finite command); a predicted
   geofence breach (the position plus the braking distance outside the box).
-* LAND → LANDED: touched down and still (:func:`tether.failsafe.landed`).
+* LAND → LANDED: touched down and still (:func:`tether.failsafe.landed`); 2D: still, or held
+  for ``land_settle``.
 * any → ESTOP: the operator's ``estop`` (or ``estop`` as the configured action).
 
 Losing an in-neighbour (its liveliness token gone, or silent for ``neighbour_timeout``) is not a
@@ -226,8 +227,8 @@ class Supervisor:
         if self.mode == HOLD:
             return failsafe.hold(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel)
         # LAND
-        if failsafe.landed(p, v, cfg.ground):
-            self._go(k, t, LANDED, "touched down", p)
+        if failsafe.landed(p, v, cfg.ground, t - self.since, cfg.land_settle):
+            self._go(k, t, LANDED, failsafe.why_landed(p, v, t - self.since), p)
             return zero
         return failsafe.land(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
 

@@ -50,6 +50,8 @@ log = logging.getLogger("tether")
 
 FINAL = frozenset({wire.LANDED, wire.ESTOP})
 """Modes after which a vehicle does nothing more."""
+JUDGED = frozenset({wire.FLYING, wire.HOLD})
+"""Modes in which an agent's formation error and gains are judged for divergence (as its supervisor does)."""
 
 
 @dataclass
@@ -203,6 +205,7 @@ class Monitor:
         """What one agent's telemetry or one plant's state says: mode changes, skew, divergence."""
         sf = self.mission.safety
         self.heard.add(name)
+        judged = self.modes.get(name, wire.FLYING) in JUDGED
         if isinstance(msg, wire.Telemetry) or isinstance(msg, wire.PlantState):
             mode = msg.mode
             before = self.modes.get(name, wire.FLYING)
@@ -219,7 +222,10 @@ class Monitor:
                     self._skewed.add((name, c.role, c.src))
                     self.report(name, "skew", f"link {c.role}/{c.src}: clock offset bound {1000 * c.offset:+.1f} ms "
                                               "(arrival minus sample time; tether/skew.py)", t=msg.t)
-        if isinstance(msg, wire.Telemetry) and name not in self._diverged:
+        if isinstance(msg, wire.Telemetry) and name not in self._diverged and judged:
+            # a vehicle that was landing (or landed, or stopped) has left the formation on purpose: its
+            # xi against a leader that flies on is not a divergence. Its supervisor judges a tick by
+            # the mode it began in, so the tick a divergence sends it to LAND is still judged here.
             xi = math.sqrt(sum(x * x for x in msg.xi))
             gains = max([*msg.kp, *msg.kv], default=0.0)
             if not math.isfinite(xi) or xi > sf.max_formation_error or not gains <= sf.gain_cap:

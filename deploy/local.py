@@ -164,7 +164,7 @@ class LaunchOptions:
     agent starved of CPU for half a second, does not cut the run short)."""
     land_timeout: float | None = None
     """Real time: after the first Ctrl-C's land order, how long to wait for LANDED [s]; None: the
-    descent from the highest start at ``safety.land_speed`` + 3 s."""
+    descent from the highest start at ``safety.land_speed`` (2D: ``safety.land_settle``) + 3 s."""
     insecure: bool = False
     """No certificates and no access rules (plain TCP; see the module docstring)."""
     live: int | None = None
@@ -533,9 +533,10 @@ def check_faults(mission: ms.Mission, opts: LaunchOptions, members: list[tuple[s
 
 def _land_bound(m: ms.Mission) -> float:
     """After an operator's land (first Ctrl-C), how long [s] to wait for every vehicle to report
-    LANDED: the descent from the highest start at the landing speed and 3 s to spare."""
+    LANDED: the descent from the highest start at the landing speed (2D: ``land_settle``, the
+    longest a 2D landing lasts) and 3 s to spare."""
     sf = m.safety
-    descent = 0.0
+    descent = sf.land_settle
     if m.dim == 3:
         descent = max(a.p0[-1] - sf.ground for a in m.agents) / sf.land_speed
     return max(0.0, descent) + 3.0

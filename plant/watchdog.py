@@ -9,7 +9,7 @@ It mirrors the Crazyflie firmware's supervisor (0.5 s: level out; 2 s: motors of
 after the cut-off a vehicle lands instead of falling (``docs/watchdog.md``)::
 
     FLYING --no valid command for cmd_timeout--> HOLD --none for cmd_cutoff--> LAND --on the ground--> LANDED
-      ^                                          |  (3D: touched down; 2D: still)
+      ^                                          |  (3D: touched down; 2D: still, or land_settle in LAND)
       +--------- a valid command comes back -----+
     operator "land":  FLYING/HOLD -> LAND at once, never back to FLYING
     operator "estop": any mode -> ESTOP at once (motors off), terminal
@@ -98,6 +98,8 @@ class Watchdog:
     """The mode the newest valid command carries (its agent's supervisor's)."""
     _blind: bool = False
     """HOLD began, or went on, without a measurement."""
+    _since: float = 0.0
+    """Plant tick time of the last mode change [s] (how long LAND has lasted: 2D's ``land_settle``)."""
 
     def __post_init__(self) -> None:
         self._u = [0.0] * self.dim
@@ -160,6 +162,7 @@ class Watchdog:
             if dst != self.mode:
                 events.append(Event(t, self.mode, dst, reason))
                 self.mode = dst
+                self._since = t
 
         measured = p is not None and v is not None
         pl = list(floats(p)) if p is not None else None  # its own copy: p_hold may keep it
@@ -198,8 +201,9 @@ class Watchdog:
                 go(LAND, f"no valid command for {age:.2f} s")
         if self.mode in (HOLD, LAND) and self.p_hold is None and measured:
             self.p_hold = pl  # HOLD began without a measurement
-        if self.mode == LAND and pl is not None and vl is not None and failsafe.landed(pl, vl, s.ground):
-            go(LANDED, "on the ground" if self.dim == 3 else "still")
+        if self.mode == LAND and pl is not None and vl is not None and \
+                failsafe.landed(pl, vl, s.ground, t - self._since, s.land_settle):
+            go(LANDED, "on the ground" if self.dim == 3 else failsafe.why_landed(pl, vl, t - self._since))
         u: list[float] | None
         if self.mode == FLYING:
             u = failsafe.saturate(self._u, s.max_accel) if self._u is not None else None

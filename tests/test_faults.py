@@ -32,6 +32,7 @@ from tests.test_runtime import (REPO, STARTUP, WAIT, Launched, PlainClient, exit
                                 tether_cmd, wait_for_realtime_start)
 from tether import transport as tp
 from tether import wire
+from tether.wire import FLYING, LAND, LANDED
 from tether.node import load_mission
 from tether.runfile import Run
 
@@ -173,6 +174,24 @@ def test_tether_land_reaches_a_running_swarm(faulted: Faulted) -> None:
     assert faulted.launcher_alive_at_land
 
 
+def test_tether_land_lands_every_survivor_and_ends_the_run(faulted: Faulted) -> None:
+    """section4 is 2D and its disturbances sway the vehicles for ever: before ``land_settle``, a 2D
+    LAND never saw a vehicle still, so the swarm held until the mission's end (40 s here) and the
+    launcher called the landing agents "diverged" as the leader flew on."""
+    run = faulted.run
+    assert "every surviving vehicle has landed or stopped: ending the run" in run.launcher_log, run.launcher_log
+    assert " diverged" not in run.launcher_log, run.launcher_log
+    rec = Run.load(run.out)
+    heard = np.isfinite(rec.p).all(axis=-1).any(axis=-1)
+    assert rec.t[heard][-1] < 25.0  # the order came at about 3 s; 40 s is the mission's end
+    for i, aid in enumerate(rec.agent_ids):
+        modes = rec.safety.plant_mode[heard, i]
+        modes = modes[modes >= 0]
+        assert modes[-1] == LANDED, (aid, modes[-1])
+    reasons = [e.reason for e in rec.safety.events if e.dst == LANDED]
+    assert reasons and all("still" in r or "land_settle" in r or "agent landed" in r for r in reasons), reasons
+
+
 def test_a_killed_agent_is_reported_and_the_run_exits_4(faulted: Faulted) -> None:
     run = faulted.run
     assert run.status == 4, run.launcher_log
@@ -235,6 +254,48 @@ def test_tether_land_bad_input_exits_2_naming_the_argument(args: list[str], name
     r = subprocess.run(tether_cmd("land", *args), cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, r.stderr
     assert names in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_monitor_judges_divergence_only_of_a_vehicle_that_was_flying_or_holding() -> None:
+    """A landing (or landed) agent has left the formation on purpose: its ‖ξ‖ against a leader that
+    flies on grows past ``max_formation_error`` and must not be reported as a divergence (it was, on
+    ``section4`` after ``tether land``: 'agent/1 diverged, |xi| = 50 m'). The tick a divergence sends
+    an agent from FLYING to LAND is still judged, as its supervisor judges it."""
+    import asyncio
+
+    from deploy import inject
+
+    m = load_mission(REPO / "tether" / "missions" / "failsafe.toml", None)
+    keys = wire.Keys("judged")
+    members = [("leader", 5), *[(r, a) for a in m.agent_ids for r in ("agent", "plant")], ("recorder", 0)]
+    far = m.safety.max_formation_error * 2
+
+    def telemetry(agent: int, k: int, mode: int, xi: float) -> tp.Received:
+        z = [0.0] * m.dim
+        msg = wire.Telemetry(sender=agent, seq=k, k=k, t=k / m.rate, meas_t=k / m.rate, p=z, vel=z, a=z, u=z,
+                             xi=[xi, *z[1:]], zeta=z, kp=[1.0] * m.dim, kv=[1.0] * m.dim, links=[], drops={},
+                             mode=mode)
+        return tp.Received(keys.topic("agent", agent, "telemetry"), wire.encode(msg))
+
+    async def main() -> None:
+        with tp.open_session(tp.ZenohSettings(listen=(tp.loopback_endpoint(tp.free_tcp_port()),))) as session:
+            mon = inject.Monitor(session, m, keys, members, lambda: 1.0)
+            try:
+                a, b = m.agent_ids[0], m.agent_ids[1]
+                # agent a lands (operator), then its xi grows as the leader flies on: not a divergence
+                for k, mode, xi in [(1, FLYING, 0.1), (2, LAND, 0.2), (3, LAND, far), (4, LANDED, far)]:
+                    mon.fifo.put(telemetry(a, k, mode, xi))
+                # agent b diverges while flying: its supervisor lands it at that very tick
+                for k, mode, xi in [(1, FLYING, 0.1), (2, LAND, far), (3, LAND, far)]:
+                    mon.fifo.put(telemetry(b, k, mode, xi))
+                mon.poll()
+                diverged = [e.who for e in mon.events if e.what == "diverged"]
+                assert diverged == [f"agent/{b}"], mon.events
+                assert mon.modes[f"agent/{a}"] == LANDED
+            finally:
+                mon.close()
+
+    asyncio.run(main())
 
 
 def test_a_token_back_within_the_confirmation_delay_is_still_reported_as_a_freeze() -> None:

@@ -232,6 +232,64 @@ def test_land_descends_at_the_set_rate_and_settles_on_the_ground() -> None:
     assert min(rates) >= -cfg.land_speed * 1.05
 
 
+def sway(t: float) -> np.ndarray:
+    """A cable's steady circular sway [m/s^2]: HOLD's spring and damper turn it into a velocity of
+    constant norm (0.25 m/s here), so a holding vehicle is never still."""
+    return 0.5 * np.array([math.cos(t), math.sin(t)])
+
+
+def land_2d(cfg_over: dict[str, Any], d, ticks: int) -> tuple[Supervisor, list[int], list[float]]:
+    """A 2D agent flying zero, ordered to land at tick 100, under the disturbance ``d(t)``
+    (exact zero-order-hold double integrator). Returns the supervisor, its modes and speeds."""
+    sup = Supervisor(mission(cfg_over, dim=2), 1, (3, 4))
+    p, v = np.array([1.0, 0.0]), np.zeros(2)
+    z, one = np.zeros(2), np.ones(2)
+    modes, speeds = [], []
+    for k in range(ticks):
+        t = k * H
+        out = np.asarray(sup.command(k, t, p, v, z, z, one, one, True, False,
+                                     Status(operator="land") if k >= 100 else Status()))
+        assert np.all(np.isfinite(out)) and np.linalg.norm(out) <= sup.cfg.max_accel * (1 + 1e-12)
+        modes.append(sup.mode)
+        speeds.append(float(np.linalg.norm(v)))
+        a = out + d(t)
+        p, v = p + v * H + 0.5 * a * H * H, v + a * H
+    return sup, modes, speeds
+
+
+def test_a_2d_landing_under_a_sway_hold_cannot_cancel_ends_after_land_settle() -> None:
+    """2D has no ground: LAND is HOLD until still. Against a disturbance HOLD cannot cancel that was
+    never (``tether land`` on ``section4`` ran to the mission's end); ``land_settle`` bounds it."""
+    sup, modes, speeds = land_2d({}, sway, round(3 * mission().safety.land_settle / H))
+    k_land, k_landed = modes.index(LAND), modes.index(LANDED)
+    assert k_land == 100
+    assert (k_landed - k_land) * H == pytest.approx(sup.cfg.land_settle, abs=1.01 * H)
+    assert min(speeds[k_land:k_landed + 1]) > failsafe.STILL  # never still: the bound ended it
+    ev = sup.events[-1]
+    assert (ev.src, ev.dst, ev.k) == (LAND, LANDED, k_landed)
+    assert "land_settle" in ev.reason and "still moving at 0.2" in ev.reason, ev.reason
+    assert set(modes[k_landed:]) == {LANDED}
+    # a longer bound is that much longer
+    sup, modes, _ = land_2d({"land_settle": 8.0}, sway, round(10.0 / H))
+    assert (modes.index(LANDED) - modes.index(LAND)) * H == pytest.approx(8.0, abs=1.01 * H)
+
+
+def test_a_2d_landing_without_a_disturbance_ends_when_still_before_the_bound() -> None:
+    # pushed to 1 m/s before the order, then nothing: HOLD brakes it to still
+    sup, modes, speeds = land_2d({}, lambda t: np.array([1.0 if t < 1.0 else 0.0, 0.0]), 1000)
+    k_landed = modes.index(LANDED)
+    assert (k_landed - modes.index(LAND)) * H < sup.cfg.land_settle  # nothing moved it: still at once
+    assert sup.events[-1].reason == "still" and speeds[k_landed] < failsafe.STILL
+
+
+def test_a_3d_landing_is_never_ended_in_the_air_by_the_bound() -> None:
+    assert not failsafe.landed([0.0, 0.0, 1.0], [0.0, 0.0, 0.0], 0.0, held=1e9, settle=5.0)
+    assert not failsafe.landed([0.0, 0.0, 0.01], [0.5, 0.0, 0.0], 0.0, held=1e9, settle=5.0)  # sliding
+    assert failsafe.landed([0.0, 0.0, 0.01], [0.05, 0.0, 0.0], 0.0, held=0.0, settle=5.0)
+    assert failsafe.landed([0.0, 0.0], [0.5, 0.0], 0.0, held=5.0, settle=5.0)
+    assert not failsafe.landed([0.0, 0.0], [0.5, 0.0], 0.0, held=4.99, settle=5.0)
+
+
 def test_saturate_refuses_non_finite() -> None:
     assert failsafe.saturate(np.array([math.nan, 0.0]), 1.0) is None
     np.testing.assert_allclose(failsafe.saturate(np.array([3.0, 4.0]), 1.0), [0.6, 0.8])

@@ -154,6 +154,31 @@ def test_2d_lands_by_stopping() -> None:
     assert modes[-1] == LANDED and np.linalg.norm(veh.v) < 0.05
 
 
+class Swaying(Fake):
+    """A 2D :class:`Fake` under a cable's steady circular sway (0.5 m/s^2) that HOLD cannot cancel."""
+
+    def __init__(self, p0: list[float]):
+        super().__init__(2, p0)
+        self.t = 0.0
+
+    def advance(self, u: list[float]) -> None:
+        super().advance(list(np.asarray(u) + 0.5 * np.array([math.cos(self.t), math.sin(self.t)])))
+        self.t += H
+
+
+def test_2d_lands_under_a_sway_after_land_settle_at_most() -> None:
+    """Its agent dead, a 2D plant under a sway that keeps it moving lands (stops) after
+    ``land_settle`` in LAND instead of holding for ever."""
+    dog, veh, events = Watchdog(SAFETY, 2), Swaying([0.0, 0.0]), []
+    fly(dog, veh, 1, 3, command=lambda k: [0.0, 0.0])
+    modes = fly(dog, veh, 3, 3 + round((SAFETY.cmd_cutoff + 2 * SAFETY.land_settle) / H), log=events)
+    assert [e.dst for e in events] == [HOLD, LAND, LANDED]
+    land, landed = events[1], events[2]
+    assert landed.t - land.t == pytest.approx(SAFETY.land_settle, abs=1.01 * H)
+    assert "land_settle" in landed.reason and "still moving" in landed.reason, landed.reason
+    assert modes[-1] == LANDED and np.linalg.norm(veh.v) > 0.05  # the model moves on; the plant rests it
+
+
 # --------------------------------------------------------------------------- plant.rest
 def one_vehicle(dim: int, p0: list[float], v0: list[float], plant: dict | None = None) -> ms.Mission:
     agent = {"id": 1, "p0": p0, "v0": v0, "offset": [0.0] * dim}

@@ -436,7 +436,7 @@ def _validate_safety(m: Mission, out: Problems) -> None:
     """The ``[safety]`` section: positive limits, ordered timeouts, a box that is a box."""
     sf = m.safety
     positive = {"max_accel": "m/s^2", "max_speed": "m/s", "max_formation_error": "m", "leader_timeout": "s",
-                "neighbour_timeout": "s", "land_after": "s", "land_speed": "m/s", "hold_kp": "1/s^2",
+                "neighbour_timeout": "s", "land_after": "s", "land_speed": "m/s", "land_settle": "s", "hold_kp": "1/s^2",
                 "hold_kv": "1/s", "cmd_timeout": "s", "cmd_cutoff": "s"}
     for name, unit in positive.items():
         value = getattr(sf, name)

@@ -11,7 +11,8 @@ measurement (``docs/safety.md``). Vectors are sequences of ``d`` floats [SI unit
   ``u = -kv v - kp (p - p_hold)``, saturated;
 * :func:`land` — hold horizontally and descend at ``land_speed`` to ``ground`` (3D; in 2D there
   is no up, so LAND is HOLD until the vehicle is still);
-* :func:`landed` — on the ground (3D) or still (2D), slow enough to disarm.
+* :func:`landed` — on the ground (3D) or still (2D), slow enough to disarm; in 2D also a landing
+  that has held for ``settle`` seconds (a disturbance HOLD cannot cancel may keep a vehicle moving).
 """
 
 from __future__ import annotations
@@ -62,9 +63,25 @@ def land(p: Vec, v: Vec, p_hold: Vec, kp: float, kv: float, max_accel: float,
     return [0.0] * len(p) if out is None else out
 
 
-def landed(p: Vec, v: Vec, ground: float) -> bool:
-    """On the ground and settled (3D), or still (2D)."""
+def landed(p: Vec, v: Vec, ground: float, held: float = 0.0, settle: float = math.inf) -> bool:
+    """On the ground and settled (3D), or, in 2D, still or in LAND for ``held >= settle`` seconds.
+
+    2D has no ground to end a landing, and HOLD's law (a spring and a damper about ``p_hold``) does
+    not cancel a steady sway: under the cable's sinusoidal pull a holding vehicle moves at
+    ``|d| w / |kp - w^2 + j kv w|`` for ever (0.1-0.3 m/s on ``section4``), never below
+    :data:`STILL`. ``settle`` bounds how long a 2D landing lasts (``safety.land_settle``); in 3D
+    nothing but the ground ends it (a timeout must never disarm a vehicle in the air)."""
     speed = math.sqrt(dot(v, v)) if all(map(math.isfinite, v)) else math.inf
     if len(p) < 3:
-        return speed < STILL
+        return speed < STILL or held >= settle
     return bool(p[-1] - ground <= TOUCHDOWN) and speed < 2 * STILL
+
+
+def why_landed(p: Vec, v: Vec, held: float) -> str:
+    """The reason :func:`landed` gives for a vehicle that has been in LAND ``held`` seconds."""
+    if len(p) >= 3:
+        return "touched down"
+    speed = math.sqrt(dot(v, v)) if all(map(math.isfinite, v)) else math.inf
+    if speed < STILL:
+        return "still"
+    return f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped"

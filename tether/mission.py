@@ -375,6 +375,11 @@ class Safety(Strict, frozen=True):
     """Descent rate in LAND [m/s] (3D)."""
     ground: float = 0.0
     """Height of the ground [m] (3D): LAND ends, and the vehicle disarms, there."""
+    land_settle: float = 5.0
+    """2D (no ground): LAND holds until the vehicle is still (below 0.05 m/s) or for at most this
+    long [s], then it is LANDED (stopped, disarmed). A disturbance HOLD cannot cancel (the cable's
+    steady sway) can keep a holding vehicle moving for ever; 5 s is five time constants of the
+    default HOLD loop (hold_kp 1, hold_kv 2: both poles at -1/s)."""
     hold_kp: float = 1.0
     """HOLD's position gain [1/s^2]: u = -hold_kv v - hold_kp (p - p_hold), saturated."""
     hold_kv: float = 2.0
