@@ -6,7 +6,7 @@ Commands leave an agent only through :meth:`Supervisor.command`. Modes (codes in
 =========  =====================================================================================
 FLYING     the law's command (Eq. 17), saturated to ``max_accel``
 HOLD       brake to zero velocity and keep the position where HOLD began (:func:`tether.failsafe.hold`)
-LAND       hold horizontally, descend at ``land_speed`` to ``ground`` (:func:`tether.failsafe.land`)
+LAND       hold horizontally, descend at ``land_speed`` to ``ground`` (:class:`tether.failsafe.Landing`)
 LANDED     on the ground and still: a zero command, the plant rests (disarmed)
 ESTOP      motors off: a zero command the plant obeys by cutting thrust (terminal)
 =========  =====================================================================================
@@ -124,6 +124,8 @@ class Supervisor:
         self.diverged: SafetyEvent | None = None
         """The first divergence caught (the law's error, gains or command past their bounds)."""
         self._new: list[SafetyEvent] = []
+        self._landing: failsafe.Landing | None = None
+        """LAND's law and its memory (made at LAND's first tick; a vehicle lands once per run)."""
 
     # ------------------------------------------------------------------ inputs
     def links(self, k: int, t: float, ages: Sequence[float], status: Status) -> tuple[frozenset[int], bool, bool]:
@@ -230,7 +232,9 @@ class Supervisor:
         if failsafe.landed(p, v, cfg.ground, t - self.since, cfg.land_settle):
             self._go(k, t, LANDED, failsafe.why_landed(p, v, t - self.since), p)
             return zero
-        return failsafe.land(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
+        if self._landing is None:
+            self._landing = failsafe.Landing(cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
+        return self._landing.command(t, p, v, self.p_hold)
 
     @property
     def flying(self) -> bool:

@@ -21,7 +21,7 @@ after the cut-off a vehicle lands instead of falling (``docs/watchdog.md``)::
 * FLYING flies the agent's command, saturated to ``safety.max_accel`` (:func:`tether.failsafe.saturate`);
 * HOLD flies :func:`tether.failsafe.hold` about the position where HOLD began (brake to zero
   velocity; a quadrotor levels and hovers, its inner loop flying the acceleration command);
-* LAND flies :func:`tether.failsafe.land` down to ``safety.ground`` (about the same horizontal position);
+* LAND flies :class:`tether.failsafe.Landing` down to ``safety.ground`` (about the same horizontal position);
 * LANDED and ESTOP command zero: what the vehicle then does (rest where it touched down; motors
   off) is the plant's to model (:mod:`plant.rest`, :class:`plant.crazyflie.CrazyfliePlant`).
 
@@ -100,6 +100,8 @@ class Watchdog:
     """HOLD began, or went on, without a measurement."""
     _since: float = 0.0
     """Plant tick time of the last mode change [s] (how long LAND has lasted: 2D's ``land_settle``)."""
+    _landing: failsafe.Landing | None = None
+    """LAND's law and its memory (made at LAND's first tick; LAND is never left but for LANDED or ESTOP)."""
 
     def __post_init__(self) -> None:
         self._u = [0.0] * self.dim
@@ -213,7 +215,9 @@ class Watchdog:
             if self.mode == HOLD:
                 u = failsafe.hold(pl, vl, at, s.hold_kp, s.hold_kv, s.max_accel)
             else:
-                u = failsafe.land(pl, vl, at, s.hold_kp, s.hold_kv, s.max_accel, s.land_speed, s.ground)
+                if self._landing is None:
+                    self._landing = failsafe.Landing(s.hold_kp, s.hold_kv, s.max_accel, s.land_speed, s.ground)
+                u = self._landing.command(t, pl, vl, at)
         else:
             u = [0.0] * self.dim
         return Decision(self.mode, u, tuple(events))

@@ -216,20 +216,76 @@ def test_hold_brakes_a_double_integrator_to_rest_near_where_it_began() -> None:
     assert np.linalg.norm(v) < 1e-3 and np.linalg.norm(p - start) < 1e-2
 
 
-def test_land_descends_at_the_set_rate_and_settles_on_the_ground() -> None:
+def fly_landing(push: float, memory: bool = True, seconds: float = 60.0) -> tuple[bool, float, list[float]]:
+    """A 3D double integrator landing from 2 m under a steady vertical disturbance ``push`` [m/s^2]
+    (up if positive), with :class:`failsafe.Landing` (or :func:`failsafe.land` alone). Returns whether
+    it landed, when [s], and its vertical velocities."""
     cfg = mission().safety
     p, v = np.array([0.0, 0.0, 2.0]), np.zeros(3)
     start = p.copy()
-    rates = []
-    for _ in range(4000):
+    landing = failsafe.Landing(cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
+    rates: list[float] = []
+    for k in range(round(seconds / H)):
         if failsafe.landed(p, v, cfg.ground):
+            return True, k * H, rates
+        u = np.array(landing.command(k * H, p, v, start) if memory else
+                     failsafe.land(p, v, start, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground))
+        assert np.all(np.isfinite(u)) and np.linalg.norm(u) <= cfg.max_accel * (1 + 1e-12)
+        a = u + [0.0, 0.0, push]
+        p, v = p + v * H + 0.5 * a * H * H, v + a * H
+        rates.append(float(v[2]))
+        if p[2] <= cfg.ground:  # the ground: contact stops it (plant.rest)
+            p[2], v[:] = cfg.ground, 0.0
+    return False, seconds, rates
+
+
+def test_land_descends_at_the_set_rate_and_settles_on_the_ground() -> None:
+    landed, _, rates = fly_landing(0.0)
+    assert landed
+    assert min(rates) >= -mission().safety.land_speed * 1.05  # the integral's overshoot is under 5 %
+
+
+@pytest.mark.parametrize("push", [0.1, 0.5, 2.0])
+def test_a_steady_push_up_does_not_stall_a_landing(push: float) -> None:
+    """A proportional descent loop settles push / kv slower than wanted: near the ground, where it
+    wants 0.05 m/s, a push of 0.1 m/s^2 (1 % of g) or more held the vehicle above the ground for
+    ever. Landing's integral term lands it."""
+    stalled, _, rates = fly_landing(push, memory=False)
+    assert not stalled  # without the memory: hovering (or climbing), never landing
+    landed, when, rates = fly_landing(push)
+    assert landed and when < 40.0, when
+    assert min(rates) >= -mission().safety.land_speed * 1.05
+
+
+def test_a_landings_memory_ignores_non_finite_measurements_and_gaps() -> None:
+    cfg = mission().safety
+    landing = failsafe.Landing(cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
+    hold = [0.0, 0.0, 1.0]
+    landing.command(0.0, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], hold)
+    landing.command(0.01, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], hold)
+    before = landing.bias
+    assert before < 0  # slower than wanted: push down
+    out = landing.command(0.02, [0.0, 0.0, 1.0], [0.0, 0.0, math.nan], hold)
+    assert out == [0.0, 0.0, 0.0] and landing.bias == before
+    landing.command(1e6, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], hold)  # a gap integrates MAX_STEP at most
+    assert landing.bias == pytest.approx(before + cfg.hold_kv ** 2 / 16 * -cfg.land_speed * failsafe.MAX_STEP)
+    for k in range(10**5):  # bounded, however long it is held from descending
+        landing.command(1e6 + k * 0.1, [0.0, 0.0, 1.0], [0.0, 0.0, 0.5], hold)
+    assert landing.bias == -cfg.max_accel
+
+
+def test_a_supervisor_lands_a_3d_vehicle_against_a_steady_push_up() -> None:
+    sup = Supervisor(mission(), 1, (3, 4))
+    p, v = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    for k in range(round(60.0 / H)):
+        out = step(sup, k, p=p, v=v, status=Status(operator="land"))
+        if sup.mode == LANDED:
             break
-        u = np.array(failsafe.land(p, v, start, cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground))
-        p, v = p + v * H + 0.5 * u * H * H, v + u * H
-        rates.append(v[2])
-        assert p[2] > cfg.ground - 0.01  # never through the ground
-    assert failsafe.landed(p, v, cfg.ground)
-    assert min(rates) >= -cfg.land_speed * 1.05
+        a = np.asarray(out) + [0.0, 0.0, 0.5]
+        p, v = p + v * H + 0.5 * a * H * H, v + a * H
+        if p[2] <= 0.0:
+            p[2], v[:] = 0.0, 0.0
+    assert sup.mode == LANDED and k * H < 30.0, (sup.mode, p)
 
 
 def sway(t: float) -> np.ndarray:

@@ -179,6 +179,24 @@ def test_2d_lands_under_a_sway_after_land_settle_at_most() -> None:
     assert modes[-1] == LANDED and np.linalg.norm(veh.v) > 0.05  # the model moves on; the plant rests it
 
 
+class Pushed(Fake):
+    """A 3D :class:`Fake` under a steady push up [m/s^2] (a 5 % thrust error), resting on the ground."""
+
+    def advance(self, u: list[float]) -> None:
+        super().advance(list(np.asarray(u) + [0.0, 0.0, 0.5]))
+        if self.p[2] <= 0.0:
+            self.p[2], self.v[:] = 0.0, 0.0
+
+
+def test_a_plant_whose_agent_died_lands_against_a_steady_push_up() -> None:
+    """LAND's proportional descent alone hovered 25 cm above the ground for ever under this push."""
+    dog, veh, events = Watchdog(SAFETY, 3), Pushed(3, [0.0, 0.0, 1.0]), []
+    fly(dog, veh, 1, 3, command=lambda k: [0.0, 0.0, -0.5])
+    modes = fly(dog, veh, 3, round(40.0 / H), log=events)
+    assert [e.dst for e in events] == [HOLD, LAND, LANDED], events
+    assert modes[-1] == LANDED and events[-1].reason == "on the ground"  # (the fake has no rest: it rises after)
+
+
 # --------------------------------------------------------------------------- plant.rest
 def one_vehicle(dim: int, p0: list[float], v0: list[float], plant: dict | None = None) -> ms.Mission:
     agent = {"id": 1, "p0": p0, "v0": v0, "offset": [0.0] * dim}
