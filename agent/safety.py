@@ -299,7 +299,10 @@ class Supervisor:
 
 def _max(xs: Vec) -> float:
     """``ndarray.max()`` of a short list: NaN if any element is."""
-    return math.nan if any(x != x for x in xs) else max(xs)
+    for x in xs:
+        if x != x:
+            return math.nan
+    return max(xs)
 
 
 def mode_name(code: int) -> str:

@@ -34,6 +34,11 @@ def rows(x: Sequence[Vec] | Any) -> list[list[float]]:
 
 def dot(x: Vec, y: Vec) -> float:
     """``x . y``, the products added in order (NaN or infinite exactly when a term is)."""
+    n = len(x)
+    if n == 3 and len(y) == 3:  # the same additions, left to right, without the loop (the hot path)
+        return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    if n == 2 and len(y) == 2:
+        return x[0] * y[0] + x[1] * y[1]
     acc = 0.0
     first = True
     for a, b in zip(x, y):
