@@ -176,6 +176,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
     for aid, dog in zip(ids, dogs):
         report_drops(dog.invalid, f"vehicle {aid}: commands rejected by its watchdog")
+        report_drops({"not finite": dog.garbled}, f"vehicle {aid}: own measurements flown as none")
     if cf is not None and recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()
         raise link_lost(f"crazyflie {ids[0]} ({cf.spec.uri}): the link was still down at the mission's end")

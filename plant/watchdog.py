@@ -15,8 +15,8 @@ after the cut-off a vehicle lands instead of falling (``docs/watchdog.md``)::
     operator "estop": any mode -> ESTOP at once (motors off), terminal
     the agent's own command says LANDED (its supervisor has landed it) -> LANDED (rest, disarmed);
       ESTOP -> ESTOP (motors off)
-    no own measurement (a real vehicle's link is down): FLYING -> HOLD; once it is back,
-      -> FLYING if a valid command is fresh (the agent has resumed), else -> LAND at once
+    no own measurement (a real vehicle's link is down, or its estimate is not finite): FLYING -> HOLD;
+      once it is back, -> FLYING if a valid command is fresh (the agent has resumed), else -> LAND at once
 
 * FLYING flies the agent's command, saturated to ``safety.max_accel`` (:func:`tether.failsafe.saturate`);
 * HOLD flies :func:`tether.failsafe.hold` about the position where HOLD began (brake to zero
@@ -90,6 +90,8 @@ class Watchdog:
     """Where HOLD (or LAND) began [m], the position it keeps."""
     invalid: dict[str, int] = field(default_factory=dict)
     """Commands rejected, by reason (``nonfinite``, ``absurd``, ``future``, ``size``)."""
+    garbled: int = 0
+    """Ticks whose own measurement was not finite (each flown as no measurement at all)."""
     _u: list[float] | None = None
     _t: float = -math.inf
     _seq: tuple[int, float] | None = None
@@ -156,7 +158,8 @@ class Watchdog:
              operator: str | None = None) -> Decision:
         """Decide the mode and command for the period starting at the plant's tick time ``t`` [s]
         from the commands offered so far, the operator's last action (``"land"``, ``"estop"`` or
-        None) and the measurement ``p`` [m], ``v`` [m/s] (None: the plant has none this tick)."""
+        None) and the measurement ``p`` [m], ``v`` [m/s] (None: the plant has none this tick; a
+        measurement with a component that is not finite counts as none, and in :attr:`garbled`)."""
         s = self.safety
         events: list[Event] = []
 
@@ -166,9 +169,15 @@ class Watchdog:
                 self.mode = dst
                 self._since = t
 
-        measured = p is not None and v is not None
         pl = list(floats(p)) if p is not None else None  # its own copy: p_hold may keep it
         vl = floats(v) if v is not None else None
+        garbled = pl is not None and vl is not None and not (all(map(math.isfinite, pl)) and
+                                                              all(map(math.isfinite, vl)))
+        if garbled:  # a diverged estimator, a corrupted log: no measurement at all, never a place to hold
+            self.garbled += 1
+            pl = vl = None
+        measured = pl is not None and vl is not None
+        blind = "own measurement not finite" if garbled else "no own measurement"
         if operator == "estop":
             go(ESTOP, "operator estop")
         elif self._agent_mode == ESTOP:
@@ -185,7 +194,7 @@ class Watchdog:
         if self.mode == FLYING:
             if not measured:
                 self._blind = True
-                go(HOLD, "no own measurement")
+                go(HOLD, blind)
             elif age > s.cmd_timeout:
                 self.p_hold = pl
                 go(HOLD, f"no valid command for {age:.2f} s")

@@ -197,6 +197,32 @@ def test_a_plant_whose_agent_died_lands_against_a_steady_push_up() -> None:
     assert modes[-1] == LANDED and events[-1].reason == "on the ground"  # (the fake has no rest: it rises after)
 
 
+@pytest.mark.parametrize("resumed", [True, False])
+def test_a_non_finite_measurement_is_no_measurement(resumed: bool) -> None:
+    """A diverged estimator (a Crazyflie's Kalman filter) or a corrupted log gives NaN: the plant
+    flies it as a lost measurement (HOLD blind, a zero command), never holds about it, and once
+    the estimate is finite again flies on if its agent's command is fresh, else lands there."""
+    dog, veh, events = Watchdog(SAFETY, 3), Fake(3, [0.0, 0.0, 1.0], [0.2, 0.0, 0.0]), []
+    fly(dog, veh, 1, 10, command=lambda k: [0.0, 0.0, 0.0], log=events)
+    for k, bad in enumerate(([math.nan, 0.0, 1.0], [0.0, math.inf, 1.0]), start=10):
+        dog.offer([0.0, 0.0, 0.0], (k - 1) * H, k - 1, k)
+        d = dog.step(k * H, bad, veh.v)
+        events.extend(d.events)
+        assert d.mode == HOLD and d.u == [0.0, 0.0, 0.0]
+    last = 12 if resumed else 12 + round(2 * SAFETY.cmd_timeout / H)  # silent agent: its command goes stale
+    for k in range(12, last + 1):
+        d = dog.step(k * H, veh.p, [math.nan, 0.0, 0.0])
+        assert d.mode == HOLD and d.u == [0.0, 0.0, 0.0] and dog.p_hold is None
+    assert events[0].reason == "own measurement not finite" and dog.garbled == last - 9
+    if resumed:
+        dog.offer([0.0, 0.0, 0.0], last * H, last, last + 1)
+    d = dog.step((last + 1) * H, veh.p, veh.v)
+    assert d.mode == (FLYING if resumed else LAND), d.events
+    if not resumed:
+        assert dog.p_hold == veh.p.tolist()  # lands where it is measured again
+    assert all(np.isfinite(d.u))
+
+
 # --------------------------------------------------------------------------- plant.rest
 def one_vehicle(dim: int, p0: list[float], v0: list[float], plant: dict | None = None) -> ms.Mission:
     agent = {"id": 1, "p0": p0, "v0": v0, "offset": [0.0] * dim}
