@@ -225,7 +225,10 @@ class Supervisor:
                 # (hold, latched; land; estop) leaves FLYING for this tick; never pass it on if it ever were
                 raise AssertionError(f"agent {self.agent_id}: a non-finite command reached FLYING at tick {k}")
             return out
-        assert self.p_hold is not None
+        if self.p_hold is None:  # HOLD or LAND began on a position that was not finite: the first finite one
+            if not all(map(math.isfinite, p)):
+                return zero  # nowhere known to hold: no push anywhere (the measurement's gate keeps this rare)
+            self.p_hold = [float(x) for x in p]
         if self.mode == HOLD:
             return failsafe.hold(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel)
         # LAND
@@ -286,7 +289,8 @@ class Supervisor:
             return
         if mode in (HOLD, LAND) and (self.p_hold is None or self.mode == FLYING):
             held = [float(x) for x in p]
-            self.p_hold = held if all(map(math.isfinite, held)) else [0.0] * len(held)
+            # never a made-up point (the origin would fly it across the arena): wait for a finite one
+            self.p_hold = held if all(map(math.isfinite, held)) else None
         self._event(k, t, mode, why)
         self.mode = mode
         self.since = t

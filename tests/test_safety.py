@@ -346,6 +346,17 @@ def test_a_3d_landing_is_never_ended_in_the_air_by_the_bound() -> None:
     assert not failsafe.landed([0.0, 0.0], [0.5, 0.0], 0.0, held=4.99, settle=5.0)
 
 
+def test_a_hold_begun_on_a_non_finite_position_holds_about_the_first_finite_one() -> None:
+    """It held about the origin before: a vehicle 40 m away was pulled across the arena at max_accel."""
+    sup = Supervisor(mission(), 1, (3, 4))
+    step(sup, 0, p=[40.0, 0.0, 1.0])
+    nan = [math.nan, 0.0, 1.0]
+    out = sup.command(1, H, nan, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0] * 3, [1.0] * 3, [1.0] * 3, True, True)
+    assert sup.mode == HOLD and out == [0.0, 0.0, 0.0] and sup.p_hold is None  # leader silent, nowhere known
+    out = step(sup, 2, p=[40.0, 0.5, 1.0], leader_silent=True)
+    assert sup.p_hold == [40.0, 0.5, 1.0] and np.allclose(out, 0.0)  # held where it is, not pulled to 0
+
+
 def test_saturate_refuses_non_finite() -> None:
     assert failsafe.saturate(np.array([math.nan, 0.0]), 1.0) is None
     np.testing.assert_allclose(failsafe.saturate(np.array([3.0, 4.0]), 1.0), [0.6, 0.8])
