@@ -127,6 +127,17 @@ AGE_IN = re.compile(r"no valid command for ([\d.]+) s")
 STOP_LINES = ("the survivors had", "ending the run", "s of mission time in", "interrupted")
 
 
+_WALL_OFFSET = time.time() - time.monotonic()
+
+
+def wall() -> float:
+    """Wall-clock time [s since the epoch] that never steps: the monotonic clock, placed on the wall
+    clock once at import (as tether's processes place the run's epoch). A wall clock stepped during a
+    run (NTP; measured once here: +2.65 s mid-run) made every later arrival look 2.7 s late, and
+    the bench read it as 14 s of open-loop flight that no watchdog saw."""
+    return time.monotonic() + _WALL_OFFSET
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -135,7 +146,7 @@ def free_port() -> int:
 
 # =========================================================================== the tap
 class Tap:
-    """A Zenoh client of the run's router: wall-stamped arrivals of start, cmd, telemetry, plant state."""
+    """A Zenoh client of the run's router: wall-stamped arrivals (:func:`wall`) of start, cmd, telemetry, plant state."""
 
     def __init__(self, endpoint: str, ns: str, config_file: Path | None = None):
         self.endpoint, self.ns, self.config_file = endpoint, ns, config_file
@@ -169,7 +180,7 @@ class Tap:
         ns = self.ns
 
         def on_sample(sample: zenoh.Sample) -> None:
-            self.arrivals.append((time.time(), str(sample.key_expr), sample.payload.to_bytes()))
+            self.arrivals.append((wall(), str(sample.key_expr), sample.payload.to_bytes()))
 
         def on_start(sample: zenoh.Sample) -> None:
             msg = wire.decode(sample.payload.to_bytes())
@@ -190,7 +201,7 @@ class Tap:
         gap = operator.SPREAD / max(1, operator.REPEATS - 1)
         for n in range(operator.REPEATS):
             if n == 0:
-                self.order_put = time.time()
+                self.order_put = wall()
             self._pub.put(payload)
             if n < operator.REPEATS - 1:
                 time.sleep(gap)
@@ -273,7 +284,7 @@ def launch(out: Path, duration: float, faults: list[str], order: tuple[str, floa
     def reader() -> None:
         assert p.stderr is not None
         for line in p.stderr:
-            now = time.time()
+            now = wall()
             lines.append((now, line.rstrip("\n")))
             if not stop_wall and any(s in line for s in STOP_LINES) and "launcher:" in line:
                 stop_wall.append(now)
@@ -288,11 +299,11 @@ def launch(out: Path, duration: float, faults: list[str], order: tuple[str, floa
     try:
         if order is not None:
             action, at = order
-            deadline = time.time() + 60
-            while tap.epoch is None and time.time() < deadline and p.poll() is None:
+            deadline = wall() + 60
+            while tap.epoch is None and wall() < deadline and p.poll() is None:
                 time.sleep(0.01)
             if tap.epoch is not None:
-                delay = tap.epoch + at - time.time()
+                delay = tap.epoch + at - wall()
                 if delay > 0:
                     time.sleep(delay)
                 tap.send_order(action)
@@ -587,10 +598,10 @@ def cli_latency(action: str, duration: float, at: float, work: Path) -> float:
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=REPO)
     try:
         time.sleep(at + 3.0)
-        t0 = time.time()
+        t0 = time.monotonic()
         subprocess.run([sys.executable, "-m", "cli", action, "--ns", MISSION, "--connect", ep],
                        env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
-        return time.time() - t0
+        return time.monotonic() - t0
     finally:
         p.wait(120)
 
