@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from tether.vec import Vec, dot, floats
+from tether.vec import Vec, dot, floats, norm
 
 STILL = 0.05
 """A vehicle slower than this [m/s] counts as still (2D LAND ends, a landing has settled)."""
@@ -111,7 +111,7 @@ def landed(p: Vec, v: Vec, ground: float, held: float = 0.0, settle: float = mat
     ``|d| w / |kp - w^2 + j kv w|`` for ever (0.1-0.3 m/s on ``section4``), never below
     :data:`STILL`. ``settle`` bounds how long a 2D landing lasts (``safety.land_settle``); in 3D
     nothing but the ground ends it (a timeout must never disarm a vehicle in the air)."""
-    speed = math.sqrt(dot(v, v)) if all(map(math.isfinite, v)) else math.inf
+    speed = norm(v)  # infinite if a component is not finite
     if len(p) < 3:
         return speed < STILL or held >= settle
     return bool(p[-1] - ground <= TOUCHDOWN) and speed < 2 * STILL
@@ -121,7 +121,7 @@ def why_landed(p: Vec, v: Vec, held: float) -> str:
     """The reason :func:`landed` gives for a vehicle that has been in LAND ``held`` seconds."""
     if len(p) >= 3:
         return "touched down"
-    speed = math.sqrt(dot(v, v)) if all(map(math.isfinite, v)) else math.inf
+    speed = norm(v)  # infinite if a component is not finite
     if speed < STILL:
         return "still"
     return f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped"
