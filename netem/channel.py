@@ -25,7 +25,7 @@ from collections.abc import Iterable
 import msgspec
 import numpy as np
 
-from tether.netprofile import GilbertElliott, LinkProfile, ProfileError, is_identity, validate
+from tether.netprofile import Bernoulli, GilbertElliott, LinkProfile, ProfileError, is_identity, validate
 
 STREAM_KEY = 0x6E65_7465
 """Last word of the seed of every link generator (``"nete"``): keeps link streams apart from the
@@ -41,6 +41,15 @@ _TINY = 1e-300
 _PARETO_SHAPE = 3.0
 _PARETO_MEAN = _PARETO_SHAPE / (_PARETO_SHAPE - 1.0)
 _PARETO_STD = math.sqrt(_PARETO_SHAPE / ((_PARETO_SHAPE - 1.0) ** 2 * (_PARETO_SHAPE - 2.0)))
+
+
+def independent(profile: LinkProfile) -> bool:
+    """Whether each offer's fate under ``profile`` is drawn on its own: Bernoulli loss, a constant
+    delay, and no jitter, duplication, reordering, corruption, rate limit or outage. Such a link
+    keeps every message's order, and :meth:`Link.offer_times` decides many offers at once."""
+    return (isinstance(profile.loss, Bernoulli) and profile.delay.jitter == 0 and profile.duplicate == 0
+            and profile.reorder.p == 0 and profile.corrupt.p == 0 and profile.rate.bytes_per_s <= 0
+            and not profile.outages)
 
 
 def link_rng(seed: int, src: int, dst: int) -> np.random.Generator:
@@ -233,6 +242,44 @@ class Link:
             out.append(Delivery(at, data, event))
         self.last_drop_reason = None if out else reasons[0]
         return out
+
+    def offer_times(self, now: np.ndarray) -> np.ndarray:
+        """:meth:`offer` of one message at each time of ``now`` (finite, non-decreasing, none before
+        the previous offer), for a profile whose decisions are independent of one another
+        (:func:`independent`): each offer's delivery time, NaN where it was lost. Draws exactly what
+        the offers one by one draw, from the same stream, and leaves the link as they would (counts,
+        generator, last drop reason). Raises ``ValueError`` for another profile, for a link that
+        keeps a decision log, or for times :meth:`offer` would refuse (nothing is changed then)."""
+        prof = self._profile
+        if not independent(prof) or self.decisions is not None:
+            raise ValueError("offer_times takes a link without a decision log whose profile is independent "
+                             "(Bernoulli loss, constant delay, nothing else)")
+        now = np.asarray(now, dtype=float)
+        n = len(now)
+        if n == 0:
+            return np.empty(0)
+        if (not np.all(np.isfinite(now)) or bool(np.any(np.diff(now) < 0.0))
+                or not float(now[0]) >= self._last_now):
+            raise ValueError(f"offer times must be finite and non-decreasing from the previous offer "
+                             f"({self._last_now}); first {float(now[0])}")
+        p = prof.loss.p
+        if p <= 0.0:  # as _happens: a certain outcome draws nothing
+            lost = np.zeros(n, dtype=bool)
+        elif p >= 1.0:
+            lost = np.ones(n, dtype=bool)
+        else:
+            lost = self._rng["loss"].random(n) < p  # the same doubles, in order, as n calls of random()
+        at = now + prof.delay.constant  # depart (no rate limit: now) plus the delay, as offer adds them
+        at[lost] = math.nan
+        dropped = int(np.count_nonzero(lost))
+        self._last_now = float(now[-1])
+        self._seq += n
+        self._since_reorder += n - dropped
+        self.counts["offered"] += n
+        self.counts["delivered"] += n - dropped
+        self.counts["loss"] += dropped
+        self.last_drop_reason = "loss" if lost[-1] else None
+        return at
 
     # ------------------------------------------------------------------- parts
     def _happens(self, stream: str, prob: float) -> bool:

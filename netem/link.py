@@ -9,7 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from netem.channel import Delivery, DeliveryQueue, Link, link_rng
+import numpy as np
+
+from netem.channel import Delivery, DeliveryQueue, Link, independent, link_rng
 from tether import mission as ms
 from tether.netprofile import schedule
 
@@ -37,6 +39,31 @@ class Channel:
             self.link.set_profile(self.changes[self._next][1])
             self._next += 1
         self.queue.push(self.link.offer(now, payload))
+
+    def decide(self, now: np.ndarray) -> np.ndarray:
+        """What :meth:`send` decides for one message at each time of ``now`` (non-decreasing), the
+        profile schedule followed as it follows it, for a link whose profiles are all independent
+        (:func:`netem.channel.independent`): each message's delivery time [s], NaN where it was lost.
+        The copies are not queued: the caller holds the times. Raises ``ValueError`` (nothing
+        changed) when a profile the times reach is not independent."""
+        now = np.asarray(now, dtype=float)
+        starts = [at for at, _ in self.changes[self._next:]]
+        reached = self.changes[self._next:self._next + int(np.searchsorted(starts, now[-1], side="right"))] \
+            if len(now) else []
+        if not all(independent(prof) for prof in [self.link.profile, *(p for _, p in reached)]):
+            raise ValueError("decide takes a link whose profiles are all independent")
+        out = np.empty(len(now))
+        lo = 0
+        while lo < len(now):
+            while self._next < len(self.changes) and self.changes[self._next][0] <= now[lo]:
+                self.link.set_profile(self.changes[self._next][1])
+                self._next += 1
+            hi = len(now)
+            if self._next < len(self.changes):  # the offers before the next change
+                hi = lo + int(np.searchsorted(now[lo:], self.changes[self._next][0], side="left"))
+            out[lo:hi] = self.link.offer_times(now[lo:hi])
+            lo = hi
+        return out
 
     def release(self, now: float) -> list[Delivery]:
         return self.queue.pop_due(now)

@@ -170,6 +170,22 @@ class DisturbanceBank:
         _, dv, dp = self._rows(k)
         return dv, dp
 
+    def span(self, k0: int, k1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`value` and :meth:`increments` of ticks ``k0 .. k1-1`` at once: new arrays
+        ``(k1 - k0, n, d)`` of ``(value, dv, dp)``, each row that tick's (the same bits)."""
+        shape = (max(0, k1 - k0), *self.const.shape)
+        value, dv, dp = out = (np.empty(shape), np.empty(shape), np.empty(shape))
+        k = k0
+        while k < k1:
+            self._rows(k)  # the block holding tick k
+            b = self._block
+            r = k - b["k0"]
+            m = min(b["ticks"] - r, k1 - k)
+            for dst, src in zip(out, (b["value"], b["dv"], b["dp"])):
+                dst[k - k0:k - k0 + m] = src[r:r + m]
+            k += m
+        return value, dv, dp
+
     def _rows(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         b = self._block
         r = k - b["k0"]

@@ -75,6 +75,11 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     return fn if numba is None else numba.njit(cache=True, nogil=True)(fn)
 
 
+jit = _jit
+"""Compile ``fn`` as every kernel of this package is compiled (cached, no GIL, no fast-math); ``fn``
+itself without numba."""
+
+
 @_jit
 def _random(table: np.ndarray, hold: np.ndarray, i: int, k: int, c: int) -> float:
     idx = k // hold[i]

@@ -69,14 +69,33 @@ class _InLink:
 
 
 def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
-             progress: Progress | None = None, diverge_at: float = DIVERGE_AT) -> Run:
+             progress: Progress | None = None, diverge_at: float = DIVERGE_AT, engine: str = "auto") -> Run:
     """Run ``m`` as the lockstep runtime would. ``duration`` overrides the mission's (a whole
     number of periods). ``record=False`` keeps only the last sample (and the link statistics).
+
+    ``engine``: ``"python"`` runs the agents' own tick below; ``"compiled"`` runs
+    :mod:`sim.lockstep_kernel`'s twin of it, which covers runs whose every tick is nominal (it raises
+    ``ValueError`` for a mission it does not support, and returns the Python engine's run when a tick
+    leaves the nominal path); ``"auto"`` (the default) takes the twin where it applies. The result
+    is the same, bit for bit.
 
     The returned run carries the runtime recorder's link statistics in ``links``
     (:class:`~tether.runfile.Links`): ``src``, ``received``, ``used``, ``stale``, ``duplicates``,
     ``reordered``, ``corrupt`` (run totals, ``(N, width)``) and ``age`` (``(T, N, width)``, NaN where
     nothing was usable); the plants' own records in ``plant``; the safety modes in ``safety``."""
+    if engine not in ("auto", "python", "compiled"):
+        raise ValueError(f"engine is {engine!r}; one of auto, python, compiled")
+    if engine != "python":
+        from sim import lockstep_kernel
+
+        why = lockstep_kernel.unsupported(m)
+        if why is not None and engine == "compiled":
+            raise ValueError(f"the compiled engine cannot run {m.name}: {why}")
+        if why is None:
+            fast = lockstep_kernel.simulate(m, duration=duration, record=record, progress=progress,
+                                            diverge_at=diverge_at)
+            if fast is not None:
+                return fast
     h, d = m.dt, m.dim
     steps = m.steps if duration is None else int(round(duration * m.rate))
     ids = m.agent_ids

@@ -1,0 +1,427 @@
+"""The in-process lockstep engine's compiled twin (numba, the ``[fast]`` extra). Pure: no clock, no I/O.
+
+:func:`sim.lockstep.simulate` runs the agent processes' own Python (``agent/tick.py``) at every
+tick. Most runs of a study never leave the nominal tick: every vehicle FLYING, every in-neighbour
+heard within its timeout, no bound of ``[safety]`` reached. For those the tick is a fixed sequence
+of floating-point operations, and this module runs it in one compiled loop, operation for
+operation as the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a
+run equals the Python engine's bit for bit (``tests/test_lockstep_kernel.py``):
+
+* what each agent hears is decided before the loop: an emulated link whose decisions do not depend
+  on one another (:func:`netem.channel.independent`: Bernoulli loss, a constant delay) is decided
+  for the whole run at once by its own :class:`~netem.link.Channel` (:meth:`~netem.link.Channel.decide`,
+  the same generator draws), and the receiving :class:`~tether.inputs.Source`'s rules (the newest
+  sequence number wins; stale, reordered and duplicate counts) give the newest sample at each tick
+  (:func:`arrivals`);
+* the disturbance increments and values come from the plants' own banks
+  (:meth:`plant.disturbance.DisturbanceBank.span`), the leader's reference from its profile;
+* the compiled loop (:func:`_ticks`) then runs, per tick and agent, ``agent.law.neighbour_sample``,
+  the supervisor's link check, ``AgentLaw.step``, the supervisor's bounds and ``failsafe.saturate``,
+  and the exact double integrator of ``plant/double_integrator.py``.
+
+The loop stops at the first tick that would leave the nominal path (an in-neighbour or the leader
+silent past its timeout, a bound of ``[safety]`` reached or any value not finite, a 3D vehicle
+through the ground): the supervisor's events and modes from there on are the Python engine's
+business, and :func:`simulate` returns None so that the caller runs the mission there instead. A
+mission outside what this twin knows (:func:`unsupported`: vehicles with mass, a payload world,
+collision avoidance, a geofence, a link with jitter, Gilbert-Elliott loss, duplication, reordering,
+corruption, a rate limit or an outage) runs on the Python engine from the start.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from agent.law import AgentLaw
+from leader import profile
+from plant import base as plants
+from plant.disturbance import DisturbanceBank
+from sim import kernel
+from tether import wire
+from tether.inputs import RECENT_SEQS
+from tether.mission import Mission
+from tether.runfile import Links, Run, RunMeta
+
+if TYPE_CHECKING:
+    from netem.link import Channel
+
+Progress = Callable[[int, int], None]
+
+CHUNK = 4096
+"""Ticks per call of the compiled loop (the disturbance of so many ticks is held at once)."""
+
+_FEED = {"measured": 0, "commanded": 1, "none": 2}
+
+
+def unsupported(m: Mission) -> str | None:
+    """Why this twin cannot run ``m`` (the Python engine then does), or None."""
+    if not kernel.AVAILABLE:
+        return "numba is not installed (the [fast] extra)"
+    if m.payload is not None:
+        return "a payload world"
+    if m.safety.avoid is not None:
+        return "collision avoidance ([safety.avoid])"
+    if m.safety.geofence is not None:
+        return "a geofence ([safety.geofence])"
+    if m.law.feedforward not in _FEED:
+        return f"feedforward {m.law.feedforward!r}"
+    from sim import lockstep  # the Python engine's grouping of the plants (the banks' branches)
+
+    if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep._plants(m)):
+        return "a vehicle with mass (only double integrators are compiled)"
+    if m.netem is not None:
+        from netem.channel import independent
+        from tether.netprofile import schedule
+
+        for i in m.agent_ids:
+            for j in AgentLaw.from_mission(m, i).neighbours:
+                if not all(independent(prof) for _, prof in schedule(m.netem, j, i)):
+                    return (f"link {j}->{i}: a profile with jitter, Gilbert-Elliott loss, duplication, "
+                            "reordering, corruption, a rate limit or an outage")
+    return None
+
+
+def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
+             progress: Progress | None = None, diverge_at: float = 1e6) -> Run | None:
+    """:func:`sim.lockstep.simulate` of ``m``, compiled: the same run bit for bit, or None when a
+    tick leaves the nominal path (or :func:`unsupported` says no) and the Python engine must run it."""
+    if unsupported(m) is not None:
+        return None
+    from sim import lockstep
+
+    h, d = m.dt, m.dim
+    steps = m.steps if duration is None else int(round(duration * m.rate))
+    ids = m.agent_ids
+    n = len(ids)
+    lid = m.leader.id
+    col = {aid: i for i, aid in enumerate(ids)}
+    col[lid] = n  # the leader's column of the sample history
+    laws = [AgentLaw.from_mission(m, i) for i in ids]
+    hosts = lockstep._plants(m)
+    banks = [(DisturbanceBank.from_mission(m, list(host.ids)), [col[a] for a in host.ids]) for host in hosts]
+    p = np.empty((n, d))
+    v = np.empty((n, d))
+    a = np.empty((n, d))
+    for host, (_, rows) in zip(hosts, banks):
+        s = host.state()
+        p[rows], v[rows], a[rows] = s.p, s.v, s.a
+        host.close()
+
+    # the links, flattened in agent order then in-neighbour order
+    off = np.zeros(n + 1, dtype=np.int64)
+    l_src, l_leader, l_w, l_delta, l_id = [], [], [], [], []
+    for i, law in enumerate(laws):
+        off[i + 1] = off[i] + len(law.neighbours)
+        for j, w, delta in zip(law.neighbours, law.weights, law.deltas):
+            l_src.append(col[j])
+            l_leader.append(j == lid)
+            l_w.append(w)
+            l_delta.append(delta)
+            l_id.append(j)
+    links = len(l_src)
+    width = max((len(law.neighbours) for law in laws), default=0)
+    times = np.arange(steps + 1) * h  # each k * h as the Python engine computes t
+    newest = np.empty((steps + 1, links), dtype=np.int64)
+    counts = {name: np.zeros((n, width), dtype=np.int64)
+              for name in ("src", "received", "used", "stale", "duplicates", "reordered", "corrupt")}
+    for i in range(n):
+        for s_, l in enumerate(range(off[i], off[i + 1])):
+            counts["src"][i, s_] = l_id[l]
+            if m.netem is None:  # every sample arrives at its own tick
+                newest[:, l] = np.arange(steps + 1)
+                counts["received"][i, s_] = steps + 1
+                continue
+            at = _channel(m, l_id[l], ids[i]).decide(times)
+            newest[:, l], received, stale, dup, reord = arrivals(at, times)
+            counts["received"][i, s_] = received
+            counts["stale"][i, s_] = stale
+            counts["duplicates"][i, s_] = dup
+            counts["reordered"][i, s_] = reord
+
+    cfg = m.safety
+    # the history of what each sender sent, as a ring: a sample older than every timeout is never read
+    # (the loop stops first), so ring ticks of history are enough
+    reach = max(cfg.neighbour_timeout, cfg.leader_timeout)
+    ring = steps + 1 if not reach / h < steps else min(steps + 1, int(reach / h) + 3)
+    hist = np.zeros((3, ring, n + 1, d))
+    ref = profile.build(m.leader, d)
+    lead = np.stack([np.broadcast_to(np.asarray(x, dtype=float), (steps + 1, d)) for x in ref(times)])
+    lead = np.ascontiguousarray(lead)
+
+    meta = RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
+                   seed=m.seed)
+    rows_n = steps + 1 if record else 1
+    run = Run.empty(rows_n, ids, d, meta, mode=wire.FLYING)
+    ages = np.full((rows_n, n, width), np.nan)
+    kappa = np.array([law.kappa for law in laws])
+    swd = np.array([law.sum_wdelta for law in laws], dtype=float).reshape(n, d)
+    prm, gs = laws[0].params, laws[0].gains
+    kp = np.array([prm.kp0] * n, dtype=float).reshape(n, d)
+    kv = np.array([prm.kv0] * n, dtype=float).reshape(n, d)
+    last_u = np.zeros((n, d))
+    used = np.zeros(links, dtype=np.int64)
+    l_src_a = np.array(l_src, dtype=np.int64)
+    l_leader_a = np.array(l_leader, dtype=np.bool_)
+    l_w_a = np.array(l_w, dtype=float)
+    l_delta_a = np.array(l_delta, dtype=float).reshape(links, d)
+    for k0 in range(0, steps + 1, CHUNK):
+        k1 = min(steps + 1, k0 + CHUNK)
+        dv = np.empty((k1 - k0, n, d))
+        dp = np.empty((k1 - k0, n, d))
+        for bank, rows in banks:
+            value, bdv, bdp = bank.span(k0, k1)
+            dv[:, rows], dp[:, rows] = bdv, bdp
+            if record:
+                run.d[k0:k1, rows] = value
+            elif k1 == steps + 1:
+                run.d[0, rows] = value[-1]
+        left = _ticks(k0, k1, steps, record, h, 0.5 * h * h, d == 3, float(cfg.ground),
+                      kappa, swd, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, gs.decay, kp, kv,
+                      _FEED[m.law.feedforward], float(m.links.max_age), bool(m.links.compensate),
+                      float(cfg.leader_timeout), float(cfg.neighbour_timeout), float(cfg.max_formation_error),
+                      float(cfg.gain_cap), float(cfg.max_speed), float(cfg.max_accel), float(diverge_at),
+                      off, l_src_a, l_leader_a, l_w_a, l_delta_a, newest, used, hist, lead,
+                      p, v, a, last_u, dv, dp,
+                      run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages)
+        if left >= 0:
+            return None
+        if progress is not None:
+            progress(min(k1, steps), steps)
+    if record:
+        run.t[:] = times
+        run.leader_p[:], run.leader_v[:], run.leader_a[:] = lead
+    else:
+        run.t[0] = times[-1]
+        run.leader_p[0], run.leader_v[0], run.leader_a[0] = lead[:, -1]
+    for i in range(n):
+        counts["used"][i, :off[i + 1] - off[i]] = used[off[i]:off[i + 1]]
+    run.links = Links(age=ages, **counts)
+    return run
+
+
+def _channel(m: Mission, src: int, dst: int) -> "Channel":
+    """Link ``src -> dst`` as :meth:`netem.link.Channel.of` makes it, without a decision log (the
+    engine reads none: the decisions are the same)."""
+    from netem.channel import Link, link_rng
+    from netem.link import Channel
+    from tether.netprofile import schedule
+
+    assert m.netem is not None
+    changes = schedule(m.netem, src, dst)
+    return Channel(Link(changes[0][1], link_rng(m.seed, src, dst)), changes)
+
+
+def arrivals(at: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, int, int, int, int]:
+    """What a :class:`~tether.inputs.Source` behind a link holds, given each offer's delivery time
+    ``at`` (offer ``s`` is the sample of tick ``s``; NaN: lost) and the ticks' times: the newest
+    sequence number held at each tick (-1: none yet), and the samples received, stale, duplicate
+    and reordered by the last tick. The link releases, at each tick, every copy due by then,
+    earliest first (equal times in the order offered), as :class:`netem.channel.DeliveryQueue` does."""
+    seq = np.nonzero(~np.isnan(at))[0]
+    due = at[seq]
+    keep = due <= times[-1]
+    seq, due = seq[keep], due[keep]
+    if len(due) == 0 or bool(np.all(np.diff(due) >= 0.0)):  # in order: nothing stale
+        held = np.searchsorted(due, times, side="right")
+        newest = np.where(held > 0, seq[np.maximum(held - 1, 0)], -1)
+        return newest.astype(np.int64), len(seq), 0, 0, 0
+    order = np.lexsort((seq, due))
+    out = np.empty(len(times), dtype=np.int64)
+    stats = _release(seq[order], np.searchsorted(times, due[order], side="left"), len(times), RECENT_SEQS, out)
+    return out, len(seq), int(stats[0]), int(stats[1]), int(stats[2])
+
+
+def _release_py(seq: np.ndarray, tick: np.ndarray, ticks: int, recent: int, out: np.ndarray) -> np.ndarray:
+    """The :class:`~tether.inputs.Source` rules over copies in release order (``tick``: when each is
+    released): ``out[k]`` the newest sequence number held at tick k; returns (stale, duplicates,
+    reordered). Each offer arrives at most once here (no duplication), so a stale copy is a
+    reordered one unless it is more than ``recent`` behind."""
+    newest = -1
+    stale = dup = reord = 0
+    c = 0
+    for k in range(ticks):
+        while c < len(seq) and tick[c] <= k:
+            s = seq[c]
+            if newest >= 0 and s <= newest:
+                stale += 1
+                if newest - s > recent:
+                    dup += 1
+                else:
+                    reord += 1
+            else:
+                newest = s
+            c += 1
+        out[k] = newest
+    return np.array([stale, dup, reord], dtype=np.int64)
+
+
+_release = kernel.jit(_release_py)
+
+
+def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, three: bool, ground: float,
+              kappa: np.ndarray, swd: np.ndarray, gp: float, gv: float, decay: float, kp: np.ndarray,
+              kv: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
+              neighbour_timeout: float, max_err: float, gain_cap: float, max_speed: float, max_accel: float,
+              diverge_at: float, off: np.ndarray, l_src: np.ndarray, l_leader: np.ndarray, l_w: np.ndarray,
+              l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, lead: np.ndarray,
+              p: np.ndarray, v: np.ndarray, a: np.ndarray, last_u: np.ndarray, dv: np.ndarray, dp: np.ndarray,
+              out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
+              out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_age: np.ndarray) -> int:
+    """Ticks ``k0 .. k1-1`` of the nominal path; returns -1, or the first tick that leaves it (nothing
+    of that tick is kept). State carried between calls: ``p, v, a`` (the plants), ``last_u``,
+    ``kp, kv``, ``used`` and the history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N
+    the leader). ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
+    Python's, in its order (the comments name the function)."""
+    n, d = p.shape
+    ring = hist.shape[1]
+    hp = hist[0]
+    hv = hist[1]
+    ha = hist[2]
+    width = out_age.shape[2]
+    age_of = np.empty(max(width, 1))
+    u = np.empty((n, d))
+    xi = np.empty(d)
+    zeta = np.empty(d)
+    kpn = np.empty(d)
+    kvn = np.empty(d)
+    nan = math.nan
+    for k in range(k0, k1):
+        t = k * h
+        keep = record or k == steps
+        r = k if record else 0
+        q = k % ring
+        # what each sender publishes at tick k (the leader's reference; each agent's sample, and as
+        # its acceleration the measured one or its previous command: AgentTick.shared)
+        for c in range(d):
+            hp[q, n, c] = lead[0, k, c]
+            hv[q, n, c] = lead[1, k, c]
+            ha[q, n, c] = lead[2, k, c]
+        for i in range(n):
+            for c in range(d):
+                hp[q, i, c] = p[i, c]
+                hv[q, i, c] = v[i, c]
+                ha[q, i, c] = a[i, c] if feed == 0 else last_u[i, c]
+        for i in range(n):
+            lo = off[i]
+            hi = off[i + 1]
+            # Supervisor.links: an in-neighbour silent past its timeout leaves the nominal path
+            for l in range(lo, hi):
+                s = newest[k, l]
+                never = s < 0
+                age = nan if never else t - s * h
+                age_of[l - lo] = age
+                limit = leader_timeout if l_leader[l] else neighbour_timeout
+                if age > limit or (never and t > limit):
+                    return k
+            # agent.law.neighbour_sample per in-neighbour, AgentLaw.step (weighted_sum term by term)
+            ka = kappa[i]
+            for c in range(d):
+                sp = 0.0
+                sv = 0.0
+                sa = 0.0
+                for l in range(lo, hi):
+                    age = age_of[l - lo]
+                    s = newest[k, l]
+                    if s >= 0 and age <= max_age:
+                        qs = s % ring
+                        src = l_src[l]
+                        pj = hp[qs, src, c]
+                        vj = hv[qs, src, c]
+                        aj = ha[qs, src, c]
+                        if compensate and age > 0.0:
+                            half = 0.5 * age * age
+                            pj = pj + vj * age + half * aj
+                            vj = vj + aj * age
+                    else:
+                        pj = p[i, c] - l_delta[l, c]
+                        vj = v[i, c]
+                        aj = 0.0
+                    if feed == 2:
+                        aj = 0.0
+                    w = l_w[l]
+                    if l == lo:
+                        sp = w * pj
+                        sv = w * vj
+                        sa = w * aj
+                    else:
+                        sp = sp + w * pj
+                        sv = sv + w * vj
+                        sa = sa + w * aj
+                e = ka * p[i, c] - sp - swd[i, c]
+                z = ka * v[i, c] - sv
+                xi[c] = e
+                zeta[c] = z
+                u[i, c] = (sa - kp[i, c] * e - kv[i, c] * z) / ka
+                kpn[c] = 1.0 + (kp[i, c] - 1.0) * decay + gp * (e * e)
+                kvn[c] = 1.0 + (kv[i, c] - 1.0) * decay + gv * (z * z)
+            # Supervisor._diverged (|xi|, the gains, a finite command), the engine's diverge_at, the
+            # speed bound: any of them is a mode change
+            sq = xi[0] * xi[0]
+            for c in range(1, d):
+                sq = sq + xi[c] * xi[c]
+            err = math.sqrt(sq) if sq == sq else math.inf
+            if not err <= max_err:
+                return k
+            for c in range(d):
+                if not (kp[i, c] <= gain_cap and kv[i, c] <= gain_cap):
+                    return k
+                if not math.isfinite(u[i, c]) or not abs(xi[c]) <= diverge_at:
+                    return k
+            sq = v[i, 0] * v[i, 0]
+            for c in range(1, d):
+                sq = sq + v[i, c] * v[i, c]
+            speed = math.sqrt(sq) if sq == sq else math.inf
+            if speed > max_speed:
+                return k
+            # failsafe.saturate
+            uu = u[i, 0] * u[i, 0]
+            for c in range(1, d):
+                uu = uu + u[i, c] * u[i, c]
+            norm = math.sqrt(uu)
+            if not norm <= max_accel:
+                scale = max_accel / norm
+                for c in range(d):
+                    u[i, c] = u[i, c] * scale
+            if keep:
+                for c in range(d):
+                    out_p[r, i, c] = p[i, c]
+                    out_v[r, i, c] = v[i, c]
+                    out_a[r, i, c] = a[i, c]
+                    out_u[r, i, c] = u[i, c]
+                    out_xi[r, i, c] = xi[c]
+                    out_zeta[r, i, c] = zeta[c]
+                    out_kp[r, i, c] = kp[i, c]
+                    out_kv[r, i, c] = kv[i, c]
+            for l in range(lo, hi):
+                s = newest[k, l]
+                age = age_of[l - lo]
+                ok = s >= 0 and age <= max_age
+                if ok:
+                    used[l] += 1
+                if keep:
+                    out_age[r, i, l - lo] = age if ok else nan
+            # FLYING: the gains advance; the command is the one shared next tick
+            for c in range(d):
+                kp[i, c] = kpn[c]
+                kv[i, c] = kvn[c]
+                last_u[i, c] = u[i, c]
+        if k == steps:
+            break
+        # plant.double_integrator.step with the bank's increments of tick k
+        j = k - k0
+        for i in range(n):
+            for c in range(d):
+                pn = p[i, c] + h * v[i, c] + hh2 * u[i, c] + dp[j, i, c]
+                vn = v[i, c] + h * u[i, c] + dv[j, i, c]
+                a[i, c] = u[i, c] + dv[j, i, c] / h
+                p[i, c] = pn
+                v[i, c] = vn
+            if three and p[i, d - 1] < ground:  # plant.rest.Resting: the ground stops it
+                return k + 1
+    return -1
+
+
+_ticks = kernel.jit(_ticks_py)

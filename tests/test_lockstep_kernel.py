@@ -1,0 +1,273 @@
+"""The in-process engine's compiled twin (sim/lockstep_kernel.py) against its Python tick, bit for bit,
+and the batch forms it is built on: a link deciding many offers at once, a source's arrivals, a
+disturbance bank's span of ticks."""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+import numpy as np
+import pytest
+
+from netem.channel import Link, independent, link_rng
+from netem.link import Channel
+from plant.disturbance import DisturbanceBank
+from sim import lockstep, lockstep_kernel, sweep
+from tests.factories import random_mission
+from tether import mission as ms
+from tether import wire
+from tether.catalog import builtin_path
+from tether.inputs import Source
+from tether.netprofile import Bernoulli, Delay, GilbertElliott, LinkProfile, LinkRule, Network
+from tether.node import load_mission
+from tether.runfile import Run
+
+pytest.importorskip("numba")
+
+replace = msgspec.structs.replace
+
+
+def assert_same_run(a: Run, b: Run) -> None:
+    """Every array (events and link statistics included), byte for byte and dtype for dtype, and the meta."""
+    x, y = a.arrays(), b.arrays()
+    assert sorted(x) == sorted(y)
+    for name in x:
+        u, v = np.asarray(x[name]), np.asarray(y[name])
+        assert u.dtype == v.dtype and u.shape == v.shape, name
+        assert u.tobytes() == v.tobytes(), name
+    assert a.meta == b.meta
+    assert a.safety.events == b.safety.events
+
+
+def compiled_equals_python(m: ms.Mission, **kw: object) -> Run:
+    """The twin runs ``m`` itself (no fallback) and equals the Python engine; returns the twin's run."""
+    fast = lockstep_kernel.simulate(m, **kw)  # type: ignore[arg-type]
+    assert fast is not None, "the twin left the nominal path: this mission does not test it"
+    assert_same_run(fast, lockstep.simulate(m, engine="python", **kw))  # type: ignore[arg-type]
+    return fast
+
+
+# ------------------------------------------------------------------- the batch forms
+
+
+def offers_one_by_one(link: Link, times: np.ndarray) -> np.ndarray:
+    out = np.full(len(times), math.nan)
+    for s, t in enumerate(times):
+        copies = link.offer(float(t), b"x" * 40)
+        assert len(copies) <= 1
+        if copies:
+            out[s] = copies[0].at
+    return out
+
+
+@pytest.mark.parametrize("prof", [
+    LinkProfile(),  # the identity: draws nothing
+    LinkProfile(loss=Bernoulli(p=0.3), delay=Delay(constant=0.05)),
+    LinkProfile(loss=Bernoulli(p=1.0)),
+    LinkProfile(delay=Delay(constant=0.2)),
+    LinkProfile(loss=Bernoulli(p=0.999), delay=Delay(constant=0.013)),
+])
+def test_a_link_decides_many_offers_as_it_decides_them_one_by_one(prof: LinkProfile) -> None:
+    assert independent(prof)
+    times = np.cumsum(np.random.default_rng(3).choice([0.0, 0.01, 0.02], size=700))  # repeated times too
+    one, many = Link(prof, link_rng(7, 1, 2)), Link(prof, link_rng(7, 1, 2))
+    want = offers_one_by_one(one, times[:500])
+    got = np.concatenate([many.offer_times(times[:123]), many.offer_times(times[123:500])])
+    assert want.tobytes() == got.tobytes()
+    assert one.counts == many.counts and one.last_drop_reason == many.last_drop_reason
+    assert one.last_offer == many.last_offer
+    # the generators are left where the offers one by one leave them: what follows is the same
+    assert offers_one_by_one(one, times[500:]).tobytes() == offers_one_by_one(many, times[500:]).tobytes()
+
+
+def test_a_link_refuses_a_batch_it_cannot_decide_at_once_and_changes_nothing() -> None:
+    ge = Link(LinkProfile(loss=GilbertElliott(p=0.1, r=0.5)), link_rng(1, 1, 2))
+    with pytest.raises(ValueError, match="independent"):
+        ge.offer_times(np.array([0.0, 0.01]))
+    logged = Link(LinkProfile(loss=Bernoulli(p=0.5)), link_rng(1, 1, 2), log=True)
+    with pytest.raises(ValueError, match="decision log"):
+        logged.offer_times(np.array([0.0]))
+    link = Link(LinkProfile(loss=Bernoulli(p=0.5)), link_rng(1, 1, 2))
+    link.offer(1.0, b"x")
+    before = dict(link.counts)
+    for bad in ([0.5, 2.0], [1.0, 0.9], [1.0, math.nan], [1.0, math.inf]):
+        with pytest.raises(ValueError, match="non-decreasing"):
+            link.offer_times(np.array(bad))
+    assert link.counts == before and link.last_offer == 1.0
+
+
+def test_a_channel_decides_across_its_profile_changes_as_send_does() -> None:
+    """Loss then a delay that shrinks mid-run (later samples overtake earlier ones), then another loss:
+    the times ``decide`` gives are those of ``send`` one message at a time (its decision log)."""
+    net = Network(default=LinkProfile(loss=Bernoulli(p=0.2), delay=Delay(constant=0.25)),
+                  rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.02)), start=1.0),
+                         LinkRule(profile=LinkProfile(loss=Bernoulli(p=0.6)), start=2.5, src=3)))
+    m = replace(load_mission(builtin_path("section4"), 4.0), netem=net)
+    times = np.arange(401) * m.dt
+    for src in (3, 4):
+        logged = Channel.of(replace(m, netem=replace(net, log=True)), src, 1)
+        for t in times:
+            logged.send(float(t), b"y" * 30)
+        want = np.full(len(times), math.nan)
+        for dec in logged.link.take_decisions():
+            if dec.at is not None:
+                want[dec.seq] = dec.at
+        plain = Channel.of(m, src, 1)
+        got = plain.decide(times)
+        assert want.tobytes() == got.tobytes()
+        assert plain.link.counts == logged.link.counts
+        assert np.isnan(got).any() and not np.isnan(got).all()
+
+
+def test_arrivals_are_what_a_source_behind_the_link_holds() -> None:
+    """Each tick's newest sequence number and the stale, reordered and duplicate counts, against the
+    runtime's own Source fed through a real Channel, with a delay that shrinks (reordering)."""
+    net = Network(default=LinkProfile(loss=Bernoulli(p=0.3), delay=Delay(constant=0.3)),
+                  rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=0.1)), start=1.5),
+                         LinkRule(profile=LinkProfile(delay=Delay(constant=3.5)), start=3.0),
+                         LinkRule(profile=LinkProfile(), start=4.0)))
+    m = replace(load_mission(builtin_path("section4"), 8.0), netem=net)
+    times = np.arange(801) * m.dt
+    at = Channel.of(m, 5, 1).decide(times)
+    newest, received, stale, dup, reord = lockstep_kernel.arrivals(at, times)
+    src = Source("5->1", wire.State, 5, keep=False, channel=Channel.of(m, 5, 1))
+    held = []
+    for k, t in enumerate(times):
+        assert src.channel is not None
+        src.channel.send(float(t), wire.encode(wire.State(sender=5, seq=k, k=k, t=float(t), p=[0.0, 0.0],
+                                                          vel=[0.0, 0.0], a=[0.0, 0.0], mode=wire.FLYING)))
+        src.deliver(float(t), wire.decode)
+        held.append(-1 if src.newest is None else src.newest.seq)
+    assert newest.tolist() == held
+    assert (received, stale, dup, reord) == (src.received, src.stale, src.duplicates, src.reordered)
+    assert reord > 0 and dup > 0  # both kinds of stale sample happened (3.5 s behind: beyond 256 ticks)
+
+
+def test_a_banks_span_is_its_ticks_one_by_one() -> None:
+    m = random_mission(np.random.default_rng(5), 3, disturbance="sinusoid", duration=30.0)
+    bank, ref = DisturbanceBank.from_mission(m), DisturbanceBank.from_mission(m)
+    value, dv, dp = bank.span(1000, 2600)  # crosses block edges
+    for k in range(1000, 2600, 37):
+        rdv, rdp = ref.increments(k)
+        assert value[k - 1000].tobytes() == ref.value(k).tobytes()
+        assert dv[k - 1000].tobytes() == rdv.tobytes() and dp[k - 1000].tobytes() == rdp.tobytes()
+
+
+# ------------------------------------------------------------------- the twin against the Python tick
+
+
+@pytest.mark.parametrize("law", ["sigma", "benchmark"])
+@pytest.mark.parametrize("cell", [(0, 0), (10, 50), (30, 200), (50, 100)])
+def test_section4_map_cells_equal_the_python_engine_bit_for_bit(law: str, cell: tuple[int, int]) -> None:
+    base = load_mission(builtin_path("section4"), 20.0)
+    compiled_equals_python(sweep.point_mission(base, sweep.Point(law, cell[0], cell[1], 1.0), duration=20.0))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_missions_equal_the_python_engine_bit_for_bit(seed: int) -> None:
+    """Random graphs, weights, offsets, disturbances, laws, feed-forwards, link policies and lossy
+    delayed links whose profiles change mid-run, in 2D and 3D (the ground set far below)."""
+    rng = np.random.default_rng(100 + seed)
+    dim = 2 + seed % 2
+    m = random_mission(rng, int(rng.integers(2, 7)), dim=dim, law=("sigma", "benchmark")[seed % 2],
+                       disturbance=("sinusoid", "constant", "bounded_random", "none")[seed % 4], duration=6.0,
+                       profile={"kind": "exp_accel", "a0": [0.3] * dim, "decay": 0.5} if seed % 3 == 0 else None)
+    net = Network(default=LinkProfile(loss=Bernoulli(p=float(rng.uniform(0, 0.4))),
+                                      delay=Delay(constant=float(rng.uniform(0, 0.15)))),
+                  rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.01)), start=2.0, dst=1),))
+    m = replace(m, netem=net if seed % 3 != 2 else None,
+                law=replace(m.law, feedforward=("measured", "commanded", "none")[seed % 3]),
+                links=ms.LinkPolicy(max_age=float(rng.choice([0.05, 0.5, math.inf])), compensate=bool(seed % 2)),
+                safety=replace(m.safety, ground=-1e3))
+    compiled_equals_python(m)
+    compiled_equals_python(m, record=False)
+    compiled_equals_python(m, duration=1.0)
+
+
+def test_the_compiled_engine_reports_its_progress() -> None:
+    m = load_mission(builtin_path("section4"), 100.0)
+    seen: list[tuple[int, int]] = []
+    run = lockstep.simulate(m, engine="compiled", progress=lambda k, n: seen.append((k, n)))
+    assert_same_run(run, lockstep.simulate(m, engine="python"))
+    assert seen[-1] == (m.steps, m.steps) and len(seen) >= 2
+    assert all(a[0] < b[0] for a, b in zip(seen, seen[1:]))
+
+
+# ------------------------------------------------------------------- leaving the nominal path
+
+
+def leaves_the_nominal_path(m: ms.Mission) -> Run:
+    """The twin gives up on ``m`` (None), and the default engine's run is the Python engine's."""
+    assert lockstep_kernel.unsupported(m) is None
+    assert lockstep_kernel.simulate(m) is None
+    run = lockstep.simulate(m)
+    assert_same_run(run, lockstep.simulate(m, engine="python"))
+    assert_same_run(run, lockstep.simulate(m, engine="compiled"))
+    return run
+
+
+def test_a_link_silent_past_its_timeout_is_left_to_the_python_engine() -> None:
+    """Agent 3 hears nothing from agent 2 from t = 2 s: its edge is dropped (an event) after 1 s."""
+    m = load_mission(builtin_path("section4"), 6.0)
+    net = Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=2.0, src=2, dst=3),))
+    run = leaves_the_nominal_path(replace(m, netem=net))
+    assert any("lost" in ev.reason for ev in run.safety.events)
+
+
+def test_a_silent_leader_is_left_to_the_python_engine() -> None:
+    m = load_mission(builtin_path("section4"), 4.0)
+    lid = m.leader.id
+    net = Network(rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.8)), src=lid),))
+    run = leaves_the_nominal_path(replace(m, netem=net))
+    assert any("leader silent" in ev.reason for ev in run.safety.events)
+
+
+@pytest.mark.parametrize("bound", ["max_formation_error", "gain_cap", "max_speed", "max_accel"])
+def test_a_safety_bound_reached_is_left_to_the_python_engine(bound: str) -> None:
+    m = load_mission(builtin_path("section4"), 5.0)
+    tight = {"max_formation_error": 0.5, "gain_cap": 2.0001, "max_speed": 0.2, "max_accel": 0.1}[bound]
+    m = replace(m, safety=replace(m.safety, **{bound: tight}))
+    if bound == "gain_cap":  # the benchmark law's gains only grow (Eq. 30)
+        m = replace(m, law=replace(m.law, kind="benchmark", sigma=None))
+    if bound == "max_accel":  # saturation is the nominal path: the twin scales the command itself
+        compiled_equals_python(m)
+        return
+    run = leaves_the_nominal_path(m)
+    assert run.safety.events
+
+
+def test_a_run_past_diverge_at_is_left_to_the_python_engine() -> None:
+    m = load_mission(builtin_path("section4"), 5.0)
+    fast = lockstep_kernel.simulate(m, diverge_at=0.05)
+    assert fast is None
+    run = lockstep.simulate(m, diverge_at=0.05)
+    assert_same_run(run, lockstep.simulate(m, engine="python", diverge_at=0.05))
+    assert run.meta.diverged_at is not None
+
+
+def test_a_3d_vehicle_through_the_ground_is_left_to_the_python_engine() -> None:
+    m = random_mission(np.random.default_rng(9), 3, dim=3, duration=3.0)
+    m = replace(m, agents=[replace(a, p0=[a.p0[0], a.p0[1], 0.05]) for a in m.agents],
+                safety=replace(m.safety, ground=0.0))
+    leaves_the_nominal_path(m)
+
+
+@pytest.mark.parametrize("section", [
+    {"netem": Network(default=LinkProfile(loss=GilbertElliott(p=0.05, r=0.3)))},
+    {"netem": Network(default=LinkProfile(delay=Delay(constant=0.02, jitter=0.01)))},
+])
+def test_a_mission_the_twin_does_not_know_runs_on_the_python_engine(section: dict) -> None:
+    m = replace(load_mission(builtin_path("section4"), 3.0), **section)
+    why = lockstep_kernel.unsupported(m)
+    assert why is not None and "link" in why
+    with pytest.raises(ValueError, match="compiled engine cannot run"):
+        lockstep.simulate(m, engine="compiled")
+    assert_same_run(lockstep.simulate(m), lockstep.simulate(m, engine="python"))
+
+
+def test_vehicles_with_mass_are_not_compiled() -> None:
+    m = load_mission(builtin_path("exp2"), 1.0)
+    assert lockstep_kernel.unsupported(m) is not None
+    with pytest.raises(ValueError, match="engine is"):
+        lockstep.simulate(m, engine="fast")
