@@ -3,7 +3,8 @@ on Section 4 degradation-map cells, beside the same engine at a base commit and 
 distributed lockstep runtime (``tether run``), all measured in one go; and that they agree bit for bit.
 
     python bench/sweep_engine.py [--duration 20] [--repeats 3] [--cells 0:0 10:50 30:200]
-                                 [--base cad57b1] [--runtime] [--profile lossy-burst]
+                                 [--base cad57b1] [--engine auto|python|compiled] [--runtime]
+                                 [--profile lossy-burst]
 
 * ``--cells LOSS:DELAY ...``: the map cells (loss [%], delay [ms], both laws' sigma law, burst 1)
   built by :func:`sim.sweep.point_mission`, as ``tether sweep section4`` builds them.
@@ -11,6 +12,9 @@ distributed lockstep runtime (``tether run``), all measured in one go; and that 
   ``git worktree`` (removed afterwards); each repeat runs the base and the current engine in fresh
   processes one after the other, so both see the same machine load. Prints the medians of each
   engine's CPU time and wall time per cell, their ratio, and whether the runs are bit-identical.
+* ``--engine``: this tree's engine (``lockstep.simulate(engine=...)``): ``auto`` takes the compiled
+  twin (:mod:`sim.lockstep_kernel`) where it applies, ``python`` the agents' own tick. A process's
+  first run is timed apart (it loads the compiled engine from numba's cache, or compiles it).
 * ``--runtime``: also ``tether run --clock lockstep`` of section4 with ``[netem] default =
   PROFILE`` against the in-process engine (the original comparison of this bench).
 
@@ -40,13 +44,18 @@ import numpy as np
 from sim import lockstep, sweep
 from tether.catalog import builtin_path
 from tether.node import load_mission
-cells, duration, out = json.loads(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
+cells, duration, out, engine = json.loads(sys.argv[1]), float(sys.argv[2]), sys.argv[3], sys.argv[4]
+kw = {} if engine == "auto" else {"engine": engine}  # a base commit may not know the argument
 base = load_mission(builtin_path("section4"), duration)
 times, arrays = {}, {}
+# the first run of a process pays for loading (or compiling) the engine: timed on its own
+w0, c0 = time.perf_counter(), time.process_time()
+lockstep.simulate(sweep.point_mission(base, sweep.Point("sigma", 10, 50, 1.0), duration=0.1), **kw)
+times["first"] = (time.process_time() - c0, time.perf_counter() - w0)
 for loss, delay in cells:
     m = sweep.point_mission(base, sweep.Point("sigma", loss, delay, 1.0), duration=duration)
     w0, c0 = time.perf_counter(), time.process_time()
-    run = lockstep.simulate(m)
+    run = lockstep.simulate(m, **kw)
     times[f"{loss:g}:{delay:g}"] = (time.process_time() - c0, time.perf_counter() - w0)
     for f in %r:
         arrays[f"{loss:g}:{delay:g}/{f}"] = getattr(run, f)
@@ -56,9 +65,10 @@ print(json.dumps(times))
 """ % (FIELDS,)
 
 
-def child(tree: Path, cells: list[tuple[float, float]], duration: float, out: Path) -> dict[str, list[float]]:
+def child(tree: Path, cells: list[tuple[float, float]], duration: float, out: Path,
+          engine: str = "auto") -> dict[str, list[float]]:
     env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", CHILD, json.dumps(cells), str(duration), str(out)], cwd=tree,
+    done = subprocess.run([sys.executable, "-c", CHILD, json.dumps(cells), str(duration), str(out), engine], cwd=tree,
                           env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"engine at {tree} failed:\n{done.stderr[-3000:]}")
@@ -85,7 +95,7 @@ def cells_vs_base(args: argparse.Namespace, tmp: Path) -> None:
             if base_tree is not None:
                 for key, tw in child(base_tree, cells, args.duration, tmp / f"base{r}.npz").items():
                     old.setdefault(key, []).append(tuple(tw))
-            for key, tw in child(ROOT, cells, args.duration, tmp / f"cur{r}.npz").items():
+            for key, tw in child(ROOT, cells, args.duration, tmp / f"cur{r}.npz", args.engine).items():
                 cur.setdefault(key, []).append(tuple(tw))
             if base_tree is not None:
                 identical &= same(tmp / f"base{r}.npz", tmp / f"cur{r}.npz")
@@ -98,6 +108,9 @@ def cells_vs_base(args: argparse.Namespace, tmp: Path) -> None:
     head = f"{'cell loss%:delay ms':>20} {'CPU s':>8} {'wall s':>8} {'x real time':>12} {'us/tick':>8}"
     print(head + (f" {'base CPU s':>11} {'base wall':>10} {'CPU ratio':>10}" if base_tree is not None else ""))
     ratios = []
+    first = cur.pop("first")
+    if base_tree is not None:
+        base_first = old.pop("first")
     for key in cur:
         c = statistics.median(x[0] for x in cur[key])
         w = statistics.median(x[1] for x in cur[key])
@@ -108,6 +121,10 @@ def cells_vs_base(args: argparse.Namespace, tmp: Path) -> None:
             ratios.append(bc / c)
             line += f" {bc:11.3f} {bw:10.3f} {bc / c:9.2f}x"
         print(line)
+    line = f"  a process's first run (0.1 s of mission): CPU {statistics.median(x[0] for x in first):.3f} s"
+    if base_tree is not None:
+        line += f", base {statistics.median(x[0] for x in base_first):.3f} s"
+    print(line + (" (loading the compiled engine from numba's cache, or compiling it)" if args.engine != "python" else ""))
     if base_tree is not None:
         print(f"  CPU ratio, median over cells: {statistics.median(ratios):.2f}x against {args.base}; "
               f"runs bit-identical to the base: {'yes' if identical else 'NO'}")
@@ -157,6 +174,8 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--cells", nargs="+", default=["0:0", "10:50", "30:200"], help="LOSS%%:DELAYms map cells")
     ap.add_argument("--base", default=None, help="a commit whose engine to time beside this one (e.g. cad57b1)")
+    ap.add_argument("--engine", default="auto", choices=("auto", "python", "compiled"),
+                    help="this tree's in-process engine (lockstep.simulate's engine=; the base runs its default)")
     ap.add_argument("--runtime", action="store_true", help="also time tether run (distributed lockstep)")
     ap.add_argument("--profile", default="lossy-burst", help="--runtime: the [netem] default of every link")
     args = ap.parse_args()
