@@ -43,13 +43,13 @@ _PARETO_MEAN = _PARETO_SHAPE / (_PARETO_SHAPE - 1.0)
 _PARETO_STD = math.sqrt(_PARETO_SHAPE / ((_PARETO_SHAPE - 1.0) ** 2 * (_PARETO_SHAPE - 2.0)))
 
 
-def independent(profile: LinkProfile) -> bool:
-    """Whether each offer's fate under ``profile`` is drawn on its own: Bernoulli loss, a constant
-    delay, and no jitter, duplication, reordering, corruption, rate limit or outage. Such a link
-    keeps every message's order, and :meth:`Link.offer_times` decides many offers at once."""
-    return (isinstance(profile.loss, Bernoulli) and profile.delay.jitter == 0 and profile.duplicate == 0
-            and profile.reorder.p == 0 and profile.corrupt.p == 0 and profile.rate.bytes_per_s <= 0
-            and not profile.outages)
+def batchable(profile: LinkProfile) -> bool:
+    """Whether :meth:`Link.offer_times` decides many offers at once under ``profile``: loss (Bernoulli
+    or Gilbert-Elliott) and delay (constant or jittered) only, no duplication, reordering, corruption,
+    rate limit or outage. Each offer then gives one copy or none, whatever its payload, and what
+    becomes of it depends on the times and the link's own generators alone."""
+    return (profile.duplicate == 0 and profile.reorder.p == 0 and profile.corrupt.p == 0
+            and profile.rate.bytes_per_s <= 0 and not profile.outages)
 
 
 def link_rng(seed: int, src: int, dst: int) -> np.random.Generator:
@@ -245,15 +245,15 @@ class Link:
 
     def offer_times(self, now: np.ndarray) -> np.ndarray:
         """:meth:`offer` of one message at each time of ``now`` (finite, non-decreasing, none before
-        the previous offer), for a profile whose decisions are independent of one another
-        (:func:`independent`): each offer's delivery time, NaN where it was lost. Draws exactly what
-        the offers one by one draw, from the same stream, and leaves the link as they would (counts,
-        generator, last drop reason). Raises ``ValueError`` for another profile, for a link that
-        keeps a decision log, or for times :meth:`offer` would refuse (nothing is changed then)."""
+        the previous offer), for a profile :func:`batchable` says yes to: each offer's delivery time,
+        NaN where it was lost. Draws exactly what the offers one by one draw, from the same streams
+        in the same order, and leaves the link as they would (counts, generators, Gilbert-Elliott
+        state, jitter's latent, last drop reason). Raises ``ValueError`` for another profile, for a
+        link that keeps a decision log, or for times :meth:`offer` would refuse (nothing changed)."""
         prof = self._profile
-        if not independent(prof) or self.decisions is not None:
-            raise ValueError("offer_times takes a link without a decision log whose profile is independent "
-                             "(Bernoulli loss, constant delay, nothing else)")
+        if not batchable(prof) or self.decisions is not None:
+            raise ValueError("offer_times takes a link without a decision log whose profile is batchable "
+                             "(loss and delay only)")
         now = np.asarray(now, dtype=float)
         n = len(now)
         if n == 0:
@@ -262,16 +262,23 @@ class Link:
                 or not float(now[0]) >= self._last_now):
             raise ValueError(f"offer times must be finite and non-decreasing from the previous offer "
                              f"({self._last_now}); first {float(now[0])}")
-        p = prof.loss.p
-        if p <= 0.0:  # as _happens: a certain outcome draws nothing
+        if self._identity and not self._ge_bad:  # offer's first branch: nothing drawn, nothing changed
             lost = np.zeros(n, dtype=bool)
-        elif p >= 1.0:
-            lost = np.ones(n, dtype=bool)
+        elif isinstance(prof.loss, GilbertElliott):
+            lost = self._chain(prof.loss, n)
         else:
-            lost = self._rng["loss"].random(n) < p  # the same doubles, in order, as n calls of random()
-        at = now + prof.delay.constant  # depart (no rate limit: now) plus the delay, as offer adds them
-        at[lost] = math.nan
-        dropped = int(np.count_nonzero(lost))
+            p = prof.loss.p
+            if p <= 0.0:  # as _happens: a certain outcome draws nothing
+                lost = np.zeros(n, dtype=bool)
+            elif p >= 1.0:
+                lost = np.ones(n, dtype=bool)
+            else:
+                lost = self._rng["loss"].random(n) < p  # the same doubles, in order, as n calls of random()
+        kept = np.nonzero(~lost)[0]
+        at = np.full(n, math.nan)
+        # each copy kept: depart (no rate limit: now) plus its delay, as offer adds them
+        at[kept] = now[kept] + self._delays(len(kept))
+        dropped = n - len(kept)
         self._last_now = float(now[-1])
         self._seq += n
         self._since_reorder += n - dropped
@@ -280,6 +287,59 @@ class Link:
         self.counts["loss"] += dropped
         self.last_drop_reason = "loss" if lost[-1] else None
         return at
+
+    def _chain(self, loss: GilbertElliott, n: int) -> np.ndarray:
+        """:meth:`_lost` for ``n`` offers in a row: the loss decisions, the state moved along. Each
+        offer draws 0, 1 or 2 doubles (a certain outcome draws none), so at most ``2 n`` are drawn
+        ahead and the generator is then put where the ones used leave it (``advance``: the
+        generators are PCG64, one 64-bit step per double)."""
+        stream = self._rng["loss"]
+        bits = stream.bit_generator
+        before = bits.state
+        # a generator that cannot be advanced (not PCG64) draws one double at a time
+        ahead = stream.random(2 * n).tolist() if hasattr(bits, "advance") else None
+        used = 0
+        bad = self._ge_bad
+        lost = np.empty(n, dtype=bool)
+        probs = (loss.good_loss, loss.bad_loss)
+        moves = (loss.p, loss.r_eff)
+        for s in range(n):
+            for step in (0, 1):
+                prob = (probs if step == 0 else moves)[bad]
+                if prob <= 0.0:
+                    hit = False
+                elif prob >= 1.0:
+                    hit = True
+                else:
+                    hit = (ahead[used] if ahead is not None else stream.random()) < prob
+                    used += 1
+                if step == 0:
+                    lost[s] = hit
+                else:
+                    bad = not hit if bad else hit
+        if ahead is not None:
+            bits.state = before
+            getattr(bits, "advance")(used)  # PCG64's (checked above; BitGenerator does not declare it)
+        self._ge_bad = bad
+        return lost
+
+    def _delays(self, m: int) -> np.ndarray:
+        """:meth:`_delay` for ``m`` copies in a row (the jitter's normals drawn at once: the same
+        doubles, in order, as ``m`` calls; its latent moved along)."""
+        d = self._profile.delay
+        if d.jitter <= 0:
+            return np.full(m, d.constant)
+        eps = self._rng["delay"].standard_normal(m).tolist()
+        rho = d.correlation
+        keep = math.sqrt(1.0 - rho * rho)
+        latent = self._latent
+        out = np.empty(m)
+        for c, e in enumerate(eps):
+            g = e if latent is None else rho * latent + keep * e
+            latent = g
+            out[c] = max(0.0, d.constant + d.jitter * _shape(d.distribution, g))
+        self._latent = latent
+        return out
 
     # ------------------------------------------------------------------- parts
     def _happens(self, stream: str, prob: float) -> bool:

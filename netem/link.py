@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from netem.channel import Delivery, DeliveryQueue, Link, independent, link_rng
+from netem.channel import Delivery, DeliveryQueue, Link, batchable, link_rng
 from tether import mission as ms
 from tether.netprofile import schedule
 
@@ -42,16 +42,17 @@ class Channel:
 
     def decide(self, now: np.ndarray) -> np.ndarray:
         """What :meth:`send` decides for one message at each time of ``now`` (non-decreasing), the
-        profile schedule followed as it follows it, for a link whose profiles are all independent
-        (:func:`netem.channel.independent`): each message's delivery time [s], NaN where it was lost.
+        profile schedule followed as it follows it, for a link whose profiles are all batchable
+        (:func:`netem.channel.batchable`: loss and delay only): each message's delivery time [s], NaN
+        where it was lost.
         The copies are not queued: the caller holds the times. Raises ``ValueError`` (nothing
-        changed) when a profile the times reach is not independent."""
+        changed) when a profile the times reach is not batchable."""
         now = np.asarray(now, dtype=float)
         starts = [at for at, _ in self.changes[self._next:]]
         reached = self.changes[self._next:self._next + int(np.searchsorted(starts, now[-1], side="right"))] \
             if len(now) else []
-        if not all(independent(prof) for prof in [self.link.profile, *(p for _, p in reached)]):
-            raise ValueError("decide takes a link whose profiles are all independent")
+        if not all(batchable(prof) for prof in [self.link.profile, *(p for _, p in reached)]):
+            raise ValueError("decide takes a link whose profiles are all batchable (loss and delay only)")
         out = np.empty(len(now))
         lo = 0
         while lo < len(now):

@@ -7,9 +7,10 @@ of floating-point operations, and this module runs it in one compiled loop, oper
 operation as the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a
 run equals the Python engine's bit for bit (``tests/test_lockstep_kernel.py``):
 
-* what each agent hears is decided before the loop: an emulated link whose decisions do not depend
-  on one another (:func:`netem.channel.independent`: Bernoulli loss, a constant delay) is decided
-  for the whole run at once by its own :class:`~netem.link.Channel` (:meth:`~netem.link.Channel.decide`,
+* what each agent hears is decided before the loop: an emulated link that only loses and delays
+  (:func:`netem.channel.batchable`: Bernoulli or Gilbert-Elliott loss, a constant or jittered delay)
+  does to each sample what it does whatever the sample holds, so its own
+  :class:`~netem.link.Channel` decides the whole run at once (:meth:`~netem.link.Channel.decide`:
   the same generator draws), and the receiving :class:`~tether.inputs.Source`'s rules (the newest
   sequence number wins; stale, reordered and duplicate counts) give the newest sample at each tick
   (:func:`arrivals`);
@@ -24,8 +25,8 @@ silent past its timeout, a bound of ``[safety]`` reached or any value not finite
 through the ground): the supervisor's events and modes from there on are the Python engine's
 business, and :func:`simulate` returns None so that the caller runs the mission there instead. A
 mission outside what this twin knows (:func:`unsupported`: vehicles with mass, a payload world,
-collision avoidance, a geofence, a link with jitter, Gilbert-Elliott loss, duplication, reordering,
-corruption, a rate limit or an outage) runs on the Python engine from the start.
+collision avoidance, a geofence, a link with duplication, reordering, corruption, a rate limit or an
+outage) runs on the Python engine from the start.
 """
 
 from __future__ import annotations
@@ -73,14 +74,14 @@ def unsupported(m: Mission) -> str | None:
     if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep._plants(m)):
         return "a vehicle with mass (only double integrators are compiled)"
     if m.netem is not None:
-        from netem.channel import independent
+        from netem.channel import batchable
         from tether.netprofile import schedule
 
         for i in m.agent_ids:
             for j in AgentLaw.from_mission(m, i).neighbours:
-                if not all(independent(prof) for _, prof in schedule(m.netem, j, i)):
-                    return (f"link {j}->{i}: a profile with jitter, Gilbert-Elliott loss, duplication, "
-                            "reordering, corruption, a rate limit or an outage")
+                if not all(batchable(prof) for _, prof in schedule(m.netem, j, i)):
+                    return (f"link {j}->{i}: a profile with duplication, reordering, corruption, a rate "
+                            "limit or an outage")
     return None
 
 

@@ -10,7 +10,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from netem.channel import Link, independent, link_rng
+from netem.channel import Link, batchable, link_rng
 from netem.link import Channel
 from plant.disturbance import DisturbanceBank
 from sim import lockstep, lockstep_kernel, sweep
@@ -19,7 +19,7 @@ from tether import mission as ms
 from tether import wire
 from tether.catalog import builtin_path
 from tether.inputs import Source
-from tether.netprofile import Bernoulli, Delay, GilbertElliott, LinkProfile, LinkRule, Network
+from tether.netprofile import Bernoulli, Corrupt, Delay, GilbertElliott, LinkProfile, LinkRule, Network, Rate, Reorder
 from tether.node import load_mission
 from tether.runfile import Run
 
@@ -67,9 +67,18 @@ def offers_one_by_one(link: Link, times: np.ndarray) -> np.ndarray:
     LinkProfile(loss=Bernoulli(p=1.0)),
     LinkProfile(delay=Delay(constant=0.2)),
     LinkProfile(loss=Bernoulli(p=0.999), delay=Delay(constant=0.013)),
+    LinkProfile(loss=GilbertElliott(p=0.1, r=0.3)),  # bursts: one draw per offer (a certain loss draws none)
+    LinkProfile(loss=GilbertElliott(p=0.05, r=0.5, bad_loss=0.7, good_loss=0.02)),  # two draws per offer
+    LinkProfile(loss=GilbertElliott(p=1.0, r=0.5, bad_loss=0.9)),  # a certain move out of the good state
+    LinkProfile(loss=GilbertElliott(p=0.0, good_loss=0.0)),  # the identity, as a Gilbert-Elliott loss
+    LinkProfile(delay=Delay(constant=0.03, jitter=0.02)),  # uniform jitter: samples overtake each other
+    LinkProfile(loss=Bernoulli(p=0.2), delay=Delay(constant=0.05, jitter=0.04, distribution="pareto",
+                                                    correlation=0.6)),
+    LinkProfile(loss=GilbertElliott(p=0.1, r=0.2), delay=Delay(constant=0.01, jitter=0.5,
+                                                                distribution="normal", correlation=0.9)),
 ])
 def test_a_link_decides_many_offers_as_it_decides_them_one_by_one(prof: LinkProfile) -> None:
-    assert independent(prof)
+    assert batchable(prof)
     times = np.cumsum(np.random.default_rng(3).choice([0.0, 0.01, 0.02], size=700))  # repeated times too
     one, many = Link(prof, link_rng(7, 1, 2)), Link(prof, link_rng(7, 1, 2))
     want = offers_one_by_one(one, times[:500])
@@ -82,9 +91,11 @@ def test_a_link_decides_many_offers_as_it_decides_them_one_by_one(prof: LinkProf
 
 
 def test_a_link_refuses_a_batch_it_cannot_decide_at_once_and_changes_nothing() -> None:
-    ge = Link(LinkProfile(loss=GilbertElliott(p=0.1, r=0.5)), link_rng(1, 1, 2))
-    with pytest.raises(ValueError, match="independent"):
-        ge.offer_times(np.array([0.0, 0.01]))
+    for prof in (LinkProfile(duplicate=0.1), LinkProfile(delay=Delay(constant=0.05), reorder=Reorder(p=0.1)), LinkProfile(corrupt=Corrupt(p=0.1)),
+                 LinkProfile(rate=Rate(bytes_per_s=1e4)), LinkProfile(outages=((1.0, 2.0),))):
+        assert not batchable(prof)
+        with pytest.raises(ValueError, match="batchable"):
+            Link(prof, link_rng(1, 1, 2)).offer_times(np.array([0.0, 0.01]))
     logged = Link(LinkProfile(loss=Bernoulli(p=0.5)), link_rng(1, 1, 2), log=True)
     with pytest.raises(ValueError, match="decision log"):
         logged.offer_times(np.array([0.0]))
@@ -158,10 +169,14 @@ def test_a_banks_span_is_its_ticks_one_by_one() -> None:
 
 
 @pytest.mark.parametrize("law", ["sigma", "benchmark"])
-@pytest.mark.parametrize("cell", [(0, 0), (10, 50), (30, 200), (50, 100)])
-def test_section4_map_cells_equal_the_python_engine_bit_for_bit(law: str, cell: tuple[int, int]) -> None:
+@pytest.mark.parametrize("cell", [(0, 0, 1, 0), (10, 50, 1, 0), (30, 200, 1, 0), (50, 100, 1, 0),
+                                  (30, 50, 5, 0), (50, 200, 5, 0), (10, 50, 1, 20), (30, 100, 5, 40)])
+def test_section4_map_cells_equal_the_python_engine_bit_for_bit(law: str, cell: tuple[int, int, int, int]) -> None:
+    """Loss [%], delay [ms], mean burst [messages] (Gilbert-Elliott beyond 1), uniform jitter [ms]."""
+    loss, delay, burst, jitter = cell
     base = load_mission(builtin_path("section4"), 20.0)
-    compiled_equals_python(sweep.point_mission(base, sweep.Point(law, cell[0], cell[1], 1.0), duration=20.0))
+    compiled_equals_python(sweep.point_mission(base, sweep.Point(law, loss, delay, burst), jitter_ms=jitter,
+                                               duration=20.0))
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -173,9 +188,11 @@ def test_random_missions_equal_the_python_engine_bit_for_bit(seed: int) -> None:
     m = random_mission(rng, int(rng.integers(2, 7)), dim=dim, law=("sigma", "benchmark")[seed % 2],
                        disturbance=("sinusoid", "constant", "bounded_random", "none")[seed % 4], duration=6.0,
                        profile={"kind": "exp_accel", "a0": [0.3] * dim, "decay": 0.5} if seed % 3 == 0 else None)
+    jitter = Delay(constant=0.04, jitter=0.03, distribution=("uniform", "normal", "pareto")[seed % 3], correlation=0.5)
     net = Network(default=LinkProfile(loss=Bernoulli(p=float(rng.uniform(0, 0.4))),
                                       delay=Delay(constant=float(rng.uniform(0, 0.15)))),
-                  rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.01)), start=2.0, dst=1),))
+                  rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.01)), start=2.0, dst=1),
+                         LinkRule(profile=LinkProfile(loss=GilbertElliott(p=0.05, r=0.4), delay=jitter), start=3.0)))
     m = replace(m, netem=net if seed % 3 != 2 else None,
                 law=replace(m.law, feedforward=("measured", "commanded", "none")[seed % 3]),
                 links=ms.LinkPolicy(max_age=float(rng.choice([0.05, 0.5, math.inf])), compensate=bool(seed % 2)),
@@ -254,8 +271,8 @@ def test_a_3d_vehicle_through_the_ground_is_left_to_the_python_engine() -> None:
 
 
 @pytest.mark.parametrize("section", [
-    {"netem": Network(default=LinkProfile(loss=GilbertElliott(p=0.05, r=0.3)))},
-    {"netem": Network(default=LinkProfile(delay=Delay(constant=0.02, jitter=0.01)))},
+    {"netem": Network(default=LinkProfile(duplicate=0.05))},
+    {"netem": Network(rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.05), reorder=Reorder(p=0.2, gap=3)), start=1.0, src=2),))},
 ])
 def test_a_mission_the_twin_does_not_know_runs_on_the_python_engine(section: dict) -> None:
     m = replace(load_mission(builtin_path("section4"), 3.0), **section)
