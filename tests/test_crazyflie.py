@@ -191,11 +191,16 @@ def test_a_vehicle_dying_under_load_never_blocks_the_plant_in_cflib() -> None:
                     x += 1
 
             stepped = threading.Event()
+            after = [0]
 
             def fly() -> None:  # the plant process's loop: a setpoint every few milliseconds
-                for _ in range(400):
+                for _ in range(400):  # until 50 setpoints after the plant saw its link go
                     plant.step(np.array([[0.0, 0.0, 0.0]]))
                     time.sleep(0.003)
+                    if not plant.healthy():
+                        after[0] += 1
+                        if after[0] >= 50:
+                            break
                 stepped.set()
 
             spinners = [threading.Thread(target=spin, daemon=True) for _ in range(2)]
@@ -208,6 +213,7 @@ def test_a_vehicle_dying_under_load_never_blocks_the_plant_in_cflib() -> None:
                 assert stepped.wait(20), f"trial {trial}: the plant's setpoints blocked after the vehicle died"
             finally:
                 busy.set()
+            assert after[0] >= 50, f"trial {trial}: the link's loss was not met while the plant stepped"
             wait_until(lambda: not plant.healthy(), 10, "the plant to see its link go")
             with pytest.raises(LinkLost):
                 plant.state()
