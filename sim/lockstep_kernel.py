@@ -1,11 +1,11 @@
 """The in-process lockstep engine's compiled twin (numba, the ``[fast]`` extra). Pure: no clock, no I/O.
 
 :func:`sim.lockstep.simulate` runs the agent processes' own Python (``agent/tick.py``) at every
-tick. Most runs of a study never leave the nominal tick: every vehicle FLYING, every in-neighbour
-heard within its timeout, no bound of ``[safety]`` reached. For those the tick is a fixed sequence
-of floating-point operations, and this module runs it in one compiled loop, operation for
-operation as the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a
-run equals the Python engine's bit for bit (``tests/test_lockstep_kernel.py``):
+tick. Most ticks of a study are one of a few kinds: every vehicle FLYING or holding (HOLD) while
+its leader is silent or out of reach, in-neighbours' edges dropped and restored, no bound of
+``[safety]`` reached. This module runs those ticks in one compiled loop, operation for operation as
+the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a run equals the
+Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``):
 
 * what each agent hears is decided before the loop: an emulated link that only loses and delays
   (:func:`netem.channel.batchable`: Bernoulli or Gilbert-Elliott loss, a constant or jittered delay)
@@ -17,16 +17,18 @@ run equals the Python engine's bit for bit (``tests/test_lockstep_kernel.py``):
 * the disturbance increments and values come from the plants' own banks
   (:meth:`plant.disturbance.DisturbanceBank.span`), the leader's reference from its profile;
 * the compiled loop (:func:`_ticks`) then runs, per tick and agent, ``agent.law.neighbour_sample``,
-  the supervisor's link check, ``AgentLaw.step``, the supervisor's bounds and ``failsafe.saturate``,
-  and the exact double integrator of ``plant/double_integrator.py``.
+  the supervisor's link check (the leader silent; an in-neighbour stopped or silent; the leader's
+  reach over the survivors; edges dropped and kappa re-normalised), ``AgentLaw.step``, the
+  supervisor's bounds, HOLD and its recovery, ``failsafe.hold`` and ``failsafe.saturate``, and the
+  exact double integrator of ``plant/double_integrator.py``; the events it records are worded by
+  :func:`_events` as ``agent.safety.Supervisor`` words them.
 
-The loop stops at the first tick that would leave the nominal path (an in-neighbour or the leader
-silent past its timeout, a bound of ``[safety]`` reached or any value not finite, a 3D vehicle
-through the ground): the supervisor's events and modes from there on are the Python engine's
-business, and :func:`simulate` returns None so that the caller runs the mission there instead. A
-mission outside what this twin knows (:func:`unsupported`: vehicles with mass, a payload world,
-collision avoidance, a geofence, a link with duplication, reordering, corruption, a rate limit or an
-outage) runs on the Python engine from the start.
+The loop stops at the first tick it does not model (a bound of ``[safety]`` reached, HOLD past
+``land_after`` and so LAND, a value not finite where a mode would use it, a 3D vehicle through the
+ground): :func:`simulate` then returns None and the caller runs the mission on the Python engine
+from its start. A mission outside what this twin knows (:func:`unsupported`: vehicles with mass, a
+payload world, collision avoidance, a geofence, a link with duplication, reordering, corruption, a
+rate limit or an outage) runs there from the start too.
 """
 
 from __future__ import annotations
@@ -88,7 +90,8 @@ def unsupported(m: Mission) -> str | None:
 def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
              progress: Progress | None = None, diverge_at: float = 1e6) -> Run | None:
     """:func:`sim.lockstep.simulate` of ``m``, compiled: the same run bit for bit, or None when a
-    tick leaves the nominal path (or :func:`unsupported` says no) and the Python engine must run it."""
+    tick is one the loop does not model (or :func:`unsupported` says no) and the Python engine must
+    run it."""
     if unsupported(m) is not None:
         return None
     from sim import lockstep
@@ -143,11 +146,21 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             counts["reordered"][i, s_] = reord
 
     cfg = m.safety
-    # the history of what each sender sent, as a ring: a sample older than every timeout is never read
-    # (the loop stops first), so ring ticks of history are enough
-    reach = max(cfg.neighbour_timeout, cfg.leader_timeout)
+    # the history of what each sender sent (p, v, shared a; its mode), as a ring: a sample is read only
+    # while it is younger than max_age (its values) or than its timeout (its mode)
+    reach = max(cfg.neighbour_timeout, cfg.leader_timeout, m.links.max_age)
     ring = steps + 1 if not reach / h < steps else min(steps + 1, int(reach / h) + 3)
     hist = np.zeros((3, ring, n + 1, d))
+    hmode = np.full((ring, n + 1), wire.FLYING, dtype=np.int64)
+    # the mission's graph (out-edges by column, the leader's column n) for the supervisor's reachability
+    out_ptr = np.zeros(n + 2, dtype=np.int64)
+    edges = sorted((col[e.src], col[e.dst]) for e in m.edges)
+    for src_c, _ in edges:
+        out_ptr[src_c + 1] += 1
+    out_ptr = np.cumsum(out_ptr)
+    out_dst = np.array([dst_c for _, dst_c in edges], dtype=np.int64)
+    if width > 62:
+        return None  # the dropped edges are bit masks of one machine word
     ref = profile.build(m.leader, d)
     lead = np.stack([np.broadcast_to(np.asarray(x, dtype=float), (steps + 1, d)) for x in ref(times)])
     lead = np.ascontiguousarray(lead)
@@ -159,6 +172,19 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     ages = np.full((rows_n, n, width), np.nan)
     kappa = np.array([law.kappa for law in laws])
     swd = np.array([law.sum_wdelta for law in laws], dtype=float).reshape(n, d)
+    # each supervisor: mode, HOLD's cause, since, p_hold, the dropped edges (a mask of link slots), and
+    # the law over the surviving edges (kappa_i, sum_wdelta)
+    mode = np.full(n, wire.FLYING, dtype=np.int64)
+    cause = np.zeros(n, dtype=np.int64)
+    since = np.zeros(n)
+    p_hold = np.zeros((n, d))
+    lost = np.zeros(n, dtype=np.int64)
+    cur_kappa = kappa.copy()
+    cur_swd = swd.copy()
+    events = np.zeros((EVENTS, 7), dtype=np.int64)
+    fired = np.zeros(1, dtype=np.int64)
+    params = np.array([cfg.land_after, cfg.hold_kp, cfg.hold_kv], dtype=float)
+    found: list[wire.SafetyEvent] = []
     prm, gs = laws[0].params, laws[0].gains
     kp = np.array([prm.kp0] * n, dtype=float).reshape(n, d)
     kv = np.array([prm.kv0] * n, dtype=float).reshape(n, d)
@@ -186,9 +212,13 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                       float(cfg.gain_cap), float(cfg.max_speed), float(cfg.max_accel), float(diverge_at),
                       off, l_src_a, l_leader_a, l_w_a, l_delta_a, newest, used, hist, lead,
                       p, v, a, last_u, dv, dp,
-                      run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages)
+                      run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages,
+                      hmode, out_ptr, out_dst, mode, cause, since, p_hold, lost, cur_kappa, cur_swd, params,
+                      events, fired, run.safety.safety_mode)
         if left >= 0:
             return None
+        found += _events(events[:int(fired[0])], h, ids, laws)
+        fired[0] = 0
         if progress is not None:
             progress(min(k1, steps), steps)
     if record:
@@ -200,7 +230,49 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     for i in range(n):
         counts["used"][i, :off[i + 1] - off[i]] = used[off[i]:off[i + 1]]
     run.links = Links(age=ages, **counts)
+    # the plant's watchdog follows HOLD (it rests or cuts its motors only for LANDED and ESTOP)
+    run.safety.events = sorted(found, key=lambda e: (e.k, e.vehicle))
     return run
+
+
+EVENTS = 4096
+"""Room for the supervisors' events of one call of the loop (more leave it to the Python engine)."""
+
+_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED = range(4)
+"""The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
+unreachable), back to FLYING."""
+
+_CAUSES = ("", "leader", "unreachable")
+"""HOLD's causes by code (``Supervisor.cause``)."""
+
+
+def _events(rows: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw]) -> list[wire.SafetyEvent]:
+    """The loop's event rows ``(k, agent, from, to, kind, mask, mask)`` as the supervisor words them
+    (``agent.safety.Supervisor.links`` and ``command``)."""
+
+    def named(i: int, mask: int) -> list[int]:
+        return sorted(j for b, j in enumerate(laws[i].neighbours) if mask >> b & 1)
+
+    def listed(nbrs: list[int]) -> str:
+        return f"neighbour{'s' if len(nbrs) > 1 else ''} {', '.join(map(str, nbrs))}"
+
+    out = []
+    for k, i, src, dst, kind, m1, m2 in rows.tolist():
+        if kind == _EDGES:
+            words = []
+            if m1:
+                words.append(f"{listed(named(i, m1))} lost: edge dropped, kappa re-normalised")
+            if m2:
+                words.append(f"{listed(named(i, m2))} back: edge restored")
+            why = "; ".join(words)
+        elif kind == _HOLD_LEADER:
+            why = "leader silent"
+        elif kind == _HOLD_UNREACHABLE:
+            why = f"{listed(named(i, m1))} lost and the leader no longer reaches this agent"
+        else:
+            why = f"{_CAUSES[m1]} recovered"
+        out.append(wire.SafetyEvent(k=k, t=k * h, vehicle=ids[i], src=src, dst=dst, reason=why))
+    return out
 
 
 def _channel(m: Mission, src: int, dst: int) -> "Channel":
@@ -270,17 +342,31 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
               l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, lead: np.ndarray,
               p: np.ndarray, v: np.ndarray, a: np.ndarray, last_u: np.ndarray, dv: np.ndarray, dp: np.ndarray,
               out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
-              out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_age: np.ndarray) -> int:
-    """Ticks ``k0 .. k1-1`` of the nominal path; returns -1, or the first tick that leaves it (nothing
-    of that tick is kept). State carried between calls: ``p, v, a`` (the plants), ``last_u``,
-    ``kp, kv``, ``used`` and the history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N
-    the leader). ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
+              out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_age: np.ndarray,
+              hmode: np.ndarray, out_ptr: np.ndarray, out_dst: np.ndarray, mode: np.ndarray, cause: np.ndarray,
+              since: np.ndarray, p_hold: np.ndarray, lost: np.ndarray, cur_kappa: np.ndarray, cur_swd: np.ndarray,
+              params: np.ndarray, events: np.ndarray, fired: np.ndarray, out_mode: np.ndarray) -> int:
+    """Ticks ``k0 .. k1-1``; returns -1, or the first tick this loop does not model (nothing of that
+    tick is kept). It models FLYING and HOLD with the causes ``leader`` and ``unreachable``, and edges
+    dropped and restored (``agent.safety.Supervisor``); a bound of ``[safety]`` reached, LAND (HOLD
+    past ``land_after``) or a value not finite where a mode would take it is left to the Python engine.
+
+    State carried between calls: ``p, v, a`` (the plants), ``last_u``, ``kp, kv``, ``used``, the
+    history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N the leader) and ``hmode``
+    ``(R, N+1)`` (the mode each sample carried), and each supervisor's ``mode, cause, since, p_hold,
+    lost`` (the dropped edges: bit b for link slot b) with the law over its surviving edges
+    (``cur_kappa, cur_swd``; ``kappa, swd`` the mission's). ``params``: ``land_after, hold_kp,
+    hold_kv``. Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, mask, mask; ``fired[0]``
+    counts them. ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
     Python's, in its order (the comments name the function)."""
     n, d = p.shape
     ring = hist.shape[1]
     hp = hist[0]
     hv = hist[1]
     ha = hist[2]
+    land_after = params[0]
+    hold_kp = params[1]
+    hold_kv = params[2]
     width = out_age.shape[2]
     age_of = np.empty(max(width, 1))
     u = np.empty((n, d))
@@ -288,37 +374,106 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     zeta = np.empty(d)
     kpn = np.empty(d)
     kvn = np.empty(d)
+    seen = np.zeros(n + 1, dtype=np.bool_)
+    gone = np.zeros(n + 1, dtype=np.bool_)
+    stack = np.empty(n + 1, dtype=np.int64)
     nan = math.nan
+    flying, hold = 0, 1  # tether.wire.FLYING, HOLD
     for k in range(k0, k1):
         t = k * h
         keep = record or k == steps
         r = k if record else 0
         q = k % ring
         # what each sender publishes at tick k (the leader's reference; each agent's sample, and as
-        # its acceleration the measured one or its previous command: AgentTick.shared)
+        # its acceleration the measured one or its previous command: AgentTick.shared; its mode)
         for c in range(d):
             hp[q, n, c] = lead[0, k, c]
             hv[q, n, c] = lead[1, k, c]
             ha[q, n, c] = lead[2, k, c]
+        hmode[q, n] = flying
         for i in range(n):
             for c in range(d):
                 hp[q, i, c] = p[i, c]
                 hv[q, i, c] = v[i, c]
                 ha[q, i, c] = a[i, c] if feed == 0 else last_u[i, c]
+            hmode[q, i] = mode[i]
         for i in range(n):
             lo = off[i]
             hi = off[i + 1]
-            # Supervisor.links: an in-neighbour silent past its timeout leaves the nominal path
+            # Supervisor.links: each in-neighbour's age; the leader silent; an agent neighbour lost
+            # (stopped, or silent past its timeout)
+            silent = False
+            missing = 0
             for l in range(lo, hi):
                 s = newest[k, l]
                 never = s < 0
                 age = nan if never else t - s * h
                 age_of[l - lo] = age
-                limit = leader_timeout if l_leader[l] else neighbour_timeout
-                if age > limit or (never and t > limit):
+                if l_leader[l]:
+                    silent = age > leader_timeout or (never and t > leader_timeout)
+                else:
+                    stopped = (not never) and hmode[s % ring, l_src[l]] != flying
+                    if stopped or age > neighbour_timeout or (never and t > neighbour_timeout):
+                        missing |= 1 << (l - lo)
+            reachable = True
+            if missing != 0:  # tether's reaches(): the leader to this agent without the lost ones
+                for x in range(n + 1):
+                    seen[x] = False
+                    gone[x] = False
+                for l in range(lo, hi):
+                    if missing >> (l - lo) & 1:
+                        gone[l_src[l]] = True
+                reachable = False
+                if not gone[n] and not gone[i]:
+                    top = 0
+                    stack[0] = n
+                    seen[n] = True
+                    while top >= 0:
+                        node = stack[top]
+                        top -= 1
+                        if node == i:
+                            reachable = True
+                            break
+                        for e_ in range(out_ptr[node], out_ptr[node + 1]):
+                            nxt = out_dst[e_]
+                            if not seen[nxt] and not gone[nxt]:
+                                seen[nxt] = True
+                                top += 1
+                                stack[top] = nxt
+            new = missing if reachable else 0
+            if new != lost[i]:  # edges dropped or restored: an event, and the law over the others
+                if fired[0] >= events.shape[0]:
                     return k
+                row = fired[0]
+                events[row, 0] = k
+                events[row, 1] = i
+                events[row, 2] = mode[i]
+                events[row, 3] = mode[i]
+                events[row, 4] = 0
+                events[row, 5] = new & ~lost[i]
+                events[row, 6] = lost[i] & ~new
+                fired[0] += 1
+                lost[i] = new
+                if new == 0:  # the mission's own law
+                    cur_kappa[i] = kappa[i]
+                    for c in range(d):
+                        cur_swd[i, c] = swd[i, c]
+                else:  # AgentLaw.without: the weights of the lost zeroed, kappa and sum_wdelta over them
+                    acc = 0.0
+                    for l in range(lo, hi):
+                        acc += 0.0 if new >> (l - lo) & 1 else l_w[l]
+                    cur_kappa[i] = acc
+                    for c in range(d):
+                        sd = 0.0
+                        for l in range(lo, hi):
+                            w = 0.0 if new >> (l - lo) & 1 else l_w[l]
+                            if l == lo:
+                                sd = w * l_delta[l, c]
+                            else:
+                                sd = sd + w * l_delta[l, c]
+                        cur_swd[i, c] = sd
             # agent.law.neighbour_sample per in-neighbour, AgentLaw.step (weighted_sum term by term)
-            ka = kappa[i]
+            ka = cur_kappa[i]
             for c in range(d):
                 sp = 0.0
                 sv = 0.0
@@ -342,7 +497,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         aj = 0.0
                     if feed == 2:
                         aj = 0.0
-                    w = l_w[l]
+                    w = 0.0 if lost[i] >> (l - lo) & 1 else l_w[l]
                     if l == lo:
                         sp = w * pj
                         sv = w * vj
@@ -351,7 +506,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         sp = sp + w * pj
                         sv = sv + w * vj
                         sa = sa + w * aj
-                e = ka * p[i, c] - sp - swd[i, c]
+                e = ka * p[i, c] - sp - cur_swd[i, c]
                 z = ka * v[i, c] - sv
                 xi[c] = e
                 zeta[c] = z
@@ -359,7 +514,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 kpn[c] = 1.0 + (kp[i, c] - 1.0) * decay + gp * (e * e)
                 kvn[c] = 1.0 + (kv[i, c] - 1.0) * decay + gv * (z * z)
             # Supervisor._diverged (|xi|, the gains, a finite command), the engine's diverge_at, the
-            # speed bound: any of them is a mode change
+            # speed bound: any of them changes the mode in a way this loop does not follow
             sq = xi[0] * xi[0]
             for c in range(1, d):
                 sq = sq + xi[c] * xi[c]
@@ -377,10 +532,52 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
             speed = math.sqrt(sq) if sq == sq else math.inf
             if speed > max_speed:
                 return k
+            # Supervisor.command: HOLD's causes (the leader silent for an agent that hears it, then
+            # the leader no longer reaching it), and what each does to the mode
+            why = 0
+            if silent:
+                why = 1
+            elif not reachable:
+                why = 2
+            change = -1
+            if mode[i] == flying and why != 0:
+                for c in range(d):
+                    if not math.isfinite(p[i, c]):
+                        return k  # HOLD with nowhere to hold: the Python engine's (a zero command)
+                change = hold
+                cause[i] = why
+                for c in range(d):
+                    p_hold[i, c] = p[i, c]
+            elif mode[i] == hold and why != 0 and why != cause[i]:
+                cause[i] = why  # another reason keeps it holding; the clock to LAND runs on
+            elif mode[i] == hold:
+                if why == 0:
+                    change = flying
+                elif t - since[i] >= land_after:
+                    return k  # LAND
+            if change >= 0:
+                if fired[0] >= events.shape[0]:
+                    return k
+                row = fired[0]
+                events[row, 0] = k
+                events[row, 1] = i
+                events[row, 2] = mode[i]
+                events[row, 3] = change
+                events[row, 4] = (1 if why == 1 else 2) if change == hold else 3
+                events[row, 5] = missing if change == hold else cause[i]
+                events[row, 6] = 0
+                fired[0] += 1
+                mode[i] = change
+                since[i] = t
+            if mode[i] == hold:  # failsafe.hold: brake and return to p_hold, saturated
+                for c in range(d):
+                    u[i, c] = -hold_kv * v[i, c] - hold_kp * (p[i, c] - p_hold[i, c])
             # failsafe.saturate
             uu = u[i, 0] * u[i, 0]
             for c in range(1, d):
                 uu = uu + u[i, c] * u[i, c]
+            if not math.isfinite(uu):
+                return k  # HOLD's command not finite: the Python engine's (a zero command)
             norm = math.sqrt(uu)
             if not norm <= max_accel:
                 scale = max_accel / norm
@@ -396,6 +593,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     out_zeta[r, i, c] = zeta[c]
                     out_kp[r, i, c] = kp[i, c]
                     out_kv[r, i, c] = kv[i, c]
+                out_mode[r, i] = mode[i]
             for l in range(lo, hi):
                 s = newest[k, l]
                 age = age_of[l - lo]
@@ -404,10 +602,12 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     used[l] += 1
                 if keep:
                     out_age[r, i, l - lo] = age if ok else nan
-            # FLYING: the gains advance; the command is the one shared next tick
+            # the gains advance while FLYING; the command is the one shared next tick
+            if mode[i] == flying:
+                for c in range(d):
+                    kp[i, c] = kpn[c]
+                    kv[i, c] = kvn[c]
             for c in range(d):
-                kp[i, c] = kpn[c]
-                kv[i, c] = kvn[c]
                 last_u[i, c] = u[i, c]
         if k == steps:
             break

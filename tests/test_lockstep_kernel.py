@@ -14,7 +14,7 @@ from netem.channel import Link, batchable, link_rng
 from netem.link import Channel
 from plant.disturbance import DisturbanceBank
 from sim import lockstep, lockstep_kernel, sweep
-from tests.factories import random_mission
+from tests.factories import build, random_mission
 from tether import mission as ms
 from tether import wire
 from tether.catalog import builtin_path
@@ -209,6 +209,61 @@ def test_the_compiled_engine_reports_its_progress() -> None:
     assert_same_run(run, lockstep.simulate(m, engine="python"))
     assert seen[-1] == (m.steps, m.steps) and len(seen) >= 2
     assert all(a[0] < b[0] for a, b in zip(seen, seen[1:]))
+
+
+# ------------------------------------------------------------------- HOLD and dropped edges
+
+
+@pytest.mark.parametrize("cell", [(50, 100, 20), (40, 50, 30)])
+def test_bursty_cells_whose_agents_hold_and_recover_equal_the_python_engine(cell: tuple[int, int, int]) -> None:
+    """Long loss bursts silence the leader past leader_timeout: agent 1 holds, the ring behind it
+    loses its path from the leader and holds too, and all fly on when the samples are back (over a
+    hundred mode changes a minute). The twin follows them itself, events and reasons included."""
+    base = load_mission(builtin_path("section4"), 60.0)
+    run = compiled_equals_python(sweep.point_mission(base, sweep.Point("sigma", *cell), duration=60.0))
+    reasons = {e.reason for e in run.safety.events}
+    assert {"leader silent", "leader recovered", "unreachable recovered"} <= reasons
+    assert any("no longer reaches" in why for why in reasons)
+    assert (run.safety.safety_mode == wire.HOLD).any() and (run.safety.safety_mode == wire.FLYING).any()
+
+
+def test_an_edge_dropped_and_restored_while_the_leader_still_reaches_equals_the_python_engine() -> None:
+    """Agent 2 hears the leader and agent 1; its link from 1 is cut from 2 s to 3.5 s: the edge is
+    dropped (kappa re-normalised over the leader alone) and restored, without a mode change."""
+    raw = {
+        "version": 1, "name": "drop", "dim": 2, "rate": 100.0, "duration": 6.0, "seed": 4,
+        "law": {"kind": "sigma", "kp0": 2.0, "kv0": 2.0, "gamma_p": 0.05, "gamma_v": 0.05, "sigma": 0.5},
+        "leader": {"id": 3, "p0": [0.0, 0.0], "v0": [0.0, 0.0], "profile": {"kind": "exp_accel", "a0": [0.5, 0.0],
+                                                                             "decay": 0.2}},
+        "agents": [{"id": 1, "p0": [1.0, 0.3], "offset": [1.0, 0.0],
+                    "disturbance": {"kind": "sinusoid", "amplitude": [0.2, 0.1], "omega": [1.0, 2.0],
+                                    "phase": [0.0, 1.0]}},
+                   {"id": 2, "p0": [-1.0, 0.2], "offset": [-1.0, 0.0]}],
+        "edges": [{"from": 3, "to": 1, "weight": 1.0}, {"from": 3, "to": 2, "weight": 0.5},
+                  {"from": 1, "to": 2, "weight": 1.5}],
+        "netem": {"default": {"delay": {"constant": 0.02}},
+                  "rules": [{"from": 1, "to": 2, "start": 2.0, "profile": {"loss": {"kind": "bernoulli", "p": 1.0}}},
+                            {"from": 1, "to": 2, "start": 3.5, "profile": {"delay": {"constant": 0.02}}}]},
+    }
+    m = build(raw)
+    run = compiled_equals_python(m)
+    assert [e.reason for e in run.safety.events] == ["neighbour 1 lost: edge dropped, kappa re-normalised",
+                                                     "neighbour 1 back: edge restored"]
+    assert (run.safety.safety_mode == wire.FLYING).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_graphs_under_long_bursts_equal_the_python_engine(seed: int) -> None:
+    """Random graphs with redundant paths: edges dropped while the leader still reaches, HOLD when it
+    no longer does, recoveries."""
+    rng = np.random.default_rng(300 + seed)
+    m = random_mission(rng, int(rng.integers(3, 7)), law=("sigma", "benchmark")[seed % 2], disturbance="sinusoid",
+                       duration=30.0)
+    m = replace(m, netem=Network(default=LinkProfile(loss=GilbertElliott(p=0.02, r=0.04),
+                                                     delay=Delay(constant=0.05))),
+                safety=replace(m.safety, land_after=30.0, max_accel=1e3))
+    run = compiled_equals_python(m)
+    assert run.safety.events
 
 
 # ------------------------------------------------------------------- leaving the nominal path
