@@ -105,7 +105,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     ticks = [AgentTick.from_mission(m, i) for i in ids]
     # each plant rests on the ground or cuts its motors when its agent's supervisor says so, as the
     # plant process's watchdog does (transparent while every vehicle flies)
-    hosts = [Resting(host, d, m.safety.ground) for host in _plants(m)]
+    hosts = [Resting(host, d, m.safety.ground) for host in hosts_of(m)]
     row_of = {aid: (h, r) for h in hosts for r, aid in enumerate(h.ids)}
     order = [row_of[aid] for aid in ids]
     host_rows = [[ids.index(aid) for aid in host.ids] for host in hosts]
@@ -246,7 +246,7 @@ def _abs_max(xs: list[float]) -> float:
     return math.nan if any(x != x for x in xs) else max(map(abs, xs))
 
 
-def _plants(m: Mission) -> list[plants.Plant]:
+def hosts_of(m: Mission) -> list[plants.Plant]:
     """:func:`plant.base.build`'s plants, the double integrators whose disturbance banks take the
     same branches (their models' flags) hosted together: one row per vehicle of one vectorised
     host, each row's arithmetic element-wise that of its own plant process."""

@@ -34,7 +34,7 @@ rate limit or an outage) runs there from the start too.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -42,7 +42,7 @@ from agent.law import AgentLaw
 from leader import profile
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
-from sim import kernel
+from sim import kernel, lockstep
 from tether import wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
@@ -71,9 +71,8 @@ def unsupported(m: Mission) -> str | None:
         return "a geofence ([safety.geofence])"
     if m.law.feedforward not in _FEED:
         return f"feedforward {m.law.feedforward!r}"
-    from sim import lockstep  # the Python engine's grouping of the plants (the banks' branches)
-
-    if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep._plants(m)):
+    # the Python engine's hosts (its grouping of the plants decides the banks' branches)
+    if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep.hosts_of(m)):
         return "a vehicle with mass (only double integrators are compiled)"
     if m.netem is not None:
         from netem.channel import batchable
@@ -88,14 +87,12 @@ def unsupported(m: Mission) -> str | None:
 
 
 def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
-             progress: Progress | None = None, diverge_at: float = 1e6) -> Run | None:
+             progress: Progress | None = None, diverge_at: float = lockstep.DIVERGE_AT) -> Run | None:
     """:func:`sim.lockstep.simulate` of ``m``, compiled: the same run bit for bit, or None when a
     tick is one the loop does not model (or :func:`unsupported` says no) and the Python engine must
     run it."""
     if unsupported(m) is not None:
         return None
-    from sim import lockstep
-
     h, d = m.dt, m.dim
     steps = m.steps if duration is None else int(round(duration * m.rate))
     ids = m.agent_ids
@@ -104,7 +101,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     col = {aid: i for i, aid in enumerate(ids)}
     col[lid] = n  # the leader's column of the sample history
     laws = [AgentLaw.from_mission(m, i) for i in ids]
-    hosts = lockstep._plants(m)
+    hosts = lockstep.hosts_of(m)
     banks = [(DisturbanceBank.from_mission(m, list(host.ids)), [col[a] for a in host.ids]) for host in hosts]
     p = np.empty((n, d))
     v = np.empty((n, d))
