@@ -58,6 +58,21 @@ CHUNK = 4096
 
 _FEED = {"measured": 0, "commanded": 1, "none": 2}
 
+MAX_IN = 62
+"""The most in-neighbours an agent may have here: its dropped edges are the bits of one machine word."""
+
+EVENTS = 4096
+"""Room for the supervisors' events of one call of the loop (more leave it to the Python engine)."""
+
+_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED = range(4)
+"""The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
+unreachable), back to FLYING."""
+
+_CAUSES = ("", "leader", "unreachable")
+"""HOLD's causes by code (``Supervisor.cause``): the kinds of HOLD above."""
+
+_FLYING, _HOLD = wire.FLYING, wire.HOLD
+
 
 def unsupported(m: Mission) -> str | None:
     """Why this twin cannot run ``m`` (the Python engine then does), or None."""
@@ -74,6 +89,8 @@ def unsupported(m: Mission) -> str | None:
     # the Python engine's hosts (its grouping of the plants decides the banks' branches)
     if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep.hosts_of(m)):
         return "a vehicle with mass (only double integrators are compiled)"
+    if max((len(AgentLaw.from_mission(m, i).neighbours) for i in m.agent_ids), default=0) > MAX_IN:
+        return f"an agent with more than {MAX_IN} in-neighbours"
     if m.netem is not None:
         from netem.channel import batchable
         from tether.netprofile import schedule
@@ -156,8 +173,6 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         out_ptr[src_c + 1] += 1
     out_ptr = np.cumsum(out_ptr)
     out_dst = np.array([dst_c for _, dst_c in edges], dtype=np.int64)
-    if width > 62:
-        return None  # the dropped edges are bit masks of one machine word
     ref = profile.build(m.leader, d)
     lead = np.stack([np.broadcast_to(np.asarray(x, dtype=float), (steps + 1, d)) for x in ref(times)])
     lead = np.ascontiguousarray(lead)
@@ -230,17 +245,6 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     # the plant's watchdog follows HOLD (it rests or cuts its motors only for LANDED and ESTOP)
     run.safety.events = sorted(found, key=lambda e: (e.k, e.vehicle))
     return run
-
-
-EVENTS = 4096
-"""Room for the supervisors' events of one call of the loop (more leave it to the Python engine)."""
-
-_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED = range(4)
-"""The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
-unreachable), back to FLYING."""
-
-_CAUSES = ("", "leader", "unreachable")
-"""HOLD's causes by code (``Supervisor.cause``)."""
 
 
 def _events(rows: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw]) -> list[wire.SafetyEvent]:
@@ -375,7 +379,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     gone = np.zeros(n + 1, dtype=np.bool_)
     stack = np.empty(n + 1, dtype=np.int64)
     nan = math.nan
-    flying, hold = 0, 1  # tether.wire.FLYING, HOLD
+    flying, hold = _FLYING, _HOLD
     for k in range(k0, k1):
         t = k * h
         keep = record or k == steps
@@ -446,7 +450,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 events[row, 1] = i
                 events[row, 2] = mode[i]
                 events[row, 3] = mode[i]
-                events[row, 4] = 0
+                events[row, 4] = _EDGES
                 events[row, 5] = new & ~lost[i]
                 events[row, 6] = lost[i] & ~new
                 fired[0] += 1
@@ -531,11 +535,11 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 return k
             # Supervisor.command: HOLD's causes (the leader silent for an agent that hears it, then
             # the leader no longer reaching it), and what each does to the mode
-            why = 0
+            why = 0  # a code of _CAUSES
             if silent:
-                why = 1
+                why = _HOLD_LEADER
             elif not reachable:
-                why = 2
+                why = _HOLD_UNREACHABLE
             change = -1
             if mode[i] == flying and why != 0:
                 for c in range(d):
@@ -560,7 +564,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 events[row, 1] = i
                 events[row, 2] = mode[i]
                 events[row, 3] = change
-                events[row, 4] = (1 if why == 1 else 2) if change == hold else 3
+                events[row, 4] = why if change == hold else _RECOVERED
                 events[row, 5] = missing if change == hold else cause[i]
                 events[row, 6] = 0
                 fired[0] += 1
