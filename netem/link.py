@@ -44,10 +44,14 @@ class Channel:
         """What :meth:`send` decides for one message at each time of ``now`` (non-decreasing), the
         profile schedule followed as it follows it, for a link whose profiles are all batchable
         (:func:`netem.channel.batchable`: loss and delay only): each message's delivery time [s], NaN
-        where it was lost.
-        The copies are not queued: the caller holds the times. Raises ``ValueError`` (nothing
-        changed) when a profile the times reach is not batchable."""
+        where it was lost. The copies are not queued: the caller holds the times. Raises
+        ``ValueError`` (nothing changed) when a profile the times reach is not batchable, or for times
+        :meth:`send` would refuse (not finite, decreasing, or before the last offer)."""
         now = np.asarray(now, dtype=float)
+        if len(now) and (not np.all(np.isfinite(now)) or bool(np.any(np.diff(now) < 0.0))
+                         or not float(now[0]) >= self.link.last_offer):
+            raise ValueError(f"offer times must be finite and non-decreasing from the previous offer "
+                             f"({self.link.last_offer}); first {float(now[0])}")
         starts = [at for at, _ in self.changes[self._next:]]
         reached = self.changes[self._next:self._next + int(np.searchsorted(starts, now[-1], side="right"))] \
             if len(now) else []

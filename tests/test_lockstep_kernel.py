@@ -129,6 +129,11 @@ def test_a_channel_decides_across_its_profile_changes_as_send_does() -> None:
         assert want.tobytes() == got.tobytes()
         assert plain.link.counts == logged.link.counts
         assert np.isnan(got).any() and not np.isnan(got).all()
+    # times a send would refuse change nothing, even past a profile change
+    plain = Channel.of(m, 3, 1)
+    with pytest.raises(ValueError, match="non-decreasing"):
+        plain.decide(np.array([0.0, 1.5, 3.0, 2.9]))
+    assert plain.link.counts["offered"] == 0 and plain.decide(times).tobytes() == Channel.of(m, 3, 1).decide(times).tobytes()
 
 
 def test_arrivals_are_what_a_source_behind_the_link_holds() -> None:
