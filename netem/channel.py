@@ -294,6 +294,9 @@ class Link:
         ahead and the generator is then put where the ones used leave it (``advance``: the
         generators are PCG64, one 64-bit step per double)."""
         stream = self._rng["loss"]
+        if (loss.good_loss in (0.0, 1.0) and loss.bad_loss in (0.0, 1.0)
+                and 0.0 < loss.p < 1.0 and 0.0 < loss.r_eff < 1.0):
+            return self._two_states(loss, stream.random(n))
         bits = stream.bit_generator
         before = bits.state
         # a generator that cannot be advanced (not PCG64) draws one double at a time
@@ -322,6 +325,28 @@ class Link:
             getattr(bits, "advance")(used)  # PCG64's (checked above; BitGenerator does not declare it)
         self._ge_bad = bad
         return lost
+
+    def _two_states(self, loss: GilbertElliott, u: np.ndarray) -> np.ndarray:
+        """:meth:`_chain` when each offer's loss is certain in either state (``good_loss`` and
+        ``bad_loss`` 0 or 1) and each move is not (``p`` and ``r`` strictly between 0 and 1): one
+        double per offer, ``u``, decides the move. Each offer then sets the state (both states go to
+        the same one), keeps it or flips it, so the state before offer s is the last state set before
+        it, flipped once per flip since: whole arrays, no loop."""
+        n = len(u)
+        to_bad_from_good = u < loss.p  # _happens("loss", p) in the good state
+        to_bad_from_bad = ~(u < loss.r_eff)  # not _happens("loss", r) in the bad state
+        fixed = to_bad_from_good == to_bad_from_bad  # the next state whatever this one
+        flips = to_bad_from_good & ~to_bad_from_bad
+        idx = np.arange(n)
+        # state before offer s + 1, for s = 0 .. n-1: the last fixed move at or before s, then flips
+        last = np.maximum.accumulate(np.where(fixed, idx, -1))
+        flips_upto = np.cumsum(flips)
+        start = np.where(last >= 0, to_bad_from_good[np.maximum(last, 0)], self._ge_bad)
+        flipped: np.ndarray = flips_upto - np.where(last >= 0, flips_upto[np.maximum(last, 0)], 0)
+        after = start ^ (flipped % 2 == 1)
+        before = np.concatenate([[self._ge_bad], after[:-1]])
+        self._ge_bad = bool(after[-1])
+        return np.where(before, loss.bad_loss >= 1.0, loss.good_loss >= 1.0)
 
     def _delays(self, m: int) -> np.ndarray:
         """:meth:`_delay` for ``m`` copies in a row (the jitter's normals drawn at once: the same

@@ -68,6 +68,8 @@ def offers_one_by_one(link: Link, times: np.ndarray) -> np.ndarray:
     LinkProfile(delay=Delay(constant=0.2)),
     LinkProfile(loss=Bernoulli(p=0.999), delay=Delay(constant=0.013)),
     LinkProfile(loss=GilbertElliott(p=0.1, r=0.3)),  # bursts: one draw per offer (a certain loss draws none)
+    LinkProfile(loss=GilbertElliott(p=0.9, r=0.95)),  # moves nearly every offer: states flip back and forth
+    LinkProfile(loss=GilbertElliott(p=0.02, r=0.01, bad_loss=0.0, good_loss=1.0), delay=Delay(constant=0.1)),
     LinkProfile(loss=GilbertElliott(p=0.05, r=0.5, bad_loss=0.7, good_loss=0.02)),  # two draws per offer
     LinkProfile(loss=GilbertElliott(p=1.0, r=0.5, bad_loss=0.9)),  # a certain move out of the good state
     LinkProfile(loss=GilbertElliott(p=0.0, good_loss=0.0)),  # the identity, as a Gilbert-Elliott loss
