@@ -231,8 +231,6 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             return None
         found += _events(events[:int(fired[0])], h, ids, laws)
         fired[0] = 0
-        if progress is not None:
-            progress(min(k1, steps), steps)
     if record:
         run.t[:] = times
         run.leader_p[:], run.leader_v[:], run.leader_a[:] = lead
@@ -244,6 +242,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     run.links = Links(age=ages, **counts)
     # the plant's watchdog follows HOLD (it rests or cuts its motors only for LANDED and ESTOP)
     run.safety.events = sorted(found, key=lambda e: (e.k, e.vehicle))
+    if progress is not None:  # once, at the end: a run given back to the Python engine never reports
+        progress(steps, steps)  # a progress that it would then start again from 0
     return run
 
 
