@@ -74,9 +74,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     number of periods). ``record=False`` keeps only the last sample (and the link statistics).
 
     ``engine``: ``"python"`` runs the agents' own tick below; ``"compiled"`` runs
-    :mod:`sim.lockstep_kernel`'s twin of it, which covers FLYING, HOLD and dropped edges (it raises
-    ``ValueError`` for a mission it does not support, and returns the Python engine's run when a tick
-    is one it does not model, LAND for one); ``"auto"`` (the default) takes the twin where it
+    :mod:`sim.lockstep_kernel`'s twin of it, which covers FLYING, HOLD, dropped edges and 2D landings
+    (it raises ``ValueError`` for a mission it does not support, and returns the Python engine's run
+    when a tick is one it does not model, a 3D landing for one); ``"auto"`` (the default) takes the twin where it
     applies. The result is the same, bit for bit.
 
     The returned run carries the runtime recorder's link statistics in ``links``

@@ -2,8 +2,9 @@
 
 :func:`sim.lockstep.simulate` runs the agent processes' own Python (``agent/tick.py``) at every
 tick. Most ticks of a study are one of a few kinds: every vehicle FLYING or holding (HOLD) while
-its leader is silent or out of reach, in-neighbours' edges dropped and restored, no bound of
-``[safety]`` reached. This module runs those ticks in one compiled loop, operation for operation as
+its leader is silent or out of reach, in-neighbours' edges dropped and restored, and in 2D a vehicle
+held past ``land_after`` landing (LAND, then LANDED: its plant rests); no bound of ``[safety]``
+reached. This module runs those ticks in one compiled loop, operation for operation as
 the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a run equals the
 Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``):
 
@@ -19,13 +20,13 @@ Python engine's bit for bit, its safety events worded the same (``tests/test_loc
 * the compiled loop (:func:`_ticks`) then runs, per tick and agent, ``agent.law.neighbour_sample``,
   the supervisor's link check (the leader silent; an in-neighbour stopped or silent; the leader's
   reach over the survivors; edges dropped and kappa re-normalised), ``AgentLaw.step``, the
-  supervisor's bounds, HOLD and its recovery, ``failsafe.hold`` and ``failsafe.saturate``, and the
-  exact double integrator of ``plant/double_integrator.py``; the events it records are worded by
+  supervisor's bounds, HOLD and its recovery, LAND and LANDED in 2D (``failsafe.landed``),
+  ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
+  ``plant/double_integrator.py`` (a LANDED vehicle resting, as ``plant.rest.Resting`` has it); the events it records are worded by
   :func:`_events` as ``agent.safety.Supervisor`` words them.
 
-The loop stops at the first tick it does not model (a bound of ``[safety]`` reached, HOLD past
-``land_after`` and so LAND, a value not finite where a mode would use it, a 3D vehicle through the
-ground): :func:`simulate` then returns None and the caller runs the mission on the Python engine
+The loop stops at the first tick it does not model (a bound of ``[safety]`` reached, a landing
+in 3D, a value not finite where a mode would use it, a 3D vehicle through the ground): :func:`simulate` then returns None and the caller runs the mission on the Python engine
 from its start. A mission outside what this twin knows (:func:`unsupported`: vehicles with mass, a
 payload world, collision avoidance, a geofence, a link with duplication, reordering, corruption, a
 rate limit or an outage) runs there from the start too.
@@ -43,7 +44,7 @@ from leader import profile
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
 from sim import kernel, lockstep
-from tether import wire
+from tether import failsafe, wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
 from tether.runfile import Links, Run, RunMeta
@@ -64,14 +65,14 @@ MAX_IN = 62
 EVENTS = 4096
 """Room for the supervisors' events of one call of the loop (more leave it to the Python engine)."""
 
-_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED = range(4)
+_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED, _LAND, _LANDED = range(6)
 """The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
-unreachable), back to FLYING."""
+unreachable), back to FLYING, LAND (held past ``land_after``), LANDED (2D: still, or ``land_settle``)."""
 
 _CAUSES = ("", "leader", "unreachable")
 """HOLD's causes by code (``Supervisor.cause``): the kinds of HOLD above."""
 
-_FLYING, _HOLD = wire.FLYING, wire.HOLD
+_FLYING, _HOLD, _LAND_MODE, _LANDED_MODE = wire.FLYING, wire.HOLD, wire.LAND, wire.LANDED
 
 
 def unsupported(m: Mission) -> str | None:
@@ -194,8 +195,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     cur_kappa = kappa.copy()
     cur_swd = swd.copy()
     events = np.zeros((EVENTS, 7), dtype=np.int64)
+    floats = np.zeros((EVENTS, 2))  # LANDED's: how long it held, its speed
     fired = np.zeros(1, dtype=np.int64)
-    params = np.array([cfg.land_after, cfg.hold_kp, cfg.hold_kv], dtype=float)
+    params = np.array([cfg.land_after, cfg.hold_kp, cfg.hold_kv, cfg.land_settle, failsafe.STILL], dtype=float)
     found: list[wire.SafetyEvent] = []
     prm, gs = laws[0].params, laws[0].gains
     kp = np.array([prm.kp0] * n, dtype=float).reshape(n, d)
@@ -226,10 +228,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                       p, v, a, last_u, dv, dp,
                       run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages,
                       hmode, out_ptr, out_dst, mode, cause, since, p_hold, lost, cur_kappa, cur_swd, params,
-                      events, fired, run.safety.safety_mode)
+                      events, floats, fired, run.safety.safety_mode, run.safety.plant_mode)
         if left >= 0:
             return None
-        found += _events(events[:int(fired[0])], h, ids, laws)
+        found += _events(events[:int(fired[0])], floats, h, ids, laws, cfg.land_after)
         fired[0] = 0
     if record:
         run.t[:] = times
@@ -247,7 +249,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     return run
 
 
-def _events(rows: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw]) -> list[wire.SafetyEvent]:
+def _events(rows: np.ndarray, floats: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw],
+            land_after: float) -> list[wire.SafetyEvent]:
     """The loop's event rows ``(k, agent, from, to, kind, mask, mask)`` as the supervisor words them
     (``agent.safety.Supervisor.links`` and ``command``)."""
 
@@ -258,7 +261,7 @@ def _events(rows: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw]) ->
         return f"neighbour{'s' if len(nbrs) > 1 else ''} {', '.join(map(str, nbrs))}"
 
     out = []
-    for k, i, src, dst, kind, m1, m2 in rows.tolist():
+    for (k, i, src, dst, kind, m1, m2), (held, speed) in zip(rows.tolist(), floats[:len(rows)].tolist()):
         if kind == _EDGES:
             words = []
             if m1:
@@ -270,8 +273,13 @@ def _events(rows: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw]) ->
             why = "leader silent"
         elif kind == _HOLD_UNREACHABLE:
             why = f"{listed(named(i, m1))} lost and the leader no longer reaches this agent"
-        else:
+        elif kind == _RECOVERED:
             why = f"{_CAUSES[m1]} recovered"
+        elif kind == _LAND:
+            why = f"held for {land_after:g} s ({_CAUSES[m1]})"
+        else:  # failsafe.why_landed, 2D
+            why = "still" if speed < failsafe.STILL else (
+                f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped")
         out.append(wire.SafetyEvent(k=k, t=k * h, vehicle=ids[i], src=src, dst=dst, reason=why))
     return out
 
@@ -335,6 +343,37 @@ def _release_py(seq: np.ndarray, tick: np.ndarray, ticks: int, recent: int, out:
 _release = kernel.jit(_release_py)
 
 
+def _norm_py(x: np.ndarray, i: int) -> float:
+    """``tether.vec.norm`` of row ``i``: the squares added in order; infinite if one is not finite."""
+    sq = x[i, 0] * x[i, 0]
+    for c in range(1, x.shape[1]):
+        sq = sq + x[i, c] * x[i, c]
+    return math.sqrt(sq) if sq == sq else math.inf
+
+
+_norm = kernel.jit(_norm_py)
+
+
+def _event_py(events: np.ndarray, fired: np.ndarray, k: int, i: int, src: int, dst: int, kind: int, m1: int,
+              m2: int) -> bool:
+    """Record one event row; False when ``events`` is full (the loop then gives the run back)."""
+    row = fired[0]
+    if row >= events.shape[0]:
+        return False
+    events[row, 0] = k
+    events[row, 1] = i
+    events[row, 2] = src
+    events[row, 3] = dst
+    events[row, 4] = kind
+    events[row, 5] = m1
+    events[row, 6] = m2
+    fired[0] = row + 1
+    return True
+
+
+_event = kernel.jit(_event_py)
+
+
 def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, three: bool, ground: float,
               kappa: np.ndarray, swd: np.ndarray, gp: float, gv: float, decay: float, kp: np.ndarray,
               kv: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
@@ -346,19 +385,21 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
               out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_age: np.ndarray,
               hmode: np.ndarray, out_ptr: np.ndarray, out_dst: np.ndarray, mode: np.ndarray, cause: np.ndarray,
               since: np.ndarray, p_hold: np.ndarray, lost: np.ndarray, cur_kappa: np.ndarray, cur_swd: np.ndarray,
-              params: np.ndarray, events: np.ndarray, fired: np.ndarray, out_mode: np.ndarray) -> int:
+              params: np.ndarray, events: np.ndarray, floats: np.ndarray, fired: np.ndarray, out_mode: np.ndarray,
+              out_pmode: np.ndarray) -> int:
     """Ticks ``k0 .. k1-1``; returns -1, or the first tick this loop does not model (nothing of that
-    tick is kept). It models FLYING and HOLD with the causes ``leader`` and ``unreachable``, and edges
-    dropped and restored (``agent.safety.Supervisor``); a bound of ``[safety]`` reached, LAND (HOLD
-    past ``land_after``) or a value not finite where a mode would take it is left to the Python engine.
+    tick is kept). It models FLYING and HOLD with the causes ``leader`` and ``unreachable``, edges
+    dropped and restored, and in 2D LAND and LANDED (``agent.safety.Supervisor``); a bound of
+    ``[safety]`` reached, a landing in 3D or a value not finite where a mode would take it is left to
+    the Python engine.
 
     State carried between calls: ``p, v, a`` (the plants), ``last_u``, ``kp, kv``, ``used``, the
     history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N the leader) and ``hmode``
     ``(R, N+1)`` (the mode each sample carried), and each supervisor's ``mode, cause, since, p_hold,
     lost`` (the dropped edges: bit b for link slot b) with the law over its surviving edges
     (``cur_kappa, cur_swd``; ``kappa, swd`` the mission's). ``params``: ``land_after, hold_kp,
-    hold_kv``. Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, mask, mask; ``fired[0]``
-    counts them. ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
+    hold_kv, land_settle, STILL``. Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, mask,
+    mask (LANDED's held time and speed to ``floats``); ``fired[0]`` counts them. ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
     Python's, in its order (the comments name the function)."""
     n, d = p.shape
     ring = hist.shape[1]
@@ -368,6 +409,8 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     land_after = params[0]
     hold_kp = params[1]
     hold_kv = params[2]
+    land_settle = params[3]
+    still = params[4]
     width = out_age.shape[2]
     age_of = np.empty(max(width, 1))
     u = np.empty((n, d))
@@ -379,7 +422,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     gone = np.zeros(n + 1, dtype=np.bool_)
     stack = np.empty(n + 1, dtype=np.int64)
     nan = math.nan
-    flying, hold = _FLYING, _HOLD
+    flying, hold, land, landed = _FLYING, _HOLD, _LAND_MODE, _LANDED_MODE
     for k in range(k0, k1):
         t = k * h
         keep = record or k == steps
@@ -443,17 +486,8 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                                 stack[top] = nxt
             new = missing if reachable else 0
             if new != lost[i]:  # edges dropped or restored: an event, and the law over the others
-                if fired[0] >= events.shape[0]:
+                if not _event(events, fired, k, i, mode[i], mode[i], _EDGES, new & ~lost[i], lost[i] & ~new):
                     return k
-                row = fired[0]
-                events[row, 0] = k
-                events[row, 1] = i
-                events[row, 2] = mode[i]
-                events[row, 3] = mode[i]
-                events[row, 4] = _EDGES
-                events[row, 5] = new & ~lost[i]
-                events[row, 6] = lost[i] & ~new
-                fired[0] += 1
                 lost[i] = new
                 if new == 0:  # the mission's own law
                     cur_kappa[i] = kappa[i]
@@ -514,25 +548,25 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 u[i, c] = (sa - kp[i, c] * e - kv[i, c] * z) / ka
                 kpn[c] = 1.0 + (kp[i, c] - 1.0) * decay + gp * (e * e)
                 kvn[c] = 1.0 + (kv[i, c] - 1.0) * decay + gv * (z * z)
-            # Supervisor._diverged (|xi|, the gains, a finite command), the engine's diverge_at, the
-            # speed bound: any of them changes the mode in a way this loop does not follow
-            sq = xi[0] * xi[0]
-            for c in range(1, d):
-                sq = sq + xi[c] * xi[c]
-            err = math.sqrt(sq) if sq == sq else math.inf
-            if not err <= max_err:
-                return k
+            # the engine's diverge_at (every mode): the run ends there
             for c in range(d):
-                if not (kp[i, c] <= gain_cap and kv[i, c] <= gain_cap):
+                if not abs(xi[c]) <= diverge_at:
                     return k
-                if not math.isfinite(u[i, c]) or not abs(xi[c]) <= diverge_at:
+            active = mode[i] == flying or mode[i] == hold
+            if active:
+                # Supervisor._diverged (|xi|, the gains, a finite command) and the speed bound: mode
+                # changes this loop does not follow
+                sq = xi[0] * xi[0]
+                for c in range(1, d):
+                    sq = sq + xi[c] * xi[c]
+                err = math.sqrt(sq) if sq == sq else math.inf
+                if not err <= max_err:
                     return k
-            sq = v[i, 0] * v[i, 0]
-            for c in range(1, d):
-                sq = sq + v[i, c] * v[i, c]
-            speed = math.sqrt(sq) if sq == sq else math.inf
-            if speed > max_speed:
-                return k
+                for c in range(d):
+                    if not (kp[i, c] <= gain_cap and kv[i, c] <= gain_cap) or not math.isfinite(u[i, c]):
+                        return k
+                if _norm(v, i) > max_speed:
+                    return k
             # Supervisor.command: HOLD's causes (the leader silent for an agent that hears it, then
             # the leader no longer reaching it), and what each does to the mode
             why = 0  # a code of _CAUSES
@@ -541,49 +575,59 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
             elif not reachable:
                 why = _HOLD_UNREACHABLE
             change = -1
-            if mode[i] == flying and why != 0:
+            kind = 0
+            if active and mode[i] == flying and why != 0:
                 for c in range(d):
                     if not math.isfinite(p[i, c]):
                         return k  # HOLD with nowhere to hold: the Python engine's (a zero command)
-                change = hold
+                change, kind = hold, why
                 cause[i] = why
                 for c in range(d):
                     p_hold[i, c] = p[i, c]
-            elif mode[i] == hold and why != 0 and why != cause[i]:
+            elif active and mode[i] == hold and why != 0 and why != cause[i]:
                 cause[i] = why  # another reason keeps it holding; the clock to LAND runs on
-            elif mode[i] == hold:
+            elif active and mode[i] == hold:
                 if why == 0:
-                    change = flying
+                    change, kind = flying, _RECOVERED
                 elif t - since[i] >= land_after:
-                    return k  # LAND
+                    if three:
+                        return k  # a 3D landing (Landing's memory, the ground): the Python engine's
+                    change, kind = land, _LAND
             if change >= 0:
-                if fired[0] >= events.shape[0]:
+                if not _event(events, fired, k, i, mode[i], change, kind,
+                              missing if kind == _HOLD_UNREACHABLE else cause[i], 0):
                     return k
-                row = fired[0]
-                events[row, 0] = k
-                events[row, 1] = i
-                events[row, 2] = mode[i]
-                events[row, 3] = change
-                events[row, 4] = why if change == hold else _RECOVERED
-                events[row, 5] = missing if change == hold else cause[i]
-                events[row, 6] = 0
-                fired[0] += 1
                 mode[i] = change
                 since[i] = t
-            if mode[i] == hold:  # failsafe.hold: brake and return to p_hold, saturated
+            if mode[i] == land:  # 2D: failsafe.landed (still, or held land_settle), else HOLD's law
+                held = t - since[i]
+                speed = _norm(v, i)
+                if speed < still or held >= land_settle:
+                    row = fired[0]
+                    if not _event(events, fired, k, i, land, landed, _LANDED, 0, 0):
+                        return k
+                    floats[row, 0] = held
+                    floats[row, 1] = speed
+                    mode[i] = landed
+                    since[i] = t
+            if mode[i] == landed:  # a zero command; the plant rests
                 for c in range(d):
-                    u[i, c] = -hold_kv * v[i, c] - hold_kp * (p[i, c] - p_hold[i, c])
-            # failsafe.saturate
-            uu = u[i, 0] * u[i, 0]
-            for c in range(1, d):
-                uu = uu + u[i, c] * u[i, c]
-            if not math.isfinite(uu):
-                return k  # HOLD's command not finite: the Python engine's (a zero command)
-            norm = math.sqrt(uu)
-            if not norm <= max_accel:
-                scale = max_accel / norm
-                for c in range(d):
-                    u[i, c] = u[i, c] * scale
+                    u[i, c] = 0.0
+            else:
+                if mode[i] != flying:  # failsafe.hold (LAND in 2D too): brake, return to p_hold
+                    for c in range(d):
+                        u[i, c] = -hold_kv * v[i, c] - hold_kp * (p[i, c] - p_hold[i, c])
+                # failsafe.saturate
+                uu = u[i, 0] * u[i, 0]
+                for c in range(1, d):
+                    uu = uu + u[i, c] * u[i, c]
+                if not math.isfinite(uu):
+                    return k  # HOLD's command not finite: the Python engine's (a zero command)
+                norm = math.sqrt(uu)
+                if not norm <= max_accel:
+                    scale = max_accel / norm
+                    for c in range(d):
+                        u[i, c] = u[i, c] * scale
             if keep:
                 for c in range(d):
                     out_p[r, i, c] = p[i, c]
@@ -595,6 +639,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     out_kp[r, i, c] = kp[i, c]
                     out_kv[r, i, c] = kv[i, c]
                 out_mode[r, i] = mode[i]
+                out_pmode[r, i] = landed if mode[i] == landed else flying  # the plant's watchdog
             for l in range(lo, hi):
                 s = newest[k, l]
                 age = age_of[l - lo]
@@ -612,9 +657,15 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 last_u[i, c] = u[i, c]
         if k == steps:
             break
-        # plant.double_integrator.step with the bank's increments of tick k
+        # plant.double_integrator.step with the bank's increments of tick k; a LANDED vehicle rests
+        # where it was (plant.rest.Resting: its model, stepped on, is never reported again)
         j = k - k0
         for i in range(n):
+            if mode[i] == landed:
+                for c in range(d):
+                    v[i, c] = 0.0
+                    a[i, c] = 0.0
+                continue
             for c in range(d):
                 pn = p[i, c] + h * v[i, c] + hh2 * u[i, c] + dp[j, i, c]
                 vn = v[i, c] + h * u[i, c] + dv[j, i, c]

@@ -288,20 +288,49 @@ def leaves_the_nominal_path(m: ms.Mission) -> Run:
     return run
 
 
-def test_a_link_silent_past_its_timeout_is_left_to_the_python_engine() -> None:
-    """Agent 3 hears nothing from agent 2 from t = 2 s: its edge is dropped (an event) after 1 s."""
-    m = load_mission(builtin_path("section4"), 6.0)
+def test_an_orphan_held_past_land_after_lands_in_2d_as_in_the_python_engine() -> None:
+    """Agent 3 hears nothing from agent 2 from t = 2 s: edge lost, the leader no longer reaches it,
+    HOLD, LAND after land_after, LANDED (still, or held land_settle); its plant rests where it was, and
+    agent 4 behind it loses it in turn. The twin follows every step, events worded as the supervisor's."""
+    m = load_mission(builtin_path("section4"), 16.0)
     net = Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=2.0, src=2, dst=3),))
-    run = leaves_the_nominal_path(replace(m, netem=net))
-    assert any("lost" in ev.reason for ev in run.safety.events)
+    run = compiled_equals_python(replace(m, netem=net))
+    reasons = [e.reason for e in run.safety.events]
+    assert any(why.startswith("held for 2 s (unreachable)") for why in reasons)
+    assert any(why == "still" or why.startswith("landing held") for why in reasons)
+    landed = run.safety.plant_mode[-1] == wire.LANDED
+    assert landed.sum() >= 2  # agent 3, then agent 4 behind it
+    rows = np.nonzero(run.safety.safety_mode[:, landed.argmax()] == wire.LANDED)[0]
+    assert (run.v[rows[1]:, landed.argmax()] == 0.0).all()  # rests, reported still
+    assert (np.diff(run.p[rows[1]:, landed.argmax()], axis=0) == 0.0).all()
 
 
-def test_a_silent_leader_is_left_to_the_python_engine() -> None:
-    m = load_mission(builtin_path("section4"), 4.0)
+@pytest.mark.parametrize("settle", [5.0, 0.2])
+def test_a_silent_leader_lands_every_agent_in_2d_as_in_the_python_engine(settle: float) -> None:
+    """Every agent lands: still (the default land_settle), or stopped after land_settle while its
+    HOLD law still sways it (0.2 s)."""
+    m = load_mission(builtin_path("section4"), 12.0)
     lid = m.leader.id
     net = Network(rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.8)), src=lid),))
-    run = leaves_the_nominal_path(replace(m, netem=net))
-    assert any("leader silent" in ev.reason for ev in run.safety.events)
+    run = compiled_equals_python(replace(m, netem=net, safety=replace(m.safety, land_settle=settle)))
+    reasons = [ev.reason for ev in run.safety.events]
+    assert "leader silent" in reasons
+    assert (run.safety.safety_mode[-1] == wire.LANDED).all()
+    if settle < 1.0:
+        assert any(why.startswith("landing held 0.20 s (land_settle), still moving at") for why in reasons)
+    else:
+        assert reasons.count("still") == 4
+
+
+def test_a_3d_landing_is_left_to_the_python_engine() -> None:
+    """In 3D, LAND descends with Landing's memory onto the ground: the twin gives the run back there."""
+    m = random_mission(np.random.default_rng(12), 3, dim=3, duration=8.0)
+    m = replace(m, agents=[replace(a, p0=[a.p0[0], a.p0[1], 3.0 + a.p0[2]]) for a in m.agents],
+                safety=replace(m.safety, ground=-1.0, land_after=1.0),
+                netem=Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=1.0,
+                                              src=m.leader.id),)))
+    run = leaves_the_nominal_path(m)
+    assert any(ev.dst == wire.LAND for ev in run.safety.events)
 
 
 @pytest.mark.parametrize("bound", ["max_formation_error", "gain_cap", "max_speed", "max_accel"])
