@@ -25,7 +25,7 @@ from collections.abc import Iterable
 import msgspec
 import numpy as np
 
-from tether.netprofile import Bernoulli, GilbertElliott, LinkProfile, ProfileError, is_identity, validate
+from tether.netprofile import GilbertElliott, LinkProfile, ProfileError, is_identity, validate
 
 STREAM_KEY = 0x6E65_7465
 """Last word of the seed of every link generator (``"nete"``): keeps link streams apart from the
