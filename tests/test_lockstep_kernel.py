@@ -43,7 +43,7 @@ def assert_same_run(a: Run, b: Run) -> None:
 def compiled_equals_python(m: ms.Mission, **kw: object) -> Run:
     """The twin runs ``m`` itself (no fallback) and equals the Python engine; returns the twin's run."""
     fast = lockstep_kernel.simulate(m, **kw)  # type: ignore[arg-type]
-    assert fast is not None, "the twin left the nominal path: this mission does not test it"
+    assert fast is not None, "the twin gave this run back to the Python engine: the mission does not test it"
     assert_same_run(fast, lockstep.simulate(m, engine="python", **kw))  # type: ignore[arg-type]
     return fast
 
@@ -275,10 +275,10 @@ def test_random_graphs_under_long_bursts_equal_the_python_engine(seed: int) -> N
     assert run.safety.events
 
 
-# ------------------------------------------------------------------- leaving the nominal path
+# ------------------------------------------------------------------- runs given back to the Python engine
 
 
-def leaves_the_nominal_path(m: ms.Mission) -> Run:
+def given_back(m: ms.Mission) -> Run:
     """The twin gives up on ``m`` (None), and the default engine's run is the Python engine's."""
     assert lockstep_kernel.unsupported(m) is None
     assert lockstep_kernel.simulate(m) is None
@@ -329,7 +329,7 @@ def test_a_3d_landing_is_left_to_the_python_engine() -> None:
                 safety=replace(m.safety, ground=-1.0, land_after=1.0),
                 netem=Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=1.0,
                                               src=m.leader.id),)))
-    run = leaves_the_nominal_path(m)
+    run = given_back(m)
     assert any(ev.dst == wire.LAND for ev in run.safety.events)
 
 
@@ -343,7 +343,7 @@ def test_a_safety_bound_reached_is_left_to_the_python_engine(bound: str) -> None
     if bound == "max_accel":  # saturation is the nominal path: the twin scales the command itself
         compiled_equals_python(m)
         return
-    run = leaves_the_nominal_path(m)
+    run = given_back(m)
     assert run.safety.events
 
 
@@ -360,7 +360,7 @@ def test_a_3d_vehicle_through_the_ground_is_left_to_the_python_engine() -> None:
     m = random_mission(np.random.default_rng(9), 3, dim=3, duration=3.0)
     m = replace(m, agents=[replace(a, p0=[a.p0[0], a.p0[1], 0.05]) for a in m.agents],
                 safety=replace(m.safety, ground=0.0))
-    leaves_the_nominal_path(m)
+    given_back(m)
 
 
 @pytest.mark.parametrize("section", [
