@@ -88,20 +88,18 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     if engine != "python":
         from sim import lockstep_kernel
 
-        why = lockstep_kernel.unsupported(m)
-        if why is not None and engine == "compiled":
+        why = lockstep_kernel.unsupported(m) if engine == "compiled" else None
+        if why is not None:
             raise ValueError(f"the compiled engine cannot run {m.name}: {why}")
-        if why is None:
-            fast = lockstep_kernel.simulate(m, duration=duration, record=record, progress=progress,
-                                            diverge_at=diverge_at)
-            if fast is not None:
-                return fast
+        fast = lockstep_kernel.simulate(m, duration=duration, record=record, progress=progress,
+                                        diverge_at=diverge_at)  # None: unsupported, or given back
+        if fast is not None:
+            return fast
     h, d = m.dt, m.dim
-    steps = m.steps if duration is None else int(round(duration * m.rate))
+    steps = steps_of(m, duration)
     ids = m.agent_ids
     n = len(ids)
     lid = m.leader.id
-    ref = profile.build(m.leader, d)
     ticks = [AgentTick.from_mission(m, i) for i in ids]
     # each plant rests on the ground or cuts its motors when its agent's supervisor says so, as the
     # plant process's watchdog does (transparent while every vehicle flies)
@@ -122,16 +120,14 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     senders = sorted({j for tk in ticks for j in tk.law.neighbours})
 
     avoid = m.safety.avoid is not None  # every vehicle hears the others' states (range sensing)
-    meta = RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
-                   seed=m.seed)
+    meta = meta_of(m, steps)
     rows = steps + 1 if record else 1
     run = Run.empty(rows, ids, d, meta)
     ages = np.full((rows, n, width), np.nan)
     every = max(1, steps // 100)
     # the leader's reference at every tick at once (numpy evaluates it element by element: the
     # same values as the leader process's one call per tick)
-    lead_p, lead_v, lead_a = (np.broadcast_to(np.asarray(x, dtype=float), (steps + 1, d))
-                              for x in ref(np.arange(steps + 1) * h))
+    lead_p, lead_v, lead_a = leader_of(m, np.arange(steps + 1) * h)
     single = len(hosts) == 1 and order == [(hosts[0], r) for r in range(n)]  # one host, in agent order
     out_rows: list[list] = [[] for _ in range(6)]  # this tick's u, xi, zeta, kp, kv and modes, per agent
 
@@ -239,6 +235,25 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     for host in hosts:
         host.close()
     return run
+
+
+def steps_of(m: Mission, duration: float | None) -> int:
+    """The run's last tick: the mission's, or ``duration`` [s] at its rate."""
+    return m.steps if duration is None else int(round(duration * m.rate))
+
+
+def meta_of(m: Mission, steps: int) -> RunMeta:
+    """The in-process engine's run metadata (either form of it)."""
+    return RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
+                   seed=m.seed)
+
+
+def leader_of(m: Mission, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The leader's reference ``p, v, a`` at every tick time, ``(T, d)`` each (numpy evaluates the
+    profile element by element: the same values as the leader process's one call per tick)."""
+    p, v, a = (np.broadcast_to(np.asarray(x, dtype=float), (len(times), m.dim))
+               for x in profile.build(m.leader, m.dim)(times))
+    return p, v, a
 
 
 def _abs_max(xs: list[float]) -> float:

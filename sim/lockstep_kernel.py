@@ -40,14 +40,13 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from agent.law import AgentLaw
-from leader import profile
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
 from sim import kernel, lockstep
 from tether import failsafe, wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
-from tether.runfile import Links, Run, RunMeta
+from tether.runfile import Links, Run
 
 if TYPE_CHECKING:
     from netem.link import Channel
@@ -90,14 +89,15 @@ def unsupported(m: Mission) -> str | None:
     # the Python engine's hosts (its grouping of the plants decides the banks' branches)
     if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep.hosts_of(m)):
         return "a vehicle with mass (only double integrators are compiled)"
-    if max((len(AgentLaw.from_mission(m, i).neighbours) for i in m.agent_ids), default=0) > MAX_IN:
+    ins = {i: AgentLaw.from_mission(m, i).neighbours for i in m.agent_ids}
+    if max(map(len, ins.values()), default=0) > MAX_IN:
         return f"an agent with more than {MAX_IN} in-neighbours"
     if m.netem is not None:
         from netem.channel import batchable
         from tether.netprofile import schedule
 
-        for i in m.agent_ids:
-            for j in AgentLaw.from_mission(m, i).neighbours:
+        for i, neighbours in ins.items():
+            for j in neighbours:
                 if not all(batchable(prof) for _, prof in schedule(m.netem, j, i)):
                     return (f"link {j}->{i}: a profile with duplication, reordering, corruption, a rate "
                             "limit or an outage")
@@ -112,7 +112,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     if unsupported(m) is not None:
         return None
     h, d = m.dt, m.dim
-    steps = m.steps if duration is None else int(round(duration * m.rate))
+    steps = lockstep.steps_of(m, duration)
     ids = m.agent_ids
     n = len(ids)
     lid = m.leader.id
@@ -174,14 +174,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         out_ptr[src_c + 1] += 1
     out_ptr = np.cumsum(out_ptr)
     out_dst = np.array([dst_c for _, dst_c in edges], dtype=np.int64)
-    ref = profile.build(m.leader, d)
-    lead = np.stack([np.broadcast_to(np.asarray(x, dtype=float), (steps + 1, d)) for x in ref(times)])
-    lead = np.ascontiguousarray(lead)
+    lead = np.ascontiguousarray(np.stack(lockstep.leader_of(m, times)))
 
-    meta = RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
-                   seed=m.seed)
     rows_n = steps + 1 if record else 1
-    run = Run.empty(rows_n, ids, d, meta, mode=wire.FLYING)
+    run = Run.empty(rows_n, ids, d, lockstep.meta_of(m, steps), mode=wire.FLYING)
     ages = np.full((rows_n, n, width), np.nan)
     kappa = np.array([law.kappa for law in laws])
     swd = np.array([law.sum_wdelta for law in laws], dtype=float).reshape(n, d)
