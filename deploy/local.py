@@ -692,6 +692,7 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
     mon, inj = sup.monitor, sup.injector
     end = epoch + m.duration
     settle_by: float | None = None
+    settled_at: float | None = None
     start_checked = False
     settle = o.settle_timeout
 
@@ -724,9 +725,15 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
             log.warning("%s: the survivors carry on; the run ends when every vehicle has landed or at the "
                         "mission's end (in %.1f s at the latest)", trouble[0].line().strip(), settle_by - now)
         if settle_by is not None and now < end and mon.vehicles_settled(live()):
-            log.info("every surviving vehicle has landed or stopped: ending the run")
-            sup.stopped_by_us = True
-            break
+            # the recorder hears the plants' final samples as the monitor does, but not at the same
+            # instant: stopping at the first one heard could leave a vehicle's LANDED out of the run file
+            settled_at = now if settled_at is None else settled_at
+            if now - settled_at >= SETTLED_GRACE:
+                log.info("every surviving vehicle has landed or stopped: ending the run")
+                sup.stopped_by_us = True
+                break
+        else:
+            settled_at = None
         if settle is not None and settle_by is not None and now >= settle_by:
             log.warning("the survivors had %.1f s after the first failure: stopping them", settle)
             sup.stopped_by_us = True
@@ -751,6 +758,11 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
 
 STARTED_WITHIN = 5.0
 """Real time: a process not heard this long after tick 0 is reported as not started [s]."""
+
+SETTLED_GRACE = 0.5
+"""Real time: how long every surviving vehicle must have reported LANDED or ESTOP before the launcher
+ends the run [s], so that their final samples reach the recorder too (a run stopped at the first
+report once lost a plant's LANDED from its run file under load)."""
 
 
 async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervision) -> None:
