@@ -32,7 +32,7 @@ from tether.clock import RealtimeClock
 from tether.inputs import Source
 from tether.rejoin import Rejoin
 from tether.skew import SkewMonitor
-from tether.node import Node
+from tether.node import Node, Stalled
 
 log = logging.getLogger("tether")
 
@@ -165,7 +165,6 @@ async def run(node: Node) -> None:
         # started: the plant's samples are relayed by the tap and read at the tick; the relay goes on
         # while this loop ticks (from its first tick's instant)
         relay_rt.alive_at = max(rt_clock.start, rt_clock.monotonic())
-        node.quieten(plant)
     first = 0
     rejoining = node.rejoined
     ramp = Ramp(sf.max_accel * m.dt / REJOIN_RAMP, m.dim) if node.rejoined else None
@@ -190,6 +189,10 @@ async def run(node: Node) -> None:
             got = await node.aligned([*nbrs, *proximity], k)
         else:
             own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
+            if own is None and k == first and rt_clock is not None and await _first_sample(node, plant):
+                own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
+            if k == first and relay_rt is not None:
+                node.quieten(plant)  # from now on read at the tick only (it woke the loop until the first)
         if clocks is not None:
             estimates = clocks.report()
             if estimates is not reported:  # an estimate moved (once a block at most): said anew
@@ -274,6 +277,23 @@ async def run(node: Node) -> None:
                 pending[1].clear()
     if onboard is not None:
         onboard.close()
+
+
+async def _first_sample(node: Node, plant: Source) -> bool:
+    """Real time, the first tick, the plant not heard yet: wait for its first sample, ``cmd_timeout``
+    at most (its plant's watchdog waits as long for a first command). At a loaded start (16 agents on
+    two cores: 34 processes begin their loops at one instant) an agent's first tick often came before
+    its plant's first sample had been drained; skipped, it left that agent's command and telemetry of
+    tick 0 out of the run (exit 5 in most such runs). The tick is now late instead. The plant's samples
+    wake the loop until then (quietened after the first tick), so the wait ends as the sample arrives.
+    True once the plant has been heard; False if it stays silent (the tick has nothing to act on, and
+    later ticks do not wait)."""
+    try:
+        await node.until(lambda: plant.newest is not None, node.mission.safety.cmd_timeout,
+                         f"plant {plant.sender}'s first sample")
+    except Stalled:
+        pass
+    return plant.newest is not None
 
 
 class Ramp:
