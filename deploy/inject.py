@@ -116,6 +116,8 @@ class Monitor:
         self.events: list[Event] = []
         self.modes: dict[str, int] = {}
         """Newest mode of each agent (telemetry) and plant (plant state) heard."""
+        self.height: dict[str, float] = {}
+        """Newest height (last coordinate, finite) of each plant heard [m]."""
         self.heard: set[str] = set()
         self.newest: dict[str, bytes] = {}
         """Newest raw sample of each state key (for forging)."""
@@ -206,6 +208,8 @@ class Monitor:
         sf = self.mission.safety
         self.heard.add(name)
         judged = self.modes.get(name, wire.FLYING) in JUDGED
+        if isinstance(msg, wire.PlantState) and msg.p and math.isfinite(msg.p[-1]):
+            self.height[name] = msg.p[-1]
         if isinstance(msg, wire.Telemetry) or isinstance(msg, wire.PlantState):
             mode = msg.mode
             before = self.modes.get(name, wire.FLYING)
@@ -237,6 +241,11 @@ class Monitor:
         """Every live agent and plant reports a final mode (LANDED or ESTOP)."""
         names = [n for n in live if n.startswith(("agent/", "plant/"))]
         return bool(names) and all(self.modes.get(n, wire.FLYING) in FINAL for n in names)
+
+    def unsettled_heights(self, live: set[str]) -> dict[str, float]:
+        """The newest height of each live plant not reporting a final mode (LANDED or ESTOP)."""
+        return {n: h for n, h in self.height.items()
+                if n in live and n.startswith("plant/") and self.modes.get(n, wire.FLYING) not in FINAL}
 
     def any_obeying(self, live: set[str]) -> bool:
         """Some live agent or plant reports a mode other than FLYING."""

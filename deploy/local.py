@@ -542,6 +542,41 @@ def _land_bound(m: ms.Mission) -> float:
     return max(0.0, descent) + 3.0
 
 
+class Descent:
+    """How long the launcher waits for the vehicles to land after a Ctrl-C (pure): ``bound`` [s], and,
+    when ``extends`` (3D, no ``--land-timeout``), as long after it as some vehicle not yet landed has
+    come :data:`LAND_PROGRESS` lower within the last :data:`LAND_STALL` seconds, :data:`LAND_CAP`
+    times ``bound`` at most. A vehicle held up (hovering against a push, or a supervisor that does not
+    land it) stops extending it."""
+
+    def __init__(self, extends: bool, bound: float):
+        self.extends = extends
+        self.bound = bound
+        self.cap = bound * LAND_CAP if extends else bound
+        self._lowest: dict[str, float] = {}
+        self._progress_at = 0.0
+
+    def limit(self, waited: float, heights: dict[str, float]) -> float:
+        """The wait's end [s after the order], given the unsettled vehicles' newest heights ``waited``
+        seconds after it."""
+        if not self.extends:
+            return self.bound
+        for name, h in heights.items():
+            low = self._lowest.get(name)
+            if low is None or h <= low - LAND_PROGRESS:
+                self._lowest[name] = h
+                if low is not None:
+                    self._progress_at = waited
+        return min(self.cap, max(self.bound, self._progress_at + LAND_STALL))
+
+
+LAND_PROGRESS = 0.005
+"""After a Ctrl-C, a vehicle is still descending while it comes this much lower [m] ...
+(pushed up by 0.5 m/s^2, the last centimetres before touchdown were seen to take 2.7 mm/s)"""
+LAND_STALL = 5.0
+"""... within this long [s] (:class:`Descent`)."""
+LAND_CAP = 6.0
+"""The longest the launcher waits for a descent still under way, in multiples of the nominal bound."""
 OBEY_TIMEOUT = 2.0
 """After the launcher's land order, stop at once if no vehicle has left FLYING by then [s]."""
 EXIT_GRACE = 30.0
@@ -772,9 +807,13 @@ async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervisi
 
     m = launch.mission
     mon = sup.monitor
+    given = launch.opts.land_timeout is not None
     bound = launch.opts.land_timeout if launch.opts.land_timeout is not None else _land_bound(m)
-    log.warning("interrupted: ordering every vehicle to land (Ctrl-C again to stop at once; waiting %.1f s at "
-                "most)", bound)
+    # 3D, no --land-timeout: a descent still under way keeps the launcher waiting (LAND_PROGRESS), so
+    # that a landing slowed by a push up (a cable's pull) is not cut off at the descent's nominal time
+    descent = Descent(m.dim == 3 and not given, bound)
+    log.warning("interrupted: ordering every vehicle to land (Ctrl-C again to stop at once; waiting %.1f s%s)",
+                bound, ", longer while the vehicles still descend" if descent.extends else " at most")
     sender = asyncio.create_task(operator.publish(session, launch.keys.ns, operator.order("land", "launcher: Ctrl-C"),
                                                   wait=0.5))
     t0 = time.monotonic()
@@ -791,8 +830,9 @@ async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervisi
                 log.warning("no vehicle left FLYING within %.1f s of the land order (no supervisor obeys it): "
                             "stopping", OBEY_TIMEOUT)
                 return
-            if waited > bound:
-                log.warning("not every vehicle landed within %.1f s: stopping", bound)
+            if waited > descent.limit(waited, mon.unsettled_heights(alive)):
+                log.warning("not every vehicle landed within %.1f s%s: stopping", waited,
+                            " (none descending any more)" if waited < descent.cap else "")
                 return
             await asyncio.sleep(0.05)
     finally:

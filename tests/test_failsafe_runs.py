@@ -156,3 +156,58 @@ def test_a_partitioned_agent_is_dropped_by_those_who_can_do_without_and_its_plan
     assert hold is not None and (hold - k0) * h <= 0.5 + 3 * h  # cmd_timeout: its agent's commands stopped
     assert first_tick(run.safety.plant_mode[:, c2], {LAND, LANDED}, hold) is not None  # cut beyond cmd_cutoff
     assert min_separation(run, slice(k0, None)) > 0.3
+
+
+# =========================================================================== Ctrl-C, a slow descent
+def test_after_ctrl_c_the_launcher_waits_while_a_pushed_vehicle_still_descends(tmp_path: Path) -> None:
+    """3D, every vehicle pushed up by 0.5 m/s^2 (a cable's steady pull): Ctrl-C orders them to land, and
+    a landing against that push takes longer than the nominal bound (the descent from the highest
+    start at ``land_speed``, plus 3 s: 6.7 s here; about 12 s are needed). The launcher waits as long
+    as they still come down, and every vehicle's last recorded mode is LANDED. Before, it stopped them
+    at the nominal bound, in the air."""
+    import signal
+    import time
+
+    from deploy import local
+    from tests.support import wait_until
+    from tether import mission as ms
+
+    text = (REPO / "tether" / "missions" / "failsafe.toml").read_text()
+    text = text.replace('offset = [', 'disturbance = { kind = "constant", value = [0.0, 0.0, 0.5] }\noffset = [')
+    mission = tmp_path / "pushed.toml"
+    mission.write_text(text)
+    m = ms.load(mission)
+    bound = local._land_bound(m)
+    out = tmp_path / "run"
+    log = tmp_path / "launcher.log"
+    with open(log, "wb") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(mission), "--clock", "realtime",
+                                 "--duration", "60", "--out", str(out), "--ns", f"push{uuid.uuid4().hex[:8]}",
+                                 "--insecure"], cwd=REPO, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        def flying() -> bool:
+            assert proc.poll() is None, log.read_text()[-3000:]
+            logs = out / "logs"
+            return all("real time: tick 0" in (logs / f"plant-{a}.log").read_text()
+                       for a in m.agent_ids if (logs / f"plant-{a}.log").exists()) and \
+                len(list(logs.glob("plant-*.log"))) == m.n
+        wait_until(flying, 90, "every plant's start")
+        # tick 0's wall-clock instant, as the plants logged it: the formation flies 2 s before the order
+        epoch = float((out / "logs" / f"plant-{m.agent_ids[0]}.log").read_text().split("real time: tick 0 at ")[1]
+                      .split(",")[0])
+        wait_until(lambda: time.time() > epoch + 2.0, 30, "2 s of flight")
+        proc.send_signal(signal.SIGINT)
+        proc.wait(90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    said = log.read_text()
+    assert "every vehicle reports LANDED or ESTOP after" in said, said[-3000:]
+    waited = float(said.split("every vehicle reports LANDED or ESTOP after ")[1].split(" s")[0])
+    print(f"\nlanded {waited:.1f} s after Ctrl-C; nominal bound {bound:.1f} s")
+    assert waited > bound  # what the nominal bound would have cut off
+    rec = Run.load(out)
+    for i, aid in enumerate(rec.agent_ids):
+        modes = rec.safety.plant_mode[:, i]
+        modes = modes[modes >= 0]
+        assert modes[-1] == LANDED, (aid, modes[-1])

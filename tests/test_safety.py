@@ -496,3 +496,26 @@ def test_the_gates_first_reference_is_where_each_sender_really_starts() -> None:
     ref = initial_positions(msgspec.structs.replace(m, leader=leader, agents=agents))
     assert ref[4] == [5.0, 5.0, 2.0]  # the first waypoint, not p0
     assert ref[1] == [1.0, 0.0, 1.8]  # above p0 by the take-off height
+
+
+def test_after_ctrl_c_a_descent_still_under_way_extends_the_launchers_wait_and_a_stalled_one_does_not() -> None:
+    """``deploy.local.Descent`` (pure): 3D without ``--land-timeout``, the wait lasts the nominal bound
+    and then as long as some vehicle not yet landed came LAND_PROGRESS lower in the last LAND_STALL
+    seconds, LAND_CAP times the bound at most; a vehicle hovering (pushed up as hard as it pushes
+    down) ends it; 2D or a given ``--land-timeout``: the bound, whatever the vehicles do."""
+    from deploy.local import LAND_CAP, LAND_PROGRESS, LAND_STALL, Descent
+
+    bound = 6.0
+    fixed = Descent(False, bound)
+    assert all(fixed.limit(t, {"plant/1": 2.0 - 0.1 * t}) == bound for t in range(20))
+    d = Descent(True, bound)
+    h, t = 2.0, 0.0
+    while t < 12.0:  # descending at 0.1 m/s: the wait keeps ahead of it
+        assert d.limit(t, {"plant/1": h, "plant/2": 1.0}) > t
+        t, h = t + 0.05, h - 0.005
+    hover = h
+    ends = [d.limit(t + s, {"plant/1": hover - 0.5 * LAND_PROGRESS, "plant/2": 1.0}) for s in (0.0, 1.0, 2.0)]
+    assert ends[0] == ends[1] == ends[2] <= t + LAND_STALL  # hovering: no more extension
+    slow = Descent(True, bound)  # a descent that never ends: the cap
+    assert max(slow.limit(s * 0.1, {"plant/1": -s * 0.01}) for s in range(2000)) == LAND_CAP * bound
+    assert slow.limit(0.0, {}) >= bound
