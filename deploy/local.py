@@ -352,26 +352,29 @@ class Launch:
         return ended
 
     def terminate(self, grace: float = 5.0, recorder_grace: float | None = None) -> None:
-        """SIGTERM every live child, then SIGKILL those still alive after ``grace`` seconds; the
-        recorder, which writes ``run.npz`` and ``run.mcap`` when stopped, gets ``recorder_grace``
-        (default: :func:`write_grace` of the whole mission)."""
-        live = [c for c in self.children if c.proc.poll() is None]
-        for c in live:
-            c.proc.send_signal(signal.SIGTERM)
-            c.proc.send_signal(signal.SIGCONT)  # a frozen process must run to handle its SIGTERM
-        t0 = time.monotonic()
+        """SIGTERM every live child but the recorder, SIGKILL those still alive after ``grace`` seconds;
+        then the recorder, which writes ``run.npz`` and ``run.mcap`` when stopped, within
+        ``recorder_grace`` (default: :func:`write_grace` of the whole mission). The recorder goes last,
+        once the others have gone: what they sent before (a vehicle's LANDED, the moment before a run
+        ends) has reached it, and it decodes what waits in its queues before writing."""
         if recorder_grace is None:
             recorder_grace = write_grace(self.mission, self.mission.steps)
-        for c in sorted(live, key=lambda c: c.role == "recorder"):  # the recorder last: it has the longest
-            bound = max(grace, recorder_grace) if c.role == "recorder" else grace
-            try:
-                c.proc.wait(max(0.0, t0 + bound - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                if c.role == "recorder":
-                    log.error("the recorder did not finish writing the run files within %.0f s of the stop: "
-                              "killed (run.npz is written first; run.mcap may be missing)", bound)
-                c.proc.kill()
-                c.proc.wait()
+        live = [c for c in self.children if c.proc.poll() is None]
+        for group in ([c for c in live if c.role != "recorder"], [c for c in live if c.role == "recorder"]):
+            for c in group:
+                c.proc.send_signal(signal.SIGTERM)
+                c.proc.send_signal(signal.SIGCONT)  # a frozen process must run to handle its SIGTERM
+            t0 = time.monotonic()
+            for c in group:
+                bound = max(grace, recorder_grace) if c.role == "recorder" else grace
+                try:
+                    c.proc.wait(max(0.0, t0 + bound - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    if c.role == "recorder":
+                        log.error("the recorder did not finish writing the run files within %.0f s of the stop: "
+                                  "killed (run.npz is written first; run.mcap may be missing)", bound)
+                    c.proc.kill()
+                    c.proc.wait()
         self.poll()
 
 
@@ -797,7 +800,9 @@ STARTED_WITHIN = 5.0
 SETTLED_GRACE = 0.5
 """Real time: how long every surviving vehicle must have reported LANDED or ESTOP before the launcher
 ends the run [s], so that their final samples reach the recorder too (a run stopped at the first
-report once lost a plant's LANDED from its run file under load)."""
+report once lost a plant's LANDED from its run file under load). Since, the recorder is also stopped
+last (:meth:`Launch.terminate`) and decodes what waits in its queues before it writes; this margin
+stays for what the router still forwards."""
 
 
 async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervision) -> None:

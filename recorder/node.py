@@ -482,6 +482,13 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         if "started" not in holder:  # stopped before any start: another process's file stays
             log.warning("stopped before the run started: no run file written")
             return
+        # what has arrived waits in the input queues until the next drain (the wildcard streams up to a
+        # period): decoded into the file, not dropped with the process (a vehicle's LANDED, the moment
+        # before the launcher stops the run, was lost so)
+        try:
+            node.drain()
+        except Exception:  # noqa: BLE001 - the file matters more than the last samples
+            log.exception("stopped: the last drain failed; writing what was decoded before it")
         log.info("stopped: writing %s and run.mcap (%d of %d samples)", out / "run.npz", int(rec.count.sum()),
                  rec.expected * len(rec.count))
         rec.save(complete=False, drops=node.receiver.drops)

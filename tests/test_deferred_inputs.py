@@ -199,3 +199,46 @@ async def test_a_tap_runs_on_each_sample_its_failures_are_counted_and_it_stops_w
         sink.tap = racing
         sink.put(tp.Received(key, state(1, 3, H), 0.0))
         assert node.receiver.drops == {"tap_error": 1}  # not an error
+
+
+async def test_a_stopped_recorder_writes_the_samples_still_waiting_in_its_queues(tmp_path) -> None:
+    """The wildcard streams are drained up to a period after they arrive: a recorder stopped in
+    between (the launcher ends a run the moment every vehicle has landed) decodes what waits before it
+    writes the run file; it dropped it, and a vehicle's final LANDED was missing from the file."""
+    import contextlib
+
+    import numpy as np
+
+    from recorder import node as recorder
+    from tether.runfile import Run
+
+    clock = RealtimeClock(H)
+    out = tmp_path / "out"
+    async with live("recorder", clock) as (node, other):
+        run, on_stop = recorder.make(out, mcap=False)
+
+        async def serving() -> None:  # as tether.node.serve runs a role: its helpers in a task group
+            async with asyncio.TaskGroup() as tasks:
+                node.tasks = tasks
+                await run(node)
+
+        task = asyncio.get_running_loop().create_task(serving())
+        start = tp.declare_publisher(other, node.keys.start, tp.SYNC)
+        await tp.wait_for_subscribers(start, WAIT)
+        start.put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=time.time() - 0.05)))
+        await until(lambda: clock.origin is not None, "the recorder's start")
+        await asyncio.sleep(0)  # the run's body goes on to its loop
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        m = node.mission
+        aid = m.agent_ids[0]
+        landed = wire.PlantState(sender=aid, seq=0, k=0, t=0.0, p=list(m.agent(aid).p0), vel=[0.0] * m.dim,
+                                 a=[0.0] * m.dim, d=[0.0] * m.dim, mode=wire.LANDED)
+        key = node.keys.topic("plant", aid, "state")
+        node.deferred.put(tp.Received(key, wire.encode(landed), time.monotonic()))  # arrived, not yet drained
+        on_stop(node)
+    rec = Run.load(out)
+    col = list(rec.agent_ids).index(aid)
+    assert rec.safety.plant_mode[0, col] == wire.LANDED
+    assert np.isfinite(rec.runtime.plant_p[0, col]).all()
