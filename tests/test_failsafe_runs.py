@@ -162,7 +162,7 @@ def test_a_partitioned_agent_is_dropped_by_those_who_can_do_without_and_its_plan
 def test_after_ctrl_c_the_launcher_waits_while_a_pushed_vehicle_still_descends(tmp_path: Path) -> None:
     """3D, every vehicle pushed up by 0.5 m/s^2 (a cable's steady pull): Ctrl-C orders them to land, and
     a landing against that push takes longer than the nominal bound (the descent from the highest
-    start at ``land_speed``, plus 3 s: 6.7 s here; about 12 s are needed). The launcher waits as long
+    start at ``land_speed``, plus 3 s: 6.7 s here; 17 s were measured). The launcher waits as long
     as they still come down, and every vehicle's last recorded mode is LANDED. Before, it stopped them
     at the nominal bound, in the air."""
     import signal
