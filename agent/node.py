@@ -189,9 +189,9 @@ async def run(node: Node) -> None:
             got = await node.aligned([*nbrs, *proximity], k)
         else:
             own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
-            if own is None and k == first and rt_clock is not None and await _first_sample(node, plant):
-                own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
-            if k == first and relay_rt is not None:
+            if k == first and relay_rt is not None:  # real time, the first tick
+                if own is None and await _first_sample(node, plant):
+                    own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
                 node.quieten(plant)  # from now on read at the tick only (it woke the loop until the first)
         if clocks is not None:
             estimates = clocks.report()

@@ -360,13 +360,13 @@ class Launch:
         if recorder_grace is None:
             recorder_grace = write_grace(self.mission, self.mission.steps)
         live = [c for c in self.children if c.proc.poll() is None]
-        for group in ([c for c in live if c.role != "recorder"], [c for c in live if c.role == "recorder"]):
+        for group, bound in (([c for c in live if c.role != "recorder"], grace),
+                             ([c for c in live if c.role == "recorder"], max(grace, recorder_grace))):
             for c in group:
                 c.proc.send_signal(signal.SIGTERM)
                 c.proc.send_signal(signal.SIGCONT)  # a frozen process must run to handle its SIGTERM
             t0 = time.monotonic()
             for c in group:
-                bound = max(grace, recorder_grace) if c.role == "recorder" else grace
                 try:
                     c.proc.wait(max(0.0, t0 + bound - time.monotonic()))
                 except subprocess.TimeoutExpired:
@@ -812,11 +812,11 @@ async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervisi
 
     m = launch.mission
     mon = sup.monitor
-    given = launch.opts.land_timeout is not None
-    bound = launch.opts.land_timeout if launch.opts.land_timeout is not None else _land_bound(m)
+    given = launch.opts.land_timeout
+    bound = given if given is not None else _land_bound(m)
     # 3D, no --land-timeout: a descent still under way keeps the launcher waiting (LAND_PROGRESS), so
     # that a landing slowed by a push up (a cable's pull) is not cut off at the descent's nominal time
-    descent = Descent(m.dim == 3 and not given, bound)
+    descent = Descent(m.dim == 3 and given is None, bound)
     log.warning("interrupted: ordering every vehicle to land (Ctrl-C again to stop at once; waiting %.1f s%s)",
                 bound, ", longer while the vehicles still descend" if descent.extends else " at most")
     sender = asyncio.create_task(operator.publish(session, launch.keys.ns, operator.order("land", "launcher: Ctrl-C"),
