@@ -9,6 +9,7 @@ from __future__ import annotations
 import msgspec
 import numpy as np
 
+from leader import profile
 from sim import kernel
 from sim.refsim import Progress, Setup, check_continuous
 from tether import wire
@@ -114,12 +115,25 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     sin_m, cos_m = kernel.rotation_tables(omega, h, substeps)
     sines = kernel.sine_pairs(omega, phase)  # the leader's elements (0, 0): sin 0, amplitude 0
     state = y.reshape(4, d * (n + 1))  # a view: the kernel's flat layout
+    # the exponential profile (Section 4's, a hold's) in closed form in the kernel; any other
+    # evaluated here at every stage time
+    exp_lead = isinstance(s.ref, profile.ExpAccel)
+    if exp_lead:
+        assert isinstance(s.ref, profile.ExpAccel)
+        lead0 = np.ascontiguousarray(np.stack([s.ref.p0, s.ref.v0, s.ref.a0]), dtype=float)
+        decay = float(s.ref.decay)
+        em, xm = kernel.exp_tables(decay, h, substeps)
+        ref_p = ref_v = ref_a = np.zeros((d, 0))
+    else:
+        lead0, decay, (em, xm) = np.zeros((3, d)), 0.0, (np.zeros(0), np.zeros(0))
     for k0, k1 in _chunks(steps):
-        times = kernel.stage_times(k0, k1, h, substeps)
-        ref = s.ref(times.ravel())
-        # axis first, (d, stages): for ExpAccel's (T, d) views of (d, T) arrays, no copy
-        ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d)).T) for x in ref)
-        kernel.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, times, kappa,
+        if not exp_lead:
+            times = kernel.stage_times(k0, k1, h, substeps)
+            # axis first, (d, stages)
+            ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d)).T)
+                                   for x in s.ref(times.ravel()))
+        kernel.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, exp_lead, lead0, decay,
+                          em, xm, kappa,
                           slot_src, slot_w, swd, a_lead, *plan.kernel_args(), prm.gamma_p, prm.gamma_v,
                           prm.sigma, const, amp, *sines, table, hold, has_random, sin_m, cos_m, *_outputs(run))
         if progress is not None and k1 <= steps:

@@ -15,7 +15,8 @@ arithmetic, operation for operation, agent by agent, without a numpy temporary p
   numba's threads.
 * :func:`continuous` is the continuous mode's RK4, every stage in one function body, one axis
   after the other (the law's gains are per axis and ``L1`` acts on each axis alone); the leader's
-  profile is evaluated by numpy beforehand at every stage time (:func:`stage_times`). The algebraic
+  profile is evaluated by numpy beforehand at every stage time (:func:`stage_times`), or in the
+  kernel in closed form for the exponential profile (Section 4's and a hold's). The algebraic
   loop ``L1 a = b`` is solved block by block over the graph's strongly connected components
   (:class:`SolvePlan`; the whole ``L1^{-1}`` for a few agents, forward substitution when no agent
   is on a cycle), the sinusoids are rotated from their phase at each control tick by the
@@ -520,7 +521,8 @@ def solve_plan(n: int, src: np.ndarray, dst: np.ndarray, weight: np.ndarray, kap
 
 @_jit_numpy_errors
 def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: int, y: np.ndarray,
-               ref_p: np.ndarray, ref_v: np.ndarray, ref_a: np.ndarray, times: np.ndarray,
+               ref_p: np.ndarray, ref_v: np.ndarray, ref_a: np.ndarray,
+               exp_lead: bool, lead0: np.ndarray, decay: float, em: np.ndarray, xm: np.ndarray,
                kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
                perm: np.ndarray, dense: bool, block_ptr: np.ndarray, ext_ptr: np.ndarray, ext_src: np.ndarray,
                ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float,
@@ -534,10 +536,12 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     Structure of arrays, axis first and flat: element ``x = c (N+1) + i`` is agent i's axis c, agents
     in solving order (:class:`SolvePlan`; agent ``perm[q]`` at position q, the samples written back
     in the mission's order), ``x = c (N+1) + N`` the leader's. ``y`` ``(4, d (N+1))`` the state
-    [p, v, Kp, Kv] (the leader's elements unused: its state comes from ``ref_*``); the bank's and the
-    law's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; ``times`` ``(k1 - k0,
-    substeps, 3)`` (:func:`stage_times`) and the leader's reference at those times, ``ref_*``
-    ``(d, (k1 - k0) substeps 3)``; ``sin_m, cos_m`` ``(2 substeps + 1, d (N+1))`` the sine and
+    [p, v, Kp, Kv] (the leader's elements unused: its state is its reference); the bank's and the
+    law's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; the leader's reference at
+    the stage times (:func:`stage_times`), ``ref_*`` ``(d, (k1 - k0) substeps 3)``, unless
+    ``exp_lead``: then the leader is :class:`leader.profile.ExpAccel` (``lead0`` its ``p0, v0, a0``,
+    ``(3, d)``; ``decay``), evaluated here in closed form (``em, xm``: :func:`exp_tables`), and
+    ``ref_*`` are not read; ``sin_m, cos_m`` ``(2 substeps + 1, d (N+1))`` the sine and
     cosine of ``omega m hf / 2``; ``u_omega, u_phase, u_inv`` the distinct sinusoids and each
     element's (:func:`sine_pairs`: each sine and cosine of a control step once per distinct pair,
     and not once per agent and axis that has it).
@@ -583,6 +587,12 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     dist1 = np.zeros(nx)  # and its middle
     sin0 = np.empty(nx)
     cos0 = np.empty(nx)
+    lp = np.empty(d)  # the leader's reference at the stage's time
+    lv = np.empty(d)
+    la = np.empty(d)
+    e_k = 1.0  # exp(-decay t_k), expm1(-decay t_k): the closed-form leader's, rotated to each stage time
+    x_k = 0.0
+    inv_decay = 1.0 / decay if decay != 0.0 else 0.0
     snu = np.empty(u_omega.shape[0])
     csu = np.empty(u_omega.shape[0])
     coef = (0.0, 0.5 * hf, 0.5 * hf, hf)
@@ -591,6 +601,9 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
         q = k - k0
         t = k * h
         final = k == steps
+        if exp_lead and decay != 0.0:
+            e_k = math.exp(-decay * t)
+            x_k = math.expm1(-decay * t)
         for u in range(u_omega.shape[0]):
             th = u_omega[u] * t + u_phase[u]
             snu[u] = math.sin(th)
@@ -612,9 +625,33 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                     for x in range(nx):
                         pin[x] = y[0, x] + a * vin[x]  # the position's slope is the stage's velocity
                         vin[x] = y[1, x] + a * sl_v[x]
+                # the leader at the stage's time: the two mid-step stages share it and, as the
+                # disturbance, a substep's first stage has the previous substep's last
+                if st != 2 and (st != 0 or j == 0 or not exp_lead):
+                    if exp_lead:
+                        # ExpAccel.__call__'s arithmetic; exp and expm1 of -decay tt by the addition
+                        # formulas from t_k's (tt = t_k + m hf / 2 up to rounding): a few ulp
+                        ts = t + j * hf
+                        tt = ts if at == 0 else (ts + 0.5 * hf if at == 1 else ts + hf)
+                        m = 2 * j + at
+                        if decay == 0.0:
+                            ee, i1, i2 = 1.0, tt, 0.5 * tt * tt
+                        else:
+                            ee = e_k * em[m]
+                            i1 = -(x_k * em[m] + xm[m]) * inv_decay
+                            i2 = (tt - i1) * inv_decay
+                        for c in range(d):
+                            lp[c] = lead0[0, c] + lead0[1, c] * tt + lead0[2, c] * i2
+                            lv[c] = lead0[1, c] + lead0[2, c] * i1
+                            la[c] = lead0[2, c] * ee
+                    else:
+                        for c in range(d):
+                            lp[c] = ref_p[c, ix]
+                            lv[c] = ref_v[c, ix]
+                            la[c] = ref_a[c, ix]
                 for c in range(d):
-                    pin[c * n1 + n] = ref_p[c, ix]
-                    vin[c * n1 + n] = ref_v[c, ix]
+                    pin[c * n1 + n] = lp[c]
+                    vin[c * n1 + n] = lv[c]
                 # the second mid-step stage has the first's disturbance; without random terms, a
                 # substep's first stage has the previous substep's last (the same time, rotation m)
                 if st != 2 and (st != 0 or j == 0 or has_random):
@@ -626,7 +663,9 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                         for x in range(nx):
                             dist0[x] = const[x] + amp[x] * (sin0[x] * cos_m[m, x] + cos0[x] * sin_m[m, x])
                     if has_random:
-                        kd = int(math.floor(times[q, j, at] / h + 1e-9))
+                        ts = t + j * hf  # the stage's time, as stage_times computes it
+                        tt = ts if at == 0 else (ts + 0.5 * hf if at == 1 else ts + hf)
+                        kd = int(math.floor(tt / h + 1e-9))
                         for c in range(d):
                             for i in range(n):
                                 idx = kd // hold[i]
@@ -636,7 +675,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                                     dist0[c * n1 + i] += table[i, idx if idx < last_row else last_row, c]
                 for c in range(d):
                     base = c * n1
-                    lac = ref_a[c, ix]
+                    lac = la[c]
                     for i in range(n):
                         x = base + i
                         s_ = base + slot_src[0, i]
@@ -732,6 +771,14 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                 y[1, x] = y[1, x] + w6 * ac_v[x]
                 y[2, x] = y[2, x] + w6 * ac_kp[x]
                 y[3, x] = y[3, x] + w6 * ac_kv[x]
+
+
+def exp_tables(decay: float, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``exp`` and ``expm1`` of ``-decay m hf / 2`` for ``m = 0 .. 2 substeps``: :func:`continuous`'s
+    closed-form leader at ``t_k + m hf / 2`` from its values at ``t_k`` (``e^(a+b) = e^a e^b``,
+    ``e^(a+b) - 1 = (e^a - 1) e^b + (e^b - 1)``)."""
+    x = -decay * (np.arange(2 * substeps + 1) * (0.5 * h / substeps))
+    return np.exp(x), np.expm1(x)
 
 
 def rotation_tables(omega: np.ndarray, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
