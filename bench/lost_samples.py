@@ -9,7 +9,8 @@ run by run, alternating.
 The mission is a ring of ``--agents`` (``bench/missions.py``) unless ``--mission`` names one. ``--base
 REV``: that commit, checked out in a temporary ``git worktree`` (removed afterwards), runs first in each
 pair, so that both builds see the same machine. A run's missing telemetry shows as NaN ``xi`` in its run
-file, a missing plant sample as NaN ``d`` (only the plant's own sample carries the disturbance). What
+file, a missing plant sample as NaN ``d`` (only the plant's own sample carries the disturbance), a
+missing leader sample as NaN ``leader_p``. ``--keep DIR`` keeps every run's directory (logs, run file). What
 a run at N = 16 on two cores loses is small and varies from run to run: quote the counts of every run.
 """
 
@@ -32,6 +33,8 @@ import numpy as np
 from tether.runfile import Run
 r = Run.load(sys.argv[1])
 out = {"recorded": int(r.meta.samples_recorded), "expected": int(r.meta.samples_expected), "missing": []}
+for k in np.flatnonzero(np.isnan(r.leader_p[:, 0])).tolist():
+    out["missing"].append(["leader state", int(k), 0])
 for field, what in (("xi", "telemetry"), ("d", "plant state")):
     for k, i in np.argwhere(np.isnan(getattr(r, field)[..., 0])).tolist():
         out["missing"].append([what, int(k), int(r.agent_ids[i])])
@@ -69,6 +72,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--mission", type=Path, default=None, help="a mission file (default: a ring of --agents)")
     ap.add_argument("--base", default=None, help="a commit whose build runs beside this one, run by run")
+    ap.add_argument("--keep", type=Path, default=None, help="keep every run's directory here (logs, run file)")
     ap.add_argument("--insecure", action="store_true", help="runs without mTLS and access rules")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="tether-lost-") as tmp:
@@ -91,7 +95,8 @@ def main() -> None:
             totals: dict[str, list[int]] = {name: [] for name, _ in trees}
             for run in range(1, args.runs + 1):
                 for name, tree in trees:
-                    res = one(tree, mission.resolve(), work / f"{name}-{run}", args.duration, args.insecure)
+                    out = (args.keep or work) / f"{name}-{run}"
+                    res = one(tree, mission.resolve(), out, args.duration, args.insecure)
                     totals[name].append(res["expected"] - res["recorded"])
                     print(f"  run {run} {name:>8}: {describe(res)}; load {os.getloadavg()[0]:.1f}", flush=True)
             for name, lost in totals.items():

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -140,6 +141,37 @@ async def test_publisher_qos_reaches_the_subscriber() -> None:
     assert sample.priority == zenoh.Priority.REAL_TIME
     assert sample.congestion_control == zenoh.CongestionControl.DROP
     assert sample.express is True
+
+
+@pytest.mark.asyncio
+async def test_a_routers_ingress_limit_passes_a_flood_at_its_rate_at_most() -> None:
+    """Real time, a router limits each link's ingress on a stream key to ``LIMIT_FACTOR`` times the
+    mission's rate (``deploy/localtls.py``, Zenoh's ``downsampling``, one sample per window of
+    ``1 / freq``): a session flooding the key reaches a subscriber at that rate at most, however fast it
+    puts. (Whether a run's own bursts pass is measured, not timed here: ``bench/lost_samples.py``.)"""
+    from deploy import localtls
+
+    freq = localtls.LIMIT_FACTOR * 50.0
+    key = "tether/test/limited"
+    r = listener("router", ingress_limits=((key, freq),))
+    pub_s, sub_s = dialer(r, "client"), dialer(r, "client")
+    arrivals: list[float] = []
+    async with sessions(r, pub_s, sub_s) as (_, sp, ss):
+        with (ss.declare_subscriber(key, lambda _s: arrivals.append(time.monotonic())),
+              tp.declare_publisher(sp, key, tp.STATE) as pub):
+            await tp.wait_for_subscribers(pub, WAIT)
+            t0 = time.monotonic()
+            sent = 30_000
+            for _ in range(sent):
+                pub.put(b"junk")
+            took = time.monotonic() - t0
+            # until the arrivals stop (none for 0.3 s), WAIT at most
+            async with asyncio.timeout(WAIT):
+                while not arrivals or time.monotonic() - arrivals[-1] < 0.3:
+                    await asyncio.sleep(0.05)
+    assert took * freq < sent / 2, f"the flood was too slow to test the limit: {sent} puts in {took:.3f} s"
+    span = arrivals[-1] - t0  # the router's windows lie within it
+    assert 1 <= len(arrivals) <= 1.1 * freq * span + 2, (len(arrivals), span, freq)
 
 
 @pytest.mark.asyncio
