@@ -731,7 +731,9 @@ def _run_commands(sub: argparse._SubParsersAction) -> None:
     r.add_argument("what", choices=["section4", "exp1", "exp2"])
     r.add_argument("--out", required=True)
     r.add_argument("--duration", type=_seconds, default=None, help="override the 1000 s horizon [s]")
-    r.add_argument("--continuous", action="store_true", help="also run the continuous-time RK4 mode (slow)")
+    r.add_argument("--continuous", action="store_true",
+                   help="also run the continuous-time RK4 mode (under a second for section4 with the compiled "
+                        "kernels, the [fast] extra; minutes on the numpy path)")
     r.set_defaults(func=cmd_reproduce)
 
     dm = sub.add_parser("demo", help="the main demo: Section 4 as separate processes over Zenoh (lockstep), figures")
