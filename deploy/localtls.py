@@ -116,17 +116,12 @@ def gateway_grants(m: ms.Mission, ns: str) -> list[acl.Grant]:
     return [g for g in grants(m, ns) if g.name in ("router", OPERATOR)]
 
 
-LIMIT_FACTOR = 100
+LIMIT_FACTOR = 20
 """Real time: a listener passes at most this many times the mission's rate of messages per second
-on each key a process publishes, per link; one sample per period is what a stream sends. Zenoh's
-downsampling passes one message per window of ``1 / (LIMIT_FACTOR rate)`` and has no burst allowance,
-so two samples of a stream that reach the router closer than that lose the second. At 20 (a 1 ms
-window at 50 Hz) 10 of 24 real-time runs of a ring of 16 agents lost samples, 9 of the 12 found the
-leader's or a plant's of tick 1: a run's first samples reach the recorder 10-20 ms after their tick, the
-next ones 2-8 ms, so that ticks 0 and 1 of a stream can arrive together. At 100 (0.2 ms) 8 of 8 runs
-lost nothing (1000: 5 of 5), and a rogue plant flooding its own state key at 255 000 messages/s for 8 s
-moved the formation error of Section 4 by 0.1-0.5 % (at 20: 0.02 %; docs/benchmarks.md, "fourth
-sitting")."""
+on each key a process publishes, per link; one sample per period is what a stream sends. Tried and
+not kept: 100 (a window of 0.2 ms at 50 Hz instead of 1 ms), against the samples real-time rings of
+16 agents lose (most often the leader's or a plant's of tick 1): 5 of 13 runs lost samples at 100,
+11 of 34 at 20, and 1 of 5 with the limit lifted altogether (docs/benchmarks.md, "fourth sitting")."""
 
 
 CONTROL_RATE = 50.0
@@ -139,8 +134,9 @@ def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[
     every mode), each other published key a control loop hears at :data:`LIMIT_FACTOR` times the rate
     (not :func:`recorder_only`'s). The price of the stream limits: Zenoh's downsampling passes one
     message per ``1/freq`` window, so the backlog a healed link or a loaded machine delivers at once is
-    cut to its first (docs/deploy.md, "Floods"), and two samples that reach the router together lose
-    the second (:data:`LIMIT_FACTOR`). They stay on, even authenticated (where the access rules already keep anyone but a
+    cut to its first (docs/deploy.md, "Floods"), and two samples a loaded publisher sends in one batch
+    lose the second (a ring of 16 at 50 Hz: 3 of 6 runs lost 1-8 samples with the limits, 0 of 5
+    without). They stay on, even authenticated (where the access rules already keep anyone but a
     stream's own process off its key), as the flood defence. Whether the formation flies better with
     them on a loaded machine is not settled: RMS of ||xi|| over 7-14 s of 20 s authenticated real-time
     runs of Section 4 was 0.443 and 0.442 m with them (the reference simulator: 0.441 m) and 17.3, 0.70
