@@ -117,11 +117,11 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     state = y.reshape(4, d * (n + 1))  # a view: the kernel's flat layout
     # the exponential profile (Section 4's, a hold's) in closed form in the kernel; any other
     # evaluated here at every stage time
-    exp_lead = isinstance(s.ref, profile.ExpAccel)
-    if exp_lead:
-        assert isinstance(s.ref, profile.ExpAccel)
-        lead0 = np.ascontiguousarray(np.stack([s.ref.p0, s.ref.v0, s.ref.a0]), dtype=float)
-        decay = float(s.ref.decay)
+    ref = s.ref
+    exp_lead = isinstance(ref, profile.ExpAccel)
+    if isinstance(ref, profile.ExpAccel):
+        lead0 = np.ascontiguousarray(np.stack([ref.p0, ref.v0, ref.a0]), dtype=float)
+        decay = float(ref.decay)
         em, xm = kernel.exp_tables(decay, h, substeps)
         ref_p = ref_v = ref_a = np.zeros((d, 0))
     else:
@@ -131,7 +131,7 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
             times = kernel.stage_times(k0, k1, h, substeps)
             # axis first, (d, stages)
             ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d)).T)
-                                   for x in s.ref(times.ravel()))
+                                   for x in ref(times.ravel()))
         kernel.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, exp_lead, lead0, decay,
                           em, xm, kappa,
                           slot_src, slot_w, swd, a_lead, *plan.kernel_args(), prm.gamma_p, prm.gamma_v,
