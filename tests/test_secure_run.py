@@ -271,11 +271,16 @@ def test_a_rogue_plants_flood_on_its_own_state_key_leaves_the_formation_error_wi
     2 rejects and counts the junk, and the formation error stays within 10 % of the clean run of the
     pair above (measured: 0.4413 m against 0.4412 m, docs/benchmarks.md, "fourth sitting")."""
     _clean_is_the_mission(flood_pair)
-    flooded, report = _flight(tmp_path / "plant-flooded", f"flood-{os.getpid()}-plant", flood="plant")
-    ideal = refsim.simulate(load_mission(SECTION4, 20.0))
-    before = formation_error(flooded, *BEFORE)
-    assert abs(before - formation_error(ideal, *BEFORE)) <= FIT * formation_error(ideal, *BEFORE), \
-        f"the flooded run was off before the flood ({before:.4f} m): the machine was too loaded ({report})"
+    ideal = formation_error(refsim.simulate(load_mission(SECTION4, 20.0)), *BEFORE)
+    for attempt in range(1, ATTEMPTS + 1):  # flown again while the machine could not fly it before the flood
+        flooded, report = _flight(tmp_path / f"plant-flooded-{attempt}", f"flood-{os.getpid()}-plant-{attempt}",
+                                  flood="plant")
+        before = formation_error(flooded, *BEFORE)
+        if abs(before - ideal) <= FIT * ideal:
+            break
+    assert abs(before - ideal) <= FIT * ideal, \
+        f"in each of {ATTEMPTS} runs the flooded run was off before the flood (last {before:.4f} m against " \
+        f"{ideal:.4f} m): the machine was too loaded ({report})"
     since, until = FLOOD_FROM + 1.0, FLOOD_FROM + FLOOD_FOR
     got, want = formation_error(flooded, since, until), flood_pair.want
     drops = np.nanmax(flooded.runtime.drops, axis=0) - np.nanmax(flood_pair.clean.runtime.drops, axis=0)
