@@ -377,6 +377,14 @@ def stage_times(k0: int, k1: int, h: float, substeps: int) -> np.ndarray:
     return np.stack([ts, ts + 0.5 * hf, ts + hf], axis=2)
 
 
+@_jit
+def _stage_time(t: float, j: int, at: int, hf: float) -> float:
+    """The time of substep ``j``'s stage ``at`` (0: its start, 1: its middle, 2: its end) from the
+    control tick's ``t``, as :func:`stage_times` computes it."""
+    ts = t + j * hf
+    return ts if at == 0 else (ts + 0.5 * hf if at == 1 else ts + hf)
+
+
 def _jit_numpy_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
     # the continuous kernel divides only by kappa_i > 0 (tether.graph.topology checks it): numpy's
     # error model drops the zero-division test, which otherwise slows the small loops around it
@@ -631,8 +639,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                     if exp_lead:
                         # ExpAccel.__call__'s arithmetic; exp and expm1 of -decay tt by the addition
                         # formulas from t_k's (tt = t_k + m hf / 2 up to rounding): a few ulp
-                        ts = t + j * hf
-                        tt = ts if at == 0 else (ts + 0.5 * hf if at == 1 else ts + hf)
+                        tt = _stage_time(t, j, at, hf)
                         m = 2 * j + at
                         if decay == 0.0:
                             ee, i1, i2 = 1.0, tt, 0.5 * tt * tt
@@ -663,9 +670,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                         for x in range(nx):
                             dist0[x] = const[x] + amp[x] * (sin0[x] * cos_m[m, x] + cos0[x] * sin_m[m, x])
                     if has_random:
-                        ts = t + j * hf  # the stage's time, as stage_times computes it
-                        tt = ts if at == 0 else (ts + 0.5 * hf if at == 1 else ts + hf)
-                        kd = int(math.floor(tt / h + 1e-9))
+                        kd = int(math.floor(_stage_time(t, j, at, hf) / h + 1e-9))
                         for c in range(d):
                             for i in range(n):
                                 idx = kd // hold[i]
