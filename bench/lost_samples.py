@@ -34,7 +34,7 @@ from tether.runfile import Run
 r = Run.load(sys.argv[1])
 out = {"recorded": int(r.meta.samples_recorded), "expected": int(r.meta.samples_expected), "missing": []}
 for k in np.flatnonzero(np.isnan(r.leader_p[:, 0])).tolist():
-    out["missing"].append(["leader state", int(k), 0])
+    out["missing"].append(["leader state", int(k), 0])  # 0: no agent
 for field, what in (("xi", "telemetry"), ("d", "plant state")):
     for k, i in np.argwhere(np.isnan(getattr(r, field)[..., 0])).tolist():
         out["missing"].append([what, int(k), int(r.agent_ids[i])])
@@ -58,7 +58,7 @@ def one(tree: Path, mission: Path, out: Path, duration: float, insecure: bool) -
 def describe(res: dict) -> str:
     lost = res["expected"] - res["recorded"]
     kinds = collections.Counter(w for w, _, _ in res["missing"])
-    where = ", ".join(f"{w} k={k} agent {a}" for w, k, a in res["missing"][:6])
+    where = ", ".join(f"{w} k={k}" + (f" agent {a}" if a else "") for w, k, a in res["missing"][:6])
     more = "" if len(res["missing"]) <= 6 else f", ... ({len(res['missing'])} in all)"
     return (f"exit {res['status']}; lost {lost} of {res['expected']}"
             + (f" ({', '.join(f'{n} {w}' for w, n in kinds.items())}: {where}{more})" if lost else ""))
