@@ -605,9 +605,6 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     csu = np.empty(u_omega.shape[0])
     coef = (0.0, 0.5 * hf, 0.5 * hf, hf)
     wsum = (1.0, 2.0, 2.0, 1.0)
-    for x in range(nx):  # the first stage's inputs (then each stage's are written by the one before)
-        pin[x] = y[0, x]
-        vin[x] = y[1, x]
     for k in range(k0, k1):
         q = k - k0
         t = k * h
@@ -628,6 +625,14 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                 ix = (q * substeps + j) * 3 + at  # its index in ref_*
                 a = coef[st]
                 ws = wsum[st]
+                if st == 0:
+                    for x in range(nx):
+                        pin[x] = y[0, x]
+                        vin[x] = y[1, x]
+                else:
+                    for x in range(nx):
+                        pin[x] = y[0, x] + a * vin[x]  # the position's slope is the stage's velocity
+                        vin[x] = y[1, x] + a * sl_v[x]
                 # the leader at the stage's time: the two mid-step stages share it and, as the
                 # disturbance, a substep's first stage has the previous substep's last
                 if st != 2 and (st != 0 or j == 0 or not exp_lead):
@@ -736,6 +741,19 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                                     for i in range(size):
                                         acc += inv[row + i] * rr[lo + i]
                                     sl_v[base + lo + r_] = acc
+                # RK4's running sums (the leader's elements too: finite, unused)
+                if st == 0:
+                    for x in range(nx):
+                        ac_p[x] = vin[x]
+                        ac_v[x] = sl_v[x]
+                        ac_kp[x] = sl_kp[x]
+                        ac_kv[x] = sl_kv[x]
+                else:
+                    for x in range(nx):
+                        ac_p[x] = ac_p[x] + ws * vin[x]
+                        ac_v[x] = ac_v[x] + ws * sl_v[x]
+                        ac_kp[x] = ac_kp[x] + ws * sl_kp[x]
+                        ac_kv[x] = ac_kv[x] + ws * sl_kv[x]
                 if st == 0 and j == 0 and (record or final):  # tick k's sample
                     r = k if record else 0
                     for c in range(d):
@@ -753,35 +771,11 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                             out_d[r, ag, c] = dist0[x]
                 if final:
                     return
-                # RK4's running sums (the leader's elements too: finite, unused), in one pass with
-                # the next stage's inputs (the position's slope is the stage's velocity) or, after
-                # the fourth stage, the step itself and the next substep's first inputs
-                if st == 0:
-                    an = coef[1]
-                    for x in range(nx):
-                        ac_p[x] = vin[x]
-                        ac_v[x] = sl_v[x]
-                        ac_kp[x] = sl_kp[x]
-                        ac_kv[x] = sl_kv[x]
-                        pin[x] = y[0, x] + an * vin[x]
-                        vin[x] = y[1, x] + an * sl_v[x]
-                elif st < 3:
-                    an = coef[st + 1]
-                    for x in range(nx):
-                        ac_p[x] = ac_p[x] + ws * vin[x]
-                        ac_v[x] = ac_v[x] + ws * sl_v[x]
-                        ac_kp[x] = ac_kp[x] + ws * sl_kp[x]
-                        ac_kv[x] = ac_kv[x] + ws * sl_kv[x]
-                        pin[x] = y[0, x] + an * vin[x]
-                        vin[x] = y[1, x] + an * sl_v[x]
-                else:
-                    for x in range(nx):
-                        y[0, x] = y[0, x] + w6 * (ac_p[x] + ws * vin[x])
-                        y[1, x] = y[1, x] + w6 * (ac_v[x] + ws * sl_v[x])
-                        y[2, x] = y[2, x] + w6 * (ac_kp[x] + ws * sl_kp[x])
-                        y[3, x] = y[3, x] + w6 * (ac_kv[x] + ws * sl_kv[x])
-                        pin[x] = y[0, x]
-                        vin[x] = y[1, x]
+            for x in range(nx):
+                y[0, x] = y[0, x] + w6 * ac_p[x]
+                y[1, x] = y[1, x] + w6 * ac_v[x]
+                y[2, x] = y[2, x] + w6 * ac_kp[x]
+                y[3, x] = y[3, x] + w6 * ac_kv[x]
 
 
 def exp_tables(decay: float, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:
