@@ -703,6 +703,9 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
                 if nid != msg.sender:
                     sup.drop("ack_sender")
                     continue
+                if msg.k > granted:  # nobody can have finished a tick not granted yet: forged or corrupt
+                    sup.drop("ack_ahead")
+                    continue
                 moved |= src.ack(role, nid, msg.k)
             if moved:
                 last_progress = time.monotonic()

@@ -413,10 +413,15 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                 await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
                                  lambda: f"every sample of tick {k} (have {rec.count[k]} of {rec.expected}; "
                                          f"missing: {rec.missing(k)})")
-                if ack is not None:
+                # one acknowledgement for the ticks completed together (an agent's record brings
+                # several): it stands for every tick up to k. The next tick is never complete beyond
+                # the clock's grant, so the clock hears of each grant's ticks.
+                if ack is not None and (k == last or rec.count[k + 1] < rec.expected):
                     ack.send(wire.Ack, k, k * m.dt, role="recorder")
                 if feed is not None:
                     feed.step()
+            if ack is not None:
+                log.info("lockstep: %d acknowledgements for %d ticks", ack.seq, last + 1)
         else:
             if feed is not None and node.tasks is not None:
                 async def follow(f: Feed) -> None:

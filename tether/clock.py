@@ -175,17 +175,18 @@ def make(kind: ClockKind, period: float, skew: float = 0.0) -> LockstepClock | R
 
 @dataclass
 class LockstepSource:
-    """The lockstep clock source's bookkeeping (pure): which processes acknowledged which tick.
+    """The lockstep clock source's bookkeeping (pure): how far each process has acknowledged.
 
-    ``members`` are the ``(role, id)`` pairs that must acknowledge every tick; ``window`` ticks may be
-    in flight at once (1 = strictly one tick at a time; more pipelines the message hops without
+    ``members`` are the ``(role, id)`` pairs that must acknowledge every tick; an acknowledgement of
+    tick k stands for every tick up to k (:class:`~tether.wire.Ack`). ``window`` ticks may be in
+    flight at once (1 = strictly one tick at a time; more pipelines the message hops without
     changing any result, because every input is matched by tick index).
     """
 
     members: frozenset[tuple[str, int]]
     last: int
     window: int = 2
-    _acks: dict[int, set[tuple[str, int]]] = field(default_factory=dict)
+    _upto: dict[tuple[str, int], int] = field(default_factory=dict)
     done: int = -1
     """Highest tick that every member has acknowledged (all lower ticks too)."""
 
@@ -198,17 +199,19 @@ class LockstepSource:
         return min(self.last, self.done + self.window)
 
     def ack(self, role: str, node: int, k: int) -> bool:
-        """Record an acknowledgement; True when it advanced ``done`` (so ``grant`` may have moved)."""
+        """Record that ``(role, node)`` has finished every tick up to ``k``; True when it advanced
+        ``done`` (so ``grant`` may have moved). Not a member, an older or repeated acknowledgement,
+        or one of a tick not granted yet (nobody can have finished it: a forged or corrupt one,
+        which would otherwise skip ticks): ignored, False."""
         who = (role, node)
-        if who not in self.members or k <= self.done:
+        if who not in self.members or k > self.grant or k <= self._upto.get(who, -1):
             return False
-        self._acks.setdefault(k, set()).add(who)
-        moved = False
-        while len(self._acks.get(self.done + 1, ())) == len(self.members):
-            del self._acks[self.done + 1]
-            self.done += 1
-            moved = True
-        return moved
+        self._upto[who] = k
+        done = min(self._upto.get(m, -1) for m in self.members)
+        if done <= self.done:
+            return False
+        self.done = done
+        return True
 
     @property
     def finished(self) -> bool:
@@ -216,5 +219,4 @@ class LockstepSource:
 
     def missing(self) -> list[tuple[str, int]]:
         """Members that have not acknowledged the next tick (for a stall report)."""
-        got = self._acks.get(self.done + 1, set())
-        return sorted(self.members - got)
+        return sorted(m for m in self.members if self._upto.get(m, -1) <= self.done)

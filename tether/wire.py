@@ -10,7 +10,7 @@ Keys (one scheme, also in ``docs/runtime.md``)::
     tether/<ns>/agent/<id>/record        Record     lockstep, plant co-located in agent i: its plant samples and
                                                     telemetry of consecutive ticks, for the recorder
     tether/<ns>/clock/0/tick             Tick       lockstep: ticks up to ``grant`` may run
-    tether/<ns>/<role>/<id>/ack          Ack        lockstep: ``<role> <id>`` has finished tick k
+    tether/<ns>/<role>/<id>/ack          Ack        lockstep: ``<role> <id>`` has finished every tick up to k
     tether/<ns>/control/0/start          Start      real time: the common start instant
     tether/<ns>/control/0/recorded       Recorded   lockstep: the recorder holds every sample up to tick k;
                                                     the producers may close their sessions
@@ -215,7 +215,8 @@ class Tick(_Msg, tag="tick", frozen=True):
 
 
 class Ack(_Msg, tag="ack", frozen=True):
-    """Lockstep: the sender has finished tick k."""
+    """Lockstep: the sender has finished every tick up to and including k (one acknowledgement
+    stands for the ticks before it: the recorder sends one for the ticks it completes together)."""
 
     role: str
 
