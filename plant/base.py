@@ -127,6 +127,17 @@ class DoubleIntegratorPlant:
         disturbance models take their values there."""
         self._k = k
 
+    @property
+    def bank(self) -> DisturbanceBank:
+        """The disturbance models of its vehicles (read-only)."""
+        return self._dist
+
+    def take_over(self, k: int, p: list[list[float]], v: list[list[float]], a: list[list[float]]) -> None:
+        """Continue from tick ``k`` with these rows, stepped elsewhere until now with the same
+        arithmetic (:class:`plant.onboard.Onboard`'s plain floats)."""
+        self._p, self._v, self._a = (np.array(x, dtype=float).reshape(self._p.shape) for x in (p, v, a))
+        self._k = k
+
     def close(self) -> None:
         pass
 

@@ -1,6 +1,7 @@
 """The double integrator ``p' = v, v' = u + d`` (Eq. 5), discretised exactly. Pure numpy.
 
-Works on one vehicle (``(d,)``) or many (``(N, d)``). Over one control period ``h`` the command
+Works on one vehicle (``(d,)``), many (``(N, d)``), or one axis of one vehicle in plain floats
+(:class:`plant.onboard.Onboard`): the same operations in the same order, so the same bits. Over one control period ``h`` the command
 ``u`` is held (zero-order hold) and the disturbance enters through its exact increments
 (:meth:`plant.disturbance.DisturbanceBank.increments`)::
 
@@ -12,12 +13,14 @@ reads: it is the "measured acceleration" every vehicle shares with its neighbour
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import numpy as np
 
+X = TypeVar("X", float, np.ndarray)
 
-def step(
-    p: np.ndarray, v: np.ndarray, u: np.ndarray, dv: np.ndarray, dp: np.ndarray, h: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+
+def step(p: X, v: X, u: X, dv: X, dp: X, h: float) -> tuple[X, X, X]:
     """Advance one period; returns ``(p+ [m], v+ [m/s], a+ [m/s^2])``."""
     p_next = p + h * v + (0.5 * h * h) * u + dp
     v_next = v + h * u + dv

@@ -19,6 +19,7 @@ import re
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -26,7 +27,7 @@ import pytest
 
 from plant.onboard import Onboard, problem
 from sim import refsim
-from tests.factories import one_agent
+from tests.factories import build, one_agent
 from tests.support import read
 from tests.test_runtime import ATOL, LEADER, REPO, SECTION4, STARTUP, WAIT, differing_arrays, launch, stop, tether_cmd
 from tether import handoff
@@ -225,6 +226,59 @@ def test_a_co_located_plant_never_flies_a_non_finite_or_over_limit_command() -> 
     # the operator's e-stop reaches the co-located plant too
     s5 = plant.advance(5, _cmd(4, [1.0, 0.0]), "estop")
     assert s5.mode == wire.ESTOP
+
+
+def _flyer(dim: int) -> Any:
+    """One agent with a disturbance of every kind at once (a sum), 2D or 3D (ground at 0)."""
+    z = [1.0] if dim == 3 else []
+    dist = {"kind": "sum", "terms": [
+        {"kind": "sinusoid", "amplitude": [0.3, 0.2, 0.1][:dim], "omega": [1.0, 2.0, 3.0][:dim],
+         "phase": [0.1, 0.2, 0.3][:dim]},
+        {"kind": "constant", "value": [0.05, -0.02, 0.01][:dim]},
+        {"kind": "bounded_random", "bound": 0.1, "hold": 0.05}]}
+    return build({
+        "version": 1, "name": f"flyer{dim}", "dim": dim, "rate": 100.0, "duration": 20.0,
+        "law": {"kind": "sigma", "kp0": 1.0, "kv0": 1.0, "gamma_p": 0.05, "gamma_v": 0.05, "sigma": 1.0},
+        "leader": {"id": 2, "p0": [0.0, 0.0, *z]},
+        "agents": [{"id": 1, "p0": [0.3, -0.2, *z], "v0": [0.1, 0.0, *([0.0] if z else [])], "offset": [1.0, 0.0, *([0.0] if z else [])],
+                    "disturbance": dist}],
+        "edges": [{"from": 2, "to": 1, "weight": 1.0}],
+    })
+
+
+@pytest.mark.parametrize("dim, script", [
+    (2, "fly"), (3, "fly"), (3, "dive"), (2, "land"), (3, "land"), (2, "estop"), (3, "estop"), (3, "silent")],
+    ids=["2d fly", "3d fly", "3d through the ground", "2d land", "3d land", "2d estop", "3d estop", "3d silent"])
+def test_the_plain_float_plant_equals_the_general_path_bit_for_bit(dim: int, script: str) -> None:
+    """A co-located double integrator flies on plain floats while it flies nominally, and hands over
+    to the general path (ground contact, motors-off) at the first tick that is not: the operator's
+    land or e-stop, its watchdog landing it when its commands stop, or a dive into the floor with
+    the watchdog still FLYING. Every sample equals the general path's in every bit, before, at and
+    after the hand-over."""
+    m = _flyer(dim)
+    lean, ref = Onboard(m, 1), Onboard(m, 1, lean=False)
+    assert lean.lean and not ref.lean
+    rng = np.random.default_rng(dim)
+    cmd = None
+    went = None
+    for k in range(700 if script == "silent" else 120):
+        operator = script if script in ("land", "estop") and k >= 20 else None
+        got, want = lean.advance(k, cmd, operator), ref.advance(k, cmd, operator)
+        assert msgspec.structs.asdict(got) == msgspec.structs.asdict(want), (k, got, want)
+        if went is None and not lean.lean:
+            went = got
+        u = rng.normal(0.0, 0.5, dim).tolist()
+        if script == "dive" and k >= 10:
+            u = [0.0] * (dim - 1) + [-3.0]  # flown into the floor with the watchdog still FLYING
+        if script != "silent" or k < 30:  # silent: its commands stop; the watchdog holds, then lands it
+            cmd = _cmd(k, u)
+    if script == "fly":
+        assert went is None
+    elif script == "dive":
+        assert went is not None and went.mode == wire.FLYING and went.p[-1] == 0.0 and went.vel == [0.0] * 3
+    else:
+        assert went is not None and went.mode == {"land": wire.LAND, "estop": wire.ESTOP, "silent": wire.LAND}[script]
+        assert script == "silent" or went.k == 20  # the operator's order at tick 20
 
 
 def test_a_co_located_plant_holds_when_its_commands_stop() -> None:
