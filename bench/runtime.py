@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/runtime.py                        # every case (about 7 minutes)
     .venv/bin/python bench/runtime.py --cases lockstep --repeats 5
-    .venv/bin/python bench/runtime.py --cases colocate --repeats 3 --colocate-windows 16:4 16:8 32:16
+    .venv/bin/python bench/runtime.py --cases colocate --repeats 3 --colocate-windows 16:4 16:8 32:16 [--colocate-mesh]
     .venv/bin/python bench/runtime.py --cases scale --sizes 4 8 16 32 --scale-repeats 2
     .venv/bin/python bench/runtime.py --cases latency cpu --json /tmp/bench.json
     .venv/bin/python bench/runtime.py --profile agent:1 [--profile-clock realtime --mission FILE]
@@ -933,20 +933,31 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
                           "window": WINDOW, "runs": rows, "median": mm}
 
 
-def colocate_structures(windows: list[str]) -> list[tuple[str, dict[str, Any], tuple[str, ...]]]:
+def colocate_structures(windows: list[str], mesh: bool = False
+                        ) -> list[tuple[str, dict[str, Any] | None, tuple[str, ...]]]:
     """Case ``colocate``: (name, bare baseline variant, ``tether run`` options) of each structure,
     the same on both sides: separate plant processes (window 8); plants co-located, the recorder's
     samples every tick (tether: one record per tick, the bare baseline two messages); then for
-    each ``WINDOW:BATCH`` of ``windows``, co-located with records of BATCH ticks and that window."""
-    out: list[tuple[str, dict[str, Any], tuple[str, ...]]] = [
+    each ``WINDOW:BATCH`` of ``windows``, co-located with records of BATCH ticks and that window.
+    ``mesh``: each of those also as a peer mesh (``--network mesh``), tether alone (variant None:
+    the bare baseline has no mesh, so no ceiling is measured for it)."""
+    out: list[tuple[str, dict[str, Any] | None, tuple[str, ...]]] = [
         ("separate, w8", {}, ("--separate-plants", "--window", "8")),
         ("co-located, w8", {"colocate": True}, ("--colocate-plants", "--record-batch", "1")),
     ]
     for spec in windows:
         w, b = (int(x) for x in spec.split(":"))
-        out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w},
-                    ("--colocate-plants", "--record-batch", str(b), "--window", str(w))))
+        opts = ("--colocate-plants", "--record-batch", str(b), "--window", str(w))
+        out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w}, opts))
+        if mesh:
+            out.append((f"co+b {b}, w{w}, mesh", None, (*opts, "--network", "mesh")))
     return out
+
+
+def _no_per_tick() -> dict[str, Any]:
+    """:func:`_per_tick`'s figures of a run not made (all NaN)."""
+    nan = float("nan")
+    return {"total_us": nan, **{ro: {"us": nan, "main": nan, "callback": nan, "zenoh": nan} for ro in ROLES}}
 
 
 def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
@@ -959,7 +970,7 @@ def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
     path = catalog.resolve(a.mission)
     m = load_mission(path, a.lockstep_duration)
     ticks = m.steps + 1
-    structs = colocate_structures(a.colocate_windows)
+    structs = colocate_structures(a.colocate_windows, a.colocate_mesh)
     say(f"\n== 1b. lockstep by structure: {a.mission} ({m.n} agents, {m.rate:g} Hz), {a.lockstep_duration:g} s of mission "
         f"time per run, {a.repeats} repeats; tether run with the structure's options beside the bare baseline with the "
         "same structure; speed = mission s / wall s; CPU per tick from /proc (all processes / median agent)")
@@ -968,21 +979,25 @@ def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
         for name, variant, opts in structs:
             settle()
             rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, extra=opts, secure=a.secure)
-            settle()
-            rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant, secure=a.secure)
-            bad = [f"{r.kind} failed: {r.why}" for r in (rt, rb) if not r.ok]
-            ct, cb = _per_tick(rt, ticks), _per_tick(rb, ticks)
-            row = {"tether": rt.speed if rt.ok else float("nan"), "baseline": rb.speed if rb.ok else float("nan"),
+            rb = None
+            if variant is not None:
+                settle()
+                rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant, secure=a.secure)
+            bad = [f"{r.kind} failed: {r.why}" for r in (rt, rb) if r is not None and not r.ok]
+            ct, cb = _per_tick(rt, ticks), _per_tick(rb, ticks) if rb is not None else _no_per_tick()
+            row = {"tether": rt.speed if rt.ok else float("nan"),
+                   "baseline": rb.speed if rb is not None and rb.ok else float("nan"),
                    "tether_us": ct["total_us"], "baseline_us": cb["total_us"], "tether_agent_us": ct["agent"]["us"],
                    "baseline_agent_us": cb["agent"]["us"], "tether_cpu": ct, "baseline_cpu": cb,
-                   "foreign_pct": [rt.foreign_pct, rb.foreign_pct], "load": os.getloadavg()[0]}
+                   "foreign_pct": [rt.foreign_pct, rb.foreign_pct if rb is not None else 0.0],
+                   "load": os.getloadavg()[0]}
             rows[name].append(row)
             noisy = " NOISY" if max(row["foreign_pct"]) >= NOISY else ""
             say(f"   run {i + 1} {name:17} tether {row['tether']:5.2f} x  bare {row['baseline']:5.2f} x  "
                 f"({ratio(row['tether'], row['baseline']):.2f}) | CPU/tick {row['tether_us'] / 1e3:.2f} vs "
                 f"{row['baseline_us'] / 1e3:.2f} ms ({ratio(row['tether_us'], row['baseline_us']):.2f}) | agent "
                 f"{row['tether_agent_us']:.0f} vs {row['baseline_agent_us']:.0f} us | other {rt.foreign_pct:.0f} / "
-                f"{rb.foreign_pct:.0f} % | load {row['load']:.1f}{noisy}" + ("".join(f"\n      {x}" for x in bad)))
+                f"{row['foreign_pct'][1]:.0f} % | load {row['load']:.1f}{noisy}" + ("".join(f"\n      {x}" for x in bad)))
     say(f"   medians over the quiet runs (other load < {NOISY:g} %, or all runs when none is quiet):")
     say(f"   {'structure':17} {'tether x':>9} {'bare x':>7} {'ratio':>6} {'CPU/tick ms':>12} {'bare':>6} {'ratio':>6} "
         f"{'agent us':>9} {'bare':>6} {'ratio':>6}")
@@ -997,8 +1012,13 @@ def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
             f"{mm['tether_agent_us']:>9.0f} {mm['baseline_agent_us']:>6.0f} "
             f"{ratio(mm['tether_agent_us'], mm['baseline_agent_us']):>6.2f}")
     best = max(med_rows, key=lambda n: med_rows[n]["tether"])
-    say(f"   fastest tether structure: {best} ({med_rows[best]['tether']:.2f} x real time; target >= 20 x; its bare "
-        f"ceiling {med_rows[best]['baseline']:.2f} x); separate plants: {med_rows[structs[0][0]]['tether']:.2f} x")
+    star = max((n for n, v, _ in structs if v is not None), key=lambda n: med_rows[n]["tether"])
+    say(f"   fastest tether structure: {best} ({med_rows[best]['tether']:.2f} x real time; target >= 20 x"
+        + (f"; its bare ceiling {med_rows[best]['baseline']:.2f} x)" if best == star else
+           f"; no bare mesh; the fastest star, {star}: {med_rows[star]['tether']:.2f} x, its bare ceiling "
+           f"{med_rows[star]['baseline']:.2f} x)")
+        + f"; separate plants: {med_rows[structs[0][0]]['tether']:.2f} x")
+    best = star  # the role table: tether beside its bare baseline
     _role_table(rows[best][len(rows[best]) // 2]["tether_cpu"], rows[best][len(rows[best]) // 2]["baseline_cpu"],
                 f"{best}, CPU per tick by role [us] (one run), thread kinds: asyncio main / callback / Zenoh runtime")
     report["colocate"] = {"mission": a.mission, "duration": a.lockstep_duration, "runs": rows, "median": med_rows}
@@ -1393,6 +1413,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--no-variants", action="store_true", help="case 1: skip the co-located baseline experiment")
     ap.add_argument("--colocate-windows", nargs="*", default=["16:4", "16:8", "32:16"], metavar="WINDOW:BATCH",
                     help="case colocate: co-located structures with records of BATCH ticks and this grant window")
+    ap.add_argument("--colocate-mesh", action="store_true",
+                    help="case colocate: each co-located structure also as a peer mesh (tether run --network mesh); "
+                         "tether alone, the bare baseline has no mesh")
     ap.add_argument("--insecure", action="store_true",
                     help="tether run --insecure, and the baseline on plain TCP too (default: both authenticated, "
                          "mTLS with the run's access rules; the latency case is plain either way: its probe is)")

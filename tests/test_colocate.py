@@ -44,7 +44,7 @@ AGENTS = (1, 2, 3, 4)
 @pytest.fixture(scope="module")
 def section4_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str, str]:
     """Section 4 over 5 s in lockstep, twice at the same time: as ``tether run`` does by default
-    (plants co-located, window 16, 8 ticks per record: 501 ticks end on a record of five), and with
+    (plants co-located, window 32, 16 ticks per record: 501 ticks end on a record of five), and with
     ``--separate-plants``, one process per plant."""
     base = tmp_path_factory.mktemp("colocate")
     ns = f"colocate-{os.getpid()}"
@@ -58,7 +58,7 @@ def section4_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path,
 
 def test_colocated_run_starts_no_plant_process_and_is_complete(section4_runs: tuple[Path, Path, str, str]) -> None:
     co, _, log, sep_log = section4_runs
-    assert "plants computed inside their agents" in log and "window 16, records of 8 ticks" in log, log
+    assert "plants computed inside their agents" in log and "window 32, records of 16 ticks" in log, log
     assert "all 6 processes are up" in log, log
     assert "all 10 processes are up" in sep_log and "plants computed inside" not in sep_log, sep_log
     assert sorted(p.name for p in (co / "logs").iterdir()) == sorted(
@@ -72,10 +72,10 @@ def test_colocated_run_starts_no_plant_process_and_is_complete(section4_runs: tu
 
 def test_the_recorder_acknowledges_the_ticks_a_record_completes_at_once(
         section4_runs: tuple[Path, Path, str, str]) -> None:
-    """One acknowledgement stands for every tick before it (``wire.Ack``): with records of 8 ticks
-    the recorder completes ticks by eights (or more, records arriving together) and says so once for
-    each group, not once a tick; never more than the window of 16 at once (nothing beyond the grant
-    can be complete)."""
+    """One acknowledgement stands for every tick before it (``wire.Ack``): with records of 16 ticks
+    the recorder completes ticks by sixteens (or more, records arriving together) and says so once
+    for each group, not once a tick; never more than the window of 32 at once (nothing beyond the
+    grant can be complete)."""
     co, sep, _, _ = section4_runs
     said = {}
     for name, out in (("co", co), ("sep", sep)):
@@ -84,7 +84,7 @@ def test_the_recorder_acknowledges_the_ticks_a_record_completes_at_once(
         said[name] = int(line[1]), int(line[2])
     acks, ticks = said["co"]
     # (a leader sample late beside the records completes a tick alone: a margin of twice that)
-    assert ticks == 501 and math.ceil(ticks / 16) <= acks <= ticks // 2, said
+    assert ticks == 501 and math.ceil(ticks / 32) <= acks <= ticks // 2, said
     acks, ticks = said["sep"]
     assert ticks == 501 and 1 <= acks <= ticks, said  # one process per plant: ticks complete one by one, mostly
 
@@ -125,7 +125,7 @@ def test_colocated_quadrotors_equal_their_plant_processes_bit_for_bit(tmp_path: 
 # =========================================================================== refused before anything starts
 @pytest.mark.parametrize("mission, args, names, fix", [
     ("section4", ["--clock", "realtime"], "--colocate-plants", "--clock lockstep"),
-    ("section4", ["--record-batch", "17"], "--record-batch", "smaller --record-batch or a larger --window"),
+    ("section4", ["--record-batch", "33"], "--record-batch", "smaller --record-batch or a larger --window"),
     ("section4", ["--window", "4", "--record-batch", "5"], "--record-batch", "between 1 and the window (4)"),
     ("exp2", [], "--colocate-plants", "[payload] world"),
     ("exp1_cf", [], "--colocate-plants", "crazyflie"),
