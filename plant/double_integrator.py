@@ -1,9 +1,9 @@
-"""The double integrator ``p' = v, v' = u + d`` (Eq. 5), discretised exactly. Pure numpy.
+"""The double integrator ``p' = v, v' = u + d`` (Eq. 5), discretised exactly. Pure.
 
 Works on one vehicle (``(d,)``), many (``(N, d)``), or one axis of one vehicle in plain floats
-(:class:`plant.onboard.Onboard`): the same operations in the same order, so the same bits. Over one control period ``h`` the command
-``u`` is held (zero-order hold) and the disturbance enters through its exact increments
-(:meth:`plant.disturbance.DisturbanceBank.increments`)::
+(:class:`plant.onboard.Onboard`): the same operations in the same order, so the same bits. Over
+one control period ``h`` the command ``u`` is held (zero-order hold) and the disturbance enters
+through its exact increments (:meth:`plant.disturbance.DisturbanceBank.increments`)::
 
     p+ = p + h v + (h^2 / 2) u + dp,     v+ = v + h u + dv,     a+ = u + dv / h
 

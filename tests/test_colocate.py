@@ -265,6 +265,7 @@ def test_the_plain_float_plant_equals_the_general_path_bit_for_bit(dim: int, scr
         operator = script if script in ("land", "estop") and k >= 20 else None
         got, want = lean.advance(k, cmd, operator), ref.advance(k, cmd, operator)
         assert msgspec.structs.asdict(got) == msgspec.structs.asdict(want), (k, got, want)
+        assert wire.encode(got) == wire.encode(want)  # plain floats on the wire, as the general path's
         if went is None and not lean.lean:
             went = got
         u = rng.normal(0.0, 0.5, dim).tolist()
