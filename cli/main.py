@@ -350,7 +350,8 @@ def _node_args(args: argparse.Namespace, role: str, node_id: int) -> NodeArgs:
     return NodeArgs(mission_path=catalog.resolve(args.mission), role=role, node_id=node_id, clock=args.clock,
                     zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
                     duration=args.duration, start_timeout=args.start_timeout,
-                    colocate=getattr(args, "colocate_plant", False), record_batch=getattr(args, "record_batch", 1))
+                    colocate=getattr(args, "colocate_plant", False), record_batch=getattr(args, "record_batch", 1),
+                    mesh_peers=getattr(args, "mesh_peers", 0))
 
 
 def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[Node], Awaitable[None]],
@@ -584,6 +585,20 @@ def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
     g.add_argument("--lease", type=_lease, default=2.0, help="link lease [s]: a frozen peer is seen gone after it")
     g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
+    g.add_argument("--mesh-peers", type=_count, default=0, metavar="N",
+                   help="a peer of a mesh (tether run --network mesh): declare this process's liveliness token only "
+                        "once it is linked to N other peers, for the launcher starts the run on the tokens (exit 1 "
+                        "if they are not all linked within --connect-timeout)")
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a whole number >= 0")
+    return value
 
 
 def _skew(text: str) -> float:

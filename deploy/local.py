@@ -28,8 +28,9 @@ Network (``--network``):
   and holds its rate better than a mesh as N grows (``bench/runtime.py``, ``docs/zenoh.md``).
 * ``mesh``: children are **peers**, each listening on its own free loopback port and meeting the
   others through the router's gossip; about N^2/2 links. Faster in lockstep (no router hop between
-  the agents: Section 4 17.2x real time against 12.8x), but the run starts once every token is in,
-  which in a mesh does not mean every peer link is up: a lockstep ring of 32 stalled at tick 0.
+  the agents: Section 4 17.2x real time against 12.8x). The run starts once every token is in, so
+  each peer declares its token only once linked to every other member (``--mesh-peers``): without
+  that wait a lockstep ring of 32 stalled at tick 0.
 
 Vehicles on another network (partition studies; a companion computer's on-board link): vehicle i's
 agent and plant can run under a command prefix, ``--wrap 3='ip netns exec uav3'`` (a network
@@ -335,6 +336,8 @@ class Launch:
             else:
                 cmd += ["--zenoh-mode", "peer", "--connect", endpoint,
                         "--listen", tp.loopback_endpoint(tp.free_tcp_port())]
+            if o.network == "mesh":  # its token once linked to every other member (tether/node.py)
+                cmd += ["--mesh-peers", str(len(self.members()) - 1)]
             if vehicle and nid in o.wrap:
                 cmd = [*o.wrap[nid], *cmd]
             fh = self.logs.pop((role, nid))

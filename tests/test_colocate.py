@@ -107,6 +107,32 @@ def test_colocated_run_equals_the_reference_simulator(section4_runs: tuple[Path,
     assert not np.allclose(run.kp[-1], run.kp[0])
 
 
+def test_a_mesh_run_equals_the_star_run_and_each_peer_is_linked_to_all_before_its_token(
+        section4_runs: tuple[Path, Path, str, str], tmp_path: Path) -> None:
+    """``--network mesh`` (faster in lockstep: no router hop between the agents): the same run file,
+    and every peer declared its token only once linked to the five others, so that the launcher's
+    start reached a complete mesh (a ring of 32 once stalled at tick 0 without that wait)."""
+    with launch(tmp_path, f"colocate-{os.getpid()}-mesh", "--duration", "5", "--network", "mesh") as run:
+        run.wait(STARTUP + 60)
+    assert run.status == 0, run.launcher_log
+    assert differing_arrays(section4_runs[0], run.out) == []
+    for name in ("leader-5", "recorder-0", *(f"agent-{i}" for i in AGENTS)):
+        assert "mesh: linked to 5 other peers" in run.child_log(name), name
+
+
+def test_a_peer_of_a_mesh_that_cannot_link_to_every_other_fails_naming_the_count(tmp_path: Path) -> None:
+    """A peer that should link to one other and finds none: exit 1 after ``--connect-timeout``, saying how many
+    it had, never declaring the token on which the launcher would start the run."""
+    r = subprocess.run(tether_cmd("leader", "--mission", "section4", "--clock", "lockstep", "--ns",
+                                  f"lonely-{os.getpid()}", "--zenoh-mode", "peer", "--listen",
+                                  tp.loopback_endpoint(tp.free_tcp_port()), "--mesh-peers", "1",
+                                  "--connect-timeout", "1", "--start-timeout", "30"),
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, r.stdout + r.stderr
+    said = r.stdout + r.stderr
+    assert "linked to 0 of the mesh's 1 other peers after 1 s" in said and "Traceback" not in said, said
+
+
 def test_colocated_quadrotors_equal_their_plant_processes_bit_for_bit(tmp_path: Path) -> None:
     """Experiment 1's quadrotors (their 500 Hz inner loop, with mass and attitude), 1 s."""
     ns = f"colocate-q-{os.getpid()}"

@@ -63,6 +63,10 @@ recorder although its last did, and the recorder stalled for 30 s and failed the
 of Section 4 beside three CPU-bound processes)."""
 
 
+MESH_POLL = 0.02
+"""How often a peer of a mesh looks at its links while it waits for all of them [s] (Zenoh gives no
+event for a new link)."""
+
 BACKLOG_ROLES = frozenset({"recorder"})
 """The roles whose inputs hold and take a :data:`BACKLOG`: the recorder, which wants every sample
 and runs no control loop. A role that flies (agent, plant, leader, world) holds the newest
@@ -126,6 +130,9 @@ class NodeArgs:
     (``tether run --colocate-plants``)."""
     record_batch: int = 1
     """With :attr:`colocate`: ticks an agent's record carries at most (a smaller last one ends the run)."""
+    mesh_peers: int = 0
+    """A peer of a mesh: the token is declared once the session is linked to this many other peers
+    (:meth:`Node.ready`); 0: at once."""
 
 
 class _Tapped:
@@ -373,6 +380,28 @@ class Node:
             if len(self.deferred):
                 self.wakeup.notify_here()
 
+    async def _mesh_linked(self) -> None:
+        """A peer of a mesh (``--mesh-peers N``): wait until the session is linked to N other peers.
+        The launcher starts the run once it holds every token, through its router; in a mesh a
+        sample goes over the link between its two peers, so a token declared before the links were
+        up let the run start while some samples still had nowhere to go (a lockstep ring of 32
+        stalled at tick 0, the recorder missing the samples of the peers it was not yet linked to).
+        Raises :class:`Stalled` naming the count after ``--connect-timeout``."""
+        want = self.args.mesh_peers
+        if not want:
+            return
+        info = self.session.info
+        limit = self.args.zenoh.connect_timeout or 10.0
+        have = 0
+        try:
+            async with asyncio.timeout(limit):
+                while (have := len(info.peers_zid())) < want:
+                    await asyncio.sleep(MESH_POLL)
+            log.info("mesh: linked to %d other peers", have)
+        except TimeoutError:
+            raise Stalled(f"linked to {have} of the mesh's {want} other peers after {limit:g} s "
+                          "(--connect-timeout); a star (--network star) needs one link per process") from None
+
     async def ready(self, paced: bool = False, phase: float = 0.0, token: bool = True,
                     rejoin: Callable[[], float | None] | None = None) -> None:
         """Declare liveliness (after every subscription, so a launcher that sees the token knows
@@ -397,6 +426,7 @@ class Node:
         if isinstance(clock, LockstepClock) and token and self.args.role not in BACKLOG_ROLES:
             self._recorded = self.source(self.keys.recorded, wire.Recorded, 0, keep=False)
         if token:
+            await self._mesh_linked()
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
         joined: list[float] = []
 
