@@ -587,8 +587,8 @@ def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
     g.add_argument("--mesh-peers", type=_count, default=0, metavar="N",
                    help="a peer of a mesh (tether run --network mesh): declare this process's liveliness token only "
-                        "once it is linked to N other peers, for the launcher starts the run on the tokens (exit 1 "
-                        "if they are not all linked within --connect-timeout)")
+                        "once it is linked to N other peers, because the launcher starts the run on the tokens "
+                        "(exit 1 if they are not all linked within --connect-timeout)")
 
 
 def _count(text: str) -> int:

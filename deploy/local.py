@@ -337,7 +337,8 @@ class Launch:
                 cmd += ["--zenoh-mode", "peer", "--connect", endpoint,
                         "--listen", tp.loopback_endpoint(tp.free_tcp_port())]
             if o.network == "mesh":  # its token once linked to every other member (tether/node.py)
-                cmd += ["--mesh-peers", str(len(self.members()) - 1)]
+                others = len(self.members()) - 1
+                cmd += ["--mesh-peers", str(others), "--connect-timeout", repr(max(10.0, MESH_LINK_TIME * others))]
             if vehicle and nid in o.wrap:
                 cmd = [*o.wrap[nid], *cmd]
             fh = self.logs.pop((role, nid))
@@ -412,6 +413,10 @@ EXIT_INCOMPLETE, EXIT_TERMINATED = 5, 143
 
 WINDOW = 8
 """Lockstep ticks in flight by default with one process per plant."""
+
+MESH_LINK_TIME = 1.0
+"""In a mesh, the time a peer is given per other member to be linked to all of them before it fails
+(``--connect-timeout``, at least 10 s): a ring of 32 (33 others) linked in 5-6 s on two cores."""
 
 COLOCATED_WINDOW = 32
 """Lockstep ticks in flight by default with the plants co-located (records of half of it). Since
