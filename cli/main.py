@@ -53,14 +53,21 @@ def _seconds(text: str) -> float:
     return x
 
 
-def _positive_int(text: str) -> int:
-    try:
-        x = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give e.g. 10") from None
-    if x <= 0:
-        raise argparse.ArgumentTypeError(f"{x} is not >= 1; give e.g. 10")
-    return x
+def _int_at_least(lo: int) -> Callable[[str], int]:
+    """An argparse type: a whole number >= ``lo``."""
+    def convert(text: str) -> int:
+        try:
+            x = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give e.g. 10") from None
+        if x < lo:
+            raise argparse.ArgumentTypeError(f"{x} is not >= {lo}; give e.g. 10")
+        return x
+
+    return convert
+
+
+_positive_int = _int_at_least(1)
 
 
 def _rt_priority(text: str) -> int:
@@ -585,20 +592,10 @@ def _zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
     g.add_argument("--lease", type=_lease, default=2.0, help="link lease [s]: a frozen peer is seen gone after it")
     g.add_argument("--connect-timeout", type=float, default=10.0, help="how long to retry --connect at start [s]")
-    g.add_argument("--mesh-peers", type=_count, default=0, metavar="N",
+    g.add_argument("--mesh-peers", type=_int_at_least(0), default=0, metavar="N",
                    help="a peer of a mesh (tether run --network mesh): declare this process's liveliness token only "
                         "once it is linked to N other peers, because the launcher starts the run on the tokens "
                         "(exit 1 if they are not all linked within --connect-timeout)")
-
-
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: give a whole number >= 0")
-    return value
 
 
 def _skew(text: str) -> float:
