@@ -761,7 +761,7 @@ def _run_commands(sub: argparse._SubParsersAction) -> None:
     rn.add_argument("--network", choices=["star", "mesh"], default="star",
                     help="star: clients around one router session (default); mesh: peers")
     rn.add_argument("--window", type=int, default=None,
-                    help="lockstep ticks in flight (default: 16 with the plants co-located, else 8)")
+                    help="lockstep ticks in flight (default: 32 with the plants co-located, else 8)")
     rn.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     rn.add_argument("--no-handover", action="store_true",
                     help="leave Zenoh's runtime threads as they are (default: hand them over, ZENOH_RUNTIME)")

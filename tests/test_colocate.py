@@ -213,6 +213,12 @@ def test_lockstep_co_locates_by_default_where_nothing_needs_plant_processes() ->
     assert "[payload] world" in (separate_plants_needed(load_mission(builtin_path("exp2")), LaunchOptions(out=out)) or "")
     # what is given is kept
     assert resolve(m, LaunchOptions(out=out, colocate_plants=False)).colocate_plants is False
+    # and `tether run --help` says the defaults these are
+    from cli.main import build_parser
+
+    run = build_parser()._subparsers._group_actions[0].choices["run"]  # type: ignore[union-attr]
+    said = next(a.help for a in run._actions if "--window" in a.option_strings)
+    assert f"default: {COLOCATED_WINDOW} with the plants co-located, else {WINDOW}" in (said or ""), said
     assert resolve(m, LaunchOptions(out=out, window=4)).window == 4
     assert resolve(m, LaunchOptions(out=out, clock="realtime", colocate_plants=True)).colocate_plants is True
 
