@@ -104,7 +104,8 @@ class Monitor:
     that is ending withdraws its token moments before it exits)."""
 
     def __init__(self, session: zenoh.Session, mission: ms.Mission, keys: wire.Keys,
-                 members: list[tuple[str, int]], clock: Callable[[], float | None], forge_agents: bool = False):
+                 members: list[tuple[str, int]], clock: Callable[[], float | None], forge_agents: bool = False,
+                 leader: bool = True):
         self.mission = mission
         self.keys = keys
         self.members = members
@@ -130,11 +131,12 @@ class Monitor:
         self._subs = [
             tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", self.fifo),
             tp.declare_subscriber(session, f"tether/{ns}/plant/*/state", self.fifo),
-            tp.declare_subscriber(session, f"tether/{ns}/leader/*/state", self.fifo),
             # a plant co-located in its agent (--colocate-plants): both streams in one record
             tp.declare_subscriber(session, f"tether/{ns}/agent/*/record", self.fifo),
             tp.watch_tokens(session, keys.tokens, self.token_events),
         ]
+        if leader:  # what the monitor learns from the leader's state: that it was heard, and a sample to forge
+            self._subs.append(tp.declare_subscriber(session, f"tether/{ns}/leader/*/state", self.fifo))
         if forge_agents:  # an agent's state is only needed to forge it
             self._subs.append(tp.declare_subscriber(session, f"tether/{ns}/agent/*/state", self.fifo))
         self._vanished: dict[str, tuple[float, float | None]] = {}

@@ -982,7 +982,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             launch.spawn(router, sec)
             members = launch.members()
             monitor = inject.Monitor(session, m, keys, members, lambda: sup.mission_time(m) if sup else None,
-                                     forge_agents=any(f.kind == "forge" and f.role == "agent" for f in opts.faults))
+                                     forge_agents=any(f.kind == "forge" and f.role == "agent" for f in opts.faults),
+                                     # real time checks that the leader was heard at the start; lockstep
+                                     # needs its samples only to forge one (a delivery a tick less)
+                                     leader=opts.clock != "lockstep" or any(f.kind == "forge" and f.role == "leader"
+                                                                         for f in opts.faults))
             pids = {(c.role, c.node_id): c.proc.pid for c in launch.children}
             monitor.proc_alive = lambda name: any(c.name == name and c.proc.poll() is None for c in launch.children)
             sup = Supervision(monitor, inject.Injector(opts.faults, m, keys, session, pids, launch.relays, monitor))

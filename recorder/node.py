@@ -22,6 +22,8 @@ import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from itertools import chain
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,20 @@ log = logging.getLogger("tether")
 STOP_GRACE = 2.0
 """Real time: when every producer has left before the last tick, how long to wait for this
 process's own stop signal before calling the run cut short [s]."""
+
+
+_PLANT_VECTORS = attrgetter("p", "vel", "a", "d")
+_TELEMETRY_VECTORS = attrgetter("p", "vel", "a", "u", "xi", "zeta", "kp", "kv")
+
+
+def _block(msgs: list[Any], vectors: attrgetter, dim: int) -> list[np.ndarray]:
+    """Each of the ``vectors`` of ``msgs`` as one array (ticks, dim), from a single pass over the
+    floats (converting the nested lists one series at a time cost twice as much). The messages are
+    the receiver's: :class:`tether.wire.Receiver` checked every vector's size (a total that differs
+    raises ValueError here all the same)."""
+    rows = [vectors(msg) for msg in msgs]
+    every = np.fromiter(chain.from_iterable(chain.from_iterable(rows)), float)
+    return list(np.moveaxis(every.reshape(len(msgs), len(rows[0]), dim), 1, 0))
 
 
 class Recording:
@@ -143,6 +159,81 @@ class Recording:
             self.run.d[msg.k, i] = msg.d
             self.run.safety.plant_mode[msg.k, i] = msg.mode
             self._heard(msg.k)
+
+    def plants(self, msgs: list[wire.PlantState]) -> None:
+        """One plant's samples of consecutive ticks (a :class:`~tether.wire.Record`'s, gated): one
+        assignment per series when none of their ticks is recorded yet, else :meth:`plant` for each."""
+        ks = self._span(msgs, 1)
+        if ks is None:
+            for msg in msgs:
+                self.plant(msg)
+            return
+        i, rt = self.col[msgs[0].sender], self.rt
+        rt.plant_p[ks, i], rt.plant_v[ks, i], rt.plant_a[ks, i], self.run.d[ks, i] = _block(msgs, _PLANT_VECTORS, self.mission.dim)
+        self.run.safety.plant_mode[ks, i] = [msg.mode for msg in msgs]
+
+    def telemetries(self, msgs: list[wire.Telemetry]) -> None:
+        """One agent's telemetry of consecutive ticks (a :class:`~tether.wire.Record`'s): as
+        :meth:`telemetry` for each, in one assignment per series when none of their ticks is
+        recorded yet, each has as many links, and nothing per sample is still to be learnt (the
+        epoch hint, real time's clock offsets); else :meth:`telemetry` for each."""
+        ks = None
+        if msgs and self.first is not None and self.clock is None \
+                and all(len(msg.links) == len(msgs[0].links) for msg in msgs):
+            ks = self._span(msgs, 1 + self.mission.n)
+        if ks is None:
+            for msg in msgs:
+                self.telemetry(msg)
+            return
+        i, r, lk, rt = self.col[msgs[0].sender], self.run, self.lk, self.rt
+        r.p[ks, i], r.v[ks, i], r.a[ks, i], r.u[ks, i], r.xi[ks, i], r.zeta[ks, i], r.kp[ks, i], r.kv[ks, i] = \
+            _block(msgs, _TELEMETRY_VECTORS, self.mission.dim)
+        for n in range(min(len(msgs[0].links), lk.src.shape[1])):
+            links = [msg.links[n] for msg in msgs]
+            lk.src[i, n] = links[-1].src
+            lk.age[ks, i, n] = [link.age for link in links]
+            lk.received[ks, i, n] = [link.received for link in links]
+            lk.stale[ks, i, n] = [link.stale for link in links]
+            self.silent[ks, i, n] = [float(link.silent) for link in links]
+            lk.used[ks, i, n] = [link.used for link in links]
+            lk.duplicates[ks, i, n] = [link.duplicates for link in links]
+            lk.reordered[ks, i, n] = [link.reordered for link in links]
+            lk.corrupt[ks, i, n] = [link.corrupt for link in links]
+            self.delivery[ks, i, n] = [link.delivery for link in links]
+            self.age_p50[ks, i, n] = [link.age_p50 for link in links]
+            self.age_p99[ks, i, n] = [link.age_p99 for link in links]
+        rt.drops[ks, i] = [sum(msg.drops.values()) for msg in msgs]
+        rt.meas_age[ks, i] = [msg.t - msg.meas_t for msg in msgs]
+        r.safety.safety_mode[ks, i] = [msg.mode for msg in msgs]
+        rt.late[ks, i] = [msg.late for msg in msgs]
+        for msg in msgs:
+            if msg.events:
+                self.events.extend(msg.events)
+            for d in msg.netem:
+                self.netem.append({"dst": msg.sender, "src": d.src, "seq": d.seq, "now": d.now, "event": d.event,
+                                   "at": d.at})
+        if ks.stop - 1 > self.gate[i][0]:
+            self.gate[i] = (ks.stop - 1, dict(msgs[-1].gate))
+
+    def _span(self, msgs: list[Any], column: int) -> slice | None:
+        """The ticks of ``msgs`` (one sender's, in ``column`` + its index of :attr:`have`), taken
+        and counted as :meth:`_take` takes one, when they are consecutive ticks of the run from one
+        sender and none of them is in yet; else None (nothing taken)."""
+        if not msgs:
+            return None
+        k0, k1, who = msgs[0].k, msgs[-1].k, msgs[0].sender
+        if k0 < 0 or k1 >= len(self.count) or k1 - k0 != len(msgs) - 1 \
+                or any(msg.k != k0 + n or msg.sender != who for n, msg in enumerate(msgs)):
+            return None
+        ks = slice(k0, k1 + 1)
+        have = self.have[ks, column + self.col[who]]
+        if have.any():
+            return None
+        have[:] = True
+        self.count[ks] += 1
+        self._heard(k0)
+        self._heard(k1)
+        return ks
 
     def world(self, msg: wire.WorldState) -> None:
         series = self.world_series
@@ -311,15 +402,16 @@ def _records(node: Node, rec: Recording, src: Any, plant_gate: Callable[[wire.Pl
         if msg is not src.newest:
             node.count_drop("stale_record")
             return
+        plants = []
         for p in msg.plant:
             why = plant_gate(p)
             if why is not None:
                 node.count_drop("gate")
                 log.warning("record of agent %d: plant sample of tick %d rejected (%s)", msg.sender, p.k, why)
                 continue
-            rec.plant(p)
-        for t in msg.telemetry:
-            rec.telemetry(t)
+            plants.append(p)
+        rec.plants(plants)
+        rec.telemetries(msg.telemetry)
 
     return take
 

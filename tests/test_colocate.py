@@ -365,6 +365,96 @@ def test_a_record_is_checked_item_by_item_and_dropped_whole_for_one_bad_item() -
     assert rx.accept(wire.encode(good), wire.Record, 2) is None and rx.drops["sender"] == 2  # on agent 2's key
 
 
+def _busy_record(k0: int, n: int, sender: int, rng: np.random.Generator, dim: int = 2) -> wire.Record:
+    """Ticks ``k0 .. k0 + n - 1`` of agent ``sender`` with every recorded field distinct."""
+    def v() -> list[float]:
+        return [float(x) for x in rng.normal(size=dim)]
+
+    plant = [wire.PlantState(sender=sender, seq=k, k=k, t=k / 100, p=v(), vel=v(), a=v(), d=v(),
+                             mode=int(rng.integers(0, 5))) for k in range(k0, k0 + n)]
+    tele = []
+    for k in range(k0, k0 + n):
+        links = [wire.LinkStats(src=j, received=int(rng.integers(0, 99)), used=int(rng.integers(0, 99)),
+                                stale=int(rng.integers(0, 9)), age=float(rng.random()), silent=bool(rng.random() < 0.5),
+                                duplicates=int(rng.integers(0, 9)), reordered=int(rng.integers(0, 9)),
+                                corrupt=int(rng.integers(0, 9)), delivery=float(rng.random()),
+                                age_p50=float(rng.random()), age_p99=float(rng.random())) for j in (0, sender % 4 + 1)]
+        events = [wire.SafetyEvent(k=k, t=k / 100, vehicle=sender, src=0, dst=1, reason="test")] if k % 7 == 0 else []
+        netem = [wire.LinkDecision(src=0, seq=k, now=k / 100, event="deliver", at=k / 100)] if k % 5 == 0 else []
+        tele.append(wire.Telemetry(sender=sender, seq=k, k=k, t=k / 100, meas_t=k / 100 - 0.001 * (k % 3), p=v(),
+                                   vel=v(), a=v(), u=v(), xi=v(), zeta=v(), kp=v(), kv=v(), links=links,
+                                   drops={"malformed": k % 4, "size": 1}, late=k % 2, mode=int(rng.integers(0, 5)),
+                                   events=events, netem=netem, gate={"jump": k}))
+    return wire.Record(sender=sender, seq=k0, k=k0 + n - 1, t=(k0 + n - 1) / 100, plant=plant, telemetry=tele)
+
+
+def test_the_recorder_writes_a_record_at_once_as_it_would_sample_by_sample() -> None:
+    """``Recording.plants`` / ``telemetries`` (one assignment per series for a record's ticks) fill
+    every array of the run as ``plant`` / ``telemetry`` called for each sample do, and fall back to
+    them, counting alike, for what a block cannot take: a tick already recorded (a replay), ticks
+    not consecutive (a plant sample the gate rejected), another sender among the items, ticks beyond
+    the run, links that change in number."""
+    from types import SimpleNamespace
+
+    from recorder.node import Recording
+
+    m = load_mission(SECTION4)
+    # the recorder's bookkeeping asks its node for these alone
+    node = SimpleNamespace(mission=m, clock=SimpleNamespace(lockstep=True), keys=wire.Keys("test"),
+                           args=SimpleNamespace(mission_path=SECTION4), arrived_ago=lambda: 0.0)
+    rng = np.random.default_rng(5)
+    one, block = Recording(node, Path("unused")), Recording(node, Path("unused"))  # type: ignore[arg-type]
+    one.first = block.first = 0.0
+    last = m.steps
+    records = [_busy_record(k0, 16, aid, rng) for aid in AGENTS for k0 in range(0, 64, 16)]
+    replayed = _busy_record(16, 16, 2, rng)
+    gapped = _busy_record(64, 16, 3, rng)
+    mixed = _busy_record(80, 4, 1, rng)
+    mixed_items = [mixed.telemetry[0], msgspec.structs.replace(mixed.telemetry[1], sender=2), *mixed.telemetry[2:]]
+    links = _busy_record(96, 4, 4, rng)
+    fewer = [*links.telemetry[:2], msgspec.structs.replace(links.telemetry[2], links=links.telemetry[2].links[:1]),
+             links.telemetry[3]]
+    beyond = _busy_record(last - 2, 5, 1, rng)
+    cases = [(r.plant, r.telemetry) for r in records] + [
+        (replayed.plant, replayed.telemetry),
+        ([*gapped.plant[:3], *gapped.plant[4:]], gapped.telemetry),
+        (mixed.plant, mixed_items),
+        (links.plant, fewer),
+        (beyond.plant, beyond.telemetry),
+    ]
+    singly = {"plant": 0, "telemetry": 0}
+
+    def counted(name: str) -> Any:
+        method = getattr(block, name)
+
+        def call(msg: Any) -> None:
+            singly[name] += 1
+            method(msg)
+
+        return call
+
+    block.plant, block.telemetry = counted("plant"), counted("telemetry")  # type: ignore[method-assign]
+    for plants, tele in cases:
+        for p in plants:
+            one.plant(p)
+        for t in tele:
+            one.telemetry(t)
+        block.plants(plants)
+        block.telemetries(tele)
+    # the records in blocks; one by one: the replay, the gapped plant samples, the mixed senders'
+    # telemetry, the links that changed in number, the ticks beyond the run
+    assert singly == {"plant": 16 + 15 + 5, "telemetry": 16 + 4 + 4 + 5}
+    assert one.duplicates == block.duplicates == 32
+    assert np.array_equal(one.count, block.count) and np.array_equal(one.have, block.have)
+    assert (one.oldest, one.newest) == (block.oldest, block.newest) == (0, last)
+    assert one.events == block.events and one.netem == block.netem and one.gate == block.gate
+    want, got = one.run.arrays(), block.run.arrays()
+    assert want.keys() == got.keys()
+    differ = [name for name in want if not np.array_equal(want[name], got[name], equal_nan=want[name].dtype.kind == "f")]
+    assert not differ, differ
+    assert one.count[:64].tolist() == [8] * 64  # the blocks were recorded: 4 plants and 4 telemetries a tick
+
+
 # =========================================================================== the recorder, fed by hand
 @pytest.mark.asyncio
 async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which_ticks_lack_samples(
