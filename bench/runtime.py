@@ -942,13 +942,14 @@ def colocate_structures(windows: list[str], mesh: bool = False
     ``mesh``: each of those also as a peer mesh (``--network mesh``), tether alone (variant None:
     the bare baseline has no mesh, so no ceiling is measured for it)."""
     out: list[tuple[str, dict[str, Any] | None, tuple[str, ...]]] = [
-        ("separate, w8", {}, ("--separate-plants", "--window", "8")),
-        ("co-located, w8", {"colocate": True}, ("--colocate-plants", "--record-batch", "1")),
+        ("separate, w8", {}, ("--separate-plants", "--window", "8", "--network", "star")),
+        ("co-located, w8", {"colocate": True}, ("--colocate-plants", "--record-batch", "1", "--network", "star")),
     ]
     for spec in windows:
         w, b = (int(x) for x in spec.split(":"))
         opts = ("--colocate-plants", "--record-batch", str(b), "--window", str(w))
-        out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w}, opts))
+        # the star named: a co-located run of up to 16 agents is a mesh by default (deploy.local.resolve)
+        out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w}, (*opts, "--network", "star")))
         if mesh:
             out.append((f"co+b {b}, w{w}, mesh", None, (*opts, "--network", "mesh")))
     return out

@@ -758,8 +758,9 @@ def _run_commands(sub: argparse._SubParsersAction) -> None:
     rn.add_argument("--out", required=True, help="directory for run.npz and logs/")
     rn.add_argument("--clock", choices=["lockstep", "realtime"], default=None,
                     help="lockstep (default) or realtime (the default with --sitl)")
-    rn.add_argument("--network", choices=["star", "mesh"], default="star",
-                    help="star: clients around one router session (default); mesh: peers")
+    rn.add_argument("--network", choices=["star", "mesh"], default=None,
+                    help="star: clients around one router session; mesh: peers (default: a mesh in lockstep where "
+                         "the plants are co-located by default and at most 16 agents fly, faster; else the star)")
     rn.add_argument("--window", type=int, default=None,
                     help="lockstep ticks in flight (default: 32 with the plants co-located, else 8)")
     rn.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")

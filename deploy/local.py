@@ -23,14 +23,19 @@ rules: anyone who reaches the router can move the formation), with a warning. Un
 
 Network (``--network``):
 
-* ``star`` (default): this process opens a Zenoh **router** session on a free loopback port and
-  every child connects to it as a **client**. N processes hold N links; measured here it comes up
-  and holds its rate better than a mesh as N grows (``bench/runtime.py``, ``docs/zenoh.md``).
+* ``star``: this process opens a Zenoh **router** session on a free loopback port and every child
+  connects to it as a **client**. N processes hold N links; measured here it comes up and holds its
+  rate better than a mesh as N grows (``bench/runtime.py``, ``docs/zenoh.md``).
 * ``mesh``: children are **peers**, each listening on its own free loopback port and meeting the
   others through the router's gossip; about N^2/2 links. Faster in lockstep (no router hop between
   the agents: Section 4 17.2x real time against 12.8x). The run starts once every token is in, so
   each peer declares its token only once linked to every other member (``--mesh-peers``): without
   that wait a lockstep ring of 32 stalled at tick 0.
+
+By default (:func:`resolve`) a lockstep run whose plants are co-located by default is a mesh up to
+:data:`MESH_MAX_AGENTS` agents, and every other run a star: real time, one process per plant, and
+whatever acts on the processes or their links (faults, ``--wrap``, ``--vehicle-connect``,
+``--listen``, ``--sitl``, ``--shared-plants``).
 
 Vehicles on another network (partition studies; a companion computer's on-board link): vehicle i's
 agent and plant can run under a command prefix, ``--wrap 3='ip netns exec uav3'`` (a network
@@ -120,7 +125,9 @@ Network = Literal["star", "mesh"]
 class LaunchOptions:
     out: Path
     clock: ClockKind = "lockstep"
-    network: Network = "star"
+    network: Network | None = None
+    """None: :func:`resolve` decides (a mesh where the plants are co-located by default and at most
+    :data:`MESH_MAX_AGENTS` agents fly, else the star)."""
     window: int | None = None
     """Lockstep ticks in flight at once (see :class:`tether.clock.LockstepSource`); None:
     :data:`COLOCATED_WINDOW` with the plants co-located, else :data:`WINDOW` (:func:`resolve`)."""
@@ -418,6 +425,12 @@ MESH_LINK_TIME = 1.0
 """In a mesh, the time a peer is given per other member to be linked to all of them before it fails
 (``--connect-timeout``, at least 10 s): a ring of 32 (33 others) linked in 5-6 s on two cores."""
 
+MESH_MAX_AGENTS = 16
+"""A lockstep run whose plants are co-located by default is a mesh up to this many agents. Measured
+(the same sitting, ``docs/benchmarks.md``): section4 22 % faster as a mesh, rings of 8 and 16 at
+100 Hz 15 % and 17 % faster, for up to 0.6 s more to start; a ring of 24 no faster and 1.5 s longer
+to start, a ring of 32 4 % faster and 3.4 s longer (about N^2/2 TLS links to set up)."""
+
 COLOCATED_WINDOW = 32
 """Lockstep ticks in flight by default with the plants co-located (records of half of it). Since
 an acknowledgement stands for every tick before it (one per record instead of one per tick),
@@ -455,10 +468,16 @@ def window(o: LaunchOptions) -> int:
 
 def resolve(m: ms.Mission, o: LaunchOptions) -> LaunchOptions:
     """``o`` with its defaults decided for ``m``: where the plants run (:attr:`LaunchOptions.colocate_plants`
-    None: inside their agents unless :func:`separate_plants_needed` says why not) and the window."""
-    colocate = o.colocate_plants if o.colocate_plants is not None else separate_plants_needed(m, o) is None
+    None: inside their agents unless :func:`separate_plants_needed` says why not), the window, and
+    the network (:attr:`LaunchOptions.network` None: a mesh where nothing keeps the plants apart and
+    at most :data:`MESH_MAX_AGENTS` agents fly; else the star, which real time, faults, vehicles
+    of their own network and tools beside the plants need)."""
+    free = separate_plants_needed(m, o) is None
+    colocate = o.colocate_plants if o.colocate_plants is not None else free
     ticks = o.window if o.window is not None else COLOCATED_WINDOW if colocate else WINDOW
-    return dataclasses.replace(o, colocate_plants=colocate, window=ticks)
+    net: Network = o.network if o.network is not None else \
+        "mesh" if free and colocate and m.n <= MESH_MAX_AGENTS else "star"
+    return dataclasses.replace(o, colocate_plants=colocate, window=ticks, network=net)
 
 
 def record_batch(o: LaunchOptions) -> int:
@@ -895,8 +914,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     if auto and opts.clock == "lockstep":
         if opts.colocate_plants:
             log.info("plants computed inside their agents (lockstep, simulated plants: the same run as with plant "
-                     "processes, faster), window %d, records of %d ticks; --separate-plants for one process per plant",
-                     opts.window, record_batch(opts))
+                     "processes, faster), window %d, records of %d ticks, network %s; --separate-plants for one "
+                     "process per plant", opts.window, record_batch(opts), opts.network)
         else:
             log.info("one process per plant: %s", separate_plants_needed(m, opts))
     if opts.rt_priority is not None:  # the launcher's router first (its threads inherit it), before anything starts

@@ -13,6 +13,7 @@ loopback ports picked free at run time, one key namespace per run.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import os
 import re
@@ -27,7 +28,7 @@ import pytest
 
 from plant.onboard import Onboard, problem
 from sim import refsim
-from tests.factories import build, one_agent
+from tests.factories import build, one_agent, random_mission
 from tests.support import read
 from tests.test_runtime import ATOL, LEADER, REPO, SECTION4, STARTUP, WAIT, differing_arrays, launch, stop, tether_cmd
 from tether import handoff
@@ -191,12 +192,12 @@ def test_lockstep_co_locates_by_default_where_nothing_needs_plant_processes() ->
     """``deploy.local.resolve``: co-located in lockstep with simulated plants and nothing that acts on
     the plant processes; else one process per plant, and why; the window follows the structure."""
     from deploy import faults
-    from deploy.local import COLOCATED_WINDOW, WINDOW, LaunchOptions, resolve, separate_plants_needed
+    from deploy.local import COLOCATED_WINDOW, MESH_MAX_AGENTS, WINDOW, LaunchOptions, resolve, separate_plants_needed
 
     m, out = load_mission(SECTION4), Path("out")
     assert separate_plants_needed(m, LaunchOptions(out=out)) is None
     got = resolve(m, LaunchOptions(out=out))
-    assert got.colocate_plants is True and got.window == COLOCATED_WINDOW
+    assert got.colocate_plants is True and got.window == COLOCATED_WINDOW and got.network == "mesh"
     cases = {
         "real time": LaunchOptions(out=out, clock="realtime"),
         "--fault": LaunchOptions(out=out, faults=(faults.parse("kill:plant/2@1"),)),
@@ -209,16 +210,28 @@ def test_lockstep_co_locates_by_default_where_nothing_needs_plant_processes() ->
         why = separate_plants_needed(m, o)
         assert why is not None and name in why, (name, why)
         got = resolve(m, o)
-        assert got.colocate_plants is False and got.window == WINDOW, name
+        assert got.colocate_plants is False and got.window == WINDOW and got.network == "star", name
+        # plants co-located on demand where the default would not: the star still
+        forced = resolve(m, dataclasses.replace(o, colocate_plants=True))
+        assert forced.network == "star", name
     assert "[payload] world" in (separate_plants_needed(load_mission(builtin_path("exp2")), LaunchOptions(out=out)) or "")
     # what is given is kept
     assert resolve(m, LaunchOptions(out=out, colocate_plants=False)).colocate_plants is False
+    assert resolve(m, LaunchOptions(out=out, colocate_plants=False)).network == "star"
+    assert resolve(m, LaunchOptions(out=out, network="star")).network == "star"
+    assert resolve(m, LaunchOptions(out=out, network="mesh", clock="realtime")).network == "mesh"
+    # a mesh up to MESH_MAX_AGENTS agents, the star beyond (N^2/2 links to set up)
+    for n, want in ((MESH_MAX_AGENTS, "mesh"), (MESH_MAX_AGENTS + 1, "star")):
+        big = random_mission(np.random.default_rng(n), n)
+        assert resolve(big, LaunchOptions(out=out)).network == want, n
     # and `tether run --help` says the defaults these are
     from cli.main import build_parser
 
     run = build_parser()._subparsers._group_actions[0].choices["run"]  # type: ignore[union-attr]
     said = next(a.help for a in run._actions if "--window" in a.option_strings)
     assert f"default: {COLOCATED_WINDOW} with the plants co-located, else {WINDOW}" in (said or ""), said
+    said = next(a.help for a in run._actions if "--network" in a.option_strings)
+    assert f"at most {MESH_MAX_AGENTS} agents" in (said or ""), said
     assert resolve(m, LaunchOptions(out=out, window=4)).window == 4
     assert resolve(m, LaunchOptions(out=out, clock="realtime", colocate_plants=True)).colocate_plants is True
 
