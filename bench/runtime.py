@@ -3,6 +3,7 @@
     .venv/bin/python bench/runtime.py                        # every case (about 7 minutes)
     .venv/bin/python bench/runtime.py --cases lockstep --repeats 5
     .venv/bin/python bench/runtime.py --cases colocate --repeats 3 --colocate-windows 16:4 16:8 32:16 [--colocate-mesh]
+    .venv/bin/python bench/runtime.py --cases network --repeats 2 --network-sizes 4 8 16 24 32
     .venv/bin/python bench/runtime.py --cases scale --sizes 4 8 16 32 --scale-repeats 2
     .venv/bin/python bench/runtime.py --cases latency cpu --json /tmp/bench.json
     .venv/bin/python bench/runtime.py --profile agent:1 [--profile-clock realtime --mission FILE]
@@ -17,6 +18,10 @@ client) and ``ZENOH_RUNTIME`` handover as ``tether run``, but with trivial work.
    beside it the bare baseline, two bare experiments (plants co-located in their agents; and also
    the recorder's samples batched per 4 ticks with a window of 16), the in-process reference
    simulator, and CPU per tick by role and thread kind (asyncio main / callback / Zenoh runtime).
+   ``colocate`` compares the structures (plant processes, co-located, batched records, windows,
+   ``--colocate-mesh``) each beside its bare baseline; ``network`` flies rings of N agents as a
+   star and as a peer mesh (speed, start-up, the whole command), which sets
+   ``deploy.local.MESH_MAX_AGENTS``; neither runs unless named.
 2. ``scale``: real time at 50 Hz, N = 4, 8, 16 (32 if 16 holds) agents on a ring
    (``bench/missions.py``), stepping up until a size does not hold; late ticks from the run file's
    ``runtime.late``; total CPU of every process (launcher/router included) from
@@ -955,6 +960,44 @@ def colocate_structures(windows: list[str], mesh: bool = False
     return out
 
 
+def case_network(a: argparse.Namespace, work: Path, report: dict) -> None:
+    """Lockstep, plants co-located, the star against the peer mesh at each N of ``--network-sizes``
+    (ring missions, ``--network-rate``), one after the other in each repeat: speed, start-up (the
+    command's start to every process up) and the whole command's wall time; which one
+    ``tether run`` picks by default (``deploy.local.MESH_MAX_AGENTS``)."""
+    from deploy.local import MESH_MAX_AGENTS
+
+    say(f"\n== 1c. lockstep star against mesh: ring missions, 3D, {a.network_rate:g} Hz, {a.network_duration:g} s of "
+        f"mission time per run, {a.repeats} repeats, plants co-located (window 32, records of 16); speed = mission s / "
+        f"wall s of the run; start = command start to every process up; total = the whole command")
+    rows: dict[tuple[int, str], list[dict[str, float]]] = {}
+    for i in range(a.repeats):
+        for n in a.network_sizes:
+            path, m = mission_file(work, n, a.network_rate, a.network_duration)
+            for net in ("star", "mesh"):
+                settle()
+                t0 = time.monotonic()
+                r = run_tether(path, m, "lockstep", a.network_duration, work, secure=a.secure,
+                               extra=("--colocate-plants", "--network", net), timeout=600.0)
+                total = time.monotonic() - t0
+                row = {"speed": r.speed if r.ok else float("nan"), "start": r.startup_s, "total": total,
+                       "foreign_pct": r.foreign_pct}
+                rows.setdefault((n, net), []).append(row)
+                say(f"   run {i + 1} N = {n:2d} {net:4}  {row['speed']:6.2f} x  start {row['start']:5.2f} s  total "
+                    f"{total:6.2f} s  other {r.foreign_pct:.0f} %" + ("" if r.ok else f"  FAILED: {r.why}"))
+    say(f"   medians: {'N':>3} {'star x':>7} {'mesh x':>7} {'mesh/star':>9} {'start star':>10} {'mesh':>6} "
+        f"{'total star':>10} {'mesh':>6}  default")
+    med_rows = {}
+    for n in a.network_sizes:
+        st, me = ({k: med([r[k] for r in rows[n, net]]) for k in ("speed", "start", "total")} for net in ("star", "mesh"))
+        med_rows[n] = {"star": st, "mesh": me}
+        say(f"            {n:>3} {st['speed']:>7.2f} {me['speed']:>7.2f} {ratio(me['speed'], st['speed']):>9.2f} "
+            f"{st['start']:>10.2f} {me['start']:>6.2f} {st['total']:>10.2f} {me['total']:>6.2f}  "
+            f"{'mesh' if n <= MESH_MAX_AGENTS else 'star'}")
+    report["network"] = {"rate": a.network_rate, "duration": a.network_duration, "median": med_rows,
+                         "runs": {f"{n}-{net}": v for (n, net), v in rows.items()}}
+
+
 def _no_per_tick() -> dict[str, Any]:
     """:func:`_per_tick`'s figures of a run not made (all NaN)."""
     nan = float("nan")
@@ -1394,7 +1437,8 @@ def main(argv: list[str]) -> None:
         ep, ns, rate, kind, n, steps, out = argv[1:8]
         return run_probe(ep, ns, float(rate), kind, int(n), int(steps), out)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", choices=["lockstep", "colocate", "scale", "latency", "cpu", "python"],
+    ap.add_argument("--cases", nargs="+",
+                    choices=["lockstep", "colocate", "network", "scale", "latency", "cpu", "python"],
                     default=["lockstep", "scale", "latency", "cpu", "python"])
     ap.add_argument("--repeats", type=int, default=3, help="runs per figure in cases 1 and 3 (medians)")
     ap.add_argument("--mission", default="section4", help="case 1's mission (N = 4, 100 Hz)")
@@ -1417,6 +1461,10 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--colocate-mesh", action="store_true",
                     help="case colocate: each co-located structure also as a peer mesh (tether run --network mesh); "
                          "tether alone, the bare baseline has no mesh")
+    ap.add_argument("--network-sizes", type=int, nargs="+", default=[4, 8, 16, 24, 32],
+                    help="case network: N of the ring missions flown as a star and as a mesh")
+    ap.add_argument("--network-rate", type=float, default=100.0, help="case network: the missions' rate [Hz]")
+    ap.add_argument("--network-duration", type=float, default=10.0, help="case network: mission seconds per run")
     ap.add_argument("--insecure", action="store_true",
                     help="tether run --insecure, and the baseline on plain TCP too (default: both authenticated, "
                          "mTLS with the run's access rules; the latency case is plain either way: its probe is)")
@@ -1457,6 +1505,8 @@ def main(argv: list[str]) -> None:
             case_lockstep(a, work, report)
         if "colocate" in a.cases:
             case_colocate(a, work, report)
+        if "network" in a.cases:
+            case_network(a, work, report)
         if "scale" in a.cases:
             case_scale(a, work, report, pairs)
         if "latency" in a.cases:
