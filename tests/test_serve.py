@@ -12,6 +12,7 @@ import dataclasses
 import logging
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -179,6 +180,41 @@ async def test_a_lockstep_member_closes_only_on_the_launchers_word_that_every_sa
     assert "word" in done, "the process closed before the launcher's word"
     await checks[0]  # its own assertions
     assert status == EXIT_OK
+
+
+@pytest.mark.asyncio
+async def test_until_returns_when_woken_from_another_thread_and_raises_stalled_at_its_timeout() -> None:
+    """``Node.until``: a condition made true on another thread (as Zenoh's callbacks do) ends the
+    wait; one that stays false raises :class:`Stalled` naming what it waited for once the timeout
+    has passed, not before; no timer of a wait is left scheduled on the loop."""
+    from tether.node import Stalled
+
+    seen: list[object] = []
+
+    async def role(node: Node) -> None:
+        loop = asyncio.get_running_loop()
+        flag = threading.Event()
+        threading.Timer(0.2, lambda: (flag.set(), node.wakeup.notify())).start()
+        t0 = time.monotonic()
+        await node.until(flag.is_set, 10.0, "the flag")
+        seen.append(time.monotonic() - t0)
+        t0 = time.monotonic()
+        with pytest.raises(Stalled, match="waited 0.3 s for what never comes"):
+            await node.until(lambda: False, 0.3, lambda: "what never comes")
+        seen.append(time.monotonic() - t0)
+        # a wake-up that is not the awaited condition does not end a wait without a timeout
+        later = threading.Event()
+        threading.Timer(0.1, node.wakeup.notify).start()
+        threading.Timer(0.3, lambda: (later.set(), node.wakeup.notify())).start()
+        t0 = time.monotonic()
+        await node.until(later.is_set, None, "later")
+        seen.append(time.monotonic() - t0)
+        seen.append([h for h in loop._scheduled if not h.cancelled()])  # type: ignore[attr-defined]
+
+    assert await serve_checked(node_args("serve-until"), role) == EXIT_OK
+    woke, stalled, untimed, timers = seen
+    assert 0.2 <= woke < 5.0 and 0.3 <= stalled < 5.0 and 0.3 <= untimed < 5.0  # type: ignore[operator]
+    assert not any("alarm" in repr(h) for h in timers), timers  # type: ignore[attr-defined]
 
 
 @pytest.mark.asyncio
