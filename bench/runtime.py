@@ -989,7 +989,8 @@ def case_network(a: argparse.Namespace, work: Path, report: dict) -> None:
         f"{'total star':>10} {'mesh':>6}  default")
     med_rows = {}
     for n in a.network_sizes:
-        st, me = ({k: med([r[k] for r in rows[n, net]]) for k in ("speed", "start", "total")} for net in ("star", "mesh"))
+        st, me = ({k: med([r[k] for r in rows[n, net]]) for k in ("speed", "start", "total")}
+                  for net in ("star", "mesh"))
         med_rows[n] = {"star": st, "mesh": me}
         say(f"            {n:>3} {st['speed']:>7.2f} {me['speed']:>7.2f} {ratio(me['speed'], st['speed']):>9.2f} "
             f"{st['start']:>10.2f} {me['start']:>6.2f} {st['total']:>10.2f} {me['total']:>6.2f}  "

@@ -427,9 +427,10 @@ MESH_LINK_TIME = 1.0
 
 MESH_MAX_AGENTS = 16
 """A lockstep run whose plants are co-located by default is a mesh up to this many agents. Measured
-(the same sitting, ``docs/benchmarks.md``): section4 22 % faster as a mesh, rings of 8 and 16 at
-100 Hz 15 % and 17 % faster, for up to 0.6 s more to start; a ring of 24 no faster and 1.5 s longer
-to start, a ring of 32 4 % faster and 3.4 s longer (about N^2/2 TLS links to set up)."""
+(``bench/runtime.py --cases network``, ``docs/benchmarks.md``, sixth sitting): as a mesh rings of 4
+ran 1.30x the star's speed, rings of 8 and 16 1.17x and 1.16x, for up to 0.6 s more to start;
+rings of 24 and 32 only 1.03x and 1.01x, for 1.5 s and 2.6 s more (about N^2/2 TLS links to set up):
+there the whole command took longer."""
 
 COLOCATED_WINDOW = 32
 """Lockstep ticks in flight by default with the plants co-located (records of half of it). Since

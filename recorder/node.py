@@ -169,7 +169,8 @@ class Recording:
                 self.plant(msg)
             return
         i, rt = self.col[msgs[0].sender], self.rt
-        rt.plant_p[ks, i], rt.plant_v[ks, i], rt.plant_a[ks, i], self.run.d[ks, i] = _block(msgs, _PLANT_VECTORS, self.mission.dim)
+        rt.plant_p[ks, i], rt.plant_v[ks, i], rt.plant_a[ks, i], self.run.d[ks, i] = \
+            _block(msgs, _PLANT_VECTORS, self.mission.dim)
         self.run.safety.plant_mode[ks, i] = [msg.mode for msg in msgs]
 
     def telemetries(self, msgs: list[wire.Telemetry]) -> None:

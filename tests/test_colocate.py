@@ -463,7 +463,8 @@ def test_the_recorder_writes_a_record_at_once_as_it_would_sample_by_sample() -> 
     assert one.events == block.events and one.netem == block.netem and one.gate == block.gate
     want, got = one.run.arrays(), block.run.arrays()
     assert want.keys() == got.keys()
-    differ = [name for name in want if not np.array_equal(want[name], got[name], equal_nan=want[name].dtype.kind == "f")]
+    differ = [name for name in want
+              if not np.array_equal(want[name], got[name], equal_nan=want[name].dtype.kind == "f")]
     assert not differ, differ
     assert one.count[:64].tolist() == [8] * 64  # the blocks were recorded: 4 plants and 4 telemetries a tick
 
