@@ -188,6 +188,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                           f"or at most {DENSE_MAX} agents in one strongly connected block with the compiled "
                           f"engine")])
     out = _writable_dir("--out", args.out, ("run.npz", "metrics.json"))
+    if m.safety.avoid is not None:  # said, not silently flown without it (the vehicles would meet)
+        print(f"warning: {m.name} has [safety.avoid], which the reference simulator does not fly: it computes the "
+              "law alone, without the safety layer, so these vehicles may pass through each other; `tether run "
+              f"{args.mission}` flies the filter (docs/safety.md)", file=sys.stderr)
     prog = Progress()
     live = None
     _check_live(args.live)

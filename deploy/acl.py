@@ -114,11 +114,14 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
     ]
     for aid in m.agent_ids:
         nbrs = [j for j, _ in ms.in_neighbours(m, aid)]  # the keys the agent subscribes to
+        # collision avoidance ([safety.avoid]) hears every other vehicle's state besides the law's inputs
+        near = [j for j in m.agent_ids if j != aid and j not in nbrs] if m.safety.avoid is not None else []
         out.append(Grant(
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)
             publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry", "record")),
-            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs), k.start, k.recorded, k.safety),
+            subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs),
+                       *(k.topic("agent", j, "state") for j in near), k.start, k.recorded, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),

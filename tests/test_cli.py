@@ -79,6 +79,17 @@ def test_simulate_writes_a_run_metrics_and_figures(tmp_path: Path) -> None:
     assert (tmp_path / "again" / "xy.png").exists()
 
 
+def test_simulate_says_it_does_not_fly_collision_avoidance(tmp_path: Path) -> None:
+    """The reference simulator computes the law alone: for a mission with ``[safety.avoid]`` it says
+    so (and names the command that flies it), where it once flew the swap through a collision silently;
+    a mission without it gets no such word."""
+    r = tether("simulate", "swap", "--out", str(tmp_path / "swap"), "--duration", "1", "--no-figures", "--no-mcap")
+    assert r.returncode == 0, r.stderr
+    assert "[safety.avoid]" in r.stderr and "tether run swap" in r.stderr, r.stderr
+    r = tether("simulate", "section4", "--out", str(tmp_path / "s4"), "--duration", "1", "--no-figures", "--no-mcap")
+    assert r.returncode == 0 and "safety.avoid" not in r.stderr, r.stderr
+
+
 def test_simulate_engines_write_the_same_run(tmp_path: Path) -> None:
     pytest.importorskip("numba")
     runs = {}

@@ -108,17 +108,42 @@ def test_colocated_run_equals_the_reference_simulator(section4_runs: tuple[Path,
     assert not np.allclose(run.kp[-1], run.kp[0])
 
 
-def test_a_mesh_run_equals_the_star_run_and_each_peer_is_linked_to_all_before_its_token(
+def test_the_default_mesh_run_equals_a_star_run_and_each_peer_is_linked_to_all_before_its_token(
         section4_runs: tuple[Path, Path, str, str], tmp_path: Path) -> None:
-    """``--network mesh`` (faster in lockstep: no router hop between the agents): the same run file,
-    and every peer declared its token only once linked to the five others, so that the launcher's
-    start reached a complete mesh (a ring of 32 once stalled at tick 0 without that wait)."""
-    with launch(tmp_path, f"colocate-{os.getpid()}-mesh", "--duration", "5", "--network", "mesh") as run:
+    """The co-located default is a peer mesh (faster in lockstep: no router hop between the agents):
+    ``--network star`` gives the same run file, and in the mesh every peer declared its token only
+    once linked to the five others, so that the launcher's start reached a complete mesh (a ring of
+    32 once stalled at tick 0 without that wait)."""
+    co, _, co_log, _ = section4_runs
+    assert "network mesh" in co_log, co_log
+    with launch(tmp_path, f"colocate-{os.getpid()}-star", "--duration", "5", "--network", "star") as run:
         run.wait(STARTUP + 60)
     assert run.status == 0, run.launcher_log
-    assert differing_arrays(section4_runs[0], run.out) == []
+    assert differing_arrays(co, run.out) == []
     for name in ("leader-5", "recorder-0", *(f"agent-{i}" for i in AGENTS)):
-        assert "mesh: linked to 5 other peers" in run.child_log(name), name
+        assert "mesh: linked to 5 other peers" in read(co / "logs" / f"{name}.log"), name
+        assert "mesh: linked" not in run.child_log(name), name
+
+
+def test_a_run_with_collision_avoidance_is_authenticated_and_equals_the_in_process_engine(tmp_path: Path) -> None:
+    """``swap`` (``[safety.avoid]``: every agent hears every other vehicle's state) as ``tether run``
+    flies it by default (mTLS with the run's access rules, plants co-located, a mesh): the access
+    rules let each agent hear the others (they once did not, and the run stalled at tick 0), the
+    vehicles keep apart through the crossing, and the run equals the in-process engine's bit for bit."""
+    from sim import lockstep
+
+    with launch(tmp_path, f"swap-{os.getpid()}", "--duration", "4", mission="swap") as run:
+        run.wait(STARTUP + 60)
+    assert run.status == 0, run.launcher_log
+    got = Run.load(run.out)
+    assert got.meta.complete
+    m = load_mission(builtin_path("swap"), 4.0)
+    want = lockstep.simulate(m)
+    for name in ("p", "v", "u", "xi", "kp", "kv"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    p = got.p
+    closest = min(float(np.linalg.norm(p[:, i] - p[:, j], axis=-1).min()) for i in range(4) for j in range(i + 1, 4))
+    assert m.safety.avoid is not None and closest >= 0.95 * m.safety.avoid.radius, closest
 
 
 def test_a_peer_of_a_mesh_that_cannot_link_to_every_other_fails_naming_the_count(tmp_path: Path) -> None:

@@ -34,6 +34,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import msgspec
 import pytest
 import zenoh
 
@@ -317,6 +318,26 @@ def test_the_acl_grants_exactly_what_the_roles_declare(deployment: gen.Deploymen
         if role in ("agent", "plant"):
             assert all(k.startswith(f"tether/trio/{role}/{nid}/") for k in grant.publish), name
             assert grant.tokens == (f"@tether/trio/{role}/{nid}",)
+
+
+def test_collision_avoidance_lets_each_agent_hear_every_other_vehicle_and_nothing_more() -> None:
+    """``[safety.avoid]``: the agent process subscribes to every other agent's state (``agent/node.py``);
+    without those keys in its grant the authenticated run stalled at tick 0. Without avoidance the
+    grant stays the in-neighbours'."""
+    from tether.catalog import builtin_path
+
+    m = ms.load(builtin_path("swap"))
+    assert m.safety.avoid is not None
+    for aid in m.agent_ids:
+        g = {x.name: x for x in acl.grants(m, "sw")}[f"agent-{aid}"]
+        others = {f"tether/sw/agent/{j}/state" for j in m.agent_ids if j != aid}
+        assert others <= set(g.subscribe), (aid, g.subscribe)
+        assert f"tether/sw/agent/{aid}/state" not in g.subscribe
+        assert not any(k.endswith("/cmd") or "/plant/" in k and k != f"tether/sw/plant/{aid}/state"
+                       for k in g.subscribe), g.subscribe
+    bare = msgspec.structs.replace(m, safety=msgspec.structs.replace(m.safety, avoid=None))
+    g = {x.name: x for x in acl.grants(bare, "sw")}["agent-1"]
+    assert not [k for k in g.subscribe if k.startswith("tether/sw/agent/")], g.subscribe  # hears the leader only
 
 
 def test_units_run_the_entry_points_with_arguments_they_accept(deployment: gen.Deployment) -> None:

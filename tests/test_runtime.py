@@ -166,13 +166,13 @@ class Launched:
 
 
 @contextlib.contextmanager
-def launch(base: Path, ns: str, *args: str) -> Iterator[Launched]:
-    """Start ``tether run section4 --ns ns --out base/out`` with ``args``; kill it and every child
+def launch(base: Path, ns: str, *args: str, mission: str = "section4") -> Iterator[Launched]:
+    """Start ``tether run MISSION --ns ns --out base/out`` with ``args``; kill it and every child
     it started (found by ``--parent-pid``) if the block is left while it still runs."""
     out, log = base / "out", base / "launcher.log"
     base.mkdir(parents=True, exist_ok=True)
     with open(log, "wb") as fh:
-        proc = subprocess.Popen(tether_cmd("run", "section4", "--out", str(out), "--ns", ns, "--quiet", *args),
+        proc = subprocess.Popen(tether_cmd("run", mission, "--out", str(out), "--ns", ns, "--quiet", *args),
                                 cwd=REPO, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
                                 start_new_session=True)
     run = Launched(proc, out, log, ns)
