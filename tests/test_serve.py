@@ -194,8 +194,8 @@ async def test_until_returns_when_woken_from_another_thread_and_raises_stalled_a
     async def role(node: Node) -> None:
         loop = asyncio.get_running_loop()
         flag = threading.Event()
+        t0 = time.monotonic()  # before the timers start: they fire no earlier than their delay after it
         threading.Timer(0.2, lambda: (flag.set(), node.wakeup.notify())).start()
-        t0 = time.monotonic()
         await node.until(flag.is_set, 10.0, "the flag")
         seen.append(time.monotonic() - t0)
         t0 = time.monotonic()
@@ -204,16 +204,17 @@ async def test_until_returns_when_woken_from_another_thread_and_raises_stalled_a
         seen.append(time.monotonic() - t0)
         # a wake-up that is not the awaited condition does not end a wait without a timeout
         later = threading.Event()
+        t0 = time.monotonic()
         threading.Timer(0.1, node.wakeup.notify).start()
         threading.Timer(0.3, lambda: (later.set(), node.wakeup.notify())).start()
-        t0 = time.monotonic()
         await node.until(later.is_set, None, "later")
         seen.append(time.monotonic() - t0)
         seen.append([h for h in loop._scheduled if not h.cancelled()])  # type: ignore[attr-defined]
 
     assert await serve_checked(node_args("serve-until"), role) == EXIT_OK
     woke, stalled, untimed, timers = seen
-    assert 0.2 <= woke < 5.0 and 0.3 <= stalled < 5.0 and 0.3 <= untimed < 5.0  # type: ignore[operator]
+    # (the loop may run a timer a clock resolution early: 10 ms of slack below the bound)
+    assert 0.2 <= woke < 5.0 and 0.29 <= stalled < 5.0 and 0.3 <= untimed < 5.0  # type: ignore[operator]
     assert not any("alarm" in repr(h) for h in timers), timers  # type: ignore[attr-defined]
 
 
