@@ -30,6 +30,7 @@ from tether import wire
 from tether import skew
 from tether.clock import RealtimeClock
 from tether.inputs import Source
+from tether.mission import nearby_vehicles
 from tether.rejoin import Rejoin
 from tether.skew import SkewMonitor
 from tether.node import Node, Stalled
@@ -142,12 +143,10 @@ async def run(node: Node) -> None:
     # sensor or a local broadcast would give it these); a formation neighbour's is the law's own sample
     avoid = m.safety.avoid is not None
     proximity: list[Source] = []
-    if avoid:
-        for j in m.agent_ids:
-            if j != aid and j not in law.neighbours:
-                src = node.source(keys.topic("agent", j, "state"), wire.State, j, wake=False)
-                src.admit = gate(j, "agent")
-                proximity.append(src)
+    for j in nearby_vehicles(m, aid):  # none without [safety.avoid]
+        src = node.source(keys.topic("agent", j, "state"), wire.State, j, wake=False)
+        src.admit = gate(j, "agent")
+        proximity.append(src)
     vehicles = [n for n, j in enumerate(law.neighbours) if j != m.leader.id]
     netem_control.serve(node)
     cmd = node.publisher(keys.topic("agent", aid, "cmd"), tp.COMMAND) if onboard is None else None

@@ -114,8 +114,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
     ]
     for aid in m.agent_ids:
         nbrs = [j for j, _ in ms.in_neighbours(m, aid)]  # the keys the agent subscribes to
-        # collision avoidance ([safety.avoid]) hears every other vehicle's state besides the law's inputs
-        near = [j for j in m.agent_ids if j != aid and j not in nbrs] if m.safety.avoid is not None else []
+        near = ms.nearby_vehicles(m, aid)  # collision avoidance's, besides the law's inputs
         out.append(Grant(
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)

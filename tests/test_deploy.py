@@ -33,8 +33,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import msgspec
+import numpy as np
 import pytest
 import zenoh
 

@@ -839,6 +839,16 @@ def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
     return [(src, weight) for _, src, weight in ins]
 
 
+def nearby_vehicles(m: Mission, agent_id: int) -> list[int]:
+    """The other agents whose states collision avoidance (``[safety.avoid]``) hears besides agent
+    ``agent_id``'s in-neighbours, in file order (none without ``[safety.avoid]``): what the agent
+    process subscribes to and what the run's access rules grant it (``deploy/acl.py``)."""
+    if m.safety.avoid is None:
+        return []
+    ins = {j for j, _ in in_neighbours(m, agent_id)}
+    return [j for j in m.agent_ids if j != agent_id and j not in ins]
+
+
 def validate(m: Mission) -> Problems:
     """Every semantic problem of a decoded mission: :func:`tether.checks.validate` (kept here for its
     many callers)."""
