@@ -43,7 +43,11 @@ publishes cmd and telemetry at its tick; the recorder only counts what arrives.
 
 Experiments (spec keys, all off by default): ``direct`` callbacks on Zenoh's thread, ``colocate`` (lockstep: the plant is computed inside its agent process
 and no plant process runs), ``batch`` (with ``colocate``: each agent sends the recorder one message
-per ``batch`` ticks instead of two per tick), ``wake`` (every input wakes the loop).
+per ``batch`` ticks instead of two per tick), ``wake`` (every input wakes the loop), ``mesh``
+(each process's own endpoint, by ``role-id``: every process but the hub is a peer listening there,
+linked by gossip to every other, and declares its token only once linked to all of them, as
+``tether run --network mesh`` makes its children; the hub stays the router, the clock and the
+liveliness watch).
 
 Prints one JSON line on stdout when done: role, id, late ticks, samples received.
 """
@@ -95,11 +99,16 @@ class Bare:
         self.h = 1.0 / spec["rate"]
         self.steps = spec["steps"]
         self.sizes = spec["sizes"]
+        self.mesh = spec.get("mesh", {}).get(f"{role}-{nid}")
+        """Its own listening endpoint in a peer mesh, else None (a client of the hub)."""
         if "tls" in spec:  # the run's identity of this process: its whole configuration (router included)
             cfg = zenoh.Config.from_file(spec["tls"][f"{role}-{nid}"])
         else:
             cfg = zenoh.Config.from_json5(spec["client_config"])
             cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+            if self.mesh:  # as tether's launcher makes a mesh's child without TLS: a peer, listening
+                cfg.insert_json5("mode", json.dumps("peer"))
+                cfg.insert_json5("listen/endpoints", json.dumps([self.mesh]))
         self.session = zenoh.open(cfg)
         self.loop = asyncio.get_running_loop()
         self.queue: collections.deque = collections.deque()
@@ -180,6 +189,14 @@ class Bare:
             self._notify()
 
         self.declared.append(self.session.declare_subscriber(start_key, on_start))
+        if self.mesh:  # the token once linked to every other peer, as tether's (Node._mesh_linked)
+            want = len(self.spec["mesh"]) - 1
+            end = time.monotonic() + self.spec.get("startup_timeout", 60.0)
+            while len(self.session.info.peers_zid()) < want:
+                if time.monotonic() > end:
+                    raise SystemExit(f"{self.role} {self.nid}: linked to {len(self.session.info.peers_zid())} of "
+                                     f"the mesh's {want} other peers")
+                await asyncio.sleep(0.02)  # tether.node.MESH_POLL
         self.token = self.session.liveliness().declare_token(f"@tether/{self.ns}/{self.role}/{self.nid}")
         while not got:
             await self.wait()

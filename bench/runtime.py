@@ -431,7 +431,8 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
     (those ``deploy.local`` gives the launcher's router and its clients). ``variant`` changes one
     thing for an experiment: ``direct`` callbacks, ``qos`` (real time: stream -> preset), ``window``,
     ``colocate`` (lockstep: plants computed inside their agents), ``handover`` (False: no
-    ``ZENOH_RUNTIME``), ``config`` (Zenoh key -> JSON value, inserted in every config)."""
+    ``ZENOH_RUNTIME``), ``config`` (Zenoh key -> JSON value, inserted in every config), ``mesh``
+    (every process but the hub a peer: :func:`run_baseline` gives each its endpoint)."""
     v = variant or {}
     placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
     client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
@@ -687,13 +688,16 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
     endpoint = tp.loopback_endpoint(tp.free_tcp_port())
     roles = ("agent",) if spec.get("colocate") else ("agent", "plant")
     members = [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in roles], ("recorder", 0)]
+    if (variant or {}).get("mesh"):  # every process a peer on its own port, as deploy.local's mesh
+        spec["mesh"] = {f"{r}-{i}": tp.loopback_endpoint(tp.free_tcp_port()) for r, i in members}
     if secure:
         if probe:
             raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
         endpoint = "tls/" + endpoint.split("/", 1)[1]
         sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, localtls.run_limits(m, m.name, clock))
+        listen = {k: "tls/" + ep.split("/", 1)[1] for k, ep in spec.get("mesh", {}).items()}
         spec["tls"] = {"router": str(sec.configs["router"]),
-                       **{f"{r}-{i}": str(sec.child(r, i, endpoint)) for r, i in members}}
+                       **{f"{r}-{i}": str(sec.child(r, i, endpoint, listen.get(f"{r}-{i}"))) for r, i in members}}
     spec_path.write_text(json.dumps(spec))
     t_start = time.monotonic()
     hub = subprocess.Popen([PY, BASELINE, str(spec_path), "hub", endpoint], stdout=subprocess.PIPE,
@@ -939,14 +943,15 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
 
 
 def colocate_structures(windows: list[str], mesh: bool = False
-                        ) -> list[tuple[str, dict[str, Any] | None, tuple[str, ...]]]:
+                        ) -> list[tuple[str, dict[str, Any], tuple[str, ...]]]:
     """Case ``colocate``: (name, bare baseline variant, ``tether run`` options) of each structure,
     the same on both sides: separate plant processes (window 8); plants co-located, the recorder's
     samples every tick (tether: one record per tick, the bare baseline two messages); then for
     each ``WINDOW:BATCH`` of ``windows``, co-located with records of BATCH ticks and that window.
-    ``mesh``: each of those also as a peer mesh (``--network mesh``), tether alone (variant None:
-    the bare baseline has no mesh, so no ceiling is measured for it)."""
-    out: list[tuple[str, dict[str, Any] | None, tuple[str, ...]]] = [
+    ``mesh``: each of those also as a peer mesh (``--network mesh``, which ``tether run`` picks by
+    default for these runs up to ``deploy.local.MESH_MAX_AGENTS`` agents), beside the bare baseline
+    as the same mesh."""
+    out: list[tuple[str, dict[str, Any], tuple[str, ...]]] = [
         ("separate, w8", {}, ("--separate-plants", "--window", "8", "--network", "star")),
         ("co-located, w8", {"colocate": True}, ("--colocate-plants", "--record-batch", "1", "--network", "star")),
     ]
@@ -956,7 +961,8 @@ def colocate_structures(windows: list[str], mesh: bool = False
         # the star named: a co-located run of up to 16 agents is a mesh by default (deploy.local.resolve)
         out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w}, (*opts, "--network", "star")))
         if mesh:
-            out.append((f"co+b {b}, w{w}, mesh", None, (*opts, "--network", "mesh")))
+            out.append((f"co+b {b}, w{w}, mesh", {"colocate": True, "batch": b, "window": w, "mesh": True},
+                        (*opts, "--network", "mesh")))
     return out
 
 
@@ -999,12 +1005,6 @@ def case_network(a: argparse.Namespace, work: Path, report: dict) -> None:
                          "runs": {f"{n}-{net}": v for (n, net), v in rows.items()}}
 
 
-def _no_per_tick() -> dict[str, Any]:
-    """:func:`_per_tick`'s figures of a run not made (all NaN)."""
-    nan = float("nan")
-    return {"total_us": nan, **{ro: {"us": nan, "main": nan, "callback": nan, "zenoh": nan} for ro in ROLES}}
-
-
 def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
     """Lockstep, tether beside the bare baseline with the same structure (plants in separate
     processes or co-located in their agents, the recorder's samples per tick or batched, the grant
@@ -1024,17 +1024,15 @@ def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
         for name, variant, opts in structs:
             settle()
             rt = run_tether(path, m, "lockstep", a.lockstep_duration, work, extra=opts, secure=a.secure)
-            rb = None
-            if variant is not None:
-                settle()
-                rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant, secure=a.secure)
-            bad = [f"{r.kind} failed: {r.why}" for r in (rt, rb) if r is not None and not r.ok]
-            ct, cb = _per_tick(rt, ticks), _per_tick(rb, ticks) if rb is not None else _no_per_tick()
+            settle()
+            rb = run_baseline(m, "lockstep", a.lockstep_duration, work, variant=variant, secure=a.secure)
+            bad = [f"{r.kind} failed: {r.why}" for r in (rt, rb) if not r.ok]
+            ct, cb = _per_tick(rt, ticks), _per_tick(rb, ticks)
             row = {"tether": rt.speed if rt.ok else float("nan"),
-                   "baseline": rb.speed if rb is not None and rb.ok else float("nan"),
+                   "baseline": rb.speed if rb.ok else float("nan"),
                    "tether_us": ct["total_us"], "baseline_us": cb["total_us"], "tether_agent_us": ct["agent"]["us"],
                    "baseline_agent_us": cb["agent"]["us"], "tether_cpu": ct, "baseline_cpu": cb,
-                   "foreign_pct": [rt.foreign_pct, rb.foreign_pct if rb is not None else 0.0],
+                   "foreign_pct": [rt.foreign_pct, rb.foreign_pct],
                    "load": os.getloadavg()[0]}
             rows[name].append(row)
             noisy = " NOISY" if max(row["foreign_pct"]) >= NOISY else ""
@@ -1057,15 +1055,13 @@ def case_colocate(a: argparse.Namespace, work: Path, report: dict) -> None:
             f"{mm['tether_agent_us']:>9.0f} {mm['baseline_agent_us']:>6.0f} "
             f"{ratio(mm['tether_agent_us'], mm['baseline_agent_us']):>6.2f}")
     best = max(med_rows, key=lambda n: med_rows[n]["tether"])
-    star = max((n for n, v, _ in structs if v is not None), key=lambda n: med_rows[n]["tether"])
-    say(f"   fastest tether structure: {best} ({med_rows[best]['tether']:.2f} x real time; target >= 20 x"
-        + (f"; its bare ceiling {med_rows[best]['baseline']:.2f} x)" if best == star else
-           f"; no bare mesh; the fastest star, {star}: {med_rows[star]['tether']:.2f} x, its bare ceiling "
-           f"{med_rows[star]['baseline']:.2f} x)")
-        + f"; separate plants: {med_rows[structs[0][0]]['tether']:.2f} x")
-    mid = rows[star][len(rows[star]) // 2]  # the role table: the fastest structure with a bare baseline
+    ceiling = max(med_rows, key=lambda n: med_rows[n]["baseline"])
+    say(f"   fastest tether structure: {best} ({med_rows[best]['tether']:.2f} x real time; target >= 20 x; its bare "
+        f"ceiling {med_rows[best]['baseline']:.2f} x); the fastest bare structure: {ceiling} "
+        f"({med_rows[ceiling]['baseline']:.2f} x); separate plants: {med_rows[structs[0][0]]['tether']:.2f} x")
+    mid = rows[best][len(rows[best]) // 2]  # the role table: the fastest structure
     _role_table(mid["tether_cpu"], mid["baseline_cpu"],
-                f"{star}, CPU per tick by role [us] (one run), thread kinds: asyncio main / callback / Zenoh runtime")
+                f"{best}, CPU per tick by role [us] (one run), thread kinds: asyncio main / callback / Zenoh runtime")
     report["colocate"] = {"mission": a.mission, "duration": a.lockstep_duration, "runs": rows, "median": med_rows}
 
 
@@ -1460,8 +1456,8 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--colocate-windows", nargs="*", default=["16:4", "16:8", "32:16"], metavar="WINDOW:BATCH",
                     help="case colocate: co-located structures with records of BATCH ticks and this grant window")
     ap.add_argument("--colocate-mesh", action="store_true",
-                    help="case colocate: each co-located structure also as a peer mesh (tether run --network mesh); "
-                         "tether alone, the bare baseline has no mesh")
+                    help="case colocate: each co-located structure also as a peer mesh (tether run --network mesh, "
+                         "the default up to 16 agents), beside the bare baseline as the same mesh")
     ap.add_argument("--network-sizes", type=int, nargs="+", default=[4, 8, 16, 24, 32],
                     help="case network: N of the ring missions flown as a star and as a mesh")
     ap.add_argument("--network-rate", type=float, default=100.0, help="case network: the missions' rate [Hz]")
