@@ -47,6 +47,7 @@ run exists. Figures are medians over runs and over processes of a role.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import queue
@@ -358,6 +359,8 @@ class Result:
     meas_age: np.ndarray | None = None
     probe: dict | None = None
     complete: str = ""
+    cwds: set[str] = field(default_factory=set)
+    """The working directories of tether's processes (which checkout they import: ``run_tether``)."""
 
     @property
     def speed(self) -> float:
@@ -579,14 +582,16 @@ def _tether_cmd() -> list[str]:
 
 
 def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, work: Path,
-               probe: bool = False, timeout: float = 300.0, launcher: list[str] | None = None,
+               probe: bool = False, timeout: float = 300.0, tree: Path | None = None,
                extra: tuple[str, ...] = (), secure: bool = True) -> Result:
     """``tether run MISSION --clock CLOCK --duration S --quiet [EXTRA]`` (and ``--insecure`` unless
-    ``secure``), measured from outside (``launcher`` replaces the ``tether`` command, for experiments
-    with a patched runtime)."""
+    ``secure``), measured from outside. ``tree``: another checkout of tether (``bench/ab.py``'s base),
+    run as ``python -m cli`` from inside it, so that the launcher and every process it starts (``-m``
+    puts the working directory first on the path, and the children inherit it) import that tree and
+    not the installed one; :attr:`Result.cwds` says where each process ran."""
     out = work / f"tether-{clock}-{m.n}-{time.monotonic_ns()}"
-    cmd = [*(launcher or _tether_cmd()), "run", str(mission_path), "--out", str(out), "--clock", clock,
-           "--duration", repr(duration), "--quiet", *extra, *(() if secure else ("--insecure",))]
+    cmd = [*(_tether_cmd() if tree is None else [PY, "-m", "cli"]), "run", str(mission_path), "--out", str(out),
+           "--clock", clock, "--duration", repr(duration), "--quiet", *extra, *(() if secure else ("--insecure",))]
     res = Result("tether", m.n, clock, m.rate)
     probe_proc = None
     probe_out = out.with_suffix(".probe.json")
@@ -599,8 +604,11 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
         probe_proc = _spawn_probe(ep, m.name, m.rate, "tether", m.n, int(round(duration * m.rate)), probe_out,
                                   wait=False)
     t_start = time.monotonic()
-    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=launcher_env(),
-                         cwd=REPO)
+    env = launcher_env()
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree)
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                         cwd=tree or REPO)
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=_reader, args=(p.stderr, lines), daemon=True).start()
     log: list[str] = []
@@ -627,6 +635,8 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
                         role = args[args.index("cli") + 1]
                         nid = int(args[args.index("--id") + 1]) if "--id" in args else 0
                         res.procs.append(Proc(c, role, nid))
+                        with contextlib.suppress(OSError):
+                            res.cwds.add(os.readlink(f"/proc/{c}/cwd"))
                 res.procs.append(Proc(p.pid, "launcher", 0))
                 t_up = time.monotonic()
                 lead = START_LEAD if clock == "realtime" else 0.0
@@ -775,19 +785,18 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
 
 
 # =========================================================================== helpers
-def compile_tree() -> int:
+def compile_tree(tree: Path = REPO) -> int:
     """Compile the tree's bytecode into ``__pycache__``, as ``pip install`` does for a package: the
     baseline's libraries are compiled, and a process that compiles tether's modules at every start
     (``PYTHONDONTWRITEBYTECODE``, or a tree never imported) pays the compiler's CPU and keeps its
     memory (1.6 MiB more RSS per agent, measured). Returns how many files were compiled."""
     import compileall
-    import contextlib
     import io
     packages = ("agent", "cli", "deploy", "leader", "netem", "plant", "recorder", "sim", "tether")
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         for pkg in packages:
-            compileall.compile_dir(str(REPO / pkg), quiet=0)
+            compileall.compile_dir(str(tree / pkg), quiet=0)
     return sum(1 for line in out.getvalue().splitlines() if line.startswith("Compiling"))
 
 
