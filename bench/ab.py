@@ -51,13 +51,11 @@ FIGURES: list[tuple[str, str, bool]] = [
 
 def measure(res: rt.Result, ticks: float) -> dict[str, float]:
     """The figures of one run (NaN where its role did not run)."""
-    per = rt._per_tick(res, ticks)  # noqa: SLF001 - the bench's own helper
+    per = rt._per_tick(res, ticks, ROLES)  # noqa: SLF001 - the bench's own helper
     out = {"speed": res.speed if res.ok else float("nan"), "cpu_us": per["total_us"],
            "foreign_pct": res.foreign_pct}
     for ro in ROLES:
-        us = rt.med(res.cpu_pct(ro)) * 1e4 * res.window_s / ticks
-        out[f"{ro}_us"] = us
-        out[f"{ro}_main_us"] = res.thread_pct(ro)["main"] * 1e4 * res.window_s / ticks if us == us else float("nan")
+        out[f"{ro}_us"], out[f"{ro}_main_us"] = per[ro]["us"], per[ro]["main"]
     return out
 
 

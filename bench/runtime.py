@@ -847,11 +847,12 @@ def mission_file(work: Path, n: int, rate: float, duration: float) -> tuple[Path
 ROLES = ("launcher", "leader", "agent", "plant", "recorder")
 
 
-def _per_tick(res: Result, ticks: float) -> dict[str, Any]:
-    """CPU per tick [us] by role (median process) and by thread kind, and the total."""
+def _per_tick(res: Result, ticks: float, roles: tuple[str, ...] = ROLES) -> dict[str, Any]:
+    """CPU per tick [us] by role (median process; NaN for a role that did not run) and by thread
+    kind, and the total."""
     f = 1e4 * res.window_s / ticks  # % of one core over the window -> us per tick
     out: dict[str, Any] = {"total_us": res.total_cpu_pct() * f}
-    for ro in ROLES:
+    for ro in roles:
         th = res.thread_pct(ro)
         out[ro] = {"us": med(res.cpu_pct(ro)) * f, **{k: v * f for k, v in th.items()}}
     return out
