@@ -5,8 +5,9 @@ revision, alternating, every pair in one sitting.
     .venv/bin/python bench/ab.py --base 4c4340b~1 --pairs 7 --duration 200 -- --network star
 
 This tree, with whatever it has not committed, is *new* (or ``--new REV``, to measure a past change
-against its parent); ``--base`` is checked out into a temporary git worktree, removed at the end. Both run ``tether run MISSION --no-mcap`` (and the options after
-``--``) as ``python -m cli`` from inside their own checkout (``bench/runtime.py``'s ``run_tether``
+against its parent); ``--base`` is checked out into a temporary git worktree, removed at the end.
+Both run ``tether run MISSION --no-mcap`` (with ``--mcap``: writing ``run.mcap``; and the options
+after ``--``) as ``python -m cli`` from inside their own checkout (``bench/runtime.py``'s ``run_tether``
 with ``tree``): ``-m`` puts the working directory first on the path and the children inherit it, so
 the launcher and every process it starts import that checkout, not the installed one. Each run then
 checks where its processes ran, and stops the comparison if any ran elsewhere. Running the base with
@@ -42,6 +43,8 @@ ROLES = ("agent", "recorder", "launcher", "leader", "plant", "world")
 
 FIGURES: list[tuple[str, str, bool]] = [
     ("speed", "speed [x real time]", True),
+    ("command_s", "the whole command [s]", False),
+    ("end_s", "from the last tick to the exit [s]", False),
     ("cpu_us", "CPU per tick, all processes [us]", False),
     *[(f"{ro}_us", f"{ro}, median process [us per tick]", False) for ro in ROLES],
     *[(f"{ro}_main_us", f"{ro}, its main thread [us per tick]", False) for ro in ROLES],
@@ -52,7 +55,8 @@ FIGURES: list[tuple[str, str, bool]] = [
 def measure(res: rt.Result, ticks: float) -> dict[str, float]:
     """The figures of one run (NaN where its role did not run)."""
     per = rt._per_tick(res, ticks, ROLES)  # noqa: SLF001 - the bench's own helper
-    out = {"speed": res.speed if res.ok else float("nan"), "cpu_us": per["total_us"],
+    out = {"speed": res.speed if res.ok else float("nan"), "command_s": res.command_s, "end_s": res.end_s,
+           "cpu_us": per["total_us"],
            "foreign_pct": res.foreign_pct}
     for ro in ROLES:
         out[f"{ro}_us"], out[f"{ro}_main_us"] = per[ro]["us"], per[ro]["main"]
@@ -106,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--duration", type=float, default=100.0, help="mission seconds per run")
     ap.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
     ap.add_argument("--insecure", action="store_true", help="both runs with tether run --insecure")
+    ap.add_argument("--mcap", action="store_true", help="both runs write run.mcap (default: --no-mcap)")
     ap.add_argument("--json", type=Path, help="also write every run's figures here")
     a = ap.parse_args(argv)
     if a.pairs < 1 or not a.duration > 0:
@@ -141,7 +146,8 @@ def main(argv: list[str] | None = None) -> None:
                 for side in order:
                     tree = base if side == "base" else new
                     rt.settle()
-                    res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=("--no-mcap", *extra),
+                    files = () if a.mcap else ("--no-mcap",)
+                    res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=(*files, *extra),
                                         secure=not a.insecure)
                     want = {str(tree)}
                     if res.cwds != want:
@@ -151,7 +157,8 @@ def main(argv: list[str] | None = None) -> None:
                         raise SystemExit(f"bench/ab.py: the {side} run failed: {res.why}")
                     fig = measure(res, ticks)
                     runs[side].append(fig)
-                    rt.say(f"   pair {i + 1} {side:4}  {fig['speed']:6.2f} x  CPU/tick {fig['cpu_us']:7.0f} us  agent "
+                    rt.say(f"   pair {i + 1} {side:4}  {fig['speed']:6.2f} x  command {fig['command_s']:6.2f} s "
+                           f"(after the last tick {fig['end_s']:5.2f})  CPU/tick {fig['cpu_us']:7.0f} us  agent "
                            f"{fig['agent_us']:5.0f} (main {fig['agent_main_us']:4.0f})  recorder {fig['recorder_us']:5.0f} "
                            f"(main {fig['recorder_main_us']:4.0f}) us  other users {fig['foreign_pct']:3.0f} %"
                            + (" NOISY" if fig["foreign_pct"] >= rt.NOISY else ""))

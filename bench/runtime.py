@@ -359,6 +359,11 @@ class Result:
     meas_age: np.ndarray | None = None
     probe: dict | None = None
     complete: str = ""
+    command_s: float = float("nan")
+    """The whole ``tether run`` command's wall time [s], start-up and end included."""
+    end_s: float = float("nan")
+    """Wall time from the launcher's "ran ..." line (the last tick) to the command's exit [s]: the
+    files' end (``run.npz``, ``run.mcap``) and the processes' exits."""
     cwds: set[str] = field(default_factory=set)
     """The working directories of tether's processes (which checkout they import: ``run_tether``)."""
 
@@ -613,6 +618,7 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
     threading.Thread(target=_reader, args=(p.stderr, lines), daemon=True).start()
     log: list[str] = []
     timer = None
+    t_ran = float("nan")
     try:
         if probe_proc is not None:
             _probe_ready(probe_proc)
@@ -651,7 +657,10 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
                 timer.join()
                 window.close(res)
                 res.mission_s, res.wall_s = float(mo[1]), float(mo[2])
+                t_ran = time.monotonic()
         rc = res.status = p.wait(timeout=60)
+        res.command_s = time.monotonic() - t_start
+        res.end_s = time.monotonic() - t_ran
         if rc != 0:
             res.ok, res.why = False, f"tether run exited {rc}: " + "".join(log[-5:])
     finally:

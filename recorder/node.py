@@ -29,13 +29,16 @@ from typing import Any
 
 import numpy as np
 
-from recorder.export import mcap_beside
+from recorder.export import mcap_beside, viz_module
 from tether import gate, jsonout, wire
 from tether.node import Node
 from tether.rejoin import Rejoin
 from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
 log = logging.getLogger("tether")
+
+STREAM_PERIOD = 0.25
+"""Real time: how often the ticks completed since are written to ``run.mcap`` [s]."""
 
 STOP_GRACE = 2.0
 """Real time: when every producer has left before the last tick, how long to wait for this
@@ -118,6 +121,16 @@ class Recording:
         """The swarm's epoch as inferred from the first telemetry heard (:meth:`Node.ready`'s hint)."""
         self.cpu_ready = 0.0
         """The process's CPU time when the run started (its start-up before it) [s]."""
+        self.viz = viz_module() if mcap else None
+        """:mod:`recorder.viz` when ``run.mcap`` is written (None: ``--no-mcap``, or no Foxglove SDK)."""
+        self.file: Any = None
+        """``run.mcap`` being written as the run is filled (a ``recorder.viz.McapFile``; None: no tick yet)."""
+        self.streamed = 0
+        """The next tick to write to it: every tick before it is in the file."""
+        self.stream_cpu = 0.0
+        """CPU time spent writing it during the run [s]."""
+        self.stream_failed = False
+        """Writing it during the run failed: it is written from the run at the end instead."""
         self.oldest = -1
         """The first tick of which a sample was recorded (-1: none yet)."""
         self.newest = -1
@@ -299,6 +312,55 @@ class Recording:
                 rec.role[i, slot], rec.src[i, slot] = c.role, c.src
             rec.offset[k, i, slot] = c.offset
 
+    def stream(self) -> None:
+        """Write to ``run.mcap`` every tick complete from :attr:`streamed` on, in order: it stops at
+        the first tick still missing a sample (the rest waits for :meth:`save`, which writes the
+        ticks heard). A complete tick is final: a sample heard again is not recorded twice. O(1)
+        when the next tick is not complete.
+
+        Real time calls this as the run goes (the recorder mostly waits there), so that the file
+        is written when the last tick is. Lockstep does not: there the run is bound by the CPU of
+        every process, and the same conversion made the run slower by about what it saved at the
+        end (``docs/foxglove.md``, *Cost*); :meth:`save` converts the whole run at once instead."""
+        k, count, expected = self.streamed, self.count, self.expected
+        if self.viz is None or self.stream_failed or k >= len(count) or count[k] < expected:
+            return
+        t0 = time.process_time()
+        try:
+            if self.file is None:
+                self.file = self.viz.McapFile(self.out / "run.mcap", self.mission)
+            while k < len(count) and count[k] >= expected:
+                self.file.tick(self.run, k, self.events)
+                k += 1
+        except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
+            log.warning("run.mcap: %s: %s; it will be written from run.npz at the end", type(exc).__name__, exc)
+            self.stream_failed = True
+            self._abandon_file()
+        self.streamed = k
+        self.stream_cpu += time.process_time() - t0
+
+    def _abandon_file(self) -> None:
+        file, self.file = self.file, None
+        if file is not None:
+            try:
+                file.abandon()
+            except Exception as exc:  # noqa: BLE001 - a disk that failed the writing may fail its closing too
+                log.warning("run.mcap: could not close the unfinished file: %s: %s", type(exc).__name__, exc)
+
+    def _write_mcap(self, heard: Run, npz: Path) -> int:
+        """``run.mcap``: the ticks heard that :meth:`stream` has not written, then the end of the
+        file; or, if it wrote none (lockstep) or failed, the whole file from ``heard`` at once.
+        Returns how many ticks were in it before."""
+        if self.file is None:
+            mcap_beside(heard, self.mission, npz)
+            return 0
+        before = self.streamed
+        for k in np.flatnonzero(self.count[self.streamed:] > 0).tolist():
+            self.file.tick(self.run, self.streamed + k, self.events)
+        self.file.close(heard, self.events)
+        self.file = None
+        return before
+
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
         """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
         :attr:`failed` (the stop hook then does not try again) and re-raised: :func:`tether.node.serve`
@@ -308,6 +370,7 @@ class Recording:
             return self._save(complete, drops)
         except OSError as exc:
             self.failed = exc
+            self._abandon_file()
             raise
 
     def _save(self, complete: bool, drops: dict[str, int]) -> Path:
@@ -328,17 +391,21 @@ class Recording:
         cpu0, wall0 = time.process_time(), time.perf_counter()
         path = self.run.save(self.out / "run.npz")
         cpu1, wall1 = time.process_time(), time.perf_counter()
+        early = 0
         try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
             if self.mcap:  # ticks of which nothing was heard (a stop, a late start) are left out of it
                 heard = dataclasses.replace(self.run, t=np.where(self.count > 0, self.run.t, np.nan))
-                mcap_beside(heard, self.mission, path)
+                early = self._write_mcap(heard, path)
         except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
+            self._abandon_file()
         cpu2, wall2 = time.process_time(), time.perf_counter()
         # bench/recording.py reads this line: the recorder's CPU while recording, and for each file
+        # (run.mcap's: during the run and at its end; its wall time: at the end, what the run waits for)
         log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap (wall %.3f s, %.3f s); "
-                 "%.3f s of start-up before the run", cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1,
-                 self.cpu_ready)
+                 "%.3f s of start-up before the run; run.mcap: %d ticks written during the run (%.3f s of CPU)",
+                 cpu0 - self.stream_cpu, cpu1 - cpu0, cpu2 - cpu1 + self.stream_cpu, wall1 - wall0, wall2 - wall1,
+                 self.cpu_ready, early, self.stream_cpu)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
             lines = "".join(jsonout.dumps(d, indent=None) + "\n" for d in self.netem)
@@ -542,11 +609,18 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                     await asyncio.sleep(0.5)
                     node.wakeup.notify()
 
+            async def stream() -> None:  # run.mcap as the ticks complete (a tick missing a sample stops it)
+                while True:
+                    await asyncio.sleep(STREAM_PERIOD)
+                    rec.stream()
+
             poker = asyncio.get_running_loop().create_task(poke())
+            streamer = asyncio.get_running_loop().create_task(stream())
             try:
                 await node.until(finished, None, "the end of the run")
             finally:
                 poker.cancel()
+                streamer.cancel()
         complete = bool(np.all(rec.count >= rec.expected))
         if feed is not None:
             holder.pop("feed", None)

@@ -6,6 +6,7 @@ SIGINT leaving both files. Real processes, real Zenoh on loopback, the real ``mc
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import re
@@ -28,6 +29,7 @@ from tether import transport as tp  # noqa: E402
 from tether.runfile import Run  # noqa: E402
 
 from tests.foxglove_live import free_port, listen  # noqa: E402
+from tests.test_viz import file_content  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 def tether(*args: str, log: Path | None = None) -> subprocess.Popen[str]:
@@ -281,6 +283,9 @@ def test_a_lockstep_run_stopped_by_sigint_leaves_both_files(tmp_path: Path) -> N
     msgs = read_mcap(out / "run.mcap")
     assert len(msgs["/agent/1"]) == heard_any(run) == len(msgs["/leader"])
     assert msgs["/leader"][-1][0] == viz.stamp(float(run.t[heard_any(run) - 1]))
+    # the same file as converted at once from the ticks heard
+    prefix = dataclasses.replace(run, t=np.where(np.arange(len(run.t)) < heard_any(run), run.t, np.nan))
+    assert file_content(out / "run.mcap") == file_content(viz.write_mcap(prefix, None, tmp_path / "converted.mcap"))
 
 
 # ------------------------------------------------------------------------------------- tether top

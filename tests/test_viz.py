@@ -8,11 +8,13 @@ import contextlib
 import io
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -117,6 +119,29 @@ def test_lockstep_tether_run_writes_run_mcap(tmp_path: Path) -> None:
     assert [x["age"] for x in m["links"]] == [float(lk.age[k, 0, n]) for n in used]
     assert m["meas_age"] == run.runtime.meas_age[k, 0]
     assert m["plant_mode"] == run.safety.plant_mode[k, 0]
+    # lockstep: converted at once after the last tick (during the run it would take the run's CPU)
+    assert "run.mcap: 0 ticks written during the run" in (out / "logs" / "recorder-0.log").read_text()
+
+
+@pytest.mark.slow  # real processes, real time
+def test_a_real_time_run_writes_run_mcap_as_it_goes_and_the_same_file_as_converted_at_the_end(
+        tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    done = tether("run", "section4", "--clock", "realtime", "--out", str(out), "--duration", "3", "--quiet",
+                  "--insecure", "--ns", f"vizrt-{os.getpid()}", timeout=400.0)
+    assert done.returncode in (0, 5), done.stdout + done.stderr  # 5: a sample lost under load (said, recorded)
+    log = (out / "logs" / "recorder-0.log").read_text()
+    early = re.search(r"run\.mcap: ([0-9]+) ticks written during the run", log)
+    assert early is not None and int(early[1]) > 100, log[-2000:]
+    run = Run.load(out)
+    assert run.runtime is not None
+    heard = (np.isfinite(run.leader_p[:, 0]) | np.isfinite(run.xi[:, :, 0]).any(axis=1)
+             | np.isfinite(run.runtime.plant_p[:, :, 0]).any(axis=1))
+    import dataclasses
+
+    converted = viz.write_mcap(dataclasses.replace(run, t=np.where(heard, run.t, np.nan)), None,
+                               tmp_path / "converted.mcap")
+    assert file_content(out / "run.mcap") == file_content(converted)
 
 
 def test_payload_fence_and_events_in_the_file(tmp_path: Path) -> None:
@@ -210,3 +235,123 @@ def test_the_shipped_layout_is_the_generated_one() -> None:
     for want in ('"panelType": "ThreeDee"', '"panelType": "Plot"', '"panelType": "Log"', "/agent/1.xi_norm",
                  "/agent/4.kv[1]", '"/safety"'):
         assert want in panels
+
+
+# ----------------------------------------------------------------- run.mcap written as the run is filled
+def file_content(path: Path) -> tuple[list[tuple[str, int, bytes]], list[tuple[str, dict[str, str]]],
+                                      list[tuple[str, str, bytes]]]:
+    """Every message in file order (topic, log time, data), the metadata records and the attachments."""
+    with open(path, "rb") as fh:
+        reader = mcap_reader.make_reader(fh)
+        msgs = [(ch.topic, m.log_time, bytes(m.data)) for _s, ch, m in reader.iter_messages(log_time_order=False)]
+        meta = [(x.name, dict(x.metadata)) for x in reader.iter_metadata()]
+        atts = [(a.name, a.media_type, bytes(a.data)) for a in reader.iter_attachments()]
+    return msgs, meta, atts
+
+
+def _recording(out: Path) -> Any:
+    """A recorder's :class:`recorder.node.Recording` of section4 in lockstep, writing into ``out``."""
+    from types import SimpleNamespace
+
+    from recorder.node import Recording
+    from tether import wire
+
+    m = ms.load(catalog.builtin_path("section4"))
+    # the recorder's bookkeeping asks its node for these alone
+    node = SimpleNamespace(mission=m, clock=SimpleNamespace(lockstep=True), keys=wire.Keys("test"),
+                           args=SimpleNamespace(mission_path=catalog.builtin_path("section4")), arrived_ago=lambda: 0.0)
+    return Recording(node, out)  # type: ignore[arg-type]  # the node's fields it reads
+
+
+def _leader(k: int) -> object:
+    from tether import wire
+
+    return wire.State(sender=5, seq=k, k=k, t=k / 100, p=[0.1 * k, 0.0], vel=[1.0, 0.0], a=[0.0, 0.0])
+
+
+def _converted(rec: Any, out: Path) -> Path:
+    """What ``write_mcap`` makes at once of the run the recorder saved, the ticks never heard left out."""
+    import dataclasses
+
+    run = Run.load(out / "run.npz")
+    heard = dataclasses.replace(run, t=np.where(rec.count > 0, run.t, np.nan))
+    return viz.write_mcap(heard, None, out / "converted.mcap")
+
+
+def test_the_recorder_writes_run_mcap_as_ticks_complete_and_it_equals_the_file_converted_at_the_end(
+        tmp_path: Path) -> None:
+    """``Recording.stream`` writes each tick once every sample of it is in, in order: a tick still
+    missing a sample stops it (later ticks wait, complete or not), and it goes on once that tick is
+    whole. ``save`` writes the ticks heard after it (a stopped run's, some incomplete; ticks of which
+    nothing was heard are left out) and ends the file. Message for message, in the same order, with
+    the safety events before their tick (sorted by tick, vehicle and time, whichever agent's record
+    brought them first), metadata and mission text: the file ``write_mcap`` converts at once from
+    ``run.npz``."""
+    from tests.test_colocate import _busy_record
+
+    rec = _recording(tmp_path)
+    rng = np.random.default_rng(11)
+    for k in range(96):
+        rec.leader(_leader(k))
+    rec.leader(_leader(120))  # a tick heard by its leader's sample alone, after ticks never heard
+    late = None
+    for k0 in range(0, 64, 16):
+        for aid in (1, 2, 3, 4):
+            r = _busy_record(k0, 16, aid, rng)
+            if (k0, aid) == (16, 3):
+                late = r  # agent 3's ticks 16..31 come after every other record
+                continue
+            rec.plants(r.plant)
+            rec.telemetries(r.telemetry)
+            rec.stream()
+    assert rec.streamed == 16 and rec.file is not None and rec.file.ticks == 16
+    assert (tmp_path / "run.mcap.part").exists() and not (tmp_path / "run.mcap").exists()
+    assert late is not None
+    rec.plants(late.plant)
+    rec.telemetries(late.telemetry)
+    rec.stream()
+    assert rec.streamed == 64
+    for aid in (1, 2):  # ticks 64..79 half heard: the run is stopped here
+        r = _busy_record(64, 16, aid, rng)
+        rec.plants(r.plant)
+        rec.telemetries(r.telemetry)
+    rec.stream()
+    assert rec.streamed == 64
+    rec.save(complete=False, drops={})
+    assert rec.file is None and not (tmp_path / "run.mcap.part").exists()
+    got = file_content(tmp_path / "run.mcap")
+    assert got == file_content(_converted(rec, tmp_path))
+    msgs = got[0]
+    ticks = [json.loads(d)["k"] for topic, _t, d in msgs if topic == "/agent/1"]
+    assert ticks == [*range(96), 120]
+    safety = [t for topic, t, _d in msgs if topic == "/safety"]
+    assert len(safety) == 4 * len(range(0, 64, 7)) + 2 * len(range(70, 80, 7)) and safety == sorted(safety)
+
+
+def test_when_run_mcap_cannot_be_written_during_the_run_it_is_written_at_the_end(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The first tick cannot be written (its unfinished file's name is taken by a directory): the
+    recorder says so, records on, and writes the whole ``run.mcap`` from the run when it saves it."""
+    from tests.test_colocate import _busy_record
+
+    blocker = tmp_path / "run.mcap.part"
+    blocker.mkdir()
+    rec = _recording(tmp_path)
+    rng = np.random.default_rng(12)
+    for k in range(32):
+        rec.leader(_leader(k))
+    for aid in (1, 2, 3, 4):
+        r = _busy_record(0, 32, aid, rng)
+        rec.plants(r.plant)
+        rec.telemetries(r.telemetry)
+    with caplog.at_level("WARNING", logger="tether"):
+        rec.stream()
+    assert rec.stream_failed and rec.file is None and rec.streamed == 0
+    assert "it will be written from run.npz at the end" in caplog.text
+    rec.stream()  # no second attempt
+    assert rec.streamed == 0
+    blocker.rmdir()
+    rec.save(complete=False, drops={})
+    got = file_content(tmp_path / "run.mcap")
+    assert got == file_content(_converted(rec, tmp_path))
+    assert sum(1 for topic, _t, _d in got[0] if topic == "/agent/4") == 32
