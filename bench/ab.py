@@ -39,7 +39,7 @@ from bench import runtime as rt  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether.node import load_mission  # noqa: E402
 
-ROLES = ("agent", "recorder", "launcher", "leader", "plant", "world")
+ROLES = ("agent", "recorder", "launcher", "leader", "plant", "world", "writer")
 
 FIGURES: list[tuple[str, str, bool]] = [
     ("speed", "speed [x real time]", True),
@@ -146,9 +146,8 @@ def main(argv: list[str] | None = None) -> None:
                 for side in order:
                     tree = base if side == "base" else new
                     rt.settle()
-                    files = () if a.mcap else ("--no-mcap",)
-                    res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=(*files, *extra),
-                                        secure=not a.insecure)
+                    res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=extra,
+                                        secure=not a.insecure, mcap=a.mcap)
                     want = {str(tree)}
                     if res.cwds != want:
                         raise SystemExit(f"bench/ab.py: the {side} run's processes ran in {sorted(res.cwds)}, "

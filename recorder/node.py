@@ -5,7 +5,9 @@ It subscribes to the leader's state, every agent's telemetry and every plant's s
 every sample of k, so the clock never runs ahead of what is recorded. In real time it records
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
 in both cases (a stopped run is marked ``complete = false``), with ``run.mcap`` beside it when the
-Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
+Foxglove SDK is installed (``docs/foxglove.md``): written as the run goes by a helper process at the
+lowest CPU priority that shares the run's memory (``recorder/follow.py``), or at the end by the
+recorder itself if the helper fails (``recorder/export.py``).
 
 The same role serves two more uses (:func:`make`): ``live`` serves every tick over the Foxglove
 WebSocket protocol while the run goes on (``tether run --live``, ``tether record --live``: a

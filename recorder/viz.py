@@ -1,9 +1,11 @@
 """The Foxglove view of a run: ``run.mcap`` beside ``run.npz``, and the live view (``--live``).
 
-One converter for every producer: :func:`write_mcap` turns a finished :class:`~tether.runfile.Run`
-into an MCAP file through the Foxglove SDK (``foxglove-sdk``, the ``viz`` extra); :class:`Live`
-serves the same channels over the Foxglove WebSocket protocol while a run is being filled. Both log
-through one :class:`View`, so a file and a live session carry the same topics, schemas and values.
+One converter for every producer: :class:`McapFile` writes an MCAP file tick by tick through the
+Foxglove SDK (``foxglove-sdk``, the ``viz`` extra), from a finished :class:`~tether.runfile.Run`
+(:func:`write_mcap`) or from one being filled (the recorder's helper, ``recorder/follow.py``);
+:class:`Live` serves the same channels over the Foxglove WebSocket protocol while a run is being
+filled. All log through one :class:`View`, so a file and a live session carry the same topics,
+schemas and values.
 The channels (``docs/foxglove.md``):
 
 =====================  ======================  =========================================================
