@@ -453,9 +453,9 @@ def _event_order(e: SafetyEvent) -> tuple[int, int, float]:
 class McapFile:
     """``run.mcap`` written tick by tick, atomically (``run.mcap.part`` until :meth:`close`).
 
-    The recorder of ``tether run`` feeds it as the run is filled, each tick once every sample of
-    it is in, so that the file is mostly written when the last tick is (``docs/foxglove.md``, *Cost*);
-    :func:`write_mcap` feeds it a finished run at once. Either way a tick's safety events go
+    The recorder's helper (``recorder/follow.py``) feeds it as the run is filled, each tick once
+    every sample of it is in, so that the file is mostly written when the last tick is
+    (``docs/foxglove.md``, *Written as the run goes*); :func:`write_mcap` feeds it a finished run at once. Either way a tick's safety events go
     before it, in the order ``(k, vehicle, t)``; the events left after the last tick, the closing
     notes, the run's metadata and its mission text are written by :meth:`close`. Ticks are given in
     increasing order; nothing is written before the first."""
