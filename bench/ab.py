@@ -39,7 +39,7 @@ from bench import runtime as rt  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether.node import load_mission  # noqa: E402
 
-ROLES = ("agent", "recorder", "launcher", "leader", "plant", "world", "writer")
+ROLES = ("agent", "recorder", "launcher", "leader", "plant", "world")
 
 FIGURES: list[tuple[str, str, bool]] = [
     ("speed", "speed [x real time]", True),
@@ -55,9 +55,8 @@ FIGURES: list[tuple[str, str, bool]] = [
 def measure(res: rt.Result, ticks: float) -> dict[str, float]:
     """The figures of one run (NaN where its role did not run)."""
     per = rt._per_tick(res, ticks, ROLES)  # noqa: SLF001 - the bench's own helper
-    out = {"speed": res.speed if res.ok or res.status == 5 else float("nan"), "command_s": res.command_s, "end_s": res.end_s,
-           "cpu_us": per["total_us"],
-           "foreign_pct": res.foreign_pct}
+    out = {"speed": res.speed if res.ok or res.status == 5 else float("nan"),  # 5: went to its end, a sample lost
+           "command_s": res.command_s, "end_s": res.end_s, "cpu_us": per["total_us"], "foreign_pct": res.foreign_pct}
     for ro in ROLES:
         out[f"{ro}_us"], out[f"{ro}_main_us"] = per[ro]["us"], per[ro]["main"]
     return out

@@ -7,11 +7,10 @@
 Cases, each run alternately with the feature on and off, ``--repeats`` pairs, medians printed:
 
 1. ``lockstep``: ``tether run section4 --clock lockstep --insecure`` with and without ``--no-mcap``:
-   mission seconds per wall second of the whole command (``run.mcap`` is written during the run by a
-   helper at the lowest priority, ``recorder/follow.py``, and finished after the last tick, so the
-   whole command is what a user waits for), and the CPU for ``run.mcap`` (the recorder's and its
-   helper's) from the recorder's log (``recorder CPU: ...``). The sizes of ``run.mcap`` and
-   ``run.npz`` per agent-second.
+   mission seconds per wall second of the whole command (the recorder writes ``run.mcap`` after the
+   last tick, before the run ends, so the whole command is what a user waits for), and the
+   recorder's CPU for ``run.mcap`` from its log (``recorder CPU: ...``). The sizes of ``run.mcap``
+   and ``run.npz`` per agent-second.
 2. ``realtime``: the same in real time: the recorder's CPU (recording, ``run.npz``, ``run.mcap``)
    from its log. The cost is the ``run.mcap`` CPU against the recorder's CPU with it off.
 3. ``live``: real time with ``--live PORT`` (no viewer connected) against without: the recorder's
@@ -36,7 +35,6 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 CPU = re.compile(r"recorder CPU: ([0-9.]+) s recording, ([0-9.]+) s run\.npz, ([0-9.]+) s run\.mcap "
                  r"\(wall ([0-9.]+) s, ([0-9.]+) s\); ([0-9.]+) s of start-up")
-WRITER = re.compile(r"run\.mcap: ([0-9]+) ticks written during the run by its writer \(([0-9.na]+) s of CPU\)")
 LIVE = re.compile(r"live view: sent ([0-9]+) ticks in ([0-9.]+) s of CPU")
 RAN = re.compile(r"ran ([0-9.]+) s of mission time in ([0-9.]+) s of wall time")
 
@@ -74,10 +72,6 @@ def tether_run(out: Path, clock: str, duration: float, *extra: str, agents_cpu: 
            "npz": (out / "run.npz").stat().st_size,
            "mcap": (out / "run.mcap").stat().st_size if (out / "run.mcap").exists() else 0.0,
            "stepping": float(ran[2]) if ran else float("nan")}
-    writer = WRITER.search(log)
-    if writer is not None:  # run.mcap's helper process (recorder/follow.py): its CPU is run.mcap's too
-        row["mcap_early"], row["writer_cpu"] = float(writer[1]), float(writer[2])
-        row["mcap_cpu"] += row["writer_cpu"]
     if agent_cpu:
         row["agent_cpu"] = statistics.median(agent_cpu.values())
     live = LIVE.search(log)
@@ -136,10 +130,9 @@ def main() -> None:
         print(f"lockstep: tether run section4 --duration {a.duration:g}, run.mcap on vs off (--no-mcap)")
         on, off = pairs("lockstep", a.repeats, (), ("--no-mcap",), "lockstep", a.duration)
         share = [r["mcap_wall"] / (r["stepping"] + r["npz_wall"] + r["mcap_wall"]) for r in on]
-        print(f"run.mcap in the same run: finished in {med(on, 'mcap_wall'):.2f} s (CPU {med(on, 'mcap_cpu'):.2f} s, "
-              f"its helper's included) after {med(on, 'stepping'):.2f} s of stepping and {med(on, 'npz_wall'):.2f} s "
-              f"of run.npz: {100 * statistics.median(share):.1f} % of the lockstep run's time (median of {len(on)})"
-              + (f"; {med(on, 'mcap_early'):.0f} ticks written during the run" if "mcap_early" in on[0] else ""))
+        print(f"run.mcap in the same run: written in {med(on, 'mcap_wall'):.2f} s (CPU {med(on, 'mcap_cpu'):.2f} s) after "
+              f"{med(on, 'stepping'):.2f} s of stepping and {med(on, 'npz_wall'):.2f} s of run.npz: "
+              f"{100 * statistics.median(share):.1f} % of the lockstep run's time (median of {len(on)})")
         s_on, s_off = a.duration / med(on, "wall"), a.duration / med(off, "wall")
         print(f"  whole command, on vs off (start-up included; load differs between runs): {s_on:.2f} vs {s_off:.2f} "
               f"mission s / wall s; stepping alone {med(on, 'stepping'):.2f} s vs {med(off, 'stepping'):.2f} s")

@@ -296,30 +296,15 @@ class Sampler:
         n = 0
         while not self._stop.wait(self.period):
             n += 1
-            if n % 5 == 1:
-                self.adopt()
             for p in self.procs:
                 p.snap1()
                 if n % 10 == 1:
                     p.snap_mem()
 
-    def adopt(self) -> None:
-        """Measure the recorder's helper that writes run.mcap as the run goes (``recorder/follow.py``,
-        role ``writer``) from when it is first seen: it starts with the run, after the window opened, so
-        all of its CPU is the run's."""
-        known = {p.pid for p in self.procs}
-        if any(p.role == "writer" for p in self.procs):
-            return  # one recorder, one helper: no more scans of /proc
-        for rec in [p for p in self.procs if p.role == "recorder"]:
-            for pid in children_of(rec.pid):
-                if pid not in known and "recorder.follow" in cmdline(pid):
-                    self.procs.append(Proc(pid, "writer", 0, cpu0=(0.0, 0.0), th0={}))
-
     def stop(self) -> None:
         """Close the window: one last reading of every live process."""
         self._stop.set()
         self._thread.join()
-        self.adopt()
         for p in self.procs:
             p.snap1()
             p.snap_mem()
@@ -603,13 +588,11 @@ def _tether_cmd() -> list[str]:
 
 def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, work: Path,
                probe: bool = False, timeout: float = 300.0, tree: Path | None = None,
-               extra: tuple[str, ...] = (), secure: bool = True, mcap: bool = False) -> Result:
-    """``tether run MISSION --clock CLOCK --duration S --quiet --no-mcap [EXTRA]`` (and ``--insecure``
-    unless ``secure``; without ``--no-mcap`` if ``mcap``), measured from outside. ``run.mcap`` is left
-    out by default: the baseline writes nothing, and since ``run.mcap`` is written during the run (by
-    the recorder's helper at the lowest priority, ``recorder/follow.py``) it would take some of the
-    run's CPU; ``bench/ab.py --mcap`` measures the whole command with it. ``tree``: another checkout
-    of tether (``bench/ab.py``'s base),
+               extra: tuple[str, ...] = (), secure: bool = True, mcap: bool = True) -> Result:
+    """``tether run MISSION --clock CLOCK --duration S --quiet [EXTRA]`` (and ``--insecure`` unless
+    ``secure``; ``--no-mcap`` unless ``mcap``: the recorder writes ``run.mcap`` after the last tick,
+    outside the measured window, but in the whole command's time), measured from outside.
+    ``tree``: another checkout of tether (``bench/ab.py``'s base),
     run as ``python -m cli`` from inside it, so that the launcher and every process it starts (``-m``
     puts the working directory first on the path, and the children inherit it) import that tree and
     not the installed one; :attr:`Result.cwds` says where each process ran."""

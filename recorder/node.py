@@ -5,9 +5,7 @@ It subscribes to the leader's state, every agent's telemetry and every plant's s
 every sample of k, so the clock never runs ahead of what is recorded. In real time it records
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
 in both cases (a stopped run is marked ``complete = false``), with ``run.mcap`` beside it when the
-Foxglove SDK is installed (``docs/foxglove.md``): written as the run goes by a helper process at the
-lowest CPU priority that shares the run's memory (``recorder/follow.py``), or at the end by the
-recorder itself if the helper fails (``recorder/export.py``).
+Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
 
 The same role serves two more uses (:func:`make`): ``live`` serves every tick over the Foxglove
 WebSocket protocol while the run goes on (``tether run --live``, ``tether record --live``: a
@@ -31,17 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from recorder.export import mcap_beside, viz_module
-from recorder.follow import Follower
+from recorder.export import mcap_beside
 from tether import gate, jsonout, wire
 from tether.node import Node
 from tether.rejoin import Rejoin
 from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
 log = logging.getLogger("tether")
-
-STREAM_PERIOD = 0.25
-"""Real time: how often the ticks completed since are handed to ``run.mcap``'s writer [s]."""
 
 STOP_GRACE = 2.0
 """Real time: when every producer has left before the last tick, how long to wait for this
@@ -82,19 +76,31 @@ class Recording:
                        mission_text=node.args.mission_path.read_text())
         self.run = Run.empty(T, m.agent_ids, d, meta)
         self.run.t[:] = np.arange(T) * m.dt
-        self.run.runtime = RuntimeRecord.empty(T, n, d)
-        self.run.links = Links.empty(T, n, width)
-        if m.payload is not None:
-            self.run.plant = PlantRecord(payload_p=np.full((T, 3), np.nan), payload_v=np.full((T, 3), np.nan),
-                                         tension=np.full((T, n), np.nan), slack_events=np.full((T, n), np.nan))
-        if not node.clock.lockstep:
-            self.run.clock = ClockRecord.empty(T, n, width + 1)
-        self._refs()
+        self.rt = self.run.runtime = RuntimeRecord.empty(T, n, d)
+        """The run's runtime record (``run.runtime``, never None here)."""
+        self.lk = self.run.links = Links.empty(T, n, width)
+        """The run's link statistics (``run.links``, never None here)."""
+        silent, delivery, p50, p99 = self.lk.silent, self.lk.delivery, self.lk.age_p50, self.lk.age_p99
+        if silent is None or delivery is None or p50 is None or p99 is None:
+            raise AssertionError("Links.empty fills every per-tick field")
+        self.silent, self.delivery, self.age_p50, self.age_p99 = silent, delivery, p50, p99
+        """The link series that are optional in a run file but always recorded here."""
         self.netem: list[dict] = []
         """Link decisions, when the mission logs them (written to ``netem.jsonl``)."""
+        self.world_series: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The payload's series in ``run.plant`` (position, velocity, tension, slack events), when there is one."""
+        if m.payload is not None:
+            pp, pv = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
+            tension, slack = np.full((T, n), np.nan), np.full((T, n), np.nan)
+            self.run.plant = PlantRecord(payload_p=pp, payload_v=pv, tension=tension, slack_events=slack)
+            self.world_series = pp, pv, tension, slack
         self.events: list[wire.SafetyEvent] = []
         """Mode changes, as the agents' telemetry reports them."""
+        self.clock: ClockRecord | None = None
+        """Real time: the agents' per-link clock-offset bounds (slots: the plant and the in-neighbours)."""
         self.clock_slots: list[dict[tuple[str, int], int]] = [{} for _ in range(n)]
+        if not node.clock.lockstep:
+            self.clock = self.run.clock = ClockRecord.empty(T, n, width + 1)
         self.gate: list[tuple[int, dict[str, int]]] = [(-1, {}) for _ in range(n)]
         """Per agent: the newest telemetry's tick and its gate rejections since start, by reason."""
         self.count = np.zeros(T, dtype=np.int64)
@@ -112,36 +118,10 @@ class Recording:
         """The swarm's epoch as inferred from the first telemetry heard (:meth:`Node.ready`'s hint)."""
         self.cpu_ready = 0.0
         """The process's CPU time when the run started (its start-up before it) [s]."""
-        self.follower: Follower | None = None
-        """The helper writing ``run.mcap`` as the run is filled (:meth:`share`), if it runs."""
-        self.whole = 0
-        """Every tick before this one is complete (as far as :meth:`stream` has looked)."""
         self.oldest = -1
         """The first tick of which a sample was recorded (-1: none yet)."""
         self.newest = -1
         """The newest tick of which a sample was recorded."""
-
-    def _refs(self) -> None:
-        """The parts of :attr:`run` filled sample by sample, by name (again once :meth:`share` has
-        moved its arrays)."""
-        rt, lk = self.run.runtime, self.run.links
-        if rt is None or lk is None:
-            raise AssertionError("the recorder's run has its runtime record and link statistics")
-        self.rt, self.lk = rt, lk
-        """The run's runtime record and link statistics (``run.runtime``, ``run.links``)."""
-        silent, delivery, p50, p99 = lk.silent, lk.delivery, lk.age_p50, lk.age_p99
-        if silent is None or delivery is None or p50 is None or p99 is None:
-            raise AssertionError("Links.empty fills every per-tick field")
-        self.silent, self.delivery, self.age_p50, self.age_p99 = silent, delivery, p50, p99
-        """The link series that are optional in a run file but always recorded here."""
-        pl = self.run.plant
-        self.world_series: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
-        """The payload's series in ``run.plant`` (position, velocity, tension, slack events), when there is one."""
-        if pl.payload_p is not None and pl.payload_v is not None and pl.tension is not None \
-                and pl.slack_events is not None:
-            self.world_series = pl.payload_p, pl.payload_v, pl.tension, pl.slack_events
-        self.clock: ClockRecord | None = self.run.clock
-        """Real time: the agents' per-link clock-offset bounds (slots: the plant and the in-neighbours)."""
 
     def _take(self, k: int, slot: int) -> bool:
         """Whether the sample of tick ``k`` in ``slot`` (see :attr:`have`) is the first heard; if so it is counted."""
@@ -319,48 +299,6 @@ class Recording:
                 rec.role[i, slot], rec.src[i, slot] = c.role, c.src
             rec.offset[k, i, slot] = c.offset
 
-    def share(self) -> None:
-        """Start writing ``run.mcap`` as the run is filled (:mod:`recorder.follow`): the run's arrays
-        and counts move into memory shared with the helper that writes it (their values kept), so
-        call this before anything holds on to them (the live view). Without the Foxglove SDK, or if
-        the helper cannot start, ``run.mcap`` is written at the end, as :meth:`save` says."""
-        if not self.mcap or self.follower is not None or viz_module() is None:
-            return
-        try:
-            follower = Follower.start(self.run, self.count, self.mission, self.out / "run.mcap")
-        except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
-            log.warning("run.mcap: its writer did not start (%s: %s); the recorder writes it at the end",
-                        type(exc).__name__, exc)
-            return
-        self.follower = follower
-        self.run, self.count = follower.run, follower.count
-        self._refs()
-
-    def stream(self) -> None:
-        """Tell the helper writing ``run.mcap`` how far the run is whole: every tick complete from
-        :attr:`whole` on, in order (a tick still missing a sample stops it; the rest waits for
-        :meth:`save`, which hands over every tick heard). A complete tick is final: a sample heard
-        again is not recorded twice. O(1) when the next tick is not complete; never blocks."""
-        k, count, expected = self.whole, self.count, self.expected
-        if self.follower is None or k >= len(count) or count[k] < expected:
-            return
-        while k < len(count) and count[k] >= expected:
-            k += 1
-        self.whole = k
-        self.follower.upto(k - 1, self.events)
-
-    def _write_mcap(self, heard: Run, npz: Path) -> tuple[int, float]:
-        """``run.mcap``: its helper writes the ticks it has not and ends the file; without one (or if
-        it failed) the whole file is converted here from ``heard``. Returns the ticks the helper
-        had written before, and its CPU time [s] (0, 0: no helper)."""
-        follower, self.follower = self.follower, None
-        if follower is not None:
-            early = follower.ticks_written
-            if follower.close(self.run, self.events):
-                return early, follower.cpu
-        mcap_beside(heard, self.mission, npz)
-        return 0, 0.0
-
     def save(self, complete: bool, drops: dict[str, int]) -> Path:
         """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
         :attr:`failed` (the stop hook then does not try again) and re-raised: :func:`tether.node.serve`
@@ -370,9 +308,6 @@ class Recording:
             return self._save(complete, drops)
         except OSError as exc:
             self.failed = exc
-            if self.follower is not None:
-                self.follower.abandon()
-                self.follower = None
             raise
 
     def _save(self, complete: bool, drops: dict[str, int]) -> Path:
@@ -393,21 +328,17 @@ class Recording:
         cpu0, wall0 = time.process_time(), time.perf_counter()
         path = self.run.save(self.out / "run.npz")
         cpu1, wall1 = time.process_time(), time.perf_counter()
-        early, writer = 0, 0.0
         try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
             if self.mcap:  # ticks of which nothing was heard (a stop, a late start) are left out of it
                 heard = dataclasses.replace(self.run, t=np.where(self.count > 0, self.run.t, np.nan))
-                early, writer = self._write_mcap(heard, path)
+                mcap_beside(heard, self.mission, path)
         except Exception as exc:  # noqa: BLE001 - never lose a recording over its view
             log.warning("no run.mcap: %s: %s", type(exc).__name__, exc)
         cpu2, wall2 = time.process_time(), time.perf_counter()
         # bench/recording.py reads this line: the recorder's CPU while recording, and for each file
-        # (run.mcap's in this process; its wall time after run.npz is what the end of the run waits
-        # for it), and the CPU of the helper that writes run.mcap as the run goes (recorder/follow.py)
         log.info("recorder CPU: %.3f s recording, %.3f s run.npz, %.3f s run.mcap (wall %.3f s, %.3f s); "
-                 "%.3f s of start-up before the run; run.mcap: %d ticks written during the run by its writer "
-                 "(%.3f s of CPU)", cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1, self.cpu_ready,
-                 early, writer)
+                 "%.3f s of start-up before the run", cpu0, cpu1 - cpu0, cpu2 - cpu1, wall1 - wall0, wall2 - wall1,
+                 self.cpu_ready)
         if self.mission.netem is not None and self.mission.netem.log:
             self.netem.sort(key=lambda d: (d["dst"], d["src"], d["seq"], d["at"] is None, d["at"] or 0.0))
             lines = "".join(jsonout.dumps(d, indent=None) + "\n" for d in self.netem)
@@ -565,7 +496,6 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         else:
             await node.ready(rejoin=rejoin.epoch)
         rec.cpu_ready = time.process_time()
-        rec.share()  # run.mcap written as the run goes, by a helper at the lowest priority
         holder["started"] = rec
         if node.rejoined and not attach:
             log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "
@@ -579,10 +509,8 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                 # one acknowledgement for the ticks completed together (an agent's record brings
                 # several): it stands for every tick up to k. The next tick is never complete beyond
                 # the clock's grant, so the clock hears of each grant's ticks.
-                if k == last or rec.count[k + 1] < rec.expected:
-                    if ack is not None:
-                        ack.send(wire.Ack, k, k * m.dt, role="recorder")
-                    rec.stream()  # after the acknowledgement: the clock grants on meanwhile
+                if ack is not None and (k == last or rec.count[k + 1] < rec.expected):
+                    ack.send(wire.Ack, k, k * m.dt, role="recorder")
                 if feed is not None:
                     feed.step()
             if ack is not None:
@@ -614,18 +542,11 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                     await asyncio.sleep(0.5)
                     node.wakeup.notify()
 
-            async def stream() -> None:  # run.mcap's helper told as ticks complete (one missing a sample stops it)
-                while True:
-                    await asyncio.sleep(STREAM_PERIOD)
-                    rec.stream()
-
             poker = asyncio.get_running_loop().create_task(poke())
-            streamer = asyncio.get_running_loop().create_task(stream())
             try:
                 await node.until(finished, None, "the end of the run")
             finally:
                 poker.cancel()
-                streamer.cancel()
         complete = bool(np.all(rec.count >= rec.expected))
         if feed is not None:
             holder.pop("feed", None)

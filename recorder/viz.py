@@ -1,11 +1,9 @@
 """The Foxglove view of a run: ``run.mcap`` beside ``run.npz``, and the live view (``--live``).
 
-One converter for every producer: :class:`McapFile` writes an MCAP file tick by tick through the
-Foxglove SDK (``foxglove-sdk``, the ``viz`` extra), from a finished :class:`~tether.runfile.Run`
-(:func:`write_mcap`) or from one being filled (the recorder's helper, ``recorder/follow.py``);
-:class:`Live` serves the same channels over the Foxglove WebSocket protocol while a run is being
-filled. All log through one :class:`View`, so a file and a live session carry the same topics,
-schemas and values.
+One converter for every producer: :func:`write_mcap` turns a finished :class:`~tether.runfile.Run`
+into an MCAP file through the Foxglove SDK (``foxglove-sdk``, the ``viz`` extra); :class:`Live`
+serves the same channels over the Foxglove WebSocket protocol while a run is being filled. Both log
+through one :class:`View`, so a file and a live session carry the same topics, schemas and values.
 The channels (``docs/foxglove.md``):
 
 =====================  ======================  =========================================================
@@ -446,119 +444,51 @@ def _closing_notes(view: View, run: Run) -> None:
     view.note(t_end, f"end of run at t = {t_end:g} s")
 
 
-def _event_order(e: SafetyEvent) -> tuple[int, int, float]:
-    return e.k, e.vehicle, e.t
-
-
-class McapFile:
-    """``run.mcap`` written tick by tick, atomically (``run.mcap.part`` until :meth:`close`).
-
-    The recorder's helper (``recorder/follow.py``) feeds it as the run is filled, each tick once
-    every sample of it is in, so that the file is mostly written when the last tick is
-    (``docs/foxglove.md``, *Written as the run goes*); :func:`write_mcap` feeds it a finished run at once. Either way a tick's safety events go
-    before it, in the order ``(k, vehicle, t)``; the events left after the last tick, the closing
-    notes, the run's metadata and its mission text are written by :meth:`close`. Ticks are given in
-    increasing order; nothing is written before the first."""
-
-    def __init__(self, path: str | Path, mission: ms.Mission | None, scene_rate: float | None = SCENE_RATE):
-        self.path = Path(path)
-        self.tmp = self.path.with_name(self.path.name + ".part")
-        self.mission, self.scene_rate = mission, scene_rate
-        self.ctx: foxglove.Context | None = None
-        self.writer: Any = None
-        self.view: View | None = None
-        self.rows: Rows | None = None
-        self.pending: list[SafetyEvent] = []
-        """Events taken from the caller's list, not written yet (their tick not reached)."""
-        self.taken = 0
-        """How many of the caller's events have been taken."""
-        self.ticks = 0
-        """Ticks written."""
-
-    def _open(self, run: Run, whole: bool) -> View:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        layout = Layout(run, _mission_of(run, self.mission))
-        self.ctx = foxglove.Context()
-        self.writer = foxglove.open_mcap(self.tmp, allow_overwrite=True, context=self.ctx,
-                                         writer_options=MCAPWriteOptions(compression_threads=0,
-                                                                         compression_level=ZSTD_LEVEL))
-        self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate))
-        self.rows = Rows(run, layout, whole=whole)
-        _opening_notes(self.view, run)
-        return self.view
-
-    def _events(self, events: Sequence[SafetyEvent], upto: float) -> None:
-        """Take the events added to ``events`` since the last call; write those of ticks up to ``upto``."""
-        if self.taken < len(events):
-            self.pending.extend(events[self.taken:])
-            self.taken = len(events)
-            self.pending.sort(key=_event_order)
-        n = 0
-        while n < len(self.pending) and self.pending[n].k <= upto:
-            n += 1
-        if n:
-            assert self.view is not None  # opened before
-            for e in self.pending[:n]:
-                self.view.event(e)
-            del self.pending[:n]
-
-    def tick(self, run: Run, k: int, events: Sequence[SafetyEvent], whole: bool = False) -> None:
-        """Write tick ``k`` of ``run`` (at ``run.t[k]``), after the events of ticks up to ``k`` in
-        ``events`` (a list that only grows: the recorder's while the run is being filled). ``whole``:
-        ``run`` is finished, its arrays are converted once (faster than tick by tick)."""
-        view = self.view if self.view is not None else self._open(run, whole)
-        self._events(events, k)
-        assert self.rows is not None  # opened with the view
-        view.tick(k, float(run.t[k]), self.rows.at(k), scene=(k % view.scene_every == 0 or k == len(run.t) - 1))
-        self.ticks += 1
-
-    def close(self, run: Run, events: Sequence[SafetyEvent]) -> Path:
-        """Finish the file with ``run`` as recorded (its ``meta`` complete; the ticks never heard
-        NaN in ``run.t``) and rename it to :attr:`path`; returns it."""
-        try:
-            view = self.view if self.view is not None else self._open(run, whole=False)
-            self._events(events, math.inf)
-            _closing_notes(view, run)
-            self.writer.write_metadata("tether", {
-                "mission": run.meta.mission, "source": run.meta.source, "law": run.meta.law,
-                "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(EPOCH_NS),
-                "scene_every": str(view.scene_every), "modes": ",".join(view.lay.modes),
-                "run_meta": msgspec.json.encode(msgspec.structs.replace(run.meta, mission_text=None)).decode()})
-            if run.meta.mission_text:
-                self.writer.attach(log_time=EPOCH_NS, create_time=EPOCH_NS, name="mission.toml",
-                                   media_type="application/toml", data=run.meta.mission_text.encode())
-        finally:
-            self.abandon(remove=False)
-        self.tmp.replace(self.path)
-        return self.path
-
-    def abandon(self, remove: bool = True) -> None:
-        """Close the writer (what it holds is flushed); ``remove``: delete the unfinished file."""
-        writer, self.writer = self.writer, None
-        if writer is not None:
-            writer.close()
-        if remove:
-            self.tmp.unlink(missing_ok=True)
-
-
 def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rate: float | None = SCENE_RATE) -> Path:
     """Write ``run`` as an MCAP file at ``path`` (atomically); returns it. ``mission`` gives the
-    offsets, geofence and payload of the scene (None: read from the run's mission text). The ticks
-    whose time is NaN (never heard) are left out."""
-    out = McapFile(path, mission, scene_rate)
+    offsets, geofence and payload of the scene (None: read from the run's mission text)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mission = _mission_of(run, mission)
+    layout = Layout(run, mission)
+    tmp = path.with_name(path.name + ".part")
     collecting = gc.isenabled()
     gc.disable()  # millions of short-lived lists and dicts: the cyclic collector would cost a third
+    ctx = foxglove.Context()
+    writer = foxglove.open_mcap(tmp, allow_overwrite=True, context=ctx,
+                                writer_options=MCAPWriteOptions(compression_threads=0, compression_level=ZSTD_LEVEL))
     try:
-        for k, t in enumerate(run.t.tolist()):
-            if t == t:
-                out.tick(run, k, run.safety.events, whole=True)
-        return out.close(run, run.safety.events)
-    except BaseException:
-        out.abandon()
-        raise
+        view = View(ctx, layout, scene_every(run.meta.rate, scene_rate))
+        writer.write_metadata("tether", {
+            "mission": run.meta.mission, "source": run.meta.source, "law": run.meta.law,
+            "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(EPOCH_NS),
+            "scene_every": str(view.scene_every), "modes": ",".join(layout.modes),
+            "run_meta": msgspec.json.encode(msgspec.structs.replace(run.meta, mission_text=None)).decode()})
+        if run.meta.mission_text:
+            writer.attach(log_time=EPOCH_NS, create_time=EPOCH_NS, name="mission.toml", media_type="application/toml",
+                          data=run.meta.mission_text.encode())
+        rows = Rows(run, layout, whole=True)
+        events = sorted(run.safety.events, key=lambda e: (e.k, e.vehicle, e.t))
+        ev = 0
+        _opening_notes(view, run)
+        times = run.t.tolist()
+        last = len(times) - 1
+        for k, t in enumerate(times):
+            if t != t:  # an unrecorded tick (a run stopped early)
+                continue
+            while ev < len(events) and events[ev].k <= k:
+                view.event(events[ev])
+                ev += 1
+            view.tick(k, t, rows.at(k), scene=(k % view.scene_every == 0 or k == last))
+        for e in events[ev:]:
+            view.event(e)
+        _closing_notes(view, run)
     finally:
+        writer.close()
         if collecting:
             gc.enable()
+    tmp.replace(path)
+    return path
 
 
 class Live:
@@ -615,7 +545,7 @@ class Live:
         self.server.stop()
 
 
-__all__ = ["EPOCH_NS", "SCENE_RATE", "Layout", "Live", "McapFile", "View", "scene_every", "stamp", "write_mcap"]
+__all__ = ["EPOCH_NS", "SCENE_RATE", "Layout", "Live", "View", "scene_every", "stamp", "write_mcap"]
 
 
 def layout(agent_ids: Sequence[int] = (1, 2, 3, 4), dim: int = 2) -> str:

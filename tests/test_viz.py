@@ -8,13 +8,11 @@ import contextlib
 import io
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -52,6 +50,17 @@ def read_mcap(path: Path) -> tuple[dict[str, tuple[str, str, str]], dict[str, li
         for _schema, channel, message in reader.iter_messages(log_time_order=False):
             messages[channel.topic].append((message.log_time, message.data))
     return channels, dict(messages)
+
+
+def file_content(path: Path) -> tuple[list[tuple[str, int, bytes]], list[tuple[str, dict[str, str]]],
+                                      list[tuple[str, str, bytes]]]:
+    """Every message in file order (topic, log time, data), the metadata records and the attachments."""
+    with open(path, "rb") as fh:
+        reader = mcap_reader.make_reader(fh)
+        msgs = [(ch.topic, m.log_time, bytes(m.data)) for _s, ch, m in reader.iter_messages(log_time_order=False)]
+        meta = [(x.name, dict(x.metadata)) for x in reader.iter_metadata()]
+        atts = [(a.name, a.media_type, bytes(a.data)) for a in reader.iter_attachments()]
+    return msgs, meta, atts
 
 
 def check_file(path: Path, run: Run, scene_every: int) -> dict[str, list[tuple[int, bytes]]]:
@@ -119,29 +128,8 @@ def test_lockstep_tether_run_writes_run_mcap(tmp_path: Path) -> None:
     assert [x["age"] for x in m["links"]] == [float(lk.age[k, 0, n]) for n in used]
     assert m["meas_age"] == run.runtime.meas_age[k, 0]
     assert m["plant_mode"] == run.safety.plant_mode[k, 0]
-    # lockstep: converted at once after the last tick (during the run it would take the run's CPU)
-    assert "run.mcap: 0 ticks written during the run" in (out / "logs" / "recorder-0.log").read_text()
-
-
-@pytest.mark.slow  # real processes, real time
-def test_a_real_time_run_writes_run_mcap_as_it_goes_and_the_same_file_as_converted_at_the_end(
-        tmp_path: Path) -> None:
-    out = tmp_path / "run"
-    done = tether("run", "section4", "--clock", "realtime", "--out", str(out), "--duration", "3", "--quiet",
-                  "--insecure", "--ns", f"vizrt-{os.getpid()}", timeout=400.0)
-    assert done.returncode in (0, 5), done.stdout + done.stderr  # 5: a sample lost under load (said, recorded)
-    log = (out / "logs" / "recorder-0.log").read_text()
-    early = re.search(r"run\.mcap: ([0-9]+) ticks written during the run", log)
-    assert early is not None and int(early[1]) > 100, log[-2000:]
-    run = Run.load(out)
-    assert run.runtime is not None
-    heard = (np.isfinite(run.leader_p[:, 0]) | np.isfinite(run.xi[:, :, 0]).any(axis=1)
-             | np.isfinite(run.runtime.plant_p[:, :, 0]).any(axis=1))
-    import dataclasses
-
-    converted = viz.write_mcap(dataclasses.replace(run, t=np.where(heard, run.t, np.nan)), None,
-                               tmp_path / "converted.mcap")
-    assert file_content(out / "run.mcap") == file_content(converted)
+    # the recorder's file is the one `tether mcap` makes of its run file, message for message
+    assert file_content(out / "run.mcap") == file_content(viz.write_mcap(run, None, tmp_path / "converted.mcap"))
 
 
 def test_payload_fence_and_events_in_the_file(tmp_path: Path) -> None:
@@ -235,192 +223,3 @@ def test_the_shipped_layout_is_the_generated_one() -> None:
     for want in ('"panelType": "ThreeDee"', '"panelType": "Plot"', '"panelType": "Log"', "/agent/1.xi_norm",
                  "/agent/4.kv[1]", '"/safety"'):
         assert want in panels
-
-
-# ----------------------------------------------------------------- run.mcap written as the run is filled
-def file_content(path: Path) -> tuple[list[tuple[str, int, bytes]], list[tuple[str, dict[str, str]]],
-                                      list[tuple[str, str, bytes]]]:
-    """Every message in file order (topic, log time, data), the metadata records and the attachments."""
-    with open(path, "rb") as fh:
-        reader = mcap_reader.make_reader(fh)
-        msgs = [(ch.topic, m.log_time, bytes(m.data)) for _s, ch, m in reader.iter_messages(log_time_order=False)]
-        meta = [(x.name, dict(x.metadata)) for x in reader.iter_metadata()]
-        atts = [(a.name, a.media_type, bytes(a.data)) for a in reader.iter_attachments()]
-    return msgs, meta, atts
-
-
-def _recording(out: Path) -> Any:
-    """A recorder's :class:`recorder.node.Recording` of section4 in lockstep, writing into ``out``."""
-    from types import SimpleNamespace
-
-    from recorder.node import Recording
-    from tether import wire
-
-    m = ms.load(catalog.builtin_path("section4"))
-    # the recorder's bookkeeping asks its node for these alone
-    node = SimpleNamespace(mission=m, clock=SimpleNamespace(lockstep=True), keys=wire.Keys("test"),
-                           args=SimpleNamespace(mission_path=catalog.builtin_path("section4")), arrived_ago=lambda: 0.0)
-    return Recording(node, out)  # type: ignore[arg-type]  # the node's fields it reads
-
-
-def _leader(k: int) -> object:
-    from tether import wire
-
-    return wire.State(sender=5, seq=k, k=k, t=k / 100, p=[0.1 * k, 0.0], vel=[1.0, 0.0], a=[0.0, 0.0])
-
-
-def _converted(rec: Any, out: Path) -> Path:
-    """What ``write_mcap`` makes at once of the run the recorder saved, the ticks never heard left out."""
-    import dataclasses
-
-    run = Run.load(out / "run.npz")
-    heard = dataclasses.replace(run, t=np.where(rec.count > 0, run.t, np.nan))
-    return viz.write_mcap(heard, None, out / "converted.mcap")
-
-
-def _wait(cond: Any, timeout: float, what: str) -> None:
-    import time
-
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
-
-
-def _feed(rec: Any, k0: int, n: int, agents: tuple[int, ...], rng: np.random.Generator) -> None:
-    from tests.test_colocate import _busy_record
-
-    for aid in agents:
-        r = _busy_record(k0, n, aid, rng)
-        rec.plants(r.plant)
-        rec.telemetries(r.telemetry)
-
-
-def test_the_recorder_has_run_mcap_written_as_ticks_complete_and_it_equals_the_file_converted_at_the_end(
-        tmp_path: Path) -> None:
-    """``Recording.share`` moves the run into memory shared with a helper process at the lowest CPU
-    priority (``recorder/follow.py``), the values kept; ``Recording.stream`` tells it each tick once
-    every sample of it is in, in order: a tick still missing a sample stops it (later ticks wait,
-    complete or not), and it goes on once that tick is whole. ``save`` hands over the ticks heard
-    after it (a stopped run's, some incomplete; ticks of which nothing was heard are left out) and
-    the helper ends the file. Message for message, in the same order, with the safety events before
-    their tick (sorted by tick, vehicle and time, whichever agent's record brought them first),
-    metadata and mission text: the file ``write_mcap`` converts at once from ``run.npz``."""
-    import os
-
-    rec = _recording(tmp_path)
-    rng = np.random.default_rng(11)
-    for k in range(8):  # samples recorded before the helper starts are kept
-        rec.leader(_leader(k))
-    rec.share()
-    follower = rec.follower
-    assert follower is not None and rec.run is follower.run and rec.count is follower.count
-    assert rec.rt is rec.run.runtime and rec.lk is rec.run.links
-    assert np.isfinite(rec.run.leader_p[:8]).all() and rec.count[:8].tolist() == [1] * 8
-    _wait(lambda: os.sched_getscheduler(follower.proc.pid) == os.SCHED_IDLE, 30, "the helper at SCHED_IDLE")
-    for k in range(8, 96):
-        rec.leader(_leader(k))
-    rec.leader(_leader(120))  # a tick heard by its leader's sample alone, after ticks never heard
-    for k0 in range(0, 64, 16):
-        _feed(rec, k0, 16, (1, 2, 4) if k0 == 16 else (1, 2, 3, 4), rng)  # agent 3's ticks 16..31 come last
-        rec.stream()
-    assert rec.whole == 16 and follower.told == 15
-    _wait(lambda: follower.ticks_written == 16, 60, "16 ticks written by the helper")
-    assert (tmp_path / "run.mcap.part").exists() and not (tmp_path / "run.mcap").exists()
-    _feed(rec, 16, 16, (3,), rng)
-    rec.stream()
-    assert rec.whole == 64
-    _feed(rec, 64, 16, (1, 2), rng)  # ticks 64..79 half heard: the run is stopped here
-    rec.stream()
-    assert rec.whole == 64
-    rec.save(complete=False, drops={})
-    assert rec.follower is None and follower.proc.returncode == 0 and not (tmp_path / "run.mcap.part").exists()
-    got = file_content(tmp_path / "run.mcap")
-    assert got == file_content(_converted(rec, tmp_path))
-    msgs = got[0]
-    ticks = [json.loads(d)["k"] for topic, _t, d in msgs if topic == "/agent/1"]
-    assert ticks == [*range(96), 120]
-    safety = [t for topic, t, _d in msgs if topic == "/safety"]
-    assert len(safety) == 4 * len(range(0, 64, 7)) + 2 * len(range(70, 80, 7)) and safety == sorted(safety)
-
-
-def test_when_the_helper_writing_run_mcap_dies_the_recorder_writes_the_file_at_the_end(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """The helper is killed mid-run (the kernel's OOM killer, an operator): the recorder says so,
-    records on, and converts the whole run itself when it saves it; the helper's unfinished file
-    is removed. The same file as ever."""
-    import signal
-
-    rec = _recording(tmp_path)
-    rng = np.random.default_rng(12)
-    rec.share()
-    follower = rec.follower
-    assert follower is not None
-    for k in range(64):
-        rec.leader(_leader(k))
-    _feed(rec, 0, 32, (1, 2, 3, 4), rng)
-    rec.stream()
-    _wait(lambda: follower.ticks_written == 32, 60, "32 ticks written by the helper")
-    follower.proc.send_signal(signal.SIGKILL)
-    follower.proc.wait()
-    _feed(rec, 32, 32, (1, 2, 3, 4), rng)
-    with caplog.at_level("WARNING", logger="tether"):
-        rec.stream()
-        assert follower.failed and "the recorder writes it at the end" in caplog.text
-        rec.save(complete=True, drops={})
-    assert not (tmp_path / "run.mcap.part").exists()
-    got = file_content(tmp_path / "run.mcap")
-    assert got == file_content(_converted(rec, tmp_path))
-    assert sum(1 for topic, _t, _d in got[0] if topic == "/agent/4") == 64
-
-
-def test_the_helper_writing_run_mcap_removes_its_file_when_its_recorder_is_gone(tmp_path: Path) -> None:
-    """Its input ends without the word to close (the recorder was killed): the helper removes its
-    unfinished file and exits 3, whatever it had written."""
-    rec = _recording(tmp_path)
-    rec.share()
-    follower = rec.follower
-    assert follower is not None
-    for k in range(16):
-        rec.leader(_leader(k))
-    _feed(rec, 0, 16, (1, 2, 3, 4), np.random.default_rng(13))
-    rec.stream()
-    _wait(lambda: follower.ticks_written == 16, 60, "16 ticks written by the helper")
-    assert (tmp_path / "run.mcap.part").exists()
-    assert follower.proc.stdin is not None
-    follower.proc.stdin.close()
-    assert follower.proc.wait(timeout=60) == 3
-    assert not (tmp_path / "run.mcap.part").exists() and not (tmp_path / "run.mcap").exists()
-
-
-@pytest.mark.slow  # waits out recorder.follow.STALL
-def test_a_helper_that_stops_writing_run_mcap_is_given_up_and_the_recorder_writes_the_file(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """The helper is frozen (as if starved at its lowest priority by other work on every core): once
-    the run is saved, the recorder waits for it only while it writes ticks, then stops it, removes its
-    unfinished file and converts the run itself."""
-    import signal
-    import time
-
-    from recorder import follow
-
-    rec = _recording(tmp_path)
-    rec.share()
-    follower = rec.follower
-    assert follower is not None
-    for k in range(48):
-        rec.leader(_leader(k))
-    _feed(rec, 0, 16, (1, 2, 3, 4), np.random.default_rng(14))
-    rec.stream()
-    _wait(lambda: follower.ticks_written == 16, 60, "16 ticks written by the helper")
-    follower.proc.send_signal(signal.SIGSTOP)
-    _feed(rec, 16, 32, (1, 2, 3, 4), np.random.default_rng(15))
-    rec.stream()
-    t0 = time.monotonic()
-    with caplog.at_level("WARNING", logger="tether"):
-        rec.save(complete=True, drops={})
-    assert follow.STALL <= time.monotonic() - t0 < follow.STALL + 30
-    assert "no tick written for" in caplog.text and follower.proc.returncode == -signal.SIGKILL
-    assert not (tmp_path / "run.mcap.part").exists()
-    assert file_content(tmp_path / "run.mcap") == file_content(_converted(rec, tmp_path))

@@ -350,35 +350,24 @@ class Run:
             except msgspec.ValidationError as exc:
                 raise ValueError(f"{path}: run file metadata (format version {version}): {exc}") from None
             arrays = {k: z[k] for k in z.files if k != "meta"}
-        if version == 1:  # no mode columns yet
-            samples, n = len(arrays["t"]), len(arrays["agent_ids"])
-            arrays["safety_mode"] = np.full((samples, n), NO_SAMPLE, dtype=np.int64)
-            arrays["plant_mode"] = np.full((samples, n), NO_SAMPLE, dtype=np.int64)
-        try:
-            return cls.from_arrays(meta, arrays)
-        except ValueError as exc:
-            raise ValueError(f"{path}: {exc} (run file format version {version})") from None
-
-    @classmethod
-    def from_arrays(cls, meta: RunMeta, arrays: dict[str, np.ndarray]) -> "Run":
-        """The run of ``arrays`` under their npz names (:meth:`arrays`; the events' own arrays
-        optional), the arrays themselves, not copies. Raises ValueError naming an array missing
-        from a group or unknown."""
-        arrays = dict(arrays)
-        base: dict[str, Any] = {k: arrays.pop(k) for k in BASE}
+        base = {k: arrays.pop(k) for k in BASE}
         events = _events({f: arrays.pop(f"event_{f}") for f in EVENT_FIELDS if f"event_{f}" in arrays})
         groups: dict[str, Any] = {}  # each built and checked by its own kind(**fields)
         for attr, (kind, prefix) in _GROUPS.items():
-            fields: dict[str, Any] = {f: arrays.pop(prefix + f) for f in kind.__struct_fields__ if prefix + f in arrays}
+            fields = {f: arrays.pop(prefix + f) for f in kind.__struct_fields__ if prefix + f in arrays}
+            if attr == "safety" and version == 1:
+                samples, n = len(base["t"]), len(base["agent_ids"])
+                fields = {"safety_mode": np.full((samples, n), NO_SAMPLE, dtype=np.int64),
+                          "plant_mode": np.full((samples, n), NO_SAMPLE, dtype=np.int64)}
             if attr == "safety":
                 fields["events"] = events
             if fields or attr == "plant":
                 try:
                     groups[attr] = kind(**fields)
                 except TypeError as exc:
-                    raise ValueError(f"incomplete {kind.__name__} arrays: {exc}") from None
+                    raise ValueError(f"{path}: incomplete {kind.__name__} arrays: {exc}") from None
         if arrays:
-            raise ValueError(f"arrays unknown to this run file format: {', '.join(sorted(arrays))}")
+            raise ValueError(f"{path}: arrays unknown to run file format version {version}: {', '.join(sorted(arrays))}")
         return cls(meta=meta, **groups, **base)
 
 
