@@ -55,7 +55,7 @@ FIGURES: list[tuple[str, str, bool]] = [
 def measure(res: rt.Result, ticks: float) -> dict[str, float]:
     """The figures of one run (NaN where its role did not run)."""
     per = rt._per_tick(res, ticks, ROLES)  # noqa: SLF001 - the bench's own helper
-    out = {"speed": res.speed if res.ok or res.status == 5 else float("nan"),  # 5: went to its end, a sample lost
+    out = {"speed": res.speed if res.ran_to_end else float("nan"),
            "command_s": res.command_s, "end_s": res.end_s, "cpu_us": per["total_us"], "foreign_pct": res.foreign_pct}
     for ro in ROLES:
         out[f"{ro}_us"], out[f"{ro}_main_us"] = per[ro]["us"], per[ro]["main"]
@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> None:
                     if res.cwds != want:
                         raise SystemExit(f"bench/ab.py: the {side} run's processes ran in {sorted(res.cwds)}, "
                                          f"not {sorted(want)}: the comparison would not be of the two trees")
-                    if not res.ok and res.status != 5:  # 5: the run went to its end, a sample lost (said)
+                    if not res.ran_to_end:
                         raise SystemExit(f"bench/ab.py: the {side} run failed: {res.why}")
                     fig = measure(res, ticks)
                     runs[side].append(fig)

@@ -368,6 +368,11 @@ class Result:
     """The working directories of tether's processes (which checkout they import: ``run_tether``)."""
 
     @property
+    def ran_to_end(self) -> bool:
+        """The run went to its end: clean, or recorded with samples lost on the way (exit 5)."""
+        return self.ok or self.status == 5
+
+    @property
     def speed(self) -> float:
         return self.mission_s / self.wall_s
 
@@ -662,8 +667,8 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
                 res.mission_s, res.wall_s = float(mo[1]), float(mo[2])
                 t_ran = time.monotonic()
         rc = res.status = p.wait(timeout=60)
-        res.command_s = time.monotonic() - t_start
-        res.end_s = time.monotonic() - t_ran
+        exited = time.monotonic()
+        res.command_s, res.end_s = exited - t_start, exited - t_ran
         if rc != 0:
             res.ok, res.why = False, f"tether run exited {rc}: " + "".join(log[-5:])
     finally:
@@ -1274,7 +1279,7 @@ def case_cpu(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> No
     rows = []
     for rt, rb in pairs:
         # a run that went to its end with a few samples missing from the file (exit 5) held its rate
-        if not ((rt.ok or rt.status == 5) and rb.ok and rt.late < 0.01):
+        if not (rt.ran_to_end and rb.ok and rt.late < 0.01):
             say(f"   ({rt.n} agents at {rt.rate:g} Hz left out: tether did not hold the rate, so its CPU is capped)")
             continue
         if max(rt.foreign_pct, rb.foreign_pct) >= NOISY:
