@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -36,6 +34,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench import runtime as rt  # noqa: E402
+from bench import worktree  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether.node import load_mission  # noqa: E402
 
@@ -62,38 +61,6 @@ def measure(res: rt.Result, ticks: float) -> dict[str, float]:
     return out
 
 
-def checkout(rev: str, into: Path) -> Path:
-    """A detached worktree of ``rev`` at ``into`` (raises ``SystemExit`` naming the revision if git cannot)."""
-    done = subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(into), rev],
-                          capture_output=True, text=True)
-    if done.returncode != 0:
-        raise SystemExit(f"bench/ab.py: git cannot check out {rev}: {done.stderr.strip()}")
-    return into
-
-
-def short(tree: Path) -> str:
-    """The abbreviated commit a checkout is at."""
-    return subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True).stdout.strip()
-
-
-def snapshot(into: Path) -> Path:
-    """This tree as it is, at ``into``: a detached worktree of HEAD with the uncommitted changes
-    applied and the untracked files copied. Both sides then run from a fresh checkout of the same
-    kind: run from this tree itself, an identical runtime once measured 2–3 % slower than from a
-    worktree, in 6 of 6 pairs (an A/A run, ``docs/benchmarks.md``, seventh sitting)."""
-    checkout("HEAD", into)
-    diff = subprocess.run(["git", "-C", str(REPO), "diff", "HEAD", "--binary"], capture_output=True, check=True).stdout
-    if diff:
-        subprocess.run(["git", "-C", str(into), "apply", "--whitespace=nowarn"], input=diff, check=True)
-    listed = subprocess.run(["git", "-C", str(REPO), "ls-files", "--others", "--exclude-standard", "-z"],
-                            capture_output=True, check=True).stdout.decode()
-    for name in filter(None, listed.split("\0")):
-        (into / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(REPO / name, into / name)
-    return into
-
-
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     extra: list[str] = []
@@ -115,8 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.pairs < 1 or not a.duration > 0:
         ap.error("--pairs must be at least 1 and --duration positive")
     for flag, rev in (("--base", a.base), ("--new", a.new)):
-        if rev is not None and subprocess.run(["git", "-C", str(REPO), "rev-parse", "--verify", "--quiet",
-                                               f"{rev}^{{commit}}"], capture_output=True).returncode != 0:
+        if rev is not None and not worktree.is_commit(rev):
             ap.error(f"{flag} {rev}: not a commit of this repository (give a revision such as HEAD~1 or a hash)")
     try:
         path = catalog.resolve(a.mission)
@@ -126,18 +92,13 @@ def main(argv: list[str] | None = None) -> None:
     ticks = m.steps + 1
     with tempfile.TemporaryDirectory(prefix="tether-ab-") as tmp:
         work = Path(tmp)
-        base, new = work / "base", work / "new"
-        try:
-            checkout(a.base, base)
-            if a.new is None:
-                snapshot(new)
-            else:
-                checkout(a.new, new)
+        with worktree.checked_out(a.base, work / "base") as base, worktree.checked_out(a.new, work / "new") as new:
             for tree in (new, base):
                 rt.compile_tree(tree)  # as an installed package has its bytecode, both sides alike
             rt.say(f"bench/ab.py: {a.mission} ({m.n} agents, {m.rate:g} Hz), {a.clock}, {a.duration:g} s per run, "
-                   f"{a.pairs} pairs; new: {'this tree' if a.new is None else a.new} ({short(new)}"
-                   f"{', with what it has not committed' if a.new is None else ''}); base: {a.base} ({short(base)}); "
+                   f"{a.pairs} pairs; new: {'this tree' if a.new is None else a.new} ({worktree.short(new)}"
+                   f"{', with what it has not committed' if a.new is None else ''}); base: {a.base} "
+                   f"({worktree.short(base)}); "
                    f"tether run options: {' '.join(extra) or '(none)'}")
             runs: dict[str, list[dict[str, float]]] = {"base": [], "new": []}
             for i in range(a.pairs):
@@ -145,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
                 for side in order:
                     tree = base if side == "base" else new
                     rt.settle()
-                    res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=extra,
+                    res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=tuple(extra),
                                         secure=not a.insecure, mcap=a.mcap)
                     want = {str(tree)}
                     if res.cwds != want:
@@ -161,11 +122,6 @@ def main(argv: list[str] | None = None) -> None:
                            f"(main {fig['recorder_main_us']:4.0f}) us  other users {fig['foreign_pct']:3.0f} %"
                            + (" NOISY" if fig["foreign_pct"] >= rt.NOISY else "")
                            + (f" (exit 5: {res.complete} samples recorded)" if res.status == 5 else ""))
-        finally:
-            for tree in (base, new):
-                if tree.exists():
-                    subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
-                                   capture_output=True)
     report(runs)
     if a.json:
         a.json.write_text(json.dumps({"base": a.base, "mission": a.mission, "duration": a.duration,

@@ -7,8 +7,8 @@ run by run, alternating.
                                  [--mission FILE] [--insecure]
 
 The mission is a ring of ``--agents`` (``bench/missions.py``) unless ``--mission`` names one. ``--base
-REV``: that commit, checked out in a temporary ``git worktree`` (removed afterwards), runs first in each
-pair, so that both builds see the same machine. A run's missing telemetry shows as NaN ``xi`` in its run
+REV``: that commit, checked out in a temporary ``git worktree`` (removed afterwards; this tree too, as it
+is: ``bench/worktree.py``), runs first in each pair, so that both builds see the same machine. A run's missing telemetry shows as NaN ``xi`` in its run
 file, a missing plant sample as NaN ``d`` (only the plant's own sample carries the disturbance), a
 missing leader sample as NaN ``leader_p``. ``--keep DIR`` keeps every run's directory (logs, run file). What
 a run at N = 16 on two cores loses is small and varies from run to run: quote the counts of every run.
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import os
 import subprocess
@@ -26,6 +27,10 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import worktree  # noqa: E402
 
 CHILD = r"""
 import json, sys
@@ -83,13 +88,11 @@ def main() -> None:
             subprocess.run([sys.executable, str(ROOT / "bench" / "missions.py"), str(args.agents), "--rate",
                             repr(args.rate), "--duration", repr(args.duration), "--out", str(mission)], check=True,
                            capture_output=True)
-        trees = [("this", ROOT)]
-        if args.base is not None:
-            base = work / "base"
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--quiet", str(base), args.base],
-                           check=True)
-            trees.insert(0, (args.base, base))
-        try:
+        with contextlib.ExitStack() as stack:
+            trees = [("this", ROOT)]
+            if args.base is not None:  # both builds from checkouts of the same kind (bench/worktree.py)
+                trees = [(args.base, stack.enter_context(worktree.checked_out(args.base, work / "base"))),
+                         ("this", stack.enter_context(worktree.checked_out(None, work / "this")))]
             print(f"{mission.name}: {args.runs} real-time runs of {args.duration:g} s per build; load average "
                   f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
             totals: dict[str, list[int]] = {name: [] for name, _ in trees}
@@ -102,10 +105,6 @@ def main() -> None:
             for name, lost in totals.items():
                 print(f"{name:>10}: {sum(1 for x in lost if x == 0)} of {len(lost)} runs lost nothing; "
                       f"lost per run {lost}")
-        finally:
-            if args.base is not None:
-                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(work / "base")],
-                               check=False)
 
 
 if __name__ == "__main__":

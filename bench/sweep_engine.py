@@ -24,6 +24,7 @@ The machine may be shared: the CPU-time ratio is the figure to quote; the load a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -36,6 +37,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import worktree  # noqa: E402
 FIELDS = ("t", "p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d")
 
 CHILD = r"""
@@ -82,26 +87,23 @@ def same(a: Path, b: Path) -> bool:
 
 def cells_vs_base(args: argparse.Namespace, tmp: Path) -> None:
     cells = [(float(c.split(":")[0]), float(c.split(":")[1])) for c in args.cells]
-    base_tree = None
-    if args.base:
-        base_tree = tmp / "base"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--quiet", str(base_tree), args.base],
-                       check=True)
-    try:
-        cur: dict[str, list[tuple[float, float]]] = {}
-        old: dict[str, list[tuple[float, float]]] = {}
-        identical = True
+    cur: dict[str, list[tuple[float, float]]] = {}
+    old: dict[str, list[tuple[float, float]]] = {}
+    identical = True
+    with contextlib.ExitStack() as stack:
+        base_tree: Path | None = None
+        this = ROOT
+        if args.base:  # both engines from checkouts of the same kind (bench/worktree.py)
+            base_tree = stack.enter_context(worktree.checked_out(args.base, tmp / "base"))
+            this = stack.enter_context(worktree.checked_out(None, tmp / "this"))
         for r in range(args.repeats):
             if base_tree is not None:
                 for key, tw in child(base_tree, cells, args.duration, tmp / f"base{r}.npz").items():
-                    old.setdefault(key, []).append(tuple(tw))
-            for key, tw in child(ROOT, cells, args.duration, tmp / f"cur{r}.npz", args.engine).items():
-                cur.setdefault(key, []).append(tuple(tw))
+                    old.setdefault(key, []).append((tw[0], tw[1]))
+            for key, tw in child(this, cells, args.duration, tmp / f"cur{r}.npz", args.engine).items():
+                cur.setdefault(key, []).append((tw[0], tw[1]))
             if base_tree is not None:
                 identical &= same(tmp / f"base{r}.npz", tmp / f"cur{r}.npz")
-    finally:
-        if base_tree is not None:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base_tree)], check=False)
     ticks = int(round(args.duration * 100)) + 1
     print(f"section4 map cells (sigma law, burst 1), {args.duration:g} s of mission time ({ticks} ticks, 4 agents), "
           f"median of {args.repeats}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
