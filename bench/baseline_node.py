@@ -118,8 +118,8 @@ class Bare:
         self.lock = threading.Lock()
         self.pending = False
         self.wake = self.clock == "lockstep" or bool(spec.get("wake"))
-        self.declared: list = []
-        self.token = None
+        self.declared: list[zenoh.Subscriber[None] | zenoh.Publisher] = []
+        self.token: zenoh.LivelinessToken | None = None
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.seq = 0
         self.late = 0
@@ -451,7 +451,8 @@ async def hub(spec: dict, endpoint: str) -> None:
         q.append(("token", str(sample.key_expr), sample.kind == put_kind))
         notify()
 
-    declared = [session.liveliness().declare_subscriber(f"@tether/{ns}/**", on_token, history=True)]
+    declared: list[zenoh.Subscriber[None] | zenoh.Publisher] = [
+        session.liveliness().declare_subscriber(f"@tether/{ns}/**", on_token, history=True)]
     print("listening", flush=True)
     t_open = time.monotonic()
     try:

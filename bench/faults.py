@@ -153,9 +153,9 @@ class Tap:
         self.arrivals: list[tuple[float, str, bytes]] = []
         self.epoch: float | None = None
         self.session: zenoh.Session | None = None
-        self._subs: list[Any] = []
+        self._subs: list[zenoh.Subscriber[None]] = []
         self.order_put: float | None = None
-        self._pub = None
+        self._pub: zenoh.Publisher | None = None
 
     def open(self, timeout: float = 20.0) -> None:
         if self.config_file is not None:  # the run's operator identity (through its operator gateway)
@@ -184,6 +184,8 @@ class Tap:
 
         def on_start(sample: zenoh.Sample) -> None:
             msg = wire.decode(sample.payload.to_bytes())
+            if not isinstance(msg, wire.Start):
+                raise TypeError(f"a {type(msg).__name__} on the start key, not a Start")
             self.epoch = msg.epoch
 
         s = self.session
@@ -193,10 +195,14 @@ class Tap:
                       s.declare_subscriber(f"tether/{ns}/plant/*/state", on_sample)]
 
     def declare_order_publisher(self) -> None:
+        if self.session is None:
+            raise RuntimeError("Tap.declare_order_publisher before Tap.open")
         self._pub = tp.declare_publisher(self.session, wire.Keys(self.ns).safety, tp.SYNC)
 
-    def send_order(self, action: str) -> None:
+    def send_order(self, action: operator.Action) -> None:
         """The operator's order as :func:`deploy.operator.publish` sends it (copies spread over SPREAD)."""
+        if self._pub is None:
+            raise RuntimeError("Tap.send_order before Tap.declare_order_publisher")
         payload = wire.encode(operator.order(action, "bench/faults.py"))
         gap = operator.SPREAD / max(1, operator.REPEATS - 1)
         for n in range(operator.REPEATS):
@@ -234,8 +240,8 @@ class SavedTap:
     """What :func:`analyse` needs of a :class:`Tap`, read back from ``tap.json`` (``--reanalyse``)."""
 
     def __init__(self, data: dict[str, Any]):
-        self.epoch = data["epoch"]
-        self.order_put = data.get("order_put")
+        self.epoch: float | None = data["epoch"]
+        self.order_put: float | None = data.get("order_put")
         self._rows = data["rows"]
 
     def decoded(self) -> list[tuple[float, str, int, Any]]:
@@ -260,12 +266,12 @@ def save_tap(tap: Tap, out: Path) -> None:
 class RunResult:
     out: Path
     status: int
-    tap: Tap
+    tap: Tap | SavedTap
     stop_wall: float | None
     lines: list[tuple[float, str]] = field(default_factory=list)
 
 
-def launch(out: Path, duration: float, faults: list[str], order: tuple[str, float] | None = None,
+def launch(out: Path, duration: float, faults: list[str], order: tuple[operator.Action, float] | None = None,
            timeout: float = 180.0, tls: bool = False) -> RunResult:
     """One run. ``tls``: authenticated as ``tether run`` is by default, the tap attaching with the
     operator identity through the operator gateway; otherwise ``--insecure`` with a plain TCP tap."""
@@ -370,11 +376,11 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
     if fault is not None and fault.startswith("freeze:") and ended is not None:
         # a frozen agent or plant runs its missed ticks in a burst after SIGCONT: its own events of
         # those ticks carry tick times at which it was not running, so they are not detections
-        role, _, vid = fault.split(":", 1)[1].split("@")[0].partition("/")
+        role, _, target = fault.split(":", 1)[1].split("@")[0].partition("/")
         if role == "agent":
-            a_after = [e for e in a_after if not (e[1] == int(vid) and e[0] < ended)]
+            a_after = [e for e in a_after if not (e[1] == int(target) and e[0] < ended)]
         elif role == "plant":
-            p_after = [e for e in p_after if not (e[1] == int(vid) and e[0] < ended)]
+            p_after = [e for e in p_after if not (e[1] == int(target) and e[0] < ended)]
     both = sorted([(e[0], "a", *e[1:]) for e in a_after] + [(e[0], "p", *e[1:]) for e in p_after])
     out["detect"] = both[0][0] - f if both and fired is not None else math.nan
     actions: dict[str, list[str]] = {}
@@ -466,8 +472,8 @@ def analyse(res: RunResult, fault: str | None) -> dict[str, Any]:
             stamps = np.maximum.accumulate(np.array([s for _, s in arr])) if arr else np.array([])
             ages = np.full(T, np.nan)
             for k in range(1, k_end + 1):
-                j = np.searchsorted(walls, epoch + k * h, side="right") - 1
-                ages[k] = k * h - stamps[j] if j >= 0 else k * h
+                newest = np.searchsorted(walls, epoch + k * h, side="right") - 1
+                ages[k] = k * h - stamps[newest] if newest >= 0 else k * h
             flying = run.safety.plant_mode[:, col[v]] == wire.FLYING
             flying[k_end + 1:] = False
             flying[0] = False
@@ -556,7 +562,7 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
         action = "; ".join(f"{tag}:{'/'.join(sorted(s))}" for tag, s in sorted(acts.items())) or "none"
         forged = "—"
         if cell.startswith("forge"):
-            g = {}
+            g: dict[str, int] = {}
             for r in rs:
                 for k, v in r["gate"].items():
                     g[k] = g.get(k, 0) + v
@@ -618,7 +624,7 @@ def reanalyse(work: Path, cells: list[str] | None) -> int:
         stop = next((float(line.split(" ", 1)[0]) for line in log
                      if any(x in line for x in STOP_LINES) and "launcher:" in line), None)
         status = next((int(m.group(1)) for line in log if (m := re.search(r"exit status (\d+)", line))), -1)
-        res = RunResult(out, status, tap, stop)  # type: ignore[arg-type]
+        res = RunResult(out, status, tap, stop)
         if out.name.startswith("order-"):
             action = out.name.split("-")[1]
             lat.setdefault(action, []).append(latency(res, action))
@@ -703,7 +709,8 @@ def main(argv: list[str] | None = None) -> int:
         print(table(rows))
     if not args.no_latency:
         lat: dict[str, list[dict[str, Any]]] = {}
-        for action in ("estop", "land"):
+        orders: tuple[operator.Action, ...] = ("estop", "land")
+        for action in orders:
             for rep in range(lreps):
                 out = work / f"order-{action}-{rep}"
                 res = launch(out, 12.0, [], order=(action, args.order_at), tls=args.tls)

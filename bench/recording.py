@@ -103,7 +103,8 @@ def med(rows: list[dict[str, float]], key: str) -> float:
 
 def pairs(label: str, repeats: int, on: tuple[str, ...], off: tuple[str, ...], clock: str, duration: float,
           agents_cpu: bool = False) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
-    ons, offs = [], []
+    ons: list[dict[str, float]] = []
+    offs: list[dict[str, float]] = []
     for r in range(repeats):
         for side, extra, rows in (("on", on, ons), ("off", off, offs)) if r % 2 == 0 else \
                 (("off", off, offs), ("on", on, ons)):

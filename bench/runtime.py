@@ -59,9 +59,10 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -84,6 +85,9 @@ from tether import handoff  # noqa: E402
 from tether import runfile  # noqa: E402
 from tether import transport as tp  # noqa: E402
 from tether import wire  # noqa: E402
+
+if TYPE_CHECKING:
+    from tether.clock import ClockKind
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 PY = sys.executable
@@ -202,7 +206,7 @@ def children_of(pid: int) -> list[int]:
     return out
 
 
-def reap(proc: subprocess.Popen, timeout: float) -> None:
+def reap(proc: subprocess.Popen[str], timeout: float) -> None:
     """Wait up to ``timeout`` [s] for ``proc`` to end by itself, then kill it."""
     try:
         proc.wait(timeout=timeout)
@@ -249,7 +253,7 @@ class Proc:
         """Read the end of the window; a process already gone keeps its last sampled values."""
         cpu, rss, nth = cpu_times(self.pid), rss_kib(self.pid), threads(self.pid)
         th = thread_cpu(self.pid)
-        if None not in (cpu, rss, nth, th):
+        if cpu is not None and rss is not None and nth is not None and th is not None:
             self.cpu1, self.rss, self.threads = cpu, rss, nth
             self.th1 = {**(self.th1 or {}), **th}  # threads that ended keep their last reading
 
@@ -357,7 +361,7 @@ class Result:
     late_max: float = float("nan")
     link_age: np.ndarray | None = None
     meas_age: np.ndarray | None = None
-    probe: dict | None = None
+    probe: dict[str, Any] | None = None
     complete: str = ""
     command_s: float = float("nan")
     """The whole ``tether run`` command's wall time [s], start-up and end included."""
@@ -410,8 +414,10 @@ def _example(cls: type, m: ms.Mission, width: int) -> Any:
         if isinstance(t, msgspec.inspect.ListType):
             if isinstance(t.item_type, msgspec.inspect.FloatType):
                 values[f.name] = v
-            else:
+            elif isinstance(t.item_type, msgspec.inspect.StructType):
                 values[f.name] = [_example(t.item_type.cls, m, width)] * width
+            else:
+                raise TypeError(f"wire_sizes: no example for {cls.__name__}.{f.name} (a list of {t.item_type})")
         elif isinstance(t, msgspec.inspect.DictType):
             values[f.name] = {}
         elif isinstance(t, msgspec.inspect.FloatType):
@@ -521,7 +527,13 @@ def run_probe(endpoint: str, ns: str, rate: float, kind: str, n_agents: int, ste
         Path(out).write_text(json.dumps({"error": "the probe missed the start message"}))
         return
     got_mono, got_wall, payload = start[0]
-    epoch = wire.decode(payload).epoch if kind == "tether" else struct.unpack_from("<d", payload, 16)[0]
+    if kind == "tether":
+        msg = wire.decode(payload)
+        if not isinstance(msg, wire.Start):
+            raise TypeError(f"the probe heard a {type(msg).__name__} on the start key, not a Start")
+        epoch = msg.epoch
+    else:
+        epoch = struct.unpack_from("<d", payload, 16)[0]
     t0_ns = got_mono + (epoch - got_wall) * 1e9  # tick 0 on CLOCK_MONOTONIC, as RealtimeClock maps it
     rows = []  # role (0 plant, 1 agent), id, k, arrival - tick instant [us], arrival - send [us] (baseline)
     for arr, key, data in arrivals:
@@ -539,7 +551,7 @@ def run_probe(endpoint: str, ns: str, rate: float, kind: str, n_agents: int, ste
 PHASES = (0.25, 0.5, 0.75, 0.9)
 
 
-def probe_stats(probe: dict, rate: float) -> dict[str, Any]:
+def probe_stats(probe: dict[str, Any] | None, rate: float) -> dict[str, Any]:
     """p50/p99 [us] of: plant tick instant -> probe (one hop), agent relay of the same sample -> probe
     (two hops), their difference per sample (one hop through the agent: its callback, hand-off,
     decode and relay publish), and for the baseline put -> callback; sample counts; and, for agents
@@ -563,7 +575,7 @@ def probe_stats(probe: dict, rate: float) -> dict[str, Any]:
 
 
 def _spawn_probe(endpoint: str, ns: str, rate: float, kind: str, n: int, steps: int, out: Path,
-                 wait: bool = True) -> subprocess.Popen:
+                 wait: bool = True) -> subprocess.Popen[str]:
     """Start the probe; ``wait``: until it has subscribed (else call :func:`_probe_ready`)."""
     p = subprocess.Popen([PY, __file__, "_probe", endpoint, ns, repr(rate), kind, str(n), str(steps), str(out)],
                          env=child_env(), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
@@ -573,14 +585,16 @@ def _spawn_probe(endpoint: str, ns: str, rate: float, kind: str, n: int, steps: 
     return p
 
 
-def _probe_ready(p: subprocess.Popen) -> None:
+def _probe_ready(p: subprocess.Popen[str]) -> None:
+    if p.stdout is None:
+        raise RuntimeError("the probe was started without a pipe on its stdout")
     line = p.stdout.readline().strip()
     if line != "ready":
         raise RuntimeError(f"probe did not start (said {line!r})")
 
 
 # =========================================================================== tether runs
-def _reader(stream, q: queue.Queue) -> None:
+def _reader(stream: Iterable[str], q: queue.Queue[str | None]) -> None:
     for line in stream:
         q.put(line)
     q.put(None)
@@ -622,10 +636,11 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
         env["PYTHONPATH"] = str(tree)
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
                          cwd=tree or REPO)
-    lines: queue.Queue = queue.Queue()
+    lines: queue.Queue[str | None] = queue.Queue()
     threading.Thread(target=_reader, args=(p.stderr, lines), daemon=True).start()
     log: list[str] = []
-    timer = None
+    timer: threading.Timer | None = None
+    window: Window | None = None
     t_ran = float("nan")
     try:
         if probe_proc is not None:
@@ -662,6 +677,8 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
                 timer.start()
             mo = re.search(r"ran (\S+) s of mission time in (\S+) s of wall time", line)
             if mo:
+                if timer is None or window is None:
+                    raise RuntimeError("tether run reported its end before its processes were up: no measured window")
                 timer.join()
                 window.close(res)
                 res.mission_s, res.wall_s = float(mo[1]), float(mo[2])
@@ -729,10 +746,12 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
     t_start = time.monotonic()
     hub = subprocess.Popen([PY, BASELINE, str(spec_path), "hub", endpoint], stdout=subprocess.PIPE,
                            stdin=subprocess.DEVNULL, text=True, env=launcher_env(), start_new_session=True)
-    kids: list[tuple[subprocess.Popen, str, int]] = []
+    kids: list[tuple[subprocess.Popen[str], str, int]] = []
     probe_proc = None
     probe_out = work / f"{tag}.probe.json"
     try:
+        if hub.stdout is None:
+            raise RuntimeError("the baseline hub was started without a pipe on its stdout")
         if hub.stdout.readline().strip() != "listening":
             raise RuntimeError("baseline hub did not start")
         if probe:
@@ -745,7 +764,7 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
         if probe_proc is not None:
             res.procs.append(Proc(probe_proc.pid, "probe", 0))
         window = Window(res.procs)
-        lines: queue.Queue = queue.Queue()
+        lines: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=_reader, args=(hub.stdout, lines), daemon=True).start()
         deadline = time.monotonic() + 120 + 3 * duration
         while True:
@@ -822,9 +841,9 @@ def med(xs: list[float]) -> float:
     return statistics.median(xs) if xs else float("nan")
 
 
-def pct(xs, q: float) -> float:
-    xs = np.asarray(xs, dtype=float)
-    return float(np.percentile(xs, q)) if xs.size else float("nan")
+def pct(xs: Sequence[float] | np.ndarray, q: float) -> float:
+    arr = np.asarray(xs, dtype=float)
+    return float(np.percentile(arr, q)) if arr.size else float("nan")
 
 
 def ratio(a: float, b: float) -> float:
@@ -935,6 +954,7 @@ def case_lockstep(a: argparse.Namespace, work: Path, report: dict) -> None:
         def speed(res: Result | None) -> float:
             return res.speed if res is not None and res.ok else float("nan")
 
+        row: dict[str, Any]  # a JSON record of mixed values, as _quiet and _med_dict take it
         row = {"tether": speed(rt), "baseline": speed(rb), "colocated": speed(rc), "batched": speed(rcb),
                "refsim": ref, "tether_cpu": _per_tick(rt, ticks), "baseline_cpu": _per_tick(rb, ticks),
                "colocated_cpu_us": _per_tick(rc, ticks)["total_us"] if rc is not None else float("nan"),
@@ -1141,7 +1161,7 @@ def case_scale(a: argparse.Namespace, work: Path, report: dict, pairs: list) -> 
     say(f"\n== 2. real-time scale: ring missions, 3D, {a.scale_rate:g} Hz, {a.rt_duration:g} s per run, "
         f"{a.scale_repeats} run(s) per N; on time = under 1 % of agent ticks late (started > 1 period late, median")
     say("   over the quiet runs) and every run went to its end (exit 0, or 5: samples lost on the way); holds = on time")
-    say("   and every run ended clean (exit 0). CPU = sum over every process (launcher/router included)"),
+    say("   and every run ended clean (exit 0). CPU = sum over every process (launcher/router included)")
     say("   over the mission window [% of one core]; recorded = samples the recorder got of those sent;")
     say("   other = other users' CPU during the run (tether / baseline)")
     if a.scale_shared:
@@ -1361,7 +1381,11 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     law = AgentLaw.from_mission(m, m.agent_ids[0])
     nb = np.zeros((len(law.neighbours), d))
     kp, kv = np.array(law.params.kp0), np.array(law.params.kv0)
-    rows["AgentLaw.step (numpy, d = 3)"] = us(lambda: law.step(p0, p0, nb, nb, nb, kp, kv))
+    # AgentLaw.step takes numpy arrays as well as lists (its docstring), but is annotated for lists
+    # (tether.vec.Vec): the arrays this figure times, cast outside the timed call (the same objects)
+    p0_s, kp_s, kv_s = cast(Sequence[float], p0), cast(Sequence[float], kp), cast(Sequence[float], kv)
+    nb_s = cast(Sequence[Sequence[float]], nb)
+    rows["AgentLaw.step (numpy, d = 3)"] = us(lambda: law.step(p0_s, p0_s, nb_s, nb_s, nb_s, kp_s, kv_s))
     rows["isfinite over a 3-vector: generator / map"] = us(lambda: all(math.isfinite(x) for x in vec))
     rows["  ... all(map(math.isfinite, v))"] = us(lambda: all(map(math.isfinite, vec)))
 
@@ -1393,7 +1417,7 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     report["python_us"] = rows
 
 
-def profile_run(mission: str, clock: str, duration: float, who: str, work: Path, top: int = 25,
+def profile_run(mission: str, clock: ClockKind, duration: float, who: str, work: Path, top: int = 25,
                 colocate: str | None = None) -> None:
     """Run ``tether run`` (launcher in this process) with one child under cProfile and print where its
     time goes. ``who`` is ``role:id`` (``agent:1``, ``recorder:0``, ...). The child is started by the
@@ -1404,6 +1428,7 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
     import asyncio
     import cProfile  # noqa: F401  (the child runs it)
     import pstats
+    from unittest import mock
 
     from deploy import local
     from tether.node import load_mission
@@ -1415,7 +1440,7 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
     out.mkdir(parents=True, exist_ok=True)
     real_popen = subprocess.Popen
 
-    def popen(cmd, *args, **kwargs):
+    def popen(cmd: list[str], *args: Any, **kwargs: Any) -> subprocess.Popen[Any]:
         if "cli" in cmd and cmd[cmd.index("cli") + 1] == role and \
                 (role in ("leader", "recorder") or cmd[cmd.index("--id") + 1] == nid):
             i = cmd.index("-m")
@@ -1426,11 +1451,8 @@ def profile_run(mission: str, clock: str, duration: float, who: str, work: Path,
     window, batch = (int(x) for x in colocate.split(":")) if colocate else (local.WINDOW, None)
     opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False, window=window,
                                colocate_plants=colocate is not None, record_batch=batch)
-    local.subprocess.Popen = popen
-    try:
+    with mock.patch.object(local.subprocess, "Popen", popen):  # restored when the run ends, however it ends
         status = asyncio.run(local.run(path, opts))
-    finally:
-        local.subprocess.Popen = real_popen
     say(f"tether run {mission} --clock {clock} --duration {duration:g}: exit {status}; profile of {role}/{nid}: {prof}")
     if prof.exists():
         st = pstats.Stats(str(prof))

@@ -79,10 +79,12 @@ def main() -> None:
         for _ in range(nb):
             gate.check(msgs[k % 256])
 
-    near = [(p + np.array([0.5] + [0.0] * (d - 1)), -v)]
+    # on lists, as the agent runs it (agent/node.py passes the samples' lists)
+    near = [([c + o for c, o in zip(pl, [0.5] + [0.0] * (d - 1))], [-c for c in vl])]
+    one = [1.0] * d
 
     def avoid(k: int) -> None:
-        filter_command(np.ones(d), p, v, near, 0.3, 2.0, 1.0, 2.0)
+        filter_command(one, pl, vl, near, 0.3, 2.0, 1.0, 2.0)
 
     for n in range(nb):
         for j in range(500):

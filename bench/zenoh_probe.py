@@ -74,12 +74,10 @@ async def run_sub(settings: tp.ZenohSettings, callback: str, seconds: float) -> 
         else:
             import zenoh
 
-            sub = session.declare_subscriber(
-                KEY,
-                zenoh.handlers.Callback(
-                    lambda s: stamp.put(tp.Received(str(s.key_expr), s.payload.to_bytes())), indirect=False
-                ),
-            )
+            def on_sample(s: zenoh.Sample) -> None:
+                stamp.put(tp.Received(str(s.key_expr), s.payload.to_bytes()))
+
+            sub = session.declare_subscriber(KEY, zenoh.handlers.Callback(on_sample, indirect=False))
         print("ready", flush=True)
         cpu0 = wall0 = None
         n_expected = None
