@@ -3,6 +3,7 @@ revision, alternating, every pair in one sitting.
 
     .venv/bin/python bench/ab.py --base HEAD~1                          # section4, lockstep, 100 s, 5 pairs
     .venv/bin/python bench/ab.py --base 4c4340b~1 --pairs 7 --duration 200 -- --network star
+    .venv/bin/python bench/ab.py --base HEAD --mixed --clock realtime --mission RING.toml --duration 30
 
 This tree, with whatever it has not committed, is *new* (or ``--new REV``, to measure a past change
 against its parent); ``--base`` is checked out into a temporary git worktree, removed at the end.
@@ -18,12 +19,18 @@ s), CPU per tick of all processes, of the median process of each role and of its
 thread, and the CPU other users took meanwhile. The pairs alternate which side runs first, and each
 run waits for the machine to be quiet. Printed: every run, then each figure's median per side, new /
 base, and in how many pairs new did better. Only figures of one sitting compare: machines differ.
+
+``--mixed`` compares the vehicles' processes (agent and plant) within one swarm instead: half of them
+from each checkout in every run, swapped from run to run (:func:`mixed`). Two runs one after the other
+differ by more than a change of a few per cent (an agent's CPU per tick drifted by a quarter within
+one sitting of 6 pairs); two halves of one run see the same machine at every instant.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -78,6 +85,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--insecure", action="store_true", help="both runs with tether run --insecure")
     ap.add_argument("--mcap", action="store_true", help="both runs write run.mcap (default: --no-mcap)")
     ap.add_argument("--json", type=Path, help="also write every run's figures here")
+    ap.add_argument("--mixed", action="store_true",
+                    help="one swarm per run, half its vehicles (agent and plant) from each checkout, swapped from "
+                         "run to run: the two sides share every moment of the machine (--pairs runs)")
     a = ap.parse_args(argv)
     if a.pairs < 1 or not a.duration > 0:
         ap.error("--pairs must be at least 1 and --duration positive")
@@ -90,6 +100,8 @@ def main(argv: list[str] | None = None) -> None:
     except Exception as exc:  # noqa: BLE001 - said as the CLI says it, before anything runs
         ap.error(f"--mission {a.mission}: {exc}")
     ticks = m.steps + 1
+    if a.mixed and (m.n < 2 or any(x.startswith("--wrap") for x in extra)):
+        ap.error("--mixed: needs a mission of at least two agents, and takes no --wrap of its own")
     with tempfile.TemporaryDirectory(prefix="tether-ab-") as tmp:
         work = Path(tmp)
         with worktree.checked_out(a.base, work / "base") as base, worktree.checked_out(a.new, work / "new") as new:
@@ -100,6 +112,12 @@ def main(argv: list[str] | None = None) -> None:
                    f"{', with what it has not committed' if a.new is None else ''}); base: {a.base} "
                    f"({worktree.short(base)}); "
                    f"tether run options: {' '.join(extra) or '(none)'}")
+            if a.mixed:
+                mixed_runs = mixed(a, path, m, extra, base, new, work)
+                if a.json:
+                    a.json.write_text(json.dumps({"base": a.base, "mission": a.mission, "duration": a.duration,
+                                                  "clock": a.clock, "extra": extra, "mixed": mixed_runs}, indent=1))
+                return
             runs: dict[str, list[dict[str, float]]] = {"base": [], "new": []}
             for i in range(a.pairs):
                 order = ("base", "new") if i % 2 == 0 else ("new", "base")
@@ -126,6 +144,61 @@ def main(argv: list[str] | None = None) -> None:
     if a.json:
         a.json.write_text(json.dumps({"base": a.base, "mission": a.mission, "duration": a.duration,
                                       "clock": a.clock, "extra": extra, "runs": runs}, indent=1))
+
+
+MIXED_FIGURES = (("agent", "us"), ("agent", "main"), ("agent", "callback"), ("agent", "zenoh"), ("plant", "us"),
+                 ("plant", "main"))
+"""(role, what) compared by ``--mixed``: a process's CPU [us per tick], or its threads' of that kind."""
+
+
+def mixed(a: argparse.Namespace, path: Path, m: Any, extra: list[str], base: Path, new: Path,
+          work: Path) -> list[dict[str, Any]]:
+    """``--mixed``: ``a.pairs`` runs of one swarm each, its vehicles alternately from either checkout
+    (``--wrap ID='env -C TREE'``: the agent and the plant of a vehicle start in that checkout and
+    import it; the launcher, leader and recorder from the new one), every other run the other way
+    round, so that a vehicle's place in the graph cancels out. Both sides see the same machine at
+    every instant: what separates two sequential runs (other users, the machine's state drifting
+    from minute to minute) is common to both. Per run and side: the median vehicle's CPU per tick.
+    Printed: each run, then per figure the median over runs of new / base and in how many runs new
+    did better."""
+    ids = sorted(x.id for x in m.agents)
+    ticks = m.steps + 1
+    out: list[dict[str, Any]] = []
+    for r in range(a.pairs):
+        side = {nid: ("base", "new")[(n + r) % 2] for n, nid in enumerate(ids)}
+        wrap = [f"--wrap={nid}=env -C {shlex.quote(str(base if s == 'base' else new))}" for nid, s in side.items()]
+        rt.settle()
+        res = rt.run_tether(path, m, a.clock, a.duration, work, tree=new, extra=(*extra, *wrap),
+                            secure=not a.insecure, mcap=a.mcap)
+        if res.cwds != {str(base), str(new)}:
+            raise SystemExit(f"bench/ab.py --mixed: the run's processes ran in {sorted(res.cwds)}, not in both "
+                             f"checkouts: the comparison would not be of the two trees")
+        if not res.ran_to_end:
+            raise SystemExit(f"bench/ab.py --mixed: run {r + 1} failed: {res.why}")
+        f = 1e6 / ticks  # CPU seconds over the window -> us per tick (as bench/runtime.py's _per_tick)
+        row: dict[str, Any] = {"foreign_pct": res.foreign_pct}
+        for s_ in ("base", "new"):
+            for ro, what in MIXED_FIGURES:
+                procs = [p for p in res.procs if p.role == ro and side.get(p.nid) == s_]
+                vals = [p.cpu if what == "us" else p.by_thread()[what] for p in procs]
+                row[f"{s_}:{ro}_{what}"] = rt.med(vals) * f if vals else float("nan")
+        out.append(row)
+        rt.say(f"   run {r + 1} (base: {' '.join(str(n) for n, s_ in side.items() if s_ == 'base')})  agent "
+               f"{row['base:agent_us']:6.0f} -> {row['new:agent_us']:6.0f} us (main {row['base:agent_main']:5.0f} -> "
+               f"{row['new:agent_main']:5.0f})  plant {row['base:plant_us']:6.0f} -> {row['new:plant_us']:6.0f} us  "
+               f"other users {res.foreign_pct:3.0f} %" + (" NOISY" if res.foreign_pct >= rt.NOISY else ""))
+    rt.say(f"   over {len(out)} runs, per tick of the window's CPU per vehicle process (median vehicle of each side)")
+    rt.say(f"   {'figure':32} {'base':>9} {'new':>9} {'new/base (median of runs)':>27}  new better in")
+    for ro, what in MIXED_FIGURES:
+        key = f"{ro}_{what}"
+        pairs = [(x[f"base:{key}"], x[f"new:{key}"]) for x in out]
+        pairs = [(b, n) for b, n in pairs if b == b and n == n]
+        if not pairs:
+            continue
+        label = f"{ro}, {'process' if what == 'us' else what + ' thread(s)'} [us]"
+        rt.say(f"   {label:32} {rt.med([b for b, _ in pairs]):>9.1f} {rt.med([n for _, n in pairs]):>9.1f} "
+               f"{rt.med([n / b for b, n in pairs]):>27.3f}  {sum(1 for b, n in pairs if n < b)} of {len(pairs)}")
+    return out
 
 
 def report(runs: dict[str, list[dict[str, Any]]]) -> None:
