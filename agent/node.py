@@ -187,7 +187,8 @@ async def run(node: Node) -> None:
             publish_state(own)
             got = await node.aligned([*nbrs, *proximity], k)
         else:
-            own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
+            # real time: node.tick has just drained
+            own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k, drain=lockstep)
             if k == first and relay_rt is not None:  # real time, the first tick
                 if own is None and await _first_sample(node, plant):
                     own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)

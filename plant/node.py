@@ -136,11 +136,10 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         t = k * h
         if k > first:
             u, modes = [], []
-            for aid, src, dog in zip(ids, cmds, dogs):
-                msg = await node.sample(src, k - 1)
+            for r, (aid, src, dog) in enumerate(zip(ids, cmds, dogs)):
+                msg = await node.sample(src, k - 1, drain=r == 0)  # one drain for every vehicle's command
                 if msg is not None:
                     dog.offer(msg.u, msg.t, msg.k, k, msg.mode)
-                r = ids.index(aid)
                 d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
                 for ev in d.events:
                     log.warning("vehicle %d: %s", aid, ev)

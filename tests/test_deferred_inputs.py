@@ -136,6 +136,29 @@ async def test_lockstep_ignores_both_every_sample_wakes_the_loop() -> None:
         pub.undeclare()
 
 
+async def test_aligned_without_a_drain_reads_what_was_drained_and_lockstep_still_gets_its_tick() -> None:
+    """``aligned(drain=False)`` (a caller that has just drained: a world reading its vehicles'
+    commands one by one, an agent right after its real-time tick): real time, a sample still queued
+    waits for the next drain; lockstep, a missing sample is still waited for (the wait drains)."""
+    clock = RealtimeClock(H)
+    async with live("agent", clock) as (node, _):
+        clock.begin(time.time())
+        key = node.keys.topic("agent", 1, "state")
+        src = node.source(key, wire.State, 1, subscribe=False)
+        queue: handoff.InputQueue[tp.Received] = handoff.InputQueue(8, None)
+        node.inputs[key] = queue
+        queue.put(tp.Received(key, state(1, 0, H), time.monotonic()))
+        assert await node.aligned([src], 0, drain=False) == [None] and len(queue) == 1  # not drained
+        got = await node.aligned([src], 0)
+        assert got[0] is not None and got[0].k == 0 and len(queue) == 0
+    async with live("agent", LockstepClock()) as (node, _):
+        key = node.keys.topic("agent", 1, "state")
+        src = node.source(key, wire.State, 1, subscribe=False)
+        node.fifo.put(tp.Received(key, state(1, 0, H)))
+        got = await node.sample(src, 0, drain=False)  # not held yet: the wait for it drains
+        assert got.k == 0 and len(node.fifo) == 0
+
+
 async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest() -> None:
     """More samples within a period than the deferred queue holds: the oldest are dropped and
     counted as ``overflow`` (what the recorder writes into its run file's drop counts), the newest

@@ -609,21 +609,29 @@ class Node:
             if timer is not None:
                 timer.cancel()
 
-    async def sample(self, src: Source, k: int) -> Any:
-        """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None)."""
-        return (await self.aligned([src], k))[0]
+    async def sample(self, src: Source, k: int, drain: bool = True) -> Any:
+        """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None).
+        ``drain``: as :meth:`aligned`'s."""
+        return (await self.aligned([src], k, drain=drain))[0]
 
-    async def aligned(self, sources: list[Source], k: int, max_lag: int = 8) -> list[Any]:
+    async def aligned(self, sources: list[Source], k: int, max_lag: int = 8, drain: bool = True) -> list[Any]:
         """One sample per source, all of the same tick where possible.
 
         Lockstep: the samples of tick ``k`` (waits for each). Real time: among the sources whose
         newest sample is at most ``max_lag`` ticks old, the newest tick ``c <= k`` that all of them
         hold, so that a tick never mixes, say, an own measurement of k-1 with neighbours' of k
         (which would show as a spurious formation error of about one period of motion); a source
-        older than that (silent, or not started) gives its newest sample, or None."""
+        older than that (silent, or not started) gives its newest sample, or None.
+
+        ``drain=False``: the caller has just drained (a previous call at this tick; real time:
+        :meth:`tick`, as it returns); what arrived since is taken at the next drain, or (lockstep)
+        by the wait for a missing sample, which drains first. A world process reading its
+        vehicles' commands one by one drained every input key once per vehicle: N² queue checks
+        per tick."""
         if self.clock.lockstep:
             out = []
-            self.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
+            if drain:
+                self.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
             for src in sources:
                 if src.channel is None:
                     if k not in src.by_tick:
@@ -642,7 +650,8 @@ class Node:
                 out.append(src.by_tick[max(held)] if held else None)
                 src.forget_before(max(held) if held else 0)
             return out
-        self.drain()
+        if drain:
+            self.drain()
         newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
         # align the on-board and ideal inputs; an emulated link's delay is what is being studied,
         # so its input is the newest it has delivered
@@ -659,7 +668,8 @@ class Node:
         return out
 
     async def tick(self, k: int) -> float:
-        """Wait until tick ``k`` may run (draining inputs meanwhile); returns its lateness [s]."""
+        """Wait until tick ``k`` may run (draining inputs meanwhile; in real time once more as it
+        returns); returns its lateness [s]."""
         clock = self.clock
         if isinstance(clock, LockstepClock):
             if self._paced:
