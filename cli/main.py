@@ -362,7 +362,7 @@ def _node_args(args: argparse.Namespace, role: str, node_id: int) -> NodeArgs:
                     zenoh=settings, ns=args.ns, stall_timeout=args.stall_timeout, parent_pid=args.parent_pid,
                     duration=args.duration, start_timeout=args.start_timeout,
                     colocate=getattr(args, "colocate_plant", False), record_batch=getattr(args, "record_batch", 1),
-                    mesh_peers=getattr(args, "mesh_peers", 0))
+                    mesh_peers=getattr(args, "mesh_peers", 0), window=getattr(args, "window", 0))
 
 
 def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[Node], Awaitable[None]],
@@ -650,6 +650,10 @@ def _process_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock", choices=["lockstep", "realtime"], default="realtime")
     p.add_argument("--ns", default=None, help="key namespace (default: the mission name)")
     p.add_argument("--stall-timeout", type=_positive_seconds, default=30.0, help="lockstep: fail after waiting this long [s]")
+    p.add_argument("--window", type=_int_at_least(0), default=0, metavar="TICKS",
+                   help="lockstep: the clock's window (tether run's --window); the process keeps its last TICKS + 1 "
+                        "messages of each stream, to send again when a tick has waited for its inputs for a while "
+                        "(0: keeps none)")
     p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is gone")
     p.add_argument("--start-timeout", type=_positive_seconds, default=None,
                    help="fail (exit 1) when the start message has not come this long after the process is "

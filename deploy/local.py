@@ -312,6 +312,8 @@ class Launch:
                    "--lease", str(o.lease), "--log-level", o.log_level]
             if o.duration is not None:
                 cmd += ["--duration", repr(o.duration)]
+            if o.clock == "lockstep":  # what each stream keeps to send again after a stall (tether/node.py RESEND)
+                cmd += ["--window", str(window(o))]
             if o.rt_priority is not None:  # the recorder is no control loop: normal policy (it writes the run at the end)
                 cmd += ["--rt-priority", str(0 if role == "recorder" else o.rt_priority)]
             if role in ("agent", "plant"):

@@ -16,6 +16,7 @@ import asyncio
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from typing import Any
 
 import pytest
 import zenoh
@@ -45,12 +46,14 @@ async def until(ready: Callable[[], bool], what: str) -> None:
 
 
 @asynccontextmanager
-async def live(role: str, clock: RealtimeClock | LockstepClock) -> AsyncIterator[tuple[nd.Node, zenoh.Session]]:
+async def live(role: str, clock: RealtimeClock | LockstepClock,
+               **more: Any) -> AsyncIterator[tuple[nd.Node, zenoh.Session]]:
     """A node of ``role`` on Section 4 around a router session on a fresh loopback port, and a client
-    session connected to it (what the test publishes from); the node is closed at the end."""
+    session connected to it (what the test publishes from); the node is closed at the end. ``more``:
+    other :class:`~tether.node.NodeArgs` fields."""
     endpoint = tp.loopback_endpoint(tp.free_tcp_port())
     args = nd.NodeArgs(mission_path=builtin_path("section4"), role=role, node_id=0, clock=clock.kind,
-                       zenoh=tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0))
+                       zenoh=tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0), **more)
     client = tp.ZenohSettings(mode="client", connect=(endpoint,), scouting_delay=0.0)
     async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
         node = nd.Node(args, nd.load_mission(args.mission_path), session, clock)
@@ -157,6 +160,43 @@ async def test_aligned_without_a_drain_reads_what_was_drained_and_lockstep_still
         node.fifo.put(tp.Received(key, state(1, 0, H)))
         got = await node.sample(src, 0, drain=False)  # not held yet: the wait for it drains
         assert got.k == 0 and len(node.fifo) == 0
+
+
+async def test_a_lockstep_tick_that_waits_sends_its_streams_kept_messages_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A peer of a mesh can miss a stream's first samples for good (put before its subscription
+    reached the publisher): a lockstep run stalled at tick 0. Here the subscriber comes after three
+    samples were put, and answers only once it has tick 0; the node's tick waits for that answer and,
+    after RESEND, sends its kept messages again (the last ``window + 1``), so both go on. A wait for
+    anything else (the end's linger) sends nothing."""
+    monkeypatch.setattr(nd, "RESEND", 0.2)
+    async with live("agent", LockstepClock(), window=4, stall_timeout=6.0) as (node, other):
+        keys = node.keys
+        mine, theirs = keys.topic("agent", 1, "state"), keys.topic("agent", 2, "state")
+        pub = node.publisher(mine, sender=1)
+        src = node.source(theirs, wire.State, 2)
+        for k in range(3):  # nobody subscribes yet: these go nowhere
+            pub.send(wire.State, k, k * H, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0])
+        heard: list[int] = []
+        sub = other.declare_subscriber(mine, lambda s: heard.append(wire.decode(s.payload.to_bytes()).k))
+        answer = tp.declare_publisher(other, theirs, tp.SYNC)
+
+        async def answer_once_tick_0_is_heard() -> None:
+            await until(lambda: 0 in heard, "tick 0 sent again")
+            answer.put(state(2, 0, H))
+
+        task = asyncio.create_task(answer_once_tick_0_is_heard())
+        got = await node.sample(src, 0)
+        await task
+        assert got.k == 0 and node.resent >= 3 and sorted(set(heard)) == [0, 1, 2]
+        for k in range(3, 10):  # more than the window: only the last window + 1 are kept
+            pub.send(wire.State, k, k * H, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0])
+        assert pub.kept is not None and len(pub.kept) == 5 and node.resend("a test") == 5
+        before = node.resent
+        with pytest.raises(nd.Stalled):
+            await node.until(lambda: False, 0.5, "nothing")  # no resend unless asked
+        assert node.resent == before
+        sub.undeclare()
+        answer.undeclare()
 
 
 async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest() -> None:

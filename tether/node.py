@@ -16,6 +16,7 @@ drop-oldest, counted); decoding and checks run on the event loop (:class:`~tethe
 from __future__ import annotations
 
 import asyncio
+import collections
 import errno
 import logging
 import math
@@ -61,6 +62,10 @@ incomplete run. Lockstep waits for the launcher's word instead (:meth:`Node.ling
 at once, an agent's second-to-last record (plants co-located, records of 8 ticks) never reached the
 recorder although its last did, and the recorder stalled for 30 s and failed the run (4 of 8 runs
 of Section 4 beside three CPU-bound processes)."""
+
+RESEND = 2.0
+"""Lockstep: a tick that has waited this long for its inputs (at most a third of ``--stall-timeout``)
+makes the process send its streams' kept messages again (:meth:`Node.resend`)."""
 
 
 MESH_POLL = 0.02
@@ -133,6 +138,9 @@ class NodeArgs:
     mesh_peers: int = 0
     """A peer of a mesh: the token is declared once the session is linked to this many other peers
     (:meth:`Node.ready`); 0: at once."""
+    window: int = 0
+    """Lockstep: the clock's window (``tether run --window``). Each stream keeps its last ``window +
+    1`` messages, to send them again when a tick has waited :data:`RESEND` for its inputs (0: none kept)."""
 
 
 class _Tapped:
@@ -157,22 +165,40 @@ class _Tapped:
 
 
 class Publisher:
-    """A publisher that stamps sender, sequence number, tick and sample time on every message."""
+    """A publisher that stamps sender, sequence number, tick and sample time on every message.
 
-    def __init__(self, pub: zenoh.Publisher, sender: int):
+    ``keep`` (lockstep): the payloads of its last ``keep`` messages, which :meth:`resend` puts again
+    (:meth:`Node.until`, after :data:`RESEND` of waiting)."""
+
+    def __init__(self, pub: zenoh.Publisher, sender: int, keep: int = 0):
         self._pub = pub
         self._sender = sender
         self.seq = 0
+        self.kept: collections.deque[bytes] | None = collections.deque(maxlen=keep) if keep else None
 
     def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
         msg = cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields)
         self.seq += 1
-        self._pub.put(wire.encode(msg))
+        payload = wire.encode(msg)
+        self._pub.put(payload)
+        if self.kept is not None:
+            self.kept.append(payload)
 
     def put(self, msg: wire.Message) -> None:
         """Publish a message built by the caller (its sender and sequence number are the caller's)."""
         self.seq += 1
-        self._pub.put(wire.encode(msg))
+        payload = wire.encode(msg)
+        self._pub.put(payload)
+        if self.kept is not None:
+            self.kept.append(payload)
+
+    def resend(self) -> int:
+        """Put the kept messages again, oldest first (the same bytes: a receiver that has one keeps
+        the first copy and counts the other as a duplicate). Returns how many."""
+        kept = list(self.kept or ())
+        for payload in kept:
+            self._pub.put(payload)
+        return len(kept)
 
 
 class Node:
@@ -217,6 +243,10 @@ class Node:
         self._linked: list[Source] = []
         """The sources behind an emulated link (:meth:`release` looks at these only, every drain)."""
         self._declared: list[Any] = []
+        self._kept: list[Publisher] = []
+        """Lockstep publishers that keep their last messages (:meth:`resend`)."""
+        self.resent = 0
+        """Messages sent again so far (:meth:`resend`)."""
         self._token: Any = None
         self.clock = clock
         self._start: Source | None = None
@@ -256,7 +286,11 @@ class Node:
             qos = tp.SYNC
         pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
         self._declared.append(pub)
-        return Publisher(pub, self.args.node_id if sender is None else sender)
+        out = Publisher(pub, self.args.node_id if sender is None else sender,
+                        keep=self.args.window + 1 if self.clock.lockstep and self.args.window else 0)
+        if out.kept is not None:
+            self._kept.append(out)
+        return out
 
     def subscribe(self, pattern: str, wake: bool = True) -> None:
         """One subscription (one callback thread) for many inputs: samples on keys matching
@@ -584,30 +618,62 @@ class Node:
         times = [t for s in self._linked if s.channel is not None and (t := s.channel.next_at) is not None]
         return min(times) if times else None
 
-    async def until(self, ready: Callable[[], bool], timeout: float | None, what: str | Callable[[], str]) -> None:
+    async def until(self, ready: Callable[[], bool], timeout: float | None, what: str | Callable[[], str],
+                    resend: bool = False) -> None:
         """Wait (draining inputs) until ``ready()``; :class:`Stalled` naming ``what`` after ``timeout``
-        (a callable: asked then, so that it can say what is still missing at that moment)."""
+        (a callable: asked then, so that it can say what is still missing at that moment).
+
+        ``resend`` (a lockstep tick's wait): every :data:`RESEND` of waiting (a third of ``timeout``
+        at most), the process's streams send their kept messages again (:meth:`resend`)."""
         self.drain()
         if ready():  # the common case in lockstep (a grant window ahead, a sample already in): no timer
             return
         # the bound is one timer that wakes this wait (``asyncio.timeout`` around it cost a waiting
-        # agent about 8 us more of its loop's CPU a wait: a wait nearly every lockstep tick)
-        expired = [False]
+        # agent about 8 us more of its loop's CPU a wait: a wait nearly every lockstep tick); with
+        # ``resend`` it first rings at each resend instant, then at the deadline
+        loop = asyncio.get_running_loop()
+        deadline = math.inf if timeout is None else loop.time() + timeout
+        step = min(RESEND, timeout / 3) if timeout is not None else RESEND
+        step = step if resend and self._kept else math.inf
+        rang = [False]
 
         def alarm() -> None:
-            expired[0] = True
+            rang[0] = True
             self.wakeup.notify_here()
 
-        timer = None if timeout is None else asyncio.get_running_loop().call_later(timeout, alarm)
+        def arm() -> asyncio.TimerHandle | None:
+            at = min(deadline, loop.time() + step)
+            return None if at == math.inf else loop.call_at(at, alarm)
+
+        timer = arm()
         try:
             while not ready():
-                if expired[0]:
-                    raise Stalled(f"waited {timeout:g} s for {what if isinstance(what, str) else what()}")
+                if rang[0]:
+                    rang[0] = False
+                    if timer is not None and timer.when() >= deadline:
+                        raise Stalled(f"waited {timeout:g} s for {what if isinstance(what, str) else what()}")
+                    self.resend(what if isinstance(what, str) else what())
+                    timer = arm()
                 await self.wakeup.wait(None)
                 self.drain()
         finally:
             if timer is not None:
                 timer.cancel()
+
+    def resend(self, waiting_for: str) -> int:
+        """Lockstep: put every stream's kept messages (its last ``window + 1``) again, after a tick has
+        waited :data:`RESEND` for ``waiting_for``. A peer of a mesh can miss a stream's first samples
+        for good: the run starts once every peer is linked to every other and its token is in, but a
+        peer's subscriptions reach each other peer over their own link, and a sample put before they
+        arrive goes nowhere (a lockstep run stalled at tick 0, an agent waiting for its in-neighbour's
+        state of tick 0 while that neighbour waited further on). Sent again, the sample reaches the
+        peer that waits for it; a receiver that has it keeps the first copy and counts the other
+        (``duplicates``, a record's ``stale_record``). Returns the number of messages sent again."""
+        n = sum(pub.resend() for pub in self._kept)
+        self.resent += n
+        log.warning("waited %.0f s for %s: sent the last %d messages of my %d streams again (%d so far)",
+                    RESEND, waiting_for, n, len(self._kept), self.resent)
+        return n
 
     async def sample(self, src: Source, k: int, drain: bool = True) -> Any:
         """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None).
@@ -636,7 +702,7 @@ class Node:
                 if src.channel is None:
                     if k not in src.by_tick:
                         await self.until(lambda: k in src.by_tick, self.args.stall_timeout,
-                                         f"tick {k} on {src.key}")
+                                         f"tick {k} on {src.key}", resend=True)
                     out.append(src.by_tick[k])
                     src.forget_before(k)
                     continue
@@ -644,7 +710,7 @@ class Node:
                 # link has delivered by t_k is known; use the newest of it (possibly older, or none)
                 if src.raw_k < k:
                     await self.until(lambda: src.raw_k >= k, self.args.stall_timeout,
-                                     f"tick {k} sent on {src.key}")
+                                     f"tick {k} sent on {src.key}", resend=True)
                 self.release(k * self.mission.dt, only=src)
                 held = [t for t in src.by_tick if t <= k]
                 out.append(src.by_tick[max(held)] if held else None)
@@ -674,7 +740,7 @@ class Node:
         if isinstance(clock, LockstepClock):
             if self._paced:
                 await self.until(lambda: clock.granted >= k, self.args.stall_timeout,
-                                 f"the clock's grant of tick {k}")
+                                 f"the clock's grant of tick {k}", resend=True)
             return 0.0
         late = await self.clock.wait_for(k)
         self.drain()
