@@ -199,6 +199,26 @@ async def test_a_lockstep_tick_that_waits_sends_its_streams_kept_messages_again(
         answer.undeclare()
 
 
+async def test_a_copy_sent_again_does_not_enter_an_emulated_link_twice() -> None:
+    """Lockstep, an input through an emulated link (``[netem]``): a copy of a tick the link has had
+    (a resend after a stall) is counted as ``resent`` and not offered again, which would draw the
+    link's random decisions anew and change the run."""
+    from msgspec.structs import replace
+
+    from netem.link import Channel
+    from tether.netprofile import Bernoulli, LinkProfile, Network
+
+    async with live("agent", LockstepClock()) as (node, _):
+        m = replace(node.mission, netem=Network(default=LinkProfile(loss=Bernoulli(p=0.3))))
+        channel = Channel.of(m, 2, 1)
+        key = node.keys.topic("agent", 2, "state")
+        node.source(key, wire.State, 2, channel=channel, subscribe=False)
+        for k in (0, 1, 1, 0, 2):  # ticks 1 and 0 again: copies sent again
+            node.fifo.put(tp.Received(key, state(2, k, H)))
+        node.drain()
+        assert channel.link.counts["offered"] == 3 and node.receiver.drops == {"resent": 2}
+
+
 async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest() -> None:
     """More samples within a period than the deferred queue holds: the oldest are dropped and
     counted as ``overflow`` (what the recorder writes into its run file's drop counts), the newest

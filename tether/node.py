@@ -556,6 +556,11 @@ class Node:
             finally:
                 self._arrival = math.nan
             return
+        if not realtime and msg.k <= src.raw_k:
+            # lockstep: a copy sent again after a stall (resend) of a tick the emulated link has had;
+            # offered again, it would draw the link's random decisions anew and change the run
+            self.receiver.count("resent")
+            return
         src.raw_k = max(src.raw_k, msg.k)
         src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
 

@@ -385,7 +385,9 @@ class Receiver:
     version), ``type`` (a message of the wrong type for the key), ``sender`` (sender id differs
     from the key's), ``size`` (a vector of the wrong dimension), ``nonfinite`` (NaN/Inf where a
     number must be finite), ``record`` (a :class:`Record` whose items are not one of each stream
-    per tick for consecutive ticks ending at its ``k``).
+    per tick for consecutive ticks ending at its ``k``). Counted by others through :meth:`count`:
+    ``overflow``, ``corrupt``, ``resent`` (lockstep: a copy sent again after a stall, of a tick the
+    emulated link already had: :meth:`tether.node.Node.resend`).
     """
 
     dim: int
