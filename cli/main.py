@@ -651,8 +651,8 @@ def _process_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ns", default=None, help="key namespace (default: the mission name)")
     p.add_argument("--stall-timeout", type=_positive_seconds, default=30.0, help="lockstep: fail after waiting this long [s]")
     p.add_argument("--window", type=_int_at_least(0), default=0, metavar="TICKS",
-                   help="lockstep: the clock's window (tether run's --window); the process keeps its last TICKS + 1 "
-                        "messages of each stream, to send again when a tick has waited for its inputs for a while "
+                   help="lockstep: the clock's window (tether run's --window); the process keeps each stream's messages "
+                        "of its last TICKS + 1 ticks, to send again when a tick has waited for its inputs for a while "
                         "(0: keeps none)")
     p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is gone")
     p.add_argument("--start-timeout", type=_positive_seconds, default=None,

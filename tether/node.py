@@ -139,8 +139,9 @@ class NodeArgs:
     """A peer of a mesh: the token is declared once the session is linked to this many other peers
     (:meth:`Node.ready`); 0: at once."""
     window: int = 0
-    """Lockstep: the clock's window (``tether run --window``). Each stream keeps its last ``window +
-    1`` messages, to send them again when a tick has waited :data:`RESEND` for its inputs (0: none kept)."""
+    """Lockstep: the clock's window (``tether run --window``). Each stream keeps its messages of the
+    last ``window + 1`` ticks, to send them again when a tick has waited :data:`RESEND` for its inputs
+    (0: none kept)."""
 
 
 class _Tapped:
@@ -167,14 +168,16 @@ class _Tapped:
 class Publisher:
     """A publisher that stamps sender, sequence number, tick and sample time on every message.
 
-    ``keep`` (lockstep): the payloads of its last ``keep`` messages, which :meth:`resend` puts again
-    (:meth:`Node.until`, after :data:`RESEND` of waiting)."""
+    ``keep`` (lockstep): the payloads of its messages of the last ``keep`` ticks, which
+    :meth:`resend` puts again (:meth:`Node.until`, after :data:`RESEND` of waiting)."""
 
     def __init__(self, pub: zenoh.Publisher, sender: int, keep: int = 0):
         self._pub = pub
         self._sender = sender
         self.seq = 0
-        self.kept: collections.deque[bytes] | None = collections.deque(maxlen=keep) if keep else None
+        self.keep = keep
+        self.kept: collections.deque[tuple[int, bytes]] | None = collections.deque() if keep else None
+        """``(tick, payload)`` of the messages kept, oldest first."""
 
     def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
         msg = cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields)
@@ -182,7 +185,7 @@ class Publisher:
         payload = wire.encode(msg)
         self._pub.put(payload)
         if self.kept is not None:
-            self.kept.append(payload)
+            self._keep(k, payload)
 
     def put(self, msg: wire.Message) -> None:
         """Publish a message built by the caller (its sender and sequence number are the caller's)."""
@@ -190,13 +193,20 @@ class Publisher:
         payload = wire.encode(msg)
         self._pub.put(payload)
         if self.kept is not None:
-            self.kept.append(payload)
+            self._keep(msg.k, payload)
+
+    def _keep(self, k: int, payload: bytes) -> None:
+        kept = self.kept
+        assert kept is not None
+        kept.append((k, payload))
+        while kept[0][0] <= k - self.keep:  # a record carries many ticks: kept by its last, as many as it takes
+            kept.popleft()
 
     def resend(self) -> int:
         """Put the kept messages again, oldest first (the same bytes: a receiver that has one keeps
         the first copy and counts the other as a duplicate). Returns how many."""
         kept = list(self.kept or ())
-        for payload in kept:
+        for _, payload in kept:
             self._pub.put(payload)
         return len(kept)
 
@@ -637,7 +647,8 @@ class Node:
         # agent about 8 us more of its loop's CPU a wait: a wait nearly every lockstep tick); with
         # ``resend`` it first rings at each resend instant, then at the deadline
         loop = asyncio.get_running_loop()
-        deadline = math.inf if timeout is None else loop.time() + timeout
+        began = loop.time()
+        deadline = math.inf if timeout is None else began + timeout
         step = min(RESEND, timeout / 3) if timeout is not None else RESEND
         step = step if resend and self._kept else math.inf
         rang = [False]
@@ -657,7 +668,7 @@ class Node:
                     rang[0] = False
                     if timer is not None and timer.when() >= deadline:
                         raise Stalled(f"waited {timeout:g} s for {what if isinstance(what, str) else what()}")
-                    self.resend(what if isinstance(what, str) else what())
+                    self.resend(what if isinstance(what, str) else what(), loop.time() - began)
                     timer = arm()
                 await self.wakeup.wait(None)
                 self.drain()
@@ -665,19 +676,20 @@ class Node:
             if timer is not None:
                 timer.cancel()
 
-    def resend(self, waiting_for: str) -> int:
-        """Lockstep: put every stream's kept messages (its last ``window + 1``) again, after a tick has
-        waited :data:`RESEND` for ``waiting_for``. A peer of a mesh can miss a stream's first samples
-        for good: the run starts once every peer is linked to every other and its token is in, but a
-        peer's subscriptions reach each other peer over their own link, and a sample put before they
-        arrive goes nowhere (a lockstep run stalled at tick 0, an agent waiting for its in-neighbour's
-        state of tick 0 while that neighbour waited further on). Sent again, the sample reaches the
-        peer that waits for it; a receiver that has it keeps the first copy and counts the other
-        (``duplicates``, a record's ``stale_record``). Returns the number of messages sent again."""
+    def resend(self, waiting_for: str, waited: float = RESEND) -> int:
+        """Lockstep: put every stream's kept messages (those of its last ``window + 1`` ticks) again,
+        after a tick has waited ``waited`` seconds for ``waiting_for``. A peer of a mesh can miss a
+        stream's first samples for good: the run starts once every peer is linked to every other and
+        its token is in, but a peer's subscriptions reach each other peer over their own link, and a
+        sample put before they arrive goes nowhere (a lockstep run stalled at tick 0, an agent waiting
+        for its in-neighbour's state of tick 0 while that neighbour waited further on). Sent again,
+        the sample reaches the peer that waits for it; a receiver that has it keeps the first copy and
+        counts the other (``duplicates``, a record's ``stale_record``). Returns the number of messages
+        sent again."""
         n = sum(pub.resend() for pub in self._kept)
         self.resent += n
-        log.warning("waited %.0f s for %s: sent the last %d messages of my %d streams again (%d so far)",
-                    RESEND, waiting_for, n, len(self._kept), self.resent)
+        log.warning("waited %.1f s for %s: sent the last %d messages of my %d streams again (%d so far)",
+                    waited, waiting_for, n, len(self._kept), self.resent)
         return n
 
     async def sample(self, src: Source, k: int, drain: bool = True) -> Any:
