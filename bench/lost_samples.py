@@ -4,7 +4,7 @@ telemetry, a plant's state; at which tick, of which agent), optionally beside a 
 run by run, alternating.
 
     python bench/lost_samples.py [--agents 16] [--rate 50] [--duration 15] [--runs 5] [--base e7c6170]
-                                 [--mission FILE] [--insecure]
+                                 [--mission FILE] [--insecure] [-- tether run options, e.g. --shared-plants]
 
 The mission is a ring of ``--agents`` (``bench/missions.py``) unless ``--mission`` names one. ``--base
 REV``: that commit, checked out in a temporary ``git worktree`` (removed afterwards; this tree too, as it
@@ -47,11 +47,12 @@ print(json.dumps(out))
 """
 
 
-def one(tree: Path, mission: Path, out: Path, duration: float, insecure: bool) -> dict:
-    """One real-time run of ``mission`` by the build in ``tree``; its exit status and what it lost."""
+def one(tree: Path, mission: Path, out: Path, duration: float, insecure: bool, extra: tuple[str, ...] = ()) -> dict:
+    """One real-time run of ``mission`` by the build in ``tree`` (``extra``: more ``tether run``
+    options); its exit status and what it lost."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, "-m", "cli", "run", str(mission), "--clock", "realtime", "--duration", repr(duration),
-           "--out", str(out), "--quiet", *(["--insecure"] if insecure else [])]
+           "--out", str(out), "--quiet", *(["--insecure"] if insecure else []), *extra]
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     if not (out / "run.npz").exists():
         raise SystemExit(f"no run file from {tree} (exit {done.returncode}):\n{done.stderr[-3000:]}")
@@ -70,7 +71,12 @@ def describe(res: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    argv = sys.argv[1:]
+    extra: tuple[str, ...] = ()
+    if "--" in argv:  # what follows goes to every run's tether run (e.g. -- --shared-plants)
+        at = argv.index("--")
+        argv, extra = argv[:at], tuple(argv[at + 1:])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog="options after -- go to every tether run")
     ap.add_argument("--agents", type=int, default=16)
     ap.add_argument("--rate", type=float, default=50.0)
     ap.add_argument("--duration", type=float, default=15.0)
@@ -79,7 +85,7 @@ def main() -> None:
     ap.add_argument("--base", default=None, help="a commit whose build runs beside this one, run by run")
     ap.add_argument("--keep", type=Path, default=None, help="keep every run's directory here (logs, run file)")
     ap.add_argument("--insecure", action="store_true", help="runs without mTLS and access rules")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="tether-lost-") as tmp:
         work = Path(tmp)
         mission = args.mission
@@ -99,7 +105,7 @@ def main() -> None:
             for run in range(1, args.runs + 1):
                 for name, tree in trees:
                     out = (args.keep or work) / f"{name}-{run}"
-                    res = one(tree, mission.resolve(), out, args.duration, args.insecure)
+                    res = one(tree, mission.resolve(), out, args.duration, args.insecure, extra)
                     totals[name].append(res["expected"] - res["recorded"])
                     print(f"  run {run} {name:>8}: {describe(res)}; load {os.getloadavg()[0]:.1f}", flush=True)
             for name, lost in totals.items():
