@@ -126,12 +126,7 @@ def main(argv: list[str] | None = None) -> None:
                     rt.settle()
                     res = rt.run_tether(path, m, a.clock, a.duration, work, tree=tree, extra=tuple(extra),
                                         secure=not a.insecure, mcap=a.mcap)
-                    want = {str(tree)}
-                    if res.cwds != want:
-                        raise SystemExit(f"bench/ab.py: the {side} run's processes ran in {sorted(res.cwds)}, "
-                                         f"not {sorted(want)}: the comparison would not be of the two trees")
-                    if not res.ran_to_end:
-                        raise SystemExit(f"bench/ab.py: the {side} run failed: {res.why}")
+                    checked(res, {tree}, f"the {side} run")
                     fig = measure(res, ticks)
                     runs[side].append(fig)
                     rt.say(f"   pair {i + 1} {side:4}  {fig['speed']:6.2f} x  command {fig['command_s']:6.2f} s "
@@ -144,6 +139,17 @@ def main(argv: list[str] | None = None) -> None:
     if a.json:
         a.json.write_text(json.dumps({"base": a.base, "mission": a.mission, "duration": a.duration,
                                       "clock": a.clock, "extra": extra, "runs": runs}, indent=1))
+
+
+def checked(res: rt.Result, trees: set[Path], what: str) -> None:
+    """Stop the comparison unless ``res`` went to its end and its processes ran in exactly ``trees``
+    (each process imports the checkout it runs in)."""
+    want = {str(t) for t in trees}
+    if res.cwds != want:
+        raise SystemExit(f"bench/ab.py: {what}'s processes ran in {sorted(res.cwds)}, not {sorted(want)}: the "
+                         "comparison would not be of the two trees")
+    if not res.ran_to_end:
+        raise SystemExit(f"bench/ab.py: {what} failed: {res.why}")
 
 
 MIXED_FIGURES = (("agent", "us"), ("agent", "main"), ("agent", "callback"), ("agent", "zenoh"), ("plant", "us"),
@@ -170,11 +176,7 @@ def mixed(a: argparse.Namespace, path: Path, m: Any, extra: list[str], base: Pat
         rt.settle()
         res = rt.run_tether(path, m, a.clock, a.duration, work, tree=new, extra=(*extra, *wrap),
                             secure=not a.insecure, mcap=a.mcap)
-        if res.cwds != {str(base), str(new)}:
-            raise SystemExit(f"bench/ab.py --mixed: the run's processes ran in {sorted(res.cwds)}, not in both "
-                             f"checkouts: the comparison would not be of the two trees")
-        if not res.ran_to_end:
-            raise SystemExit(f"bench/ab.py --mixed: run {r + 1} failed: {res.why}")
+        checked(res, {base, new}, f"mixed run {r + 1}")
         f = 1e6 / ticks  # CPU seconds over the window -> us per tick (as bench/runtime.py's _per_tick)
         row: dict[str, Any] = {"foreign_pct": res.foreign_pct}
         for s_ in ("base", "new"):

@@ -137,7 +137,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         if k > first:
             u, modes = [], []
             for r, (aid, src, dog) in enumerate(zip(ids, cmds, dogs)):
-                msg = await node.sample(src, k - 1, drain=r == 0)  # one drain for every vehicle's command
+                # one drain for every vehicle's command (in real time node.tick has just drained)
+                msg = await node.sample(src, k - 1, drain=r == 0 and node.clock.lockstep)
                 if msg is not None:
                     dog.offer(msg.u, msg.t, msg.k, k, msg.mode)
                 d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])

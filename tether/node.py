@@ -180,12 +180,7 @@ class Publisher:
         """``(tick, payload)`` of the messages kept, oldest first."""
 
     def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
-        msg = cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields)
-        self.seq += 1
-        payload = wire.encode(msg)
-        self._pub.put(payload)
-        if self.kept is not None:
-            self._keep(k, payload)
+        self.put(cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields))
 
     def put(self, msg: wire.Message) -> None:
         """Publish a message built by the caller (its sender and sequence number are the caller's)."""
@@ -666,9 +661,10 @@ class Node:
             while not ready():
                 if rang[0]:
                     rang[0] = False
+                    missing = what if isinstance(what, str) else what()
                     if timer is not None and timer.when() >= deadline:
-                        raise Stalled(f"waited {timeout:g} s for {what if isinstance(what, str) else what()}")
-                    self.resend(what if isinstance(what, str) else what(), loop.time() - began)
+                        raise Stalled(f"waited {timeout:g} s for {missing}")
+                    self.resend(missing, loop.time() - began)
                     timer = arm()
                 await self.wakeup.wait(None)
                 self.drain()
