@@ -13,8 +13,10 @@ but its "work" is trivial: a payload is 16 header bytes ``<qq`` (tick k, send ti
 [ns, CLOCK_MONOTONIC]) padded with zeros to the size of the tether message it stands for, and
 nothing is decoded beyond ``k``.
 
-Imports are zenoh and the standard library only (no numpy, no msgspec, no tether), so this
-process is also the memory and CPU floor of "a Python process that speaks Zenoh".
+Imports are zenoh and the standard library only (no numpy, no msgspec, no tether), and uvloop when
+the spec's ``loop`` says so (``bench/runtime.py --bare-loop``; by default the loop tether's processes
+run on, ``tether/evloop.py``), so this process is also the memory and CPU floor of "a Python process
+that speaks Zenoh" on that loop.
 
 Hand-off (like tether's): a subscriber callback runs on zenoh-python's per-subscriber thread and
 only appends ``(input, payload)`` to a deque; where the process must react to a sample (every
@@ -61,10 +63,14 @@ import struct
 import sys
 import threading
 import time
+from collections.abc import Coroutine
+from typing import Any
 
 import zenoh
 
 HEADER = struct.Struct("<qq")  # tick k, send time [ns, CLOCK_MONOTONIC]
+
+TIMER_GRAIN = 0.001  # tether.evloop.TIMER_GRAIN: the shortest sleep worth asking uvloop for
 
 RECORDER_LINGER = 0.25
 """Lockstep: how long [s] the recorder stays open after acknowledging the last tick."""
@@ -293,6 +299,9 @@ class Bare:
             delay = due - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)
+                # never before the instant, as tether's clock (uvloop's timers can fire ~1 ms early)
+                while (rest := due - time.monotonic()) > 0:
+                    await asyncio.sleep(max(rest, TIMER_GRAIN))
             if time.monotonic() - due > h:
                 self.late += 1
             self.relay(self.drain())
@@ -545,13 +554,26 @@ async def node(spec: dict, role: str, nid: int, endpoint: str) -> None:
     print(json.dumps(out), flush=True)
 
 
+def run(main: Coroutine[Any, Any, None], kind: str) -> None:
+    """``asyncio.run`` on the event loop the spec names (``loop``: ``uvloop`` or ``asyncio``), as
+    ``tether.evloop.run`` runs tether's processes."""
+    if kind == "uvloop":
+        import uvloop
+
+        with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+            runner.run(main)
+    else:
+        asyncio.run(main)
+
+
 def main(argv: list[str]) -> None:
     with open(argv[0]) as fh:
         spec = json.load(fh)
+    kind = spec.get("loop", "asyncio")
     if argv[1] == "hub":
-        asyncio.run(hub(spec, argv[2]))
+        run(hub(spec, argv[2]), kind)
     else:
-        asyncio.run(node(spec, argv[1], int(argv[2]), argv[3]))
+        run(node(spec, argv[1], int(argv[2]), argv[3]), kind)
 
 
 if __name__ == "__main__":

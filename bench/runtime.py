@@ -80,6 +80,7 @@ except ImportError:
     AGENT_PHASE = 0.0
 from tether import mission as ms  # noqa: E402
 from tether import catalog  # noqa: E402
+from tether import evloop  # noqa: E402
 from tether import jsonout  # noqa: E402
 from tether import handoff  # noqa: E402
 from tether import runfile  # noqa: E402
@@ -97,6 +98,9 @@ REALTIME_QOS = {"cmd": "COMMAND", "telemetry": "TELEMETRY"}
 other stream, and every stream in lockstep, gets what ``Node.publisher`` gives: STATE / SYNC)."""
 START_LEAD = 1.0  # deploy.local.LaunchOptions.start_lead: tick 0 comes this long after "all up"
 WINDOW = 8  # deploy.local.WINDOW: tether run's window with one process per plant
+LOOP = {"bare": "asyncio"}
+"""The event loop of the bare baseline's processes (``--bare-loop``; by default tether's own,
+``tether/evloop.py``)."""
 
 
 # =========================================================================== /proc
@@ -474,7 +478,7 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
         "sizes": wire_sizes(m), "client_config": configs[0], "router_config": configs[1],
         "wake": wake, "start_lead": START_LEAD, "direct": bool(v.get("direct")),
         "qos": v.get("qos", REALTIME_QOS), "agent_phase": AGENT_PHASE, "colocate": bool(v.get("colocate")),
-        "batch": int(v.get("batch", 0)),
+        "batch": int(v.get("batch", 0)), "loop": v.get("loop", LOOP["bare"]),
     }
 
 
@@ -1514,6 +1518,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--insecure", action="store_true",
                     help="tether run --insecure, and the baseline on plain TCP too (default: both authenticated, "
                          "mTLS with the run's access rules; the latency case is plain either way: its probe is)")
+    ap.add_argument("--bare-loop", choices=["tether", "uvloop", "asyncio"], default="tether",
+                    help="the bare baseline's event loop (default: the one tether's processes run on, "
+                         "tether/evloop.py: uvloop where installed, TETHER_LOOP to choose)")
     ap.add_argument("--baseline-wake", action="store_true",
                     help="real-time baseline wakes its loop on every sample, as tether's nodes do")
     ap.add_argument("--quiet-below", type=float, default=0.5,
@@ -1529,6 +1536,8 @@ def main(argv: list[str]) -> None:
                     help="--profile a lockstep run with --colocate-plants, this window and records of BATCH ticks")
     a = ap.parse_args(argv)
     a.secure = not a.insecure
+    tether_loop = evloop.choose()
+    LOOP["bare"] = tether_loop if a.bare_loop == "tether" else a.bare_loop
     compiled = compile_tree()
     if a.profile:
         work = a.work or Path(tempfile.mkdtemp(prefix="tether-profile-"))
@@ -1542,6 +1551,7 @@ def main(argv: list[str]) -> None:
     say(f"   transport: {'mTLS, access rules' if a.secure else 'plain TCP (--insecure)'} for tether and the "
         f"baseline alike (the latency case: plain); bytecode of this tree compiled first ({compiled} files "
         "were stale), as an installed package has it")
+    say(f"   event loop: tether {tether_loop}, the bare baseline {LOOP['bare']}")
     pairs: list = []
     with tempfile.TemporaryDirectory(prefix="tether-bench-") as tmp:
         work = a.work or Path(tmp)

@@ -20,7 +20,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
-from tether import catalog, jsonout
+from tether import catalog, evloop, jsonout
 from tether import mission as ms
 from tether.progress import Progress
 
@@ -261,7 +261,6 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """The README's demo: the Section 4 mission as separate processes over Zenoh in lockstep,
     its figures, and its agreement with the reference simulator (the runtime's oracle)."""
-    import asyncio
     import logging
 
     import numpy as np
@@ -278,7 +277,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = _writable_dir("--out", args.out, ("run.npz",))
     # the architecture as deployed: one process per plant (tether run co-locates them by default in lockstep)
     opts = local.LaunchOptions(out=out, clock="lockstep", duration=args.duration, colocate_plants=False)
-    status = asyncio.run(local.run(path, opts))
+    status = evloop.run(local.run(path, opts))
     if status != 0:
         return status
     run = Run.load(out)
@@ -367,7 +366,6 @@ def _node_args(args: argparse.Namespace, role: str, node_id: int) -> NodeArgs:
 
 def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[Node], Awaitable[None]],
            on_stop: Callable[[Node], None] | None = None) -> int:
-    import asyncio
 
     from tether.node import serve, setup_logging
 
@@ -382,7 +380,7 @@ def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[No
         except sched.SchedError as exc:
             raise BadArgument(f"--rt-priority: {exc}") from None
         logging.getLogger("tether").info("CPU scheduling: %s", applied)
-    return asyncio.run(serve(_node_args(args, role, node_id), body, on_stop, clock=_skewed_clock(args)))
+    return evloop.run(serve(_node_args(args, role, node_id), body, on_stop, clock=_skewed_clock(args)))
 
 
 def _skewed_clock(args: argparse.Namespace) -> LockstepClock | RealtimeClock | None:
@@ -449,7 +447,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:
-    import asyncio
 
     from tether.netprofile import ProfileError
     from netem import control
@@ -461,7 +458,7 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
         return 2
     settings = _zenoh_settings(args)
     try:
-        answers = asyncio.run(control.netem_set(settings, args.ns, control.rule_of(profile, args.src, args.dst),
+        answers = evloop.run(control.netem_set(settings, args.ns, control.rule_of(profile, args.src, args.dst),
                                                 args.at, args.timeout))
     except TimeoutError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -485,7 +482,6 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
 
 def cmd_safety(args: argparse.Namespace) -> int:
     """``tether land`` / ``tether estop``: one operator order to every vehicle of a running swarm."""
-    import asyncio
 
     from deploy import operator
     from tether import transport as tp
@@ -505,7 +501,7 @@ def cmd_safety(args: argparse.Namespace) -> int:
         return 2
     settings = _zenoh_settings(args)
     try:
-        msg = asyncio.run(operator.send(settings, args.ns, args.action, args.reason, args.timeout))
+        msg = evloop.run(operator.send(settings, args.ns, args.action, args.reason, args.timeout))
     except (operator.Unreachable, operator.NobodyListens, tp.TransportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -515,7 +511,6 @@ def cmd_safety(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    import asyncio
     import logging
 
     from deploy import local
@@ -560,7 +555,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                record_batch=args.record_batch,
                                shared_plants=args.shared_plants, rt_priority=args.rt_priority,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
-    return asyncio.run(local.run(path, opts))
+    return evloop.run(local.run(path, opts))
 
 
 def _check_live(port: int | None) -> None:
@@ -938,8 +933,10 @@ def main(argv: list[str] | None = None) -> int:
     from tether.schema import SchemaError
 
     try:
+        evloop.choose()  # TETHER_LOOP: a wrong value is an error before anything starts
         return int(args.func(args))
-    except (SchemaError, BadArgument) as exc:  # a mission, settings, profile or hosts file; an argument
+    except (SchemaError, BadArgument, evloop.LoopError) as exc:  # a mission, settings, profile or hosts
+        # file; an argument; the environment's TETHER_LOOP
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a write (or read) failed part-way: a full disk, a vanished directory

@@ -19,6 +19,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from tether import evloop
+
 if TYPE_CHECKING:
     from tether.node import NodeArgs
 
@@ -76,7 +78,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                          duration=args.duration)
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s record: %(message)s")
-    status = asyncio.run(_record(node_args, out, args))
+    status = evloop.run(_record(node_args, out, args))
     return status
 
 

@@ -30,12 +30,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_top(args: argparse.Namespace) -> int:
-    import asyncio
-
     from cli import main
     from recorder import top
+    from tether import evloop, wire
     from tether import transport as tp
-    from tether import wire
 
     try:
         wire.Keys(args.ns)
@@ -48,7 +46,7 @@ def cmd_top(args: argparse.Namespace) -> int:
     settings = main._zenoh_settings(args)
     where = ", ".join(args.connect) if args.zenoh_config is None else args.zenoh_config
     try:
-        return asyncio.run(top.run(settings, args.ns, where, xi_warn=args.xi_warn, age_warn=args.age_warn))
+        return evloop.run(top.run(settings, args.ns, where, xi_warn=args.xi_warn, age_warn=args.age_warn))
     except tp.TransportError as exc:
         print(f"error: {exc}; is the swarm's router up at {where}?", file=__import__("sys").stderr)
         return 1

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from tether import catalog
+from tether import catalog, evloop
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -80,11 +80,12 @@ def main(argv: list[str] | None = None) -> int:
         m = ms.load(catalog.resolve(args.mission))
         settings = tp.ZenohSettings(config_file=str(Path(args.zenoh_config)))
         tp.zenoh_config(settings)
-    except (ms.MissionError, tp.SettingsError) as exc:
+        evloop.choose()
+    except (ms.MissionError, tp.SettingsError, evloop.LoopError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
-        asyncio.run(start(m, settings, args.ns, args.lead, args.timeout))
+        evloop.run(start(m, settings, args.ns, args.lead, args.timeout))
     except tp.TokensMissing as exc:
         log.error("%s", exc)
         return 1

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from tether.clock import LockstepClock, LockstepSource, RealtimeClock
+from tether.evloop import TIMER_GRAIN
 
 WAIT = 2.0
 """Upper bound [s] on a wait for something that happens within one event-loop turn."""
@@ -221,11 +222,36 @@ async def test_realtime_clock_sleeps_until_a_future_tick_then_reports_lateness()
 
 
 @pytest.mark.asyncio
-async def test_realtime_clock_lateness_is_zero_when_woken_early() -> None:
-    readings = iter([0.008, 0.0095])  # asyncio may wake a little early; lateness is clamped at 0
-    clock = RealtimeClock(period=0.01, start=0.0, monotonic=lambda: next(readings))
-    assert await asyncio.wait_for(clock.wait_for(1), WAIT) == 0.0
+async def test_realtime_clock_never_starts_a_tick_before_its_instant_when_the_loop_wakes_early() -> None:
+    # uvloop's millisecond timers can fire up to about 1 ms early (tether/evloop.py): the rest is slept
+    # again, never less than a grain (a shorter sleep would be rounded to none and spun on)
+    fake = FakeMonotonic(now=0.008)
+    asked: list[float] = []
+    early = iter([0.0012, 0.0006, 0.0])  # how early each sleep ends
+
+    async def sleep(d: float) -> None:
+        asked.append(d)
+        fake.now += d - next(early)
+
+    clock = RealtimeClock(period=0.01, start=0.0, monotonic=fake, sleep=sleep)
+    lateness = await clock.wait_for(1)  # due at 0.010
+    assert asked == pytest.approx([0.002, 0.0012, TIMER_GRAIN])
+    assert fake.now >= 0.010 and lateness == pytest.approx(0.0004)
     assert clock.late == 0
+
+
+@pytest.mark.asyncio
+async def test_realtime_clock_sleeps_once_when_the_loop_wakes_on_time() -> None:
+    fake = FakeMonotonic(now=0.003)
+    asked: list[float] = []
+
+    async def sleep(d: float) -> None:
+        asked.append(d)
+        fake.now += d + 0.0002  # asyncio's own loop: late, never early
+
+    clock = RealtimeClock(period=0.01, start=0.0, monotonic=fake, sleep=sleep)
+    assert await clock.wait_for(1) == pytest.approx(0.0002)
+    assert asked == pytest.approx([0.007])
 
 
 @pytest.mark.asyncio

@@ -22,6 +22,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
+from tether.evloop import TIMER_GRAIN
+
 ClockKind = Literal["lockstep", "realtime"]
 
 EPOCH_TOLERANCE = 3600.0
@@ -130,10 +132,16 @@ class RealtimeClock:
 
     async def wait_for(self, k: int) -> float:
         due = self.start + k * self.period
-        delay = due - self.monotonic()
-        if delay > 0:
-            await self.sleep(delay)
-        lateness = self.monotonic() - due
+        now = self.monotonic()
+        if now < due:
+            await self.sleep(due - now)
+            now = self.monotonic()
+            # never before the instant: uvloop's timers can fire up to about a millisecond early
+            # (tether/evloop.py); the rest is slept again, a grain at least (shorter would spin)
+            while now < due:
+                await self.sleep(max(due - now, TIMER_GRAIN))
+                now = self.monotonic()
+        lateness = now - due
         if lateness > self.period:
             self.late += 1
         return max(0.0, lateness)

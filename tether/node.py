@@ -29,7 +29,7 @@ from typing import Any
 
 import zenoh
 
-from tether import handoff
+from tether import evloop, handoff
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -607,7 +607,7 @@ class Node:
                 self._overflow[key] = q.dropped
         if waiting and self._rearm is None and monotonic is not None:
             delay = (period + 1) * h - monotonic()
-            self._rearm = asyncio.get_running_loop().call_later(max(0.0, delay), self._next_period)
+            self._rearm = asyncio.get_running_loop().call_later(max(evloop.TIMER_GRAIN, delay), self._next_period)
 
     def _next_period(self) -> None:
         self._rearm = None
@@ -832,6 +832,7 @@ async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
         log.error("%s", exc)
         return EXIT_BAD_INPUT
     loop = asyncio.get_running_loop()
+    log.info("event loop: %s", evloop.running())
     async with tp.open_session(args.zenoh) as session:
         node = Node(args, mission, session, clock if clock is not None else make_clock(args.clock, mission.dt))
         for sig in (signal.SIGTERM, signal.SIGINT):

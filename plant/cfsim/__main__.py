@@ -22,6 +22,7 @@ import sys
 
 from plant.cfsim import realism, server
 from plant.cfsim.firmware import FirmwareConfig
+from tether import evloop
 
 log = logging.getLogger("tether.cfsim")
 
@@ -133,7 +134,12 @@ def main(argv: list[str] | None = None) -> int:
                         stream=sys.stderr)
     cfg = config(args)
     try:
-        asyncio.run(_main(cfg))
+        kind = evloop.choose()
+    except evloop.LoopError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        evloop.run(_main(cfg), kind)
     except OSError as e:
         log.error("cannot serve %s:%d..%d: %s", cfg.host, cfg.vehicles[0].port, cfg.vehicles[-1].port, e)
         return 1
