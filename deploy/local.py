@@ -114,6 +114,7 @@ from tether import transport as tp
 from tether import handoff, jsonout, sched
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
+from tether.node import FIFO_CAPACITY
 from tether.progress import Progress
 
 log = logging.getLogger("tether")
@@ -485,8 +486,17 @@ def resolve(m: ms.Mission, o: LaunchOptions) -> LaunchOptions:
 
 def record_batch(o: LaunchOptions) -> int:
     """Ticks per record with ``--colocate-plants``: :attr:`LaunchOptions.record_batch`, by default
-    half the window (measured best, ``docs/benchmarks.md``)."""
-    return o.record_batch if o.record_batch is not None else max(1, window(o) // 2)
+    half the window (measured best, ``docs/benchmarks.md``), at most :data:`tether.wire.RECORD_MAX`
+    (the recorder drops a larger record)."""
+    return o.record_batch if o.record_batch is not None else max(1, min(window(o) // 2, wire.RECORD_MAX))
+
+
+def window_max(m: ms.Mission) -> int:
+    """The largest lockstep window for ``m``: a process may have to hold a window of ticks of every
+    stream it hears before it drains them, and the recorder hears 1 + 2N streams a tick (the leader's,
+    every plant's, every agent's telemetry); a window of them must fit in half an input queue
+    (:data:`tether.node.FIFO_CAPACITY`), or the oldest would be dropped and the run stall."""
+    return max(1, (FIFO_CAPACITY // 2) // (1 + 2 * m.n))
 
 
 def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
@@ -513,6 +523,9 @@ def check_colocate(m: ms.Mission, o: LaunchOptions) -> list[tuple[str, str]]:
         out.append(("--record-batch", f"{record_batch(o)} ticks per record must be between 1 and the window "
                                       f"({ticks}): the clock grants a tick only once the recorder holds the "
                                       "ticks a window before it; give a smaller --record-batch or a larger --window"))
+    elif record_batch(o) > wire.RECORD_MAX:
+        out.append(("--record-batch", f"{record_batch(o)} ticks per record: at most {wire.RECORD_MAX} (the recorder "
+                                      "drops a larger record as malformed); give a smaller --record-batch"))
     return out
 
 
@@ -903,6 +916,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                 + check_faults(m, opts, launch.members()))
     if opts.clock == "lockstep" and opts.window is not None and opts.window < 1:
         problems.append(("--window", f"is {opts.window}: lockstep ticks in flight, at least 1 (default "
+                                     f"{COLOCATED_WINDOW} with the plants co-located, else {WINDOW})"))
+    elif opts.clock == "lockstep" and window(opts) > window_max(m):
+        problems.append(("--window", f"is {window(opts)}: at most {window_max(m)} lockstep ticks in flight for "
+                                     f"{m.n} vehicles (a process may hold a window of every stream it hears, and "
+                                     f"its input queue holds {FIFO_CAPACITY}); give a smaller --window (default "
                                      f"{COLOCATED_WINDOW} with the plants co-located, else {WINDOW})"))
     if opts.clock == "lockstep":
         problems += [(f"agent {a.id}.plant", "is a crazyflie, a real vehicle, which cannot wait for a lockstep clock; "

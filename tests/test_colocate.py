@@ -179,6 +179,7 @@ def test_colocated_quadrotors_equal_their_plant_processes_bit_for_bit(tmp_path: 
     ("section4", ["--clock", "realtime"], "--colocate-plants", "--clock lockstep"),
     ("section4", ["--record-batch", "33"], "--record-batch", "smaller --record-batch or a larger --window"),
     ("section4", ["--window", "4", "--record-batch", "5"], "--record-batch", "between 1 and the window (4)"),
+    ("section4", ["--window", "600", "--record-batch", "300"], "--record-batch", "at most 256 (the recorder drops"),
     ("exp2", [], "--colocate-plants", "[payload] world"),
     ("exp1_cf", [], "--colocate-plants", "crazyflie"),
 ])
@@ -569,3 +570,19 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
     assert np.isnan(run.p[8:, col]).all() and np.isnan(run.runtime.plant_p[8:, col]).all()
     assert np.isfinite(np.delete(run.p, col, axis=1)).all() and np.isfinite(run.p[:8]).all()
     assert "Traceback" not in text
+
+
+@pytest.mark.slow  # real processes
+def test_a_window_of_hundreds_of_ticks_sends_records_the_recorder_accepts(tmp_path: Path) -> None:
+    """Records of half the window by default, at most tether.wire.RECORD_MAX ticks: with --window 600 they
+    were records of 300 ticks, each dropped by the recorder as malformed ("size"), and the run stalled."""
+    from tether.runfile import Run
+
+    out = tmp_path / "out"
+    r = subprocess.run(tether_cmd("run", "section4", "--out", str(out), "--duration", "4", "--window", "600",
+                                  "--no-mcap"), cwd=REPO, capture_output=True, text=True, timeout=STARTUP + 60)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "window 600, records of 256 ticks" in r.stderr, r.stderr[-3000:]
+    got = Run.load(out)
+    assert got.meta.complete is True
+    assert "size" not in read(out / "logs" / "recorder-0.log")
