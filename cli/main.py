@@ -366,7 +366,6 @@ def _node_args(args: argparse.Namespace, role: str, node_id: int) -> NodeArgs:
 
 def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[Node], Awaitable[None]],
            on_stop: Callable[[Node], None] | None = None) -> int:
-
     from tether.node import serve, setup_logging
 
     setup_logging(role, node_id, args.log_level)
@@ -447,7 +446,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:
-
     from tether.netprofile import ProfileError
     from netem import control
 
@@ -459,7 +457,7 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
     settings = _zenoh_settings(args)
     try:
         answers = evloop.run(control.netem_set(settings, args.ns, control.rule_of(profile, args.src, args.dst),
-                                                args.at, args.timeout))
+                                               args.at, args.timeout))
     except TimeoutError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -482,7 +480,6 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
 
 def cmd_safety(args: argparse.Namespace) -> int:
     """``tether land`` / ``tether estop``: one operator order to every vehicle of a running swarm."""
-
     from deploy import operator
     from tether import transport as tp
     from tether import wire
