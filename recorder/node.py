@@ -391,18 +391,23 @@ class Feed:
         log.info("live view: sent %d ticks in %.3f s of CPU", self.sent, self.cpu)
 
 
-def _records(node: Node, rec: Recording, src: Any, plant_gate: Callable[[wire.PlantState], str | None]
+def _drops(node: Node) -> dict[str, int]:
+    """What the run file's ``recorder_drops`` says: the receiver's drops by reason, and (``copy``)
+    the lockstep copies of samples already had, a peer's resend after a stall or a replay: the same
+    bytes, so the same answer (:attr:`tether.node.Node.copies`)."""
+    return {**node.receiver.drops, "copy": node.copies} if node.copies else dict(node.receiver.drops)
+
+
+def _records(node: Node, rec: Recording, plant_gate: Callable[[wire.PlantState], str | None]
              ) -> Callable[[wire.Record], None]:
     """What the recorder does with one agent's :class:`~tether.wire.Record` (its plant co-located):
     each plant sample passes the plausibility gate as a plant's own would, then both streams are
-    recorded as if they had come alone. A record not newer than the newest (a replay, a duplicate)
-    is dropped and counted (``stale_record``): its ticks are recorded once. A record that was lost
+    recorded as if they had come alone. (Records are lockstep's alone: a copy of a record had, a
+    peer's resend after a stall or a replay, never gets here (:attr:`tether.node.Node.copies`,
+    ``copy`` in the run file); one missed and sent again after newer ones does, and is recorded.) A record that was lost
     or dropped leaves its ticks short of samples, which the run file's counts show."""
 
     def take(msg: wire.Record) -> None:
-        if msg is not src.newest:
-            node.count_drop("stale_record")
-            return
         plants = []
         for p in msg.plant:
             why = plant_gate(p)
@@ -457,7 +462,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             plant_gate = gate.for_sender(m, aid, now).check
             if colocated:  # lockstep, plants inside their agents: both streams in the agent's records
                 src = node.source(keys.topic("agent", aid, "record"), wire.Record, aid, subscribe=False, keep=False)
-                src.on_message = _records(node, rec, src, plant_gate)
+                src.on_message = _records(node, rec, plant_gate)
                 producers.append(("agent", aid))
                 continue
             node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
@@ -551,7 +556,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         if feed is not None:
             holder.pop("feed", None)
             feed.close()
-        rec.save(complete=complete, drops=node.receiver.drops)
+        rec.save(complete=complete, drops=_drops(node))
         if rec.count[last] == 0 and not attach and node.mission_time() < m.duration:
             # the producers may have left because the run is being stopped (Ctrl-C): then this
             # process's own stop follows within moments, and ends it as stopped, not failed
@@ -589,6 +594,6 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             log.exception("stopped: the last drain failed; writing what was decoded before it")
         log.info("stopped: writing %s and run.mcap (%d of %d samples)", out / "run.npz", int(rec.count.sum()),
                  rec.expected * len(rec.count))
-        rec.save(complete=False, drops=node.receiver.drops)
+        rec.save(complete=False, drops=_drops(node))
 
     return run, on_stop

@@ -8,6 +8,8 @@ condition with a timeout:
   that a test process joins: once the faults have fired it subscribes to the control key and runs
   ``tether land`` (the order arrives, decoded with the schema alone); the launcher reports the kill and
   the freeze, keeps the others running, records when each fault fired, and exits 4;
+* lockstep, an agent frozen longer than a resend: the run file equals the unfaulted run's (its
+  peers' resent copies are counted apart, not as link duplicates);
 * bad ``--fault`` values exit 2 before anything starts: no process, no file.
 """
 
@@ -28,8 +30,8 @@ import pytest
 
 from deploy import faults
 from tests.support import wait_until
-from tests.test_runtime import (REPO, STARTUP, WAIT, Launched, PlainClient, exit_statuses, launch, processes_naming,
-                                tether_cmd, wait_for_realtime_start)
+from tests.test_runtime import (REPO, STARTUP, WAIT, Launched, PlainClient, differing_arrays, exit_statuses, launch,
+                                processes_naming, tether_cmd, wait_for_realtime_start)
 from tether import transport as tp
 from tether import wire
 from tether.wire import FLYING, LAND, LANDED
@@ -233,6 +235,28 @@ def test_the_others_ran_on_after_the_kill(faulted: Faulted) -> None:
         assert np.isfinite(rec.xi[after, col[aid]]).all(axis=-1).sum() >= 150, aid
     assert not np.isfinite(rec.xi[rec.t >= KILL_AT + 0.5, col[2]]).any()  # and agent 2 did not
     assert math.isfinite(rec.leader_p[after][0, 0])
+
+
+# =========================================================================== lockstep: a freeze longer than a resend
+def test_a_lockstep_freeze_long_enough_to_make_peers_resend_leaves_the_run_as_without_it(tmp_path: Path) -> None:
+    """Lockstep, agent 2 frozen for 3 s (longer than ``RESEND``): its peers wait, send their last
+    messages again, and receive copies of samples they have. The freeze is reported (exit 4), and
+    the run file equals a run without the fault in every array: the copies are counted apart (logged),
+    never as a link's duplicates or drops. (A clean-clone CI run once failed this equality, two
+    lockstep runs at once on a busy machine, through a resend its load caused.)"""
+    ns = f"lockstep-freeze-{os.getpid()}"
+    with launch(tmp_path / "frozen", f"{ns}-f", "--duration", "4", "--insecure",
+                "--fault", "freeze:agent/2@1+3") as frozen:
+        frozen.wait(STARTUP + 60)
+    with launch(tmp_path / "plain", f"{ns}-p", "--duration", "4", "--insecure", "--separate-plants") as plain:
+        plain.wait(STARTUP + 60)
+    assert frozen.status == 4 and plain.status == 0, frozen.launcher_log + plain.launcher_log
+    assert re.search(r"agent/2 +froze", frozen.launcher_log), frozen.launcher_log
+    stalls = [re.search(r"lockstep stalls: sent (\d+) messages again; dropped (\d+) copies", frozen.child_log(f"agent/{i}"))
+              for i in (1, 3, 4)]
+    assert any(m and int(m[1]) > 0 for m in stalls), [frozen.child_log(f"agent/{i}") for i in (1, 3, 4)]
+    assert any(m and int(m[2]) > 0 for m in stalls), stalls
+    assert differing_arrays(frozen.out, plain.out) == []
 
 
 # =========================================================================== tether land / estop: errors

@@ -107,16 +107,32 @@ class Source:
         flag cannot depend on when the token's end happened to be seen.)"""
         return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
 
-    def offer(self, msg: Any) -> None:
+    def had(self, msg: Any) -> bool:
+        """Whether a sample with ``msg``'s sequence number was accepted already (or is more than
+        :data:`RECENT_SEQS` behind the newest: too old to tell, so taken as had)."""
+        newest = self.newest
+        if newest is None or msg.seq > newest.seq:
+            return False
+        behind = newest.seq - msg.seq
+        return behind > RECENT_SEQS or bool(self.recent >> behind & 1)
+
+    def offer(self, msg: Any, missed: bool = False) -> None:
         """Take one decoded sample: the gate may reject it; otherwise it is counted, held by tick,
         becomes the newest if its sequence number is, and goes to ``on_message`` (which can tell a
-        stale one: it is then not :attr:`newest`)."""
+        stale one: it is then not :attr:`newest`).
+
+        ``missed``: lockstep, where a stream arrives in order and an older sample not yet had can
+        only be one missed and sent again after a stall (:meth:`tether.node.Node.resend`): it is
+        taken as if it had come in its turn (not counted stale), so that a run's link statistics
+        do not depend on whether the machine's load made a peer resend."""
         if self.admit is not None and self.admit(msg) is not None:
             self.rejected += 1
             return
         self.received += 1
         newest = self.newest
-        if newest is not None and msg.seq <= newest.seq:
+        if missed and newest is not None and msg.seq < newest.seq and newest.seq - msg.seq <= RECENT_SEQS:
+            self.recent |= 1 << (newest.seq - msg.seq)
+        elif newest is not None and msg.seq <= newest.seq:
             self.stale += 1
             behind = newest.seq - msg.seq
             if behind > RECENT_SEQS or self.recent >> behind & 1:

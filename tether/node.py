@@ -252,6 +252,10 @@ class Node:
         """Lockstep publishers that keep their last messages (:meth:`resend`)."""
         self.resent = 0
         """Messages sent again so far (:meth:`resend`)."""
+        self.copies = 0
+        """Lockstep: copies received of samples already had, sent again by a peer after a stall
+        (:meth:`resend`). Dropped, counted here and logged at the end; kept out of the link statistics
+        and the drop counts, which a run records and which must not depend on the machine's load."""
         self._token: Any = None
         self.clock = clock
         self._start: Source | None = None
@@ -555,16 +559,22 @@ class Node:
         if msg is None:
             return
         if src.channel is None:
+            if not realtime and src.had(msg):
+                # lockstep: a copy sent again after a stall (resend) of a sample this source has;
+                # not a link's duplicate: whether a resend happens depends on the machine's load, and
+                # the run's arrays (link statistics, drops) must not
+                self.copies += 1
+                return
             self._arrival = rec.at
             try:
-                src.offer(msg)
+                src.offer(msg, missed=not realtime)
             finally:
                 self._arrival = math.nan
             return
         if not realtime and msg.k <= src.raw_k:
             # lockstep: a copy sent again after a stall (resend) of a tick the emulated link has had;
             # offered again, it would draw the link's random decisions anew and change the run
-            self.receiver.count("resent")
+            self.copies += 1
             return
         src.raw_k = max(src.raw_k, msg.k)
         src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
@@ -679,9 +689,10 @@ class Node:
         its token is in, but a peer's subscriptions reach each other peer over their own link, and a
         sample put before they arrive goes nowhere (a lockstep run stalled at tick 0, an agent waiting
         for its in-neighbour's state of tick 0 while that neighbour waited further on). Sent again,
-        the sample reaches the peer that waits for it; a receiver that has it keeps the first copy and
-        counts the other (``duplicates``, a record's ``stale_record``). Returns the number of messages
-        sent again."""
+        the sample reaches the peer that waits for it. A receiver that has it keeps the first copy; the
+        other is dropped and counted apart (:attr:`copies`, not a link's ``duplicates``), and one it
+        missed is taken as if it had come in its turn: a run's arrays stay those of a run without
+        the stall. Returns the number of messages sent again."""
         n = sum(pub.resend() for pub in self._kept)
         self.resent += n
         log.warning("waited %.1f s for %s: sent the last %d messages of my %d streams again (%d so far)",
@@ -840,6 +851,9 @@ async def serve(args: NodeArgs, role: Callable[[Node], Awaitable[None]],
         try:
             status = await _run_tasks(node, role)
             report_drops(node.receiver.drops)
+            if node.resent or node.copies:
+                log.info("lockstep stalls: sent %d messages again; dropped %d copies of samples already had",
+                         node.resent, node.copies)
             if on_stop is not None:
                 try:
                     on_stop(node)

@@ -386,8 +386,8 @@ class Receiver:
     from the key's), ``size`` (a vector of the wrong dimension), ``nonfinite`` (NaN/Inf where a
     number must be finite), ``record`` (a :class:`Record` whose items are not one of each stream
     per tick for consecutive ticks ending at its ``k``). Counted by others through :meth:`count`:
-    ``overflow``, ``corrupt``, ``resent`` (lockstep: a copy sent again after a stall, of a tick the
-    emulated link already had: :meth:`tether.node.Node.resend`).
+    ``overflow``, ``corrupt``. (A lockstep copy sent again after a stall is no drop of these:
+    :attr:`tether.node.Node.copies`.)
     """
 
     dim: int
