@@ -45,7 +45,8 @@ publishes cmd and telemetry at its tick; the recorder only counts what arrives.
 
 Experiments (spec keys, all off by default): ``direct`` callbacks on Zenoh's thread, ``colocate`` (lockstep: the plant is computed inside its agent process
 and no plant process runs), ``batch`` (with ``colocate``: each agent sends the recorder one message
-per ``batch`` ticks instead of two per tick), ``wake`` (every input wakes the loop), ``mesh``
+per ``batch`` ticks instead of two per tick, and the leader its states in one message per ``batch``
+ticks besides its state of each tick, which the recorder then no longer hears: tether's records), ``wake`` (every input wakes the loop), ``mesh``
 (each process's own endpoint, by ``role-id``: every process but the hub is a peer listening there,
 linked by gossip to every other, and declares its token only once linked to all of them, as
 ``tether run --network mesh`` makes its children; the hub stays the router, the clock and the
@@ -227,6 +228,8 @@ class Bare:
             if self.clock == "lockstep":
                 self.subscribe(self.key("clock", 0, "tick"), 0)
             self.publisher("state", self.key("leader", nid, "state"))
+            if self.clock == "lockstep" and spec.get("batch"):  # its states for the recorder, as tether's leader
+                self.publisher("record", self.key("leader", nid, "record"))
         elif self.role == "plant":
             self.subscribe(self.key("agent", nid, "cmd"), 0)
             self.publisher("state", self.key("plant", nid, "state"))
@@ -244,7 +247,9 @@ class Bare:
             for topic in ("state", "cmd", "telemetry"):
                 self.publisher(topic, self.key("agent", nid, topic))
         elif self.role == "recorder":
-            self.subscribe(self.key("leader", spec["leader"], "state"), 0)
+            # with batches (lockstep), the leader's states come in its records, as tether's recorder hears them
+            leader = "record" if self.clock == "lockstep" and spec.get("batch") else "state"
+            self.subscribe(self.key("leader", spec["leader"], leader), 0)
             for aid in spec["agents"]:
                 self.subscribe(self.key("agent", aid, "telemetry"), 1)
                 if spec.get("colocate") and not spec.get("batch"):
@@ -326,11 +331,14 @@ class Bare:
 
     async def _lockstep_leader(self) -> None:
         granted, k = -1, 0
+        batch = int(self.spec.get("batch", 0))
         while k <= self.steps:
             for _, g in self.drain():
                 granted = max(granted, g)
             while k <= min(granted, self.steps):
                 self.put("state", self.sizes["state"], k)
+                if batch and (k % batch == batch - 1 or k == self.steps):  # ticks k - k % batch .. k
+                    self.put("record", HEADER.size + (k % batch + 1) * self.sizes["state"], k)
                 k += 1
             if k <= self.steps:
                 await self.wait()
@@ -413,7 +421,7 @@ class Bare:
         while k <= self.steps:
             await self.wait()
             for idx, j in self.drain():
-                if batch and idx == 1:  # a batch of telemetry + plant state ending at tick j
+                if batch and idx in (0, 1):  # a batch (the leader's, or telemetry + plant state) ending at tick j
                     for t in range(j - j % batch, j + 1):
                         count[t] += 1
                 else:

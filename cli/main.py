@@ -53,8 +53,8 @@ def _seconds(text: str) -> float:
     return x
 
 
-def _int_at_least(lo: int) -> Callable[[str], int]:
-    """An argparse type: a whole number >= ``lo``."""
+def _int_at_least(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse type: a whole number >= ``lo`` (and <= ``hi``, if given)."""
     def convert(text: str) -> int:
         try:
             x = int(text)
@@ -62,12 +62,22 @@ def _int_at_least(lo: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give e.g. 10") from None
         if x < lo:
             raise argparse.ArgumentTypeError(f"{x} is not >= {lo}; give e.g. 10")
+        if hi is not None and x > hi:
+            raise argparse.ArgumentTypeError(f"{x} is more than {hi}; give at most {hi}")
         return x
 
     return convert
 
 
 _positive_int = _int_at_least(1)
+
+
+def _record_ticks(text: str) -> int:
+    """An argparse type: ticks per record, at most ``wire.RECORD_MAX`` (a record of more is dropped
+    by its receiver as ``size``)."""
+    from tether import wire
+
+    return _int_at_least(1, wire.RECORD_MAX)(text)
 
 
 def _rt_priority(text: str) -> int:
@@ -397,6 +407,9 @@ def cmd_leader(args: argparse.Namespace) -> int:
     from leader import node
 
     m = _load(args.mission)
+    if args.record_batch and args.clock != "lockstep":
+        raise BadArgument("--record-batch: records are for lockstep runs (in real time the recorder hears every "
+                          "state); drop it, or give --clock lockstep")
     return _serve(args, "leader", m.leader.id, node.run)
 
 
@@ -841,8 +854,12 @@ def _process_commands(sub: argparse._SubParsersAction) -> None:
                             help="lockstep: the agent computes its simulated plant itself (no plant process) and "
                                  "sends the recorder batched records; the recorder listens for them")
         if role == "agent":
-            rp.add_argument("--record-batch", type=_positive_int, default=1, metavar="TICKS",
+            rp.add_argument("--record-batch", type=_record_ticks, default=1, metavar="TICKS",
                             help="with --colocate-plant: ticks per record sent to the recorder")
+        if role == "leader":
+            rp.add_argument("--record-batch", type=_record_ticks, default=0, metavar="TICKS",
+                            help="lockstep, for a recorder given --colocate-plant: also send it this process's "
+                                 "states in records of TICKS ticks (default: none)")
         if role == "recorder":
             rp.add_argument("--out", required=True)
             rp.add_argument("--live", type=int, default=None, metavar="PORT",

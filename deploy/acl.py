@@ -98,18 +98,21 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
               replies=(k.everything,), asks=(k.everything,), lists=(every_token,)) for r in routers
     ]
     out += [
-        Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"),),
+        # record: lockstep with the plants co-located in their agents, its states for the recorder
+        Grant(f"leader-{lid}", publish=(k.topic("leader", lid, "state"), k.topic("leader", lid, "record")),
               subscribe=(k.start, k.tick, k.recorded), tokens=(k.token("leader", lid),)),
         # the operator also watches the swarm (tether record, tether top): it may hear every stream
         # the recorder hears, and publish none of them
         Grant("control-0", publish=(k.start, k.tick, k.recorded, k.safety),
-              subscribe=(k.acks, k.start, k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
+              subscribe=(k.acks, k.start, k.topic("leader", lid, "state"), k.topic("leader", lid, "record"),
+                         f"tether/{ns}/agent/*/telemetry",
                          f"tether/{ns}/agent/*/record", f"tether/{ns}/plant/*/state", k.topic("world", 0, "state")),
               watch=(every_token,), sees=(every_token,),
               asks=(every_netem,), lists=(k.token("agent", "*"),)),
         Grant("recorder-0", publish=(k.topic("recorder", 0, "ack"),),
-              subscribe=(k.topic("leader", lid, "state"), f"tether/{ns}/agent/*/telemetry",
-                         f"tether/{ns}/agent/*/record", f"tether/{ns}/plant/*/state", k.start),
+              subscribe=(k.topic("leader", lid, "state"), k.topic("leader", lid, "record"),
+                         f"tether/{ns}/agent/*/telemetry", f"tether/{ns}/agent/*/record", f"tether/{ns}/plant/*/state",
+                         k.start),
               tokens=(k.token("recorder", 0),), watch=(every_token,), sees=(every_token,)),
     ]
     for aid in m.agent_ids:

@@ -321,8 +321,8 @@ class Launch:
                 cmd += ["--id", str(nid)]
             if o.colocate_plants and role in ("agent", "recorder"):
                 cmd += ["--colocate-plant"]
-                if role == "agent":
-                    cmd += ["--record-batch", str(record_batch(o))]
+            if o.colocate_plants and role in ("agent", "leader"):  # the recorder hears records alone
+                cmd += ["--record-batch", str(record_batch(o))]
             if role == "recorder":
                 cmd += ["--out", str(o.out)]
                 if o.live is not None:

@@ -1,6 +1,7 @@
 """The recorder's process: hears every sample of a run and writes one run file (``run.npz``).
 
-It subscribes to the leader's state, every agent's telemetry and every plant's state, and fills a
+It subscribes to the leader's state, every agent's telemetry and every plant's state (lockstep with
+the plants co-located: the leader's and every agent's records), and fills a
 :class:`~tether.runfile.Run` indexed by tick. In lockstep it acknowledges tick k once it holds
 every sample of k, so the clock never runs ahead of what is recorded. In real time it records
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
@@ -398,6 +399,24 @@ def _drops(node: Node) -> dict[str, int]:
     return {**node.receiver.drops, "copy": node.copies} if node.copies else dict(node.receiver.drops)
 
 
+def _leader_records(node: Node, rec: Recording, leader_gate: Callable[[wire.State], str | None]
+                    ) -> Callable[[wire.Record], None]:
+    """What the recorder does with the leader's :class:`~tether.wire.Record` (lockstep, plants
+    co-located): each state passes the plausibility gate as one that came alone would, then is
+    recorded as if it had."""
+
+    def take(msg: wire.Record) -> None:
+        for s in msg.leader:
+            why = leader_gate(s)
+            if why is not None:
+                node.count_drop("gate")
+                log.warning("record of the leader: state of tick %d rejected (%s)", s.k, why)
+                continue
+            rec.leader(s)
+
+    return take
+
+
 def _records(node: Node, rec: Recording, plant_gate: Callable[[wire.PlantState], str | None]
              ) -> Callable[[wire.Record], None]:
     """What the recorder does with one agent's :class:`~tether.wire.Record` (its plant co-located):
@@ -442,22 +461,27 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         # real time: a sample is judged at its arrival (the wildcard streams below are drained up to
         # a period later: they do not wake the loop)
         now = None if node.clock.lockstep else node.arrival
-        leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
-                             on_message=rec.leader, keep=False)
         # a recorder restarted mid-run joins it from the leader's samples (tether/rejoin.py); before
         # its start, samples are not recorded
         rejoin = Rejoin(getattr(node.clock, "wall", None))
         leader_gate = gate.for_sender(m, m.leader.id, now).check
-
-        def admit_leader(msg: wire.State) -> str | None:
-            if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
-                rejoin.observe(msg.k, msg.t)
-                return "before start"
-            return leader_gate(msg)
-
-        leader.admit = admit_leader
-        producers = [("leader", m.leader.id)]
         colocated = node.args.colocate
+        if colocated:
+            # lockstep, plants co-located: the leader's states come in its records too (one wake-up
+            # a record, not one a tick; leader/node.py)
+            node.source(keys.topic("leader", m.leader.id, "record"), wire.Record, m.leader.id, keep=False,
+                        on_message=_leader_records(node, rec, leader_gate))
+        else:
+            def admit_leader(msg: wire.State) -> str | None:
+                if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+                    rejoin.observe(msg.k, msg.t)
+                    return "before start"
+                return leader_gate(msg)
+
+            leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
+                                 on_message=rec.leader, keep=False)
+            leader.admit = admit_leader
+        producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
             plant_gate = gate.for_sender(m, aid, now).check
             if colocated:  # lockstep, plants inside their agents: both streams in the agent's records

@@ -404,6 +404,35 @@ def test_a_record_is_checked_item_by_item_and_dropped_whole_for_one_bad_item() -
     assert rx.accept(wire.encode(good), wire.Record, 2) is None and rx.drops["sender"] == 2  # on agent 2's key
 
 
+def _leader_record(k0: int, n: int, sender: int = 5, dim: int = 2) -> wire.Record:
+    """The leader's states of ticks ``k0 .. k0 + n - 1``, at rest at the origin."""
+    z = [0.0] * dim
+    states = [wire.State(sender=sender, seq=k, k=k, t=k / 100, p=z, vel=z, a=z) for k in range(k0, k0 + n)]
+    return wire.Record(sender=sender, seq=k0, k=k0 + n - 1, t=(k0 + n - 1) / 100, leader=states)
+
+
+def test_a_leaders_record_carries_its_states_alone_each_checked() -> None:
+    """The leader's record (lockstep, plants co-located): its states alone, one a tick for
+    consecutive ticks ending at ``k``, each checked as if it had come alone."""
+    good = _leader_record(16, 4)
+    rx = wire.Receiver(2)
+    assert rx.accept(wire.encode(good), wire.Record, 5) == good
+    s = good.leader
+    cases = [
+        (_with(good, leader=[s[0], msgspec.structs.replace(s[1], vel=[0.0, math.inf]), *s[2:]]), "nonfinite"),
+        (_with(good, leader=[*s[:3], msgspec.structs.replace(s[3], a=[0.0])]), "size"),
+        (_with(good, leader=[*s[:3], msgspec.structs.replace(s[3], sender=1)]), "sender"),
+        (_with(good, leader=[s[0], s[0], *s[2:]]), "record"),  # a tick twice
+        (_with(good, k=21), "record"),  # the states do not end at k
+        (_with(good, plant=_record(16, 4).plant), "size"),  # an agent's streams beside the leader's
+        (wire.encode(_leader_record(0, wire.RECORD_MAX + 1)), "size"),
+    ]
+    for payload, reason in cases:
+        before = dict(rx.drops)
+        assert rx.accept(payload, wire.Record, 5) is None, reason
+        assert rx.drops.get(reason, 0) == before.get(reason, 0) + 1, (reason, rx.drops)
+
+
 def _busy_record(k0: int, n: int, sender: int, rng: np.random.Generator, dim: int = 2) -> wire.Record:
     """Ticks ``k0 .. k0 + n - 1`` of agent ``sender`` with every recorded field distinct."""
     def v() -> list[float]:
@@ -500,8 +529,9 @@ def test_the_recorder_writes_a_record_at_once_as_it_would_sample_by_sample() -> 
 async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which_ticks_lack_samples(
         tmp_path: Path) -> None:
     """The recorder alone (``--colocate-plant``, lockstep), around this test's router session: the
-    test plays the leader and the four agents. Junk, a record with a non-finite item, one forged on
-    another agent's key and a replayed one are dropped and counted; agent 3's last record never
+    test plays the leader (its records) and the four agents. Junk, a record with a non-finite item, one
+    forged on another agent's key and a replayed one are dropped and counted, and so is a leader's
+    state the plausibility gate rejects (a far-off one, for a tick whose own comes after); agent 3's last record never
     comes (lost), so the recorder stalls on its first tick, acknowledges up to the tick before it, and writes a
     file that is marked incomplete and holds every other sample."""
     ns = f"recorder-alone-{os.getpid()}"
@@ -525,15 +555,18 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
         try:
             await tp.wait_for_tokens(session, [keys.token("recorder", 0)], STARTUP)
             pubs = {key: tp.declare_publisher(session, key, tp.SYNC) for key in
-                    (keys.start, keys.topic("leader", LEADER, "state"),
+                    (keys.start, keys.topic("leader", LEADER, "record"),
                      *(keys.topic("agent", i, "record") for i in AGENTS))}
             for pub in pubs.values():
                 await tp.wait_for_subscribers(pub, WAIT)
             pubs[keys.start].put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=time.time())))
             zero = [0.0, 0.0]
-            for k in range(steps + 1):
-                pubs[keys.topic("leader", LEADER, "state")].put(wire.encode(wire.State(
-                    sender=LEADER, seq=k, k=k, t=k / 100, p=zero, vel=zero, a=zero)))
+            leader = keys.topic("leader", LEADER, "record")
+            far = wire.State(sender=LEADER, seq=0, k=0, t=0.0, p=[1e4, 0.0], vel=zero, a=zero)
+            pubs[leader].put(wire.encode(wire.Record(sender=LEADER, seq=0, k=0, t=0.0, leader=[far])))  # gated
+            for seq, k0 in enumerate(range(0, steps + 1, batch), start=1):
+                states = _leader_record(k0, min(batch, steps + 1 - k0), sender=LEADER)
+                pubs[leader].put(wire.encode(msgspec.structs.replace(states, seq=seq)))
             rec1 = keys.topic("agent", 1, "record")
             pubs[rec1].put(b"\x93\x01\x02")  # junk
             nan = _record(0, batch, p=p0[1])
@@ -565,7 +598,9 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
     assert run.meta.samples_expected == 9 * (steps + 1)
     assert run.meta.samples_recorded == 9 * (steps + 1) - 2 * 2  # agent 3's plant and telemetry of ticks 8, 9
     drops = run.meta.recorder_drops
-    assert (drops.malformed, drops.nonfinite, drops.sender, drops.other) == (1, 1, 1, {"copy": 1}), drops
+    assert (drops.malformed, drops.nonfinite, drops.sender, drops.other) == (1, 1, 1, {"copy": 1, "gate": 1}), drops
+    assert "record of the leader: state of tick 0 rejected" in text, text
+    assert (run.leader_p[:, 0] == 0.0).all()  # the far-off state did not take tick 0's place
     col = run.agent_ids.tolist().index(3)
     assert np.isnan(run.p[8:, col]).all() and np.isnan(run.runtime.plant_p[8:, col]).all()
     assert np.isfinite(np.delete(run.p, col, axis=1)).all() and np.isfinite(run.p[:8]).all()

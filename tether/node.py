@@ -134,7 +134,8 @@ class NodeArgs:
     recorder :class:`~tether.wire.Record` messages; the recorder listens for them
     (``tether run --colocate-plants``)."""
     record_batch: int = 1
-    """With :attr:`colocate`: ticks an agent's record carries at most (a smaller last one ends the run)."""
+    """With :attr:`colocate`: ticks an agent's record carries at most (a smaller last one ends the run).
+    The leader's (lockstep): ticks of its states per record for the recorder, 0 for none."""
     mesh_peers: int = 0
     """A peer of a mesh: the token is declared once the session is linked to this many other peers
     (:meth:`Node.ready`); 0: at once."""

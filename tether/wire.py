@@ -267,13 +267,16 @@ class NetemSet(_Msg, tag="netem_set", frozen=True):
 
 
 class Record(_Msg, tag="record", frozen=True):
-    """Lockstep, plant co-located in its agent (``tether run --colocate-plants``): what the recorder
-    would otherwise hear on ``plant/<id>/state`` and ``agent/<id>/telemetry``, for consecutive
-    ticks ending at ``k``, in one message (``--record-batch`` ticks at most). Every item is checked
+    """Lockstep, plants co-located in their agents (``tether run --colocate-plants``): what the
+    recorder would otherwise hear sample by sample, for consecutive ticks ending at ``k``, in one
+    message (``--record-batch`` ticks at most). An agent's (on ``agent/<id>/record``) carries its
+    plant's states and its telemetry, one of each per tick; the leader's (on ``leader/<id>/record``)
+    its states alone, which it also puts tick by tick for its out-neighbours. Every item is checked
     as if it had come alone (sender, vector sizes, finiteness); one bad item drops the whole record."""
 
-    plant: list[PlantState]
-    telemetry: list[Telemetry]
+    plant: list[PlantState] = msgspec.field(default_factory=list)
+    telemetry: list[Telemetry] = msgspec.field(default_factory=list)
+    leader: list[State] = msgspec.field(default_factory=list)
 
 
 Message = (State | PlantState | Command | Telemetry | Tick | Ack | Start | NetemSet | WorldState | SafetyCommand
@@ -423,14 +426,26 @@ class Receiver:
             self._drop("sender")
             return None
         if isinstance(msg, Record):
-            items: list[Message] = [*msg.plant, *msg.telemetry]
-            if len(msg.plant) != len(msg.telemetry) or not items or len(items) > 2 * RECORD_MAX:
-                self._drop("size")
-                return None
-            first = msg.k - len(msg.plant) + 1
-            if any(p.k != first + n or q.k != first + n for n, (p, q) in enumerate(zip(msg.plant, msg.telemetry))):
-                self._drop("record")  # not one sample of each stream per tick, for consecutive ticks ending at k
-                return None
+            items: list[Message]
+            if msg.leader:  # the leader's: its states alone
+                items = [*msg.leader]
+                if msg.plant or msg.telemetry or len(items) > RECORD_MAX:
+                    self._drop("size")
+                    return None
+                first = msg.k - len(items) + 1
+                if any(s.k != first + n for n, s in enumerate(msg.leader)):
+                    self._drop("record")  # not one state per tick, for consecutive ticks ending at k
+                    return None
+            else:
+                items = [*msg.plant, *msg.telemetry]
+                if len(msg.plant) != len(msg.telemetry) or not items or len(items) > 2 * RECORD_MAX:
+                    self._drop("size")
+                    return None
+                first = msg.k - len(msg.plant) + 1
+                if any(p.k != first + n or q.k != first + n
+                       for n, (p, q) in enumerate(zip(msg.plant, msg.telemetry))):
+                    self._drop("record")  # not one sample of each stream per tick, for consecutive ticks ending at k
+                    return None
             for item in items:
                 if item.v != WIRE_VERSION:
                     self._drop("version")
