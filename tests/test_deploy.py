@@ -25,7 +25,6 @@ from __future__ import annotations
 import asyncio
 import json
 import shlex
-import socket
 import subprocess
 import sys
 import threading
@@ -148,16 +147,8 @@ def wait_matching(pub: zenoh.Publisher, timeout: float = WAIT) -> None:
 
 
 def free_port_pair() -> int:
-    """A port p on 127.0.0.1 such that p and p + 1 are both free now."""
-    for _ in range(100):
-        port = tp.free_tcp_port()
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port + 1))
-            except OSError:
-                continue
-        return port
-    raise AssertionError("no two adjacent free ports on 127.0.0.1")
+    """A port p on 127.0.0.1 such that p and p + 1 are both free now (and neither given out before)."""
+    return tp.free_tcp_port(span=2)
 
 
 def cmd(sender: int, u: list[float], seq: int = 0) -> bytes:
@@ -600,18 +591,10 @@ def peer_deployment(tmp_path_factory: pytest.TempPathFactory, mission_file: Path
     """A peer deployment on loopback (every process listens on its own port), signed by the same CA."""
     root = tmp_path_factory.mktemp("peer")
     out = root / "out"
-    taken: set[int] = set()
-
     def fresh(pair: bool = False) -> int:
-        """A free port (with the next one, for an agent and its plant) not given out here yet: a port is only
-        free when it is picked, so two picks could return the same one (once an agent was given the leader's)."""
-        for _ in range(100):
-            port = free_port_pair() if pair else tp.free_tcp_port()
-            want = {port, port + 1} if pair else {port}
-            if not want & taken:
-                taken.update(want)
-                return port
-        raise AssertionError("no port on 127.0.0.1 that this deployment has not given out yet")
+        """A free port (with the next one, for an agent and its plant): never one given out before
+        (``free_tcp_port``; two picks in a row once gave an agent the leader's port)."""
+        return free_port_pair() if pair else tp.free_tcp_port()
 
     body = "network = \"peer\"\n"
     for table in ("router", "leader", "recorder"):

@@ -11,7 +11,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import random
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -445,6 +447,20 @@ def test_free_tcp_port_is_bindable_and_below_the_ephemeral_range() -> None:
     for p in ports:
         assert 1024 <= p <= 65535
         assert tp.loopback_endpoint(p) == f"tcp/127.0.0.1:{p}"
+
+
+def test_free_tcp_port_never_gives_a_port_twice_even_when_the_generator_repeats_itself() -> None:
+    """A port is free until somebody binds it, so two picks in a row could return the same one (a
+    deployment test once gave an agent the leader's port): a port given out is never given again,
+    even by a generator that draws the same numbers (two of them seeded alike), nor inside a span."""
+    first = [tp.free_tcp_port(random.Random(7)) for _ in range(5)]
+    again = [tp.free_tcp_port(random.Random(7)) for _ in range(5)]
+    assert len(set(first + again)) == 10
+    p = tp.free_tcp_port(random.Random(7), span=3)
+    assert not {p, p + 1, p + 2} & set(first + again)
+    for q in (p, p + 1, p + 2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", q))  # free: nothing bound it
 
 
 def test_token_key_is_hermetic_and_rejects_bad_chunks() -> None:

@@ -24,6 +24,7 @@ import asyncio
 import math
 import re
 import socket
+import threading
 from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar
@@ -355,31 +356,61 @@ def _ephemeral_low() -> int:
         return 32768
 
 
-def free_tcp_port(rng: random.Random | None = None) -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on now. Blocks for microseconds.
+_GIVEN: set[int] = set()
+"""Ports :func:`free_tcp_port` has returned in this process: never returned again."""
+_GIVEN_LOCK = threading.Lock()
+
+
+def free_tcp_port(rng: random.Random | None = None, span: int = 1) -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now (with ``span`` > 1: the first of that
+    many consecutive ones). Blocks for microseconds.
 
     Picked at random *below* the kernel's ephemeral range and checked by binding it, so the outgoing
     connections of other sockets (which take ephemeral ports) cannot grab it before the caller binds.
-    A race with another process choosing the same port remains possible but unlikely; the caller
-    should bind soon. ``rng`` is for reproducible tests; by default a fresh OS-seeded generator.
+    A port is only free while nobody binds it, so two calls in a row could return the same one (a
+    launcher giving two peers of a mesh one port; a deployment test once gave an agent the leader's):
+    a port returned is never returned again by this process. A race with another process choosing
+    the same port remains possible but unlikely; the caller should bind soon. ``rng`` is for
+    reproducible tests; by default a fresh OS-seeded generator.
     """
     if rng is None:
         import random  # here: only a launcher picks ports, and every process loads this module
 
         rng = random.Random()
-    high = _ephemeral_low() - 1
+    high = _ephemeral_low() - span
     low = max(1024, min(10000, high - 1000))
     for _ in range(200):
         port = rng.randint(low, high)
+        if _free_now(range(port, port + span)) and _give(range(port, port + span)):
+            return port
+    for _ in range(200):  # crowded machine: let the kernel choose (a single port)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if span == 1 and _give(range(port, port + 1)):
+            return port
+    raise OSError(f"no {span} free TCP port(s) on 127.0.0.1 that this process has not given out already")
+
+
+def _free_now(ports: range) -> bool:
+    for port in ports:
+        if port in _GIVEN:
+            return False
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             try:
                 s.bind(("127.0.0.1", port))
             except OSError:
-                continue
-            return port
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # crowded machine: let the kernel choose
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+                return False
+    return True
+
+
+def _give(ports: range) -> bool:
+    """Mark ``ports`` given, unless one of them already is (another thread's pick)."""
+    with _GIVEN_LOCK:
+        if any(p in _GIVEN for p in ports):
+            return False
+        _GIVEN.update(ports)
+        return True
 
 
 # =========================================================================== sessions
