@@ -80,6 +80,45 @@ FAILSAFE = frozenset({"failsafe", "diverged"})
 """Events that mean a failsafe fired or a value diverged (exit status 3)."""
 
 
+# What the monitor reads of the messages it hears: a decoder of these skips every other field of a
+# message (an agent's link statistics, drops, gate counts, vectors it does not judge) without building
+# it; a record of 16 ticks decoded in half the time of the whole message (19 against 39 µs, hot)
+class _Telemetry(msgspec.Struct, tag_field="type", tag="telemetry", frozen=True):
+    sender: int
+    k: int
+    t: float
+    xi: list[float]
+    kp: list[float]
+    kv: list[float]
+    mode: int = wire.FLYING
+    events: list[wire.SafetyEvent] = msgspec.field(default_factory=list)
+    clock: list[wire.ClockLink] = msgspec.field(default_factory=list)
+
+
+class _PlantState(msgspec.Struct, tag_field="type", tag="plant_state", frozen=True):
+    sender: int
+    k: int
+    t: float
+    p: list[float]
+    mode: int = wire.FLYING
+
+
+class _State(msgspec.Struct, tag_field="type", tag="state", frozen=True):
+    sender: int
+    k: int
+    t: float
+
+
+class _Record(msgspec.Struct, tag_field="type", tag="record", frozen=True):
+    sender: int
+    k: int
+    plant: list[_PlantState] = msgspec.field(default_factory=list)
+    telemetry: list[_Telemetry] = msgspec.field(default_factory=list)
+
+
+_Heard = _Telemetry | _PlantState | _State | _Record
+
+
 def _name(role: str, nid: int) -> str:
     return f"{role}/{nid}"
 
@@ -126,7 +165,7 @@ class Monitor:
         self._diverged: set[str] = set()
         self._skewed: set[tuple[str, str, int]] = set()
         """(agent, sender role, sender id) of the links already reported skewed."""
-        self._decoder = msgspec.msgpack.Decoder(wire.Message)
+        self._decoder = msgspec.msgpack.Decoder(_Heard)
         ns = keys.ns
         self._subs = [
             tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", self.fifo),
@@ -164,8 +203,8 @@ class Monitor:
                 msg = self._decoder.decode(rec.payload)
             except (ValueError, msgspec.DecodeError, msgspec.ValidationError):
                 continue
-            if isinstance(msg, wire.Record):  # the plant's samples, then the agent's telemetry
-                items: list[tuple[str, wire.Message]] = [(_name("plant", nid), x) for x in msg.plant]
+            if isinstance(msg, _Record):  # the plant's samples, then the agent's telemetry
+                items: list[tuple[str, _Heard]] = [(_name("plant", nid), x) for x in msg.plant]
                 items += [(_name("agent", nid), x) for x in msg.telemetry]
             else:
                 items = [(_name(role, nid), msg)]
@@ -205,14 +244,14 @@ class Monitor:
             elif self.alive_token.get(name):
                 self.report(name, "back", "its liveliness token is back")
 
-    def _observe(self, name: str, msg: wire.Message) -> None:
+    def _observe(self, name: str, msg: _Heard) -> None:
         """What one agent's telemetry or one plant's state says: mode changes, skew, divergence."""
         sf = self.mission.safety
         self.heard.add(name)
         judged = self.modes.get(name, wire.FLYING) in JUDGED
-        if isinstance(msg, wire.PlantState) and msg.p and math.isfinite(msg.p[-1]):
+        if isinstance(msg, _PlantState) and msg.p and math.isfinite(msg.p[-1]):
             self.height[name] = msg.p[-1]
-        if isinstance(msg, wire.Telemetry) or isinstance(msg, wire.PlantState):
+        if isinstance(msg, (_Telemetry, _PlantState)):
             mode = msg.mode
             before = self.modes.get(name, wire.FLYING)
             self.modes[name] = mode
@@ -222,13 +261,13 @@ class Monitor:
                             f"mode {wire.MODES[before] if 0 <= before < 5 else before} -> "
                             f"{wire.MODES[mode] if 0 <= mode < 5 else mode}" + (f" ({why})" if why else ""),
                             t=msg.t)
-        if isinstance(msg, wire.Telemetry):
+        if isinstance(msg, _Telemetry):
             for c in msg.clock:
                 if c.warn and (name, c.role, c.src) not in self._skewed:
                     self._skewed.add((name, c.role, c.src))
                     self.report(name, "skew", f"link {c.role}/{c.src}: clock offset bound {1000 * c.offset:+.1f} ms "
                                               "(arrival minus sample time; tether/skew.py)", t=msg.t)
-        if isinstance(msg, wire.Telemetry) and name not in self._diverged and judged:
+        if isinstance(msg, _Telemetry) and name not in self._diverged and judged:
             # a vehicle that was landing (or landed, or stopped) has left the formation on purpose: its
             # xi against a leader that flies on is not a divergence. Its supervisor judges a tick by
             # the mode it began in, so the tick a divergence sends it to LAND is still judged here.

@@ -322,6 +322,34 @@ def test_the_monitor_judges_divergence_only_of_a_vehicle_that_was_flying_or_hold
     asyncio.run(main())
 
 
+def test_what_the_monitor_reads_is_a_part_of_the_wire_messages_and_decodes_them() -> None:
+    """The monitor decodes only the fields it judges (``deploy/inject.py``): each of its structs
+    has a wire message's tag and a subset of its fields, with the same defaults, so that every
+    message the swarm sends decodes, and a changed wire message fails here, not in a run."""
+    import msgspec
+
+    from deploy import inject
+
+    pairs = [(inject._Telemetry, wire.Telemetry), (inject._PlantState, wire.PlantState), (inject._State, wire.State),
+             (inject._Record, wire.Record)]
+    for mine, theirs in pairs:
+        assert mine.__struct_config__.tag == theirs.__struct_config__.tag
+        fields = {f.name: f for f in msgspec.structs.fields(theirs)}
+        for f in msgspec.structs.fields(mine):
+            assert f.name in fields, (mine, f.name)
+            assert (f.default, f.default_factory) == (fields[f.name].default, fields[f.name].default_factory) \
+                or (f.default_factory is list and fields[f.name].default == []), (mine, f.name)
+    z = [0.0, 0.0]
+    tele = wire.Telemetry(sender=2, seq=3, k=3, t=0.03, meas_t=0.03, p=z, vel=z, a=z, u=z, xi=[0.5, 0.0], zeta=z,
+                          kp=[1.0, 2.0], kv=z, links=[], drops={"malformed": 1}, mode=wire.LAND)
+    plant = wire.PlantState(sender=2, seq=3, k=3, t=0.03, p=[0.0, 1.5], vel=z, a=z, d=z)
+    decoder = msgspec.msgpack.Decoder(inject._Heard)
+    got = decoder.decode(wire.encode(wire.Record(sender=2, seq=0, k=3, t=0.03, plant=[plant], telemetry=[tele])))
+    assert isinstance(got, inject._Record)
+    assert (got.telemetry[0].mode, got.telemetry[0].xi, got.telemetry[0].kp) == (wire.LAND, [0.5, 0.0], [1.0, 2.0])
+    assert got.plant[0].p == [0.0, 1.5]
+
+
 def test_a_token_back_within_the_confirmation_delay_is_still_reported_as_a_freeze() -> None:
     """A freeze (or cut-off) about as long as the lease: the token goes and comes back within
     Monitor.CONFIRM while the process ran on. Measured before the fix (bench/faults.py,
