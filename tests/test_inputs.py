@@ -75,3 +75,20 @@ def test_a_forged_huge_sequence_number_costs_nothing_and_is_counted_like_any_oth
         src.offer(Msg(q, 0))
     assert src.recent.bit_length() <= RECENT_SEQS + 1
     assert (src.stale, src.duplicates, src.reordered) == model(seqs) == (3, 2, 1)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_had_is_true_exactly_for_numbers_received_within_the_window(seed: int) -> None:
+    """``Source.had`` (a lockstep receiver drops a copy it had): true only for a number received
+    and within RECENT_SEQS of the newest; a number too far behind to tell is not known to be had,
+    so that a sample still needed is never dropped as a copy."""
+    rng = random.Random(seed)
+    src = Source("k", Msg, None, keep=False)
+    seen: set[int] = set()
+    for _ in range(400):
+        q = rng.randrange(0, 600)
+        src.offer(Msg(q, q))
+        seen.add(q)
+    newest = max(seen)
+    for q in range(0, newest + 5):
+        assert src.had(Msg(q, q)) == (q in seen and newest - q <= RECENT_SEQS), q

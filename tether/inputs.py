@@ -108,13 +108,14 @@ class Source:
         return self.gone and not (self.newest is not None and self.newest.k >= min(k, self.last))
 
     def had(self, msg: Any) -> bool:
-        """Whether a sample with ``msg``'s sequence number was accepted already (or is more than
-        :data:`RECENT_SEQS` behind the newest: too old to tell, so taken as had)."""
+        """Whether a sample with ``msg``'s sequence number is known to have been accepted already.
+        One more than :data:`RECENT_SEQS` behind the newest is too old to tell: not known (a caller
+        that drops what was had must not drop a sample it may still need)."""
         newest = self.newest
         if newest is None or msg.seq > newest.seq:
             return False
         behind = newest.seq - msg.seq
-        return behind > RECENT_SEQS or bool(self.recent >> behind & 1)
+        return behind <= RECENT_SEQS and bool(self.recent >> behind & 1)
 
     def offer(self, msg: Any, missed: bool = False) -> None:
         """Take one decoded sample: the gate may reject it; otherwise it is counted, held by tick,
