@@ -591,17 +591,12 @@ def peer_deployment(tmp_path_factory: pytest.TempPathFactory, mission_file: Path
     """A peer deployment on loopback (every process listens on its own port), signed by the same CA."""
     root = tmp_path_factory.mktemp("peer")
     out = root / "out"
-    def fresh(pair: bool = False) -> int:
-        """A free port (with the next one, for an agent and its plant): never one given out before
-        (``free_tcp_port``; two picks in a row once gave an agent the leader's port)."""
-        return free_port_pair() if pair else tp.free_tcp_port()
-
     body = "network = \"peer\"\n"
     for table in ("router", "leader", "recorder"):
-        body += f"[{table}]\naddress = \"127.0.0.1\"\nport = {fresh()}\n"
+        body += f"[{table}]\naddress = \"127.0.0.1\"\nport = {tp.free_tcp_port()}\n"
     body += f"out = {toml_str(root / 'runs')}\n"  # in [recorder]
     for aid in (1, 2, 3):  # the agent listens on port, its plant on port + 1
-        body += f"[[agents]]\nid = {aid}\naddress = \"127.0.0.1\"\nport = {fresh(pair=True)}\n"
+        body += f"[[agents]]\nid = {aid}\naddress = \"127.0.0.1\"\nport = {free_port_pair()}\n"
     return gen.generate(mission_file, out, hosts=write_hosts(root / "hosts.toml", out, body), ca=deployment.out / "ca")
 
 

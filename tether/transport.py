@@ -383,11 +383,11 @@ def free_tcp_port(rng: random.Random | None = None, span: int = 1) -> int:
         port = rng.randint(low, high)
         if _free_now(range(port, port + span)) and _give(range(port, port + span)):
             return port
-    for _ in range(200):  # crowded machine: let the kernel choose (a single port)
+    for _ in range(200 if span == 1 else 0):  # crowded machine: let the kernel choose (a single port)
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             s.bind(("127.0.0.1", 0))
             port = int(s.getsockname()[1])
-        if span == 1 and _give(range(port, port + 1)):
+        if _give(range(port, port + 1)):
             return port
     raise OSError(f"no {span} free TCP port(s) on 127.0.0.1 that this process has not given out already")
 

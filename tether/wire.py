@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import msgspec
 
@@ -426,26 +426,19 @@ class Receiver:
             self._drop("sender")
             return None
         if isinstance(msg, Record):
-            items: list[Message]
-            if msg.leader:  # the leader's: its states alone
-                items = [*msg.leader]
-                if msg.plant or msg.telemetry or len(items) > RECORD_MAX:
-                    self._drop("size")
-                    return None
-                first = msg.k - len(items) + 1
-                if any(s.k != first + n for n, s in enumerate(msg.leader)):
-                    self._drop("record")  # not one state per tick, for consecutive ticks ending at k
-                    return None
-            else:
-                items = [*msg.plant, *msg.telemetry]
-                if len(msg.plant) != len(msg.telemetry) or not items or len(items) > 2 * RECORD_MAX:
-                    self._drop("size")
-                    return None
-                first = msg.k - len(msg.plant) + 1
-                if any(p.k != first + n or q.k != first + n
-                       for n, (p, q) in enumerate(zip(msg.plant, msg.telemetry))):
-                    self._drop("record")  # not one sample of each stream per tick, for consecutive ticks ending at k
-                    return None
+            # the leader's carries its states alone; an agent's its plant's states and its telemetry,
+            # one of each per tick
+            streams: list[list[Any]] = [msg.leader] if msg.leader else [msg.plant, msg.telemetry]
+            n = len(streams[0])
+            if (msg.leader and (msg.plant or msg.telemetry)) or not n or n > RECORD_MAX \
+                    or any(len(stream) != n for stream in streams):
+                self._drop("size")
+                return None
+            first = msg.k - n + 1
+            if any(x.k != first + i for stream in streams for i, x in enumerate(stream)):
+                self._drop("record")  # not one sample of each stream per tick, for consecutive ticks ending at k
+                return None
+            items: list[Message] = [x for stream in streams for x in stream]
             for item in items:
                 if item.v != WIRE_VERSION:
                     self._drop("version")
