@@ -526,15 +526,17 @@ def test_the_recorder_writes_a_record_at_once_as_it_would_sample_by_sample() -> 
 
 # =========================================================================== the recorder, fed by hand
 @pytest.mark.asyncio
+@pytest.mark.parametrize("lost", ["agent 3", "leader"])
 async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which_ticks_lack_samples(
-        tmp_path: Path) -> None:
+        tmp_path: Path, lost: str) -> None:
     """The recorder alone (``--colocate-plant``, lockstep), around this test's router session: the
     test plays the leader (its records) and the four agents. Junk, a record with a non-finite item, one
     forged on another agent's key and a replayed one are dropped and counted, and so is a leader's
-    state the plausibility gate rejects (a far-off one, for a tick whose own comes after); agent 3's last record never
-    comes (lost), so the recorder stalls on its first tick, acknowledges up to the tick before it, and writes a
+    state the plausibility gate rejects (a far-off one, for a tick whose own comes after). The last
+    record of agent 3, or of the leader, never comes (lost, and not sent again), so the recorder stalls
+    on its first tick, says whose samples it lacks, acknowledges up to the tick before it, and writes a
     file that is marked incomplete and holds every other sample."""
-    ns = f"recorder-alone-{os.getpid()}"
+    ns = f"recorder-alone-{os.getpid()}-{lost.split()[0]}"
     keys = wire.Keys(ns)
     endpoint = tp.loopback_endpoint(tp.free_tcp_port())
     steps, batch = 9, 4  # ticks 0..9: records of 0-3, 4-7, 8-9
@@ -565,6 +567,8 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
             far = wire.State(sender=LEADER, seq=0, k=0, t=0.0, p=[1e4, 0.0], vel=zero, a=zero)
             pubs[leader].put(wire.encode(wire.Record(sender=LEADER, seq=0, k=0, t=0.0, leader=[far])))  # gated
             for seq, k0 in enumerate(range(0, steps + 1, batch), start=1):
+                if lost == "leader" and k0 == 8:
+                    continue  # lost
                 states = _leader_record(k0, min(batch, steps + 1 - k0), sender=LEADER)
                 pubs[leader].put(wire.encode(msgspec.structs.replace(states, seq=seq)))
             rec1 = keys.topic("agent", 1, "record")
@@ -574,7 +578,7 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
             pubs[rec1].put(wire.encode(_record(0, batch, sender=2, p=p0[2])))  # agent 2's, forged on agent 1's key
             for i in AGENTS:
                 for seq, k0 in enumerate(range(0, steps + 1, batch)):
-                    if i == 3 and k0 == 8:
+                    if lost == "agent 3" and i == 3 and k0 == 8:
                         continue  # lost
                     r = msgspec.structs.replace(_record(k0, min(batch, steps + 1 - k0), sender=i, p=p0[i]), seq=seq)
                     pubs[keys.topic("agent", i, "record")].put(wire.encode(r))
@@ -591,19 +595,26 @@ async def test_the_recorder_drops_and_counts_bad_records_and_its_file_says_which
             sub.undeclare()
     text = read(log)
     assert status == 1 and "stalled" in text and "tick 8" in text, text
-    assert "(have 7 of 9; missing: plant 3, telemetry of agent 3)" in text, text  # what it lacks at the stall
+    lacks = "have 7 of 9; missing: plant 3, telemetry of agent 3" if lost == "agent 3" else \
+        "have 8 of 9; missing: leader 5"
+    assert f"({lacks})" in text, text  # what it lacks at the stall
     assert max(acked) == 7, (acked, text)  # an acknowledgement stands for every tick up to its own
     run = Run.load(out)
     assert run.meta.complete is False
     assert run.meta.samples_expected == 9 * (steps + 1)
-    assert run.meta.samples_recorded == 9 * (steps + 1) - 2 * 2  # agent 3's plant and telemetry of ticks 8, 9
+    # agent 3's plant and telemetry of ticks 8 and 9, or the leader's states of those ticks
+    assert run.meta.samples_recorded == 9 * (steps + 1) - (2 * 2 if lost == "agent 3" else 2)
     drops = run.meta.recorder_drops
     assert (drops.malformed, drops.nonfinite, drops.sender, drops.other) == (1, 1, 1, {"copy": 1, "gate": 1}), drops
     assert "record of the leader: state of tick 0 rejected" in text, text
-    assert (run.leader_p[:, 0] == 0.0).all()  # the far-off state did not take tick 0's place
-    col = run.agent_ids.tolist().index(3)
-    assert np.isnan(run.p[8:, col]).all() and np.isnan(run.runtime.plant_p[8:, col]).all()
-    assert np.isfinite(np.delete(run.p, col, axis=1)).all() and np.isfinite(run.p[:8]).all()
+    assert run.leader_p[0, 0] == 0.0  # the far-off state did not take tick 0's place
+    if lost == "agent 3":
+        col = run.agent_ids.tolist().index(3)
+        assert np.isnan(run.p[8:, col]).all() and np.isnan(run.runtime.plant_p[8:, col]).all()
+        assert np.isfinite(np.delete(run.p, col, axis=1)).all() and np.isfinite(run.p[:8]).all()
+    else:
+        assert np.isnan(run.leader_p[8:]).all() and np.isfinite(run.leader_p[:8]).all()
+        assert np.isfinite(run.p).all() and np.isfinite(run.runtime.plant_p).all()
     assert "Traceback" not in text
 
 
