@@ -146,11 +146,6 @@ def wait_matching(pub: zenoh.Publisher, timeout: float = WAIT) -> None:
         listener.undeclare()
 
 
-def free_port_pair() -> int:
-    """A port p on 127.0.0.1 such that p and p + 1 are both free now (and neither given out before)."""
-    return tp.free_tcp_port(span=2)
-
-
 def cmd(sender: int, u: list[float], seq: int = 0) -> bytes:
     return wire.encode(wire.Command(sender=sender, seq=seq, k=0, t=0.0, u=u))
 
@@ -596,7 +591,7 @@ def peer_deployment(tmp_path_factory: pytest.TempPathFactory, mission_file: Path
         body += f"[{table}]\naddress = \"127.0.0.1\"\nport = {tp.free_tcp_port()}\n"
     body += f"out = {toml_str(root / 'runs')}\n"  # in [recorder]
     for aid in (1, 2, 3):  # the agent listens on port, its plant on port + 1
-        body += f"[[agents]]\nid = {aid}\naddress = \"127.0.0.1\"\nport = {free_port_pair()}\n"
+        body += f"[[agents]]\nid = {aid}\naddress = \"127.0.0.1\"\nport = {tp.free_tcp_port(span=2)}\n"
     return gen.generate(mission_file, out, hosts=write_hosts(root / "hosts.toml", out, body), ca=deployment.out / "ca")
 
 
