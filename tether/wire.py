@@ -87,6 +87,10 @@ class PlantState(_Msg, tag="plant_state", frozen=True):
     mode: int = 0
     """The plant's command watchdog: 0 (FLYING) while it follows its agent, else HOLD, LAND, LANDED
     or ESTOP (codes of :data:`MODES`)."""
+    events: list["SafetyEvent"] = []
+    """What the plant's watchdog noticed since its previous sample: its mode changes and the commands
+    it rejected, clamped or flew outside the law's usual range (``src == dst`` when the mode did not
+    change), for the log and the run file."""
 
 
 class Command(_Msg, tag="cmd", frozen=True):
