@@ -187,7 +187,7 @@ def test_receiver_never_raises_on_random_bytes() -> None:
             payload = bytes(buf)
         for cls in SAMPLES:
             rx.accept(payload, cls, rng.choice([None, 0, 1, 2, 3, 4, 5]))
-    assert set(rx.drops) <= {"malformed", "version", "type", "sender", "size", "nonfinite"}
+    assert set(rx.drops) <= {"malformed", "version", "type", "sender", "size", "nonfinite", "record"}
     assert sum(rx.drops.values()) <= n * len(SAMPLES)
     assert rx.drops["malformed"] > 0
 
