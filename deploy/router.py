@@ -6,10 +6,14 @@ control like zenohd would, and declares nothing itself.
 
     python -m deploy.router --config /etc/tether/router.json5
 
-``--idle`` runs it at the lowest CPU priority the kernel grants without privileges (``SCHED_IDLE``,
-or else nice 19): ``tether run``'s operator gateway (``deploy/localtls.py``), whose links carry no
-control traffic, so that what a flood of them costs to decrypt and check is taken from idle time,
-not from the control loops.
+``--priority P`` runs it at ``SCHED_RR`` P where the system permits it, else at the normal policy
+with one line saying why (:func:`tether.sched.apply_best`); 0 is the normal policy. ``tether run``'s
+operator gateway (``deploy/localtls.py``), which carries the operator's ``land`` and ``estop``,
+takes :func:`tether.sched.gateway_priority` of the control processes' priority: one step below
+them, so that an order preempts a busy host's normal work and a flood of the gateway's links never
+delays a control loop. ``--idle`` runs it at the lowest CPU priority the kernel grants without
+privileges (``SCHED_IDLE``, or else nice 19): a router of links that may wait for an idle CPU (an
+order through it may wait as long).
 
 Prints one line ``router <zid> listening on <endpoints>`` on stderr once it listens (and, with
 ``connect`` endpoints and ``exit_on_failure``, once it is linked to them). Exit status:
@@ -28,7 +32,7 @@ import sys
 import threading
 
 from tether import transport as tp
-from tether.sched import lower_priority
+from tether import sched
 
 log = logging.getLogger("tether")
 
@@ -89,11 +93,26 @@ def serve(path: str, watch_pid: int | None = None) -> int:
     return 0
 
 
+def _priority(text: str) -> int:
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer; give 1..99 (SCHED_RR) or 0") from None
+    if (why := sched.check_priority(x)) is not None:
+        raise argparse.ArgumentTypeError(why)
+    return x
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m deploy.router", description=__doc__.splitlines()[0])
     p.add_argument("--config", required=True, help="the router's Zenoh JSON5 file (router.json5 from tether deploy-gen)")
-    p.add_argument("--idle", action="store_true",
-                   help="run at the lowest CPU priority (SCHED_IDLE, else nice 19): a router of non-control links")
+    level = p.add_mutually_exclusive_group()
+    level.add_argument("--priority", type=_priority, default=None, metavar="P",
+                       help="run at SCHED_RR P (1..99) where permitted, else at the normal policy (said in one "
+                            "line); 0: the normal policy")
+    level.add_argument("--idle", action="store_true",
+                       help="run at the lowest CPU priority (SCHED_IDLE, else nice 19): a router of links that "
+                            "may wait for an idle CPU")
     p.add_argument("--watch-pid", type=int, default=None,
                    help="stop when the process of this id, which started this router, is gone")
     p.add_argument("--log-level", default="INFO")
@@ -105,7 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s router: %(message)s")
     if args.idle:
-        log.info("CPU priority: %s", lower_priority())
+        log.info("CPU priority: %s", sched.lower_priority())
+    elif args.priority is not None:  # before the session opens: Zenoh's threads inherit it
+        applied, line = sched.apply_best(args.priority)
+        (log.info if applied == args.priority else log.warning)("CPU priority: %s", line)
     return serve(args.config, args.watch_pid)
 
 

@@ -1,4 +1,4 @@
-"""CPU scheduling of a process: real-time priority for the control loop, idle priority for tools.
+"""CPU scheduling of a process: real-time priority for the control loop and the operator's orders.
 
 Linux only (``os.sched_setscheduler``). A policy set on a process's main thread before it starts
 others (its Zenoh session's, cflib's) is inherited by each of them, so every role sets its own
@@ -15,6 +15,12 @@ measurement was 10-20 ms old and the formation-error envelope matched the lockst
 (``docs/runtime.md``, *Real-time priority*). A ``SCHED_RR`` process preempts every normal one at once; the kernel's
 real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % of each second by default)
 still leaves the others some CPU should one spin.
+
+Real time takes :data:`DEFAULT_PRIORITY` by default where the process is permitted to
+(:func:`apply_best`), and says in one line why not where it is not. The operator gateway, the
+router of the operator's ``land``/``estop`` and tools, runs one step below the control processes
+(:func:`gateway_priority`): above every normal process, so that an order gets through a busy host,
+and below the control loops, so that a flood of its links cannot delay them.
 """
 
 from __future__ import annotations
@@ -23,6 +29,12 @@ import os
 
 RR_MIN, RR_MAX = 1, 99
 """The ``SCHED_RR`` priorities Linux grants (``sched_get_priority_min/max``)."""
+
+
+DEFAULT_PRIORITY = 10
+"""The ``SCHED_RR`` priority a real-time run takes when none is given (``--rt-priority``)."""
+
+HOW_TO_PERMIT = "root, CAP_SYS_NICE, or an rtprio limit of at least {p}: `ulimit -r`, /etc/security/limits.conf"
 
 
 class SchedError(RuntimeError):
@@ -52,9 +64,8 @@ def apply(priority: int) -> str:
     try:
         os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
     except PermissionError:
-        raise SchedError(f"real-time scheduling is not permitted for this user (it needs root, CAP_SYS_NICE, "
-                         f"or an rtprio limit of at least {priority}: `ulimit -r`, /etc/security/limits.conf); "
-                         "run without it") from None
+        raise SchedError(f"real-time scheduling is not permitted for this user (it needs "
+                         f"{HOW_TO_PERMIT.format(p=priority)}); run without it") from None
     except OSError as exc:
         raise SchedError(f"SCHED_RR {priority} refused ({exc.strerror}); run without it") from None
     return f"SCHED_RR {priority}"
@@ -71,3 +82,33 @@ def lower_priority() -> str:
         os.nice(19 - os.nice(0))
         return f"nice {os.nice(0)}"
 
+
+
+def apply_best(priority: int = DEFAULT_PRIORITY) -> tuple[int, str]:
+    """Real time's default: ``SCHED_RR`` ``priority`` where this process is permitted it, else the
+    normal policy. Never raises for want of privilege. Returns the priority applied (``priority``,
+    or 0 for the normal policy) and the one line for the log, which says, when it fell back, why
+    and how to permit it. :class:`SchedError` only for a priority out of range."""
+    if (why := check_priority(priority)) is not None:
+        raise SchedError(why)
+    if priority == 0:
+        return 0, apply(0)
+    try:
+        return priority, apply(priority)
+    except SchedError:
+        pass
+    try:
+        applied = apply(0)
+    except SchedError:  # not Linux: the policy this process has is the only one
+        applied = "the system's default policy"
+    return 0, (f"{applied}: SCHED_RR {priority} is not permitted for this user (it needs "
+               f"{HOW_TO_PERMIT.format(p=priority)}); on a busy host ticks may start late and failsafes fire (docs/runtime.md)")
+
+
+def gateway_priority(control: int) -> int:
+    """The operator gateway's priority when the control processes run at ``control`` (0: normal
+    policy): one ``SCHED_RR`` step below them (``RR_MIN`` at least), so that it preempts every normal
+    process (a busy host's work) and never the control loops; the normal policy beside normal ones."""
+    if (why := check_priority(control)) is not None:
+        raise SchedError(why)
+    return max(RR_MIN, control - 1) if control else 0
