@@ -98,8 +98,9 @@ def _rt_priority(text: str) -> int:
 def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
     """Check, before anything runs, that directory ``text`` (option ``arg``) can be written in: it
     is a directory, or does not exist yet below a writable one (a probe file is made and removed
-    there; nothing else is created), and none of ``outputs`` inside it is a directory. Raises
-    :class:`BadArgument` naming the option, the path and the cause."""
+    there; nothing else is created), no one else can redirect it (``tether.safefs.out_problem``),
+    and none of ``outputs`` inside it is a directory. Raises :class:`BadArgument` naming the
+    option, the path and the cause."""
     out = Path(text)
     if out.exists() and not out.is_dir():
         raise BadArgument(f"{arg}: {out} is an existing file, not a directory; give a directory (it is made if missing)")
@@ -108,6 +109,11 @@ def _writable_dir(arg: str, text: str, outputs: tuple[str, ...] = ()) -> Path:
         base = base.parent
     if not base.is_dir():
         raise BadArgument(f"{arg}: {base} is a file, so {out} cannot be made; give another directory")
+    from tether import safefs
+
+    unsafe = safefs.out_problem(out)
+    if unsafe is not None:
+        raise BadArgument(f"{arg}: {unsafe}")
     try:
         import tempfile  # here: every process starts through this module
 
@@ -225,13 +231,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if live is not None:
             live.close()
     run.meta.mission_text = catalog.resolve(args.mission).read_text()
+    from tether import safefs
+
+    real = safefs.make_out(out)  # checked by _writable_dir; made here following no link
     run.save(out / "run.npz")
     summary = jsonout.finite(metrics.summary(run))
     assert isinstance(summary, dict)
     diverged = not all(np.all(np.isfinite(getattr(run, f))) for f in ("p", "v", "kp", "kv"))
     if not diverged:
         summary["tracking_error_m"] = jsonout.finite(metrics.tracking_error(run, Setup.of(m).offsets[: m.n]))
-    (out / "metrics.json").write_text(jsonout.dumps(summary))
+    safefs.write_file(real / "metrics.json", jsonout.dumps(summary).encode())
     if diverged:
         print(f"error: the run diverged (non-finite states or gains); wrote {out / 'run.npz'} and "
               f"{out / 'metrics.json'}, no figures; check the mission's gains and limits", file=sys.stderr)

@@ -111,7 +111,7 @@ from deploy.inject import describe_exit
 from deploy.relay import Relay
 from tether import mission as ms
 from tether import transport as tp
-from tether import handoff, jsonout, sched
+from tether import handoff, jsonout, safefs, sched
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
 from tether.node import FIFO_CAPACITY
@@ -264,12 +264,10 @@ class Launch:
                 f"{out} has {free / 2**20:.3g} MiB free, but the run needs about {need / 2**20:.3g} MiB "
                 f"(the run file's arrays and {LOG_RESERVE // 2**20} MiB of logs); free space on its file "
                 "system, give another --out, or shorten the run (--duration)"))])
-        path = out / "logs"
         try:
-            path.mkdir(parents=True, exist_ok=True)
-            for role, nid in self.members():
-                path = out / "logs" / f"{role}-{nid}.log"
-                self.logs[role, nid] = open(path, "wb")
+            with safefs.Dir.open(out) as top, top.sub("logs") as logs:
+                for role, nid in self.members():
+                    self.logs[role, nid] = logs.open_log(f"{role}-{nid}.log")
         except OSError as exc:
             self.close_logs(remove=True)
             raise ms.MissionError("tether run", [("--out", f"cannot create the run's logs: {os_error(exc)}; "
@@ -930,6 +928,9 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         problems += sitl.problems(m, opts.sitl)
     if not opts.insecure:
         problems += localtls.problems(opts.listen, opts.vehicle_connect)
+    problems += [(f"--listen {ep}", why) for ep in opts.listen if (why := tp.listen_problem(ep)) is not None]
+    if (unsafe := safefs.out_problem(opts.out)) is not None:
+        problems.append(("--out", unsafe))
     if problems:
         raise ms.MissionError(f"tether run {mission_path}", problems)
     if auto and opts.clock == "lockstep":
@@ -951,7 +952,12 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease,
                                 ingress_limits=limits)
     tp.zenoh_config(settings)  # a bad --listen endpoint: SettingsError naming it, before anything starts
-    opts.out.mkdir(parents=True, exist_ok=True)
+    try:  # every file under --out is made through its real path, following no link (tether/safefs.py)
+        launch.opts = opts = dataclasses.replace(opts, out=safefs.make_out(opts.out))
+    except OSError as exc:
+        from tether.node import os_error
+
+        raise ms.MissionError(f"tether run {mission_path}", [("--out", f"cannot make it: {os_error(exc)}")]) from None
     launch.open_logs()  # a full or read-only --out: exit 2 naming the file, before anything starts
     sec: localtls.Security | None = None
     if opts.insecure:
@@ -966,6 +972,12 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
         except pki.PkiError as exc:
             log.error("cannot make this run's certificates: %s (or pass --insecure)", exc)
             return EXIT_FAILED
+        except OSError as exc:  # nothing started yet: the logs made for it go too
+            from tether.node import os_error
+
+            launch.close_logs(remove=True)
+            raise ms.MissionError(f"tether run {mission_path}",
+                                  [("--out", f"cannot make this run's tls/: {os_error(exc)}")]) from None
         settings = tp.ZenohSettings(config_file=str(sec.configs["router"]))
         log.info("mTLS: %d identities made in %.2f s in %s; operator identity for tools (--zenoh-config): %s",
                  sec.identities, sec.seconds, sec.dir, sec.configs["control-0"])
@@ -1105,8 +1117,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     events = sup.monitor.events if sup is not None else []
     if sup is not None:
         if opts.faults:
-            (opts.out / "faults.json").write_text(jsonout.dumps(sup.injector.records()) + "\n")
-        (opts.out / "events.json").write_text(jsonout.dumps([e.to_json() for e in events]) + "\n")
+            safefs.write_file(opts.out / "faults.json", (jsonout.dumps(sup.injector.records()) + "\n").encode())
+        safefs.write_file(opts.out / "events.json", (jsonout.dumps([e.to_json() for e in events]) + "\n").encode())
     if interrupted:
         status = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     elif status == EXIT_OK:

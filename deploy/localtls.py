@@ -44,7 +44,6 @@ import asyncio
 import dataclasses
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -59,6 +58,7 @@ import zenoh
 from deploy import acl, pki
 from deploy.hosts import is_ip
 from tether import mission as ms
+from tether import safefs
 from tether import transport as tp
 from tether import wire
 
@@ -228,6 +228,8 @@ class Security:
     """The operator gateway's ingress limits (the order keys)."""
     gateway_endpoints: list[str] = field(default_factory=list)
     """Where the operator gateway listens: the ``--listen`` endpoints, or a free loopback port."""
+    files: safefs.Dir | None = None
+    """The directory being made by :func:`prepare` (files go there until it takes its name)."""
 
     def tls(self, name: str, listening: bool, root: str = "ca.crt") -> dict[str, Any]:
         d = self.dir
@@ -264,10 +266,15 @@ class Security:
         return conf
 
     def write(self, name: str, conf: dict[str, Any], note: str) -> Path:
-        path = self.dir / f"{name}.json5"
-        path.write_text(f"// {note}; written by tether run for this run only.\n" + json.dumps(conf, indent=2) + "\n")
-        self.configs[name] = path
-        return path
+        """Write ``<name>.json5`` into :attr:`dir` (made exclusively, following no link)."""
+        text = f"// {note}; written by tether run for this run only.\n" + json.dumps(conf, indent=2) + "\n"
+        if self.files is not None:
+            path = self.files.create(f"{name}.json5", text.encode(), 0o600)
+        else:
+            with safefs.Dir.open(self.dir) as d:
+                path = d.create(f"{name}.json5", text.encode(), 0o600)
+        self.configs[name] = self.dir / path.name
+        return self.configs[name]
 
     def router(self, listen: list[str]) -> Path:
         return self.write("router", self.profile("router", "router", [], listen), "the launcher's router")
@@ -292,25 +299,42 @@ class Security:
 def prepare(m: ms.Mission, ns: str, out: Path, members: list[tuple[str, int]], router_endpoint: str,
             listen: tuple[str, ...], lease: float, limits: tuple[tuple[str, float], ...] = ()) -> Security:
     """Make this run's CA, identities and the operator's configuration in ``out/tls`` (replacing an
-    earlier run's there); the CA's key is deleted before returning. Raises :class:`~deploy.pki.PkiError`."""
+    earlier run's there, or a link by that name, which is not followed); the CA's key is deleted
+    before returning. ``out`` is a real path (:func:`tether.safefs.make_out`). The directory is
+    built with mode 0700 under a random name, every file made exclusively (keys mode 0600), then
+    renamed to ``tls``. Raises :class:`~deploy.pki.PkiError`, or :class:`OSError` for a file."""
     t0 = time.monotonic()
-    d = out / "tls"
-    if d.exists():
-        shutil.rmtree(d)
-    d.mkdir(parents=True)
-    d.chmod(0o700)
+    with safefs.Dir.open(out) as top:
+        made = top.fresh("tls")  # private, under a random name until complete: nothing to swap midway
+        try:
+            sec = _populate(m, ns, out / "tls", made, members, router_endpoint, listen, lease, limits)
+            made.commit()
+        except BaseException:
+            made.discard()
+            raise
+        finally:
+            made.close()
+    sec.files = None
+    sec.seconds = time.monotonic() - t0
+    return sec
+
+
+def _populate(m: ms.Mission, ns: str, final: Path, d: safefs.Dir, members: list[tuple[str, int]],
+              router_endpoint: str, listen: tuple[str, ...], lease: float,
+              limits: tuple[tuple[str, float], ...]) -> Security:
+    """:func:`prepare`'s files, written into ``d`` (which becomes ``final``)."""
     access = acl.access_control(router_grants(m, ns, world=("world", 0) in members), ns)
-    sec = Security(d.resolve(), ns, lease, access, router_endpoint, limits=limits,
+    sec = Security(final, ns, lease, access, router_endpoint, limits=limits,
                    gateway_access=acl.access_control(gateway_grants(m, ns), ns),
                    gateway_limits=ingress_limits(m, ns, streams=False),
-                   gateway_endpoints=list(listen) or [f"tls/127.0.0.1:{tp.free_tcp_port()}"])
+                   gateway_endpoints=list(listen) or [f"tls/127.0.0.1:{tp.free_tcp_port()}"], files=d)
     gateway_hosts = ["127.0.0.1", *(h for ep in listen if (h := _host_of(ep)) is not None)]
     with tempfile.TemporaryDirectory(prefix="tether-ca-") as tmp:
         ca = pki.make_ca(Path(tmp) / "run", f"tether run {ns} CA", CERT_DAYS)
         operator_ca = pki.make_ca(Path(tmp) / "operator", f"tether run {ns} operator CA", CERT_DAYS)
-        shutil.copyfile(ca.cert, d / "ca.crt")
-        shutil.copyfile(operator_ca.cert, d / "operator-ca.crt")
-        (d / "gateway-ca.crt").write_text(ca.cert.read_text() + operator_ca.cert.read_text())
+        d.create("ca.crt", ca.cert.read_bytes(), 0o644)
+        d.create("operator-ca.crt", operator_ca.cert.read_bytes(), 0o644)
+        d.create("gateway-ca.crt", ca.cert.read_bytes() + operator_ca.cert.read_bytes(), 0o644)
         who = [(ca, "router", ["127.0.0.1"]), (ca, GATEWAY, gateway_hosts), (operator_ca, OPERATOR, ["127.0.0.1"]),
                *((ca, name_of(r, i), ["127.0.0.1"]) for r, i in members)]
         with ThreadPoolExecutor(max_workers=4) as pool:  # openssl runs in its own process: overlap them
@@ -326,7 +350,6 @@ def prepare(m: ms.Mission, ns: str, out: Path, members: list[tuple[str, int]], r
     sec.write(OPERATOR, sec.profile(OPERATOR, "client", [operator_to], []),
               "the operator identity: tether land|estop|netem-set --zenoh-config THIS_FILE")
     sec.identities = len(who)
-    sec.seconds = time.monotonic() - t0
     return sec
 
 
@@ -338,7 +361,7 @@ def start_gateway(sec: Security, log_path: Path, env: dict[str, str]) -> subproc
     """Start the operator gateway (``python -m deploy.router --idle``) of ``sec``, logging to
     ``log_path``. It links to the control router, which must be listening already. Does not wait:
     see :func:`wait_gateway`. The caller stops it (SIGTERM)."""
-    with open(log_path, "wb") as fh:
+    with safefs.Dir.open(log_path.parent) as d, d.open_log(log_path.name) as fh:
         return subprocess.Popen([sys.executable, "-m", "deploy.router", "--idle", "--watch-pid", str(os.getpid()),
                                  "--config", str(sec.configs[GATEWAY])], stdin=subprocess.DEVNULL, stdout=fh,
                                 stderr=subprocess.STDOUT, env=env, start_new_session=True)

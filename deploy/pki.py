@@ -9,12 +9,13 @@ ECDSA P-256 in PKCS#8 PEM, which Zenoh's TLS link (rustls) reads; certificates a
   subject alternative names for its host's address, which a connecting side checks against the
   endpoint it dialled (``verify_name_on_connect``).
 
-Private keys are written with mode 0600. Blocks for the ``openssl`` runs (milliseconds each).
+openssl writes into a private temporary directory; the files are then put in place by
+:mod:`tether.safefs` (a new name made exclusively, renamed over the old: no link is followed),
+private keys with mode 0600 from their creation. Blocks for the ``openssl`` runs (milliseconds each).
 """
 
 from __future__ import annotations
 
-import os
 import secrets
 import shutil
 import subprocess
@@ -23,6 +24,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from deploy.hosts import is_ip
+from tether import safefs
+
+Target = Path | safefs.Dir
+"""Where files go: a directory by path (made if missing, its real path opened), or an open one."""
 
 
 class PkiError(RuntimeError):
@@ -54,20 +59,28 @@ def _run(args: list[str], what: str) -> str:
     return done.stdout
 
 
-def _private(path: Path) -> None:
-    os.chmod(path, 0o600)
+def _place(target: Target, made: Path, names: list[str]) -> list[Path]:
+    """Put files ``names`` of the private directory ``made`` into ``target`` (``*.key`` mode 0600,
+    the others 0644); their paths there."""
+    if isinstance(target, Path):
+        target.mkdir(parents=True, exist_ok=True)
+        with safefs.Dir.open(safefs.real_out(target)) as d:
+            _place(d, made, names)
+        return [target / name for name in names]
+    return [target.replace(name, (made / name).read_bytes(), 0o600 if name.endswith(".key") else 0o644)
+            for name in names]
 
 
-def make_ca(directory: Path, cn: str, days: int) -> Ca:
+def make_ca(directory: Target, cn: str, days: int) -> Ca:
     """Create a CA (``ca.crt``, ``ca.key``) in ``directory``."""
-    directory.mkdir(parents=True, exist_ok=True)
-    ca = Ca(directory / "ca.crt", directory / "ca.key")
-    _run(["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-          "-keyout", str(ca.key), "-out", str(ca.cert), "-days", str(days), "-subj", f"/CN={cn}",
-          "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign",
-          "-addext", "subjectKeyIdentifier=hash"], f"creating the CA in {directory}")
-    _private(ca.key)
-    return ca
+    where = directory if isinstance(directory, Path) else directory.path
+    with tempfile.TemporaryDirectory(prefix="tether-pki-") as tmp:
+        _run(["req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+              "-keyout", f"{tmp}/ca.key", "-out", f"{tmp}/ca.crt", "-days", str(days), "-subj", f"/CN={cn}",
+              "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign",
+              "-addext", "subjectKeyIdentifier=hash"], f"creating the CA in {where}")
+        cert, key = _place(directory, Path(tmp), ["ca.crt", "ca.key"])
+    return Ca(cert, key)
 
 
 def load_ca(directory: Path) -> Ca:
@@ -88,21 +101,20 @@ def load_ca(directory: Path) -> Ca:
     return ca
 
 
-def issue(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], days: int) -> tuple[Path, Path]:
+def issue(ca: Ca, directory: Target, stem: str, cn: str, addresses: list[str], days: int) -> tuple[Path, Path]:
     """A key and a certificate for ``cn`` signed by ``ca``: ``<stem>.key`` and ``<stem>.crt`` in
     ``directory``. ``addresses`` (IPs or DNS names) become the subject alternative names."""
-    directory.mkdir(parents=True, exist_ok=True)
-    key, cert = directory / f"{stem}.key", directory / f"{stem}.crt"
     ext = "\n".join(_leaf_extensions(addresses)) + "\n"
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(prefix="tether-pki-") as tmp:
+        key, cert = Path(tmp) / f"{stem}.key", Path(tmp) / f"{stem}.crt"
         csr, extfile = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
         extfile.write_text(ext)
         _run(["req", "-new", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
               "-keyout", str(key), "-out", str(csr), "-subj", f"/CN={cn}"], f"making the key of {cn}")
-        _private(key)
         _run(["x509", "-req", "-in", str(csr), "-CA", str(ca.cert), "-CAkey", str(ca.key),
               "-set_serial", "0x" + secrets.token_hex(16), "-days", str(days), "-out", str(cert),
               "-extfile", str(extfile)], f"signing the certificate of {cn}")
+        cert, key = _place(directory, Path(tmp), [cert.name, key.name])
     return cert, key
 
 
@@ -118,15 +130,15 @@ def _leaf_extensions(addresses: list[str]) -> list[str]:
             *([f"subjectAltName={sans}"] if sans else [])]
 
 
-def issue_one_step(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[str], days: int) -> tuple[Path, Path]:
+def issue_one_step(ca: Ca, directory: Target, stem: str, cn: str, addresses: list[str],
+                   days: int) -> tuple[Path, Path]:
     """As :func:`issue`, the same key type and extensions, in one ``openssl req -x509 -CA`` run
     (OpenSSL >= 3.0) instead of two; falls back to :func:`issue` when this openssl lacks ``-CA``.
     For ``tether run``, which makes a dozen identities before every run."""
-    directory.mkdir(parents=True, exist_ok=True)
-    key, cert = directory / f"{stem}.key", directory / f"{stem}.crt"
     config = "\n".join(["[req]", "distinguished_name = dn", "x509_extensions = leaf", "prompt = no", "[dn]",
                          "[leaf]", *_leaf_extensions(addresses)]) + "\n"
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(prefix="tether-pki-") as tmp:
+        key, cert = Path(tmp) / f"{stem}.key", Path(tmp) / f"{stem}.crt"
         cnf = Path(tmp) / "req.cnf"
         cnf.write_text(config)
         try:
@@ -138,7 +150,7 @@ def issue_one_step(ca: Ca, directory: Path, stem: str, cn: str, addresses: list[
             if "-CA" not in str(exc) and "unknown option" not in str(exc).lower():
                 raise
             return issue(ca, directory, stem, cn, addresses, days)
-    _private(key)
+        cert, key = _place(directory, Path(tmp), [cert.name, key.name])
     return cert, key
 
 

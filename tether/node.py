@@ -97,6 +97,10 @@ class Stalled(RuntimeError):
 def os_error(exc: OSError) -> str:
     """An ``OSError`` as one line for a user: the file, the cause and its errno name, what to do
     (``/out/run.npz: No space left on device (ENOSPC); free space on its file system ...``)."""
+    from tether.safefs import UnsafePath
+
+    if isinstance(exc, UnsafePath):  # its message names the path and the fix
+        return str(exc.strerror)
     code = errno.errorcode.get(exc.errno or 0, f"errno {exc.errno}")
     where = f"{exc.filename}: " if exc.filename else ""
     advice = {errno.ENOSPC: "free space on its file system, or give another --out",

@@ -21,6 +21,7 @@ Measured behaviour, verified config keys and the latency figures are in ``docs/z
 from __future__ import annotations
 
 import asyncio
+import errno
 import math
 import re
 import socket
@@ -57,6 +58,7 @@ __all__ = [
     "declare_subscriber",
     "declare_token",
     "free_tcp_port",
+    "listen_problem",
     "load_settings",
     "loopback_endpoint",
     "open_session",
@@ -180,6 +182,42 @@ def _endpoint_problem(endpoint: object, *, listening: bool) -> str | None:
         if not lowest <= port <= 65535:
             what = "0 (any free port) to 65535" if listening else "1 to 65535"
             return f"{endpoint!r} has port {port}; a port is {what}"
+    return None
+
+
+def listen_problem(endpoint: str) -> str | None:
+    """Whether this machine can listen on ``endpoint`` now, checked before anything starts (Zenoh
+    finds out only when the session opens): the syntax (:func:`validate_settings`), then for a
+    ``<host>:<port>`` protocol that the host resolves to an address of this machine and that the
+    port can be bound there (bound and released at once). ``None`` when it can; else one line
+    naming the cause and the fix. Blocks for a name lookup."""
+    problem = _endpoint_problem(endpoint, listening=True)
+    if problem is not None:
+        return problem
+    m = _ENDPOINT.match(endpoint)
+    assert m is not None
+    proto, addr = m["proto"], m["addr"]
+    hp = _HOST_PORT.match(addr)
+    if proto not in _HOST_PORT_PROTOCOLS or hp is None:
+        return None
+    host, port = hp["host"].strip("[]"), int(hp["port"])
+    kind = socket.SOCK_DGRAM if proto in ("udp", "quic") else socket.SOCK_STREAM
+    example = f"{proto}/127.0.0.1:{port} or {proto}/0.0.0.0:{port}"
+    try:
+        infos = socket.getaddrinfo(host, port, type=kind)
+    except (socket.gaierror, UnicodeError) as exc:
+        return f"cannot resolve {host!r} ({exc}); give an address of this machine, e.g. {example}"
+    family, socktype, sproto, _, sockaddr = infos[0]
+    with socket.socket(family, socktype, sproto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(sockaddr)
+        except OSError as exc:
+            why = ("the port is in use" if exc.errno == errno.EADDRINUSE else
+                   f"{host} is not an address of this machine" if exc.errno == errno.EADDRNOTAVAIL else
+                   exc.strerror or str(exc))
+            return f"cannot listen on {sockaddr[0]}:{port}: {why}; give a free port on an address of this machine, " \
+                   f"e.g. {example}"
     return None
 
 
