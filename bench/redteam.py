@@ -39,9 +39,11 @@ Figures (per run; the table prints the worst over the repetitions, latency as me
   sample): the largest from ``--at`` on, and the largest over the last 10 s of the run.
 * ``out``: whether a vehicle left the envelope, and how. A vehicle leaves it when (a) its speed is
   above the mission's ``max_speed``; (b) it is outside the mission's geofence, if it has one; (c)
-  while its plant and agent report FLYING, it is more than ``--slot`` (5 m) from its slot
+  while its plant and agent have reported FLYING for 5 s in a row (a vehicle back from a HOLD has
+  that long to catch up with its slot), it is more than ``--slot`` (5 m) from its slot
   ``p_L(t) + h_i``; (d) while either reports another mode, it is more than ``--slot`` from where that
-  stretch began (a holding or landed vehicle that moves away).
+  stretch began (a holding or landed vehicle that moves away). Judged from ``--at`` on (the
+  baseline row too), so that a start on a busy host is not counted against an attack.
 * ``sep`` [m]: the smallest distance between two vehicles from ``--at`` on.
 * ``reaction``: what the swarm did about it from ``--at`` on: the agents' gate rejections by reason
   (growth of ``Telemetry.gate`` over the attack), mode changes of agents (``a2``) and plants
@@ -64,6 +66,7 @@ import json
 import math
 import os
 import queue
+import re
 import subprocess
 import sys
 import tempfile
@@ -105,6 +108,7 @@ WHAT = {
     "hold": "agent/1/state mode = HOLD for 5 s",
     "estop": "one plant/2/state mode = ESTOP",
 }
+DOG_LINE = re.compile(r"vehicle (\d+): commands rejected by its watchdog: (.*)$")
 CODE = {wire.FLYING: "F", wire.HOLD: "H", wire.LAND: "L", wire.LANDED: "LD", wire.ESTOP: "E"}
 
 
@@ -185,22 +189,23 @@ def forge(attack: str, msg: Any, now: float, sent: int, m: ms.Mission, plan: Pla
 class Attacker:
     """A Zenoh client of the run's router: hears every state, command and telemetry key (arrivals
     stamped with :func:`bench.faults.wall` in the callback, which only appends), and forges on the
-    victim's key from a thread of its own (the callback hands the victim's samples to it)."""
+    victims' keys from a thread of its own (the callback hands the victims' samples to it). ``plans``:
+    the attacks of the run, each with its own plan (two attacks on one key: one of them is used)."""
 
-    def __init__(self, endpoint: str, m: ms.Mission, attack: str, plan: Plan):
-        self.endpoint, self.m, self.attack, self.plan = endpoint, m, attack, plan
-        self.key = victim(attack, m)
+    def __init__(self, endpoint: str, m: ms.Mission, plans: dict[str, Plan]):
+        self.endpoint, self.m, self.plans = endpoint, m, plans
+        self.by_key = {key: attack for attack in plans if (key := victim(attack, m)) is not None}
         self.leader = profile.build(m.leader, m.dim)
         self.arrivals: list[tuple[float, str, bytes]] = []
         self.forged: set[bytes] = set()
-        self.sent: list[tuple[float, int]] = []
-        """(mission time, tick) of every forged sample put."""
+        self.sent: dict[str, list[tuple[float, int]]] = {attack: [] for attack in plans}
+        """Per attack: (mission time, tick) of every forged sample put."""
         self.epoch: float | None = None
-        self._q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._session: zenoh.Session | None = None
         self._subs: list[Any] = []
-        self._pub: zenoh.Publisher | None = None
+        self._pubs: dict[str, zenoh.Publisher] = {}
         self._worker: threading.Thread | None = None
 
     def open(self, timeout: float = 20.0) -> None:
@@ -215,14 +220,14 @@ class Attacker:
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.2)
-        ns, s, key = self.m.name, self._session, self.key
+        ns, s, by_key = self.m.name, self._session, self.by_key
 
         def on_sample(sample: zenoh.Sample) -> None:
             data = sample.payload.to_bytes()
             k = str(sample.key_expr)
             self.arrivals.append((wall(), k, data))
-            if k == key:
-                self._q.put(data)
+            if k in by_key:
+                self._q.put((k, data))
 
         def on_start(sample: zenoh.Sample) -> None:
             msg = wire.decode(sample.payload.to_bytes())
@@ -232,16 +237,15 @@ class Attacker:
         self._subs = [s.declare_subscriber(wire.Keys(ns).start, on_start)]
         for pattern in ("agent/*/cmd", "agent/*/state", "agent/*/telemetry", "plant/*/state", "leader/*/state"):
             self._subs.append(s.declare_subscriber(f"tether/{ns}/{pattern}", on_sample))
-        if key is not None:
-            self._pub = tp.declare_publisher(s, key, tp.SYNC)
+        self._pubs = {key: tp.declare_publisher(s, key, tp.SYNC) for key in by_key}
+        if by_key:
             self._worker = threading.Thread(target=self._run, name="attacker", daemon=True)
             self._worker.start()
 
     def _run(self) -> None:
-        assert self._pub is not None
         while not self._stop.is_set():
             try:
-                data = self._q.get(timeout=0.1)
+                key, data = self._q.get(timeout=0.1)
             except queue.Empty:
                 continue
             if data in self.forged or self.epoch is None:
@@ -251,13 +255,15 @@ class Attacker:
                 msg = wire.decode(data)
             except (msgspec.DecodeError, msgspec.ValidationError):
                 continue
-            fake = forge(self.attack, msg, now, len(self.sent), self.m, self.plan, self.leader)
+            attack = self.by_key[key]
+            sent = self.sent[attack]
+            fake = forge(attack, msg, now, len(sent), self.m, self.plans[attack], self.leader)
             if fake is None:
                 continue
             payload = wire.encode(fake)
             self.forged.add(payload)  # before the put: our own sample comes back to our subscriber
-            self._pub.put(payload)
-            self.sent.append((wall() - self.epoch, fake.k))
+            self._pubs[key].put(payload)
+            sent.append((wall() - self.epoch, fake.k))
 
     def close(self) -> None:
         self._stop.set()
@@ -268,21 +274,22 @@ class Attacker:
                 sub.undeclare()
             except zenoh.ZError:
                 pass
-        if self._pub is not None:
-            self._pub.undeclare()
+        for pub in self._pubs.values():
+            pub.undeclare()
         if self._session is not None:
             self._session.close()
 
     def save(self, out: Path) -> None:
-        """``attack.npz``: every genuine arrival (wall, key, payload) and every forged sample's send time."""
+        """``attack.npz``: every genuine arrival (wall, key, payload); ``attack.json``: the attacks, their
+        plans and every forged sample's send time and tick."""
         genuine = [(w, k, d) for w, k, d in self.arrivals if d not in self.forged]
         np.savez_compressed(out / "attack.npz",
                             wall=np.array([w for w, _, _ in genuine], dtype=float),
                             key=np.array([k for _, k, _ in genuine], dtype=object),
                             payload=np.array([d for _, _, d in genuine], dtype=object),
-                            sent=np.array(self.sent, dtype=float).reshape(-1, 2),
                             epoch=np.array(math.nan if self.epoch is None else self.epoch))
-        (out / "attack.json").write_text(json.dumps({"attack": self.attack, "plan": self.plan.__dict__}) + "\n")
+        (out / "attack.json").write_text(json.dumps({"plans": {a: p.__dict__ for a, p in self.plans.items()},
+                                                     "sent": self.sent}) + "\n")
 
 
 @dataclass
@@ -290,7 +297,8 @@ class Heard:
     """What the attacker heard of one run: genuine messages (wall, role, id, topic, message) and its own sends."""
 
     rows: list[tuple[float, str, int, str, Any]]
-    sent: list[tuple[float, int]]
+    sent: dict[str, list[tuple[float, int]]]
+    """Per attack: (mission time [s], tick) of every forged sample put."""
     epoch: float | None
 
     @classmethod
@@ -304,7 +312,11 @@ class Heard:
             except (ValueError, msgspec.DecodeError, msgspec.ValidationError):
                 continue
         epoch = float(z["epoch"])
-        return cls(rows, [(float(t), int(k)) for t, k in z["sent"]], None if math.isnan(epoch) else epoch)
+        meta = json.loads((out / "attack.json").read_text())
+        # the first runs of this script kept one attack's sends in attack.npz
+        sent = meta["sent"] if "sent" in meta else {meta["attack"]: z["sent"].tolist()}
+        return cls(rows, {a: [(float(t), int(k)) for t, k in xs] for a, xs in sent.items()},
+                   None if math.isnan(epoch) else epoch)
 
 
 # =========================================================================== one run
@@ -317,8 +329,8 @@ class Launched:
     stderr: list[str] = field(default_factory=list)
 
 
-def launch(out: Path, attack: str, m: ms.Mission, plan: Plan, duration: float, grace: float = 90.0) -> Launched:
-    """One run under one attack, bounded: ``duration`` + ``grace`` s, then SIGKILL."""
+def launch(out: Path, plans: dict[str, Plan], m: ms.Mission, duration: float, grace: float = 90.0) -> Launched:
+    """One run under the attacks ``plans``, bounded: ``duration`` + ``grace`` s, then SIGKILL."""
     port = tp.free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
     cmd = [sys.executable, "-m", "cli", "run", MISSION, "--clock", "realtime", "--out", str(out),
@@ -336,7 +348,7 @@ def launch(out: Path, attack: str, m: ms.Mission, plan: Plan, duration: float, g
 
     th = threading.Thread(target=reader, daemon=True)
     th.start()
-    att = Attacker(ep, m, attack, plan)
+    att = Attacker(ep, m, plans)
     try:
         att.open()
         p.wait(duration + grace)
@@ -364,7 +376,8 @@ def _series(heard: Heard, role: str, topic: str, n_ticks: int, ids: list[int]) -
     return by
 
 
-def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int | None = None) -> dict[str, Any]:
+def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int | None = None,
+            rejoin: float = 5.0) -> dict[str, Any]:
     """Every figure of one run (see the module docstring)."""
     m = load_mission(catalog.resolve(MISSION), None)
     sf, h = m.safety, m.dt
@@ -391,7 +404,7 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
     for arr in (pmode, amode):  # a tick not heard keeps the mode heard before it
         for k in range(1, T + 1):
             arr[k] = np.where(arr[k] < 0, arr[k - 1], arr[k])
-    sent = heard.sent
+    sent = sorted(x for xs in heard.sent.values() for x in xs)
     t_a = sent[0][0] if sent else plan.at
     k_a = int(math.ceil(t_a / h))
     res: dict[str, Any] = {"attack": attack, "forged": len(sent), "first_sent": sent[0][0] if sent else None,
@@ -412,20 +425,25 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
     left: dict[str, str] = {}
     speed = np.linalg.norm(V, axis=2)
     fence = sf.geofence
+    settled = np.zeros_like(flying)  # FLYING for `rejoin` s in a row: back from a HOLD, it has caught up
+    run_len = np.zeros(n, dtype=int)
+    for k in range(T + 1):
+        run_len = np.where(flying[k], run_len + 1, 0)
+        settled[k] = run_len > int(round(rejoin / h))
     for c, i in enumerate(ids):
         why = []
-        if np.nanmax(speed[:, c], initial=0.0) > sf.max_speed:
-            why.append(f"speed {np.nanmax(speed[:, c]):.0f} m/s")
+        if np.nanmax(speed[k_a:, c], initial=0.0) > sf.max_speed:
+            why.append(f"speed {np.nanmax(speed[k_a:, c]):.0f} m/s")
         if fence is not None:
             lo, hi = np.array(fence.min), np.array(fence.max)
-            outside = np.nanmax(np.maximum(lo - P[:, c], P[:, c] - hi), initial=0.0)
+            outside = np.nanmax(np.maximum(lo - P[k_a:, c], P[k_a:, c] - hi), initial=0.0)
             if outside > 0:
                 why.append(f"fence +{outside:.1f} m")
-        slot_off = np.where(flying[:, c], err[:, c], np.nan)
+        slot_off = np.where(settled[k_a:, c], err[k_a:, c], np.nan)
         if nanmax(slot_off) > slot:
             why.append(f"slot {nanmax(slot_off):.1f} m")
         drift, start = 0.0, None
-        for k in range(T + 1):
+        for k in range(k_a, T + 1):
             if not flying[k, c] and pmode[k, c] >= 0 and np.all(np.isfinite(P[k, c])):
                 start = P[k, c].copy() if start is None else start
                 drift = max(drift, float(np.linalg.norm(P[k, c] - start)))
@@ -444,18 +462,21 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
     first: list[float] = []
     gate0: dict[int, dict[str, int]] = {}
     gate1: dict[int, dict[str, int]] = {}
+    rises: list[tuple[float, int]] = []
+    """(telemetry tick time [s], agent) of the first ticks after the attack whose gate count rose."""
     events: list[tuple[float, str, int, int, int, str]] = []
     for c, i in enumerate(ids):
+        total = 0
         for k in sorted(tele[i]):
             msg = tele[i][k]
             g = dict(msg.gate)
             if msg.t < t_a:
                 gate0[i] = g
             else:
-                if gate1.get(i) is not None and sum(g.values()) > sum(gate0.get(i, {}).values()) \
-                        and sum(gate1[i].values()) == sum(gate0.get(i, {}).values()):
-                    first.append(msg.t)
                 gate1[i] = g
+                if sum(g.values()) > total and len(rises) < 200:
+                    rises.append((msg.t, i))
+            total = sum(g.values())
             for ev in msg.events:
                 if ev.t >= t_a - h / 2:
                     events.append((ev.t, "a", i, ev.src, ev.dst, ev.reason))
@@ -484,7 +505,10 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
     else:
         res["rec"], res["rec_missing"] = math.nan, -1
     events.sort()
-    first += [e[0] for e in events]
+    rises.sort()
+    first += [e[0] for e in events] + [r[0] for r in rises[:1]]
+    res["gate_rises"] = rises
+    res["sent"] = {a: xs[0][0] for a, xs in heard.sent.items() if xs}
     res["first"] = (min(first) - t_a) if first and sent else math.nan
     gate: dict[str, int] = {}
     for i in ids:
@@ -495,8 +519,8 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
     res["gate"] = gate
     res["events"] = [{"t": e[0], "who": f"{e[1]}{e[2]}", "from": wire.MODES[e[3]] if 0 <= e[3] < 5 else e[3],
                       "to": wire.MODES[e[4]] if 0 <= e[4] < 5 else e[4], "why": e[5]} for e in events]
-    res["watchdog"] = [line.split(": ", 1)[-1] for line in _log_lines(out, "plant-")
-                       if "rejected by its watchdog" in line]
+    res["watchdog"] = [f"p{mm.group(1)} {mm.group(2)}" for line in _log_lines(out, "plant-")
+                       if (mm := DOG_LINE.search(line)) is not None]
     res["end"] = {f"v{i}": CODE.get(int(pmode[-1, c]), "?") + "/" + CODE.get(int(amode[-1, c]), "?")
                   for c, i in enumerate(ids)}
     res["exit"] = status
@@ -546,7 +570,7 @@ def _reasons(rs: list[dict[str, Any]], most: int = 3) -> str:
 
 def table(rows: dict[str, list[dict[str, Any]]]) -> str:
     head = ["attack", "n", "err max / last 10 s [m]", "left the envelope", "sep min [m]", "reaction",
-            "first [s] p50 / max", "rec [m]", "end (plant/agent); exit", "load"]
+            "first [s] p50 / max", "rec [m] (ticks missing)", "end (plant/agent); exit", "load"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * len(head)) + "|"]
     for attack, rs in rows.items():
         left: dict[str, str] = {}
@@ -560,7 +584,7 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
             f"{'YES ' + '; '.join(f'{k}: {v}' for k, v in sorted(left.items())) if left else 'no'} | "
             f"{fmt(min(r['sep'] for r in rs))} | {_reaction(rs)}"
             f"{' (' + _reasons(rs) + ')' if any(r['events'] for r in rs) else ''} | "
-            f"{fmt(pct(firsts, 50))} / {fmt(pct(firsts, 100))} | {fmt(max(r['rec'] for r in rs), digits=1)} | "
+            f"{fmt(pct(firsts, 50))} / {fmt(pct(firsts, 100))} | {fmt(max(r['rec'] for r in rs), digits=1)} ({max(r['rec_missing'] for r in rs)}) | "
             f"{' · '.join(ends)}; {','.join(str(r['exit']) for r in rs)} | "
             f"{'/'.join(format(r['load'], '.1f') for r in rs)} |")
     return "\n".join(lines)
@@ -573,7 +597,7 @@ def run_all(attacks: list[str], reps: int, plan: Plan, duration: float, work: Pa
     for rep in range(reps):
         for attack in attacks:
             out = work / f"{attack}-{rep}"
-            launched = launch(out, attack, m, plan, duration)
+            launched = launch(out, {attack: plan}, m, duration)
             (out / "redteam.json").write_text(json.dumps({"attack": attack, "duration": duration,
                                                           "status": launched.status,
                                                           "load": launched.load[0]}) + "\n")
