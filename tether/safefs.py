@@ -272,13 +272,24 @@ class Dir:
         """Rename a directory from :meth:`fresh` to its name; its path then."""
         assert self.final is not None, "commit() of a directory not made by fresh()"
         parent, name = self.final
-        try:
-            st = os.lstat(name, dir_fd=parent.fd)
-        except FileNotFoundError:
-            st = None
-        if st is not None and stat.S_ISDIR(st.st_mode):
-            shutil.rmtree(name, dir_fd=parent.fd)
-        os.rename(self.path.name, name, src_dir_fd=parent.fd, dst_dir_fd=parent.fd)
+        for _ in range(1000):  # someone who may write the parent can put an entry back: remove it again
+            try:
+                st = os.lstat(name, dir_fd=parent.fd)
+            except FileNotFoundError:
+                st = None
+            if st is not None and stat.S_ISDIR(st.st_mode):
+                shutil.rmtree(name, dir_fd=parent.fd)
+            elif st is not None:
+                parent.remove(name)  # a link or a file: the entry itself, never what it names
+            try:
+                os.rename(self.path.name, name, src_dir_fd=parent.fd, dst_dir_fd=parent.fd)
+                break
+            except OSError as exc:
+                if exc.errno not in (errno.ENOTDIR, errno.EEXIST, errno.ENOTEMPTY, errno.EISDIR):
+                    raise OSError(exc.errno, exc.strerror, str(parent.path / name)) from None
+        else:
+            raise UnsafePath(errno.EEXIST, f"{parent.path / name} came back 1000 times while being replaced: "
+                                           "someone else writes in its directory; give another --out")
         self.path = parent.path / name
         self.final = None
         return self.path
