@@ -18,7 +18,8 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from tether.gate import Gate, for_sender, merged
+from leader import profile
+from tether.gate import Gate, PlantModes, for_sender, health_of, merged
 from agent.relay import Relay
 from agent.safety import Status
 from agent.tick import AgentTick, Heard
@@ -77,9 +78,13 @@ async def run(node: Node) -> None:
     # still ticking, and the earliest arrival of its samples gives the run's start instant
     rejoin = Rejoin(getattr(node.clock, "wall", None))
 
+    # the leader's samples are checked against its profile (the mission's [leader]), in plain floats
+    expected = profile.scalar(m.leader, m.dim)
+
     def gate(sender: int, role: str) -> Callable[[Any], str | None]:
         # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick)
-        g = for_sender(m, sender, None if node.clock.lockstep else node.arrival)
+        g = for_sender(m, sender, None if node.clock.lockstep else node.arrival,
+                       expect=expected if role == "leader" else None)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
@@ -108,6 +113,8 @@ async def run(node: Node) -> None:
 
     node.source(keys.safety, wire.SafetyCommand, 0, on_message=order, keep=False)
     own_inputs: list[Source] = []
+    modes = PlantModes(sf.mode_confirm)
+    """The own plant's report of its mode, believed as far as its samples agree (from its key alone)."""
     relay_rt: Relay | None = None
     if onboard is None:
         key = keys.topic("plant", aid, "state")
@@ -122,6 +129,8 @@ async def run(node: Node) -> None:
             relay_rt.alive_at = math.inf  # no stall before the first tick (it relays nothing before the start)
             plant = node.source(key, wire.PlantState, aid, tap=relay_rt)
         plant.admit = gate(aid, "plant")
+        plant.health = health_of(m)
+        plant.consistent = lambda msg: modes.observe(msg.k, msg.mode)
         node.watch("plant", aid, plant)
         own_inputs.append(plant)
         resume.serve(node, aid, plant)  # a restarted plant asks for its last state (plant/resume.py)
@@ -135,6 +144,7 @@ async def run(node: Node) -> None:
         # read at the tick only: their samples do not wake the loop as they arrive (real time)
         src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel, wake=False)
         src.admit = gate(j, role)
+        src.health = health_of(m)
         node.watch(role, j, src)
         nbrs.append(src)
         if channel is not None:
@@ -159,6 +169,11 @@ async def run(node: Node) -> None:
     """With a co-located plant: the command of the previous tick, which its plant flies next."""
     tele_seq = 0
     await node.ready(phase=AGENT_PHASE, rejoin=rejoin.epoch)
+    judged = [(aid, s) for s in own_inputs] + list(zip(law.neighbours, nbrs))
+    """Each stream whose health the supervisor hears, by sender."""
+    for _, s in judged:  # what was turned away before the start (a rejoin's) is no evidence
+        if s.health is not None:
+            s.health.reset()
     rt_clock = node.clock if isinstance(node.clock, RealtimeClock) else None
     if relay_rt is not None and rt_clock is not None:
         # started: the plant's samples are relayed by the tap and read at the tick; the relay goes on
@@ -212,17 +227,18 @@ async def run(node: Node) -> None:
             holding = plant_silent
         heard: list[Heard | None] = [None if msg is None else (msg.t, msg.p, msg.vel, msg.a) for msg in got]
         stopped = [msg is not None and msg.mode != wire.FLYING for msg in got]
+        suspect = frozenset(j for j, s in judged if s.health is not None and s.health.suspect)
         if lockstep or k == m.steps:
             # lockstep: a tick waits for its inputs, so nothing can be silent; the last tick:
             # the others may already have finished and left
-            status = Status(stopped=stopped, operator=_order(operator), plant_mode=own.mode)
+            status = Status(stopped=stopped, operator=_order(operator), plant_mode=modes.believed, suspect=suspect)
         else:
             # an agent that left after its last tick is not lost; only the last ticks can see that;
             # a gone leader reaches nobody
             gone = (node.gone("agent") - neighbours - {aid}) | node.gone("leader") if k < m.steps - 1 else set()
             status = Status(gone=[s.silent_at(k) for s in nbrs], stopped=stopped, others_gone=frozenset(gone),
-                            operator=_order(operator), plant_silent=plant_silent, plant_mode=own.mode,
-                            rejoining=rejoining)
+                            operator=_order(operator), plant_silent=plant_silent, plant_mode=modes.believed,
+                            rejoining=rejoining, suspect=suspect)
         near: list[tuple[list[float], list[float]]] = []
         if avoid:
             seen = [got[n] for n in vehicles] + far
@@ -262,7 +278,7 @@ async def run(node: Node) -> None:
             sender=aid, seq=tele_seq, k=k, t=t, clock=clock, netem=decisions, meas_t=own.t, p=own.p, vel=own.vel,
             a=own.a, u=u, xi=out.xi, zeta=out.zeta, kp=out.kp, kv=out.kv,
             links=links, drops=dict(node.receiver.drops), late=node.clock.late, mode=out.mode, events=events,
-            gate=merged(gates))
+            gate=_with_conflicts(merged(gates), [s for _, s in judged]))
         tele_seq += 1
         if tele is not None:
             tele.put(report)
@@ -322,6 +338,13 @@ class Ramp:
 
 REJOIN_RAMP = 1.0
 """After a rejoin, the command may go from 0 to ``max_accel`` in no less than this [s]."""
+
+
+def _with_conflicts(rejected: dict[str, int], sources: list[Source]) -> dict[str, int]:
+    """The gate's rejections by reason, and the samples that conflicted with their own stream
+    (``conflict``: two contents for one tick, or a plant's mode report against its earlier ones)."""
+    n = sum(s.conflicts for s in sources)
+    return {**rejected, "conflict": n} if n else rejected
 
 
 def _order(orders: list[str]) -> str | None:

@@ -82,6 +82,8 @@ class Status:
         rejoining: the agent was restarted into a running swarm and its inputs are not fresh yet
             (its own measurement or an in-neighbour's sample is missing or older than a period):
             it holds until they are (HOLD → FLYING "rejoin recovered"), or lands after ``land_after``.
+        suspect: senders whose streams are suspect (:class:`tether.gate.Health`: mostly rejected, or
+            in conflict with themselves): the own id (its plant's stream), the leader's, in-neighbours'.
     """
 
     gone: Sequence[bool] = ()
@@ -91,6 +93,7 @@ class Status:
     plant_silent: bool = False
     plant_mode: int = FLYING
     rejoining: bool = False
+    suspect: frozenset[int] = frozenset()
 
 
 NOMINAL = Status()
@@ -119,6 +122,8 @@ class Supervisor:
         self.p_hold: list[float] | None = None
         self.lost: frozenset[int] = frozenset()
         """In-neighbours (agents) whose edges are dropped."""
+        self.suspect: frozenset[int] = frozenset()
+        """Senders whose streams were suspect at the last tick (:attr:`Status.suspect`)."""
         self.events: list[SafetyEvent] = []
         """Every event so far."""
         self.diverged: SafetyEvent | None = None
@@ -134,6 +139,8 @@ class Supervisor:
         cfg = self.cfg
         lost = set()
         leader_silent = False
+        if status.suspect != self.suspect:
+            self._suspicion(k, t, status.suspect)
         for n, j in enumerate(self.neighbours):
             age = ages[n] if n < len(ages) else math.nan
             gone = bool(status.gone[n]) if n < len(status.gone) else False
@@ -142,7 +149,8 @@ class Supervisor:
             if j == self.leader:
                 leader_silent = gone or (age > cfg.leader_timeout) or (never and t > cfg.leader_timeout)
                 continue
-            if gone or stopped or age > cfg.neighbour_timeout or (never and t > cfg.neighbour_timeout):
+            if gone or stopped or j in status.suspect or age > cfg.neighbour_timeout \
+                    or (never and t > cfg.neighbour_timeout):
                 lost.add(j)
         self.missing = frozenset(lost)
         removed = lost | set(status.others_gone)
@@ -178,12 +186,10 @@ class Supervisor:
             return zero
         if status.operator == "land" and self.mode != LAND:
             self._go(k, t, LAND, "operator land", p)
-        if status.plant_mode == ESTOP:
-            self._go(k, t, ESTOP, "plant stopped its motors", p)
-            return zero
-        if status.plant_mode in (LAND, LANDED) and self.mode in (FLYING, HOLD):
-            # the plant's watchdog has taken over to land (it never flies again): follow it down
-            self._go(k, t, LAND, "plant landing (its watchdog took over)", p)
+        if status.plant_mode in (LAND, LANDED, ESTOP) and self.mode in (FLYING, HOLD):
+            # the plant's watchdog has taken over (it never flies again): stop flying the law and land.
+            # Never ESTOP on a report: only the operator and this supervisor's own checks cut motors
+            self._go(k, t, LAND, f"plant reports {mode_name(status.plant_mode)}: not flying the law", p)
         if self.mode == FLYING or self.mode == HOLD:
             why = self._diverged(u, xi, kp, kv)
             if why is not None:
@@ -201,10 +207,14 @@ class Supervisor:
                 cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
             elif status.plant_silent:
                 cause, why = "plant", "plant silent"
+            elif self.agent_id in status.suspect:
+                cause, why = "plant stream", "own plant's stream suspect (forgery or sensor fault)"
             elif status.rejoining:
                 cause, why = "rejoin", "restarted into a running swarm: holding until every input is fresh"
             elif leader_silent and self.hears_leader:
                 cause, why = "leader", "leader silent"
+            elif self.hears_leader and self.leader in status.suspect:
+                cause, why = "leader stream", "leader's stream suspect (forgery or fault)"
             elif not reachable:
                 cause = "unreachable"
                 why = (f"neighbour{'s' if len(self.missing) > 1 else ''} {', '.join(map(str, sorted(self.missing)))} "
@@ -275,6 +285,21 @@ class Supervisor:
             if not all(lo <= x <= hi for x, lo, hi in zip(where, fence.min, fence.max)):
                 return "geofence: " + ("outside" if where is p else "would leave the box braking from here")
         return None
+
+    def _suspicion(self, k: int, t: float, now: frozenset[int]) -> None:
+        """An event (the mode unchanged) for streams that became suspect or are trusted again."""
+        def name(j: int) -> str:
+            return "own plant" if j == self.agent_id else "leader" if j == self.leader else f"neighbour {j}"
+
+        new, back = sorted(now - self.suspect), sorted(self.suspect - now)
+        words = []
+        if new:
+            words.append(f"suspected forgery or sensor fault: {', '.join(map(name, new))} "
+                         "mostly rejected or in conflict with itself")
+        if back:
+            words.append(f"{', '.join(map(name, back))} trusted again")
+        self._event(k, t, self.mode, "; ".join(words))
+        self.suspect = now
 
     def _act(self, k: int, t: float, action: str, why: str, p: Vec) -> None:
         target = {"hold": HOLD, "land": LAND, "estop": ESTOP}[action]

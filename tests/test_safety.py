@@ -475,9 +475,20 @@ def test_the_agent_follows_its_plant_watchdog_down_and_holds_while_the_plant_is_
     step(sup, 1, status=Status())
     assert sup.mode == FLYING and sup.events[-1].reason == "plant recovered"
     step(sup, 2, status=Status(plant_mode=LAND))
-    assert sup.mode == LAND and "watchdog" in sup.events[-1].reason
+    assert sup.mode == LAND and sup.events[-1].reason == "plant reports LAND: not flying the law"
+
+
+@pytest.mark.parametrize("reported", [wire.ESTOP, LAND, wire.LANDED])
+def test_a_plant_that_reports_it_stopped_makes_the_agent_land_never_estop(reported: int) -> None:
+    """Only the operator's e-stop and the supervisor's own checks cut motors: a plant's report of
+    ESTOP (which may be forged) stops the law and lands the vehicle."""
     sup = Supervisor(mission(), 1, (3, 4))
-    assert not any(step(sup, 0, status=Status(plant_mode=wire.ESTOP))) and sup.mode == ESTOP
+    for k in range(50):
+        step(sup, k, status=Status(plant_mode=reported))
+        assert sup.mode in (FLYING, LAND, wire.LANDED)
+    assert [e.dst for e in sup.events][:1] == [LAND]
+    assert sup.events[0].reason == f"plant reports {wire.MODES[reported]}: not flying the law"
+    assert all(e.dst != wire.ESTOP for e in sup.events)
 
 
 def test_the_gates_first_reference_is_where_each_sender_really_starts() -> None:
@@ -519,3 +530,25 @@ def test_after_ctrl_c_a_descent_still_under_way_extends_the_launchers_wait_and_a
     slow = Descent(True, bound)  # a descent that never ends: the cap
     assert max(slow.limit(s * 0.1, {"plant/1": -s * 0.01}) for s in range(2000)) == LAND_CAP * bound
     assert slow.limit(0.0, {}) >= bound
+
+
+def test_a_suspect_stream_is_an_event_and_a_lost_input() -> None:
+    """Agent 1 hears the leader (4) and agent 3 in ``mission()``: a suspect neighbour is dropped
+    (kappa re-normalised) while the leader reaches it; a suspect leader or own plant stream holds, then
+    lands after land_after; each verdict and its end is an event naming the stream."""
+    m = mission()
+    sup = Supervisor(m, 1, (3, 4))
+    lost, reachable, silent = sup.links(0, 0.0, [0.0, 0.0], Status(suspect=frozenset({3})))
+    assert lost == frozenset({3}) and reachable and not silent
+    assert "neighbour 3 mostly rejected" in sup.events[0].reason and sup.events[0].dst == FLYING
+    lost, _, _ = sup.links(1, H, [0.0, 0.0], Status())
+    assert lost == frozenset() and [e.reason for e in sup.events[-2:]] == [
+        "neighbour 3 trusted again", "neighbour 3 back: edge restored"]
+    for who, cause in ((4, "leader's stream suspect"), (1, "own plant's stream suspect")):
+        sup = Supervisor(m, 1, (3, 4))
+        bad = Status(suspect=frozenset({who}))
+        for k in range(int(m.safety.land_after / H) + 2):
+            sup.links(k, k * H, [0.0, 0.0], bad)
+            step(sup, k, status=bad)
+        assert [e.dst for e in sup.events if e.src != e.dst] == [HOLD, LAND]
+        assert cause in sup.events[1].reason

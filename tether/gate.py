@@ -13,7 +13,20 @@ numbers). The gate then asks whether it could be true, and rejects, with a count
 * ``jump`` — its position is further from the sender's last accepted sample than the sender could
   have moved since: ``|p - p_ref| > max_speed |t - t_ref| + jump_margin``; before any accepted
   sample the reference is the sender's initial position from the mission at t = 0;
-* ``speed`` — its velocity is beyond ``max_speed``.
+* ``speed`` — its velocity is beyond ``max_speed``;
+* ``profile`` — (the leader's samples, whose profile the mission defines) its position, velocity or
+  acceleration departs from the profile at the sample's own time by more than ``profile_margin``
+  (a distance in each unit: m, m/s, m/s^2). The leader publishes the profile itself, at ``t = k h``,
+  and a receiver evaluates the same closed forms (:func:`leader.profile.scalar`): the genuine
+  departure is rounding (0 on every shipped mission), and the network delays a sample, never changes
+  it. The margin (1 cm by default) is therefore not a noise allowance: it bounds what a forgery that
+  passes can move the formation by.
+
+Beyond single samples, a stream is judged over a sliding window (:class:`Health`): a stream whose
+recent samples are mostly rejected, or conflict with what the same sender said for the same tick,
+is *suspect* (a forgery beside the genuine stream, or a faulty sensor), and the agent's supervisor
+treats it as a lost input (``docs/safety.md``). A plant's report of its own mode is believed only as
+far as its samples agree (:class:`PlantModes`).
 
 Only an accepted sample newer than the last accepted one (a later ``t``) moves the reference: a
 replayed old sample, which may well pass (it was true once), must not take the reference back in
@@ -28,13 +41,18 @@ truth.
 from __future__ import annotations
 
 import math
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from collections.abc import Callable
 from typing import Any
 
 from tether.mission import CrazyfliePlant, Mission, Waypoints
+from tether.wire import ESTOP, FLYING, LAND, LANDED
 
-REASONS = ("stamp", "future", "jump", "speed")
+REASONS = ("stamp", "future", "jump", "speed", "profile")
+
+Expected = Callable[[float], tuple[Sequence[float], Sequence[float], Sequence[float]]]
+"""A sender's position [m], velocity [m/s] and acceleration [m/s^2] at a time [s] (the leader's profile)."""
 
 
 def initial_positions(m: Mission) -> dict[int, list[float]]:
@@ -51,12 +69,18 @@ def initial_positions(m: Mission) -> dict[int, list[float]]:
     return out
 
 
-def for_sender(m: Mission, sender: int, now: Callable[[], float] | None) -> Gate:
+def for_sender(m: Mission, sender: int, now: Callable[[], float] | None, expect: Expected | None = None) -> Gate:
     """The gate of ``sender``'s samples in mission ``m``; ``now``: the receiver's mission time in
-    real time (None in lockstep)."""
+    real time (None in lockstep); ``expect``: what the sender publishes at a time, when that is known
+    (the leader's profile, :func:`leader.profile.scalar`)."""
     sf = m.safety
     return Gate(m.dt, sf.max_speed, sf.jump_margin, initial_positions(m)[sender],
-                future_window=sf.future_window, now=now)
+                future_window=sf.future_window, now=now, expect=expect, profile_margin=sf.profile_margin)
+
+
+def health_of(m: Mission) -> Health:
+    """A stream's sliding-window judge with the mission's ``[safety]`` settings."""
+    return Health(m.safety.suspect_window, m.safety.suspect_share)
 
 
 @dataclass
@@ -74,6 +98,10 @@ class Gate:
     """Real time: the most periods a sample may be ahead of ``now()``; None: no such bound (lockstep)."""
     now: Callable[[], float] | None = None
     """Real time: the receiver's mission time [s] (its clock)."""
+    expect: Expected | None = None
+    """What the sender publishes at a time (the leader's profile); None: not known."""
+    profile_margin: float = 0.0
+    """The largest departure from ``expect`` accepted [m; m/s; m/s^2]."""
     rejected: dict[str, int] = field(default_factory=dict)
     accepted: int = 0
     """Samples accepted (each newer one moved the reference)."""
@@ -100,7 +128,88 @@ class Gate:
             return "jump"
         if not math.hypot(*msg.vel) <= self.max_speed:
             return "speed"
+        if self.expect is not None:
+            p, v, a = self.expect(msg.t)
+            tol = self.profile_margin
+            if not (math.dist(msg.p, p) <= tol and math.dist(msg.vel, v) <= tol and math.dist(msg.a, a) <= tol):
+                return "profile"
         return None
+
+
+@dataclass
+class Health:
+    """One stream's sliding window: of the last ``window`` samples offered (every one that decoded),
+    how many were bad (rejected by the gate, or in conflict with what the sender already said).
+
+    The stream becomes :attr:`suspect` when at least ``share`` of a full window is bad
+    (``ceil(share window)`` samples), and clears when at most half that share is (hysteresis: a
+    forgery that keeps the share near the threshold cannot make the verdict flap). Before ``window``
+    samples have been offered, the count is still taken against the full window, so a stream's first
+    rejected samples alone do not make it suspect."""
+
+    window: int
+    share: float
+    outcomes: deque[bool] = field(default_factory=deque)
+    bad: int = 0
+    suspect: bool = False
+
+    def note(self, bad: bool) -> bool:
+        """Count one sample; True when :attr:`suspect` changed with it."""
+        self.outcomes.append(bad)
+        self.bad += bad
+        if len(self.outcomes) > self.window:
+            self.bad -= self.outcomes.popleft()
+        was = self.suspect
+        if not was and self.bad >= math.ceil(self.share * self.window):
+            self.suspect = True
+        elif was and self.bad <= math.floor(self.share * self.window / 2):
+            self.suspect = False
+        return self.suspect != was
+
+    def reset(self) -> None:
+        self.outcomes.clear()
+        self.bad = 0
+        self.suspect = False
+
+
+TERMINAL = (LAND, LANDED, ESTOP)
+"""A plant's watchdog modes it never leaves for FLYING (``plant/watchdog.py``)."""
+
+
+@dataclass
+class PlantModes:
+    """A plant's report of its own mode, believed only as far as its samples agree: a mode other
+    than FLYING is believed once ``confirm`` samples of consecutive ticks say it, and a report of
+    LAND, LANDED or ESTOP followed by a FLYING one is a contradiction (the watchdog never flies
+    again after those), so that report is not believed. Fed the plant's accepted samples in arrival
+    order; pure."""
+
+    confirm: int
+    believed: int = FLYING
+    """The mode believed (a code of :data:`tether.wire.MODES`)."""
+    contradictions: int = 0
+    _mode: int = FLYING
+    _run: int = 0
+    _k: int = -1
+
+    def observe(self, k: int, mode: int) -> bool:
+        """Take the mode of the plant's sample of tick ``k``; False if it contradicts what the plant
+        said before (the caller counts it as a conflict)."""
+        if k <= self._k and mode == self._mode:
+            return True  # a copy, or a late sample of the same run: nothing new
+        ok = not (mode == FLYING and (self._mode in TERMINAL or self.believed in TERMINAL))
+        if not ok:
+            self.contradictions += 1
+        if self.believed in TERMINAL:
+            return ok  # believed already: a vehicle that stopped flying is not flown again on a report
+        if mode == self._mode and k == self._k + 1:
+            self._run += 1
+        elif k > self._k or mode != self._mode:
+            self._mode, self._run = mode, 1
+        self._k = max(self._k, k)
+        if self._run >= self.confirm or mode == FLYING:
+            self.believed = self._mode
+        return ok
 
 
 def merged(gates: list[Gate]) -> dict[str, int]:

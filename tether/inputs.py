@@ -11,7 +11,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from tether.gate import Health
 
 RECENT_SEQS = 256
 """How far behind the newest sequence number a source tells duplicates from reordered samples:
@@ -22,6 +25,8 @@ _WINDOW = (1 << (RECENT_SEQS + 1)) - 1
 """The bits of :attr:`Source.recent`: the newest and the :data:`RECENT_SEQS` before it."""
 _FRESH = RECENT_SEQS + 1
 """A shift that starts :attr:`Source.recent` afresh."""
+_CONTENTS = ("t", "p", "vel", "a", "mode")
+"""What two samples of one tick from one sender must agree on."""
 
 
 class Copy(Protocol):
@@ -91,6 +96,17 @@ class Source:
     before it is stored or counted as received), or None to accept it."""
     rejected: int = 0
     """Samples the gate rejected."""
+    conflicts: int = 0
+    """Samples that passed the gate but conflict with what the sender already said: another sample
+    of the same tick with other contents (:meth:`offer` drops it: two truths for one tick mean one
+    of them is forged), or one that :attr:`consistent` refuses (kept)."""
+    consistent: Callable[[Any], bool] | None = None
+    """A check of a sample against what its sender said before (a plant's modes,
+    :class:`tether.gate.PlantModes`): False counts a conflict."""
+    health: Health | None = None
+    """The stream's sliding-window judge (:class:`tether.gate.Health`), told every sample's verdict;
+    with one, a second sample of a held tick with other contents is a conflict (an agent's inputs,
+    whose senders send one sample a tick)."""
     keep: bool = True
     """Hold samples by tick for :meth:`tether.node.Node.aligned`; False for inputs consumed by
     ``on_message`` alone (the recorder), which would otherwise hold every sample of the run."""
@@ -126,9 +142,23 @@ class Source:
         only be one missed and sent again after a stall (:meth:`tether.node.Node.resend`): it is
         taken as if it had come in its turn (not counted stale), so that a run's link statistics
         do not depend on whether the machine's load made a peer resend."""
+        health = self.health
         if self.admit is not None and self.admit(msg) is not None:
             self.rejected += 1
+            if health is not None:
+                health.note(True)
             return
+        if health is not None and self.keep and self._conflicts(msg):
+            self.conflicts += 1
+            if health is not None:
+                health.note(True)
+            return
+        if self.consistent is not None and not self.consistent(msg):
+            self.conflicts += 1
+            if health is not None:
+                health.note(True)
+        elif health is not None:
+            health.note(False)
         self.received += 1
         newest = self.newest
         if missed and newest is not None and msg.seq < newest.seq and newest.seq - msg.seq <= RECENT_SEQS:
@@ -151,6 +181,14 @@ class Source:
             self.by_tick.setdefault(msg.k, msg)
         if self.on_message is not None:
             self.on_message(msg)
+
+    def _conflicts(self, msg: Any) -> bool:
+        """Whether a sample of ``msg``'s tick is held with other contents (time, position, velocity,
+        acceleration or mode): a copy, a resend or a replay of the same sample is no conflict."""
+        held = self.by_tick.get(msg.k)
+        if held is None or held is msg:
+            return False
+        return any(getattr(held, f, None) != getattr(msg, f, None) for f in _CONTENTS)
 
     def received_upto(self, k: int) -> int:
         """Samples accepted whose tick is at most ``k`` (in lockstep, what tick k could have seen,

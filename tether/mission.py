@@ -19,7 +19,7 @@ import math
 import re
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 import msgspec.inspect
@@ -358,6 +358,17 @@ class Safety(Strict, frozen=True):
     """Slack on the plausible-jump bound [m] (noise, a restart)."""
     future_window: int = 2
     """Samples stamped more than this many ticks ahead of the receiver's own tick are rejected."""
+    profile_margin: Annotated[float, msgspec.Meta(gt=0.0)] = 0.01
+    """The leader's samples may depart from its profile at their own time by at most this [m; m/s;
+    m/s^2, each of position, velocity and acceleration]; more is rejected (``profile``)."""
+    suspect_window: Annotated[int, msgspec.Meta(ge=4, le=100_000)] = 50
+    """Samples over which each input stream is judged (0.5 s at 100 Hz)."""
+    suspect_share: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 0.5
+    """A stream with at least this share of its last ``suspect_window`` samples rejected or in
+    conflict is suspect (a forgery or a sensor fault) and treated as a lost input."""
+    mode_confirm: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 3
+    """A plant's report of a mode other than FLYING is believed once this many samples of
+    consecutive ticks say it."""
     max_formation_error: float = 50.0
     """‖xi_i‖ beyond this [m] is divergence."""
     gain_cap: float = 1000.0
