@@ -6,7 +6,10 @@ the plants co-located: the leader's and every agent's records), and fills a
 every sample of k, so the clock never runs ahead of what is recorded. In real time it records
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
 in both cases (a stopped run is marked ``complete = false``), with ``run.mcap`` beside it when the
-Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``).
+Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``). Meanwhile every sample it
+takes goes to its journal (``journal.mcap``, ``recorder/journal.py``), flushed every second, so that
+a recorder killed before it writes the run file leaves one that can be rebuilt; the journal is
+removed once the run file is written and synced.
 
 The same role serves two more uses (:func:`make`): ``live`` serves every tick over the Foxglove
 WebSocket protocol while the run goes on (``tether run --live``, ``tether record --live``: a
@@ -28,10 +31,13 @@ from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
+from recorder import journal as jr
 from recorder.export import mcap_beside
 from tether import gate, jsonout, wire
+from tether.mission import Mission
 from tether.node import Node
 from tether.rejoin import Rejoin
 from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
@@ -57,12 +63,30 @@ def _block(msgs: list[Any], vectors: attrgetter, dim: int) -> list[np.ndarray]:
     return list(np.moveaxis(every.reshape(len(msgs), len(rows[0]), dim), 1, 0))
 
 
+@dataclasses.dataclass(frozen=True)
+class RecordingContext:
+    """What the recorder's bookkeeping needs of its process (a :class:`~tether.node.Node` gives the
+    same; a journal's replay gives this)."""
+
+    mission: Mission
+    lockstep: bool
+    namespace: str
+    mission_text: str
+    arrived_ago: Callable[[], float] = lambda: 0.0
+    """How long ago the sample being taken arrived [s] (the epoch hint of a recorder attaching live)."""
+
+
 class Recording:
     """The run being filled, sample by sample (pure bookkeeping, no I/O until :meth:`save`)."""
 
-    def __init__(self, node: Node, out: Path, mcap: bool = True):
+    def __init__(self, node: Node | RecordingContext, out: Path, mcap: bool = True):
         m = node.mission
-        self.node = node
+        if isinstance(node, RecordingContext):
+            ctx = node
+        else:
+            ctx = RecordingContext(mission=m, lockstep=node.clock.lockstep, namespace=node.keys.ns,
+                                   mission_text=node.args.mission_path.read_text(), arrived_ago=node.arrived_ago)
+        self.arrived_ago = ctx.arrived_ago
         self.mcap = mcap
         """Write ``run.mcap`` beside ``run.npz`` (``--no-mcap``: not, e.g. to measure its cost)."""
         self.mission = m
@@ -71,10 +95,9 @@ class Recording:
         n, d, T = m.n, m.dim, m.steps + 1
         self.degree = {a.id: sum(1 for e in m.edges if e.dst == a.id) for a in m.agents}
         width = max(self.degree.values())
-        source: Source = "runtime-lockstep" if node.clock.lockstep else "runtime-realtime"
+        source: Source = "runtime-lockstep" if ctx.lockstep else "runtime-realtime"
         meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate,
-                       steps=m.steps, seed=m.seed, namespace=node.keys.ns,
-                       mission_text=node.args.mission_path.read_text())
+                       steps=m.steps, seed=m.seed, namespace=ctx.namespace, mission_text=ctx.mission_text)
         self.run = Run.empty(T, m.agent_ids, d, meta)
         self.run.t[:] = np.arange(T) * m.dt
         self.rt = self.run.runtime = RuntimeRecord.empty(T, n, d)
@@ -97,10 +120,12 @@ class Recording:
             self.world_series = pp, pv, tension, slack
         self.events: list[wire.SafetyEvent] = []
         """Mode changes, as the agents' telemetry reports them."""
+        self.plant_events: list[wire.SafetyEvent] = []
+        """The plants' watchdogs' events, as their states report them."""
         self.clock: ClockRecord | None = None
         """Real time: the agents' per-link clock-offset bounds (slots: the plant and the in-neighbours)."""
         self.clock_slots: list[dict[tuple[str, int], int]] = [{} for _ in range(n)]
-        if not node.clock.lockstep:
+        if not ctx.lockstep:
             self.clock = self.run.clock = ClockRecord.empty(T, n, width + 1)
         self.gate: list[tuple[int, dict[str, int]]] = [(-1, {}) for _ in range(n)]
         """Per agent: the newest telemetry's tick and its gate rejections since start, by reason."""
@@ -159,6 +184,7 @@ class Recording:
             rt.plant_p[msg.k, i], rt.plant_v[msg.k, i], rt.plant_a[msg.k, i] = msg.p, msg.vel, msg.a
             self.run.d[msg.k, i] = msg.d
             self.run.safety.plant_mode[msg.k, i] = msg.mode
+            self.plant_events.extend(msg.events)
             self._heard(msg.k)
 
     def plants(self, msgs: list[wire.PlantState]) -> None:
@@ -173,6 +199,8 @@ class Recording:
         rt.plant_p[ks, i], rt.plant_v[ks, i], rt.plant_a[ks, i], self.run.d[ks, i] = \
             _block(msgs, _PLANT_VECTORS, self.mission.dim)
         self.run.safety.plant_mode[ks, i] = [msg.mode for msg in msgs]
+        for msg in msgs:
+            self.plant_events.extend(msg.events)
 
     def telemetries(self, msgs: list[wire.Telemetry]) -> None:
         """One agent's telemetry of consecutive ticks (a :class:`~tether.wire.Record`'s): as
@@ -247,6 +275,26 @@ class Recording:
             tension[msg.k], slack[msg.k] = msg.tension, msg.slack_events
             self._heard(msg.k)
 
+    def take(self, msg: wire.Message) -> None:
+        """Record one message as the recorder's inputs hand it over (a journal's replay): a sample,
+        or a lockstep record (the leader's states, or an agent's plant samples and telemetry, each
+        already past the plausibility gate). Other messages are ignored."""
+        if isinstance(msg, wire.Record):
+            for s in msg.leader:
+                self.leader(s)
+            if msg.plant:
+                self.plants(msg.plant)
+            if msg.telemetry:
+                self.telemetries(msg.telemetry)
+        elif isinstance(msg, wire.Telemetry):
+            self.telemetry(msg)
+        elif isinstance(msg, wire.PlantState):
+            self.plant(msg)
+        elif isinstance(msg, wire.State):
+            self.leader(msg)
+        elif isinstance(msg, wire.WorldState):
+            self.world(msg)
+
     def telemetry(self, msg: wire.Telemetry) -> None:
         k = msg.k
         if not 0 <= k < len(self.count) or not self._take(k, 1 + self.mission.n + self.col[msg.sender]):
@@ -256,7 +304,7 @@ class Recording:
             # earlier than its arrival is an epoch never behind the swarm's (tether record, late);
             # only from a sample whose tick and time agree and lie within the mission (its arrival:
             # it may be drained up to a period later)
-            self.first = time.time() - self.node.arrived_ago() - msg.t - self.mission.dt
+            self.first = time.time() - self.arrived_ago() - msg.t - self.mission.dt
         i, r, lk, rt = self.col[msg.sender], self.run, self.lk, self.rt
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
@@ -300,18 +348,20 @@ class Recording:
                 rec.role[i, slot], rec.src[i, slot] = c.role, c.src
             rec.offset[k, i, slot] = c.offset
 
-    def save(self, complete: bool, drops: dict[str, int]) -> Path:
+    def save(self, complete: bool, drops: dict[str, int], sync: bool = False) -> Path:
         """Write the run file (and its views); an ``OSError`` (a full disk) is noted in
         :attr:`failed` (the stop hook then does not try again) and re-raised: :func:`tether.node.serve`
         logs it with the path and the cause (:func:`tether.node.os_error`), no traceback, and exits 1."""
         self.failed = None
         try:
-            return self._save(complete, drops)
+            return self._save(complete, drops, sync)
         except OSError as exc:
             self.failed = exc
             raise
 
-    def _save(self, complete: bool, drops: dict[str, int]) -> Path:
+    def finalise(self, complete: bool, drops: dict[str, int]) -> Run:
+        """The run as it stands, its metadata, events and gate counts filled in (pure; :meth:`save`
+        writes it)."""
         meta, safety = self.run.meta, self.run.safety
         meta.complete = complete
         if self.duplicates:
@@ -322,12 +372,17 @@ class Recording:
         meta.samples_recorded = int(self.count.sum())
         meta.samples_expected = int(self.expected * len(self.count))
         safety.events = sorted(self.events, key=lambda e: (e.k, e.vehicle, e.t))
+        safety.plant_events = sorted(self.plant_events, key=lambda e: (e.k, e.vehicle, e.t))
         reasons = sorted({r for _, gate in self.gate for r in gate})
         safety.gate_reasons = np.array(reasons, dtype=str)
         safety.gate_counts = np.array([[gate[r] if r in gate else 0 for r in reasons] for _, gate in self.gate],
                                       dtype=np.int64).reshape(len(self.gate), len(reasons))
+        return self.run
+
+    def _save(self, complete: bool, drops: dict[str, int], sync: bool) -> Path:
+        self.finalise(complete, drops)
         cpu0, wall0 = time.process_time(), time.perf_counter()
-        path = self.run.save(self.out / "run.npz")
+        path = self.run.save(self.out / "run.npz", sync=sync)
         cpu1, wall1 = time.process_time(), time.perf_counter()
         try:  # the Foxglove view beside it (docs/foxglove.md); the run file is already safe
             if self.mcap:  # ticks of which nothing was heard (a stop, a late start) are left out of it
@@ -380,7 +435,7 @@ class Feed:
         run, events = rec.run, rec.events
         t0 = time.process_time()
         while self.next <= newest and (flush or count[self.next] >= expected or newest - self.next >= self.LAG):
-            self.live.tick(run, self.next, events=events)
+            self.live.tick(run, self.next, events=events, plant_events=rec.plant_events)
             self.next += 1
             self.sent += 1
         self.cpu += time.process_time() - t0
@@ -399,26 +454,51 @@ def _drops(node: Node) -> dict[str, int]:
     return {**node.receiver.drops, "copy": node.copies} if node.copies else dict(node.receiver.drops)
 
 
-def _leader_records(node: Node, rec: Recording, leader_gate: Callable[[wire.State], str | None]
-                    ) -> Callable[[wire.Record], None]:
+def _journaled(journal: jr.Journal, take: Callable[[Any], None]) -> Callable[[Any], None]:
+    """``take`` after journaling its message (a sample that passed its gate)."""
+
+    def both(msg: Any) -> None:
+        journal.add(msg)
+        take(msg)
+
+    return both
+
+
+async def _keep(node: Node, journal: jr.Journal) -> None:
+    """Flush the journal every :data:`recorder.journal.FLUSH_PERIOD` (with the drop counts), then
+    ``fsync`` it on a worker thread, until it is closed."""
+    while not journal.closed:
+        await asyncio.sleep(jr.FLUSH_PERIOD)
+        journal.drops(_drops(node))
+        journal.flush()
+        await asyncio.to_thread(journal.sync)
+
+
+def _leader_records(node: Node, rec: Recording, leader_gate: Callable[[wire.State], str | None],
+                    journal: jr.Journal | None = None) -> Callable[[wire.Record], None]:
     """What the recorder does with the leader's :class:`~tether.wire.Record` (lockstep, plants
     co-located): each state passes the plausibility gate as one that came alone would, then is
-    recorded as if it had."""
+    recorded as if it had (and journaled, the record of the states that passed)."""
 
     def take(msg: wire.Record) -> None:
+        states = []
         for s in msg.leader:
             why = leader_gate(s)
             if why is not None:
                 node.count_drop("gate")
                 log.warning("record of the leader: state of tick %d rejected (%s)", s.k, why)
                 continue
+            states.append(s)
+        if journal is not None and states:
+            journal.add(msg if len(states) == len(msg.leader) else msgspec.structs.replace(msg, leader=states))
+        for s in states:
             rec.leader(s)
 
     return take
 
 
-def _records(node: Node, rec: Recording, plant_gate: Callable[[wire.PlantState], str | None]
-             ) -> Callable[[wire.Record], None]:
+def _records(node: Node, rec: Recording, plant_gate: Callable[[wire.PlantState], str | None],
+             journal: jr.Journal | None = None) -> Callable[[wire.Record], None]:
     """What the recorder does with one agent's :class:`~tether.wire.Record` (its plant co-located):
     each plant sample passes the plausibility gate as a plant's own would, then both streams are
     recorded as if they had come alone. (Records are lockstep's alone: a copy of a record had, a
@@ -435,10 +515,31 @@ def _records(node: Node, rec: Recording, plant_gate: Callable[[wire.PlantState],
                 log.warning("record of agent %d: plant sample of tick %d rejected (%s)", msg.sender, p.k, why)
                 continue
             plants.append(p)
+        if journal is not None:
+            journal.add(msg if len(plants) == len(msg.plant) else msgspec.structs.replace(msg, plant=plants))
         rec.plants(plants)
         rec.telemetries(msg.telemetry)
 
     return take
+
+
+def _save(node: Node, rec: Recording, journal: jr.Journal | None, complete: bool) -> None:
+    """Write the run file (synced, when a journal stands for it meanwhile), then remove the journal.
+    A failed write leaves the journal flushed and closed: the run can be rebuilt from it."""
+    if journal is None:
+        rec.save(complete=complete, drops=_drops(node))
+        return
+    journal.drops(_drops(node))
+    journal.flush()
+    try:
+        rec.save(complete=complete, drops=_drops(node), sync=True)
+    except OSError:
+        journal.finish()
+        raise
+    log.info("journal: %d messages, %d bytes, %d flushes; fsync %d times, %.3f s in all, longest %.3f s",
+             journal.messages, journal.size(), journal.flushes, journal.syncs, journal.sync_seconds,
+             journal.sync_max)
+    journal.discard()
 
 
 def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
@@ -454,6 +555,11 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         m, keys = node.mission, node.keys
         rec = Recording(node, out, mcap=mcap)
         holder["rec"] = rec
+        out.mkdir(parents=True, exist_ok=True)
+        journal = holder["journal"] = jr.Journal.create(out, jr.Header(
+            mission=m.name, mission_text=rec.run.meta.mission_text or "", namespace=keys.ns, duration=m.duration,
+            lockstep=node.clock.lockstep, started_ns=time.time_ns()))
+        keeper = asyncio.get_running_loop().create_task(_keep(node, journal), name="journal")
         # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
         # the record passes the same plausibility gate as the agents (tether/gate.py): a forged far-off
@@ -470,7 +576,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             # lockstep, plants co-located: the leader's states come in its records too (one wake-up
             # a record, not one a tick; leader/node.py)
             node.source(keys.topic("leader", m.leader.id, "record"), wire.Record, m.leader.id, keep=False,
-                        on_message=_leader_records(node, rec, leader_gate))
+                        on_message=_leader_records(node, rec, leader_gate, journal))
         else:
             def admit_leader(msg: wire.State) -> str | None:
                 if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
@@ -479,24 +585,25 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                 return leader_gate(msg)
 
             leader = node.source(keys.topic("leader", m.leader.id, "state"), wire.State, m.leader.id,
-                                 on_message=rec.leader, keep=False)
+                                 on_message=_journaled(journal, rec.leader), keep=False)
             leader.admit = admit_leader
         producers = [("leader", m.leader.id)]
         for aid in m.agent_ids:
             plant_gate = gate.for_sender(m, aid, now).check
             if colocated:  # lockstep, plants inside their agents: both streams in the agent's records
                 src = node.source(keys.topic("agent", aid, "record"), wire.Record, aid, subscribe=False, keep=False)
-                src.on_message = _records(node, rec, plant_gate)
+                src.on_message = _records(node, rec, plant_gate, journal)
                 producers.append(("agent", aid))
                 continue
-            node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid, on_message=rec.telemetry,
-                        subscribe=False, keep=False)
-            plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid, on_message=rec.plant,
-                                subscribe=False, keep=False)
+            node.source(keys.topic("agent", aid, "telemetry"), wire.Telemetry, aid,
+                        on_message=_journaled(journal, rec.telemetry), subscribe=False, keep=False)
+            plant = node.source(keys.topic("plant", aid, "state"), wire.PlantState, aid,
+                                on_message=_journaled(journal, rec.plant), subscribe=False, keep=False)
             plant.admit = plant_gate
             producers += [("agent", aid), ("plant", aid)]
         if m.payload is not None:
-            node.source(keys.topic("world", 0, "state"), wire.WorldState, 0, on_message=rec.world, keep=False)
+            node.source(keys.topic("world", 0, "state"), wire.WorldState, 0, on_message=_journaled(journal, rec.world),
+                        keep=False)
             producers.append(("world", 0))
         if colocated:
             node.subscribe(f"tether/{keys.ns}/agent/*/record")
@@ -580,7 +687,8 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         if feed is not None:
             holder.pop("feed", None)
             feed.close()
-        rec.save(complete=complete, drops=_drops(node))
+        keeper.cancel()
+        _save(node, rec, journal, complete)
         if rec.count[last] == 0 and not attach and node.mission_time() < m.duration:
             # the producers may have left because the run is being stopped (Ctrl-C): then this
             # process's own stop follows within moments, and ends it as stopped, not failed
@@ -600,14 +708,18 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                 feed.close()
             except Exception as exc:  # noqa: BLE001 - the files matter more than the live view
                 log.warning("live view: %s: %s", type(exc).__name__, exc)
-        rec = holder.get("rec")
+        rec, journal = holder.get("rec"), holder.get("journal")
         if rec is None or rec.saved or rec.failed is not None:
             return
         if attach and not rec.count.any():
             log.warning("stopped before any sample of namespace %r was heard: no run file written", node.keys.ns)
+            if journal is not None:
+                journal.discard()
             return
         if "started" not in holder:  # stopped before any start: another process's file stays
             log.warning("stopped before the run started: no run file written")
+            if journal is not None:
+                journal.discard()
             return
         # what has arrived waits in the input queues until the next drain (the wildcard streams up to a
         # period): decoded into the file, not dropped with the process (a vehicle's LANDED, the moment
@@ -618,6 +730,6 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             log.exception("stopped: the last drain failed; writing what was decoded before it")
         log.info("stopped: writing %s and run.mcap (%d of %d samples)", out / "run.npz", int(rec.count.sum()),
                  rec.expected * len(rec.count))
-        rec.save(complete=False, drops=_drops(node))
+        _save(node, rec, journal, complete=False)
 
     return run, on_stop

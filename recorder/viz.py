@@ -16,7 +16,9 @@ The channels (``docs/foxglove.md``):
                                                links (age, delivery) and the runtime's own columns
 ``/leader``            tether.Leader (JSON)    the leader's p, v, a
 ``/payload``           tether.Payload (JSON)   payload p, v, cable tensions, slack events ([payload])
-``/safety``            foxglove.Log            every safety mode change
+``/safety``            foxglove.Log            every safety event: the agents' supervisors' mode changes
+                                               (name ``agent <id>``), the plants' watchdogs' mode
+                                               changes and command rejections (name ``plant <id>``)
 ``/log``               foxglove.Log            the run's notes: what ran, divergence, gate rejections
 =====================  ======================  =========================================================
 
@@ -46,7 +48,7 @@ from foxglove import messages as fm
 from foxglove.mcap import MCAPWriteOptions
 
 from tether import mission as ms
-from tether.runfile import NO_SAMPLE, Run
+from tether.runfile import NO_SAMPLE, Run, missing_report
 from tether.wire import SafetyEvent
 
 EPOCH_NS = 1_000_000_000 * 10**9
@@ -378,14 +380,18 @@ class View:
         if scene if scene is not None else k % self.scene_every == 0:
             self._scene(k, ns, r)
 
-    def event(self, e: SafetyEvent) -> None:
-        """A safety mode change on ``/safety``."""
+    def event(self, e: SafetyEvent, origin: str = "agent") -> None:
+        """A safety event on ``/safety``, named by its origin (``agent <id>``: the supervisor's;
+        ``plant <id>``: the plant's watchdog, whose events include command rejections without a
+        mode change, ``src == dst``)."""
         ns = stamp(e.t)
         dst = _name(self.lay.modes, e.dst)
         level = (fm.LogLevel.Error if dst == "ESTOP" else
-                 fm.LogLevel.Warning if dst in ("HOLD", "LAND") else fm.LogLevel.Info)
-        text = f"t = {e.t:.3f} s: vehicle {e.vehicle}: {_name(self.lay.modes, e.src)} -> {dst}: {e.reason}"
-        self.safety.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=f"agent {e.vehicle}"), log_time=ns)
+                 fm.LogLevel.Warning if dst in ("HOLD", "LAND") or e.src == e.dst else fm.LogLevel.Info)
+        change = f"{dst}" if e.src == e.dst else f"{_name(self.lay.modes, e.src)} -> {dst}"
+        text = f"t = {e.t:.3f} s: {origin} {e.vehicle}: {change}: {e.reason}"
+        self.safety.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=f"{origin} {e.vehicle}"),
+                        log_time=ns)
 
     def note(self, t: float, text: str, level: fm.LogLevel = fm.LogLevel.Info, name: str = "tether") -> None:
         """A note on ``/log``."""
@@ -424,10 +430,25 @@ def _opening_notes(view: View, run: Run) -> None:
                    f"seed {m.seed}; {len(run.agent_ids)} agents {list(map(int, run.agent_ids))}")
 
 
+def heard(run: Run) -> np.ndarray:
+    """(T,) bool: the ticks of ``run`` that hold any sample (a finite time, and the leader's sample or
+    a mode); a recorder's run stopped or cut short has none beyond its last, and none while it heard
+    nothing. The engines' runs hold every tick."""
+    return (np.isfinite(run.t) & (np.isfinite(run.leader_p).all(axis=1)
+                                  | (run.safety.safety_mode != NO_SAMPLE).any(axis=1)
+                                  | (run.safety.plant_mode != NO_SAMPLE).any(axis=1)))
+
+
+def _events(run: Run) -> list[tuple[SafetyEvent, str]]:
+    """Every safety event of ``run`` with its origin, in order of (tick, vehicle, time, origin)."""
+    both = [(e, "agent") for e in run.safety.events] + [(e, "plant") for e in run.safety.plant_events]
+    return sorted(both, key=lambda eo: (eo[0].k, eo[0].vehicle, eo[0].t, eo[1]))
+
+
 def _closing_notes(view: View, run: Run) -> None:
     m = run.meta
-    heard = run.t[np.isfinite(run.t)]
-    t_end = float(heard[-1]) if len(heard) else 0.0  # the last tick written (a stopped run's are NaN after it)
+    written = run.t[heard(run)]
+    t_end = float(written[-1]) if len(written) else 0.0  # the last tick written (a stopped run's hold none after it)
     if m.diverged_at is not None:
         view.note(m.diverged_at, f"the run diverged at t = {m.diverged_at:g} s and was stopped", fm.LogLevel.Error)
     s = run.safety
@@ -441,6 +462,8 @@ def _closing_notes(view: View, run: Run) -> None:
         view.note(t_end, f"recorded {m.samples_recorded} of {m.samples_expected} samples"
                          + ("" if m.complete else " (incomplete)"),
                   fm.LogLevel.Info if m.complete else fm.LogLevel.Warning)
+    for line in missing_report(run):  # what the file lacks, said rather than shown as stale values
+        view.note(t_end, f"missing: {line}", fm.LogLevel.Warning)
     view.note(t_end, f"end of run at t = {t_end:g} s")
 
 
@@ -468,20 +491,20 @@ def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rat
             writer.attach(log_time=EPOCH_NS, create_time=EPOCH_NS, name="mission.toml", media_type="application/toml",
                           data=run.meta.mission_text.encode())
         rows = Rows(run, layout, whole=True)
-        events = sorted(run.safety.events, key=lambda e: (e.k, e.vehicle, e.t))
+        events = _events(run)
         ev = 0
         _opening_notes(view, run)
         times = run.t.tolist()
-        last = len(times) - 1
-        for k, t in enumerate(times):
-            if t != t:  # an unrecorded tick (a run stopped early)
-                continue
-            while ev < len(events) and events[ev].k <= k:
-                view.event(events[ev])
+        written = heard(run)
+        ticks = np.flatnonzero(written).tolist()
+        last = ticks[-1] if ticks else -1
+        for k in ticks:  # an unrecorded tick (a run stopped early, a recorder frozen) is left out
+            while ev < len(events) and events[ev][0].k <= k:
+                view.event(*events[ev])
                 ev += 1
-            view.tick(k, t, rows.at(k), scene=(k % view.scene_every == 0 or k == last))
-        for e in events[ev:]:
-            view.event(e)
+            view.tick(k, times[k], rows.at(k), scene=(k % view.scene_every == 0 or k == last))
+        for e, origin in events[ev:]:
+            view.event(e, origin)
         _closing_notes(view, run)
     finally:
         writer.close()
@@ -509,14 +532,17 @@ class Live:
         self.rows: Rows | None = None
         self.wall0 = 0.0
         self.events = 0
+        self.plant_events = 0
 
     @property
     def port(self) -> int:
         return self.server.port
 
-    def tick(self, run: Run, k: int, events: list[SafetyEvent] | None = None) -> None:
-        """Log tick ``k`` of ``run``; the safety events are ``run.safety.events`` unless ``events``
-        (a list that only grows: the recorder's, while the run is being filled) is given."""
+    def tick(self, run: Run, k: int, events: list[SafetyEvent] | None = None,
+             plant_events: list[SafetyEvent] | None = None) -> None:
+        """Log tick ``k`` of ``run``; the safety events are ``run.safety.events`` and
+        ``run.safety.plant_events`` unless ``events`` and ``plant_events`` (lists that only grow:
+        the recorder's, while the run is being filled) are given."""
         if self.view is None:
             layout = Layout(run, _mission_of(run, self.mission))
             self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate))
@@ -530,9 +556,14 @@ class Live:
                 self.sleep(ahead)
         if events is None:
             events = run.safety.events
+        if plant_events is None:
+            plant_events = run.safety.plant_events
         while self.events < len(events):
             self.view.event(events[self.events])
             self.events += 1
+        while self.plant_events < len(plant_events):
+            self.view.event(plant_events[self.plant_events], "plant")
+            self.plant_events += 1
         assert self.rows is not None  # set by start()
         self.view.tick(k, t, self.rows.at(k))
         self.server.broadcast_time(stamp(t))

@@ -1,4 +1,5 @@
-"""Run files: every typed record written and read back, numpy alone can read them, version 1 still loads."""
+"""Run files: every typed record written and read back, numpy alone can read them, versions 1-3 still
+load, and what a run lacks is said per stream."""
 
 from __future__ import annotations
 
@@ -49,6 +50,9 @@ def _full_run() -> Run:
     s.plant_mode[3, 1] = wire.LAND
     s.events = [wire.SafetyEvent(k=2, t=0.04, vehicle=5, src=wire.FLYING, dst=wire.HOLD, reason="leader silent 0.5 s"),
                 wire.SafetyEvent(k=3, t=0.06, vehicle=8, src=wire.FLYING, dst=wire.ESTOP, reason="operator")]
+    s.plant_events = [wire.SafetyEvent(k=1, t=0.02, vehicle=3, src=wire.FLYING, dst=wire.FLYING,
+                                       reason="command rejected: stamp 1e9 s ahead"),
+                      wire.SafetyEvent(k=3, t=0.06, vehicle=5, src=wire.FLYING, dst=wire.LAND, reason="geofence")]
     s.gate_reasons = np.array(["future", "jump"])
     s.gate_counts = np.array([[0, 1], [2, 0], [0, 0]], dtype=np.int64)
     run.clock = ClockRecord.empty(T, n, 2)
@@ -62,11 +66,11 @@ def test_every_typed_record_round_trips(tmp_path: Path) -> None:
     run = _full_run()
     run.save(tmp_path / "run.npz")
     back = Run.load(tmp_path)
-    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 3
+    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 4
     assert back.meta.recorder_drops == DropCounts(malformed=2, size=1, other={"new_reason": 4})
     assert back.meta.recorder_drops.total() == 7
     assert back.meta.modes == wire.MODES
-    assert back.safety.events == run.safety.events
+    assert back.safety.events == run.safety.events and back.safety.plant_events == run.safety.plant_events
     for name, want in run.arrays().items():
         got = back.arrays()[name]
         assert got.dtype == want.dtype or got.dtype.kind == want.dtype.kind == "U", name
@@ -80,10 +84,12 @@ def test_numpy_alone_reads_the_file_and_names_the_modes(tmp_path: Path) -> None:
     _full_run().save(tmp_path / "run.npz")
     with np.load(tmp_path / "run.npz", allow_pickle=False) as z:
         meta = json.loads(str(z["meta"]))
-        assert meta["format_version"] == 3 and meta["recorder_drops"]["malformed"] == 2
+        assert meta["format_version"] == 4 and meta["recorder_drops"]["malformed"] == 2
         names = [meta["modes"][c] for c in z["event_dst"]]
         assert names == ["HOLD", "ESTOP"] and list(z["event_vehicle"]) == [5, 8]
         assert list(z["event_reason"]) == ["leader silent 0.5 s", "operator"]
+        assert [meta["modes"][c] for c in z["plant_event_dst"]] == ["FLYING", "LAND"]
+        assert list(z["plant_event_vehicle"]) == [3, 5]
         assert meta["modes"][z["safety_mode"][3, 1]] == "HOLD"
         assert z["link_src"].shape == (3, 2) and z["tension"].shape == (T, 3)
 
@@ -102,7 +108,7 @@ def test_a_version_1_file_still_loads(tmp_path: Path) -> None:
     """Written as format version 1 did: meta a plain JSON object, drops a reason -> count object."""
     run = _full_run()
     arrays = {k: v for k, v in run.arrays().items()
-              if not k.startswith(("event_", "gate_")) and k not in ("safety_mode", "plant_mode")}
+              if not k.startswith(("event_", "plant_event_", "gate_")) and k not in ("safety_mode", "plant_mode")}
     meta = {"mission": "m", "source": "runtime-lockstep", "law": "sigma", "rate": 50.0, "steps": 3, "seed": 0,
             "namespace": "ns", "mission_text": "x", "complete": True, "recorder_drops": {"size": 3},
             "samples_recorded": 28, "samples_expected": 28, "format_version": 1}
@@ -118,9 +124,9 @@ def test_a_version_1_file_still_loads(tmp_path: Path) -> None:
 def test_another_version_or_an_unknown_array_is_an_error_that_names_it(tmp_path: Path) -> None:
     run = Run.empty(T, IDS, 2, _meta())
     arrays = run.arrays()
-    np.savez(tmp_path / "v4.npz", meta=np.array(json.dumps({"format_version": 4})), **arrays)
-    with pytest.raises(ValueError, match="format version 4"):
-        Run.load(tmp_path / "v4.npz")
+    np.savez(tmp_path / "v5.npz", meta=np.array(json.dumps({"format_version": 5})), **arrays)
+    with pytest.raises(ValueError, match="format version 5"):
+        Run.load(tmp_path / "v5.npz")
     run.save(tmp_path / "ok.npz")
     with np.load(tmp_path / "ok.npz") as z:
         np.savez(tmp_path / "typo.npz", **{k: z[k] for k in z.files}, link_recieved=np.zeros(1))
@@ -155,12 +161,48 @@ def test_figures_mark_mode_changes_only_when_there_are_events(tmp_path: Path) ->
 def test_a_version_2_file_loads_without_a_clock_record(tmp_path: Path) -> None:
     """Written as format version 2 did: no ``clock_*`` arrays."""
     run = _full_run()
-    arrays = {k: v for k, v in run.arrays().items() if not k.startswith("clock_")}
+    arrays = {k: v for k, v in run.arrays().items() if not k.startswith(("clock_", "plant_event_"))}
     meta = json.loads(msgspec.json.encode(run.meta).decode()) | {"format_version": 2}
     np.savez(tmp_path / "run.npz", meta=np.array(json.dumps(meta)), **arrays)
     back = Run.load(tmp_path)
     assert back.meta.format_version == 2 and back.clock is None
     np.testing.assert_array_equal(back.links.received, run.links.received)
+
+
+def test_a_version_3_file_loads_without_plant_events_and_refuses_them(tmp_path: Path) -> None:
+    """Written as format version 3 did: no ``plant_event_*`` arrays; a version-3 file that has them
+    is refused naming them (they are version 4's)."""
+    run = _full_run()
+    meta = json.loads(msgspec.json.encode(run.meta).decode()) | {"format_version": 3}
+    del meta["recovered"]
+    arrays = {k: v for k, v in run.arrays().items() if not k.startswith("plant_event_")}
+    np.savez(tmp_path / "run.npz", meta=np.array(json.dumps(meta)), **arrays)
+    back = Run.load(tmp_path)
+    assert back.meta.format_version == 3 and back.safety.plant_events == [] and back.safety.events == run.safety.events
+    np.savez(tmp_path / "bad.npz", meta=np.array(json.dumps(meta)), **run.arrays())
+    with pytest.raises(ValueError, match="plant_event_dst"):
+        Run.load(tmp_path / "bad.npz")
+
+
+def test_gaps_name_each_stream_s_missing_ticks_and_a_full_run_has_none() -> None:
+    from tether.runfile import gaps, missing_report
+
+    run = Run.empty(10, [1, 2], 2, _meta(), mode=wire.FLYING)
+    run.leader_p[:] = 0.0
+    run.runtime = RuntimeRecord.empty(10, 2, 2)
+    assert gaps(run) == [] and missing_report(run) == []
+    run.leader_p[7:] = np.nan  # a recorder that heard nothing after tick 6
+    run.safety.safety_mode[7:] = NO_SAMPLE
+    run.safety.plant_mode[7:] = NO_SAMPLE
+    run.safety.plant_mode[2:4, 1] = NO_SAMPLE  # and lost two samples of plant 2
+    found = {g.stream: g for g in gaps(run)}
+    assert set(found) == {"leader", "plant 1", "plant 2", "telemetry of agent 1", "telemetry of agent 2"}
+    assert found["plant 2"].spans == ((2, 3), (7, 9)) and found["plant 2"].missing == 5
+    assert found["plant 2"].last == 6 and found["leader"].spans == ((7, 9),)
+    lines = missing_report(run)
+    assert "plant 2: 5 ticks missing: 2-3, 7-9 (t 0.04-0.18 s); newest t 0.12 s" in lines
+    run.meta.recovered = "from the recorder's journal: samples up to tick 6"
+    assert missing_report(run)[0] == "recovered: from the recorder's journal: samples up to tick 6"
 
 
 def test_the_mission_checks_count_the_run_file_s_series() -> None:
