@@ -1,0 +1,144 @@
+"""Plausible lies against a real swarm: forged mode reports and a drifting leader.
+
+Each case is a real-time ``tether run section4 --insecure`` that a plain Zenoh client joins on
+loopback; it forges samples on a victim's key (copies of the genuine ones it hears, changed) for a
+stretch of the run, then the run file is read back. What is asserted:
+
+* ``agent/1/state`` says HOLD (a copy of each genuine sample, same tick, mode HOLD) for 5 s: no
+  vehicle is e-stopped, the mode changes are few (the forged stream is judged suspect, not followed
+  sample by sample) and no two vehicles come within 0.3 m;
+* one ``plant/2/state`` says ESTOP (the next tick's sample, mode ESTOP): agent 2 and plant 2 never
+  leave FLYING, and the agent counts the contradiction;
+* the leader drifts at 0.5 m/s (each forged sample the next tick's, a plausible step ahead of the
+  genuine one): agent 1 rejects it as ``profile``, judges the leader's stream suspect, holds, and no
+  vehicle is steered more than 2 m from where the true leader's formation wants it.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from leader import profile
+from tests.test_runtime import PlainClient, launch, wait_for_realtime_start, STARTUP
+from tests.support import wait_until
+from tether import transport as tp
+from tether import wire
+from tether.catalog import builtin_path
+from tether.node import load_mission
+from tether.runfile import Run
+
+pytestmark = pytest.mark.slow
+
+AT, FOR, DURATION = 6.0, 5.0, 20.0
+"""The forgery starts at AT [s of mission time] and lasts FOR [s]; the run lasts DURATION [s]."""
+
+Forge = Callable[[wire.State | wire.PlantState, float], wire.State | wire.PlantState]
+"""A forged sample from a genuine one and the attack's age [s]."""
+
+
+def hold(msg, age):  # type: ignore[no-untyped-def]
+    return msgspec.structs.replace(msg, seq=msg.seq + 1, mode=wire.HOLD)
+
+
+def estop(msg, age):  # type: ignore[no-untyped-def]
+    return msgspec.structs.replace(msg, seq=msg.seq + 1, k=msg.k + 1, t=(msg.k + 1) * 0.01, mode=wire.ESTOP)
+
+
+def drift(msg, age):  # type: ignore[no-untyped-def]
+    h = 0.01
+    p = [x + v * h for x, v in zip(msg.p, msg.vel)]
+    p[1] += 0.5 * age  # 0.5 m/s sideways, each sample a plausible step ahead of the genuine one
+    return msgspec.structs.replace(msg, seq=msg.seq + 1, k=msg.k + 1, t=(msg.k + 1) * h, p=p)
+
+
+CASES = {
+    "agent-hold": ("agent/1/state", hold, FOR),
+    "plant-estop": ("plant/2/state", estop, 0.0),  # one sample
+    "leader-drift": ("leader/5/state", drift, FOR),
+}
+
+
+def attack(tmp: Path, case: str) -> tuple[Run, str]:
+    key, forge, span = CASES[case]
+    ns = f"lies-{case}-{os.getpid()}"
+    attach = tp.loopback_endpoint(tp.free_tcp_port())
+    with launch(tmp, ns, "--clock", "realtime", "--duration", f"{DURATION:g}", "--listen", attach,
+                "--insecure") as run:
+        wait_for_realtime_start(run)
+        client = PlainClient(attach)
+        try:
+            full = f"tether/{ns}/{key}"
+            client.subscribe(full)
+            pub = client.publisher(full)
+            _, first = client.next_matching(lambda k, m: k == full, STARTUP, f"a sample on {key}")
+            forged = 0
+            start: float | None = None
+            while True:  # forge from each genuine sample heard, from mission time AT for span seconds
+                _, msg = client.next_matching(lambda k, m: k == full and m.sender == first.sender, STARTUP, key)
+                if msg.t < AT:
+                    continue
+                start = msg.t if start is None else start
+                age = msg.t - start
+                if age > span:
+                    break
+                pub.put(wire.encode(forge(msg, age)))
+                forged += 1
+            assert forged >= 1
+        finally:
+            client.close()
+        run.wait(STARTUP + 2 * DURATION)
+        return Run.load(run.out), run.child_log("plant/2")
+
+
+def true_error(rec: Run, m) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """Per tick and vehicle, the distance [m] from the slot the true leader's profile gives it."""
+    ref = profile.build(m.leader, m.dim)
+    lp, _, _ = ref(rec.t)
+    offsets = np.array([a.offset for a in m.agents])
+    return np.linalg.norm(rec.p - (np.asarray(lp)[:, None, :] + offsets[None]), axis=-1)
+
+
+def mode_changes(rec: Run) -> int:
+    return len([e for e in rec.safety.events if e.src != e.dst])
+
+
+def min_separation(rec: Run) -> float:
+    p = rec.p
+    n = p.shape[1]
+    return min(float(np.nanmin(np.linalg.norm(p[:, i] - p[:, j], axis=-1))) for i in range(n) for j in range(i + 1, n))
+
+
+@pytest.mark.parametrize("case", [
+    pytest.param("agent-hold", marks=pytest.mark.xfail(strict=True, reason=(
+        "the forged copies (same tick, seq + 1) are not yet seen as conflicts by agent 2 in real time: "
+        "239 mode changes, 0.22 m separation measured; see docs/safety.md"))),
+    "plant-estop", "leader-drift"])
+def test_a_plausible_lie_is_caught_or_bounded(tmp_path: Path, case: str) -> None:
+    m = load_mission(builtin_path("section4"))
+    rec, plant_log = attack(tmp_path, case)
+    err = true_error(rec, m)
+    modes = rec.safety.safety_mode
+    print(f"{case}: true error max {np.nanmax(err):.3f} m, mode changes {mode_changes(rec)}, "
+          f"min separation {min_separation(rec):.3f} m, events {[(e.vehicle, round(e.t, 2), e.reason) for e in rec.safety.events]}")
+    assert not (modes == wire.ESTOP).any() and "ESTOP" not in plant_log  # the real plant 2's own log
+    assert min_separation(rec) > 0.3
+    if case == "plant-estop":
+        assert (modes[:, 1] == wire.FLYING).all() and mode_changes(rec) == 0
+    elif case == "agent-hold":
+        assert mode_changes(rec) <= 3 * len(m.agents)
+        assert any("neighbour 1 mostly rejected" in e.reason for e in rec.safety.events)
+    else:
+        reasons = [e.reason for e in rec.safety.events if e.vehicle == 1]
+        assert any("leader mostly rejected" in r for r in reasons)
+        assert rec.safety.gate_counts is not None
+        # steered off: how far sideways (the forged drift's direction) each vehicle went after AT
+        after = rec.t >= AT
+        side = np.abs(rec.p[after][:, :, 1] - rec.p[after][:1, :, 1])
+        assert float(np.nanmax(side)) < 2.0
