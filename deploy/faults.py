@@ -170,4 +170,7 @@ def check(faults: list[Fault], mission: ms.Mission, members: list[tuple[str, int
         if f.at > mission.duration:
             out.append((arg, f"fires at {f.at:g} s, after the run's end ({mission.duration:g} s); give a time "
                              "within the mission's duration (or a longer --duration)"))
+        if f.duration is not None and f.duration > mission.duration:
+            out.append((arg, f"lasts {f.duration:g} s, longer than the whole run ({mission.duration:g} s); give "
+                             f"at most {mission.duration:g} s (the run's end also ends a {f.kind})"))
     return out

@@ -227,6 +227,13 @@ ARGUMENTS = [
     Bad("run-lease-huge", ("run", "section4", "--out", "{tmp}/o", "--lease", "1e300"), ("--lease", "an hour")),
     Bad("run-lease-negative", ("run", "section4", "--out", "{tmp}/o", "--lease", "-1"), ("--lease",)),
     Bad("reproduce-duration-inf", ("reproduce", "section4", "--out", "{tmp}/o", "--duration", "inf"), ("--duration",)),
+    Bad("run-fault-freeze-forever", ("run", "section4", "--out", "{tmp}/o", "--fault", "freeze:leader@1+1e308"),
+        ("--fault freeze:leader@1+1e308", "longer than the whole run")),
+    Bad("run-listen-not-a-host", ("run", "section4", "--out", "{tmp}/o", "--listen", "tls/not-a-host:7447"),
+        ("--listen tls/not-a-host:7447", "cannot resolve 'not-a-host'", "give an address of this machine")),
+    Bad("run-listen-not-this-machine", ("run", "section4", "--out", "{tmp}/o", "--insecure", "--listen",
+                                        "tcp/192.0.2.1:7447"),
+        ("--listen tcp/192.0.2.1:7447", "not an address of this machine")),
 ]
 """Bad command lines (58; beside them 43 of the 105 catalogue missions are new with this file)."""
 

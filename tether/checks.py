@@ -74,6 +74,20 @@ MAX_SEED = 2**63 - 1
 MIN_AGE = 1e-3
 """Smallest ``links.max_age`` and ``[safety]`` timeout [s]: 1 ms, below any network's delivery
 time, so a smaller value would throw away every real-time sample."""
+MAX_WAIT = 60.0
+"""Longest any ``[safety]`` wait may be [s] (``leader_timeout``, ``neighbour_timeout``,
+``cmd_timeout``, ``cmd_cutoff``, ``land_after``, ``land_settle``): the longest default is 5 s, and a
+supervisor that leaves a lost input unanswered for more than a minute (a vehicle drifting at 1 m/s
+is 60 m away by then) is switched off, not tuned."""
+MAX_ACCEL = 100.0
+"""Largest ``safety.max_accel`` [m/s^2] (about 10 g): twice the thrust of the most powerful racing
+quadrotors; a cap above it caps nothing a multirotor can do."""
+MAX_SPEED = 343.0
+"""Largest ``safety.max_speed`` [m/s]: the speed of sound in air at 20 °C, which no multirotor
+approaches; a plausibility bound above it rejects no sample at all."""
+MAX_GAIN_CAP = 1e6
+"""Largest ``safety.gain_cap``: with a gain of 10⁶ the law's command saturates at the default
+``max_accel`` for any error above 20 µm, so a larger cap never tells divergence from flight."""
 SERIES_RECORDED = 9 + 3
 """Per-agent ``(T, N, d)`` series of a run file: the engines' nine (``tether.runfile.SERIES``; a
 number here, so that a process checking its mission does not load the run file's numpy) and the
@@ -448,6 +462,7 @@ def _validate_safety(m: Mission, out: Problems) -> None:
         if 0 < value < MIN_AGE:
             out.append((f"safety.{name}", f"is {value:g} s, below {MIN_AGE:g} s (no sample arrives that fast, so it "
                                           f"would fire at once); use e.g. {getattr(Safety(), name)!r}"))
+    _validate_safety_ceilings(m, out)
     if sf.jump_margin < 0:
         out.append(("safety.jump_margin", f"is {sf.jump_margin} m; use >= 0"))
     if sf.future_window < 0:
@@ -481,6 +496,51 @@ def _validate_safety(m: Mission, out: Problems) -> None:
         if av.sensing <= av.radius:
             out.append(("safety.avoid.sensing", f"is {av.sensing} m, not beyond radius ({av.radius} m); "
                                                 "the filter must see a vehicle before it is too close"))
+
+
+def _validate_safety_ceilings(m: Mission, out: Problems) -> None:
+    """The ``[safety]`` values so large that they switch off what they bound, each against its
+    ceiling (the constants above say why each): the waits, the speed and acceleration limits, the
+    divergence bounds, the jump margin, the future window (a minute of ticks), a descent no faster
+    than ``max_speed``, and HOLD gains the control rate can fly (poles within the rate: ``hold_kv``
+    <= 2 rate, ``hold_kp`` <= rate^2), and a ground within :data:`MAX_EXTENT`."""
+    sf = m.safety
+    default = Safety()
+    for name in ("leader_timeout", "neighbour_timeout", "cmd_timeout", "cmd_cutoff", "land_after", "land_settle"):
+        value = getattr(sf, name)
+        if value > MAX_WAIT:
+            out.append((f"safety.{name}", f"is {value:g} s, beyond {MAX_WAIT:g} s: a failsafe that waits longer "
+                                          f"never acts within a flight; use e.g. {getattr(default, name)!r}"))
+    ceilings = (("max_accel", MAX_ACCEL, "m/s^2", "about 10 g, more than any multirotor has"),
+                ("max_speed", MAX_SPEED, "m/s", "the speed of sound"),
+                ("max_formation_error", MAX_EXTENT, "m", "the largest coordinate a mission may have"),
+                ("jump_margin", MAX_EXTENT, "m", "the largest coordinate a mission may have"),
+                ("gain_cap", MAX_GAIN_CAP, "", "a gain that saturates every command at once"))
+    for name, most, unit, why in ceilings:
+        value = getattr(sf, name)
+        if value > most:
+            out.append((f"safety.{name}", f"is {value:g}{' ' + unit if unit else ''}, beyond {most:g} ({why}), "
+                                          f"which bounds nothing; use e.g. {getattr(default, name)!r}"))
+    if not MIN_RATE <= m.rate <= MAX_RATE:
+        return  # the rate's own problem is reported; nothing more to judge against it
+    window = int(m.rate * MAX_WAIT)
+    if sf.future_window > window:
+        out.append(("safety.future_window", f"is {sf.future_window} ticks, beyond {window} (a minute at {m.rate:g} "
+                                            f"Hz): it would take far-future stamps; use e.g. {default.future_window}"))
+    if 0 < sf.max_speed < sf.land_speed:
+        out.append(("safety.land_speed", f"is {sf.land_speed:g} m/s, faster than safety.max_speed "
+                                         f"({sf.max_speed:g} m/s): a descent the supervisor calls implausible; use "
+                                         f"e.g. {default.land_speed!r}"))
+    if sf.hold_kv > 2 * m.rate:
+        out.append(("safety.hold_kv", f"is {sf.hold_kv:g} 1/s, beyond 2 x rate ({2 * m.rate:g} 1/s): a HOLD loop "
+                                      "faster than the control rate oscillates or diverges; use e.g. "
+                                      f"{default.hold_kv!r}"))
+    if sf.hold_kp > m.rate ** 2:
+        out.append(("safety.hold_kp", f"is {sf.hold_kp:g} 1/s^2, beyond rate^2 ({m.rate ** 2:g} 1/s^2): a HOLD loop "
+                                      "faster than the control rate oscillates or diverges; use e.g. "
+                                      f"{default.hold_kp!r}"))
+    if abs(sf.ground) > MAX_EXTENT:
+        out.append(("safety.ground", f"is {sf.ground:g} m, beyond {MAX_EXTENT:g} m; give a height within 100 km"))
 
 
 def _validate_physics(m: Mission, out: Problems) -> None:
