@@ -1,0 +1,194 @@
+"""The record outlives its recorder: a real ``tether run section4`` whose recorder, launcher or whole
+process tree is killed with SIGKILL mid-run leaves a journal (``journal.mcap``) that the real MCAP
+reader reads up to its last whole chunk, holding every tick the recorder took up to within a second
+of the kill; ``recorder.journal`` rebuilds the run from it and says what is missing."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import time
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mcap_stream = pytest.importorskip("mcap.stream_reader")
+
+from recorder import journal  # noqa: E402
+from tether import wire  # noqa: E402
+from tether.runfile import Run  # noqa: E402
+
+from tests.test_observe import finish, kill, tether, wait_for  # noqa: E402
+
+AGENTS = (1, 2, 3, 4)
+SLACK = 1.5
+"""Beyond the journal's flush period, how late a flush may come on a loaded machine [s] (the
+recorder's event loop shares 2 cores with every other test)."""
+
+
+def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (the launcher puts each child in its own process group)."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(entry))
+    out, todo = [], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def raw_journal(path: Path) -> tuple[list[tuple[int, wire.Message]], bool]:
+    """Every message of a journal with its log time [ns], read with the ``mcap`` package's own stream
+    reader up to where the file is cut; and whether it was cut (no footer)."""
+    out: list[tuple[int, wire.Message]] = []
+    with open(path, "rb") as fh:
+        try:
+            for record in mcap_stream.StreamReader(fh, validate_crcs=True).records:
+                if type(record).__name__ == "Message":
+                    out.append((record.log_time, wire.decode(record.data)))
+                elif type(record).__name__ == "Footer":
+                    return out, False
+        except Exception:  # noqa: BLE001 - where the kill cut the file: what came before stands
+            pass
+    return out, True
+
+
+def complete_ticks(msgs: list[tuple[int, wire.Message]]) -> tuple[int, dict[int, int]]:
+    """A lockstep journal's ticks: the newest k such that every tick 0..k holds the leader's state,
+    each agent's telemetry and each plant's state; and the wall time [ns] each tick was taken."""
+    have: dict[tuple[str, int], set[int]] = {}
+    taken: dict[int, int] = {}
+    for ns, msg in msgs:
+        if isinstance(msg, wire.Record):  # plants co-located: the agents' and the leader's records
+            items = [("leader", s.k) for s in msg.leader] + [(f"plant {p.sender}", p.k) for p in msg.plant] \
+                + [(f"agent {x.sender}", x.k) for x in msg.telemetry]
+        else:  # sample by sample
+            kind = {wire.State: "leader", wire.PlantState: "plant", wire.Telemetry: "agent"}[type(msg)]
+            items = [(kind if kind == "leader" else f"{kind} {msg.sender}", msg.k)]
+        for stream, k in items:
+            have.setdefault((stream, 0), set()).add(k)
+            taken[k] = max(taken.get(k, 0), ns)
+    streams = ["leader", *(f"plant {i}" for i in AGENTS), *(f"agent {i}" for i in AGENTS)]
+    k = 0
+    while all(k in have.get((s, 0), ()) for s in streams):
+        k += 1
+    return k - 1, taken
+
+
+def start_lockstep(tmp_path: Path, *extra: str) -> tuple[Path, Path, object]:
+    out = tmp_path / "run"
+    out.mkdir()
+    log = tmp_path / "launcher.log"
+    proc = tether("run", "section4", "--clock", "lockstep", "--duration", "600", "--insecure", "--out", str(out),
+                  *extra, log=log)
+    return out, log, proc
+
+
+def check_journal(out: Path, killed_ns: int) -> Run:
+    """The journal holds every tick up to within FLUSH_PERIOD (+ SLACK) of the kill, read both by the
+    real MCAP reader and by :func:`recorder.journal.load`, which says what is missing."""
+    assert not (out / "run.npz").exists()
+    msgs, cut = raw_journal(out / journal.NAME)
+    assert cut, "a killed recorder never writes the journal's footer"
+    last, taken = complete_ticks(msgs)
+    assert last > 100, f"only {last + 1} complete ticks in the journal"
+    lag = (killed_ns - taken[last]) / 1e9
+    assert lag <= journal.FLUSH_PERIOD + SLACK, f"the journal ends {lag:.2f} s before the kill"
+    said: list[str] = []
+    run = journal.load(out, report=said.append)
+    assert run.meta.complete is False and run.meta.recovered is not None
+    assert f"samples up to tick {max(taken)}" in run.meta.recovered
+    assert said[0].startswith("recovered: from the recorder's journal")
+    assert "leader: " in said[1] and f"newest t {max(taken) * 0.01:.2f} s" in said[1]
+    ticks = slice(0, last + 1)
+    assert np.isfinite(run.xi[ticks]).all() and np.isfinite(run.leader_p[ticks]).all()
+    assert (run.safety.plant_mode[ticks] == wire.FLYING).all()
+    assert np.isnan(run.xi[max(taken) + 1:]).all()
+    print(f"journal: {last + 1} complete ticks, the last taken {lag:.3f} s before the kill; "
+          f"{(out / journal.NAME).stat().st_size} bytes")
+    return run
+
+
+@pytest.mark.slow  # real processes
+def test_a_recorder_killed_mid_run_leaves_a_journal_that_holds_every_tick(tmp_path: Path) -> None:
+    """``--fault kill:recorder@5``: the launcher SIGKILLs the recorder between ticks 500 and 501; the
+    journal holds every tick taken up to within a second of that."""
+    out, log, proc = start_lockstep(tmp_path, "--fault", "kill:recorder@5")
+    try:
+        code, _ = finish(proc, 300)  # type: ignore[arg-type]
+    finally:
+        kill(proc)  # type: ignore[arg-type]
+    text = log.read_text()
+    assert code != 0, text[-3000:]
+    line = next((x for x in text.splitlines() if "--fault kill:recorder@5 fired" in x), None)
+    assert line is not None, text[-3000:]
+    killed = int(datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp() * 1e9)  # the log's local time
+    run = check_journal(out, killed)
+    assert int(run.meta.recovered.split("samples up to tick ")[1].split()[0]) <= 501
+
+
+@pytest.mark.slow  # real processes
+def test_every_process_killed_at_once_leaves_a_journal_up_to_the_last_second(tmp_path: Path) -> None:
+    """The launcher and every process of the run SIGKILLed at once (as a machine that stops): nobody
+    writes a run file; the journal holds every tick taken up to within a second of the kill."""
+    out, log, proc = start_lockstep(tmp_path)
+    try:
+        wait_for(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)  # type: ignore[arg-type]
+        wait_for(lambda: (out / journal.NAME).exists() and (out / journal.NAME).stat().st_size > 300_000,
+                 120, "a journal of a few seconds of mission", proc)  # type: ignore[arg-type]
+        pids = [proc.pid, *descendants(proc.pid)]  # type: ignore[attr-defined]
+        killed = time.time_ns()
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.communicate(timeout=30)  # type: ignore[attr-defined]
+        wait_for(lambda: not any(alive(p) for p in pids), 30, "every process gone")
+    finally:
+        kill(proc)  # type: ignore[arg-type]
+    check_journal(out, killed)
+
+
+@pytest.mark.slow  # real processes
+def test_a_launcher_killed_mid_run_leaves_a_run_file_of_every_tick_taken(tmp_path: Path) -> None:
+    """The launcher alone SIGKILLed: the processes see it gone and stop; the recorder writes
+    ``run.npz`` of every tick it took (incomplete, nothing after the last), then removes its journal."""
+    out, log, proc = start_lockstep(tmp_path)
+    try:
+        wait_for(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)  # type: ignore[arg-type]
+        wait_for(lambda: (out / journal.NAME).exists() and (out / journal.NAME).stat().st_size > 300_000,
+                 120, "a journal of a few seconds of mission", proc)  # type: ignore[arg-type]
+        children = descendants(proc.pid)  # type: ignore[attr-defined]
+        os.kill(proc.pid, signal.SIGKILL)  # type: ignore[attr-defined]
+        proc.communicate(timeout=30)  # type: ignore[attr-defined]
+        wait_for(lambda: not any(alive(p) for p in children), 120, "the launcher's processes stopping")
+    finally:
+        kill(proc)  # type: ignore[arg-type]
+        for pid in descendants(os.getpid()):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    run = journal.load(out, report=lambda line: None)
+    assert not (out / journal.NAME).exists(), "the journal stays only while the run file is not written"
+    assert run.meta.complete is False and run.meta.recovered is None
+    heard = np.flatnonzero(np.isfinite(run.xi[:, :, 0]).all(axis=1))
+    assert len(heard) > 100 and np.array_equal(heard, np.arange(len(heard))), "every tick up to the last"
+    assert (run.safety.safety_mode[len(heard):] == -1).all(), "nothing claimed after the last tick heard"
