@@ -23,6 +23,10 @@ Transitions:
 * FLYING/HOLD → LAND (or the configured action): the operator's ``land``; divergence
   (‖ξ‖ > ``max_formation_error``, a gain beyond ``gain_cap``, a non-finite command); a predicted
   geofence breach (the position plus the braking distance outside the box).
+* FLYING/HOLD → LAND: the own plant reports LAND, LANDED or ESTOP (believed only as far as its
+  samples agree, :class:`tether.gate.PlantModes`); never ESTOP on a report.
+* FLYING → HOLD (then LAND after ``land_after``): the leader's or the own plant's stream is suspect
+  (:attr:`Status.suspect`); a suspect in-neighbour is lost, as one silent.
 * LAND → LANDED: touched down and still (:func:`tether.failsafe.landed`); 2D: still, or held
   for ``land_settle``.
 * any → ESTOP: the operator's ``estop`` (or ``estop`` as the configured action).
