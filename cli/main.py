@@ -164,6 +164,10 @@ def cmd_check(args: argparse.Namespace) -> int:
               f"{type(a.plant).__name__} / {type(a.disturbance).__name__}")
     for note in m.assumed:
         print(f"assumed: {note}")
+    from tether import checks
+
+    for line in checks.ground_starts(m):  # a warning: exit status 0 (a pad start is by design)
+        print(f"warning: {line}", file=sys.stderr)
     return 0
 
 
@@ -476,12 +480,18 @@ def cmd_netem_set(args: argparse.Namespace) -> int:
     except ProfileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    from tether.transport import TransportError
+
     settings = _zenoh_settings(args)
     try:
         answers = evloop.run(control.netem_set(settings, args.ns, control.rule_of(profile, args.src, args.dst),
                                                args.at, args.timeout))
     except TimeoutError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except TransportError as exc:  # no router reachable: one line, as land and estop say it
+        print(f"error: {exc}; check --connect (the run's router, or an endpoint it opened with --listen) and "
+              "that the run is up", file=sys.stderr)
         return 1
     ok = True
     for a in sorted(answers, key=lambda a: (a.node is None, a.node or 0)):

@@ -37,7 +37,8 @@ offset = [0.0, 1.0]
 """
 
 
-def tether(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+def tether(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    """``python -m cli ARGS``; the timeout is generous: a short simulate took 103 s on a loaded 2-core machine."""
     return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=timeout)
 
 
@@ -63,6 +64,28 @@ def test_check_rejects_a_bad_mission_with_status_2_naming_the_fields(tmp_path: P
 def test_check_missing_file_is_status_2(tmp_path: Path) -> None:
     r = tether("check", str(tmp_path / "nope.toml"))
     assert r.returncode == 2 and "cannot be read" in r.stderr
+
+
+SWAP = Path(__file__).resolve().parents[1] / "tether" / "missions" / "swap.toml"
+
+
+def test_check_warns_of_vehicles_that_start_on_or_below_the_ground(tmp_path: Path) -> None:
+    r = tether("check", str(SWAP))  # every vehicle starts at z = 1 m above the ground at 0
+    assert r.returncode == 0 and "warning" not in r.stderr, r.stderr
+    text = SWAP.read_text()
+    low = tmp_path / "low.toml"
+    low.write_text(text.replace("p0 = [-2.0, 0.03, 1.0]", "p0 = [-2.0, 0.03, 0.0]")
+                   .replace("p0 = [2.0, -0.03, 1.0]", "p0 = [2.0, -0.03, -0.5]")
+                   .replace("p0 = [0.0, 0.0, 1.0]", "p0 = [0.0, 0.0, -1.0]"))
+    r = tether("check", str(low))
+    assert r.returncode == 0, r.stderr  # a warning: a vehicle may take off from its pad
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
+    assert len(lines) == 2, r.stderr
+    below, on = lines
+    assert "below the ground" in below and "agent 3" in below and "the leader" in below and "-0.5" in below
+    assert "agent 1" not in below and "agent 2" not in below
+    assert "on the ground" in on and "agent 1" in on and "agent 3" not in on
+    assert "4 agents" in r.stdout
 
 
 def test_simulate_writes_a_run_metrics_and_figures(tmp_path: Path) -> None:
@@ -125,3 +148,15 @@ def test_run_file_round_trip(tmp_path: Path) -> None:
     np.testing.assert_array_equal(back.agent_ids, [4, 7])
     assert back.meta.mission == "x" and back.meta.format_version == 3
     np.testing.assert_array_equal(back.links.delivery, 1.0)
+
+
+def test_netem_set_without_a_reachable_router_says_so_in_one_line() -> None:
+    from tether import transport as tp
+
+    port = tp.free_tcp_port()  # nothing listens there
+    r = tether("netem-set", "--ns", "nobody", "--connect", f"tcp/127.0.0.1:{port}", "--connect-timeout", "1", "wifi")
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "--connect" in lines[0], r.stderr
+    assert f"127.0.0.1:{port}" in lines[0]

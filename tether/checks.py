@@ -543,6 +543,35 @@ def _validate_safety_ceilings(m: Mission, out: Problems) -> None:
         out.append(("safety.ground", f"is {sf.ground:g} m, beyond {MAX_EXTENT:g} m; give a height within 100 km"))
 
 
+def ground_starts(m: Mission) -> list[str]:
+    """What ``tether check`` warns of about the ground (3D; none in 2D, which has no ground): the
+    vehicles, leader included, whose ``p0`` height is below ``safety.ground`` (inside it) or on it
+    (resting, so the law must lift them before they fly), one line each; empty when none. A warning,
+    not an error: a vehicle that takes off from its pad starts on the ground by design."""
+    if m.dim != 3:
+        return []
+    g = m.safety.ground
+    out: list[str] = []
+    for where, word in (("below", lambda z: z < g), ("on", lambda z: z == g)):
+        who = [f"agent {a.id}" for a in m.agents if len(a.p0) == 3 and word(a.p0[2])]
+        if len(m.leader.p0) == 3 and word(m.leader.p0[2]):
+            who.append(f"the leader ({m.leader.id})")
+        if not who:
+            continue
+        heights = sorted({a.p0[2] for a in m.agents if len(a.p0) == 3 and word(a.p0[2])}
+                         | ({m.leader.p0[2]} if len(m.leader.p0) == 3 and word(m.leader.p0[2]) else set()))
+        shown = ", ".join(f"{z:g}" for z in heights[:3]) + (", ..." if len(heights) > 3 else "")
+        names = ", ".join(who[:8]) + (f" and {len(who) - 8} more" if len(who) > 8 else "")
+        if where == "below":
+            out.append(f"{names} start{'s' if len(who) == 1 else ''} below the ground (p0 z = {shown} m < "
+                       f"safety.ground = {g:g} m), inside it; raise p0[2] to the ground or above, or lower "
+                       "safety.ground")
+        else:
+            out.append(f"{names} start{'s' if len(who) == 1 else ''} on the ground (p0 z = safety.ground = {g:g} "
+                       "m): resting until the law lifts them; raise p0[2] if they should start in flight")
+    return out
+
+
 def _validate_physics(m: Mission, out: Problems) -> None:
     """Plants, payload and floor."""
     physical = (PointMassPlant, QuadrotorPlant)
