@@ -30,9 +30,11 @@ Figures per run, and their medians over the repetitions:
 * ``err`` [m]: the largest true formation error ``||p_i - h_i - p_L(t)||`` (plants' positions,
   offsets, the leader's analytic profile, never its recorded samples) over the second half of the
   flight before the order; ``err0`` the same over the first 10 s.
-* ``land``/``estop`` [s]: from the order's first copy (``--cli``: the command's start, its start-up
-  included) to the last of the four plants reporting the ordered mode (tap arrival: includes the
-  state's trip back through the gateway); ``nan`` if one never did (``reached`` says how many did).
+* ``land``/``estop`` *reached* [s]: from the order's first copy (``--cli``: the command's start, its
+  start-up included) to the tick at which the last of the four plants' watchdogs took the ordered
+  mode (the run file's plant events, mission time: tick-quantised); *seen*: to the tap's arrival of
+  that plant's first state in the mode (the state's trip back through the gateway to an operator at
+  the default policy included); ``nan`` if one never did (``reached`` says how many were seen).
 * ``gateway``: the operator gateway's CPU policy as its log says, and ``exit`` the launcher's.
 
 Bounded: the launcher is killed ``--duration`` + 120 s after it starts, the busy loops end by
@@ -173,6 +175,15 @@ def analyse(out: Path, tap: Tap, action: str, order: dict[str, Any], args: argpa
                 res["cmd_err"] = order["err"]
     else:
         res["latency"], res["reached"] = math.nan, 0
+    res["reach"] = math.nan
+    if "start" in order and tap.epoch is not None and (out / "run.npz").exists():
+        want = wire.LAND if action == "land" else wire.ESTOP
+        try:
+            got_at = {e.vehicle: e.t for e in reversed(Run.load(out).safety.plant_events) if e.dst == want}
+        except Exception:  # noqa: BLE001 - analysed below, where the run file's absence is a figure
+            got_at = {}
+        if len(got_at) == len(ids):
+            res["reach"] = max(got_at.values()) - (order["start"] - tap.epoch)
     try:
         run = Run.load(out)
     except Exception as exc:  # noqa: BLE001 - a run without a file is a figure too
@@ -234,24 +245,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cli", action="store_true",
                    help="send the order with the real command (tether land|estop --zenoh-config), timed from its start")
     p.add_argument("--repo", type=Path, default=REPO, help="the checkout whose tether runs (default this one)")
+    p.add_argument("--compare", type=Path, default=None,
+                   help="also run each configuration on this checkout (labelled b:...), alternating with --repo's")
     p.add_argument("--keep", type=Path, default=None, help="keep every run's directory under this one")
     p.add_argument("--json", type=Path, default=None, help="write every run's figures here")
     args = p.parse_args(argv)
     if not 0 < args.order_at < args.duration:
         p.error("need 0 < --order-at < --duration")
-    rows: dict[str, list[dict[str, Any]]] = {pr: [] for pr in args.priorities}
+    configs = [(f"a:{pr}" if args.compare else pr, args.repo, pr) for pr in args.priorities]
+    if args.compare is not None:
+        configs += [(f"b:{pr}", args.compare, pr) for pr in args.priorities]
+    rows: dict[str, list[dict[str, Any]]] = {label: [] for label, _, _ in configs}
     print(f"section4 realtime {args.duration:g} s beside {args.hogs} busy loops, {os.cpu_count()} CPUs, "
-          f"tether from {args.repo}, orders by {'the command' if args.cli else 'the tap'}", flush=True)
+          f"tether from {args.repo}{' (a) and ' + str(args.compare) + ' (b)' if args.compare else ''}, orders by {'the command' if args.cli else 'the tap'}", flush=True)
     with tempfile.TemporaryDirectory(prefix="loaded-") as tmp:
         work = args.keep or Path(tmp)
         for rep in range(args.reps):
             action: operator.Action = "land" if rep % 2 == 0 else "estop"
-            for pr in args.priorities:
-                r = run_once(args.repo.resolve(), work / f"{pr}-{rep}", pr, action, args)
-                rows[pr].append(r)
-                print(f"[{pr:>4} #{rep}] load {r['load']:.1f} exit {r['exit']} late {100 * r['late']:.1f} % "
+            for label, repo, pr in configs:
+                r = run_once(repo.resolve(), work / f"{label.replace(':', '-')}-{rep}", pr, action, args)
+                rows[label].append(r)
+                print(f"[{label:>4} #{rep}] load {r['load']:.1f} exit {r['exit']} late {100 * r['late']:.1f} % "
                       f"sep {fmt(r['sep'])} m (from the first failsafe {fmt(r['sep_fs'])}) err {fmt(r['err'])} m "
-                      f"{action} {fmt(r['latency'], 2)} s ({r['reached']}/4{', ' + r['cmd'] if 'cmd' in r else ''}) "
+                      f"{action} reached {fmt(r['reach'], 2)} s, seen {fmt(r['latency'], 2)} s ({r['reached']}/4{', ' + r['cmd'] if 'cmd' in r else ''}) "
                       f"gateway {r['gateway']}; launcher{r['launcher_sched']}", flush=True)
                 for line in r["events"][:12]:
                     print(f"      {line}", flush=True)
@@ -261,17 +277,19 @@ def main(argv: list[str] | None = None) -> int:
                     if key in r:
                         print(f"      {key}: {r[key]}", flush=True)
                 if r["exit"] not in (0, 3, 5):
-                    tail = (work / f"{pr}-{rep}" / "launcher.log").read_text().splitlines()[-4:]
+                    tail = (work / f"{label.replace(':', '-')}-{rep}" / "launcher.log").read_text().splitlines()[-4:]
                     print("      launcher: " + "\n      launcher: ".join(tail), flush=True)
     print("\nmedians over the runs (failsafes: runs with any mode change before the order / runs)")
-    print("| priority | load | late ticks | failsafes | events (median) | min sep [m] | err [m] | land [s] | estop [s] |")
+    print("| configuration | load | late ticks | failsafes | events (median) | min sep [m] | err [m] "
+          "| land reached / seen [s] | estop reached / seen [s] |")
     print("|---|---|---|---|---|---|---|---|---|")
     for pr, rs in rows.items():
         n_fs = sum(1 for r in rs if r["events"])
         by = {a: [r for r in rs if r["order"] == a] for a in ("land", "estop")}
         print(f"| {pr} | {med(rs, 'load'):.1f} | {100 * med(rs, 'late'):.1f} % | {n_fs}/{len(rs)} | "
               f"{statistics.median(len(r['events']) for r in rs):g} | {fmt(med(rs, 'sep'))} | {fmt(med(rs, 'err'))} | "
-              f"{fmt(med(by['land'], 'latency'), 2)} | {fmt(med(by['estop'], 'latency'), 2)} |")
+              f"{fmt(med(by['land'], 'reach'), 2)} / {fmt(med(by['land'], 'latency'), 2)} | "
+              f"{fmt(med(by['estop'], 'reach'), 2)} / {fmt(med(by['estop'], 'latency'), 2)} |")
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1, default=str))
     return 0
