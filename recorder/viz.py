@@ -380,6 +380,14 @@ class View:
         if scene if scene is not None else k % self.scene_every == 0:
             self._scene(k, ns, r)
 
+    def end_of_record(self, k: int, t: float, r: dict, last: float) -> None:
+        """The scene at tick ``k`` (time ``t``), the first the record lacks after its last (at time
+        ``last``): every vehicle where it was last heard, drawn as "no sample" (``r``'s modes, −1),
+        and a note on ``/log``."""
+        self._scene(k, stamp(t), r)
+        self.note(t, f"no sample after t = {last:.2f} s: the vehicles' modes and positions from here on "
+                     "are not in this record", fm.LogLevel.Warning)
+
     def event(self, e: SafetyEvent, origin: str = "agent") -> None:
         """A safety event on ``/safety``, named by its origin (``agent <id>``: the supervisor's;
         ``plant <id>``: the plant's watchdog, whose events include command rejections without a
@@ -505,6 +513,14 @@ def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rat
             view.tick(k, times[k], rows.at(k), scene=(k % view.scene_every == 0 or k == last))
         for e, origin in events[ev:]:
             view.event(e, origin)
+        if 0 <= last < len(times) - 1:
+            # the record stops before the run's end (a recorder stopped, frozen or killed): the scene's
+            # last frame says so rather than show the last modes heard as if they still held
+            gone = dict(rows.at(last))
+            gone["safety_mode"] = [NO_SAMPLE] * len(run.agent_ids)
+            gone["plant_mode"] = [NO_SAMPLE] * len(run.agent_ids)
+            after = times[last] + 1.0 / run.meta.rate
+            view.end_of_record(last + 1, after, gone, times[last])
         _closing_notes(view, run)
     finally:
         writer.close()

@@ -25,7 +25,7 @@ from sim import lockstep  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.progress import Progress  # noqa: E402
-from tether.runfile import Run  # noqa: E402
+from tether.runfile import NO_SAMPLE, Run  # noqa: E402
 
 from tests.foxglove_live import free_port, listen  # noqa: E402
 
@@ -77,7 +77,7 @@ def check_file(path: Path, run: Run, scene_every: int) -> dict[str, list[tuple[i
     scenes = len(range(0, T, scene_every)) + (0 if (T - 1) % scene_every == 0 else 1)
     assert len(msgs["/scene"]) == len(msgs["/tf"]) == scenes
     assert len(msgs["/log"]) >= 2  # what ran, and its end
-    assert len(msgs.get("/safety", [])) == len(run.safety.events)
+    assert len(msgs.get("/safety", [])) == len(run.safety.events) + len(run.safety.plant_events)
     for topic, rows in msgs.items():
         times = [t for t, _ in rows]
         assert times == sorted(times), f"{topic}: log times out of order"
@@ -156,6 +156,32 @@ def test_payload_fence_and_events_in_the_file(tmp_path: Path) -> None:
     assert b"FLYING -> HOLD: test" in msgs["/safety"][0][1]
     assert b"geofence" in msgs["/scene"][0][1] and b"payload" in msgs["/scene"][0][1]
     assert b"agent_1" in msgs["/tf"][0][1]
+
+
+def test_a_record_cut_short_says_so_and_shows_no_stale_mode(tmp_path: Path) -> None:
+    """A run whose record stops at tick K (a recorder stopped, frozen or killed): the file holds ticks
+    0..K, its last scene (tick K + 1) draws every vehicle as "no sample" rather than the last mode
+    heard, and ``/log`` says what is missing; the plants' events are on ``/safety`` by their name."""
+    from tether import wire
+
+    m = ms.load(catalog.resolve("section4"))
+    run = lockstep.simulate(m, duration=0.3)
+    K = 12
+    run.leader_p[K + 1:] = np.nan
+    run.safety.safety_mode[K + 1:] = NO_SAMPLE
+    run.safety.plant_mode[K + 1:] = NO_SAMPLE
+    run.safety.plant_events = [wire.SafetyEvent(k=5, t=5 * m.dt, vehicle=3, src=wire.FLYING, dst=wire.FLYING,
+                                                reason="command rejected: stamp ahead of the tick")]
+    path = viz.write_mcap(run, m, tmp_path / "run.mcap", scene_rate=0)
+    _, msgs = read_mcap(path)
+    assert len(msgs["/agent/1"]) == len(msgs["/leader"]) == K + 1
+    assert len(msgs["/scene"]) == K + 2 and msgs["/scene"][-1][0] == viz.stamp((K + 1) * m.dt)
+    last_scene = msgs["/scene"][-1][1]
+    assert b"FLYING" not in last_scene and last_scene.count(b"no sample") == len(run.agent_ids)
+    log = b" ".join(data for _, data in msgs["/log"])
+    assert b"missing: telemetry of agent 1: " in log and b"no sample after t = 0.12 s" in log
+    safety = msgs["/safety"]
+    assert len(safety) == 1 and b"plant 3: FLYING: command rejected" in safety[0][1]
 
 
 def test_tether_mcap_converts_an_existing_run(tmp_path: Path) -> None:
