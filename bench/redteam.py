@@ -590,6 +590,30 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
     return "\n".join(lines)
 
 
+def _side(rs: list[dict[str, Any]] | None) -> list[str]:
+    """One side of the before/after table: err, envelope, separation, first reaction, end modes."""
+    if not rs:
+        return ["to measure"] + ["—"] * 3
+    left = sorted({v for r in rs for v in r["left"]})
+    stopped = sorted({v for r in rs for v, s in r["end"].items() if not s.startswith("F")})
+    return [f"{fmt(max(r['err_max'] for r in rs), digits=1)} / {fmt(max(r['err_last10'] for r in rs), digits=1)}",
+            ("YES: " + ", ".join(left)) if left else "no",
+            fmt(min(r["sep"] for r in rs)),
+            f"{fmt(pct([r['first'] for r in rs], 50))}; " + (f"{', '.join(stopped)} stopped" if stopped else "all flying")]
+
+
+def compare(before: dict[str, list[dict[str, Any]]], after: dict[str, list[dict[str, Any]]]) -> str:
+    """The before/after table of ``docs/results/redteam.md``, from two ``--json`` files' runs."""
+    head = ["attack"] + [f"{side}: {col}" for side in ("before", "after")
+                         for col in ("err max / last 10 s [m]", "left the envelope", "sep min [m]",
+                                     "first reaction [s]; end")]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * len(head)) + "|"]
+    for attack in ATTACKS:
+        if attack in before or attack in after:
+            lines.append("| " + " | ".join([WHAT[attack], *_side(before.get(attack)), *_side(after.get(attack))]) + " |")
+    return "\n".join(lines)
+
+
 def run_all(attacks: list[str], reps: int, plan: Plan, duration: float, work: Path, slot: float,
             say: Callable[[str], None] = print) -> dict[str, list[dict[str, Any]]]:
     m = load_mission(catalog.resolve(MISSION), None)
@@ -642,7 +666,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default=None, help="directory for the runs (default: a temporary one, kept)")
     ap.add_argument("--json", default=None, help="write every figure of every run here")
     ap.add_argument("--reanalyse", default=None, metavar="WORK", help="no runs: the table from the runs in WORK")
+    ap.add_argument("--compare", nargs="+", default=None, metavar="JSON",
+                    help="no runs: the before/after table from one or two --json files (before, after)")
     args = ap.parse_args(argv)
+    if args.compare:
+        sides = [{a: [{k: math.nan if v is None else v for k, v in r.items()} for r in rs]  # JSON null: NaN
+                  for a, rs in json.loads(Path(f).read_text())["runs"].items()} for f in args.compare[:2]]
+        print(compare(sides[0], sides[1] if len(sides) > 1 else {}))
+        return 0
     plan = Plan(at=args.at, drift=args.drift, drift_for=args.drift_for, cmd_for=args.cmd_for, hold_for=args.hold_for)
     rev = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"], capture_output=True,
                          text=True, check=False).stdout.strip()
