@@ -419,3 +419,119 @@ def test_without_openssl_a_default_run_exits_2_naming_it(tmp_path: Path) -> None
     assert r.returncode == 2, r.stdout + r.stderr
     assert "openssl" in r.stderr and "--insecure" in r.stderr, r.stderr
     assert not (tmp_path / "out" / "logs").exists()  # nothing started
+
+
+# --------------------------------------------------------------------------- closing while a tap relays
+def _race_undeclare(session: object, guard: object | None, trials: int) -> int:
+    """Undeclare a publisher while a thread puts on it (through ``guard`` when given, closed first);
+    how many undeclares raised ``RuntimeError`` ("Already borrowed")."""
+    import threading
+
+    from tether import handoff
+    from tether import transport as tp
+
+    raised = 0
+    for trial in range(trials):
+        pub = tp.declare_publisher(session, f"race/{trial}")  # type: ignore[arg-type]
+        gate = handoff.TapGuard() if guard is not None else None
+        running, stop = threading.Event(), threading.Event()
+
+        def loop() -> None:
+            while not stop.is_set():
+                if gate is not None and not gate.enter():
+                    running.set()
+                    return
+                try:
+                    pub.put(b"x" * 64)
+                except Exception:  # noqa: BLE001 - put on an undeclared publisher: the race's other side
+                    return
+                finally:
+                    if gate is not None:
+                        gate.leave()
+                    running.set()
+
+        thread = threading.Thread(target=loop, daemon=True)
+        thread.start()
+        assert running.wait(WAIT)
+        if gate is not None:
+            assert gate.close(WAIT)
+        try:
+            pub.undeclare()
+        except RuntimeError:
+            raised += 1
+        stop.set()
+        thread.join(WAIT)
+    return raised
+
+
+def test_a_node_closing_while_a_tap_relays_raises_nothing(caplog: pytest.LogCaptureFixture) -> None:
+    """An agent relays its plant's state from Zenoh's thread (a tap) while it closes after a land order.
+    Undeclaring a publisher that another thread is putting on raises ``RuntimeError: Already borrowed``
+    (shown first: the race is real, and it turned clean landings into exit 1); a node's close waits
+    for its running taps (``tether.handoff.TapGuard``) before undeclaring, and raises nothing."""
+    import asyncio
+    import threading
+
+    from tether import node as nd
+    from tether import transport as tp
+    from tether import wire
+    from tether.catalog import builtin_path
+    from tether.clock import RealtimeClock
+
+    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
+    with tp.open_session(tp.ZenohSettings(mode="router", listen=(endpoint,), scouting_delay=0.0)) as session:
+        assert _race_undeclare(session, None, 20) > 0  # without the guard
+        assert _race_undeclare(session, True, 20) == 0
+
+    m = nd.load_mission(builtin_path("section4"))
+
+    async def one_close(trial: int) -> int:
+        ep = tp.loopback_endpoint(tp.free_tcp_port())
+        args = nd.NodeArgs(mission_path=builtin_path("section4"), role="agent", node_id=1, clock="realtime",
+                           zenoh=tp.ZenohSettings(mode="router", listen=(ep,), scouting_delay=0.0))
+        client = tp.ZenohSettings(mode="client", connect=(ep,), scouting_delay=0.0)
+        relayed = 0
+        async with tp.open_session(args.zenoh) as session, tp.open_session(client) as other:
+            node = nd.Node(args, m, session, RealtimeClock(m.dt))
+            key = node.keys.topic("plant", 1, "state")
+
+            def relay(rec: tp.Received) -> None:
+                nonlocal relayed
+                out.put(wire.State(sender=1, seq=relayed, k=relayed, t=relayed * m.dt, p=[0.0, 0.0],
+                                   vel=[0.0, 0.0], a=[0.0, 0.0]))
+                relayed += 1
+
+            node.source(key, wire.State, 1, tap=relay)
+            # declared after its source, so undeclared before it: the source's callbacks still run then
+            out = node.publisher(node.keys.topic("agent", 1, "relay"))
+            pub = tp.declare_publisher(other, key, tp.STATE)
+            await tp.wait_for_subscribers(pub, WAIT)
+            stop = threading.Event()
+
+            def flood() -> None:
+                k = 0
+                while not stop.is_set():
+                    pub.put(wire.encode(wire.State(sender=1, seq=k, k=k, t=k * m.dt, p=[0.0, 0.0], vel=[0.0, 0.0],
+                                                   a=[0.0, 0.0])))
+                    k += 1
+
+            thread = threading.Thread(target=flood, daemon=True)
+            thread.start()
+            deadline = time.monotonic() + WAIT
+            while relayed < 50 and time.monotonic() < deadline:
+                await asyncio.sleep(0.005)
+            assert relayed >= 50, f"trial {trial}: the tap relayed {relayed} samples"
+            try:
+                node.close()  # while the tap relays: raised "Already borrowed" without the guard
+            finally:
+                stop.set()
+                thread.join(WAIT)
+                pub.undeclare()
+            assert "tap_error" not in node.receiver.drops, node.receiver.drops  # no tap met an undeclared publisher
+        return relayed
+
+    for trial in range(5):
+        assert asyncio.run(one_close(trial)) >= 50
+    borrowed = [r.getMessage() for r in caplog.records 
+                if any(w in r.getMessage() for w in ("undeclaring", "tap still", "tap failed"))]
+    assert not borrowed, borrowed  # close undeclared nothing a tap was using

@@ -5,6 +5,9 @@ Callbacks run on threads Zenoh owns; they only copy into a sink and poke a :clas
 * :class:`LatestSlot` (state: the newest value supersedes; overwrites counted);
 * :class:`BoundedFifo` (commands and events: bounded, drop-oldest, drops counted).
 
+A callback that does more than hand off (a tap that publishes a relay from Zenoh's thread) runs
+inside a :class:`TapGuard`, so that closing never undeclares an object a callback is using.
+
 Nothing here imports Zenoh; the event loop drains the sinks.
 """
 
@@ -17,6 +20,47 @@ from typing import Generic, Protocol, TypeVar
 
 T = TypeVar("T")
 T_contra = TypeVar("T_contra", contravariant=True)
+
+
+# =========================================================================== callbacks that publish
+class TapGuard:
+    """Lets callbacks on Zenoh's threads use shared Zenoh objects while the owner may close them.
+
+    A callback runs its work only between :meth:`enter` (False once closed: skip the work) and
+    :meth:`leave`; any number may run at once. :meth:`close` refuses new entries and blocks until
+    those running have left (at most ``timeout`` [s]). Zenoh's Python objects are borrowed while a
+    call on them runs, and undeclaring one that another thread is putting on raises ``RuntimeError:
+    Already borrowed``: close this guard first, then undeclare."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._active = 0
+        self._closed = False
+
+    def enter(self) -> bool:
+        """Whether the caller may run its work now (then it must :meth:`leave`). Never blocks long."""
+        with self._cond:
+            if self._closed:
+                return False
+            self._active += 1
+            return True
+
+    def leave(self) -> None:
+        with self._cond:
+            self._active -= 1
+            if self._active == 0:
+                self._cond.notify_all()
+
+    def close(self, timeout: float) -> bool:
+        """Refuse new entries and wait for those inside to leave; whether they all did within
+        ``timeout`` [s]. Blocks."""
+        with self._cond:
+            self._closed = True
+            return self._cond.wait_for(lambda: self._active == 0, timeout)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
 
 # =========================================================================== hand-off sinks

@@ -149,6 +149,11 @@ class NodeArgs:
     (0: none kept)."""
 
 
+TAP_DRAIN = 1.0
+"""How long :meth:`Node.close` waits for a running tap [s]: a tap is one relay put (microseconds),
+so a second only passes on a machine that gives the process no CPU."""
+
+
 class _Tapped:
     """A sink that queues each sample, then hands it to ``tap`` on the same (Zenoh's) thread."""
 
@@ -157,17 +162,17 @@ class _Tapped:
 
     def put(self, item: tp.Received, /) -> None:
         self.queue.put(item)
-        if self.node.closing:
+        if not self.node.taps.enter():
             return  # the node is closing: its publishers are going (a relay would put on an undeclared one)
         try:
             self.tap(item)
         except Exception:  # noqa: BLE001 - no input may crash Zenoh's thread; said and counted
-            if self.node.closing:
-                return  # it raced the close (its publisher was undeclared under it): nothing wrong
             drops = self.node.receiver.drops  # this key is written by taps only
             n = drops["tap_error"] = drops.get("tap_error", 0) + 1
             if n in (1, 10, 100, 1000):
                 log.exception("input %s: its tap failed (%d so far)", item.key, n)
+        finally:
+            self.node.taps.leave()
 
 
 class Publisher:
@@ -247,7 +252,9 @@ class Node:
         self._fifo_lost = {"inputs": 0, "deferred inputs": 0}
         """Samples each FIFO had dropped at the last drain (the rest are new, counted as ``overflow``)."""
         self.closing = False
-        """Set when :meth:`close` begins: a source's ``tap`` is no longer called."""
+        """Set when :meth:`close` begins."""
+        self.taps = handoff.TapGuard()
+        """Taps (relays published from Zenoh's thread) run inside it; :meth:`close` waits for them."""
         self._gone: dict[str, frozenset[int]] = {}
         """:meth:`gone`'s answers since the last token event."""
         self._linked: list[Source] = []
@@ -795,7 +802,11 @@ class Node:
             log.warning("%s: closing anyway", exc)
 
     def close(self) -> None:
-        self.closing = True  # taps stop first: one may be running on Zenoh's thread (see _Tapped)
+        """Undeclare everything this node declared, once no tap runs (blocks up to
+        :data:`TAP_DRAIN` [s] for one running on Zenoh's thread: see :class:`~tether.handoff.TapGuard`)."""
+        self.closing = True
+        if not self.taps.close(TAP_DRAIN):
+            log.warning("a tap still runs %.1f s after the close began: undeclaring anyway", TAP_DRAIN)
         if self._rearm is not None:
             self._rearm.cancel()
         for obj in reversed(self._declared):
@@ -803,6 +814,8 @@ class Node:
                 obj.undeclare()
             except zenoh.ZError:
                 pass
+            except RuntimeError as exc:  # still borrowed by a tap past TAP_DRAIN: the session's close frees it
+                log.warning("undeclaring %s: %s", type(obj).__name__, exc)
         self._declared.clear()
         if self._token is not None:
             self._token.undeclare()
