@@ -94,6 +94,15 @@ class Plant(Protocol):
         """Release what the plant holds (nothing for simulated ones)."""
 
 
+@runtime_checkable
+class Grounded(Protocol):
+    """A simulated plant whose vehicles the ground can stop (:class:`plant.rest.Resting`)."""
+
+    def ground_contact(self, row: int, z: float) -> None:
+        """The ground at height ``z`` [m] stops vehicle ``row``'s downward motion: its height is at
+        least ``z``, a downward velocity is zeroed; it climbs again when commanded up."""
+
+
 class DoubleIntegratorPlant:
     """One exact double integrator per id, with the mission's disturbance models."""
 
@@ -131,6 +140,13 @@ class DoubleIntegratorPlant:
     def bank(self) -> DisturbanceBank:
         """The disturbance models of its vehicles (read-only)."""
         return self._dist
+
+    def ground_contact(self, row: int, z: float) -> None:
+        """See :class:`Grounded`."""
+        if self._p[row, -1] < z:
+            self._p[row, -1] = z
+        if self._v[row, -1] < 0.0:
+            self._v[row, -1] = 0.0
 
     def take_over(self, k: int, p: list[list[float]], v: list[list[float]], a: list[list[float]]) -> None:
         """Continue from tick ``k`` with these rows, stepped elsewhere until now with the same
@@ -202,6 +218,10 @@ class VehiclePlant:
         """Continue at tick ``k`` (see :meth:`DoubleIntegratorPlant.seek`)."""
         self._k = k
 
+    def ground_contact(self, row: int, z: float) -> None:
+        """See :class:`Grounded`."""
+        self._veh[row].ground_contact(z)
+
     def close(self) -> None:
         pass
 
@@ -234,6 +254,7 @@ class PayloadPlant:
             else:
                 start = hover_equilibrium(p0, pl.mass, cable, tol=1e-9).payload_p
         self._dist = DisturbanceBank.from_mission(m, list(ids))
+        self._vehicles = vehicles
         self.world = PayloadWorld(vehicles, pl.mass, start, None, cable, pl.substep, floor=m.floor)
         self._h = m.dt
         self._k = 0
@@ -254,6 +275,10 @@ class PayloadPlant:
         self._a = w.accel
         self._d = w.implied_disturbance
         self._k += 1
+
+    def ground_contact(self, row: int, z: float) -> None:
+        """See :class:`Grounded` (the cables' pull is the world's next substep's)."""
+        self._vehicles[row].ground_contact(z)
 
     def close(self) -> None:
         pass
@@ -294,6 +319,12 @@ class Fleet:
         u = np.asarray(u, dtype=float)
         for p, rows in zip(self.plants, self._rows):
             p.step(u[rows])
+
+    def ground_contact(self, row: int, z: float) -> None:
+        """See :class:`Grounded` (a hosted plant that the ground cannot stop: nothing)."""
+        for p, rows in zip(self.plants, self._rows):
+            if rows.start <= row < rows.stop and isinstance(p, Grounded):
+                p.ground_contact(row - rows.start, z)
 
     def close(self) -> None:
         for p in self.plants:

@@ -113,7 +113,9 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     payload = node.publisher(keys.topic("world", 0, "state")) if world and m.payload is not None else None
     if world:  # each hosted vehicle is a plant to the agents, the recorder and the launcher
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
-    dogs = [Watchdog(m.safety, m.dim) for _ in ids]
+    dogs = [Watchdog(m.safety, m.dim, h) for _ in ids]
+    noted: list[list[wire.SafetyEvent]] = [[] for _ in ids]
+    """Per vehicle, its watchdog's events not yet published (they ride on its next PlantState)."""
     # real time, one simulated vehicle: a restarted process resumes from its last state (plant/resume.py)
     resumer = resume.Resumer(node, ids[0], cmds) if not world and isinstance(plant, Resting) else None
     await node.ready(rejoin=None if resumer is None else resumer.epoch)
@@ -144,8 +146,9 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                 d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
                 for ev in d.events:
                     log.warning("vehicle %d: %s", aid, ev)
+                    noted[r].append(ev.wire(k, aid))
                 u.append(d.u)
-                modes.append(d.mode)
+                modes.append(d.rest)
             plant.step(np.array(u), modes)
         try:
             s = plant.state()
@@ -169,7 +172,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
             continue  # nothing measured: nothing to publish
         for r, pub in enumerate(states):
             pub.send(wire.PlantState, k, t, p=s.p[r].tolist(), vel=s.v[r].tolist(), a=s.a[r].tolist(),
-                     d=s.d[r].tolist(), mode=dogs[r].mode)
+                     d=s.d[r].tolist(), mode=dogs[r].mode, events=noted[r])
+            noted[r] = []
         if payload is not None:
             ex = s.extra
             payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),

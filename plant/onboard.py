@@ -57,7 +57,7 @@ class Onboard:
             raise ValueError(f"agent {aid}'s plant cannot be co-located: {why}")
         (inner,) = base.build(m, [aid], live=False)
         self.plant = Resting(inner, m.dim, m.safety.ground)
-        self.dog = Watchdog(m.safety, m.dim)
+        self.dog = Watchdog(m.safety, m.dim, m.dt)
         self.aid = aid
         self.h = m.dt
         self.seq = 0
@@ -88,8 +88,10 @@ class Onboard:
     def advance(self, k: int, cmd: wire.Command | None, operator: str | None) -> wire.PlantState:
         """The measurement of tick ``k``; for ``k > 0`` first one period with ``cmd``, the agent's
         command of tick k-1 (None: there was none; the watchdog's failsafe then flies), and the
-        operator's standing order (``land``, ``estop``)."""
+        operator's standing order (``land``, ``estop``). It carries the watchdog's events of this
+        tick, as a plant process's would."""
         t = k * self.h
+        events: list[wire.SafetyEvent] = []
         if k > 0:
             dog = self.dog
             if cmd is not None:
@@ -97,18 +99,19 @@ class Onboard:
             d = dog.step(t, self._p, self._v, operator)
             for ev in d.events:
                 log.warning("vehicle %d: %s", self.aid, ev)
-            if self._inner is None or not self._fly(k, d.u, d.mode):
-                self.plant.step(np.array([d.u]), [d.mode])
+            events = [ev.wire(k, self.aid) for ev in d.events]
+            if self._inner is None or not self._fly(k, d.u, d.rest):
+                self.plant.step(np.array([d.u]), [d.rest])
         if self._inner is not None:
             p, v, a = self._lean
             msg = wire.PlantState(sender=self.aid, seq=self.seq, k=k, t=t, p=p, vel=v, a=a, d=self._rows(k)[0],
-                                  mode=self.dog.mode)
+                                  mode=self.dog.mode, events=events)
             self._p, self._v = p, v
         else:
             s = self.plant.state()
             self._p, self._v = s.p[0], s.v[0]
             msg = wire.PlantState(sender=self.aid, seq=self.seq, k=k, t=t, p=s.p[0].tolist(), vel=s.v[0].tolist(),
-                                  a=s.a[0].tolist(), d=s.d[0].tolist(), mode=self.dog.mode)
+                                  a=s.a[0].tolist(), d=s.d[0].tolist(), mode=self.dog.mode, events=events)
         self.seq += 1
         return msg
 

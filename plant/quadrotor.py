@@ -558,6 +558,15 @@ class Quadrotor:
         """Centre-of-mass velocity (3,) [m/s; world frame]."""
         return np.array(self._x[3:6])
 
+    def ground_contact(self, z: float) -> None:
+        """The ground at height ``z`` [m] stops downward motion: the centre of mass is at least at
+        ``z`` and a downward velocity is zeroed (a rigid, frictionless floor; attitude and body
+        rates are the inner loop's); the vehicle climbs again as soon as its thrust lifts it."""
+        if self._x[2] < z:
+            self._x[2] = float(z)
+        if self._x[5] < 0.0:
+            self._x[5] = 0.0
+
     @property
     def quaternion(self) -> np.ndarray:
         """Attitude (4,) ``(w, x, y, z)``, unit, body to world."""

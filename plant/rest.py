@@ -1,17 +1,19 @@
-"""What a simulated vehicle does once its watchdog says LANDED or ESTOP: ground contact and motors
-off, which the plant models themselves do not have. Pure.
+"""What the ground does to a simulated vehicle, and what a vehicle does once its watchdog says
+LANDED or ESTOP (motors off): what the plant models themselves do not have. Pure.
 
-:class:`Resting` wraps any :class:`plant.base.Plant` and takes the watchdog's modes with each
-step (``docs/watchdog.md``):
+:class:`Resting` wraps any :class:`plant.base.Plant` and takes the modes the ground and the motors
+act on with each step (``docs/watchdog.md``; :attr:`plant.watchdog.Decision.rest`):
 
 =========  ==================================================================================
-FLYING,    the command is passed through untouched: while every vehicle flies above the ground, the wrapper is
-HOLD       transparent, bit for bit (the plant process and the in-process engine then fly the
-           same arithmetic)
+FLYING,    the command is passed through untouched. 3D: the ground holds a vehicle up and never
+HOLD       down: a step that ends below ``ground`` leaves the vehicle at ``ground`` with its
+           downward velocity zeroed (:meth:`plant.base.Grounded.ground_contact`); its horizontal
+           motion goes on, and it climbs again as soon as it is commanded up. While every
+           vehicle flies above the ground the wrapper is transparent, bit for bit (the plant
+           process and the in-process engine then fly the same arithmetic)
 LAND       the command is passed through; 3D: a vehicle that reaches ``ground`` rests there
-           (the landing law may overshoot it by millimetres; the ground does not let it).
-           3D, any mode: a vehicle that goes below ``ground`` rests there too (its agent's
-           supervisor may be landing it while the watchdog still says FLYING)
+           (the landing law may overshoot it by millimetres; the ground does not let it). The
+           same while the vehicle's agent lands it and its watchdog follows in FLYING.
 LANDED     the vehicle rests where it touched down: its reported position is frozen there
            (3D: not below ``ground``), its velocity and acceleration are zero
 ESTOP      motors off. 3D: the vehicle falls, commanded ``u = (0, 0, -g)`` (what lost thrust
@@ -23,7 +25,8 @@ ESTOP      motors off. 3D: the vehicle falls, commanded ``u = (0, 0, -g)`` (what
 A resting vehicle's model is still stepped (with a zero command) but no longer reported: the
 ground holds the vehicle, not the model. In a payload world the cables' pull on a resting vehicle
 is ignored (it is on the ground), while the payload still feels the model's vehicle: a limitation
-of this first ground model.
+of this ground model. :attr:`Resting.touching` says which vehicles the ground stopped at the last
+step (the watchdog makes the contact an event from the measurement itself).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from plant.base import Plant, Sample
+from plant.base import Grounded, Plant, Sample
 from plant.vehicle import G
 from tether.wire import ESTOP, LAND, LANDED
 
@@ -48,6 +51,8 @@ class Resting:
         self._g = g
         self._rest: dict[int, np.ndarray] = {}
         """Row -> rest position [m]."""
+        self.touching: frozenset[int] = frozenset()
+        """Rows the ground stopped (height clamped, downward velocity zeroed) at the last step."""
 
     def resting(self, row: int) -> bool:
         """Vehicle ``row`` is at rest on the ground (or stopped, 2D)."""
@@ -97,21 +102,29 @@ class Resting:
 
     def _contact(self, falling: Sequence[int]) -> None:
         """3D ground contact after a step: a vehicle descending in LAND or ESTOP (``falling``)
-        rests once it reaches the ground; any other vehicle rests if it went *through* it (an
-        agent's supervisor lands it while its watchdog still says FLYING, or it is flown into the
-        floor): the ground does not let a vehicle below it, whoever commands the descent."""
+        rests once it reaches the ground; any other vehicle that went through it is put back on
+        it with no downward velocity, and flies on (a plant that the ground cannot stop rests it
+        instead, as a last resort)."""
         if self._dim < 3:
             return
         # the positions alone when the plant can give them (a double integrator): a whole sample
         # evaluates the disturbance models too, which the next state() does anyway
         fast = getattr(self.inner, "positions", None)
         after = fast() if fast is not None else self.inner.state().p
+        touching = []
         for row in range(len(self.ids)):
             if row in self._rest:
                 continue
             z = after[row, -1]
-            if z < self._ground or (row in falling and z <= self._ground):
+            if row in falling and z <= self._ground:
                 self._settle(row, after[row])
+            elif z < self._ground:
+                if isinstance(self.inner, Grounded):
+                    self.inner.ground_contact(row, self._ground)
+                    touching.append(row)
+                else:
+                    self._settle(row, after[row])
+        self.touching = frozenset(touching)
 
     def close(self) -> None:
         self.inner.close()

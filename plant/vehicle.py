@@ -188,6 +188,16 @@ class PointMass:
         """Mean acceleration over the last :meth:`advance` span [m/s^2; world frame] (a copy)."""
         return self._a.copy()
 
+    def ground_contact(self, z: float) -> None:
+        """The ground at height ``z`` [m] stops downward motion: the height is at least ``z`` and a
+        downward velocity is zeroed; the vehicle climbs again as soon as it is commanded up."""
+        if self.p[2] < z:
+            self.p = self.p.copy()
+            self.p[2] = z
+        if self.v[2] < 0.0:
+            self.v = self.v.copy()
+            self.v[2] = 0.0
+
     def advance(self, dt: float, f_ext: np.ndarray | None = None) -> None:
         """Integrate exactly over ``dt`` [s] with ``u`` and ``f_ext`` [N; world frame] held."""
         if not dt > 0.0:

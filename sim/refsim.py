@@ -97,7 +97,8 @@ def simulate(
     engine: Engine = "auto",
     threads: int = 1,
 ) -> Run:
-    """Run a mission in one process. ``duration`` overrides the mission's (a whole number of periods).
+    """Run a mission in one process, and say (a logged warning per agent, :func:`below_ground`)
+    when a 3D run takes a vehicle below the ground, which this simulator does not have. ``duration`` overrides the mission's (a whole number of periods).
 
     Returns a :class:`~tether.runfile.Run` with one sample per control tick (``steps + 1``
     samples); with ``record=False`` only the final sample is kept (for benchmarks). ``on_tick`` is
@@ -108,6 +109,31 @@ def simulate(
     threads (``prange``; the same run bit for bit). Each tick ends on a barrier, so this pays only for
     large swarms on cores nobody else is using; the default is one.
     """
+    run = _simulate(m, mode, duration, record, substeps, progress, on_tick, engine, threads)
+    for aid, (t, z) in below_ground(m, run).items():
+        log.warning("agent %d went below the ground (safety.ground = %g m) at t = %.2f s, down to z = %.3g m: the "
+                    "reference simulator has no ground; `tether run` stops a flying vehicle on it", aid,
+                    m.safety.ground, t, z)
+    return run
+
+
+def below_ground(m: Mission, run: Run) -> dict[int, tuple[float, float]]:
+    """3D: the agents whose recorded height went below ``safety.ground``, each with the first such
+    sample's time [s] and the lowest recorded height [m] (a run kept with ``record=False``: its
+    last sample alone). 2D: none."""
+    if m.dim < 3 or run.p.size == 0:
+        return {}
+    z = run.p[..., -1]  # (samples, agents)
+    out: dict[int, tuple[float, float]] = {}
+    for col, aid in enumerate(run.agent_ids):
+        below = np.flatnonzero(z[:, col] < m.safety.ground)
+        if below.size:
+            out[int(aid)] = (float(run.t[below[0]]), float(np.nanmin(z[:, col])))
+    return out
+
+
+def _simulate(m: Mission, mode: Mode, duration: float | None, record: bool, substeps: int,
+              progress: Progress | None, on_tick: OnTick | None, engine: Engine, threads: int) -> Run:
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
     source: Source = "reference-discrete" if mode == "discrete" else "reference-continuous"

@@ -56,17 +56,17 @@ def first(modes: list[int], mode: int, k0: int = 0) -> int:
 
 
 def test_flying_passes_the_agents_command_through_bit_for_bit() -> None:
-    dog = Watchdog(SAFETY, 3)
+    dog = Watchdog(SAFETY, 3, H)
     rng = np.random.default_rng(1)
     for k in range(1, 50):
         u = rng.normal(size=3)
         assert dog.offer(u.tolist(), (k - 1) * H, k - 1, k)
-        d = dog.step(k * H, np.zeros(3), np.zeros(3))
+        d = dog.step(k * H, np.array([0.0, 0.0, 1.0]), np.zeros(3))
         assert d.mode == FLYING and not d.events and np.array_equal(d.u, u)
 
 
 def test_silence_holds_after_cmd_timeout_then_lands_at_cmd_cutoff_then_rests() -> None:
-    dog, veh, events = Watchdog(SAFETY, 3), Fake(3, [1.0, 2.0, 1.5], [0.8, -0.4, 0.2]), []
+    dog, veh, events = Watchdog(SAFETY, 3, H), Fake(3, [1.0, 2.0, 1.5], [0.8, -0.4, 0.2]), []
     modes = fly(dog, veh, 1, 50, command=lambda k: [0.0, 0.0, 0.0], log=events)
     assert set(modes) == {FLYING}
     last_cmd = 48 * H  # the last command's stamp
@@ -85,7 +85,7 @@ def test_silence_holds_after_cmd_timeout_then_lands_at_cmd_cutoff_then_rests() -
 
 
 def test_a_command_back_during_hold_flies_again_but_not_after_land() -> None:
-    dog, veh = Watchdog(SAFETY, 3), Fake(3, [0.0, 0.0, 1.0])
+    dog, veh = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 1.0])
     fly(dog, veh, 1, 10, command=lambda k: [0.1, 0.0, 0.0])
     modes = fly(dog, veh, 10, 50)
     assert modes[-1] == HOLD
@@ -96,7 +96,7 @@ def test_a_command_back_during_hold_flies_again_but_not_after_land() -> None:
 
 
 def test_operator_land_lands_at_once_and_never_flies_again() -> None:
-    dog, veh, events = Watchdog(SAFETY, 3), Fake(3, [0.0, 0.0, 1.0]), []
+    dog, veh, events = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 1.0]), []
     modes = fly(dog, veh, 1, 600, command=lambda k: [0.0, 0.0, 0.0],
                 operator=lambda k: "land" if k >= 5 else None, log=events)
     assert modes[:4] == [FLYING] * 4 and modes[4] == LAND
@@ -106,7 +106,7 @@ def test_operator_land_lands_at_once_and_never_flies_again() -> None:
 
 @pytest.mark.parametrize("before", [FLYING, HOLD, LAND, LANDED])
 def test_operator_estop_is_immediate_and_terminal(before: int) -> None:
-    dog, veh = Watchdog(SAFETY, 3), Fake(3, [0.0, 0.0, 0.3])
+    dog, veh = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 0.3])
     silent_for = {FLYING: 0, HOLD: 30, LAND: 110, LANDED: 700}[before]
     fly(dog, veh, 1, 5, command=lambda k: [0.0, 0.0, 0.0])
     fly(dog, veh, 5, 5 + silent_for)
@@ -118,7 +118,7 @@ def test_operator_estop_is_immediate_and_terminal(before: int) -> None:
 
 
 def test_invalid_commands_do_not_count_and_nothing_unsafe_leaves() -> None:
-    dog, veh = Watchdog(SAFETY, 3), Fake(3, [0.0, 0.0, 1.0])
+    dog, veh = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 1.0])
     fly(dog, veh, 1, 5, command=lambda k: [0.0, 0.0, 0.0])
     bad = [[math.nan, 0.0, 0.0], [math.inf, 0.0, 0.0], [ABSURD * SAFETY.max_accel * 2, 0.0, 0.0]]
     modes = fly(dog, veh, 5, 60, command=lambda k: bad[k % 3])
@@ -135,7 +135,7 @@ def test_invalid_commands_do_not_count_and_nothing_unsafe_leaves() -> None:
 
 def test_no_measurement_holds_and_its_return_lands_unless_the_agent_resumed() -> None:
     for resumed in (True, False):
-        dog = Watchdog(SAFETY, 3)
+        dog = Watchdog(SAFETY, 3, H)
         p, v = np.array([0.0, 0.0, 1.0]), np.zeros(3)
         dog.offer([0.0, 0.0, 0.0], 0.0, 0, 1)
         assert dog.step(H, p, v).mode == FLYING
@@ -148,7 +148,7 @@ def test_no_measurement_holds_and_its_return_lands_unless_the_agent_resumed() ->
 
 
 def test_2d_lands_by_stopping() -> None:
-    dog, veh = Watchdog(SAFETY, 2), Fake(2, [0.0, 0.0], [1.0, 0.5])
+    dog, veh = Watchdog(SAFETY, 2, H), Fake(2, [0.0, 0.0], [1.0, 0.5])
     fly(dog, veh, 1, 3, command=lambda k: [0.0, 0.0])
     modes = fly(dog, veh, 3, 800)
     assert modes[-1] == LANDED and np.linalg.norm(veh.v) < 0.05
@@ -169,7 +169,7 @@ class Swaying(Fake):
 def test_2d_lands_under_a_sway_after_land_settle_at_most() -> None:
     """Its agent dead, a 2D plant under a sway that keeps it moving lands (stops) after
     ``land_settle`` in LAND instead of holding for ever."""
-    dog, veh, events = Watchdog(SAFETY, 2), Swaying([0.0, 0.0]), []
+    dog, veh, events = Watchdog(SAFETY, 2, H), Swaying([0.0, 0.0]), []
     fly(dog, veh, 1, 3, command=lambda k: [0.0, 0.0])
     modes = fly(dog, veh, 3, 3 + round((SAFETY.cmd_cutoff + 2 * SAFETY.land_settle) / H), log=events)
     assert [e.dst for e in events] == [HOLD, LAND, LANDED]
@@ -190,7 +190,7 @@ class Pushed(Fake):
 
 def test_a_plant_whose_agent_died_lands_against_a_steady_push_up() -> None:
     """LAND's proportional descent alone hovered 25 cm above the ground for ever under this push."""
-    dog, veh, events = Watchdog(SAFETY, 3), Pushed(3, [0.0, 0.0, 1.0]), []
+    dog, veh, events = Watchdog(SAFETY, 3, H), Pushed(3, [0.0, 0.0, 1.0]), []
     fly(dog, veh, 1, 3, command=lambda k: [0.0, 0.0, -0.5])
     modes = fly(dog, veh, 3, round(40.0 / H), log=events)
     assert [e.dst for e in events] == [HOLD, LAND, LANDED], events
@@ -202,7 +202,7 @@ def test_a_non_finite_measurement_is_no_measurement(resumed: bool) -> None:
     """A diverged estimator (a Crazyflie's Kalman filter) or a corrupted log gives NaN: the plant
     flies it as a lost measurement (HOLD blind, a zero command), never holds about it, and once
     the estimate is finite again flies on if its agent's command is fresh, else lands there."""
-    dog, veh, events = Watchdog(SAFETY, 3), Fake(3, [0.0, 0.0, 1.0], [0.2, 0.0, 0.0]), []
+    dog, veh, events = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 1.0], [0.2, 0.0, 0.0]), []
     fly(dog, veh, 1, 10, command=lambda k: [0.0, 0.0, 0.0], log=events)
     for k, bad in enumerate(([math.nan, 0.0, 1.0], [0.0, math.inf, 1.0]), start=10):
         dog.offer([0.0, 0.0, 0.0], (k - 1) * H, k - 1, k)
@@ -288,7 +288,7 @@ def test_landed_rests_where_it_touched_down_and_2d_estop_stops() -> None:
 def test_the_agents_supervisor_mode_rides_on_its_command(agent_mode: int, want: int) -> None:
     """An agent whose supervisor has landed (or stopped) its vehicle says so in its command: the
     plant rests (or cuts its motors) at once, without waiting for its own timeouts."""
-    dog = Watchdog(SAFETY, 3)
+    dog = Watchdog(SAFETY, 3, H)
     assert dog.offer([0.0, 0.0, 0.0], 0.0, 0, 1, FLYING)
     assert dog.step(H, np.zeros(3), np.zeros(3)).mode == FLYING
     assert dog.offer([0.0, 0.0, 0.0], H, 1, 2, agent_mode)
@@ -303,9 +303,14 @@ def test_the_ground_stops_a_vehicle_its_agent_lands_while_the_watchdog_says_flyi
     m = one_vehicle(3, [0.5, 0.0, 0.05], [0.0, 0.0, -0.6])
     (inner,) = base.build(m)
     veh = Resting(inner, 3, 0.0)
+    dog = Watchdog(SAFETY, 3, H)
     zs = []
-    for _ in range(50):
-        veh.step(np.array([[0.0, 0.0, 0.5]]), [FLYING])  # braking too late to stop above the ground
+    for k in range(1, 51):
+        dog.offer([0.0, 0.0, 0.5], (k - 1) * H, k - 1, k, LAND)  # braking too late to stop above the ground
+        s = veh.state()
+        d = dog.step(k * H, s.p[0], s.v[0])
+        assert d.mode == FLYING and d.rest == LAND and not d.events  # the agent lands it: no contact event
+        veh.step(np.array([d.u]), [d.rest])
         zs.append(veh.state().p[0, 2])
     assert min(zs) >= 0.0 and veh.resting(0)
     s = veh.state()

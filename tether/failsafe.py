@@ -13,7 +13,10 @@ measurement (``docs/safety.md``). Vectors are sequences of ``d`` floats [SI unit
   is no up, so LAND is HOLD until the vehicle is still); :class:`Landing` flies it with the
   memory that a steady push up needs;
 * :func:`landed` — on the ground (3D) or still (2D), slow enough to disarm; in 2D also a landing
-  that has held for ``settle`` seconds (a disturbance HOLD cannot cancel may keep a vehicle moving).
+  that has held for ``settle`` seconds (a disturbance HOLD cannot cancel may keep a vehicle moving);
+* :func:`braking_distance`, :func:`fence_breach` — how far a vehicle travels once HOLD brakes, and
+  whether it is outside a geofence box or would leave it braking from here;
+* :func:`inside` — a position brought into a box (where a vehicle outside a geofence lands).
 """
 
 from __future__ import annotations
@@ -125,3 +128,29 @@ def why_landed(p: Vec, v: Vec, held: float) -> str:
     if speed < STILL:
         return "still"
     return f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped"
+
+
+def braking_distance(speed: float, kv: float, max_accel: float) -> float:
+    """How far [m] a vehicle at ``speed`` [m/s] travels once HOLD brakes: HOLD's brake settles
+    within about ``1/kv`` seconds of travel at the current speed, more when it is saturated at
+    ``max_accel``: ``speed / kv + speed^2 / (2 max_accel)``."""
+    return speed / kv + speed * speed / (2.0 * max_accel)
+
+
+def fence_breach(p: Vec, v: Vec, lo: Vec, hi: Vec, kv: float, max_accel: float) -> str | None:
+    """Why ``p`` [m] moving at ``v`` [m/s] breaches the box ``[lo, hi]`` [m]: ``"outside"`` (the
+    position is not in it: a non-finite position is not), ``"would leave the box braking from
+    here"`` (the position plus :func:`braking_distance` along the velocity is not), else None."""
+    speed = norm(v)
+    reach = braking_distance(speed, kv, max_accel)
+    ahead = [pc + (vc / speed) * reach for pc, vc in zip(p, v)] if speed > 0 and math.isfinite(reach) else None
+    if not all(a <= x <= b for x, a, b in zip(p, lo, hi)):
+        return "outside"
+    if ahead is not None and not all(a <= x <= b for x, a, b in zip(ahead, lo, hi)):
+        return "would leave the box braking from here"
+    return None
+
+
+def inside(p: Vec, lo: Vec, hi: Vec) -> list[float]:
+    """``p`` [m] brought into the box ``[lo, hi]`` (each axis clamped): the nearest point of it."""
+    return [min(max(float(x), a), b) for x, a, b in zip(p, lo, hi)]
