@@ -142,9 +142,23 @@ class Monitor:
     """A token gone while its process runs is reported as a freeze after this long [s] (a process
     that is ending withdraws its token moments before it exits)."""
 
+    REJOIN = 3.0
+    """After the launcher itself was late (:meth:`poll`), how long beyond twice the lease [s] its
+    processes get to link again and declare their tokens anew before a token still gone is theirs to
+    answer for (a client redials its router about once a second)."""
+
     def __init__(self, session: zenoh.Session, mission: ms.Mission, keys: wire.Keys,
                  members: list[tuple[str, int]], clock: Callable[[], float | None], forge_agents: bool = False,
-                 leader: bool = True):
+                 leader: bool = True, lease: float = 2.0):
+        self.lease = lease
+        """The links' lease [s]: the launcher late by this much may have let every link to its router
+        lapse (its own freeze or starvation, not its processes')."""
+        self._last_poll: float | None = None
+        self.excused: tuple[float, float] | None = None
+        """Monotonic interval [s] in which tokens lost are not blamed on their processes: from the
+        start of the launcher's own latest lateness to :data:`REJOIN` and twice the lease after it."""
+        self.resumed: float | None = None
+        """Monotonic time [s] the launcher last ran again after being late by a lease or more."""
         self.mission = mission
         self.keys = keys
         self.members = members
@@ -196,7 +210,28 @@ class Monitor:
         (log.info if what in ("back", "fault") else log.warning)("%s", ev.line())
         return ev
 
+    def _self_late(self, now: float) -> None:
+        """Whether the launcher itself ran late (its previous poll a lease or more ago: stopped, or
+        starved of CPU): then its router kept no link alive, and every token may vanish and return
+        for its lateness, not the processes'. Reported once per lateness as the launcher's own."""
+        last, self._last_poll = self._last_poll, now
+        if last is None or now - last < self.lease:
+            return
+        until = now + 2 * self.lease + self.REJOIN
+        start = last if self.excused is None or self.excused[1] < last else self.excused[0]
+        self.excused = (start, until)
+        self.resumed = now
+        self.report("launcher", "froze", f"the launcher itself did not run for {now - last:.1f} s (stopped, or "
+                                         "starved of CPU): the links to its router lapsed meanwhile, so tokens "
+                                         f"lost until {until - now:.1f} s after it resumed are not blamed on its "
+                                         "processes")
+
+    def _is_excused(self, since: float) -> bool:
+        return self.excused is not None and self.excused[0] <= since <= self.excused[1]
+
     def poll(self) -> None:
+        """Decode what was heard, turn token losses into events; blocks for nothing."""
+        self._self_late(time.monotonic())
         for rec in self.fifo.drain():
             try:
                 role, nid, topic = wire.Keys.parse(rec.key)
@@ -224,7 +259,7 @@ class Monitor:
                 self._vanished[name] = (time.monotonic(), self.mission_time())
             elif ev.alive and was is False:
                 pending = self._vanished.pop(name, None)
-                if pending is not None and self.proc_alive(name):
+                if pending is not None and self.proc_alive(name) and not self._is_excused(pending[0]):
                     # back within CONFIRM: a process that is ending never gets its token back, so this
                     # one was lost for a while (a freeze or a cut-off about as long as the lease)
                     t = pending[1]
@@ -236,6 +271,8 @@ class Monitor:
         for name, (since, t_gone) in list(self._vanished.items()):
             if now - since < self.CONFIRM:
                 continue
+            if self._is_excused(since) and self.excused is not None and now < self.excused[1]:
+                continue  # lost while the launcher was late: judged once its processes could link again
             del self._vanished[name]
             t = t_gone
             if self.proc_alive(name) and not self.alive_token.get(name) and (t is None or t < self.mission.duration):

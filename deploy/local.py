@@ -654,6 +654,12 @@ class Supervision:
         return self.done_tick * m.dt if self.done_tick >= 0 else None
 
 
+def _late_within(mon: inject.Monitor, seconds: float) -> bool:
+    """Whether the launcher itself ran late (:meth:`~deploy.inject.Monitor.poll`) within the last
+    ``seconds``: its processes then get that long again before it judges them silent."""
+    return mon.resumed is not None and time.monotonic() - mon.resumed < seconds
+
+
 def _check_children(launch: Launch, sup: Supervision, lockstep: bool) -> None:
     """Report every child that ended badly (once); in lockstep that stops the run."""
     for c in launch.poll():
@@ -731,6 +737,8 @@ async def _lockstep(launch: Launch, session: zenoh.Session, progress: Progress |
                              for x in sup.injector.firings)
                 if frozen:
                     last_progress = time.monotonic()
+                elif sup.monitor.resumed is not None and sup.monitor.resumed > last_progress:
+                    last_progress = sup.monitor.resumed  # the launcher's own lateness is no stall of the others
                 elif time.monotonic() - last_progress > o.stall_timeout:
                     raise LaunchFailed(f"lockstep stalled at tick {src.done + 1}: no acknowledgement from "
                                        + ", ".join(f"{r}/{i}" for r, i in src.missing()))
@@ -791,7 +799,7 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
         _check_children(launch, sup, lockstep=False)
         mon.poll()
         inj.fire_due(now - epoch)
-        if not start_checked and now > epoch + STARTED_WITHIN:
+        if not start_checked and now > epoch + STARTED_WITHIN and not _late_within(mon, STARTED_WITHIN):
             start_checked = True
             for c in launch.children:
                 # a world is heard through the vehicles it hosts (their plant/<id>/state)
@@ -826,7 +834,7 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
             sup.stopped_by_us = True
             break
         writing = now <= end + EXIT_GRACE + write_grace(m, m.steps)  # the recorder writes its files after the end
-        if now > end + EXIT_GRACE and (not writing or live() - {"recorder/0"}):
+        if now > end + EXIT_GRACE and (not writing or live() - {"recorder/0"}) and not _late_within(mon, EXIT_GRACE):
             names = ", ".join(sorted(live()))
             mon.report("launcher", "silent", f"{names} still running {EXIT_GRACE:g} s after the last tick")
             sup.stopped_by_us = True
@@ -1038,7 +1046,8 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
                                      # real time checks that the leader was heard at the start; lockstep
                                      # needs its samples only to forge one (a delivery a tick less)
                                      leader=opts.clock != "lockstep" or any(f.kind == "forge" and f.role == "leader"
-                                                                         for f in opts.faults))
+                                                                         for f in opts.faults),
+                                     lease=opts.lease)
             pids = {(c.role, c.node_id): c.proc.pid for c in launch.children}
             monitor.proc_alive = lambda name: any(c.name == name and c.proc.poll() is None for c in launch.children)
             sup = Supervision(monitor, inject.Injector(opts.faults, m, keys, session, pids, launch.relays, monitor))

@@ -535,3 +535,30 @@ def test_a_node_closing_while_a_tap_relays_raises_nothing(caplog: pytest.LogCapt
     borrowed = [r.getMessage() for r in caplog.records 
                 if any(w in r.getMessage() for w in ("undeclaring", "tap still", "tap failed"))]
     assert not borrowed, borrowed  # close undeclared nothing a tap was using
+
+
+# --------------------------------------------------------------------------- the launcher's own freeze
+LAUNCHER_FREEZE = 8.0
+"""How long the launcher is stopped [s]: four leases (2 s), so every link to its router lapses."""
+
+
+def test_a_frozen_launcher_blames_itself_not_its_processes(tmp_path: Path) -> None:
+    """SIGSTOP of the launcher for four leases in a real-time run: on waking it finds every token
+    gone and back. It reports its own freeze (an event of ``launcher``, exit status 4: the run's router
+    was lost that long), and no process is reported frozen, silent or dead for it."""
+    import json
+
+    with launch(tmp_path, "selffreeze", "--clock", "realtime", "--duration", "30", "--insecure") as run:
+        wait_for_realtime_start(run)
+        os.kill(run.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(LAUNCHER_FREEZE)  # the stimulus itself (a freeze this long), not a wait for a condition
+        finally:
+            os.kill(run.proc.pid, signal.SIGCONT)
+        status = run.wait(STARTUP + 120)
+    events = json.loads((run.out / "events.json").read_text())
+    own = [e for e in events if e["who"] == "launcher" and e["what"] == "froze"]
+    assert len(own) == 1 and "did not run for" in own[0]["why"], events
+    blamed = [e for e in events if e["who"] != "launcher" and e["what"] in ("froze", "silent", "died")]
+    assert not blamed, blamed
+    assert status == 4, run.launcher_log[-3000:]
