@@ -19,8 +19,8 @@ they change; ``tether.end`` closes a journal whose recorder finished.
 :func:`recover` replays a journal through the recorder's own bookkeeping
 (:class:`recorder.node.Recording`) into a :class:`~tether.runfile.Run`, the same run the recorder
 would have written, marked incomplete and ``recovered``; :func:`load` reads a run directory either
-way. A recorder that finishes writes ``run.npz`` (and ``run.mcap``), ``fsync``-s it and removes its
-journal.
+way, and :func:`rebuild` writes the rebuilt run as ``run.npz`` and ``run.mcap``. A recorder that
+finishes writes ``run.npz`` (and ``run.mcap``), ``fsync``-s it and removes its journal.
 """
 
 from __future__ import annotations
@@ -274,6 +274,22 @@ def recover(path: str | Path) -> Run:
     return run
 
 
+def rebuild(directory: str | Path, mcap: bool = True) -> Path:
+    """Write ``directory/run.npz`` (synced) from its journal (:func:`recover`), and ``run.mcap``
+    beside it when ``mcap`` and the Foxglove SDK is installed; then remove the journal. Returns the
+    run file's path. Raises ValueError for a file that is no journal, OSError for a failed write
+    (the journal then stays)."""
+    from recorder.export import mcap_beside
+
+    directory = Path(directory)
+    run = recover(directory)
+    path = run.save(directory / "run.npz", sync=True)
+    if mcap:
+        mcap_beside(run, None, path)
+    (directory / NAME).unlink(missing_ok=True)
+    return path
+
+
 def load(path: str | Path, report: Callable[[str], None] | None = None) -> Run:
     """A run directory's run: its ``run.npz`` when there is one (or ``path`` is one), else the run
     rebuilt from its journal (:func:`recover`). What the run lacks (:func:`tether.runfile.missing_report`)
@@ -295,4 +311,4 @@ def load(path: str | Path, report: Callable[[str], None] | None = None) -> Run:
     return run
 
 
-__all__ = ["FLUSH_PERIOD", "NAME", "Contents", "Header", "Journal", "load", "read", "recover", "replay"]
+__all__ = ["FLUSH_PERIOD", "NAME", "Contents", "Header", "Journal", "load", "read", "rebuild", "recover", "replay"]

@@ -145,6 +145,18 @@ def test_a_recorder_killed_mid_run_leaves_a_journal_that_holds_every_tick(tmp_pa
     killed = int(datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp() * 1e9)  # the log's local time
     run = check_journal(out, killed)
     assert int(run.meta.recovered.split("samples up to tick ")[1].split()[0]) <= 501
+    # kept as a run file and its Foxglove view: the same run, the journal gone
+    path = journal.rebuild(out)
+    back = Run.load(path)
+    assert back.meta.recovered == run.meta.recovered and not (out / journal.NAME).exists()
+    np.testing.assert_array_equal(back.xi, run.xi)
+    if (out / "run.mcap").exists():
+        from mcap.reader import make_reader
+
+        with open(out / "run.mcap", "rb") as fh:
+            agent1 = sum(1 for _ in make_reader(fh).iter_messages(topics=["/agent/1"]))
+        heard = np.isfinite(run.leader_p).all(axis=1) | (run.safety.safety_mode != -1).any(axis=1)
+        assert agent1 == int(heard.sum())
 
 
 @pytest.mark.slow  # real processes
