@@ -4,14 +4,25 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import zenoh
+
 from plant.watchdog import NOTE_EVERY, SATURATED_FOR, Watchdog
+from tether import catalog
 from tether import mission as ms
+from tether import transport as tp
+from tether import wire
+from tether.runfile import Run
 from tether.wire import FLYING, HOLD, LAND, LANDED, MODES
 
 H = 0.02
@@ -213,3 +224,128 @@ def test_ground_contact_is_no_event_when_the_agent_is_landing_the_vehicle() -> N
     dog.offer([0.0, 0.0, 0.0], 0.0, 0, 1, LAND)
     d = dog.step(H, [0.0, 0.0, 0.0], [0.0, 0.0, -0.1])
     assert d.mode == FLYING and d.rest == LAND and not d.events
+
+
+# ----------------------------------------------------------------------------- real runs
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+class Forger:
+    """A Zenoh client of a real-time run's router that publishes forged commands on
+    ``agent/<victim>/cmd`` (sender id and schema the victim's, as an insider or an --insecure
+    network allows): ``forge(k, seq)`` gives the fields of the command to send when the victim's
+    plant publishes tick ``k`` and the victim's newest real command has sequence number ``seq``
+    (None: send nothing)."""
+
+    def __init__(self, endpoint: str, ns: str, victim: int, forge):
+        self.keys, self.victim, self.forge = wire.Keys(ns), victim, forge
+        self.sent: list[wire.Command] = []
+        self.seq = 0
+        self.session = zenoh.open(tp.zenoh_config(tp.ZenohSettings(mode="client", connect=(endpoint,), lease=2.0,
+                                                                   connect_timeout=30.0)))
+        self.pub = self.session.declare_publisher(self.keys.topic("agent", victim, "cmd"))
+        self.subs = [self.session.declare_subscriber(self.keys.topic("agent", victim, "cmd"), self._on_cmd),
+                     self.session.declare_subscriber(self.keys.topic("plant", victim, "state"), self._on_state)]
+
+    def _on_cmd(self, sample: zenoh.Sample) -> None:
+        msg = wire.decode(sample.payload.to_bytes())
+        if isinstance(msg, wire.Command) and msg not in self.sent:
+            self.seq = max(self.seq, msg.seq)
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        msg = wire.decode(sample.payload.to_bytes())
+        if not isinstance(msg, wire.PlantState):
+            return
+        fields = self.forge(msg.k, self.seq)
+        if fields is not None:
+            cmd = wire.Command(sender=self.victim, **fields)
+            self.sent.append(cmd)
+            self.pub.put(wire.encode(cmd))
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+def attacked_run(tmp: Path, mission: str, duration: float, forge) -> tuple[Run, Path, list[wire.Command]]:
+    """``tether run MISSION --clock realtime --insecure`` with a :class:`Forger` against vehicle 2."""
+    port = tp.free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    ns = f"pe{uuid.uuid4().hex[:8]}"
+    out = tmp / "run"
+    cmd = [sys.executable, "-m", "cli", "run", mission, "--clock", "realtime", "--duration", str(duration),
+           "--out", str(out), "--ns", ns, "--quiet", "--listen", ep, "--insecure"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    forger = None
+    try:
+        deadline = time.monotonic() + 60
+        while forger is None:
+            try:
+                forger = Forger(ep, ns, 2, forge)
+            except zenoh.ZError:
+                assert proc.poll() is None and time.monotonic() < deadline, "the run's router never listened"
+                time.sleep(0.2)
+        _, err = proc.communicate(timeout=duration + 180)
+    finally:
+        if forger is not None:
+            forger.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert (out / "run.npz").exists(), err[-3000:]
+    return Run.load(out), out, forger.sent
+
+
+@pytest.mark.slow
+def test_a_command_stamped_1e9_is_rejected_by_the_plant_in_a_real_run(tmp_path: Path) -> None:
+    """One command on agent/2/cmd for the current tick, stamped 1e9, at 4 s of a real-time section4:
+    plant 2 drops it (counted, logged, an event) and vehicle 2 flies on in formation to the end."""
+    h = 1.0 / ms.load(catalog.resolve("section4")).rate
+    once = {"sent": False}
+
+    def forge(k: int, seq: int):
+        if once["sent"] or k * h < 4.0 or seq == 0:
+            return None
+        once["sent"] = True  # the agent's next tick, which it has not computed yet: it takes that tick's place
+        return {"seq": seq + 2, "k": k + 1, "t": 1e9, "u": [0.0, 0.0]}
+
+    run, out, sent = attacked_run(tmp_path, "section4", 10.0, forge)
+    assert len(sent) == 1
+    log = (out / "logs" / "plant-2.log").read_text()
+    assert "command rejected (stamp" in log and "commands rejected by its watchdog" in log, log[-2000:]
+    assert run.runtime is not None
+    col = int(np.nonzero(run.agent_ids == 2)[0][0])
+    p = run.runtime.plant_p
+    others = [c for c in range(p.shape[1]) if c != col]
+    # with the others (it flew away to 760 m at 83 m/s without the rule; the diamond is 2 m wide)
+    apart = np.nanmax(np.nanmin(np.linalg.norm(p[:, others] - p[:, col:col + 1], axis=-1), axis=1))
+    assert apart < 5.0, apart
+
+
+@pytest.mark.slow
+def test_forged_commands_cannot_push_a_vehicle_through_the_plants_geofence(tmp_path: Path) -> None:
+    """From 3 s of a real-time failsafe run (geofence x in [-4, 4]), u = (20, 0, 0) on agent/2/cmd
+    every tick, stamped as the real ones, saying FLYING: plant 2 holds and lands at the fence
+    whatever its agent says; it never leaves the box by more than a few ticks of motion."""
+    m = ms.load(catalog.resolve("failsafe"))
+    h = 1.0 / m.rate
+
+    def forge(k: int, seq: int):
+        if k * h < 3.0 or seq == 0:
+            return None
+        return {"seq": seq + 1, "k": k, "t": k * h, "u": [20.0, 0.0, 0.0]}
+
+    run, out, sent = attacked_run(tmp_path, "failsafe", 12.0, forge)
+    assert sent
+    log = (out / "logs" / "plant-2.log").read_text()
+    assert "geofence" in log, log[-2000:]
+    assert run.runtime is not None
+    col = int(np.nonzero(run.agent_ids == 2)[0][0])
+    p = run.runtime.plant_p[:, col]
+    fence = m.safety.geofence
+    assert fence is not None
+    assert np.nanmax(p[:, 0]) <= fence.max[0] + 0.25, np.nanmax(p[:, 0])
+    modes = run.safety.plant_mode[:, col]
+    assert LAND in modes.tolist() or LANDED in modes.tolist()
