@@ -5,7 +5,9 @@ It is a plain Zenoh client that hears the telemetry the agents already publish
 tokens, and draws with ``rich`` in an ordinary terminal (over SSH too): per vehicle its safety mode,
 ‖ξ_i‖, the gains Kp and Kv (per axis), ‖u_i‖, the worst link's delivery ratio and age p99, the
 clock-offset estimate of its most offset input link (``Telemetry.clock``, :mod:`tether.skew`;
-``!`` and red when the agent flagged it, as the run's warning does), and the last mode change. Trouble is coloured: a mode other than FLYING, an agent whose token is gone or whose
+``!`` and red when the agent flagged it, as the run's warning does), and the last event: its supervisor's
+newest mode change, or its plant's watchdog's newest event when that came later (``plant t=…``, from
+``tether/<ns>/plant/<i>/state``, :attr:`tether.wire.PlantState.events`). Trouble is coloured: a mode other than FLYING, an agent whose token is gone or whose
 telemetry stopped, ‖ξ_i‖ beyond ``xi_warn``, a link delivering less than 90 % or older than
 ``age_warn``, a clock offset outside :func:`tether.skew.bounds`, a non-finite value. ``q`` or Ctrl-C quits.
 
@@ -23,7 +25,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
@@ -55,6 +57,8 @@ class Row:
     alive: bool | None = None
     """Its agent's liveliness token: present, gone, or never seen (None)."""
     last_event: wire.SafetyEvent | None = None
+    last_plant_event: wire.SafetyEvent | None = None
+    """The newest event its plant's watchdog reported (a mode change, a rejected or clamped command)."""
 
 
 @dataclass
@@ -77,34 +81,54 @@ class Board:
             self.rows[vehicle] = Row(vehicle)
         return self.rows[vehicle]
 
-    def telemetry(self, key: str, payload: bytes, now: float) -> None:
-        """One sample on ``tether/<ns>/agent/<i>/telemetry``: kept when it is agent i's, newer
-        than the one held, and well formed; else dropped and counted by reason."""
+    def _decode(self, key: str, payload: bytes, role: str, topic: str, kind: type) -> Any:
+        """The message on ``key`` when it is a ``kind`` on ``tether/<ns>/<role>/<i>/<topic>`` from
+        sender i, of this wire version, with a finite time; else None, dropped and counted by reason."""
         try:
-            role, vehicle, topic = wire.Keys.parse(key)
+            got_role, vehicle, got_topic = wire.Keys.parse(key)
         except ValueError:
             self._drop("key")
-            return
-        if role != "agent" or topic != "telemetry":
+            return None
+        if got_role != role or got_topic != topic:
             self._drop("key")
-            return
+            return None
         try:
             msg = wire.decode(payload)
         except (msgspec.DecodeError, msgspec.ValidationError, RecursionError):
             self._drop("malformed")
-            return
-        if not isinstance(msg, wire.Telemetry):
+            return None
+        if not isinstance(msg, kind):
             self._drop("type")
-            return
+            return None
         if msg.v != wire.WIRE_VERSION:
             self._drop("version")
-            return
+            return None
         if msg.sender != vehicle:
             self._drop("sender")
-            return
+            return None
         if not math.isfinite(msg.t):
             self._drop("nonfinite")
+            return None
+        return msg
+
+    def plant(self, key: str, payload: bytes) -> None:
+        """One sample on ``tether/<ns>/plant/<i>/state``: its watchdog's newest event is kept for
+        vehicle i (an older one than held is ignored); a bad sample is dropped and counted by reason."""
+        msg = self._decode(key, payload, "plant", "state", wire.PlantState)
+        if msg is None or not msg.events:
             return
+        row = self._row(msg.sender)
+        newest = max(msg.events, key=lambda e: (e.k, e.t))
+        if row.last_plant_event is None or (newest.k, newest.t) >= (row.last_plant_event.k, row.last_plant_event.t):
+            row.last_plant_event = newest
+
+    def telemetry(self, key: str, payload: bytes, now: float) -> None:
+        """One sample on ``tether/<ns>/agent/<i>/telemetry``: kept when it is agent i's, newer
+        than the one held, and well formed; else dropped and counted by reason."""
+        msg = self._decode(key, payload, "agent", "telemetry", wire.Telemetry)
+        if msg is None:
+            return
+        vehicle = msg.sender
         row = self._row(vehicle)
         if row.msg is not None and msg.k <= row.msg.k:
             self._drop("stale")
@@ -154,9 +178,14 @@ class Board:
         styles.append("yellow" if silent or (math.isfinite(p99) and p99 > self.age_warn) else "")
         clock, cstyle = _clock(msg.clock)
         styles.append(cstyle)
-        ev = row.last_event
-        event = "-" if ev is None else f"t={ev.t:.1f}s {_mode(ev.src)}->{_mode(ev.dst)} {ev.reason}"
-        styles.append("yellow" if ev is not None else "")
+        event, ev = "-", row.last_event
+        if ev is not None:
+            event = f"t={ev.t:.1f}s {_mode(ev.src)}->{_mode(ev.dst)} {ev.reason}"
+        pev = row.last_plant_event
+        if pev is not None and (ev is None or pev.t > ev.t):  # the plant's watchdog spoke last
+            change = _mode(pev.dst) if pev.src == pev.dst else f"{_mode(pev.src)}->{_mode(pev.dst)}"
+            event = f"plant t={pev.t:.1f}s {change} {pev.reason}"
+        styles.append("yellow" if event != "-" else "")
         link_delivery = "-" if not links else f"{delivery:.0%}" + (" silent" if silent else "")
         link_age = "-" if not math.isfinite(p99) else f"{p99 * 1000:.0f} ms"
         return ([str(row.vehicle), mode, _num(xi, 3), gains, _num(u, 2), link_delivery, link_age, clock, event],
@@ -264,11 +293,13 @@ async def run(settings: object, ns: str, where: str, xi_warn: float = XI_WARN, a
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, quit_.set)
     samples: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096)
+    plants: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096)
     tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(1024)
     console = Console()
     try:
         async with tp.open_session(settings) as session:
             declared = [tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", samples),
+                        tp.declare_subscriber(session, f"tether/{ns}/plant/*/state", plants),
                         tp.watch_tokens(session, keys.tokens, tokens)]
             try:
                 with _Keys(quit_.set), Live(board.table(time.monotonic(), where), console=console, screen=True,
@@ -282,10 +313,12 @@ async def run(settings: object, ns: str, where: str, xi_warn: float = XI_WARN, a
                         now = time.monotonic()
                         for rec in samples.drain():
                             board.telemetry(rec.key, rec.payload, now)
+                        for rec in plants.drain():
+                            board.plant(rec.key, rec.payload)
                         for ev in tokens.drain():
                             board.token(ev.key, ev.alive)
-                        if samples.dropped:
-                            board.drops["overflow"] = samples.dropped
+                        if samples.dropped or plants.dropped:
+                            board.drops["overflow"] = samples.dropped + plants.dropped
                         live.update(board.table(now, where), refresh=True)
             finally:
                 for d in declared:

@@ -300,6 +300,32 @@ def telemetry(sender: int, k: int, mode: int = 0, xi: tuple[float, float] = (0.0
     return wire.encode(msg)
 
 
+def test_top_board_shows_a_plant_s_newest_event_when_it_came_last() -> None:
+    """A plant's watchdog event (on ``plant/<i>/state``) shows in vehicle i's last-event cell when it
+    is newer than the agent's; a plant sample under another plant's key is dropped as forged."""
+    from recorder.top import Board
+    from tether import wire
+
+    b = Board("s4")
+    b.telemetry("tether/s4/agent/2/telemetry", telemetry(2, 10), now=0.0)
+
+    def state(sender: int, k: int, events: list[wire.SafetyEvent]) -> bytes:
+        return wire.encode(wire.PlantState(sender=sender, seq=k, k=k, t=k * 0.01, p=[0.0, 0.0], vel=[0.0, 0.0],
+                                           a=[0.0, 0.0], d=[0.0, 0.0], mode=wire.FLYING, events=events))
+
+    rejected = wire.SafetyEvent(k=12, t=0.12, vehicle=2, src=wire.FLYING, dst=wire.FLYING,
+                                reason="command rejected: stamp ahead of the tick")
+    b.plant("tether/s4/plant/2/state", state(2, 12, []))  # no event: nothing to show
+    assert b.cells(b.rows[2], now=0.1)[0][8] == "-"
+    b.plant("tether/s4/plant/3/state", state(2, 12, [rejected]))  # plant 2's sample on plant 3's key
+    assert b.drops == {"sender": 1} and b.rows[2].last_plant_event is None
+    b.plant("tether/s4/plant/2/state", state(2, 12, [rejected]))
+    assert b.cells(b.rows[2], now=0.1)[0][8] == "plant t=0.1s FLYING command rejected: stamp ahead of the tick"
+    held = wire.SafetyEvent(k=20, t=0.2, vehicle=2, src=wire.FLYING, dst=wire.HOLD, reason="leader silent 0.5 s")
+    b.telemetry("tether/s4/agent/2/telemetry", telemetry(2, 20, mode=1, events=[held]), now=0.2)
+    assert b.cells(b.rows[2], now=0.2)[0][8] == "t=0.2s FLYING->HOLD leader silent 0.5 s"  # the agent's is newer
+
+
 def test_top_board_keeps_each_agents_newest_telemetry_and_drops_the_rest() -> None:
     from recorder.top import Board
     from tether import wire
