@@ -29,7 +29,9 @@ the victim's next genuine sample reads as a duplicate):
 * ``agent-drift`` / ``plant-drift``: the same drift on ``agent/1/state`` / ``plant/1/state``
   (``p + v h`` of the genuine sample, plus the drift);
 * ``hold``: ``agent/1/state`` samples saying ``mode = HOLD`` for ``--hold-for`` (5 s);
-* ``estop``: one ``plant/2/state`` sample saying ``mode = ESTOP``.
+* ``estop``: one ``plant/2/state`` sample saying ``mode = ESTOP``;
+* ``recorder-kill``: SIGKILL to the run's recorder process (a child of the launcher); ``record``
+  then says what run file is left and how many ticks it holds.
 
 Figures (per run; the table prints the worst over the repetitions, latency as median / largest):
 
@@ -67,6 +69,7 @@ import math
 import os
 import queue
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -97,7 +100,7 @@ from tether.node import load_mission  # noqa: E402
 from tether.runfile import Run  # noqa: E402
 
 MISSION = "section4"
-ATTACKS = ("none", "stamp", "cmd", "leader-drift", "agent-drift", "plant-drift", "hold", "estop")
+ATTACKS = ("none", "stamp", "cmd", "leader-drift", "agent-drift", "plant-drift", "hold", "estop", "recorder-kill")
 WHAT = {
     "none": "no attack",
     "stamp": "one agent/2/cmd, next tick, t = 1e9",
@@ -107,6 +110,7 @@ WHAT = {
     "plant-drift": "plant/1/state drift 0.5 m/s for 20 s",
     "hold": "agent/1/state mode = HOLD for 5 s",
     "estop": "one plant/2/state mode = ESTOP",
+    "recorder-kill": "kill -9 of the recorder",
 }
 DOG_LINE = re.compile(r"vehicle (\d+): commands rejected by its watchdog: (.*)$")
 CODE = {wire.FLYING: "F", wire.HOLD: "H", wire.LAND: "L", wire.LANDED: "LD", wire.ESTOP: "E"}
@@ -329,6 +333,36 @@ class Launched:
     stderr: list[str] = field(default_factory=list)
 
 
+def child_pid(parent: int, role: str) -> int | None:
+    """The pid of ``parent``'s child process running ``python -m cli <role>`` (Linux ``/proc``), or None."""
+    kids: list[str] = []
+    for task in Path(f"/proc/{parent}/task").glob("*"):
+        try:
+            kids += (task / "children").read_text().split()
+        except OSError:
+            continue
+    for kid in kids:
+        try:
+            argv = Path(f"/proc/{kid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"cli" in argv and role.encode() in argv:
+            return int(kid)
+    return None
+
+
+def _kill_when_due(att: Attacker, p: subprocess.Popen[str], role: str, at: float, deadline: float) -> None:
+    """SIGKILL ``role``'s process of the run at mission time ``at``; its send time goes in ``att.sent``."""
+    while p.poll() is None and time.monotonic() < deadline:
+        if att.epoch is not None and wall() - att.epoch >= at:
+            pid = child_pid(p.pid, role)
+            if pid is not None:
+                os.kill(pid, signal.SIGKILL)
+                att.sent.setdefault(f"{role}-kill", []).append((wall() - att.epoch, -1))
+            return
+        time.sleep(0.01)
+
+
 def launch(out: Path, plans: dict[str, Plan], m: ms.Mission, duration: float, grace: float = 90.0) -> Launched:
     """One run under the attacks ``plans``, bounded: ``duration`` + ``grace`` s, then SIGKILL."""
     port = tp.free_tcp_port()
@@ -351,7 +385,10 @@ def launch(out: Path, plans: dict[str, Plan], m: ms.Mission, duration: float, gr
     att = Attacker(ep, m, plans)
     try:
         att.open()
-        p.wait(duration + grace)
+        if "recorder-kill" in plans:
+            att.sent.pop("recorder-kill", None)  # filled when the kill is made
+            _kill_when_due(att, p, "recorder", plans["recorder-kill"].at, t0 + duration + grace)
+        p.wait(max(1.0, t0 + duration + grace - time.monotonic()))
     except subprocess.TimeoutExpired:
         lines.append(f"redteam: the run outlived {duration + grace:g} s: killed")
     finally:
@@ -499,11 +536,15 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
         d = np.linalg.norm(rp[:kk] - P[:kk], axis=2)
         res["rec"] = nanmax(d)
         res["rec_missing"] = int(np.sum(np.isnan(rp[:kk]).any(axis=2) & np.isfinite(P[:kk]).all(axis=2)))
+        held = np.flatnonzero(np.isfinite(rp).all(axis=(1, 2)))
+        res["record"] = f"run.npz to {held[-1] * h:.1f} s" if held.size else "run.npz without a plant sample"
         if run.safety.gate_counts is not None and run.safety.gate_reasons is not None:
             res["gate_file"] = {str(r): int(run.safety.gate_counts[:, j].sum())
                                 for j, r in enumerate(run.safety.gate_reasons)}
     else:
         res["rec"], res["rec_missing"] = math.nan, -1
+        left_files = sorted(f.name for f in out.glob("run*") if f.is_file())
+        res["record"] = "no run.npz" + (f" ({', '.join(left_files)} left)" if left_files else ", no run file")
     events.sort()
     rises.sort()
     first += [e[0] for e in events] + [r[0] for r in rises[:1]]
@@ -568,9 +609,13 @@ def _reasons(rs: list[dict[str, Any]], most: int = 3) -> str:
     return "; ".join(f"{w} (x{c})" if c > 1 else w for w, c in top)
 
 
+def _records(rs: list[dict[str, Any]]) -> str:
+    return "/".join(sorted({str(r.get("record", "?")) for r in rs}))
+
+
 def table(rows: dict[str, list[dict[str, Any]]]) -> str:
     head = ["attack", "n", "err max / last 10 s [m]", "left the envelope", "sep min [m]", "reaction",
-            "first [s] p50 / max", "rec [m] (ticks missing)", "end (plant/agent); exit", "load"]
+            "first [s] p50 / max", "rec [m] (ticks missing; run file)", "end (plant/agent); exit", "load"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * len(head)) + "|"]
     for attack, rs in rows.items():
         left: dict[str, str] = {}
@@ -584,29 +629,30 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
             f"{'YES ' + '; '.join(f'{k}: {v}' for k, v in sorted(left.items())) if left else 'no'} | "
             f"{fmt(min(r['sep'] for r in rs))} | {_reaction(rs)}"
             f"{' (' + _reasons(rs) + ')' if any(r['events'] for r in rs) else ''} | "
-            f"{fmt(pct(firsts, 50))} / {fmt(pct(firsts, 100))} | {fmt(max(r['rec'] for r in rs), digits=1)} ({max(r['rec_missing'] for r in rs)}) | "
+            f"{fmt(pct(firsts, 50))} / {fmt(pct(firsts, 100))} | {fmt(max(r['rec'] for r in rs), digits=1)} ({max(r['rec_missing'] for r in rs)}; {_records(rs)}) | "
             f"{' · '.join(ends)}; {','.join(str(r['exit']) for r in rs)} | "
             f"{'/'.join(format(r['load'], '.1f') for r in rs)} |")
     return "\n".join(lines)
 
 
 def _side(rs: list[dict[str, Any]] | None) -> list[str]:
-    """One side of the before/after table: err, envelope, separation, first reaction, end modes."""
+    """One side of the before/after table: err, envelope, separation, first reaction, end modes, run file."""
     if not rs:
-        return ["to measure"] + ["—"] * 3
+        return ["to measure"] + ["—"] * 4
     left = sorted({v for r in rs for v in r["left"]})
     stopped = sorted({v for r in rs for v, s in r["end"].items() if not s.startswith("F")})
     return [f"{fmt(max(r['err_max'] for r in rs), digits=1)} / {fmt(max(r['err_last10'] for r in rs), digits=1)}",
             ("YES: " + ", ".join(left)) if left else "no",
             fmt(min(r["sep"] for r in rs)),
-            f"{fmt(pct([r['first'] for r in rs], 50))}; " + (f"{', '.join(stopped)} stopped" if stopped else "all flying")]
+            f"{fmt(pct([r['first'] for r in rs], 50))}; " + (f"{', '.join(stopped)} stopped" if stopped else "all flying"),
+            _records(rs)]
 
 
 def compare(before: dict[str, list[dict[str, Any]]], after: dict[str, list[dict[str, Any]]]) -> str:
     """The before/after table of ``docs/results/redteam.md``, from two ``--json`` files' runs."""
     head = ["attack"] + [f"{side}: {col}" for side in ("before", "after")
                          for col in ("err max / last 10 s [m]", "left the envelope", "sep min [m]",
-                                     "first reaction [s]; end")]
+                                     "first reaction [s]; end", "run file")]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * len(head)) + "|"]
     for attack in ATTACKS:
         if attack in before or attack in after:
