@@ -38,7 +38,7 @@ import msgspec
 from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType, IndexType, Writer
 
 from tether import wire
 from tether.runfile import Run, missing_report
@@ -90,6 +90,8 @@ class Journal:
         """Wall time spent in ``fsync`` [s] (on a worker thread)."""
         self.sync_max = 0.0
         self.closed = False
+        self.error: OSError | None = None
+        """Why the journal stopped before its end (a failed write), if it did."""
 
     @classmethod
     def create(cls, directory: Path, header: Header, now_ns: Callable[[], int] = time.time_ns) -> "Journal":
@@ -99,7 +101,9 @@ class Journal:
         path.unlink(missing_ok=True)
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
         fh = os.fdopen(fd, "wb")
-        writer = Writer(fh, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        # no message indexes: a journal is read front to back (measured: 10 % fewer bytes, and a little
+        # less CPU per message than with every index); chunk CRCs kept: a torn chunk is told from a whole one
+        writer = Writer(fh, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD, index_types=IndexType.NONE)
         writer.start(profile="", library="tether journal")
         writer.add_metadata("tether.journal", {f: str(getattr(header, f)) for f in header.__struct_fields__})
         journal = cls(path, fh, writer, now_ns)
@@ -127,22 +131,45 @@ class Journal:
         if self.closed:
             return
         t_ns = int(msg.t * 1e9) if 0.0 <= msg.t < 1.8e10 else 0
-        self._writer.add_message(self._channel(msg), log_time=self._now_ns(), data=wire.encode(msg),
-                                 publish_time=t_ns, sequence=self.messages & 0xFFFFFFFF)
+        try:  # a full chunk is written here
+            self._writer.add_message(self._channel(msg), log_time=self._now_ns(), data=wire.encode(msg),
+                                     publish_time=t_ns, sequence=self.messages & 0xFFFFFFFF)
+        except OSError as exc:
+            self._fail(exc)
+            return
         self.messages += 1
 
     def drops(self, counts: dict[str, int]) -> None:
         """Note the recorder's drop counts (a metadata record, only when they changed)."""
         if not self.closed and counts != self._drops:
             self._drops = dict(counts)
-            self._writer.add_metadata("tether.drops", {r: str(c) for r, c in counts.items()})
+            try:
+                self._writer.add_metadata("tether.drops", {r: str(c) for r, c in counts.items()})
+            except OSError as exc:
+                self._fail(exc)
 
     def flush(self) -> None:
         """Close the chunk in progress and hand everything to the operating system (survives the
-        process, not the machine: :meth:`sync`). Non-blocking in practice: a write to the page cache."""
-        if not self.closed:
+        process, not the machine: :meth:`sync`). Non-blocking in practice: a write to the page cache.
+        A failed write (a full disk) closes the journal, keeping what was written before, and is
+        noted in :attr:`error` (the caller logs it): the recording goes on without it."""
+        if self.closed:
+            return
+        try:
             self._writer.flush()
-            self.flushes += 1
+        except OSError as exc:
+            self._fail(exc)
+            return
+        self.flushes += 1
+
+    def _fail(self, exc: OSError) -> None:
+        """Stop journaling after a failed write (what was written before stays readable)."""
+        self.error = exc
+        self.closed = True
+        try:
+            self._fh.close()
+        except OSError:
+            pass
 
     def sync(self) -> None:
         """``fsync`` what was flushed (blocks until the disk has it: call from a worker thread)."""
@@ -166,10 +193,17 @@ class Journal:
         """Close the journal as finished (``tether.end``, the MCAP summary)."""
         if self.closed:
             return
-        self._writer.add_metadata("tether.end", {"messages": str(self.messages)})
-        self._writer.finish()
-        self._fh.close()
         self.closed = True
+        try:
+            self._writer.add_metadata("tether.end", {"messages": str(self.messages)})
+            self._writer.finish()
+        except OSError as exc:
+            self.error = exc
+        finally:
+            try:
+                self._fh.close()
+            except OSError as exc:
+                self.error = self.error or exc
 
     def discard(self) -> None:
         """Close and remove the journal (the run file it stood in for is written and synced)."""

@@ -38,7 +38,7 @@ from recorder import journal as jr
 from recorder.export import mcap_beside
 from tether import gate, jsonout, wire
 from tether.mission import Mission
-from tether.node import Node
+from tether.node import Node, os_error
 from tether.rejoin import Rejoin
 from tether.runfile import ClockRecord, DropCounts, Links, PlantRecord, Run, RunMeta, RuntimeRecord, Source
 
@@ -471,6 +471,10 @@ async def _keep(node: Node, journal: jr.Journal) -> None:
         await asyncio.sleep(jr.FLUSH_PERIOD)
         journal.drops(_drops(node))
         journal.flush()
+        if journal.error is not None:
+            log.error("journal: %s; recording goes on without it (the run file is written at the end)",
+                      os_error(journal.error))
+            return
         await asyncio.to_thread(journal.sync)
 
 

@@ -129,6 +129,69 @@ def check_journal(out: Path, killed_ns: int) -> Run:
     return run
 
 
+def _journal_of(tmp_path: Path, chunks: int, per_chunk: int) -> tuple[Path, list[wire.Message]]:
+    """A real-time section4 journal of ``chunks`` flushes of ``per_chunk`` leader samples each."""
+    from tether import catalog
+
+    text = catalog.resolve("section4").read_text()
+    j = journal.Journal.create(tmp_path, journal.Header(mission="section4", mission_text=text, namespace="t",
+                                                        duration=10.0, lockstep=False, started_ns=0))
+    sent: list[wire.Message] = []
+    for c in range(chunks):
+        for n in range(per_chunk):
+            k = c * per_chunk + n
+            msg = wire.State(sender=5, seq=k, k=k, t=k / 100, p=[0.1 * k, 0.0], vel=[1.0, 0.0], a=[0.0, 0.0])
+            j.add(msg)
+            sent.append(msg)
+        j.flush()
+    return j.path, sent
+
+
+def test_a_journal_cut_anywhere_reads_up_to_its_last_whole_chunk(tmp_path: Path) -> None:
+    """Every prefix of a journal (as a kill leaves it) reads without error: the header, then whole
+    chunks only, in order; the run rebuilt from it says how far it goes."""
+    path, sent = _journal_of(tmp_path, chunks=4, per_chunk=50)
+    data = path.read_bytes()
+    counts = []
+    for cut in [*range(len(data) // 40, len(data), max(1, len(data) // 97)), len(data)]:
+        part = tmp_path / f"cut{cut}.mcap"
+        part.write_bytes(data[:cut])
+        try:
+            got = journal.read(part)
+        except ValueError as exc:  # cut before the header was whole
+            assert "not a readable tether journal" in str(exc) or "no tether.journal header" in str(exc)
+            continue
+        assert got.messages == sent[:len(got.messages)] and len(got.messages) % 50 == 0
+        assert got.cut is not None and not got.finished
+        counts.append(len(got.messages))
+    assert counts == sorted(counts) and counts[-1] == 200 and 0 in counts
+    run = journal.recover(path)
+    assert run.meta.recovered is not None and "samples up to tick 199" in run.meta.recovered
+    np.testing.assert_array_equal(run.leader_p[:200, 0], [0.1 * k for k in range(200)])
+    assert np.isnan(run.leader_p[200:]).all() and len(run.t) == 1001  # the header's duration: 10 s
+
+
+def test_a_journal_that_cannot_write_stops_and_keeps_what_it_wrote(tmp_path: Path) -> None:
+    """A full disk (``/dev/full``: every write fails with ENOSPC) stops the journal, noted in its
+    ``error``; later messages are ignored, nothing is raised into the recorder."""
+    from mcap.writer import CompressionType, Writer
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    fh = open("/dev/full", "wb")
+    writer = Writer(fh, compression=CompressionType.ZSTD)
+    writer.start()
+    j = journal.Journal(tmp_path / journal.NAME, fh, writer, time.time_ns)
+    j.add(wire.State(sender=5, seq=0, k=0, t=0.0, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0]))
+    j.flush()
+    assert j.closed and j.error is not None and j.error.errno == 28  # ENOSPC
+    j.add(wire.State(sender=5, seq=1, k=1, t=0.01, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0]))
+    j.drops({"gate": 1})
+    j.flush()
+    j.finish()
+    assert j.messages == 1 and j.flushes == 0
+
+
 @pytest.mark.slow  # real processes
 def test_a_recorder_killed_mid_run_leaves_a_journal_that_holds_every_tick(tmp_path: Path) -> None:
     """``--fault kill:recorder@5``: the launcher SIGKILLs the recorder between ticks 500 and 501; the
