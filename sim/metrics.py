@@ -12,15 +12,21 @@ Definitions (also in ``docs/metrics.md``):
 * tracking error: ``max_i ||p_i - h_i - p_leader||`` over the tail [m] (needs the offsets).
 * true formation error: Eq. 8 from the recorded positions (:func:`formation_error`), against the
   ``xi`` the agents computed from the neighbour data they had.
+
+A recorder's run may lack ticks (a run stopped early, a recorder frozen or killed: their modes read
+-1). :func:`summary` is taken over the ticks that hold every agent's telemetry (:func:`recorded`):
+a missing sample is not a divergence, and the tail and final values are those of the last ticks
+recorded. The engines' runs hold every tick, so for them nothing changes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
-from tether.runfile import Run
+from tether.runfile import NO_SAMPLE, Run
 
 
 def xi_norm(run: Run) -> np.ndarray:
@@ -75,8 +81,16 @@ def formation_error(run: Run, adjacency: np.ndarray, offsets: np.ndarray) -> np.
     return a.sum(axis=1)[None, :, None] * e[:, :n] - np.einsum("ij,tjd->tid", a, e)
 
 
+def recorded(run: Run) -> np.ndarray:
+    """(T,) bool: the ticks that hold every agent's telemetry (mode not -1); all of an engine's."""
+    return np.all(run.safety.safety_mode != NO_SAMPLE, axis=1)
+
+
 def summary(run: Run, tail: float = 0.1) -> dict[str, float]:
-    """The metrics table row of one run."""
+    """The metrics table row of one run (over its :func:`recorded` ticks when it lacks some)."""
+    have = recorded(run)
+    if not have.all() and have.any():
+        run = dataclasses.replace(run, t=run.t[have], xi=run.xi[have], kp=run.kp[have], kv=run.kv[have])
     return {
         "duration_s": float(run.t[-1] - run.t[0]),
         "ultimate_bound_xi_m": ultimate_bound(run, tail),

@@ -212,3 +212,25 @@ def test_the_mission_checks_count_the_run_file_s_series() -> None:
 
     assert checks.SERIES_RECORDED == len(runfile.SERIES) + len(("plant_p", "plant_v", "plant_a"))
     assert {"plant_p", "plant_v", "plant_a"} <= set(runfile.RuntimeRecord.__struct_fields__)
+
+
+def test_metrics_of_a_run_cut_short_are_those_of_its_recorded_ticks() -> None:
+    """A recorder's run that lacks its last ticks (modes -1, NaN series) is not called diverged, and
+    its final gains are its last recorded tick's; an engine's run (every tick) is summed up as before."""
+    from sim import metrics
+
+    T2 = 20
+    run = Run.empty(T2, [1, 2], 2, _meta(), mode=wire.FLYING)
+    run.t[:] = np.arange(T2) / 50.0
+    run.xi[:] = 0.1
+    run.kp[:] = np.linspace(1.0, 2.0, T2)[:, None, None]
+    run.kv[:] = 1.0
+    whole = metrics.summary(run)
+    assert whole["diverged"] is False and whole["final_kp_mean"] == 2.0
+    run.xi[15:] = np.nan
+    run.kp[15:] = np.nan
+    run.safety.safety_mode[15:] = NO_SAMPLE
+    cut = metrics.summary(run)
+    assert cut["diverged"] is False and cut["final_kp_mean"] == pytest.approx(1.0 + 14 / 19)
+    run.safety.safety_mode[15:] = wire.FLYING  # the same NaN in an engine's run: a divergence
+    assert metrics.summary(run)["diverged"] is True
