@@ -114,11 +114,19 @@ def test_files_are_made_without_following_links(tmp_path: Path) -> None:
             d.open_log("hard.log")
         d.replace("events.json", b"[]\n")  # the link is replaced, not written through
         made = d.create("new.key", b"k", 0o600)
+        (out / "run.npz.part").symlink_to(secret)
+        with pytest.raises(FileExistsError):
+            d.open_new("run.npz.part")
+        d.remove("run.npz.part")  # the link itself
+        with d.open_new("run.npz.part") as fh:
+            fh.write(b"PK")
+        d.rename("run.npz.part", "run.npz")
         with d.open_log("agent-1.log") as fh:
             fh.write(b"line\n")
     assert secret.read_text() == "root only\n"
     assert (out / "events.json").read_text() == "[]\n" and not (out / "events.json").is_symlink()
     assert stat.S_IMODE(made.stat().st_mode) == 0o600
+    assert (out / "run.npz").read_bytes() == b"PK" and secret.exists()
     (tmp_path / "hop").symlink_to(out)
     with pytest.raises(safefs.UnsafePath, match="symbolic link"):
         safefs.Dir.open(tmp_path / "hop")

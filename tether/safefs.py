@@ -318,17 +318,39 @@ class Dir:
             os.close(fd)
         return self.path / name
 
+    def open_new(self, name: str, mode: int = 0o644) -> BinaryIO:
+        """A new file ``name`` opened for writing, made exclusively (``O_EXCL``: an existing entry, a
+        link included, is :class:`FileExistsError`) with ``mode``; for a writer that streams (a run
+        file's ``.part``, then :meth:`rename`)."""
+        path = self.path / name
+
+        def opener(_: str, flags: int) -> int:
+            fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, mode,
+                         dir_fd=self.fd)
+            os.fchmod(fd, mode)
+            return fd
+
+        return open(path, "wb", opener=opener)
+
+    def rename(self, src: str, dst: str) -> Path:
+        """Rename entry ``src`` to ``dst`` in this directory (an entry at ``dst`` is replaced, never
+        followed); the new path."""
+        try:
+            os.rename(src, dst, src_dir_fd=self.fd, dst_dir_fd=self.fd)
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror, str(self.path / dst)) from None
+        return self.path / dst
+
     def replace(self, name: str, data: bytes, mode: int = 0o644) -> Path:
         """Write file ``name`` with ``data`` in place of any earlier one: made under an exclusive
         temporary name, then renamed over ``name`` (which replaces a link and never follows it)."""
         tmp = f".{name}.{secrets.token_hex(6)}.part"
         self.create(tmp, data, mode)
         try:
-            os.rename(tmp, name, src_dir_fd=self.fd, dst_dir_fd=self.fd)
-        except OSError as exc:
+            return self.rename(tmp, name)
+        except OSError:
             os.unlink(tmp, dir_fd=self.fd)
-            raise OSError(exc.errno, exc.strerror, str(self.path / name)) from None
-        return self.path / name
+            raise
 
     def open_log(self, name: str) -> BinaryIO:
         """File ``name`` opened for writing from its start (made if missing, mode 0644 less the
