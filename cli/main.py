@@ -402,6 +402,13 @@ def _serve(args: argparse.Namespace, role: str, node_id: int, body: Callable[[No
         except sched.SchedError as exc:
             raise BadArgument(f"--rt-priority: {exc}") from None
         logging.getLogger("tether").info("CPU scheduling: %s", applied)
+    elif args.clock == "realtime" and args.parent_pid is None:  # started alone: the default, or one line why not
+        import logging
+
+        from tether import sched
+
+        got, line = sched.apply_best()
+        (logging.getLogger("tether").info if got else logging.getLogger("tether").warning)("CPU scheduling: %s", line)
     return evloop.run(serve(_node_args(args, role, node_id), body, on_stop, clock=_skewed_clock(args)))
 
 

@@ -15,8 +15,9 @@ deployment's deny-by-default access rules (``deploy/localtls.py``, ``deploy/acl.
 without a certificate of the run gets no link, and one with a certificate may do only what its
 role does. Tools attach through ``--listen tls/...`` with the operator identity
 ``DIR/tls/control-0.json5`` (``--zenoh-config``); those endpoints belong to the operator gateway, a
-second router process at ``SCHED_IDLE`` linked to the launcher's, so that a tool's flood costs the
-control traffic's router nothing but the gateway's limited output (``deploy/localtls.py``). ``--insecure`` turns all this off (plain TCP, no
+second router process one ``SCHED_RR`` step below the control processes (``tether/sched.py``), linked
+to the launcher's, so that an order gets through a busy host and a tool's flood costs the control
+traffic's router nothing but the gateway's limited output (``deploy/localtls.py``). ``--insecure`` turns all this off (plain TCP, no
 rules: anyone who reaches the router can move the formation), with a warning. Under TLS,
 ``--vehicle-connect`` is refused (an endpoint of your own holds no certificate of the run) and
 ``--listen`` takes ``tls/`` endpoints only; ``openssl`` must be on PATH (exit 2 otherwise).
@@ -953,6 +954,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             log.info("CPU scheduling of the control processes: %s", sched.apply(opts.rt_priority))
         except sched.SchedError as exc:
             raise ms.MissionError(f"tether run {mission_path}", [("--rt-priority", str(exc))]) from None
+    elif opts.clock == "realtime":  # the default: SCHED_RR where permitted, one line saying why where not
+        applied, line = sched.apply_best()
+        (log.info if applied else log.warning)("CPU scheduling of the control processes: %s", line)
+        if applied:
+            opts = launch.opts = dataclasses.replace(opts, rt_priority=applied)
     keys = wire.Keys(opts.ns or m.name)
     router = tp.loopback_endpoint(tp.free_tcp_port())
     # real time: a flood on any key, from any one link, reaches no subscriber faster than a bound
@@ -1029,9 +1035,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
             listening = (router, *opts.listen) if sec is None else (router,)
             log.info("router listening on %s (namespace %s%s)", ", ".join(listening), keys.ns,
                      "" if sec is None else ", TLS with client certificates and access rules")
-            if sec is not None:  # tools attach through a router of their own, at idle CPU priority
-                gateway = localtls.start_gateway(sec, gateway_log, dict(os.environ))
-                log.info("operator gateway (SCHED_IDLE) listening on %s", ", ".join(sec.gateway_endpoints))
+            if sec is not None:  # tools attach through a router of their own, one RR step below the control loops
+                gw = sched.gateway_priority(opts.rt_priority or 0)
+                gateway = localtls.start_gateway(sec, gateway_log, dict(os.environ), gw)
+                log.info("operator gateway (%s) listening on %s", f"SCHED_RR {gw}" if gw else "normal policy",
+                         ", ".join(sec.gateway_endpoints))
             if opts.live is not None:
                 log.info("live view (from the recorder): ws://127.0.0.1:%d (Foxglove: Open connection, "
                          "Foxglove WebSocket; docs/foxglove.md)", opts.live)

@@ -24,15 +24,15 @@ see :func:`grants`). Everything goes into ``DIR/tls/`` (``DIR`` is ``--out``):
 is kept for reference), carries the run's processes and listens on loopback only; it trusts
 ``ca.crt`` alone, so the operator's certificate (signed by the operator CA) cannot even open a link
 to it. Tools attach to the **operator gateway** instead (:func:`start_gateway`): a second router
-process, ``python -m deploy.router --idle``, listening on the ``--listen`` endpoints (or a free
+process, ``python -m deploy.router --priority P``, listening on the ``--listen`` endpoints (or a free
 loopback port without any), linked to the control router under its own identity ``gateway``, which
-holds there the operator's rights and nothing more. It runs at ``SCHED_IDLE``, applies the
-operator's access rules and the order keys' ingress limits (:data:`CONTROL_RATE` a link) itself, and
-passes on what is left. What an operator link's flood costs (TLS, decoding, the access and limit
-checks of every message) is thus paid by a process that gets only the CPU nothing else of the run
-wants, and the control router sees the flood at :data:`CONTROL_RATE` at most. The price: on a
-machine with no idle CPU at all, the operator's orders wait for some (each vehicle's own
-failsafes do not).
+holds there the operator's rights and nothing more. It runs one ``SCHED_RR`` step below the control
+processes (:func:`tether.sched.gateway_priority`; the normal policy when they run at it): above
+every normal process, so that an order reaches the swarm on a host busy with other work, and below
+every control loop, so that an operator link's flood (TLS, decoding, the access and limit checks of
+every message) never delays one. It applies the operator's access rules and the order keys'
+ingress limits (:data:`CONTROL_RATE` a link) itself and passes on what is left: the control router
+sees a flood at :data:`CONTROL_RATE` at most.
 
 Pure apart from the files, the ``openssl`` runs (a few tens of milliseconds each, run four at a
 time) and :func:`start_gateway`.
@@ -285,7 +285,7 @@ class Security:
         conf = self.profile(GATEWAY, "router", [self.router_endpoint], self.gateway_endpoints,
                             root="gateway-ca.crt", access=self.gateway_access, limits=self.gateway_limits)
         conf["scouting"]["gossip"] = {"enabled": False}  # not advertised: a mesh's peers link to the control router
-        return self.write(GATEWAY, conf, "the operator gateway (python -m deploy.router --idle)")
+        return self.write(GATEWAY, conf, "the operator gateway (python -m deploy.router)")
 
     def child(self, role: str, nid: int, connect: str, listen: str | None = None) -> Path:
         """The configuration file of child ``role``/``nid``, connecting to ``connect`` (the router, or
@@ -357,12 +357,13 @@ GATEWAY_UP = "listening on"
 """What ``deploy/router.py`` logs once it listens and is linked to the control router."""
 
 
-def start_gateway(sec: Security, log_path: Path, env: dict[str, str]) -> subprocess.Popen[bytes]:
-    """Start the operator gateway (``python -m deploy.router --idle``) of ``sec``, logging to
-    ``log_path``. It links to the control router, which must be listening already. Does not wait:
+def start_gateway(sec: Security, log_path: Path, env: dict[str, str], priority: int = 0) -> subprocess.Popen[bytes]:
+    """Start the operator gateway (``python -m deploy.router --priority P``) of ``sec``, logging to
+    ``log_path``; ``P`` is :func:`tether.sched.gateway_priority` of the control processes' (0: the
+    normal policy; a priority the system refuses falls back to it with a warning in the log). It links to the control router, which must be listening already. Does not wait:
     see :func:`wait_gateway`. The caller stops it (SIGTERM)."""
     with safefs.Dir.open(log_path.parent) as d, d.open_log(log_path.name) as fh:
-        return subprocess.Popen([sys.executable, "-m", "deploy.router", "--idle", "--watch-pid", str(os.getpid()),
+        return subprocess.Popen([sys.executable, "-m", "deploy.router", "--priority", str(priority), "--watch-pid", str(os.getpid()),
                                  "--config", str(sec.configs[GATEWAY])], stdin=subprocess.DEVNULL, stdout=fh,
                                 stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
