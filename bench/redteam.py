@@ -31,7 +31,8 @@ the victim's next genuine sample reads as a duplicate):
 * ``hold``: ``agent/1/state`` samples saying ``mode = HOLD`` for ``--hold-for`` (5 s);
 * ``estop``: one ``plant/2/state`` sample saying ``mode = ESTOP``;
 * ``recorder-kill``: SIGKILL to the run's recorder process (a child of the launcher); ``record``
-  then says what run file is left and how many ticks it holds.
+  then says what run file is left (``run.npz`` and how many ticks it holds, or the recorder's
+  journal, ``journal.mcap``, alone).
 
 Figures (per run; the table prints the worst over the repetitions, latency as median / largest):
 
@@ -543,7 +544,7 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
                                 for j, r in enumerate(run.safety.gate_reasons)}
     else:
         res["rec"], res["rec_missing"] = math.nan, -1
-        left_files = sorted(f.name for f in out.glob("run*") if f.is_file())
+        left_files = sorted(f.name for f in out.iterdir() if f.is_file() and f.name.startswith(("run", "journal")))
         res["record"] = "no run.npz" + (f" ({', '.join(left_files)} left)" if left_files else ", no run file")
     events.sort()
     rises.sort()
