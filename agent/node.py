@@ -226,17 +226,17 @@ async def run(node: Node) -> None:
             log.warning("plant %d is %s at t = %.2f s", aid, "silent: holding" if plant_silent else "back", t)
             holding = plant_silent
         heard: list[Heard | None] = [None if msg is None else (msg.t, msg.p, msg.vel, msg.a) for msg in got]
-        stopped = [msg is not None and msg.mode != wire.FLYING for msg in got]
+        said = [wire.FLYING if msg is None else msg.mode for msg in got]
         suspect = frozenset(j for j, s in judged if s.health is not None and s.health.suspect)
         if lockstep or k == m.steps:
             # lockstep: a tick waits for its inputs, so nothing can be silent; the last tick:
             # the others may already have finished and left
-            status = Status(stopped=stopped, operator=_order(operator), plant_mode=modes.believed, suspect=suspect)
+            status = Status(modes=said, operator=_order(operator), plant_mode=modes.believed, suspect=suspect)
         else:
             # an agent that left after its last tick is not lost; only the last ticks can see that;
             # a gone leader reaches nobody
             gone = (node.gone("agent") - neighbours - {aid}) | node.gone("leader") if k < m.steps - 1 else set()
-            status = Status(gone=[s.silent_at(k) for s in nbrs], stopped=stopped, others_gone=frozenset(gone),
+            status = Status(gone=[s.silent_at(k) for s in nbrs], modes=said, others_gone=frozenset(gone),
                             operator=_order(operator), plant_silent=plant_silent, plant_mode=modes.believed,
                             rejoining=rejoining, suspect=suspect)
         near: list[tuple[list[float], list[float]]] = []

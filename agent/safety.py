@@ -27,6 +27,11 @@ Transitions:
   samples agree, :class:`tether.gate.PlantModes`); never ESTOP on a report.
 * FLYING → HOLD (then LAND after ``land_after``): the leader's or the own plant's stream is suspect
   (:attr:`Status.suspect`); a suspect in-neighbour is lost, as one silent.
+* A neighbour's report that it does not fly is believed only once ``mode_confirm`` consecutive ticks
+  say it, and its end once as many say FLYING again (:meth:`Supervisor.links`). A neighbour believed
+  to HOLD is never a mode change: its edge is dropped when the leader still reaches this agent
+  without it, else it is followed (an event): the law follows its actual motion. A neighbour believed
+  to LAND, be LANDED or ESTOP is lost.
 * LAND → LANDED: touched down and still (:func:`tether.failsafe.landed`); 2D: still, or held
   for ``land_settle``.
 * any → ESTOP: the operator's ``estop`` (or ``estop`` as the configured action).
@@ -75,8 +80,9 @@ class Status:
     Attributes:
         gone: per in-neighbour (``law.neighbours`` order), its liveliness token is gone before it
             delivered this tick (real time; never in lockstep, where a tick waits for its inputs).
-        stopped: per in-neighbour, its newest sample says it is not FLYING (it holds, lands or has
-            stopped: no longer one to follow).
+        modes: per in-neighbour, the mode its newest sample reports (a code of
+            :data:`tether.wire.MODES`; FLYING when none is held). Believed only as far as consecutive
+            ticks agree (:meth:`Supervisor.links`).
         others_gone: other nodes (agents, or the leader) whose tokens are gone, for the
             reachability of this agent: a gone leader reaches nobody.
         operator: the operator's last order, ``"land"``, ``"estop"`` or None.
@@ -91,7 +97,7 @@ class Status:
     """
 
     gone: Sequence[bool] = ()
-    stopped: Sequence[bool] = ()
+    modes: Sequence[int] = ()
     others_gone: frozenset[int] = frozenset()
     operator: str | None = None
     plant_silent: bool = False
@@ -128,6 +134,13 @@ class Supervisor:
         """In-neighbours (agents) whose edges are dropped."""
         self.suspect: frozenset[int] = frozenset()
         """Senders whose streams were suspect at the last tick (:attr:`Status.suspect`)."""
+        self.followed: frozenset[int] = frozenset()
+        """In-neighbours believed to HOLD that are followed: the leader reaches this agent only through them."""
+        m_in = len(self.neighbours)
+        self.believed: list[int] = [REPORT_FLYING] * m_in
+        """Per in-neighbour, what its mode reports are believed to say (:func:`report_kind`)."""
+        self._said: list[int] = [REPORT_FLYING] * m_in
+        self._run: list[int] = [0] * m_in
         self.events: list[SafetyEvent] = []
         """Every event so far."""
         self.diverged: SafetyEvent | None = None
@@ -138,38 +151,70 @@ class Supervisor:
 
     # ------------------------------------------------------------------ inputs
     def links(self, k: int, t: float, ages: Sequence[float], status: Status) -> tuple[frozenset[int], bool, bool]:
-        """Which in-neighbours are lost, whether the leader still reaches this agent, and whether the
-        leader is silent (for an agent that hears it). Records edge drops and restorations."""
+        """Which in-neighbours' edges are dropped, whether the leader still reaches this agent, and
+        whether the leader is silent (for an agent that hears it). Records edge drops and
+        restorations, and the neighbours followed while they hold.
+
+        An in-neighbour is *lost* when its token is gone, its stream is suspect, it is silent past
+        ``neighbour_timeout``, or it is believed to LAND, be LANDED or ESTOP. One believed to HOLD is
+        not lost: its edge is dropped too when the leader still reaches this agent without it (and
+        without the lost ones), else it is *followed* (the law follows its actual motion: if it
+        really holds still, this agent holds formation around it). A report is believed once
+        ``mode_confirm`` consecutive ticks' samples say it (a silent neighbour reports nothing), so
+        that a stream that alternates, forged reports between genuine ones, moves no belief."""
         cfg = self.cfg
         lost = set()
+        holding = set()
         leader_silent = False
         if status.suspect != self.suspect:
             self._suspicion(k, t, status.suspect)
         for n, j in enumerate(self.neighbours):
             age = ages[n] if n < len(ages) else math.nan
             gone = bool(status.gone[n]) if n < len(status.gone) else False
-            stopped = bool(status.stopped[n]) if n < len(status.stopped) else False
             never = math.isnan(age)
             if j == self.leader:
                 leader_silent = gone or (age > cfg.leader_timeout) or (never and t > cfg.leader_timeout)
                 continue
-            if gone or stopped or j in status.suspect or age > cfg.neighbour_timeout \
-                    or (never and t > cfg.neighbour_timeout):
+            silent = gone or age > cfg.neighbour_timeout or (never and t > cfg.neighbour_timeout)
+            said = REPORT_FLYING if silent or never or n >= len(status.modes) else report_kind(status.modes[n])
+            if said == self._said[n]:
+                self._run[n] += 1
+            else:
+                self._said[n], self._run[n] = said, 1
+            if self._run[n] >= cfg.mode_confirm:
+                self.believed[n] = said
+            if silent or j in status.suspect or self.believed[n] == REPORT_STOPPED:
                 lost.add(j)
+            elif self.believed[n] == REPORT_HOLD:
+                holding.add(j)
         self.missing = frozenset(lost)
         removed = lost | set(status.others_gone)
         reachable = not removed or reaches(self.out_edges, self.leader, self.agent_id, removed)
+        followed: frozenset[int] = frozenset()
+        if reachable and holding:
+            if reaches(self.out_edges, self.leader, self.agent_id, removed | holding):
+                lost |= holding
+            else:
+                followed = frozenset(holding)
         new = frozenset(lost) if reachable else frozenset()
         if new != self.lost:
             dropped, back = sorted(new - self.lost), sorted(self.lost - new)
             words = []
             if dropped:
-                words.append(f"neighbour{'s' if len(dropped) > 1 else ''} {', '.join(map(str, dropped))} lost: "
-                             "edge dropped, kappa re-normalised")
+                words.append(f"{_listed(dropped)} lost: edge dropped, kappa re-normalised")
             if back:
-                words.append(f"neighbour{'s' if len(back) > 1 else ''} {', '.join(map(str, back))} back: edge restored")
+                words.append(f"{_listed(back)} back: edge restored")
             self._event(k, t, self.mode, "; ".join(words))
             self.lost = new
+        if followed != self.followed:
+            started, ended = sorted(followed - self.followed), sorted(self.followed - followed)
+            words = []
+            if started:
+                words.append(f"{_listed(started)} holding, the only path from the leader: followed")
+            if ended:
+                words.append(f"{_listed(ended)} no longer followed as holding")
+            self._event(k, t, self.mode, "; ".join(words))
+            self.followed = followed
         return self.lost, reachable, leader_silent
 
     # ------------------------------------------------------------------ decision
@@ -221,8 +266,7 @@ class Supervisor:
                 cause, why = "leader stream", "leader's stream suspect (forgery or fault)"
             elif not reachable:
                 cause = "unreachable"
-                why = (f"neighbour{'s' if len(self.missing) > 1 else ''} {', '.join(map(str, sorted(self.missing)))} "
-                       "lost and the leader no longer reaches this agent")
+                why = f"{_listed(sorted(self.missing))} lost and the leader no longer reaches this agent"
             if self.mode == FLYING and cause:
                 self._go(k, t, HOLD, why, p)
                 self.cause, self.latched = cause, cause == "speed"
@@ -328,6 +372,21 @@ class Supervisor:
         ev = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=self.mode, dst=mode, reason=why)
         self.events.append(ev)
         self._new.append(ev)
+
+
+REPORT_FLYING, REPORT_HOLD, REPORT_STOPPED = range(3)
+"""What a neighbour's mode report says (:func:`report_kind`): it flies; it holds; it lands, has
+landed or is e-stopped (or reports a mode that does not exist)."""
+
+
+def report_kind(mode: int) -> int:
+    """The kind of a neighbour's mode report: :data:`REPORT_FLYING`, :data:`REPORT_HOLD` or
+    :data:`REPORT_STOPPED` (LAND, LANDED, ESTOP, or a code outside :data:`tether.wire.MODES`)."""
+    return REPORT_FLYING if mode == FLYING else REPORT_HOLD if mode == HOLD else REPORT_STOPPED
+
+
+def _listed(nbrs: Sequence[int]) -> str:
+    return f"neighbour{'s' if len(nbrs) > 1 else ''} {', '.join(map(str, nbrs))}"
 
 
 def _max(xs: Vec) -> float:

@@ -165,20 +165,20 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         worst = 0.0
         for i, (tk, row) in enumerate(zip(ticks, links)):
             heard: list[Heard | None] = []
-            stopped: list[bool] = []
+            reported: list[int] = []
             for lk in row:
                 if lk.channel is None:
                     heard.append(sent[lk.src])
-                    stopped.append(modes[lk.src] != wire.FLYING)
+                    reported.append(modes[lk.src])
                     lk.source.received += 1
                     continue
                 lk.channel.send(t, payloads[lk.src])
                 lk.source.deliver(t, wire.decode)  # a corrupted copy fails its checksum, counted
                 newest = lk.source.newest
                 heard.append(None if newest is None else (newest.t, newest.p, newest.vel, newest.a))
-                stopped.append(newest is not None and newest.mode != wire.FLYING)
+                reported.append(wire.FLYING if newest is None else newest.mode)
             near = [(p[j], v[j]) for j in range(n) if j != i] if avoid else ()
-            out = tk.step(k, t, p[i], v[i], a[i], heard, Status(stopped=stopped), near=near)
+            out = tk.step(k, t, p[i], v[i], a[i], heard, Status(modes=reported), near=near)
             us.append(out.u)
             worst = max(worst, _abs_max(out.xi))
             if keep:

@@ -18,8 +18,9 @@ Python engine's bit for bit, its safety events worded the same (``tests/test_loc
 * the disturbance increments and values come from the plants' own banks
   (:meth:`plant.disturbance.DisturbanceBank.span`), the leader's reference from its profile;
 * the compiled loop (:func:`_ticks`) then runs, per tick and agent, ``agent.law.neighbour_sample``,
-  the supervisor's link check (the leader silent; an in-neighbour stopped or silent; the leader's
-  reach over the survivors; edges dropped and kappa re-normalised), ``AgentLaw.step``, the
+  the supervisor's link check (the leader silent; an in-neighbour silent, or believed to stop or to
+  hold from its mode reports; the leader's reach over the survivors; edges dropped and kappa
+  re-normalised; holding neighbours followed), ``AgentLaw.step``, the
   supervisor's bounds, HOLD and its recovery, LAND and LANDED in 2D (``failsafe.landed``),
   ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
   ``plant/double_integrator.py`` (a LANDED vehicle resting, as ``plant.rest.Resting`` has it); the events it records are worded by
@@ -64,9 +65,10 @@ MAX_IN = 62
 EVENTS = 4096
 """Room for the supervisors' events of one call of the loop (more leave it to the Python engine)."""
 
-_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED, _LAND, _LANDED = range(6)
+_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED, _LAND, _LANDED, _FOLLOW = range(7)
 """The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
-unreachable), back to FLYING, LAND (held past ``land_after``), LANDED (2D: still, or ``land_settle``)."""
+unreachable), back to FLYING, LAND (held past ``land_after``), LANDED (2D: still, or ``land_settle``),
+holding neighbours followed or no longer."""
 
 _CAUSES = ("", "leader", "unreachable")
 """HOLD's causes by code (``Supervisor.cause``): the kinds of HOLD above."""
@@ -193,13 +195,18 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     events = np.zeros((EVENTS, 7), dtype=np.int64)
     floats = np.zeros((EVENTS, 2))  # LANDED's: how long it held, its speed
     fired = np.zeros(1, dtype=np.int64)
-    params = np.array([cfg.land_after, cfg.hold_kp, cfg.hold_kv, cfg.land_settle, failsafe.STILL], dtype=float)
+    params = np.array([cfg.land_after, cfg.hold_kp, cfg.hold_kv, cfg.land_settle, failsafe.STILL,
+                       cfg.mode_confirm], dtype=float)
+    follow = np.zeros(n, dtype=np.int64)
     found: list[wire.SafetyEvent] = []
     prm, gs = laws[0].params, laws[0].gains
     kp = np.array([prm.kp0] * n, dtype=float).reshape(n, d)
     kv = np.array([prm.kv0] * n, dtype=float).reshape(n, d)
     last_u = np.zeros((n, d))
     used = np.zeros(links, dtype=np.int64)
+    r_said = np.zeros(links, dtype=np.int64)
+    r_run = np.zeros(links, dtype=np.int64)
+    belief = np.zeros(links, dtype=np.int64)
     l_src_a = np.array(l_src, dtype=np.int64)
     l_leader_a = np.array(l_leader, dtype=np.bool_)
     l_w_a = np.array(l_w, dtype=float)
@@ -224,7 +231,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                       p, v, a, last_u, dv, dp,
                       run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages,
                       hmode, out_ptr, out_dst, mode, cause, since, p_hold, lost, cur_kappa, cur_swd, params,
-                      events, floats, fired, run.safety.safety_mode, run.safety.plant_mode)
+                      events, floats, fired, run.safety.safety_mode, run.safety.plant_mode,
+                      r_said, r_run, belief, follow)
         if left >= 0:
             return None
         found += _events(events[:int(fired[0])], floats, h, ids, laws, cfg.land_after)
@@ -269,6 +277,13 @@ def _events(rows: np.ndarray, floats: np.ndarray, h: float, ids: list[int], laws
             why = "leader silent"
         elif kind == _HOLD_UNREACHABLE:
             why = f"{listed(named(i, m1))} lost and the leader no longer reaches this agent"
+        elif kind == _FOLLOW:
+            words = []
+            if m1:
+                words.append(f"{listed(named(i, m1))} holding, the only path from the leader: followed")
+            if m2:
+                words.append(f"{listed(named(i, m2))} no longer followed as holding")
+            why = "; ".join(words)
         elif kind == _RECOVERED:
             why = f"{_CAUSES[m1]} recovered"
         elif kind == _LAND:
@@ -370,6 +385,38 @@ def _event_py(events: np.ndarray, fired: np.ndarray, k: int, i: int, src: int, d
 _event = kernel.jit(_event_py)
 
 
+def _reach_py(i: int, n: int, lo: int, hi: int, mask: int, l_src: np.ndarray, out_ptr: np.ndarray,
+              out_dst: np.ndarray, seen: np.ndarray, gone: np.ndarray, stack: np.ndarray) -> bool:
+    """``agent.safety.reaches``: whether the leader (column ``n``) reaches agent ``i`` without the
+    in-neighbours of link slots ``lo .. hi-1`` whose bits are set in ``mask``."""
+    for x in range(n + 1):
+        seen[x] = False
+        gone[x] = False
+    for l in range(lo, hi):
+        if mask >> (l - lo) & 1:
+            gone[l_src[l]] = True
+    if gone[n] or gone[i]:
+        return False
+    top = 0
+    stack[0] = n
+    seen[n] = True
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if node == i:
+            return True
+        for e_ in range(out_ptr[node], out_ptr[node + 1]):
+            nxt = out_dst[e_]
+            if not seen[nxt] and not gone[nxt]:
+                seen[nxt] = True
+                top += 1
+                stack[top] = nxt
+    return False
+
+
+_reach = kernel.jit(_reach_py)
+
+
 def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, three: bool, ground: float,
               kappa: np.ndarray, swd: np.ndarray, gp: float, gv: float, decay: float, kp: np.ndarray,
               kv: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
@@ -382,7 +429,8 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
               hmode: np.ndarray, out_ptr: np.ndarray, out_dst: np.ndarray, mode: np.ndarray, cause: np.ndarray,
               since: np.ndarray, p_hold: np.ndarray, lost: np.ndarray, cur_kappa: np.ndarray, cur_swd: np.ndarray,
               params: np.ndarray, events: np.ndarray, floats: np.ndarray, fired: np.ndarray, out_mode: np.ndarray,
-              out_pmode: np.ndarray) -> int:
+              out_pmode: np.ndarray, r_said: np.ndarray, r_run: np.ndarray, belief: np.ndarray,
+              follow: np.ndarray) -> int:
     """Ticks ``k0 .. k1-1``; returns -1, or the first tick this loop does not model (nothing of that
     tick is kept). It models FLYING and HOLD with the causes ``leader`` and ``unreachable``, edges
     dropped and restored, and in 2D LAND and LANDED (``agent.safety.Supervisor``); a bound of
@@ -393,8 +441,11 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N the leader) and ``hmode``
     ``(R, N+1)`` (the mode each sample carried), and each supervisor's ``mode, cause, since, p_hold,
     lost`` (the dropped edges: bit b for link slot b) with the law over its surviving edges
-    (``cur_kappa, cur_swd``; ``kappa, swd`` the mission's). ``params``: ``land_after, hold_kp,
-    hold_kv, land_settle, STILL``. Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, mask,
+    (``cur_kappa, cur_swd``; ``kappa, swd`` the mission's), and ``follow`` (holding neighbours
+    followed, a mask of link slots); per link slot, the neighbour's mode reports as
+    ``agent.safety.Supervisor.links`` weighs them (``r_said``, ``r_run``: the kind said and for how
+    many consecutive ticks; ``belief``: the kind believed, ``agent.safety.report_kind``'s codes).
+    ``params``: ``land_after, hold_kp, hold_kv, land_settle, STILL, mode_confirm``. Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, mask,
     mask (LANDED's held time and speed to ``floats``); ``fired[0]`` counts them. ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
     Python's, in its order (the comments name the function)."""
     n, d = p.shape
@@ -407,6 +458,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     hold_kv = params[2]
     land_settle = params[3]
     still = params[4]
+    confirm = params[5]
     width = out_age.shape[2]
     age_of = np.empty(max(width, 1))
     u = np.empty((n, d))
@@ -444,6 +496,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
             # (stopped, or silent past its timeout)
             silent = False
             missing = 0
+            holding = 0
             for l in range(lo, hi):
                 s = newest[k, l]
                 never = s < 0
@@ -452,35 +505,34 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 if l_leader[l]:
                     silent = age > leader_timeout or (never and t > leader_timeout)
                 else:
-                    stopped = (not never) and hmode[s % ring, l_src[l]] != flying
-                    if stopped or age > neighbour_timeout or (never and t > neighbour_timeout):
+                    # the neighbour's mode report, believed once `confirm` consecutive ticks say it
+                    quiet = age > neighbour_timeout or (never and t > neighbour_timeout)
+                    said = 0
+                    if not (quiet or never):
+                        md = hmode[s % ring, l_src[l]]
+                        said = 0 if md == flying else 1 if md == hold else 2
+                    if said == r_said[l]:
+                        r_run[l] += 1
+                    else:
+                        r_said[l] = said
+                        r_run[l] = 1
+                    if r_run[l] >= confirm:
+                        belief[l] = said
+                    if quiet or belief[l] == 2:
                         missing |= 1 << (l - lo)
+                    elif belief[l] == 1:
+                        holding |= 1 << (l - lo)
             reachable = True
             if missing != 0:  # tether's reaches(): the leader to this agent without the lost ones
-                for x in range(n + 1):
-                    seen[x] = False
-                    gone[x] = False
-                for l in range(lo, hi):
-                    if missing >> (l - lo) & 1:
-                        gone[l_src[l]] = True
-                reachable = False
-                if not gone[n] and not gone[i]:
-                    top = 0
-                    stack[0] = n
-                    seen[n] = True
-                    while top >= 0:
-                        node = stack[top]
-                        top -= 1
-                        if node == i:
-                            reachable = True
-                            break
-                        for e_ in range(out_ptr[node], out_ptr[node + 1]):
-                            nxt = out_dst[e_]
-                            if not seen[nxt] and not gone[nxt]:
-                                seen[nxt] = True
-                                top += 1
-                                stack[top] = nxt
-            new = missing if reachable else 0
+                reachable = _reach(i, n, lo, hi, missing, l_src, out_ptr, out_dst, seen, gone, stack)
+            follow_new = 0
+            drop = missing
+            if reachable and holding != 0:  # a holding neighbour: dropped if not needed, else followed
+                if _reach(i, n, lo, hi, missing | holding, l_src, out_ptr, out_dst, seen, gone, stack):
+                    drop = missing | holding
+                else:
+                    follow_new = holding
+            new = drop if reachable else 0
             if new != lost[i]:  # edges dropped or restored: an event, and the law over the others
                 if not _event(events, fired, k, i, mode[i], mode[i], _EDGES, new & ~lost[i], lost[i] & ~new):
                     return k
@@ -503,6 +555,11 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                             else:
                                 sd = sd + w * l_delta[l, c]
                         cur_swd[i, c] = sd
+            if follow_new != follow[i]:  # holding neighbours followed, or no longer
+                if not _event(events, fired, k, i, mode[i], mode[i], _FOLLOW, follow_new & ~follow[i],
+                              follow[i] & ~follow_new):
+                    return k
+                follow[i] = follow_new
             # agent.law.neighbour_sample per in-neighbour, AgentLaw.step (weighted_sum term by term)
             ka = cur_kappa[i]
             for c in range(d):

@@ -15,6 +15,7 @@ import pytest
 from agent.law import AgentLaw
 from sim import lockstep, refsim, sweep
 from tests.factories import random_mission
+from tether import checks
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.node import load_mission
@@ -91,19 +92,21 @@ def test_under_a_degraded_network_it_is_the_distributed_runtime_bit_for_bit(tmp_
 
 def test_a_diverging_run_stops_and_says_when() -> None:
     base = load_mission(builtin_path("section4"), 20.0)
-    # 300 ms of delay in a loop with gains of 40 that never come down (the benchmark): unstable
-    law = msgspec.structs.replace(base.law, kp0=40.0, kv0=40.0)
-    # without saturation (a vehicle that could accelerate without bound): the error grows until
-    # the supervisor's divergence bound catches it
-    unbounded = msgspec.structs.replace(base.safety, max_accel=1e12, max_speed=1e12)
-    m = sweep.point_mission(msgspec.structs.replace(base, law=law, safety=unbounded),
-                            sweep.Point("benchmark", 0.0, 300.0, 1.0))
+    # 300 ms of delay in a loop with gains of 40 that never come down (the benchmark), adapting a
+    # thousand times faster than the mission's: within every [safety] limit the checks accept (the
+    # saturation at max_accel keeps the error itself bounded), the gains grow until the supervisor's
+    # gain_cap catches them
+    law = msgspec.structs.replace(base.law, kp0=40.0, kv0=40.0, gamma_p=1000.0, gamma_v=1000.0)
+    m = sweep.point_mission(msgspec.structs.replace(base, law=law), sweep.Point("benchmark", 0.0, 300.0, 1.0))
+    assert not checks.validate(m)
     run = lockstep.simulate(m)
     at = run.meta.diverged_at
     assert at is not None and 0 < at < 20.0
     k = int(round(at * m.rate))
     assert np.all(np.isfinite(run.xi[: k + 1])) and np.all(np.isnan(run.xi[k + 1:]))
     assert sweep.figures_of_merit(run, m)["diverged"]
+    assert [e.reason for e in run.safety.events if e.reason.startswith("divergence")] == \
+        ["divergence: gain 1e+03 beyond gain_cap 1000"]
 
 
 def test_saturation_keeps_the_same_unstable_loop_within_max_accel() -> None:

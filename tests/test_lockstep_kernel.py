@@ -381,3 +381,21 @@ def test_vehicles_with_mass_are_not_compiled() -> None:
     assert lockstep_kernel.unsupported(m) is not None
     with pytest.raises(ValueError, match="engine is"):
         lockstep.simulate(m, engine="fast")
+
+
+def test_a_holding_neighbour_on_the_only_path_is_followed_as_in_the_python_engine() -> None:
+    """The leader's samples to agent 1 are lost from 2 s to 3 s: agent 1 holds (leader silent) and
+    flies again. Agent 2, whose only path from the leader is agent 1, believes the HOLD after
+    ``mode_confirm`` ticks and follows agent 1 (an event, no mode change); agents 3 and 4 behind it
+    fly on. The twin follows the reports' belief itself, events worded as the supervisor's."""
+    m = load_mission(builtin_path("section4"), 8.0)
+    net = Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=2.0, src=5, dst=1),
+                         LinkRule(profile=LinkProfile(), start=3.0, src=5, dst=1)))
+    run = compiled_equals_python(replace(m, netem=net))
+    events = [(e.vehicle, e.reason) for e in run.safety.events]
+    assert events == [(1, "leader silent"), (2, "neighbour 1 holding, the only path from the leader: followed"),
+                      (1, "leader recovered"), (2, "neighbour 1 no longer followed as holding")]
+    held = [e for e in run.safety.events if e.vehicle == 1]
+    followed = [e for e in run.safety.events if e.vehicle == 2]
+    assert followed[0].k - held[0].k == m.safety.mode_confirm  # agent 1's HOLD is said from its next sample
+    assert (run.safety.safety_mode[:, 1:] == wire.FLYING).all()

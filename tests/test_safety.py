@@ -449,16 +449,78 @@ def test_the_filter_returns_the_law_untouched_when_nobody_is_near() -> None:
 
 
 # --------------------------------------------------------------------------- what the fault table found
-def test_a_neighbour_that_stopped_flying_is_no_longer_followed() -> None:
+def reports(tick: AgentTick, modes: list[list[int]], k0: int = 0) -> list[int]:
+    """Tick ``tick`` (an agent of :func:`mission` at rest in its slot) once per row of ``modes`` (its
+    in-neighbours' reported modes); the supervisor's mode after each."""
+    slots = {1: [1.0, 0.0, 1.0], 2: [2.0, 0.0, 1.0], 3: [3.0, 0.0, 1.0], 4: [0.0, 0.0, 1.0]}
+    out = []
+    for k, row in enumerate(modes, start=k0):
+        t = k * H
+        heard = [(t, np.array(slots[j]), np.zeros(3), np.zeros(3)) for j in tick.law.neighbours]
+        own = np.array(slots[tick.supervisor.agent_id])
+        out.append(tick.step(k, t, own, np.zeros(3), np.zeros(3), heard, Status(modes=row)).mode)
+    return out
+
+
+def test_a_neighbours_hold_is_believed_after_mode_confirm_ticks_and_never_holds_the_follower() -> None:
+    """Agent 2 hears only agent 1 (its only path from the leader). Agent 1 says HOLD: believed after
+    ``mode_confirm`` consecutive ticks, then followed (an event), never a HOLD of agent 2's own."""
     m = mission()
-    tick = AgentTick.from_mission(m, 3)  # hears 2 and the leader
-    heard = [(0.0, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3)), (0.0, np.array([0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))]
-    p = np.array([3.0, 0.0, 1.0])
-    out = tick.step(0, 0.0, p, np.zeros(3), np.zeros(3), heard, Status(stopped=[True, False]))
-    assert out.mode == FLYING and tick.supervisor.lost == {2}  # 2 is landing: dropped, kappa re-normalised
-    tick2 = AgentTick.from_mission(m, 2)  # hears only 1
-    out = tick2.step(0, 0.0, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3), heard[:1], Status(stopped=[True]))
-    assert out.mode == HOLD
+    tick = AgentTick.from_mission(m, 2)
+    sup = tick.supervisor
+    n = m.safety.mode_confirm
+    assert reports(tick, [[HOLD]] * (n - 1)) == [FLYING] * (n - 1) and sup.followed == frozenset()
+    assert reports(tick, [[HOLD]] * 3, k0=n - 1) == [FLYING] * 3
+    assert sup.followed == {1} and sup.lost == frozenset()
+    assert sup.events[-1].reason == "neighbour 1 holding, the only path from the leader: followed"
+    assert sup.events[-1].src == sup.events[-1].dst == FLYING  # an event, not a mode change
+    # it flies again: believed after as many ticks
+    reports(tick, [[FLYING]] * n, k0=10)
+    assert sup.followed == frozenset() and sup.events[-1].reason == "neighbour 1 no longer followed as holding"
+    assert all(e.src == e.dst == FLYING for e in sup.events)
+
+
+def test_reports_that_alternate_move_no_belief() -> None:
+    """Forged HOLD reports interleaved with genuine FLYING ones (or a flapping sender): no run of
+    ``mode_confirm`` agrees, so nothing is believed, nothing is dropped, no event, no mode change."""
+    m = mission()
+    for aid, row in ((2, [HOLD]), (3, [HOLD, FLYING])):
+        tick = AgentTick.from_mission(m, aid)
+        got = reports(tick, [row if k % 2 else [FLYING] * len(row) for k in range(200)])
+        assert got == [FLYING] * 200 and tick.supervisor.events == [] and tick.supervisor.lost == frozenset()
+
+
+def test_a_holding_neighbour_with_a_path_around_it_is_dropped_and_a_stopping_one_is_lost() -> None:
+    """Agent 3 hears 2 and the leader: 2 holding is dropped (kappa re-normalised), never followed.
+    Agent 2 hears only 1: 1 landing (LAND, LANDED, ESTOP or an unknown code) is lost, and the leader
+    no longer reaches 2: HOLD, as for a silent neighbour."""
+    m = mission()
+    n = m.safety.mode_confirm
+    tick = AgentTick.from_mission(m, 3)
+    assert reports(tick, [[HOLD, FLYING]] * n) == [FLYING] * n
+    assert tick.supervisor.lost == {2} and tick.supervisor.followed == frozenset()
+    assert tick.supervisor.events[-1].reason == "neighbour 2 lost: edge dropped, kappa re-normalised"
+    for said in (LAND, LANDED, ESTOP, 99):
+        tick = AgentTick.from_mission(m, 2)
+        assert reports(tick, [[said]] * n) == [FLYING] * (n - 1) + [HOLD], said
+        assert tick.supervisor.events[-1].reason == "neighbour 1 lost and the leader no longer reaches this agent"
+    # LAND then LANDED: one kind of report (it stops), believed without starting over
+    tick = AgentTick.from_mission(m, 2)
+    assert reports(tick, [[LAND]] * (n - 1) + [[LANDED]]) == [FLYING] * (n - 1) + [HOLD]
+
+
+def test_a_silent_neighbours_old_report_is_not_believed() -> None:
+    """A sample older than ``neighbour_timeout`` reports nothing: the neighbour is lost for its
+    silence, and its last HOLD is not counted towards a belief."""
+    m = mission()
+    tick = AgentTick.from_mission(m, 3)
+    old = m.safety.neighbour_timeout + 0.1
+    t = 2.0
+    heard = [(t - old, np.array([2.0, 0.0, 1.0]), np.zeros(3), np.zeros(3)), (t, np.zeros(3) + [0, 0, 1], np.zeros(3), np.zeros(3))]
+    for k in range(5):
+        tick.step(200 + k, t + k * H, np.array([3.0, 0.0, 1.0]), np.zeros(3), np.zeros(3), heard,
+                  Status(modes=[HOLD, FLYING]))
+    assert tick.supervisor.lost == {2} and tick.supervisor.believed[0] == 0 and tick.supervisor.followed == frozenset()
 
 
 def test_a_gone_leader_reaches_nobody() -> None:
