@@ -138,12 +138,22 @@ async def run(node: Node) -> None:
         from netem.link import Channel  # only a mission with [netem] loads the emulator
     nbrs: list[Source] = []
     channels = []  # the emulated in-links, for their decision log
+    witnesses: list[Source] = []
+    """Real time: each agent in-neighbour's own plant's measurements (plant/j/state, which only plant j
+    may publish), against which its relayed state is corroborated."""
     for j in law.neighbours:
         role = "leader" if j == m.leader.id else "agent"
         channel = Channel.of(m, j, aid) if m.netem is not None else None
+        witness = None
+        if role == "agent" and not lockstep and channel is None:
+            # declared first: a drain decodes it before the neighbour's relay of the same sample
+            witness = node.source(keys.topic("plant", j, "state"), wire.PlantState, j, wake=False)
+            witnesses.append(witness)
         # read at the tick only: their samples do not wake the loop as they arrive (real time)
         src = node.source(keys.topic(role, j, "state"), wire.State, j, channel=channel, wake=False)
         src.admit = gate(j, role)
+        if witness is not None:
+            src.corroborate = _corroborated_by(witness)
         src.health = health_of(m)
         node.watch(role, j, src)
         nbrs.append(src)
@@ -208,6 +218,8 @@ async def run(node: Node) -> None:
                 if own is None and await _first_sample(node, plant):
                     own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)
                 node.quieten(plant)  # from now on read at the tick only (it woke the loop until the first)
+        for w in witnesses:  # read by the corroboration alone: keep the window aligned() keeps
+            w.forget_before(k - WITNESS_TICKS)
         if clocks is not None:
             estimates = clocks.report()
             if estimates is not reported:  # an estimate moved (once a block at most): said anew
@@ -338,6 +350,22 @@ class Ramp:
 
 REJOIN_RAMP = 1.0
 """After a rejoin, the command may go from 0 to ``max_accel`` in no less than this [s]."""
+
+
+WITNESS_TICKS = 8
+"""Real time: ticks of a neighbour's plant measurements kept to corroborate its relayed states (the
+window :meth:`tether.node.Node.aligned` keeps of every input)."""
+
+
+def _corroborated_by(witness: Source) -> Callable[[wire.State], bool]:
+    """Whether a neighbour's state agrees with its plant's own measurement of the same tick, when
+    that is held (the agent relays it as is: its time, position and velocity are the plant's, bit
+    for bit). An insider holding the agent's key can forge ``agent/j/state``, not ``plant/j/state``."""
+    def agrees(msg: wire.State) -> bool:
+        seen = witness.by_tick.get(msg.k)
+        return seen is None or (seen.t == msg.t and seen.p == msg.p and seen.vel == msg.vel)
+
+    return agrees
 
 
 def _with_conflicts(rejected: dict[str, int], sources: list[Source]) -> dict[str, int]:

@@ -122,7 +122,10 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)
             publish=tuple(k.topic("agent", aid, t) for t in ("state", "cmd", "telemetry", "record")),
+            # its agent in-neighbours' plants' measurements: their relayed states are corroborated
+            # against them (real time, agent/node.py)
             subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs),
+                       *(k.topic("plant", j, "state") for j in nbrs if j != lid),
                        *(k.topic("agent", j, "state") for j in near), k.start, k.recorded, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),

@@ -289,7 +289,8 @@ def test_the_acl_grants_exactly_what_the_roles_declare(deployment: gen.Deploymen
     assert a2.publish == ("tether/trio/agent/2/state", "tether/trio/agent/2/cmd", "tether/trio/agent/2/telemetry",
                           "tether/trio/agent/2/record")  # record: its co-located plant's (--colocate-plants)
     # recorded: lockstep, the launcher's word that the recorder holds every sample (then it closes)
-    assert set(a2.subscribe) == {"tether/trio/plant/2/state", "tether/trio/agent/1/state",
+    # plant/1/state: agent 1's relayed states are corroborated against its plant's own measurements
+    assert set(a2.subscribe) == {"tether/trio/plant/2/state", "tether/trio/agent/1/state", "tether/trio/plant/1/state",
                                  "tether/trio/control/0/start", "tether/trio/control/0/recorded",
                                  "tether/trio/control/0/safety"}
     assert set(a2.sees) == {"@tether/trio/plant/2", "@tether/trio/agent/1"}
@@ -319,7 +320,8 @@ def test_collision_avoidance_lets_each_agent_hear_every_other_vehicle_and_nothin
         others = {f"tether/sw/agent/{j}/state" for j in m.agent_ids if j != aid}
         assert others <= set(g.subscribe), (aid, g.subscribe)
         assert f"tether/sw/agent/{aid}/state" not in g.subscribe
-        assert not any(k.endswith("/cmd") or "/plant/" in k and k != f"tether/sw/plant/{aid}/state"
+        ins = {f"tether/sw/plant/{j}/state" for j, _ in ms.in_neighbours(m, aid) if j != m.leader.id}
+        assert not any(k.endswith("/cmd") or "/plant/" in k and k != f"tether/sw/plant/{aid}/state" and k not in ins
                        for k in g.subscribe), g.subscribe
     bare = msgspec.structs.replace(m, safety=msgspec.structs.replace(m.safety, avoid=None))
     g = {x.name: x for x in acl.grants(bare, "sw")}["agent-1"]

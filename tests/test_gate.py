@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import msgspec
+
 import math
 
 import pytest
@@ -103,6 +105,20 @@ def test_two_samples_of_one_tick_that_disagree_are_a_conflict_and_the_second_is_
     src.offer(state(3, 1.0, mode=HOLD, seq=5))  # another mode for tick 3
     assert src.conflicts == 2 and src.by_tick[3] is first and src.newest.seq == 3
     assert src.health is not None and src.health.suspect and src.health.bad == 2
+
+
+def test_a_second_sample_of_a_held_tick_under_another_number_is_a_conflict_even_if_equal() -> None:
+    """A forger copying each genuine sample as it is (only its sequence number moved on, as a
+    publisher's would) says nothing false, but it is someone else on the key: a conflict, dropped.
+    A copy under the same number (a network's duplicate, a lockstep resend) is none."""
+    src = Source("agent/1/state", wire.State, 1, health=Health(window=50, share=0.5))
+    for k in range(100):
+        genuine = state(k, 0.01 * k, seq=k)
+        src.offer(genuine)
+        src.offer(msgspec.structs.replace(genuine, seq=k + 1))  # the forger's copy
+        src.offer(genuine)  # a duplicate on the way
+        assert src.by_tick[k] is genuine
+    assert src.conflicts == 100 and src.duplicates == 100 and src.health is not None and src.health.suspect
 
 
 def test_without_a_health_judge_a_source_keeps_its_old_behaviour() -> None:

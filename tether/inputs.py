@@ -25,8 +25,11 @@ _WINDOW = (1 << (RECENT_SEQS + 1)) - 1
 """The bits of :attr:`Source.recent`: the newest and the :data:`RECENT_SEQS` before it."""
 _FRESH = RECENT_SEQS + 1
 """A shift that starts :attr:`Source.recent` afresh."""
-_CONTENTS = ("t", "p", "vel", "a", "mode")
-"""What two samples of one tick from one sender must agree on."""
+_CONTENTS = ("seq", "t", "p", "vel", "a", "mode")
+"""What two samples of one tick from one sender must agree on. The sequence number too: a sender
+sends one sample a tick, so a second one for a held tick under another number, even with the same
+contents, was put on the key by someone else (a copy a network or a resend delivers twice keeps its
+number)."""
 
 
 class Copy(Protocol):
@@ -99,12 +102,17 @@ class Source:
     conflicts: int = 0
     """Samples that passed the gate but conflict with what the sender already said: another sample
     of the same tick with other contents (:meth:`offer` drops it: two truths for one tick mean one
-    of them is forged), or one that :attr:`consistent` refuses (kept)."""
+    of them is forged), one that :attr:`corroborate` refuses (dropped), or one that
+    :attr:`consistent` refuses (kept)."""
     consistent: Callable[[Any], bool] | None = None
     """A check of a sample against what its sender said before (a plant's modes,
     :class:`tether.gate.PlantModes`): False counts a conflict."""
+    corroborate: Callable[[Any], bool] | None = None
+    """A check of a sample against another source that says the same thing (a neighbour's state
+    against its own plant's measurement of that tick): False counts a conflict and drops it."""
     health: Health | None = None
-    """The stream's sliding-window judge (:class:`tether.gate.Health`), told every sample's verdict;
+    """The stream's sliding-window judge (:class:`tether.gate.Health`), told every sample's verdict
+    (but that of a copy of a sample already had);
     with one, a second sample of a held tick with other contents is a conflict (an agent's inputs,
     whose senders send one sample a tick)."""
     keep: bool = True
@@ -153,11 +161,18 @@ class Source:
             if health is not None:
                 health.note(True)
             return
+        if self.corroborate is not None and not self.corroborate(msg):
+            self.conflicts += 1
+            if health is not None:
+                health.note(True)
+            return
         if self.consistent is not None and not self.consistent(msg):
             self.conflicts += 1
             if health is not None:
                 health.note(True)
-        elif health is not None:
+        elif health is not None and not self.had(msg):
+            # a copy of a sample already had is no evidence either way (else replays of genuine
+            # samples would dilute a forgery's share of the window)
             health.note(False)
         self.received += 1
         newest = self.newest
@@ -183,8 +198,9 @@ class Source:
             self.on_message(msg)
 
     def _conflicts(self, msg: Any) -> bool:
-        """Whether a sample of ``msg``'s tick is held with other contents (time, position, velocity,
-        acceleration or mode): a copy, a resend or a replay of the same sample is no conflict."""
+        """Whether a sample of ``msg``'s tick is held with another sequence number or other contents
+        (time, position, velocity, acceleration or mode): a copy, a resend or a replay of the same
+        sample is no conflict."""
         held = self.by_tick.get(msg.k)
         if held is None or held is msg:
             return False
