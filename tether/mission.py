@@ -367,8 +367,8 @@ class Safety(Strict, frozen=True):
     """A stream with at least this share of its last ``suspect_window`` samples rejected or in
     conflict is suspect (a forgery or a sensor fault) and treated as a lost input."""
     mode_confirm: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 3
-    """A plant's report of a mode other than FLYING is believed once this many samples of
-    consecutive ticks say it."""
+    """A plant's report of a mode other than FLYING, and an in-neighbour's report of its mode (or
+    of flying again), is believed once this many samples of consecutive ticks say it."""
     max_formation_error: float = 50.0
     """‖xi_i‖ beyond this [m] is divergence."""
     gain_cap: float = 1000.0
