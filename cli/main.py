@@ -536,6 +536,8 @@ def cmd_safety(args: argparse.Namespace) -> int:
               "one that tether run --listen opened) or --zenoh-config FILE", file=sys.stderr)
         return 2
     settings = _zenoh_settings(args)
+    got, line = operator.take_priority()  # before the session opens: its threads inherit it
+    print(f"{'info' if got else 'warning'}: CPU scheduling of this order: {line}", file=sys.stderr)
     try:
         msg = evloop.run(operator.send(settings, args.ns, args.action, args.reason, args.timeout))
     except (operator.Unreachable, operator.NobodyListens, tp.TransportError) as exc:

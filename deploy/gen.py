@@ -18,6 +18,12 @@ vehicle (agent i and its plant). Profiles: the router's (``mode: router``, liste
 their host and connect to the router, which relays where there is no direct link). Every link is
 TLS 1.3 with client certificates (mTLS); ``transport/link/protocols`` is ``["tls"]``, so no
 process listens on or dials plain TCP; listeners enforce the access control of ``deploy/acl.py``.
+
+Files are made as ``tether run`` makes its own (``tether/safefs.py``): ``--out`` owned by the user
+and writable by nobody else, on a path others cannot redirect, or exit 2 before anything is
+written; ``ca/`` and each ``tls/`` mode 0700, every ``*.key`` mode 0600 from its creation; each file
+written under an exclusive temporary name and renamed over its name (with ``--force``, a link left
+at a file's name is replaced, never followed); a directory's name that is a link is refused (exit 2).
 """
 
 from __future__ import annotations
@@ -25,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import shutil
 import sys
 from dataclasses import dataclass, field
 from importlib import resources
@@ -36,6 +41,7 @@ from deploy import acl, pki
 from deploy.hosts import HostsError, Placement, Plan, load, plan
 from tether import catalog
 from tether import mission as ms
+from tether import safefs
 from tether import transport as tp
 
 UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "control": "tether-start.service",
@@ -135,6 +141,10 @@ def generate(mission: str | Path, out: str | Path, hosts: str | Path | None = No
     ``force``: write into a non-empty ``out`` (files are overwritten, none is deleted; a CA already
     in ``out/ca`` is never replaced: pass it as ``ca``).
 
+    ``out`` is checked before anything is written (:func:`tether.safefs.out_problem`: this user's,
+    writable by nobody else, on a path others cannot redirect); everything under it is made through
+    :mod:`tether.safefs`, following no link (:func:`_write`).
+
     Raises :class:`~tether.mission.MissionError`, :class:`~deploy.hosts.HostsError`,
     :class:`~deploy.pki.PkiError` or :class:`GenerateError`, each naming the field or file at fault.
     Blocks while openssl makes the keys (tens of milliseconds per process).
@@ -146,56 +156,74 @@ def generate(mission: str | Path, out: str | Path, hosts: str | Path | None = No
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise GenerateError(f"--out {out} is a file; give a directory")
+    if (unsafe := safefs.out_problem(out)) is not None:
+        raise GenerateError(f"--out: {unsafe}")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise GenerateError(f"--out {out} is not empty; give a new directory, or --force to overwrite the files "
                             "written there (with --ca to keep its CA)")
     if ca is None and (out / "ca" / "ca.key").exists():
         raise GenerateError(f"--out {out} already holds a CA ({out / 'ca'}); pass --ca {out / 'ca'} to sign with it "
                             "(a new CA would orphan every certificate already on the hosts), or choose a new --out")
-    out.mkdir(parents=True, exist_ok=True)
-    authority = pki.load_ca(Path(ca)) if ca is not None else pki.make_ca(out / "ca", f"tether {pl.ns} CA",
-                                                                          pl.hosts.cert_days)
-    if ca is not None and Path(ca).resolve() != (out / "ca").resolve():
-        (out / "ca").mkdir(exist_ok=True)
-        shutil.copyfile(authority.cert, out / "ca" / "ca.crt")  # for reference; the key stays where it is
+    given = (Path(ca), pki.load_ca(Path(ca))) if ca is not None else None
+    try:  # every file under --out is made through its real path, following no link (tether/safefs.py)
+        real = safefs.make_out(out)
+        with safefs.Dir.open(real) as top:
+            return _write(top, mission_path, m, pl, given)
+    except OSError as exc:
+        from tether.node import os_error
+
+        raise GenerateError(f"--out {out}: {os_error(exc)}") from None
+
+
+def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
+           given: tuple[Path, pki.Ca] | None) -> Deployment:
+    """Write the deployment into ``top`` (``--out``, checked and opened), signed by ``given`` (the
+    ``--ca`` directory and its CA) or by a new CA in ``ca/``: files replaced through an
+    exclusive temporary name (a link at a name is replaced, never followed), keys mode 0600 from
+    their creation in mode-0700 directories (``ca/``, each host's ``tls/``); a directory name that
+    is a link, or another user's, is :class:`~tether.safefs.UnsafePath`. Blocks for openssl."""
+    if given is None:
+        with top.sub("ca", private=True) as cadir:
+            authority = pki.make_ca(cadir, f"tether {pl.ns} CA", pl.hosts.cert_days)
+    else:
+        ca_dir, authority = given
+        if ca_dir.resolve() != (top.path / "ca").resolve():
+            with top.sub("ca") as cadir:  # for reference; the key stays where it is
+                cadir.replace("ca.crt", authority.cert.read_bytes())
+    ca_cert = authority.cert.read_bytes()
 
     grants = acl.grants(m, pl.ns, routers=tuple(r.name for r in pl.routers))
     access = acl.access_control(grants, pl.ns)
-    (out / "acl.json5").write_text(_json5(
+    top.replace("acl.json5", _json5(
         [f"access_control of deployment {pl.ns!r} (mission {m.name!r}), as every listener's profile holds it.",
-         "Identities are certificate CNs <process>.<ns>; see DEPLOY.md for what each may do."], access))
+         "Identities are certificate CNs <process>.<ns>; see DEPLOY.md for what each may do."], access).encode())
 
-    dep = Deployment(out, pl, authority)
+    dep = Deployment(top.path, pl, authority)
     mission_text = mission_path.read_bytes()
-    for host in pl.host_names:
-        hdir = dep.host_dir(host)
-        (hdir / "tls").mkdir(parents=True, exist_ok=True)
-        (hdir / "systemd").mkdir(exist_ok=True)
-        written = dep.files.setdefault(host, [])
-        shutil.copyfile(authority.cert, hdir / "tls" / "ca.crt")
-        written.append(hdir / "tls" / "ca.crt")
-        if any(p.role != "router" for p in pl.on(host)):
-            (hdir / "mission.toml").write_bytes(mission_text)
-            written.append(hdir / "mission.toml")
-        for p in pl.on(host):
-            addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
-            cert, key = pki.issue(authority, hdir / "tls", p.name, p.common_name(pl.ns), addresses,
-                                  pl.hosts.cert_days)
-            conf = hdir / f"{p.name}.json5"
-            conf.write_text(_json5(
-                [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
-                 f"deployment {pl.ns!r}; written by tether deploy-gen.",
-                 f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
-                 + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
-                profile(p, pl, access)))
-            svc = hdir / "systemd" / unit_name(p)
-            svc.write_text(unit(p.role, {
-                "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
-                "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
-                "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
-            }))
-            written += [cert, key, conf, svc]
-    (out / "DEPLOY.md").write_text(guide(dep, m, grants))
+    with top.sub("hosts") as hosts_dir:
+        for host in pl.host_names:
+            with hosts_dir.sub(host) as hdir, hdir.sub("tls", private=True) as tls, hdir.sub("systemd") as sd:
+                written = dep.files.setdefault(host, [])
+                written.append(tls.replace("ca.crt", ca_cert))
+                if any(p.role != "router" for p in pl.on(host)):
+                    written.append(hdir.replace("mission.toml", mission_text))
+                for p in pl.on(host):
+                    addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
+                    cert, key = pki.issue(authority, tls, p.name, p.common_name(pl.ns), addresses,
+                                          pl.hosts.cert_days)
+                    conf = hdir.replace(f"{p.name}.json5", _json5(
+                        [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
+                         f"deployment {pl.ns!r}; written by tether deploy-gen.",
+                         f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
+                         + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
+                        profile(p, pl, access)).encode())
+                    svc = sd.replace(unit_name(p), unit(p.role, {
+                        "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
+                        "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
+                        "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
+                    }).encode())
+                    written += [cert, key, conf, svc]
+    top.replace("DEPLOY.md", guide(dep, m, grants).encode())
     return dep
 
 

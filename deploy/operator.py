@@ -15,6 +15,11 @@ milliseconds since the Unix epoch, so that two orders given one after the other 
 Exit status: 0 sent (to at least one subscriber), 1 no Zenoh router or peer reachable within the
 timeout, or no process subscribes to the control key (nothing heard the order), 2 bad input.
 The launcher's first Ctrl-C sends ``land`` through :func:`publish` on its own session.
+
+Before its session opens, the command takes the operator gateway's CPU priority
+(:func:`take_priority`: ``SCHED_RR`` one step below the control processes' default, where this
+user is permitted it, else the normal policy and one line saying why), so that on a busy host the
+order is not starved by the work beside it.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from typing import Literal
 
 import zenoh
 
+from tether import sched
 from tether import transport as tp
 from tether import wire
 
@@ -44,6 +50,16 @@ class Unreachable(TimeoutError):
 
 class NobodyListens(TimeoutError):
     """No process subscribes to the control key: the order reached nobody."""
+
+
+def take_priority() -> tuple[int, str]:
+    """Put this process (and the threads it starts from now on: its Zenoh session's) at the
+    operator gateway's priority, :func:`tether.sched.gateway_priority` of
+    :data:`tether.sched.DEFAULT_PRIORITY`, or at the normal policy where that is not permitted.
+    Returns the priority applied (0: the normal policy) and the line for the log
+    (:func:`tether.sched.apply_best`). Call it before the session opens. Never raises for want
+    of privilege."""
+    return sched.apply_best(sched.gateway_priority(sched.DEFAULT_PRIORITY))
 
 
 def order(action: Action, reason: str = "", seq: int | None = None) -> wire.SafetyCommand:

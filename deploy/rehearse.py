@@ -39,10 +39,15 @@ network namespace of its own (root only, like ``ip netns``):
   ``RUN/logs/<unit>.log`` each unit's output; the recorder's ``run.npz`` (and ``run.mcap``) is copied
   from its unit's ``--out`` into ``RUN`` (a ``run.npz`` left there by an earlier run is removed
   first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
+* **Files.** As ``tether run`` makes its own (``tether/safefs.py``): ``RUN`` (and the recorder unit's
+  ``--out``) must be the user's and writable by nobody else, on a path others cannot redirect, or the
+  rehearsal exits 2 before anything starts; every log is made (appended to, across a unit's restarts)
+  following no link, a log that is a link or another user's file refused (exit 2); the run files and
+  ``rehearsal.json`` are written under an exclusive temporary name and renamed into place.
 
 Exit status: 0 the run ended and was recorded; 1 a unit failed for good, or the run did not end in
 time, or nothing was recorded; 2 bad input (not root, not a deployment, an address a namespace
-cannot take), before anything starts; 130 interrupted.
+cannot take, an unsafe ``--out``), before anything starts; 130 interrupted.
 """
 
 from __future__ import annotations
@@ -53,9 +58,11 @@ import json
 import logging
 import os
 import re
+import secrets
 import shlex
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -63,7 +70,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tether import sched
+from tether import safefs, sched
 
 log = logging.getLogger("tether")
 
@@ -371,8 +378,10 @@ class Running:
     """Exited and not due a restart."""
 
     def spawn(self, ns: str, env: dict[str, str]) -> None:
+        """Start the unit's command in namespace ``ns``, its output appended to its log (which
+        :func:`rehearse` made, under ``--out``'s real path; opened following no link)."""
         cwd = self.unit.workdir if self.unit.workdir and os.path.isdir(self.unit.workdir) else None
-        with open(self.log_path, "ab") as fh:
+        with safefs.Dir.open(self.log_path.parent) as logs, logs.open_append(self.log_path.name) as fh:
             policy = self.unit.scheduling
             chrt = [] if policy is None else ["chrt", f"--{policy[0]}", str(policy[1])]  # as systemd would, at exec
             self.proc = subprocess.Popen(["ip", "netns", "exec", ns, *chrt, *self.argv], cwd=cwd, stdin=subprocess.DEVNULL,
@@ -423,8 +432,34 @@ def _epoch(log_text: str) -> float | None:
     return float(mt.group(1)) if mt else None
 
 
+def _make_dirs(out: Path, runs: list[Running], rec_out: Path | None) -> tuple[Path, Path | None]:
+    """Make ``out``, its ``logs/`` and every unit's log, and the recorder unit's ``--out``
+    ``rec_out``, through :mod:`tether.safefs` (following no link; a log that is a link or another
+    user's file is refused): their real paths. :class:`RehearseError` naming the option and the
+    file at fault, before anything starts."""
+    from tether.node import os_error
+
+    try:
+        real = safefs.make_out(out)
+        with safefs.Dir.open(real) as top, top.sub("logs") as logs:
+            for r in runs:
+                logs.open_append(r.log_path.name).close()
+    except OSError as exc:
+        raise RehearseError(f"--out: {os_error(exc).removeprefix('--out: ')}") from None
+    if rec_out is None:
+        return real, None
+    arg = "the recorder unit's --out"
+    try:
+        return real, safefs.make_out(rec_out, arg)
+    except OSError as exc:
+        raise RehearseError(f"{arg}: {os_error(exc).removeprefix(arg + ': ')}") from None
+
+
 def rehearse(deploy: Path, opts: Options) -> int:
     """Run the rehearsal (see the module docstring); returns the exit status."""
+    if (unsafe := safefs.out_problem(opts.out)) is not None:
+        print(f"error: --out: {unsafe}", file=sys.stderr)
+        return 2
     why = unavailable()
     if why is not None:
         print(f"error: tether rehearse {why}", file=sys.stderr)
@@ -432,7 +467,10 @@ def rehearse(deploy: Path, opts: Options) -> int:
     try:
         pl = plan(deploy)
         runs = []
-        logs = opts.out / "logs"
+        out_dir = recorder_out(pl.units)
+        if out_dir is not None and (unsafe := safefs.out_problem(out_dir)) is not None:
+            raise RehearseError(f"the recorder unit's --out: {unsafe}")
+        logs = safefs.real_out(opts.out) / "logs"
         for host in opts.skews:
             if host not in pl.hosts:
                 raise RehearseError(f"--skew {host}: no such host directory; use one of {', '.join(pl.hosts)}")
@@ -454,8 +492,11 @@ def rehearse(deploy: Path, opts: Options) -> int:
     except RehearseError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    out_dir = recorder_out(pl.units)
-    logs.mkdir(parents=True, exist_ok=True)
+    try:
+        out, out_dir = _make_dirs(opts.out, runs, out_dir)
+    except RehearseError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     net = Network()
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
@@ -474,8 +515,8 @@ def rehearse(deploy: Path, opts: Options) -> int:
         record["namespaces"] = {net.spaces[a]: {"address": a, "hosts": hs} for a, hs in pl.machines.items()}
         record["namespaces"][net.switch] = {"bridge": "br0"}
         if out_dir is not None:
-            out_dir.mkdir(parents=True, exist_ok=True)
-            (out_dir / "run.npz").unlink(missing_ok=True)
+            with safefs.Dir.open(out_dir) as rec:
+                rec.remove("run.npz")
         ns_of.update({host: net.spaces[addr] for host, addr in pl.hosts.items()})
         router = [r for r in runs if r.unit.role == "router"]
         starter = next(r for r in runs if r.unit.name == "tether-start")
@@ -565,11 +606,9 @@ def rehearse(deploy: Path, opts: Options) -> int:
         stopping = True
         good = starter.done and starter.exits[-1][1] == 0 and all(r.done and r.exits[-1][1] == 0 for r in others)
         recorded = out_dir is not None and (out_dir / "run.npz").exists()
-        if recorded and out_dir is not None:
-            opts.out.mkdir(parents=True, exist_ok=True)
+        if recorded and out_dir is not None and out_dir != out:
             for name in ("run.npz", "run.mcap"):
-                if (out_dir / name).exists() and (out_dir / name).resolve() != (opts.out / name).resolve():
-                    shutil.copyfile(out_dir / name, opts.out / name)
+                _copy_in(out_dir, name, out)
         status = 0 if good and recorded else 1
     except KeyboardInterrupt:
         log.warning("interrupted: tearing down")
@@ -592,13 +631,35 @@ def rehearse(deploy: Path, opts: Options) -> int:
                                          "argv": r.argv, "starts": r.starts, "pids": r.pids, "exits": r.exits,
                                          "restart": r.unit.restart} for r in runs}
         record["left_behind"] = left
-        opts.out.mkdir(parents=True, exist_ok=True)
-        (opts.out / "rehearsal.json").write_text(json.dumps(record, indent=2) + "\n")
+        safefs.write_file(out / "rehearsal.json", (json.dumps(record, indent=2) + "\n").encode())
         if left:
             log.error("namespaces left behind: %s", left)
             status = status or 1
     log.info("rehearsal ended: status %d (%s)", status, opts.out)
     return status
+
+
+def _copy_in(src: Path, name: str, dst: Path) -> None:
+    """Copy file ``name`` of directory ``src`` (if there) into directory ``dst``, both real paths:
+    read following no link, written under an exclusive temporary name and renamed over ``name``
+    (an entry there, a link included, is replaced, never written through). Blocks for the copy."""
+    from tether.node import os_error
+
+    try:
+        with safefs.Dir.open(src) as s, safefs.Dir.open(dst) as d:
+            try:
+                fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=s.fd)
+            except FileNotFoundError:
+                return
+            with open(fd, "rb") as fin:
+                if not stat.S_ISREG(os.fstat(fin.fileno()).st_mode):
+                    raise RuntimeError(f"{src / name} is not a plain file; nothing copied")
+                tmp = f".{name}.{secrets.token_hex(6)}.part"
+                with d.open_new(tmp) as fout:
+                    shutil.copyfileobj(fin, fout, 1 << 20)
+                d.rename(tmp, name)
+    except OSError as exc:
+        raise RuntimeError(f"copying {src / name} into {dst}: {os_error(exc)}") from None
 
 
 def _stop_all(runs: list[Running], grace: float) -> None:

@@ -32,9 +32,11 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 from urllib.parse import urlsplit
 
 from tether import mission as ms
+from tether import safefs
 
 log = logging.getLogger("tether.sitl")
 
@@ -143,9 +145,25 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
     """Start one simulator per vehicle of ``m`` and wait until each is ready; on any failure the ones
     started are stopped and ``RuntimeError`` says which failed and why (its stderr's tail).
 
+    ``logs`` (``--out``'s ``logs``, under a real path: ``tether.safefs.make_out``) gets each
+    simulator's stderr as ``cfsim-<id>.log``, made first and following no link: a log that is a
+    symbolic link, or not this user's plain file, is :class:`~tether.mission.MissionError` naming
+    ``--out`` and the file, before any simulator starts (and its target is left untouched).
+
     Call it from the thread that lives as long as the run (the main thread): the parent-death signal
     fires when the thread that started a child ends."""
-    logs.mkdir(parents=True, exist_ok=True)
+    files: dict[int, BinaryIO] = {}
+    try:
+        with safefs.Dir.open(logs.parent) as top, top.sub(logs.name) as d:
+            for v in vehicles(m):
+                files[v.agent_id] = d.open_log(f"cfsim-{v.agent_id}.log")
+    except OSError as exc:
+        from tether.node import os_error
+
+        for fh in files.values():
+            fh.close()
+        raise ms.MissionError("tether run --sitl", [("--out", f"cannot create the simulators' logs: "
+                                                              f"{os_error(exc)}; nothing was started")]) from None
     sitl = Sitl()
     ready: queue.Queue[tuple[int, str | None]] = queue.Queue()
     env = dict(os.environ)
@@ -160,7 +178,7 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
                                  text=True, env=env, preexec_fn=_set_pdeathsig)  # noqa: PLW1509 (setsid + prctl only)
             sitl.procs[v.agent_id] = p
             sitl.stderr[v.agent_id] = []
-            _pump(v.agent_id, p, sitl.stderr[v.agent_id], ready, logs / f"cfsim-{v.agent_id}.log")
+            _pump(v.agent_id, p, sitl.stderr[v.agent_id], ready, files.pop(v.agent_id))
         waiting = set(sitl.procs)
         deadline = time.monotonic() + timeout
         while waiting:
@@ -180,10 +198,15 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
     except BaseException:
         sitl.stop()
         raise
+    finally:
+        for fh in files.values():  # those no simulator was started for
+            fh.close()
 
 
 def _pump(aid: int, p: subprocess.Popen[str], stderr: list[str], ready: queue.Queue[tuple[int, str | None]],
-          logfile: Path) -> None:
+          logfile: BinaryIO) -> None:
+    """Threads that hand ``p``'s stdout lines to ``ready`` and copy its stderr to ``stderr`` and
+    ``logfile`` (closed when the simulator's stderr ends)."""
     def out() -> None:
         assert p.stdout is not None
         for line in p.stdout:
@@ -192,10 +215,10 @@ def _pump(aid: int, p: subprocess.Popen[str], stderr: list[str], ready: queue.Qu
 
     def err() -> None:
         assert p.stderr is not None
-        with open(logfile, "w", encoding="utf-8") as fh:
+        with logfile as fh:
             for line in p.stderr:
                 stderr.append(line.rstrip("\n"))
-                fh.write(line)
+                fh.write(line.encode())
                 fh.flush()
 
     for fn in (out, err):

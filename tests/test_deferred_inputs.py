@@ -16,6 +16,7 @@ import asyncio
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -269,12 +270,20 @@ async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest(
 
 async def test_a_tap_runs_on_each_sample_its_failures_are_counted_and_it_stops_when_the_node_closes() -> None:
     """A source's ``tap`` gets each sample on Zenoh's thread; a tap that raises is logged and
-    counted (``tap_error``), never raised into Zenoh; once the node closes (its publishers going
-    away under a relay) no tap runs, and one that raced the close is not an error."""
+    counted (``tap_error``), never raised into Zenoh. A tap already running when the node closes
+    holds the close (``TapGuard``) until it leaves: nothing the node declared (the publishers a
+    relay puts on) is undeclared under it, no tap starts once the close has begun, and none runs
+    after it."""
+    import threading
+
     tapped: list[tp.Received] = []
     fail = [False]
+    inside, release = threading.Event(), threading.Event()
 
     def tap(rec: tp.Received) -> None:
+        if rec.at == -1.0:  # the racing sample: stays inside until released
+            inside.set()
+            assert release.wait(WAIT), "the test never released the racing tap"
         if fail[0]:
             raise RuntimeError("a tap that fails")
         tapped.append(rec)
@@ -291,26 +300,27 @@ async def test_a_tap_runs_on_each_sample_its_failures_are_counted_and_it_stops_w
         pub.put(state(1, 1, H))
         await until(lambda: node.receiver.drops.get("tap_error") == 1, "the failing tap counted")
         assert len(node.inputs[key]) == 2  # both queued all the same
-        pub.undeclare()
-        sink = nd._Tapped(node.inputs[key], tap, node)
-        node.close()
         fail[0] = False
-        sink.put(tp.Received(key, state(1, 2, H), 0.0))  # after the close: the tap is not called
-        assert len(tapped) == 1 and node.receiver.drops == {"tap_error": 1}
-        fail[0] = True
-        node.closing = False  # a tap that was already running when the close began ...
-        real_tap = sink.tap
+        pub.undeclare()
 
-        def racing(rec: tp.Received) -> None:
-            node.closing = True  # ... and whose publisher went away under it
-            real_tap(rec)
+        sink = nd._Tapped(node.inputs[key], tap, node)
+        racing = threading.Thread(target=sink.put, args=(tp.Received(key, state(1, 2, H), -1.0),))
+        racing.start()
+        await until(inside.is_set, "the racing tap to run")
+        closer = threading.Thread(target=node.close)
+        closer.start()
+        await until(lambda: node.taps.closed, "the close to begin")
+        sink.put(tp.Received(key, state(1, 3, H), 0.0))  # the close has begun: queued, not tapped
+        assert closer.is_alive() and node._declared, "the close undeclared under a running tap"
+        release.set()
+        await until(lambda: not closer.is_alive() and not racing.is_alive(), "the close to end")
+        assert not node._declared
+        assert [r.at for r in tapped[1:]] == [-1.0]  # the racing tap ran to its end; the later one never
+        sink.put(tp.Received(key, state(1, 4, H), 0.0))  # after the close: the tap is not called
+        assert len(tapped) == 2 and node.receiver.drops == {"tap_error": 1}
 
-        sink.tap = racing
-        sink.put(tp.Received(key, state(1, 3, H), 0.0))
-        assert node.receiver.drops == {"tap_error": 1}  # not an error
 
-
-async def test_a_stopped_recorder_writes_the_samples_still_waiting_in_its_queues(tmp_path) -> None:
+async def test_a_stopped_recorder_writes_the_samples_still_waiting_in_its_queues(tmp_path: Path) -> None:
     """The wildcard streams are drained up to a period after they arrive: a recorder stopped in
     between (the launcher ends a run the moment every vehicle has landed) decodes what waits before it
     writes the run file; it dropped it, and a vehicle's final LANDED was missing from the file."""
@@ -350,4 +360,5 @@ async def test_a_stopped_recorder_writes_the_samples_still_waiting_in_its_queues
     rec = Run.load(out)
     col = list(rec.agent_ids).index(aid)
     assert rec.safety.plant_mode[0, col] == wire.LANDED
+    assert rec.runtime is not None, "a real-time recording without its runtime record"
     assert np.isfinite(rec.runtime.plant_p[0, col]).all()

@@ -15,8 +15,8 @@ Two parts, one trust model:
   sub-directories and files are made relative to its descriptor, never following a link:
   :meth:`Dir.create` exclusively (``O_EXCL``, a key's mode 0600 from its first byte),
   :meth:`Dir.replace` through an exclusive temporary name renamed over the old file (a rename
-  replaces a link, it never writes through one), :meth:`Dir.open_log` refusing anything but a
-  plain file of this user with one name.
+  replaces a link, it never writes through one), :meth:`Dir.open_log` and :meth:`Dir.open_append`
+  refusing anything but a plain file of this user with one name.
 
 Each call blocks for a few system calls. Errors are :class:`OSError` (with the path) or
 :class:`UnsafePath`, whose message names the path, the cause and the fix.
@@ -370,6 +370,29 @@ class Dir:
         try:
             _own(os.fstat(fh.fileno()), path, directory=False)
             fh.truncate(0)
+        except BaseException:
+            fh.close()
+            raise
+        return fh
+
+    def open_append(self, name: str) -> BinaryIO:
+        """File ``name`` opened for appending (made if missing, mode 0644 less the umask), never
+        through a link (``O_NOFOLLOW``); an existing entry must be this user's plain file with one
+        name (:class:`UnsafePath`). For a log that several starts of one process extend (a unit
+        restarted by its ``Restart=``)."""
+        path = self.path / name
+
+        def opener(_: str, flags: int) -> int:
+            return os.open(name, flags | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644, dir_fd=self.fd)
+
+        try:
+            fh = open(path, "ab", opener=opener)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise UnsafePath(exc.errno, f"{path} is a symbolic link; remove it") from None
+            raise
+        try:
+            _own(os.fstat(fh.fileno()), path, directory=False)
         except BaseException:
             fh.close()
             raise
