@@ -457,18 +457,26 @@ def _make_dirs(out: Path, runs: list[Running], rec_out: Path | None) -> tuple[Pa
 
 def rehearse(deploy: Path, opts: Options) -> int:
     """Run the rehearsal (see the module docstring); returns the exit status."""
-    if (unsafe := safefs.out_problem(opts.out)) is not None:
-        print(f"error: --out: {unsafe}", file=sys.stderr)
-        return 2
     why = unavailable()
     if why is not None:
         print(f"error: tether rehearse {why}", file=sys.stderr)
         return 2
     try:
+        unsafe = safefs.out_problem(opts.out)
+    except OSError as exc:
+        unsafe = f"cannot check {exc.filename or opts.out}: {exc.strerror}; give another directory"
+    if unsafe is not None:
+        print(f"error: --out: {unsafe}", file=sys.stderr)
+        return 2
+    try:
         pl = plan(deploy)
         runs = []
         out_dir = recorder_out(pl.units)
-        if out_dir is not None and (unsafe := safefs.out_problem(out_dir)) is not None:
+        try:
+            unsafe = safefs.out_problem(out_dir) if out_dir is not None else None
+        except OSError as exc:
+            unsafe = f"cannot check {exc.filename or out_dir}: {exc.strerror}; give another directory"
+        if unsafe is not None:
             raise RehearseError(f"the recorder unit's --out: {unsafe}")
         logs = safefs.real_out(opts.out) / "logs"
         for host in opts.skews:

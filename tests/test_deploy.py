@@ -815,4 +815,31 @@ def test_generator_errors_exit_2_naming_the_problem(tmp_path: Path, mission_file
     (tmp_path / "old" / "ca" / "ca.key").write_text("")
     assert gen.main([str(mission_file), "--out", str(tmp_path / "old"), "--force"]) == 2
     assert "already holds a CA" in capsys.readouterr().err
-    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    assert gen.main([str(mission_file), "--out", str(shared / "o4")]) == 2  # others could rename o4 and put theirs
+    assert "--out: " in (err := capsys.readouterr().err) and "no sticky bit" in err, err
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists() and not (shared / "o4").exists()
+
+
+def test_generated_keys_are_private_and_every_file_is_the_users_own(deployment: gen.Deployment) -> None:
+    """Keys mode 0600 in mode-0700 directories (``ca/``, each host's ``tls/``); every other file a
+    plain file of this user with one name, not writable by others; no temporary name left."""
+    import os
+    import stat
+
+    out = deployment.out
+    private = [out / "ca", *sorted((out / "hosts").glob("*/tls"))]
+    assert len(private) == 1 + len(deployment.plan.host_names)
+    for d in private:
+        st = os.lstat(d)
+        assert stat.S_ISDIR(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o700 and st.st_uid == os.geteuid(), d
+    files = [*(f for written in deployment.files.values() for f in written),
+             *(out / name for name in ("acl.json5", "DEPLOY.md", "ca/ca.crt", "ca/ca.key"))]
+    assert len(files) > 4 and not list(out.rglob(".*")), "a temporary name was left behind"
+    for f in files:
+        st = os.lstat(f)
+        assert stat.S_ISREG(st.st_mode) and st.st_nlink == 1 and st.st_uid == os.geteuid(), f
+        want = 0o600 if f.suffix == ".key" else 0o644
+        assert stat.S_IMODE(st.st_mode) == want, f"{f}: {stat.S_IMODE(st.st_mode):04o}"

@@ -210,6 +210,45 @@ def test_without_root_it_exits_2_before_anything_starts(tmp_path: Path) -> None:
     assert not (tmp_path / "run").exists()
 
 
+def test_an_unsafe_out_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    """``--out`` another user could write, or a path under a directory they could write without the
+    sticky bit: exit 2 naming ``--out``, checked before the deployment is read (no namespace,
+    nothing written)."""
+    if (why := rehearse.unavailable()) is not None:
+        pytest.skip(f"a rehearsal {why}")  # it says so first, exit 2
+    dep = generate(tmp_path)
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    for out, says in ((shared, "can be written by other users"), (shared / "run", "no sticky bit")):
+        done = subprocess.run([sys.executable, "-m", "cli", "rehearse", str(dep.out), "--out", str(out)], cwd=REPO,
+                              capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)),
+                              timeout=60)
+        assert done.returncode == 2, done.stderr
+        assert "--out" in done.stderr and says in done.stderr and "Traceback" not in done.stderr, done.stderr
+        assert list(shared.iterdir()) == []
+
+
+@pytest.mark.slow  # a real tether rehearse, refused after reading the deployment, before any namespace
+def test_a_unit_log_that_is_a_link_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    """A unit's log (``RUN/logs/<unit>.log``, appended to across restarts) that is a link to a
+    root-only file: exit 2 naming it, never followed, before any namespace or process exists."""
+    needs_namespaces()
+    dep = generate(tmp_path)
+    secret = tmp_path / "secret"
+    secret.write_text("root only\n")
+    secret.chmod(0o600)
+    run = tmp_path / "run"
+    (run / "logs").mkdir(parents=True)
+    (run / "logs" / "tether-agent-2.log").symlink_to(secret)
+    status, out = run_rehearsal(tmp_path / "rehearse.log", str(dep.out), "--out", str(run), timeout=60)
+    assert status == 2, out
+    assert "--out" in out and "tether-agent-2.log is a symbolic link" in out and "Traceback" not in out, out
+    assert "router up" not in out and not (run / "rehearsal.json").exists()
+    assert secret.read_text() == "root only\n" and (run / "logs" / "tether-agent-2.log").is_symlink()
+    assert not (tmp_path / "recorder-out").exists()
+
+
 # =========================================================================== a rehearsal against a loopback run
 @dataclass
 class Done:

@@ -82,6 +82,36 @@ def test_refused_before_anything_starts(tmp_path: Path) -> None:
     assert not simulators()
 
 
+@pytest.mark.slow  # real launchers, refused before any simulator starts
+def test_an_unsafe_out_or_a_linked_simulator_log_is_refused_before_any_simulator_starts(tmp_path: Path) -> None:
+    """``--out`` another user could write is refused (exit 2) before anything starts; so is a
+    simulator's log (``logs/cfsim-<id>.log``) that is a link to a root-only file, which is named,
+    never followed, and its target left untouched."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(shared))
+    out, _ = p.communicate(timeout=240)
+    assert p.returncode == 2, out
+    assert "--out" in out and "can be written by other users" in out and "Traceback" not in out
+    assert list(shared.iterdir()) == []
+
+    secret = tmp_path / "secret"
+    secret.write_text("root only\n")
+    secret.chmod(0o600)
+    run = tmp_path / "run"
+    (run / "logs").mkdir(parents=True)
+    (run / "logs" / "cfsim-3.log").symlink_to(secret)
+    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(run))
+    out, _ = p.communicate(timeout=240)
+    assert p.returncode == 2, out
+    assert "--out" in out and "cfsim-3.log is a symbolic link" in out and "Traceback" not in out, out
+    assert "software Crazyflies ready" not in out and "router listening" not in out
+    assert secret.read_text() == "root only\n" and (run / "logs" / "cfsim-3.log").is_symlink()
+    assert not (run / "run.npz").exists()
+    assert not simulators()
+
+
 @pytest.mark.slow
 def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
