@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tether.runfile import Links, Run, RunMeta
+from tether.runfile import FORMAT_VERSION, Links, Run, RunMeta
 
 BAD = """version = 1
 name = "bad"
@@ -146,7 +146,7 @@ def test_run_file_round_trip(tmp_path: Path) -> None:
     back = Run.load(tmp_path / "r")
     np.testing.assert_array_equal(back.p, run.p)
     np.testing.assert_array_equal(back.agent_ids, [4, 7])
-    assert back.meta.mission == "x" and back.meta.format_version == 3
+    assert back.meta.mission == "x" and back.meta.format_version == FORMAT_VERSION
     np.testing.assert_array_equal(back.links.delivery, 1.0)
 
 
