@@ -14,6 +14,9 @@ measurement (``docs/safety.md``). Vectors are sequences of ``d`` floats [SI unit
   memory that a steady push up needs;
 * :func:`landed` — on the ground (3D) or still (2D), slow enough to disarm; in 2D also a landing
   that has held for ``settle`` seconds (a disturbance HOLD cannot cancel may keep a vehicle moving);
+* :func:`hold_point` — where HOLD (and LAND) anchors a vehicle: where its brake brings it to
+  rest, ahead of where HOLD began, so that a formation that brakes together stops together and no
+  vehicle turns back through the one behind it;
 * :func:`braking_distance`, :func:`fence_breach` — how far a vehicle travels once HOLD brakes, and
   whether it is outside a geofence box or would leave it braking from here;
 * :func:`inside` — a position brought into a box (where a vehicle outside a geofence lands).
@@ -128,6 +131,36 @@ def why_landed(p: Vec, v: Vec, held: float) -> str:
     if speed < STILL:
         return "still"
     return f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped"
+
+
+def stopping_distance(speed: float, kp: float, max_accel: float) -> float:
+    """How far ahead [m] of a vehicle at ``speed`` [m/s] HOLD's law must anchor it for the vehicle to
+    come to rest there without turning back. For the linear law ``u = -kv v - kp e`` with the
+    default, critically damped gains (``kv^2 = 4 kp``, natural frequency ``wn = sqrt(kp)``), the
+    error ``e(t) = -(speed/wn) e^(-wn t)`` from ``e0 = -speed/wn`` decays without a sign change, at
+    an initial deceleration of ``wn speed``; above ``max_accel / wn`` the brake is saturated at
+    ``max_accel`` until the speed falls to it. Other gains keep ``wn = sqrt(kp)`` (an
+    under-damped HOLD overshoots whatever its anchor)."""
+    wn = math.sqrt(kp)
+    knee = max_accel / wn
+    if speed <= knee:
+        return speed / wn
+    return (speed * speed - knee * knee) / (2.0 * max_accel) + knee / wn
+
+
+def hold_point(p: Vec, v: Vec, kp: float, max_accel: float, floor: float | None = None) -> list[float]:
+    """Where HOLD anchors a vehicle at ``p`` [m] moving at ``v`` [m/s]: ``p`` plus
+    :func:`stopping_distance` along ``v``; 3D (``floor`` given): never below ``floor`` [m]. A
+    vehicle at rest, or a velocity that is not finite, anchors where it is."""
+    p = floats(p)
+    speed = norm(v)
+    if not (speed > 0.0 and math.isfinite(speed)):
+        return list(p)
+    scale = stopping_distance(speed, kp, max_accel) / speed
+    out = [pc + vc * scale for pc, vc in zip(p, v)]
+    if floor is not None and out[-1] < floor:
+        out[-1] = max(floor, min(p[-1], out[-1])) if p[-1] >= floor else p[-1]
+    return out
 
 
 def braking_distance(speed: float, kv: float, max_accel: float) -> float:
