@@ -317,11 +317,22 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     import msgspec
 
+    from recorder import journal
     from sim import figures
     from tether.runfile import Run
 
     path = Path(args.run)
     file = path / "run.npz" if path.is_dir() else path
+    if path.is_dir() and not file.exists() and (path / journal.NAME).exists():  # a recorder killed mid-run
+        try:
+            run = journal.load(path, report=lambda line: print(f"missing: {line}"))
+        except (OSError, ValueError) as exc:
+            raise BadArgument(f"run: {path / journal.NAME} is not a readable journal ({exc}); "
+                              "give a run.npz that tether wrote") from None
+        out = _writable_dir("--out", args.out if args.out else str(path))
+        for p in figures.run_panels(run, out):
+            print(f"wrote {p}")
+        return 0
     if not path.exists():
         raise BadArgument(f"run: {path} does not exist; give a run.npz or the directory holding it "
                           "(tether simulate/run --out DIR writes DIR/run.npz)")
@@ -346,11 +357,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_mcap(args: argparse.Namespace) -> int:
-    from recorder import viz
-    from tether.runfile import Run
+    from recorder import journal, viz
 
     path = Path(args.run)
-    run = Run.load(path)
+    try:  # run.npz, or the journal a killed recorder left; what the run lacks, line by line
+        run = journal.load(path, report=lambda line: print(f"missing: {line}"))
+    except (OSError, ValueError) as exc:
+        raise BadArgument(f"run: {path} holds no readable run ({exc}); give a run.npz or the directory "
+                          "tether run --out wrote") from None
     npz = path / "run.npz" if path.is_dir() else path
     out = Path(args.out) if args.out else npz.with_suffix(".mcap")
     t0 = time.perf_counter()

@@ -1158,9 +1158,26 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     if sup is not None and sup.dropped:
         log.warning("the launcher dropped %d malformed message(s): %s", sum(sup.dropped.values()),
                     ", ".join(f"{n} {why}" for why, n in sorted(sup.dropped.items())))
-    if status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
+    rebuilt = _rebuild(opts.out)
+    if rebuilt or status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
         status = _recorded(opts.out / "run.npz", status, opts)
     return status
+
+
+def _rebuild(out: Path) -> bool:
+    """Where the recorder died before writing ``run.npz`` (killed, its machine stopped), write it and
+    ``run.mcap`` from the journal it kept as it went (``recorder/journal.py``); whether it did."""
+    from recorder import journal
+
+    if (out / "run.npz").exists() or not (out / journal.NAME).exists():
+        return False
+    try:
+        journal.rebuild(out)
+    except (OSError, ValueError) as why:
+        log.error("the recorder's journal %s could not be read back (%s)", out / journal.NAME, why)
+        return False
+    log.warning("%s rebuilt from the recorder's journal (the recorder did not write it)", out / "run.npz")
+    return True
 
 
 LATE_WARN = 0.01
