@@ -104,7 +104,47 @@ def test_two_samples_of_one_tick_that_disagree_are_a_conflict_and_the_second_is_
     src.offer(state(3, 1.2, seq=4))  # another truth for tick 3
     src.offer(state(3, 1.0, mode=HOLD, seq=5))  # another mode for tick 3
     assert src.conflicts == 2 and src.by_tick[3] is first and src.newest.seq == 3
-    assert src.health is not None and src.health.suspect and src.health.bad == 2
+    # the tick is contested: the held sample's verdict is bad too (three bad: held, and both others)
+    assert src.health is not None and src.health.suspect and src.health.bad == 3
+    assert src.is_contested(first) and src.contested == {3: 2}
+    src.forget_before(4)
+    assert src.contested == {}
+
+
+def test_a_one_for_one_forgery_makes_two_thirds_of_the_window_bad() -> None:
+    """One forged copy beside each genuine sample: every tick is contested, so two of every three
+    verdicts are bad, well past the share of a half (before, the forger sat right at it)."""
+    src = Source("agent/1/state", wire.State, 1, health=Health(window=50, share=0.5))
+    became = None
+    for k in range(60):
+        genuine = state(k, 0.01 * k, seq=2 * k)
+        src.offer(genuine)
+        src.offer(msgspec.structs.replace(genuine, seq=2 * k + 1, mode=HOLD))
+        if became is None and src.health is not None and src.health.suspect:
+            became = k
+    assert src.health is not None and src.health.suspect and src.health.bad in (33, 34)
+    assert became is not None and became <= 12  # 25 bad verdicts: the 13th tick's pair
+
+
+def test_a_genuine_stream_alone_contests_nothing() -> None:
+    src = Source("agent/1/state", wire.State, 1, health=Health(window=50, share=0.5))
+    for k in range(200):
+        msg = state(k, 0.01 * k, seq=k)
+        src.offer(msg)
+        src.offer(msg)  # a network's duplicate
+    assert src.conflicts == 0 and src.contested == {} and src.health is not None and src.health.bad == 0
+
+
+def test_two_commands_of_one_tick_with_other_u_are_a_conflict() -> None:
+    """A command's contents are its ``u`` and mode: a copy of the genuine command with another
+    ``u`` under the same number is a conflict, the tick contested."""
+    src = Source("agent/2/cmd", wire.Command, 2, health=Health(window=50, share=0.5))
+    genuine = wire.Command(sender=2, seq=7, k=7, t=0.07, u=[0.1, 0.2])
+    src.offer(genuine)
+    src.offer(msgspec.structs.replace(genuine, u=[20.0, 0.0]))
+    assert src.conflicts == 1 and src.by_tick[7] is genuine and src.is_contested(genuine)
+    src.offer(wire.Command(sender=2, seq=8, k=8, t=0.08, u=[0.1, 0.2]))
+    assert src.contested == {7: 1}
 
 
 def test_a_second_sample_of_a_held_tick_under_another_number_is_a_conflict_even_if_equal() -> None:

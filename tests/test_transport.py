@@ -26,7 +26,12 @@ import pytest
 import zenoh
 
 from tether import transport as tp
-from tether.handoff import BoundedFifo, LatestSlot, Wakeup
+import msgspec
+
+from tether import wire
+from tether.gate import Health
+from tether.handoff import PER_TICK, BoundedFifo, InputQueue, LatestSlot, Wakeup
+from tether.inputs import Source
 from tether.transport import Received, SettingsError, TokenEvent, ZenohSettings
 
 WAIT = 5.0
@@ -234,6 +239,83 @@ def test_bounded_fifo_drops_the_oldest_and_counts() -> None:
     assert q.written == q.popped + q.dropped + len(q) == 5
     with pytest.raises(ValueError, match="capacity"):
         BoundedFifo(0)
+
+
+def test_an_input_queue_admits_the_first_two_of_a_tick_and_drops_the_rest_as_they_come() -> None:
+    q: InputQueue[tuple[int, str]] = InputQueue(3, tick_of=lambda item: item[0])
+    for item in [(1, "genuine"), (1, "forged"), (1, "again"), (1, "again"), (2, "genuine"), (3, "genuine"),
+                 (4, "genuine")]:
+        q.put(item)
+    assert q.excess == 2 and q.dropped == 2  # tick 1's third and fourth; then the oldest two, to make room
+    assert q.take(8) == [(2, "genuine"), (3, "genuine"), (4, "genuine")]
+    assert q.written == q.popped + q.dropped + q.excess + len(q) == 7
+    q.put((9, "no tick"))
+    untimed: InputQueue[int] = InputQueue(2)  # without tick_of: drop-oldest alone
+    for i in range(4):
+        untimed.put(i)
+    assert untimed.take(8) == [2, 3] and untimed.excess == 0 and untimed.dropped == 2
+
+
+FLOOD = 30
+"""Forged copies a flooding publisher sends after each genuine sample."""
+
+
+async def flooded(queue: InputQueue[Received] | BoundedFifo[Received], ticks: int) -> tuple[Source, int]:
+    """A real Zenoh publisher on loopback sends, each tick, the genuine ``agent/1/state`` sample, then
+    :data:`FLOOD` forged copies of it (mode HOLD, each under its own number) on the same key; the reader
+    decodes at most 8 queued samples a tick (an agent's budget) into a judged source, after the whole
+    tick's flood has arrived (the worst case: a reader that falls behind). Returns the source and the
+    samples the queue took in."""
+    key = "tether/flood/agent/1/state"
+    a = listener(lease=1.0)
+    b = dialer(a, lease=1.0)
+    src = Source(key, wire.State, 1, health=Health(window=50, share=0.5))
+    receiver = wire.Receiver(2)
+    every = tp.StreamQos(zenoh.Priority.DATA, zenoh.CongestionControl.BLOCK, express=False)  # none lost on the way
+    async with sessions(a, b) as (sa, sb):
+        with (
+            tp.declare_subscriber(sa, key, queue),
+            tp.declare_publisher(sb, key, every) as pub,
+        ):
+            await tp.wait_for_subscribers(pub, WAIT)
+            sent = 0
+            for k in range(ticks):
+                genuine = wire.State(sender=1, seq=k * (FLOOD + 1), k=k, t=0.01 * k, p=[0.1 * k, 0.0],
+                                     vel=[10.0, 0.0], a=[0.0, 0.0])
+                pub.put(wire.encode(genuine))
+                for c in range(FLOOD):
+                    pub.put(wire.encode(msgspec.structs.replace(genuine, seq=genuine.seq + 1 + c, mode=wire.HOLD)))
+                sent += 1 + FLOOD
+                async with asyncio.timeout(WAIT):
+                    while queue.written < sent:
+                        await asyncio.sleep(0.001)
+                items = queue.take(8) if isinstance(queue, InputQueue) else queue.drain()[-8:]
+                for rec in items:
+                    msg = receiver.accept(rec.payload, wire.State, 1)
+                    if msg is not None:
+                        src.offer(msg)
+    return src, sent
+
+
+@pytest.mark.asyncio
+async def test_a_flood_of_forged_copies_on_a_real_key_never_evicts_the_genuine_sample() -> None:
+    """Each tick's genuine sample is decoded and held (the first of its tick), each tick's first forged
+    copy is a conflict and contests it, and the rest of the flood is dropped as it comes, counted:
+    bounded (8 queued at most). Against drop-oldest (the queue before), the genuine samples were
+    evicted before they were decoded and forged ones held unchallenged."""
+    ticks = 20
+    queue: InputQueue[Received] = InputQueue(8, tick_of=tp.tick_of)
+    src, sent = await flooded(queue, ticks)
+    assert all(src.by_tick[k].mode == wire.FLYING and src.by_tick[k].seq == k * (FLOOD + 1) for k in range(ticks))
+    assert src.conflicts == ticks * (PER_TICK - 1) and sorted(src.contested) == list(range(ticks))
+    assert queue.excess == ticks * (FLOOD + 1 - PER_TICK) and queue.dropped == 0 and len(queue) == 0
+    assert queue.written == sent == queue.popped + queue.excess
+    assert src.health is not None and src.health.suspect  # 40 bad verdicts of 60
+    old: BoundedFifo[Received] = BoundedFifo(8)  # drop-oldest: what the queue did before
+    src, _ = await flooded(old, ticks)
+    print(f"drop-oldest: {sum(m.mode == wire.FLYING for m in src.by_tick.values())} of {ticks} genuine held, "
+          f"{src.conflicts} conflicts; first two of each tick: {ticks} held, {ticks} conflicts")
+    assert not any(m.mode == wire.FLYING for m in src.by_tick.values())
 
 
 @pytest.mark.asyncio

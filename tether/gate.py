@@ -138,8 +138,12 @@ class Gate:
 
 @dataclass
 class Health:
-    """One stream's sliding window: of the last ``window`` samples offered (every one that decoded),
-    how many were bad (rejected by the gate, or in conflict with what the sender already said).
+    """One stream's sliding window: of the last ``window`` verdicts (one for every sample offered
+    that decoded, and one more for each contested tick), how many were bad (rejected by the gate,
+    in conflict with what the sender already said, or the held sample of a tick that another sample
+    contests: :attr:`tether.inputs.Source.contested`). A forger sending one copy beside each genuine
+    sample thus makes two thirds of the window bad, well past ``share``; the genuine stream alone
+    makes none.
 
     The stream becomes :attr:`suspect` when at least ``share`` of a full window is bad
     (``ceil(share window)`` samples), and clears when at most half that share is (hysteresis: a

@@ -3,7 +3,9 @@
 Callbacks run on threads Zenoh owns; they only copy into a sink and poke a :class:`Wakeup`:
 
 * :class:`LatestSlot` (state: the newest value supersedes; overwrites counted);
-* :class:`BoundedFifo` (commands and events: bounded, drop-oldest, drops counted).
+* :class:`BoundedFifo` (commands and events: bounded, drop-oldest, drops counted);
+* :class:`InputQueue` (one input key in real time: a bounded FIFO that admits the first samples of
+  each tick and drops a flood's excess as it comes, then the oldest).
 
 A callback that does more than hand off (a tap that publishes a relay from Zenoh's thread) runs
 inside a :class:`TapGuard`, so that closing never undeclares an object a callback is using.
@@ -16,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import threading
+from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
 T = TypeVar("T")
@@ -257,26 +260,65 @@ class BoundedFifo(Generic[T]):
         return self._dropped
 
 
+PER_TICK = 2
+"""Samples of one tick an :class:`InputQueue` with a ``tick_of`` admits: the first two. A sender
+sends one sample a tick, so a second is already a conflict (:meth:`tether.inputs.Source.offer`
+needs the genuine one and one other to see it); more are a flood, dropped as they come."""
+TICKS_KEPT = 64
+"""Ticks an :class:`InputQueue` remembers the admitted samples of (at least; four queues' worth
+for a longer queue): a copy of a tick older than that is admitted again, and then judged by the
+reader as a late copy."""
+
+
 class InputQueue(BoundedFifo[T]):
     """One input key's queue (real time): a :class:`BoundedFifo` (bounded, drop-oldest, counted)
     that its reader may **mute** once it has used its decoding budget for the current period. A
     muted queue still keeps the newest ``capacity`` items (a flood costs one append and, when full,
     one drop per message on Zenoh's thread) but wakes nobody, so that a flood cannot keep the event
-    loop busy; the reader unmutes it at the next period."""
+    loop busy; the reader unmutes it at the next period.
 
-    def __init__(self, capacity: int, wakeup: Wakeup | None = None):
+    Overflow policy with ``tick_of`` (the tick an item says it is of, None if it says none): the
+    first :data:`PER_TICK` items of each tick are admitted, and any later item of a tick that has
+    had as many is **dropped as it comes** and counted in :attr:`excess`; only then does the
+    drop-oldest policy apply. A flood of copies of one key's samples (a forger's) therefore cannot
+    evict the genuine sample of a tick before it is decoded: the reader sees the first two samples
+    of every tick, which is what the conflict rule needs. ``tick_of`` runs on Zenoh's thread: it
+    must be cheap and never raise. Invariant: ``written == popped + dropped + excess + len(self)``."""
+
+    def __init__(self, capacity: int, wakeup: Wakeup | None = None,
+                 tick_of: Callable[[T], int | None] | None = None):
         super().__init__(capacity, wakeup)
         self.muted = False
+        self._tick_of = tick_of
+        self._admitted: dict[int, int] = {}
+        """Tick -> items of it admitted, for the newest :attr:`_ticks_kept` ticks seen (insertion order)."""
+        self._ticks_kept = max(TICKS_KEPT, 4 * capacity)
+        self._excess = 0
 
     def put(self, item: T, /) -> None:
+        k = self._tick_of(item) if self._tick_of is not None else None
         with self._lock:
+            self._written += 1
+            if k is not None:
+                admitted = self._admitted
+                n = admitted.get(k, 0)
+                if n >= PER_TICK:
+                    self._excess += 1
+                    return
+                admitted[k] = n + 1
+                if n == 0 and len(admitted) > self._ticks_kept:
+                    del admitted[next(iter(admitted))]
             if len(self._items) >= self._capacity:
                 self._items.popleft()
                 self._dropped += 1
             self._items.append(item)
-            self._written += 1
         if self._wakeup is not None and not self.muted:
             self._wakeup.notify()
+
+    @property
+    def excess(self) -> int:
+        """Items dropped as they came: a tick's beyond the first :data:`PER_TICK` (``tick_of``)."""
+        return self._excess
 
     def quieten(self) -> None:
         """Wake nobody from now on (the reader drains this queue on its own schedule)."""

@@ -25,11 +25,14 @@ _WINDOW = (1 << (RECENT_SEQS + 1)) - 1
 """The bits of :attr:`Source.recent`: the newest and the :data:`RECENT_SEQS` before it."""
 _FRESH = RECENT_SEQS + 1
 """A shift that starts :attr:`Source.recent` afresh."""
-_CONTENTS = ("seq", "t", "p", "vel", "a", "mode")
-"""What two samples of one tick from one sender must agree on. The sequence number too: a sender
-sends one sample a tick, so a second one for a held tick under another number, even with the same
-contents, was put on the key by someone else (a copy a network or a resend delivers twice keeps its
-number)."""
+_CONTENTS = ("seq", "t", "p", "vel", "a", "u", "mode")
+"""What two samples of one tick from one sender must agree on (a state's ``p``, ``vel``, ``a``, a
+command's ``u``, and the mode either carries). The sequence number too: a sender sends one sample a
+tick, so a second one for a held tick under another number, even with the same contents, was put on
+the key by someone else (a copy a network or a resend delivers twice keeps its number)."""
+CONTESTED_KEPT = 4 * RECENT_SEQS
+"""Most contested ticks a source remembers (the oldest forgotten first), beyond its consumer's
+:meth:`Source.forget_before`."""
 
 
 class Copy(Protocol):
@@ -113,8 +116,14 @@ class Source:
     health: Health | None = None
     """The stream's sliding-window judge (:class:`tether.gate.Health`), told every sample's verdict
     (but that of a copy of a sample already had);
-    with one, a second sample of a held tick with other contents is a conflict (an agent's inputs,
-    whose senders send one sample a tick)."""
+    with one, a second sample of a held tick with other contents is a conflict (an agent's inputs and
+    a plant's commands, whose senders send one sample a tick), and the tick is *contested*: the
+    first conflict of a tick is two bad verdicts, the held sample's and the new one's (neither can
+    be trusted: the first to arrive is not the more likely true), so that a forger sending one copy
+    per genuine sample makes two thirds of the window bad, not a half."""
+    contested: dict[int, int] = field(default_factory=dict)
+    """Tick -> conflicting samples of it seen (beyond the held one), for the ticks still held; a
+    consumer that must not act on a contested tick (a plant's command) asks :meth:`is_contested`."""
     keep: bool = True
     """Hold samples by tick for :meth:`tether.node.Node.aligned`; False for inputs consumed by
     ``on_message`` alone (the recorder), which would otherwise hold every sample of the run."""
@@ -158,8 +167,14 @@ class Source:
             return
         if health is not None and self.keep and self._conflicts(msg):
             self.conflicts += 1
-            if health is not None:
-                health.note(True)
+            contested = self.contested
+            n = contested.get(msg.k, 0)
+            if n == 0:
+                health.note(True)  # the held sample's verdict: contested, no longer to be believed
+                if len(contested) >= CONTESTED_KEPT:
+                    del contested[min(contested)]
+            contested[msg.k] = n + 1
+            health.note(True)
             return
         if self.corroborate is not None and not self.corroborate(msg):
             self.conflicts += 1
@@ -211,9 +226,16 @@ class Source:
         whatever arrived early)."""
         return self.received - sum(1 for t in self.by_tick if t > k)
 
+    def is_contested(self, msg: Any) -> bool:
+        """Whether another sample of ``msg``'s tick, with other contents, has come (:attr:`contested`)."""
+        return msg.k in self.contested
+
     def forget_before(self, k: int) -> None:
         for old in [t for t in self.by_tick if t < k]:
             del self.by_tick[old]
+        if self.contested:
+            for old in [t for t in self.contested if t < k]:
+                del self.contested[old]
 
     def deliver(self, now: float, decode: Callable[[bytes], Any | None]) -> int:
         """Hand the copies this source's link delivers by ``now`` to it; a corrupted copy fails its

@@ -243,6 +243,9 @@ class Node:
         """Real time: decodes each input key has left (:data:`INPUT_BUDGET`)."""
         self._capacity = input_capacity(mission.rate) if args.role in BACKLOG_ROLES else INPUT_BUDGET
         self._overflow: dict[str, int] = {}
+        self._excess: dict[str, int] = {}
+        """Real time: samples each input key's queue dropped as a tick's excess, by key (counted as
+        ``excess`` in the receiver's drops)."""
         self.overflow = self._overflow
         """Real time: samples each input key's queue dropped (oldest first), by key."""
         self._period = -1
@@ -360,7 +363,8 @@ class Node:
             stamp = None
             if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
                 quiet = not wake and on_message is None and channel is None
-                sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup)
+                sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup,
+                                                              tick_of=tp.tick_of)
                 stamp = getattr(self.clock, "monotonic", None) if quiet or tap is not None else None
                 if tap is not None:
                     sink = _Tapped(sink, tap, self)
@@ -608,6 +612,12 @@ class Node:
                 q.muted = False
         waiting = False
         for key, q in self.inputs.items():
+            if q.excess != self._excess.get(key, 0):  # a tick's samples beyond the first two: a flood
+                if key not in self._excess:
+                    log.warning("input %s: more than %d samples of one tick; the later ones are dropped as they "
+                                "come (counted as 'excess')", key, handoff.PER_TICK)
+                self.receiver.count("excess", q.excess - self._excess.get(key, 0))
+                self._excess[key] = q.excess
             if not len(q):  # nothing since the last drain (nor dropped: a drop leaves the queue full)
                 continue
             left = self._budget.get(key, cap)  # a new key starts with a full budget

@@ -568,6 +568,25 @@ class Received(NamedTuple):
     """When the callback got it [s, on the stamping clock] (NaN: not stamped)."""
 
 
+class _Tick(msgspec.Struct):
+    """Only a message's tick, read without the strict decode (unknown fields ignored)."""
+
+    k: int
+
+
+_TICK = msgspec.msgpack.Decoder(_Tick)
+
+
+def tick_of(rec: Received) -> int | None:
+    """The tick a sample's payload says it is of, or None (not a message with one, malformed).
+    Cheap (a microsecond: one pass over the bytes, nothing kept but ``k``) and never raises: an
+    :class:`~tether.handoff.InputQueue` asks it on Zenoh's thread."""
+    try:
+        return _TICK.decode(rec.payload).k
+    except (msgspec.DecodeError, TypeError, ValueError):
+        return None
+
+
 def declare_subscriber(session: zenoh.Session, key_expr: str, sink: Sink[Received],
                        stamp: Callable[[], float] | None = None) -> zenoh.Subscriber[None]:
     """Subscribe to ``key_expr``; every sample is handed to ``sink.put`` as a :class:`Received`.
