@@ -30,9 +30,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from plant import base, resume
+from plant.onboard import Trust
 from plant.rest import Resting
 from plant.watchdog import Watchdog
 from tether import transport as tp
+from tether.gate import health_of
 from tether import wire
 from tether import mission as ms
 from tether.node import Node, report_drops
@@ -98,6 +100,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     for aid in ids:
         # otherwise read at the tick only: a command does not wake the loop as it arrives (real time)
         src = node.source(keys.topic("agent", aid, "cmd"), wire.Command, aid, wake=resumable)
+        src.health = health_of(m)  # the conflict rule: two different commands for one tick contest it
         node.watch("agent", aid, src)
         cmds.append(src)
     operator: list[str | None] = [None]
@@ -114,6 +117,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     if world:  # each hosted vehicle is a plant to the agents, the recorder and the launcher
         node.hold(*(tp.declare_token(node.session, keys.token("plant", aid)) for aid in ids))
     dogs = [Watchdog(m.safety, m.dim, h) for _ in ids]
+    trusts = [Trust() for _ in ids]
     noted: list[list[wire.SafetyEvent]] = [[] for _ in ids]
     """Per vehicle, its watchdog's events not yet published (they ride on its next PlantState)."""
     # real time, one simulated vehicle: a restarted process resumes from its last state (plant/resume.py)
@@ -138,13 +142,16 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         t = k * h
         if k > first:
             u, modes = [], []
-            for r, (aid, src, dog) in enumerate(zip(ids, cmds, dogs)):
+            for r, (aid, src, dog, trust) in enumerate(zip(ids, cmds, dogs, trusts)):
                 # one drain for every vehicle's command (in real time node.tick has just drained)
                 msg = await node.sample(src, k - 1, drain=r == 0 and node.clock.lockstep)
+                health = src.health
+                msg, judged = trust.judge(msg, msg is not None and src.is_contested(msg),
+                                          health is not None and health.suspect, t, dog.mode)
                 if msg is not None:
                     dog.offer(msg.u, msg.t, msg.k, k, msg.mode)
                 d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
-                for ev in d.events:
+                for ev in (*judged, *d.events):
                     log.warning("vehicle %d: %s", aid, ev)
                     noted[r].append(ev.wire(k, aid))
                 u.append(d.u)
@@ -178,8 +185,10 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
             ex = s.extra
             payload.send(wire.WorldState, k, t, p=ex["payload_p"].tolist(), vel=ex["payload_v"].tolist(),
                          tension=ex["tension"].tolist(), slack_events=ex["slack_events"].astype(int).tolist())
-    for aid, dog in zip(ids, dogs):
+    for aid, dog, trust, src in zip(ids, dogs, trusts, cmds):
         report_drops(dog.invalid, f"vehicle {aid}: commands rejected by its watchdog")
+        report_drops({"conflict": src.conflicts, "contested": trust.contested},
+                     f"vehicle {aid}: commands in conflict, and contested ones flown as none")
         report_drops({"not finite": dog.garbled}, f"vehicle {aid}: own measurements flown as none")
     if cf is not None and recovering is not None:  # the mission ended with the link still down: the vehicle is lost
         recovering.cancel()

@@ -22,12 +22,14 @@ the run: ground contact and motors-off are :class:`plant.rest.Resting`'s alone.
 from __future__ import annotations
 
 import logging
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from plant import base, double_integrator
 from plant.rest import Resting
-from plant.watchdog import Watchdog
+from plant.watchdog import NOTE_EVERY, Event, Watchdog
 from tether import mission as ms
 from tether import wire
 
@@ -47,6 +49,59 @@ def problem(m: ms.Mission, aid: int) -> str | None:
     return None
 
 
+@dataclass
+class Trust:
+    """Which of one vehicle's commands its plant flies, by its command stream's conflict rule
+    (:meth:`tether.inputs.Source.offer` with a :class:`tether.gate.Health`). Pure.
+
+    * A command whose tick another, different command contests (two commands for one tick: one is
+      forged, and the first to arrive is not the more likely true) is flown as **no command**: the
+      watchdog goes on with the last valid one and holds after ``cmd_timeout`` if that goes on.
+      Counted in :attr:`contested`; an event at the first, then at most one every
+      :data:`plant.watchdog.NOTE_EVERY` with the count since.
+    * While the stream is **suspect** (most of its recent commands in conflict), no command is
+      trusted: the watchdog holds after ``cmd_timeout`` and lands after ``cmd_cutoff``, as if the
+      agent were silent. Its start and end are events.
+
+    A stream without conflicts (every lockstep run, every undisturbed real-time one) is flown as
+    it comes."""
+
+    contested: int = 0
+    """Commands flown as none because their tick was contested."""
+    suspect: bool = False
+    _k: int = -1
+    """Tick of the last command judged contested (one flown as none again is not counted again)."""
+    _noted: float = -math.inf
+    _unnoted: int = 0
+
+    def judge(self, cmd: wire.Command | None, contested: bool, suspect: bool, t: float,
+              mode: int) -> tuple[wire.Command | None, list[Event]]:
+        """The command to offer the watchdog at plant tick time ``t`` [s] (None: none), and the
+        events of this judgement; ``contested``: ``cmd``'s tick is (:meth:`tether.inputs.Source.is_contested`);
+        ``suspect``: the stream is (:attr:`tether.gate.Health.suspect`); ``mode``: the watchdog's."""
+        events: list[Event] = []
+        if suspect != self.suspect:
+            self.suspect = suspect
+            events.append(Event(t, mode, mode, "commands mostly contested (a second sender on the key): none trusted"
+                                if suspect else "commands trusted again"))
+        if cmd is None:
+            return None, events
+        if contested:
+            if cmd.k != self._k:
+                self._k = cmd.k
+                self.contested += 1
+                self._unnoted += 1
+                if t - self._noted >= NOTE_EVERY - 1e-9:
+                    n, self._unnoted = self._unnoted, 0
+                    what = f"command of tick {cmd.k} contested (two different commands for one tick): flown as none" \
+                        if self._noted == -math.inf else \
+                        f"{n} contested command{'s' if n > 1 else ''} since {self._noted:.2f} s: flown as none"
+                    self._noted = t
+                    events.append(Event(t, mode, mode, what))
+            return None, events
+        return (None if self.suspect else cmd), events
+
+
 class Onboard:
     """Agent ``aid``'s simulated plant, stepped by its agent (module docstring). ``lean=False``:
     the general path from the start (the plain-float path's reference in tests)."""
@@ -58,6 +113,7 @@ class Onboard:
         (inner,) = base.build(m, [aid], live=False)
         self.plant = Resting(inner, m.dim, m.safety.ground)
         self.dog = Watchdog(m.safety, m.dim, m.dt)
+        self.trust = Trust()
         self.aid = aid
         self.h = m.dt
         self.seq = 0
@@ -85,21 +141,25 @@ class Onboard:
         """The watchdog's mode (what ``PlantState.mode`` carries)."""
         return self.dog.mode
 
-    def advance(self, k: int, cmd: wire.Command | None, operator: str | None) -> wire.PlantState:
+    def advance(self, k: int, cmd: wire.Command | None, operator: str | None, contested: bool = False,
+                suspect: bool = False) -> wire.PlantState:
         """The measurement of tick ``k``; for ``k > 0`` first one period with ``cmd``, the agent's
         command of tick k-1 (None: there was none; the watchdog's failsafe then flies), and the
-        operator's standing order (``land``, ``estop``). It carries the watchdog's events of this
-        tick, as a plant process's would."""
+        operator's standing order (``land``, ``estop``). ``contested``, ``suspect``: what the
+        command's stream says of it, as a plant process's (:class:`Trust`; a co-located agent hands
+        its command over in-process, where neither can happen). It carries the watchdog's events of
+        this tick, as a plant process's would."""
         t = k * self.h
         events: list[wire.SafetyEvent] = []
         if k > 0:
             dog = self.dog
+            cmd, noted = self.trust.judge(cmd, contested, suspect, t, dog.mode)
             if cmd is not None:
                 dog.offer(cmd.u, cmd.t, cmd.k, k, cmd.mode)
             d = dog.step(t, self._p, self._v, operator)
-            for ev in d.events:
+            for ev in (*noted, *d.events):
                 log.warning("vehicle %d: %s", self.aid, ev)
-            events = [ev.wire(k, self.aid) for ev in d.events]
+            events = [ev.wire(k, self.aid) for ev in (*noted, *d.events)]
             if self._inner is None or not self._fly(k, d.u, d.rest):
                 self.plant.step(np.array([d.u]), [d.rest])
         if self._inner is not None:

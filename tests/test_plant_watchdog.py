@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -50,6 +51,7 @@ class Agent:
 
         def keep(sample: zenoh.Sample) -> None:
             msg = wire.decode(bytes(sample.payload))
+            assert isinstance(msg, wire.PlantState)
             with self._lock:
                 self.states.append((time.time(), msg))
 
@@ -70,7 +72,11 @@ class Agent:
         self._cmd.put(wire.encode(wire.Command(sender=1, seq=self.seq, k=k, t=k * H, u=u)))
         self.seq += 1
 
-    def operator(self, action: str) -> None:
+    def forge(self, k: int, u: list[float]) -> None:
+        """A copy of the command just sent, with another ``u``."""
+        self._cmd.put(wire.encode(wire.Command(sender=1, seq=self.seq - 1, k=k, t=k * H, u=u)))
+
+    def operator(self, action: Literal["land", "estop"]) -> None:
         self._safety.put(wire.encode(wire.SafetyCommand(sender=0, seq=0, k=0, t=0.0, action=action)))
 
 
@@ -80,9 +86,13 @@ def plant_process(path: Path, port: int, log: Path) -> subprocess.Popen:
                             stdin=subprocess.DEVNULL, stdout=log.open("w"), stderr=subprocess.STDOUT)
 
 
-def fly(tmp: Path, name: str, duration: float, command_until: float, operator: tuple[float, str] | None = None):
+def fly(tmp: Path, name: str, duration: float, command_until: float,
+        operator: tuple[float, Literal["land", "estop"]] | None = None,
+        forge: tuple[float, float] | None = None) -> tuple[list[wire.PlantState], str]:
     """Run the plant for ``duration``: command u = (1, 0, -v_z) [m/s^2] each tick, half a period after
-    the plant's, until ``command_until`` [s]; then silence. Returns the states heard and the plant's log."""
+    the plant's, until ``command_until`` [s]; then silence. ``forge`` (from, until) [s]: meanwhile,
+    after each command, a forger's copy of it with u = (20, 0, 0) (same tick, same number). Returns
+    the states heard and the plant's log."""
     path = mission(tmp, name, duration)
     port = tp.free_tcp_port()
     log = tmp / f"{name}.log"
@@ -104,6 +114,8 @@ def fly(tmp: Path, name: str, duration: float, command_until: float, operator: t
                 states = agent.snapshot()
                 vz = states[-1].vel[2] if states else 0.0
                 agent.command(k, [1.0, 0.0, -2.0 * vz])
+                if forge is not None and forge[0] <= k * H < forge[1]:
+                    agent.forge(k, [20.0, 0.0, 0.0])
                 if operator is not None and k == round(operator[0] * RATE):
                     agent.operator(operator[1])
             assert proc.wait(timeout=duration + 60) == 0, log.read_text()[-3000:]
@@ -158,3 +170,28 @@ def test_operator_estop_cuts_thrust_and_the_vehicle_falls_to_the_ground(tmp_path
     down = t[k_e:][p[k_e:, 2] <= 1e-9]
     assert down.size and down[0] - t[k_e] <= fall + 3 * H
     assert p[-1, 2] == 0.0 and "operator estop" in log
+
+
+def test_two_commands_for_one_tick_are_flown_as_none_and_said(tmp_path: Path) -> None:
+    """A forger copies each command with u = (20, 0, 0) for 1 s: every tick is contested, so neither
+    command is flown (the vehicle never accelerates beyond the genuine 1 m/s^2 along x); the plant
+    says so on its state (``plant: command of tick ... contested``), judges the stream suspect, holds
+    after cmd_timeout, and flies again once the forgery has stopped and the stream is trusted."""
+    s = ms.Safety()
+    at, until = 2.0, 3.0
+    states, log = fly(tmp_path, "wdforged", 7.0, 6.5, forge=(at, until))
+    t = np.array([m.t for m in states])
+    mode = np.array([m.mode for m in states])
+    a = np.array([m.a for m in states])
+    events = [(e.t, e.reason) for m in states for e in m.events]
+    print(f"\nevents: {events}\nmax a_x {a[:, 0].max():.2f} m/s^2")
+    assert a[:, 0].max() < 1.5  # the forged 20 m/s^2 never flown (nor max_accel); HOLD brakes backwards
+    contested = [tt for tt, r in events if r.startswith("plant: command of tick") and "contested" in r]
+    assert contested and at <= contested[0] <= at + 0.2
+    assert any(r == "plant: commands mostly contested (a second sender on the key): none trusted" for _, r in events)
+    assert all(r.startswith("plant: ") for _, r in events)
+    hold = t[mode == wire.HOLD]
+    assert len(hold) and at + s.cmd_timeout <= hold[0] <= until + s.cmd_timeout + 0.1
+    assert mode[t < at].tolist() == [wire.FLYING] * int((t < at).sum())
+    assert (mode[(t >= until + 1.0) & (t < 6.5)] == wire.FLYING).all()  # trusted again, commands back
+    assert "contested" in log and "commands in conflict" in log
