@@ -5,7 +5,8 @@ Commands leave an agent only through :meth:`Supervisor.command`. Modes (codes in
 
 =========  =====================================================================================
 FLYING     the law's command (Eq. 17), saturated to ``max_accel``
-HOLD       brake to zero velocity and keep the position where HOLD began (:func:`tether.failsafe.hold`)
+HOLD       brake to zero velocity and come to rest where the brake stops the vehicle
+           (:func:`tether.failsafe.hold` about :func:`anchor`)
 LAND       hold horizontally, descend at ``land_speed`` to ``ground`` (:class:`tether.failsafe.Landing`)
 LANDED     on the ground and still: a zero command, the plant rests (disarmed)
 ESTOP      motors off: a zero command the plant obeys by cutting thrust (terminal)
@@ -130,6 +131,7 @@ class Supervisor:
         self.since = 0.0
         """When the current mode (or HOLD's cause) began [s]."""
         self.p_hold: list[float] | None = None
+        """Where HOLD and LAND keep the vehicle [m] (:func:`anchor`; None: not holding, or no finite position yet)."""
         self.lost: frozenset[int] = frozenset()
         """In-neighbours (agents) whose edges are dropped."""
         self.suspect: frozenset[int] = frozenset()
@@ -227,26 +229,26 @@ class Supervisor:
         zero = [0.0] * len(p)
         if self.mode in (LANDED, ESTOP):
             if self.mode == LANDED and status.operator == "estop":
-                self._go(k, t, ESTOP, "operator estop", p)
+                self._go(k, t, ESTOP, "operator estop", p, v)
             return zero
         # orders and hard limits, strongest first
         if status.operator == "estop":
-            self._go(k, t, ESTOP, "operator estop", p)
+            self._go(k, t, ESTOP, "operator estop", p, v)
             return zero
         if status.operator == "land" and self.mode != LAND:
-            self._go(k, t, LAND, "operator land", p)
+            self._go(k, t, LAND, "operator land", p, v)
         if status.plant_mode in (LAND, LANDED, ESTOP) and self.mode in (FLYING, HOLD):
             # the plant's watchdog has taken over (it never flies again): stop flying the law and land.
             # Never ESTOP on a report: only the operator and this supervisor's own checks cut motors
-            self._go(k, t, LAND, f"plant reports {mode_name(status.plant_mode)}: not flying the law", p)
+            self._go(k, t, LAND, f"plant reports {mode_name(status.plant_mode)}: not flying the law", p, v)
         if self.mode == FLYING or self.mode == HOLD:
             why = self._diverged(u, xi, kp, kv)
             if why is not None:
-                self._act(k, t, cfg.divergence_action, why, p)
+                self._act(k, t, cfg.divergence_action, why, p, v)
                 if self.diverged is None:
                     self.diverged = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=FLYING, dst=self.mode, reason=why)
             elif (breach := self._fence_breach(p, v)) is not None:
-                self._act(k, t, cfg.geofence.action if cfg.geofence is not None else "land", breach, p)
+                self._act(k, t, cfg.geofence.action if cfg.geofence is not None else "land", breach, p, v)
         if self.mode == ESTOP:
             return zero
         if self.mode in (FLYING, HOLD):
@@ -268,15 +270,15 @@ class Supervisor:
                 cause = "unreachable"
                 why = f"{_listed(sorted(self.missing))} lost and the leader no longer reaches this agent"
             if self.mode == FLYING and cause:
-                self._go(k, t, HOLD, why, p)
+                self._go(k, t, HOLD, why, p, v)
                 self.cause, self.latched = cause, cause == "speed"
             elif self.mode == HOLD and not self.latched and cause and cause != self.cause:
                 self.cause = cause  # another reason keeps it holding; the clock to LAND runs on
             elif self.mode == HOLD:
                 if not cause and not self.latched:
-                    self._go(k, t, FLYING, f"{self.cause} recovered", p)
+                    self._go(k, t, FLYING, f"{self.cause} recovered", p, v)
                 elif t - self.since >= cfg.land_after:
-                    self._go(k, t, LAND, f"held for {cfg.land_after:g} s ({self.cause})", p)
+                    self._go(k, t, LAND, f"held for {cfg.land_after:g} s ({self.cause})", p, v)
         if self.mode == FLYING:
             out = failsafe.saturate(u, cfg.max_accel)
             if out is None:  # cannot be: a non-finite u in FLYING or HOLD is a divergence above, whose action
@@ -286,12 +288,12 @@ class Supervisor:
         if self.p_hold is None:  # HOLD or LAND began on a position that was not finite: the first finite one
             if not all(map(math.isfinite, p)):
                 return zero  # nowhere known to hold: no push anywhere (the measurement's gate keeps this rare)
-            self.p_hold = [float(x) for x in p]
+            self.p_hold = anchor(cfg, p, v)
         if self.mode == HOLD:
             return failsafe.hold(p, v, self.p_hold, cfg.hold_kp, cfg.hold_kv, cfg.max_accel)
         # LAND
         if failsafe.landed(p, v, cfg.ground, t - self.since, cfg.land_settle):
-            self._go(k, t, LANDED, failsafe.why_landed(p, v, t - self.since), p)
+            self._go(k, t, LANDED, failsafe.why_landed(p, v, t - self.since), p, v)
             return zero
         if self._landing is None:
             self._landing = failsafe.Landing(cfg.hold_kp, cfg.hold_kv, cfg.max_accel, cfg.land_speed, cfg.ground)
@@ -349,21 +351,20 @@ class Supervisor:
         self._event(k, t, self.mode, "; ".join(words))
         self.suspect = now
 
-    def _act(self, k: int, t: float, action: str, why: str, p: Vec) -> None:
+    def _act(self, k: int, t: float, action: str, why: str, p: Vec, v: Vec) -> None:
         target = {"hold": HOLD, "land": LAND, "estop": ESTOP}[action]
         if target == HOLD:
             self.latched = True
             self.cause = why.split(":")[0]
         if self.mode != target:
-            self._go(k, t, target, why, p)
+            self._go(k, t, target, why, p, v)
 
-    def _go(self, k: int, t: float, mode: int, why: str, p: Vec) -> None:
+    def _go(self, k: int, t: float, mode: int, why: str, p: Vec, v: Vec) -> None:
         if mode == self.mode:
             return
         if mode in (HOLD, LAND) and (self.p_hold is None or self.mode == FLYING):
-            held = [float(x) for x in p]
             # never a made-up point (the origin would fly it across the arena): wait for a finite one
-            self.p_hold = held if all(map(math.isfinite, held)) else None
+            self.p_hold = anchor(self.cfg, p, v) if all(map(math.isfinite, p)) else None
         self._event(k, t, mode, why)
         self.mode = mode
         self.since = t
@@ -372,6 +373,23 @@ class Supervisor:
         ev = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=self.mode, dst=mode, reason=why)
         self.events.append(ev)
         self._new.append(ev)
+
+
+def anchor(cfg: Safety, p: Vec, v: Vec) -> list[float]:
+    """Where HOLD (and LAND) keeps a vehicle that begins it at ``p`` [m] moving at ``v`` [m/s]:
+    where its brake brings it to rest (:func:`tether.failsafe.hold_point`, never below ``ground``
+    in 3D). An anchor at ``p`` itself made a fast vehicle overshoot by its stopping distance and
+    fly back through the one behind it. Where that point is outside the geofence box, the anchor
+    is ``p`` brought into the box: the fence's prediction (:func:`tether.failsafe.fence_breach`)
+    keeps a vehicle braking about ``p`` inside, and an anchor on the fence itself would be
+    overshot. The plant's watchdog anchors its own HOLD and LAND the same way
+    (:meth:`plant.watchdog.Watchdog.anchor`)."""
+    p = vec.floats(p)
+    out = failsafe.hold_point(p, vec.floats(v), cfg.hold_kp, cfg.max_accel, cfg.ground if len(p) >= 3 else None)
+    fence = cfg.geofence
+    if fence is None or all(lo <= x <= hi for x, lo, hi in zip(out, fence.min, fence.max)):
+        return out
+    return failsafe.inside(p, fence.min, fence.max)
 
 
 REPORT_FLYING, REPORT_HOLD, REPORT_STOPPED = range(3)

@@ -27,9 +27,12 @@ after the cut-off a vehicle lands instead of falling, and it enforces the missio
       once it is back, -> FLYING if a valid command is fresh (the agent has resumed), else -> LAND at once
 
 * FLYING flies the agent's command, saturated to ``safety.max_accel`` (:func:`tether.failsafe.saturate`);
-* HOLD flies :func:`tether.failsafe.hold` about the position where HOLD began (brake to zero
-  velocity; a quadrotor levels and hovers, its inner loop flying the acceleration command);
-* LAND flies :class:`tether.failsafe.Landing` down to ``safety.ground`` (about the same horizontal position);
+* HOLD flies :func:`tether.failsafe.hold` about its anchor (brake to zero velocity; a quadrotor
+  levels and hovers, its inner loop flying the acceleration command): where that brake brings the
+  vehicle to rest from the position and velocity HOLD began with (:meth:`Watchdog.anchor`, the
+  agent supervisor's :func:`agent.safety.anchor`), so that it never turns back through the vehicle
+  behind it; a landing at the geofence keeps the fence's nearest point instead;
+* LAND flies :class:`tether.failsafe.Landing` down to ``safety.ground`` (about the same anchor);
 * LANDED and ESTOP command zero: what the vehicle then does (rest where it touched down; motors
   off) is the plant's to model (:mod:`plant.rest`, :class:`plant.crazyflie.CrazyfliePlant`).
 
@@ -142,7 +145,8 @@ class Watchdog:
     t0: float = 0.0
     mode: int = FLYING
     p_hold: list[float] | None = None
-    """Where HOLD (or LAND) began [m], the position it keeps."""
+    """Where HOLD (or LAND) keeps the vehicle [m]: :meth:`anchor` of the measurement it began on, or
+    the geofence's nearest point for a vehicle outside the box."""
     invalid: dict[str, int] = field(default_factory=dict)
     """Commands rejected, by reason (the keys of :data:`WHY`)."""
     garbled: int = 0
@@ -279,21 +283,21 @@ class Watchdog:
         elif operator == "land" and not self._operator_land:
             self._operator_land = True
             if self.mode in (FLYING, HOLD):
-                if self.mode == FLYING and measured:
-                    self.p_hold = pl
+                if self.mode == FLYING and pl is not None and vl is not None:
+                    self.p_hold = self.anchor(pl, vl)
                 go(LAND, "operator land")
         age = self.age(t)
         if pl is not None and vl is not None and self.mode in (FLYING, HOLD):
             self._envelope(t, pl, vl, go)
         if self.mode == FLYING:
-            if not measured:
+            if pl is None or vl is None:
                 self._blind = True
                 go(HOLD, blind)
             elif age > s.cmd_timeout:
-                self.p_hold = pl
+                self.p_hold = self.anchor(pl, vl)
                 go(HOLD, f"no valid command for {age:.2f} s")
         elif self.mode == HOLD:
-            if not measured:
+            if pl is None or vl is None:
                 self._blind = True
             elif self.latched:
                 if t - self._since >= s.land_after:
@@ -303,12 +307,12 @@ class Watchdog:
                 go(FLYING, f"command back ({age:.2f} s old)")
             elif self._blind:  # the measurement is back but the agent is not: land now
                 self._blind = False
-                self.p_hold = pl
+                self.p_hold = self.anchor(pl, vl)
                 go(LAND, f"measurement back, no valid command for {age:.2f} s")
             elif age >= s.cmd_cutoff:
                 go(LAND, f"no valid command for {age:.2f} s")
-        if self.mode in (HOLD, LAND) and self.p_hold is None and measured:
-            self.p_hold = pl  # HOLD began without a measurement
+        if self.mode in (HOLD, LAND) and self.p_hold is None and pl is not None and vl is not None:
+            self.p_hold = self.anchor(pl, vl)  # HOLD began without a measurement
         if self.mode == LAND and pl is not None and vl is not None and \
                 failsafe.landed(pl, vl, s.ground, t - self._since, s.land_settle):
             go(LANDED, "on the ground" if self.dim == 3 else failsafe.why_landed(pl, vl, t - self._since))
@@ -333,6 +337,19 @@ class Watchdog:
             self._saturation(t, None, events)
         return Decision(self.mode, u, tuple(events), landing=self._agent_mode == LAND)
 
+    def anchor(self, p: list[float], v: list[float]) -> list[float]:
+        """Where HOLD and LAND keep a vehicle that begins them at ``p`` [m] moving at ``v`` [m/s]:
+        where their brake brings it to rest (:func:`tether.failsafe.hold_point`; 3D: never below
+        ``ground``); where that point is outside the geofence box, ``p`` brought into the box (the
+        fence's prediction keeps a vehicle braking about ``p`` inside). The agent's supervisor
+        computes the same point (:func:`agent.safety.anchor`)."""
+        s = self.safety
+        out = failsafe.hold_point(p, v, s.hold_kp, s.max_accel, s.ground if self.dim >= 3 else None)
+        fence = s.geofence
+        if fence is None or all(lo <= x <= hi for x, lo, hi in zip(out, fence.min, fence.max)):
+            return out
+        return failsafe.inside(p, fence.min, fence.max)
+
     def _envelope(self, t: float, p: list[float], v: list[float], go: Callable[[int, str], None]) -> None:
         """The mission's envelope, FLYING or HOLD, measured (module docstring)."""
         s = self.safety
@@ -353,10 +370,10 @@ class Watchdog:
             return
         speed = norm(v)
         if speed > s.max_speed:
-            self.p_hold, self.latched = p, "speed"
+            self.p_hold, self.latched = self.anchor(p, v), "speed"
             go(HOLD, f"speed {speed:.3g} m/s beyond max_speed {s.max_speed:g} m/s")
         elif breach is not None and self._agent_mode == FLYING:
-            self.p_hold, self.latched = p, "geofence"
+            self.p_hold, self.latched = self.anchor(p, v), "geofence"
             go(HOLD, f"geofence: {breach} ({speed:.3g} m/s)")
 
     def _saturation(self, t: float, u: list[float] | None, events: list[Event]) -> None:

@@ -21,8 +21,8 @@ Python engine's bit for bit, its safety events worded the same (``tests/test_loc
   the supervisor's link check (the leader silent; an in-neighbour silent, or believed to stop or to
   hold from its mode reports; the leader's reach over the survivors; edges dropped and kappa
   re-normalised; holding neighbours followed), ``AgentLaw.step``, the
-  supervisor's bounds, HOLD and its recovery, LAND and LANDED in 2D (``failsafe.landed``),
-  ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
+  supervisor's bounds, HOLD (anchored at ``failsafe.hold_point``) and its recovery, LAND and
+  LANDED in 2D (``failsafe.landed``), ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
   ``plant/double_integrator.py`` (a LANDED vehicle resting, as ``plant.rest.Resting`` has it); the events it records are worded by
   :func:`_events` as ``agent.safety.Supervisor`` words them.
 
@@ -364,6 +364,9 @@ def _norm_py(x: np.ndarray, i: int) -> float:
 
 _norm = kernel.jit(_norm_py)
 
+_stopping = kernel.jit(failsafe.stopping_distance)
+""":func:`tether.failsafe.stopping_distance` itself, compiled: HOLD's anchor is the supervisor's float for float."""
+
 
 def _event_py(events: np.ndarray, fired: np.ndarray, k: int, i: int, src: int, dst: int, kind: int, m1: int,
               m2: int) -> bool:
@@ -635,8 +638,17 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         return k  # HOLD with nowhere to hold: the Python engine's (a zero command)
                 change, kind = hold, why
                 cause[i] = why
-                for c in range(d):
-                    p_hold[i, c] = p[i, c]
+                # agent.safety.anchor: failsafe.hold_point (3D: floor at the ground; no geofence here)
+                speed = _norm(v, i)
+                if speed > 0.0 and math.isfinite(speed):
+                    scale = _stopping(speed, hold_kp, max_accel) / speed
+                    for c in range(d):
+                        p_hold[i, c] = p[i, c] + v[i, c] * scale
+                    if three and p_hold[i, d - 1] < ground:
+                        p_hold[i, d - 1] = ground if p[i, d - 1] >= ground else p[i, d - 1]
+                else:
+                    for c in range(d):
+                        p_hold[i, c] = p[i, c]
             elif active and mode[i] == hold and why != 0 and why != cause[i]:
                 cause[i] = why  # another reason keeps it holding; the clock to LAND runs on
             elif active and mode[i] == hold:

@@ -16,7 +16,7 @@ from plant.disturbance import DisturbanceBank
 from sim import lockstep, lockstep_kernel, sweep
 from tests.factories import build, random_mission
 from tether import mission as ms
-from tether import wire
+from tether import failsafe, wire
 from tether.catalog import builtin_path
 from tether.inputs import Source
 from tether.netprofile import Bernoulli, Corrupt, Delay, GilbertElliott, LinkProfile, LinkRule, Network, Rate, Reorder
@@ -318,8 +318,44 @@ def test_a_silent_leader_lands_every_agent_in_2d_as_in_the_python_engine(settle:
     assert (run.safety.safety_mode[-1] == wire.LANDED).all()
     if settle < 1.0:
         assert any(why.startswith("landing held 0.20 s (land_settle), still moving at") for why in reasons)
-    else:
-        assert reasons.count("still") == 4
+    else:  # each still, or stopped by land_settle in the last centimetres before its anchor
+        assert sum(why == "still" or why.startswith("landing held 5.00 s") for why in reasons) == 4
+
+
+def test_a_hold_and_a_landing_at_speed_are_anchored_as_in_the_python_engine() -> None:
+    """The leader lost at 15 s, the vehicles at about 8 m/s: each HOLD is anchored where its brake
+    brings it to rest (failsafe.hold_point, compiled from its own stopping_distance), then 2D LAND
+    and LANDED about that anchor; the twin's floats are the supervisor's, and no vehicle turns back."""
+    m = load_mission(builtin_path("section4"), 24.0)
+    net = Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=15.0, src=m.leader.id),))
+    run = compiled_equals_python(replace(m, netem=net))
+    dst = [ev.dst for ev in run.safety.events if ev.src != ev.dst]
+    assert wire.HOLD in dst and wire.LAND in dst and wire.LANDED in dst
+    k = int(np.argmax(run.safety.safety_mode[:, 0] == wire.HOLD))
+    speed = float(np.linalg.norm(run.v[k, 0]))
+    assert speed > 5.0  # at speed, as on a formation braking on an order
+    rest = int(np.argmax(run.safety.safety_mode[:, 0] == wire.LANDED))
+    along = (run.v[k:rest] * run.v[k]).sum(axis=-1)  # every vehicle's velocity along its own at HOLD
+    assert (along >= -0.2 * speed).all()  # a sway at most (the disturbances), never back through the formation
+
+
+def test_a_3d_hold_descending_at_speed_is_anchored_at_the_ground_as_in_the_python_engine() -> None:
+    """3D, vehicles diving at 6 m/s three metres above the ground when the leader goes silent: the
+    anchor's height is clamped to the ground (hold_point's floor), in the twin as in the supervisor."""
+    m = random_mission(np.random.default_rng(5), 3, dim=3, duration=0.4)
+    m = replace(m, agents=[replace(a, p0=[a.p0[0], a.p0[1], 1.0], v0=[3.0, 0.0, -6.0]) for a in m.agents],
+                safety=replace(m.safety, ground=-2.0, land_after=5.0, leader_timeout=0.1),
+                netem=Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=0.05,
+                                              src=m.leader.id),)))
+    run = compiled_equals_python(m)
+    holds = [ev for ev in run.safety.events if ev.dst == wire.HOLD]
+    assert holds
+    for ev in holds:  # braking from here would take it below the ground: the anchor's floor is used
+        i = list(run.agent_ids).index(ev.vehicle)
+        k = int(round(ev.t * m.rate))
+        p, v = run.p[k, i].tolist(), run.v[k, i].tolist()
+        assert failsafe.hold_point(p, v, m.safety.hold_kp, m.safety.max_accel)[2] < m.safety.ground
+        assert failsafe.hold_point(p, v, m.safety.hold_kp, m.safety.max_accel, m.safety.ground)[2] == m.safety.ground
 
 
 def test_a_3d_landing_is_left_to_the_python_engine() -> None:

@@ -13,6 +13,7 @@ from plant.rest import Resting
 from plant.vehicle import G
 from plant.watchdog import ABSURD, Watchdog
 from tests import factories
+from tether import failsafe
 from tether import mission as ms
 from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED
 
@@ -219,7 +220,10 @@ def test_a_non_finite_measurement_is_no_measurement(resumed: bool) -> None:
     d = dog.step((last + 1) * H, veh.p, veh.v)
     assert d.mode == (FLYING if resumed else LAND), d.events
     if not resumed:
-        assert dog.p_hold == veh.p.tolist()  # lands where it is measured again
+        # lands where its brake brings it to rest from where it is measured again
+        assert dog.p_hold == failsafe.hold_point(veh.p.tolist(), veh.v.tolist(), SAFETY.hold_kp, SAFETY.max_accel,
+                                                 SAFETY.ground)
+        assert dog.p_hold[0] > veh.p[0]  # ahead of it: it moves on at 0.2 m/s
     assert all(np.isfinite(d.u))
 
 
