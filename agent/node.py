@@ -230,13 +230,21 @@ async def run(node: Node) -> None:
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
-        # the vehicle is gone (its plant withdrew or died) or its measurements stopped: the
-        # supervisor holds on the last one it had (its plant's own watchdog holds the vehicle too);
-        # the agent relays nothing meanwhile, so its neighbours count it out
-        plant_silent = not lockstep and k < m.steps and (own_inputs[0].silent_at(k) or t - own.t > sf.cmd_timeout)
-        if plant_silent != holding:
-            log.warning("plant %d is %s at t = %.2f s", aid, "silent: holding" if plant_silent else "back", t)
-            holding = plant_silent
+        # the vehicle is gone (its plant withdrew or died) or its measurements stopped: the agent
+        # sends no command (one computed from its last measurement would be flown on the vehicle as
+        # it is now: a stale HOLD flew a vehicle 38 m backwards at 20 m/s), so that the plant's own
+        # watchdog holds the vehicle on its fresh measurement (no valid command for cmd_timeout),
+        # then lands it (cmd_cutoff); the supervisor holds meanwhile (cause "plant", LAND after
+        # land_after, as the watchdog does), and the agent relays nothing, so its neighbours count it out
+        stale = not lockstep and (own_inputs[0].silent_at(k) or t - own.t > sf.cmd_timeout)
+        plant_silent = stale and k < m.steps
+        silence: list[wire.SafetyEvent] = []
+        if stale != holding:
+            why = (f"plant silent (newest sample {own.t:.2f} s): no command sent until it is back; its watchdog "
+                   "holds the vehicle on its own measurement" if stale else "plant back: commands sent again")
+            mode = tick.supervisor.mode  # an event, logged below with the supervisor's
+            silence.append(wire.SafetyEvent(k=k, t=t, vehicle=aid, src=mode, dst=mode, reason=why))
+            holding = stale
         heard: list[Heard | None] = [None if msg is None else (msg.t, msg.p, msg.vel, msg.a) for msg in got]
         said = [wire.FLYING if msg is None else msg.mode for msg in got]
         suspect = frozenset(j for j, s in judged if s.health is not None and s.health.suspect)
@@ -267,11 +275,11 @@ async def run(node: Node) -> None:
                 ramp = None
         else:
             u = out.u
-        if cmd is not None:
-            cmd.send(wire.Command, k, t, u=u, mode=out.mode)
-        else:
+        if cmd is None:
             last_cmd = wire.Command(sender=aid, seq=k, k=k, t=t, u=u, mode=out.mode)
-        events = tick.supervisor.take_events()
+        elif not stale:
+            cmd.send(wire.Command, k, t, u=u, mode=out.mode)
+        events = silence + tick.supervisor.take_events()
         for ev in events:
             log.warning("safety: t = %.2f s: %s -> %s: %s", ev.t, wire.MODES[ev.src], wire.MODES[ev.dst], ev.reason)
         links = []

@@ -386,3 +386,42 @@ def test_a_token_back_within_the_confirmation_delay_is_still_reported_as_a_freez
                 mon.close()
 
     asyncio.run(main())
+
+
+# =========================================================================== a silent plant: no stale command
+SILENT_AT, SILENT_FOR = 4.0, 1.5
+
+
+def test_an_agent_sends_no_command_while_its_plant_is_silent(tmp_path: Path) -> None:
+    """Plant 2 frozen for 1.5 s: its agent, hearing nothing from it, sends no command at all from
+    the moment it calls the plant silent until it hears it again (a command computed from its last
+    measurement would be flown on the vehicle as it is now), says so once each way, and flies on;
+    the plant's watchdog, back, holds on its own measurement until a fresh command comes."""
+    ns = f"silentplant-{os.getpid()}"
+    attach = tp.loopback_endpoint(tp.free_tcp_port())
+    with launch(tmp_path, ns, "--clock", "realtime", "--duration", "12", "--listen", attach, "--insecure",
+                "--fault", f"freeze:plant/2@{SILENT_AT:g}+{SILENT_FOR:g}") as run:
+        wait_for_realtime_start(run)
+        client = PlainClient(attach)
+        sent: list[float] = []
+        try:
+            client.subscribe(f"tether/{ns}/agent/2/cmd")
+            while not sent or sent[-1] < SILENT_AT + SILENT_FOR + 3.0:
+                _, msg = client.next_matching(lambda k, m: isinstance(m, wire.Command), STARTUP, "agent 2's commands")
+                sent.append(msg.t)
+        finally:
+            client.close()
+        run.wait(STARTUP + 30)
+    log = run.child_log("agent/2")
+    assert log.count("no command sent until it is back") == 1, log
+    assert log.count("plant back: commands sent again") == 1, log
+    rec = Run.load(run.out)
+    said = [e for e in rec.safety.events if e.vehicle == 2 and e.src == e.dst and e.reason.startswith("plant ")]
+    assert [e.reason.split(" ")[1] for e in said] == ["silent", "back:"], said
+    quiet, back = said[0].t, said[1].t
+    assert SILENT_AT < quiet < back and back - quiet >= SILENT_FOR - 0.6
+    assert not [t for t in sent if quiet <= t < back], (quiet, back)  # nothing while silent
+    assert [t for t in sent if t >= back]  # and commands again once it is back
+    plant = run.child_log("plant/2")  # back, its watchdog held until a fresh command came
+    assert re.search(r"FLYING -> HOLD at [0-9.]+ s: no valid command for", plant), plant
+    assert "command back" in plant, plant
