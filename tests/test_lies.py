@@ -11,11 +11,18 @@ stretch of the run, then the run file is read back. What is asserted:
   leave FLYING, and the agent counts the contradiction;
 * the leader drifts at 0.5 m/s (each forged sample the next tick's, a plausible step ahead of the
   genuine one): agent 1 rejects it as ``profile``, judges the leader's stream suspect, holds, and no
-  vehicle is steered more than 2 m from where the true leader's formation wants it.
+  vehicle is steered more than 2 m from where the true leader's formation wants it;
+* ``agent/2/cmd`` carries, for 1 s, a copy of each genuine command with u = (20, 0): plant 2 flies
+  neither command of a contested tick, says so, holds while no command is trusted, and vehicle 2
+  stays within 4 m more than before of its slot (it holds while the formation flies on).
+
+The forger forges only from genuine samples it heard: it hears its own forgeries too, and one that
+forged from those would flood the key.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
@@ -39,7 +46,8 @@ pytestmark = pytest.mark.slow
 AT, FOR, DURATION = 6.0, 5.0, 20.0
 """The forgery starts at AT [s of mission time] and lasts FOR [s]; the run lasts DURATION [s]."""
 
-Forge = Callable[[wire.State | wire.PlantState, float], wire.State | wire.PlantState]
+Sample = wire.State | wire.PlantState | wire.Command
+Forge = Callable[[Sample, float], Sample]
 """A forged sample from a genuine one and the attack's age [s]."""
 
 
@@ -58,10 +66,15 @@ def drift(msg, age):  # type: ignore[no-untyped-def]
     return msgspec.structs.replace(msg, seq=msg.seq + 1, k=msg.k + 1, t=(msg.k + 1) * h, p=p)
 
 
+def push(msg, age):  # type: ignore[no-untyped-def]
+    return msgspec.structs.replace(msg, u=[20.0, 0.0])  # the genuine command of that tick, u replaced
+
+
 CASES = {
     "agent-hold": ("agent/1/state", hold, FOR),
     "plant-estop": ("plant/2/state", estop, 0.0),  # one sample
     "leader-drift": ("leader/5/state", drift, FOR),
+    "cmd-push": ("agent/2/cmd", push, 1.0),
 }
 
 
@@ -81,17 +94,22 @@ def attack(tmp: Path, case: str) -> tuple[Run, str, int]:
             _, first = client.next_matching(lambda k, m: k == full, STARTUP, f"a sample on {key}")
             forged = 0
             start: float | None = None
-            last = -1
+            mine: dict[tuple[int, int], Sample] = {}
+            """Every sample this forger published, by (k, seq): it hears them too, and forges only
+            from genuine samples (a forgery of a forgery would flood the key, one more a tick). The
+            contents tell them apart too: a forgery of the next tick takes the number the genuine
+            sample of that tick will have."""
             while True:  # forge from each genuine sample heard, from mission time AT for span seconds
                 _, msg = client.next_matching(lambda k, m: k == full and m.sender == first.sender, STARTUP, key)
-                if msg.t < AT or msg.k <= last:  # the client hears its own forgeries too: one a tick
+                if msg.t < AT or mine.get((msg.k, msg.seq)) == msg:
                     continue
-                last = msg.k
                 start = msg.t if start is None else start
                 age = msg.t - start
                 if age > span:
                     break
-                pub.put(wire.encode(forge(msg, age)))
+                lie = forge(msg, age)
+                mine[(lie.k, lie.seq)] = lie
+                pub.put(wire.encode(lie))
                 forged += 1
             assert forged >= 1
         finally:
@@ -112,25 +130,39 @@ def mode_changes(rec: Run) -> int:
     return len([e for e in rec.safety.events if e.src != e.dst])
 
 
-def min_separation(rec: Run) -> float:
-    p = rec.p
+SEPARATION, SEPARATION_LOADED = 0.3, 0.1
+"""Least distance between two vehicles [m]: while an attack lasts and for :data:`SETTLE` after it,
+and over the whole run. A busy host stalls every process at once now and then (every agent says
+"plant silent" at the same instant: the machine, not the attack; measured 0.19-0.28 m with a load
+average of 13 on 2 cores, the attack long over); the issue's floor for load is 0.1 m."""
+SETTLE = 3.0
+"""Seconds after an attack ends that its consequences are judged over."""
+
+
+def min_separation(rec: Run, since: float = 0.0, until: float = math.inf) -> float:
+    span = (rec.t >= since) & (rec.t <= until)
+    p = rec.p[span]
     n = p.shape[1]
     return min(float(np.nanmin(np.linalg.norm(p[:, i] - p[:, j], axis=-1))) for i in range(n) for j in range(i + 1, n))
 
 
 @pytest.mark.parametrize("case", [
-    "agent-hold", "plant-estop", "leader-drift"])
+    "agent-hold", "plant-estop", "leader-drift", "cmd-push"])
 def test_a_plausible_lie_is_caught_or_bounded(tmp_path: Path, case: str) -> None:
     m = load_mission(builtin_path("section4"))
     rec, plant_log, forged = attack(tmp_path, case)
     err = true_error(rec, m)
     modes = rec.safety.safety_mode
-    print(f"{case}: true error max {np.nanmax(err):.3f} m, mode changes {mode_changes(rec)}, "
-          f"min separation {min_separation(rec):.3f} m, events {[(e.vehicle, round(e.t, 2), e.reason) for e in rec.safety.events]}")
+    _, _, span = CASES[case]
+    near = min_separation(rec, AT, AT + span + SETTLE)
+    print(f"{case}: {forged} forged; true error max {np.nanmax(err):.3f} m, mode changes {mode_changes(rec)}, "
+          f"min separation {near:.3f} m during the attack and {SETTLE:g} s after, {min_separation(rec):.3f} m "
+          f"overall, events {[(e.vehicle, round(e.t, 2), e.reason) for e in rec.safety.events]}")
     assert not (modes == wire.ESTOP).any() and "ESTOP" not in plant_log  # the real plant 2's own log
-    assert min_separation(rec) > 0.3
+    assert near > SEPARATION and min_separation(rec) > SEPARATION_LOADED
     if case == "plant-estop":
-        assert (modes[:, 1] == wire.FLYING).all() and mode_changes(rec) == 0
+        # agent 2 (row 1) never leaves FLYING because of the report (a host stall may hold it for a while)
+        assert not any("ESTOP" in e.reason or "plant reports" in e.reason for e in rec.safety.events)
     elif case == "agent-hold":
         assert mode_changes(rec) <= 3 * len(m.agents)
         # agent 2 (row 1) hears agent 1: most forged copies were caught as conflicts (a copy more than
@@ -143,6 +175,19 @@ def test_a_plausible_lie_is_caught_or_bounded(tmp_path: Path, case: str) -> None
         # judged suspect (agent 2 holds, its followers follow it), or the forgery never moved a mode
         suspect = any("neighbour 1 mostly rejected" in e.reason for e in rec.safety.events if e.vehicle == 2)
         assert suspect or (modes[:, 1:] == wire.FLYING).all()
+    elif case == "cmd-push":
+        # plant 2 flies neither command of a contested tick, says so and holds while it goes on;
+        # vehicle 2 is never pushed out of the formation
+        said = [e for e in rec.safety.plant_events if e.vehicle == 2 and e.reason.startswith("plant: ")]
+        print(f"cmd-push: plant 2 said {[(round(e.t, 2), e.reason) for e in said]}")
+        assert any("contested" in e.reason for e in said), said
+        assert "contested" in plant_log
+        during = (rec.t >= AT) & (rec.t <= AT + span + SETTLE)
+        print(f"cmd-push: vehicle 2's true error during the attack: max {np.nanmax(err[during, 1]):.3f} m, "
+              f"before it {np.nanmax(err[rec.t < AT, 1]):.3f} m")
+        # it holds (no command trusted) for about 0.8 s while the formation flies on: measured 3.4 m
+        # against 1.2 m before; the forged 20 m/s^2 flown for 1 s pushed it 9-11 m out
+        assert float(np.nanmax(err[during, 1])) < np.nanmax(err[rec.t < AT, 1]) + 4.0
     else:
         reasons = [e.reason for e in rec.safety.events if e.vehicle == 1]
         assert any("leader mostly rejected" in r for r in reasons)
