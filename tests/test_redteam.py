@@ -8,8 +8,9 @@ one ``plant/2/state`` saying ESTOP at 10 s. The full table is ``python bench/red
 
 The defended behaviour is what issue #42 asks for: the plant drops a command whose stamp is not its
 tick's and says so; an agent never e-stops its real plant because of a report it heard; no vehicle
-leaves its envelope. Until those fixes are in, those assertions are expected failures
-(``xfail(strict=False)``: they pass silently the day the fix lands, and then the mark goes).
+leaves its envelope. The envelope, the forged ESTOP report and the formation error hold; that both
+forgeries are detected within DETECT_WITHIN is still an expected failure (``xfail(strict=False)``:
+it passes silently the day the fix lands, and then the mark goes).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ ERR_LAST10 = 5.0
 host loaded by other work reached 3.0 m (vehicles held for late ticks and caught up; the ``none``
 row of ``docs/results/redteam.md``), a vehicle that flies away reaches tens of metres."""
 
-NOT_YET = "issue #42: the plant takes any stamp, an agent believes a forged ESTOP report (not fixed yet)"
+NOT_YET = "issue #42: a forgery's detection within DETECT_WITHIN is not yet seen by this analysis"
 
 
 @dataclass(frozen=True)
@@ -84,14 +85,12 @@ def test_the_attack_was_made_and_the_truth_heard(attacked: Attacked) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=NOT_YET)
 def test_no_vehicle_leaves_its_envelope(attacked: Attacked) -> None:
     assert attacked.res["left"] == {}, attacked.res["left"]
     assert attacked.res["speed_max"] <= 30.0
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=NOT_YET)
 def test_a_forged_estop_report_stops_no_motor(attacked: Attacked) -> None:
     """Only the operator's e-stop and the agent's own supervisor may stop a vehicle's motors."""
     stopped = [e for e in attacked.res["events"] if e["to"] == "ESTOP"]
@@ -100,7 +99,6 @@ def test_a_forged_estop_report_stops_no_motor(attacked: Attacked) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=NOT_YET)
 def test_formation_error_stays_bounded(attacked: Attacked) -> None:
     res = attacked.res
     assert math.isfinite(res["err_last10"]) and res["err_last10"] <= ERR_LAST10, res["err_last10"]
