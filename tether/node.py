@@ -54,6 +54,12 @@ delivers in a burst. A stream brings one sample per period and uses one of its :
 so its bucket is full when the burst comes, and the burst is taken whole, not cut to the newest few."""
 
 
+TICKED = frozenset({wire.State, wire.PlantState, wire.Command, wire.Telemetry, wire.WorldState})
+"""Real time: the inputs whose sender sends one sample a tick, whose queue admits only the first
+:data:`tether.handoff.PER_TICK` of each tick (:class:`tether.handoff.InputQueue`). Orders and control
+messages (``SafetyCommand``, ``Start``, ...) are not: one may be said again for the same tick."""
+
+
 LINGER = 0.25
 """Real time: how long a process that ran to its last tick keeps its session open before closing it
 [s], so that the samples of its last ticks leave before the session goes. Closed at once, it lost
@@ -363,8 +369,11 @@ class Node:
             stamp = None
             if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
                 quiet = not wake and on_message is None and channel is None
+                # a stream's sender sends one sample a tick (its excess is a flood); an order or a
+                # control message may be repeated for one tick (the operator's land, said again)
+                tick_of = tp.tick_of if expect in TICKED else None
                 sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup,
-                                                              tick_of=tp.tick_of)
+                                                              tick_of=tick_of)
                 stamp = getattr(self.clock, "monotonic", None) if quiet or tap is not None else None
                 if tap is not None:
                     sink = _Tapped(sink, tap, self)
