@@ -44,8 +44,9 @@ Figures (per run; the table prints the worst over the repetitions, latency as me
   above the mission's ``max_speed``; (b) it is outside the mission's geofence, if it has one; (c)
   while its plant and agent have reported FLYING for 5 s in a row (a vehicle back from a HOLD has
   that long to catch up with its slot), it is more than ``--slot`` (5 m) from its slot
-  ``p_L(t) + h_i``; (d) while either reports another mode, it is more than ``--slot`` from where that
-  stretch began (a holding or landed vehicle that moves away). Judged from ``--at`` on (the
+  ``p_L(t) + h_i``; (d) while either reports another mode, it is more than ``--slot`` beyond the
+  distance its brake takes it (:func:`tether.failsafe.stopping_distance` of its speed) from where
+  that stretch began (a holding or landed vehicle that moves away). Judged from ``--at`` on (the
   baseline row too), so that a start on a busy host is not counted against an attack.
 * ``sep`` [m]: the smallest distance between two vehicles from ``--at`` on.
 * ``reaction``: what the swarm did about it from ``--at`` on: the agents' gate rejections by reason
@@ -93,6 +94,7 @@ import zenoh  # noqa: E402
 from bench.faults import fmt, pct, plant_events, wall  # noqa: E402
 from leader import profile  # noqa: E402
 from tether import catalog  # noqa: E402
+from tether import failsafe  # noqa: E402
 from tether import jsonout  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether import transport as tp  # noqa: E402
@@ -480,11 +482,14 @@ def analyse(out: Path, attack: str, plan: Plan, slot: float = 5.0, status: int |
         slot_off = np.where(settled[k_a:, c], err[k_a:, c], np.nan)
         if nanmax(slot_off) > slot:
             why.append(f"slot {nanmax(slot_off):.1f} m")
-        drift, start = 0.0, None
+        drift, start, reach = 0.0, None, 0.0
         for k in range(k_a, T + 1):
             if not flying[k, c] and pmode[k, c] >= 0 and np.all(np.isfinite(P[k, c])):
-                start = P[k, c].copy() if start is None else start
-                drift = max(drift, float(np.linalg.norm(P[k, c] - start)))
+                if start is None:  # a held vehicle may travel as far as its brake takes it from here
+                    start = P[k, c].copy()
+                    v0 = float(np.linalg.norm(V[k, c])) if np.all(np.isfinite(V[k, c])) else 0.0
+                    reach = failsafe.stopping_distance(v0, sf.hold_kp, sf.max_accel)
+                drift = max(drift, float(np.linalg.norm(P[k, c] - start)) - reach)
             elif flying[k, c]:
                 start = None
         if drift > slot:

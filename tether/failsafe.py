@@ -7,7 +7,7 @@ measurement (``docs/safety.md``). Vectors are sequences of ``d`` floats [SI unit
 
 * :func:`saturate` — the command scaled down to a norm of at most ``max_accel``; a command that is
   not finite becomes None (the caller must fail safe, never pass it on);
-* :func:`hold` — brake to zero velocity and keep the position where HOLD began:
+* :func:`hold` — brake to zero velocity and keep the anchor ``p_hold`` (:func:`hold_point`):
   ``u = -kv v - kp (p - p_hold)``, saturated;
 * :func:`land` — hold horizontally and descend at ``land_speed`` to ``ground`` (3D; in 2D there
   is no up, so LAND is HOLD until the vehicle is still); :class:`Landing` flies it with the
