@@ -356,47 +356,37 @@ class Dir:
         """File ``name`` opened for writing from its start (made if missing, mode 0644 less the
         umask), never through a link; an existing entry must be this user's plain file with one
         name (:class:`UnsafePath`), and is truncated only once that is known."""
-        path = self.path / name
-
-        def opener(_: str, flags: int) -> int:
-            return os.open(name, (flags & ~os.O_TRUNC) | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644, dir_fd=self.fd)
-
-        try:
-            fh = open(path, "wb", opener=opener)
-        except OSError as exc:
-            if exc.errno == errno.ELOOP:
-                raise UnsafePath(exc.errno, f"{path} is a symbolic link; remove it") from None
-            raise
-        try:
-            _own(os.fstat(fh.fileno()), path, directory=False)
-            fh.truncate(0)
-        except BaseException:
-            fh.close()
-            raise
-        return fh
+        return self._open_own(name, "wb", truncate=True)
 
     def open_append(self, name: str) -> BinaryIO:
         """File ``name`` opened for appending (made if missing, mode 0644 less the umask), never
         through a link (``O_NOFOLLOW``); an existing entry must be this user's plain file with one
         name (:class:`UnsafePath`). For a log that several starts of one process extend (a unit
         restarted by its ``Restart=``)."""
+        return self._open_own(name, "ab", truncate=False)
+
+    def _open_own(self, name: str, mode: str, truncate: bool) -> BinaryIO:
+        """``name`` opened in ``mode`` (``"wb"`` never truncates before the check), never through a
+        link, checked to be this user's plain file with one name, then truncated if asked."""
         path = self.path / name
 
         def opener(_: str, flags: int) -> int:
-            return os.open(name, flags | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644, dir_fd=self.fd)
+            return os.open(name, (flags & ~os.O_TRUNC) | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644, dir_fd=self.fd)
 
         try:
-            fh = open(path, "ab", opener=opener)
+            fh = open(path, mode, opener=opener)
         except OSError as exc:
             if exc.errno == errno.ELOOP:
                 raise UnsafePath(exc.errno, f"{path} is a symbolic link; remove it") from None
             raise
         try:
             _own(os.fstat(fh.fileno()), path, directory=False)
+            if truncate:
+                fh.truncate(0)
         except BaseException:
             fh.close()
             raise
-        return fh
+        return fh  # type: ignore[return-value]
 
     def remove(self, name: str) -> None:
         """Remove entry ``name`` (a file or a link, never what a link names); missing is fine."""
