@@ -1,5 +1,5 @@
 """``python -m cli ...`` is ``tether ...`` (the launcher starts every process this way)."""
 
-from cli.main import main
+from cli.entry import main
 
 raise SystemExit(main())
