@@ -269,7 +269,7 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
     logs = tmp_path / "run" / "logs"
     assert re.search(r"connection lost|no state estimate", (logs / "plant-3.log").read_text())
     assert "withdrawing from the swarm" in (logs / "plant-3.log").read_text()
-    assert "holding" in (logs / "agent-3.log").read_text()
+    assert "-> HOLD: plant silent" in (logs / "agent-3.log").read_text()
     run = Run.load(tmp_path / "run")
     i3, i4 = list(run.agent_ids).index(3), list(run.agent_ids).index(4)
     age = run.links.age[:, i4, 0]  # agent 4 hears only agent 3
