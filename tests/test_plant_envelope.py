@@ -76,8 +76,11 @@ def test_a_command_is_taken_only_if_its_stamp_is_its_ticks_and_the_plants_clock_
     taken = dog.offer([1.0, 0.0], stamp, k, k_now)
     ok_stamp = abs(stamp - k * H) <= 0.5 * H
     ok = ok_stamp and k <= k_now and k_now * H - stamp <= SAFETY.cmd_timeout
-    assert taken == ok
-    if not ok:
+    older = ok and stamp < 0.0  # before the mission's start, which counts as a zero command's stamp: not newer
+    assert taken == (ok and not older)
+    if older:
+        assert dog.invalid == {}
+    elif not ok:
         reason = "stamp" if not ok_stamp else "future" if k > k_now else "stale"
         assert dog.invalid == {reason: 1}
         d = dog.step(k_now * H, [0.0, 0.0], [0.0, 0.0])
@@ -305,8 +308,9 @@ def attacked_run(tmp: Path, mission: str, duration: float, forge) -> tuple[Run, 
 
 @pytest.mark.slow
 def test_a_command_stamped_1e9_is_rejected_by_the_plant_in_a_real_run(tmp_path: Path) -> None:
-    """One command on agent/2/cmd for the current tick, stamped 1e9, at 4 s of a real-time section4:
-    plant 2 drops it (counted, logged, an event) and vehicle 2 flies on in formation to the end."""
+    """One command on agent/2/cmd for the agent's next tick, stamped 1e9, at 4 s of a real-time
+    section4: plant 2 never flies it (contested or dropped: counted, logged, an event) and vehicle 2
+    flies on in formation to the end."""
     h = 1.0 / ms.load(catalog.resolve("section4")).rate
     once = {"sent": False}
 
@@ -319,7 +323,10 @@ def test_a_command_stamped_1e9_is_rejected_by_the_plant_in_a_real_run(tmp_path: 
     run, out, sent = attacked_run(tmp_path, "section4", 10.0, forge)
     assert len(sent) == 1
     log = (out / "logs" / "plant-2.log").read_text()
-    assert "command rejected (stamp" in log and "commands rejected by its watchdog" in log, log[-2000:]
+    # the forgery takes the place of a tick the genuine agent then sends too: contested and flown as
+    # none (plant/onboard.py), or, where it came alone, dropped by the watchdog's stamp rule
+    assert ("command rejected (stamp" in log and "commands rejected by its watchdog" in log) or \
+        "contested (two different commands for one tick): flown as none" in log, log[-2000:]
     assert run.runtime is not None
     col = int(np.nonzero(run.agent_ids == 2)[0][0])
     p = run.runtime.plant_p
@@ -332,8 +339,8 @@ def test_a_command_stamped_1e9_is_rejected_by_the_plant_in_a_real_run(tmp_path: 
 @pytest.mark.slow
 def test_forged_commands_cannot_push_a_vehicle_through_the_plants_geofence(tmp_path: Path) -> None:
     """From 3 s of a real-time failsafe run (geofence x in [-4, 4]), u = (20, 0, 0) on agent/2/cmd
-    every tick, stamped as the real ones, saying FLYING: plant 2 holds and lands at the fence
-    whatever its agent says; it never leaves the box by more than a few ticks of motion."""
+    every tick, stamped as the real ones, saying FLYING: plant 2 never leaves the box by more than a
+    few ticks of motion, and holds and lands (the pushes contested, or the fence reached)."""
     m = ms.load(catalog.resolve("failsafe"))
     h = 1.0 / m.rate
 
@@ -345,7 +352,9 @@ def test_forged_commands_cannot_push_a_vehicle_through_the_plants_geofence(tmp_p
     run, out, sent = attacked_run(tmp_path, "failsafe", 12.0, forge)
     assert sent
     log = (out / "logs" / "plant-2.log").read_text()
-    assert "geofence" in log, log[-2000:]
+    # beside the genuine agent, the pushes are contested and never flown (the plant holds, then lands);
+    # a push that came alone is stopped by the plant's own geofence rule
+    assert "geofence" in log or "commands mostly contested" in log, log[-2000:]
     assert run.runtime is not None
     col = int(np.nonzero(run.agent_ids == 2)[0][0])
     p = run.runtime.plant_p[:, col]
