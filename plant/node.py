@@ -142,6 +142,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         t = k * h
         if k > first:
             u, modes = [], []
+            # real time: the tick the plant's clock has reached (a late plant is behind it)
+            k_clock = None if node.clock.lockstep else math.floor(node.mission_time() / h)
             for r, (aid, src, dog, trust) in enumerate(zip(ids, cmds, dogs, trusts)):
                 # one drain for every vehicle's command (in real time node.tick has just drained)
                 msg = await node.sample(src, k - 1, drain=r == 0 and node.clock.lockstep)
@@ -149,7 +151,7 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                 msg, judged = trust.judge(msg, msg is not None and src.is_contested(msg),
                                           health is not None and health.suspect, t, dog.mode)
                 if msg is not None:
-                    dog.offer(msg.u, msg.t, msg.k, k, msg.mode)
+                    dog.offer(msg.u, msg.t, msg.k, k, msg.mode, k_clock=k_clock)
                 d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
                 for ev in (*judged, *d.events):
                     log.warning("vehicle %d: %s", aid, ev)

@@ -155,6 +155,8 @@ class Watchdog:
     """Why an envelope HOLD holds (``speed``, ``geofence``): no command takes it back to FLYING."""
     _u: list[float] | None = None
     _t: float = -math.inf
+    _clock_t: float = -math.inf
+    """Real time: the plant's clock at the newest offer [s] (how far ahead of its tick a command may be)."""
     _seq: tuple[int, float] | None = None
     _operator_land: bool = False
     _agent_mode: int = FLYING
@@ -206,11 +208,19 @@ class Watchdog:
         self._notes.append(Event(t, self.mode, self.mode, what))
 
     def offer(self, u: Sequence[float] | np.ndarray | None, stamp: float, k: int, k_now: int,
-              mode: int = FLYING) -> bool:
+              mode: int = FLYING, k_clock: int | None = None) -> bool:
         """Consider the newest command: ``u`` [m/s^2] stamped ``stamp`` [s] for tick ``k``, seen at
         the plant's tick ``k_now``, with its agent's supervisor ``mode``. Returns whether it is
         valid (and so the newest valid one). The same command offered again is neither counted nor
-        taken twice."""
+        taken twice.
+
+        ``k_clock`` (real time): the tick the plant's own clock has reached. A plant that runs late
+        (catching up after a stall or a partition) is behind its clock, and its agent's newest
+        commands are for ticks it has not stepped yet: those up to ``k_clock`` are not ``future``,
+        and are fresh until the plant's clock has run ``cmd_timeout`` past them. A stamp is still
+        never kept beyond the plant's own clock, so nothing can silence the watchdog for longer
+        than the plant is late."""
+        self._clock_t = -math.inf if k_clock is None else k_clock * self.period
         if u is None:
             return False
         if self._seq == (k, stamp):
@@ -236,7 +246,7 @@ class Watchdog:
         if not abs(stamp - k * h) <= 0.5 * h:
             self._reject("stamp", now)
             return False
-        if k > k_now:
+        if k > (k_now if k_clock is None else max(k_now, k_clock)):
             self._reject("future", now)
             return False
         if now - stamp > self.safety.cmd_timeout:
@@ -263,8 +273,8 @@ class Watchdog:
                 self.mode = dst
                 self._since = t
 
-        if self._t > t + 0.5 * self.period:  # a caller that offered for a later tick than it steps: never fresh
-            self._t = -math.inf
+        if self._t > max(t, self._clock_t) + 0.5 * self.period:
+            self._t = -math.inf  # a caller that offered for a later tick than it steps or its clock allows: never fresh
         pl = list(floats(p)) if p is not None else None  # its own copy: p_hold may keep it
         vl = floats(v) if v is not None else None
         garbled = pl is not None and vl is not None and not (all(map(math.isfinite, pl)) and

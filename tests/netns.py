@@ -167,6 +167,11 @@ def _router(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    from tether import sched
+
+    # the control processes' priority, as a deployment's router unit has (CPUSchedulingPolicy=rr): the
+    # vehicle's agent and plant, at SCHED_RR by default, must not starve the router they talk through
+    print(f"CPU scheduling: {sched.apply_best()[1]}", file=sys.stderr, flush=True)
     session = zenoh.open(config)
     try:
         print(f"router {session.zid()} listening on {args.listen}, linked to {args.connect}", file=sys.stderr,

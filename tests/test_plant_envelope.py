@@ -64,6 +64,29 @@ def fly(dog: Watchdog, veh: Point, k0: int, k1: int, command=None, mode: int = F
 
 # ----------------------------------------------------------------------------- stamps
 
+@settings(max_examples=200, deadline=None)
+@given(late=st.integers(1, 100), ahead=st.integers(0, 3))
+def test_a_late_plant_flies_its_agents_newest_commands_and_still_holds_when_they_stop(late: int, ahead: int) -> None:
+    """A plant ``late`` ticks behind its clock (catching up after a stall) takes the commands of the
+    ticks its clock has reached, not beyond; when they stop, it holds once its clock is
+    ``cmd_timeout`` past the newest: no later than it would on time, plus its lateness."""
+    dog = Watchdog(SAFETY, 2, H)
+    k_now, k_clock = 200, 200 + late
+    k = k_clock + ahead
+    taken = dog.offer([1.0, 0.0], k * H, k, k_now, k_clock=k_clock)
+    assert taken == (ahead == 0)
+    if not taken:
+        assert dog.invalid == {"future": 1}
+        return
+    for step in range(k_now, k_now + 10_000):
+        d = dog.step(step * H, [0.0, 0.0], [0.0, 0.0])
+        if d.mode != FLYING:
+            assert step * H - k * H > SAFETY.cmd_timeout - 1e-9  # never before the newest command is that old
+            assert step * H - k * H <= SAFETY.cmd_timeout + H + 1e-9  # and within a tick of it
+            return
+    raise AssertionError("the watchdog never fired")
+
+
 @settings(max_examples=300, deadline=None)
 @given(k=st.integers(0, 2000), k_now=st.integers(1, 2000),
        skew=st.one_of(st.floats(-5.0, 5.0), st.sampled_from([0.0, 0.5, -0.5, 0.5001, 1e9, -1e9])))
