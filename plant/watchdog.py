@@ -83,7 +83,7 @@ WHY = {
     "nonfinite": "not finite",
     "absurd": f"norm beyond {ABSURD:g} max_accel",
     "stamp": "its stamp is not its tick's",
-    "future": "for a tick beyond the plant's own",
+    "future": "for a tick beyond the plant's own and its clock's",
     "stale": "older than cmd_timeout",
 }
 """What each reason of :attr:`Watchdog.invalid` means (for the events)."""
