@@ -199,6 +199,8 @@ async def run(node: Node) -> None:
                     rejoin.epoch() or 0.0, rejoin.samples, aid)
 
     holding = False
+    gone_at: int | None = None
+    """The tick of the plant's newest sample when its token was last seen gone (its process died)."""
     neighbours = set(law.neighbours)
     clock: list[wire.ClockLink] = []
     reported: list[skew.LinkClock] | None = None
@@ -230,13 +232,18 @@ async def run(node: Node) -> None:
         got, far = got[:len(nbrs)], got[len(nbrs):]
         if own is None:  # real time, before the plant's first sample: nothing to act on
             continue
-        # the vehicle is gone (its plant withdrew or died) or its measurements stopped: the agent
+        # the plant's measurements stopped while its process lives: the agent
         # sends no command (one computed from its last measurement would be flown on the vehicle as
         # it is now: a stale HOLD flew a vehicle 38 m backwards at 20 m/s), so that the plant's own
         # watchdog holds the vehicle on its fresh measurement (no valid command for cmd_timeout),
         # then lands it (cmd_cutoff); the supervisor holds meanwhile (cause "plant", LAND after
         # land_after, as the watchdog does), and the agent relays nothing, so its neighbours count it out
         stale = not lockstep and (own_inputs[0].silent_at(k) or t - own.t > sf.cmd_timeout)
+        if own_inputs[0].gone:
+            gone_at = own.k
+        # a plant whose process died flies nothing until it is restarted, and a restarted one learns
+        # the run's start from its agent's commands (plant/resume.py) before it publishes again
+        restarting = gone_at is not None and own.k <= gone_at
         plant_silent = stale and k < m.steps
         silence: list[wire.SafetyEvent] = []
         if stale != holding:
@@ -277,7 +284,8 @@ async def run(node: Node) -> None:
             u = out.u
         if cmd is None:
             last_cmd = wire.Command(sender=aid, seq=k, k=k, t=t, u=u, mode=out.mode)
-        elif not stale:
+        elif not stale or restarting:
+            # restarting: the plant resumes from the last state on the wire, which these were computed from
             cmd.send(wire.Command, k, t, u=u, mode=out.mode)
         events = silence + tick.supervisor.take_events()
         for ev in events:
