@@ -239,7 +239,7 @@ async def run(node: Node) -> None:
         # then lands it (cmd_cutoff); the supervisor holds meanwhile (cause "plant", LAND after
         # land_after, as the watchdog does), and the agent relays nothing, so its neighbours count it out
         stale = not lockstep and (own_inputs[0].silent_at(k) or t - own.t > sf.cmd_timeout)
-        if own_inputs[0].gone:
+        if not lockstep and own_inputs[0].gone:
             gone_at = own.k
         # a plant whose process died flies nothing until it is restarted, and a restarted one learns
         # the run's start from its agent's commands (plant/resume.py) before it publishes again
