@@ -3,7 +3,7 @@
     python bench/loaded.py                                  # 2 busy loops; no option, then --rt-priority 10; 3 pairs
     python bench/loaded.py --hogs 3 --reps 5 --priorities none 0 10
     python bench/loaded.py --repo ../other-checkout          # run another checkout's tether (its cwd first on the path)
-    python bench/loaded.py --json /tmp/loaded.json           # also keep every figure of every run
+    python bench/loaded.py --json loaded.json                # also keep every figure of every run
 
 Each run: ``--hogs`` busy loops (``python -c 'while ...: pass'``, the default policy, each ending by
 itself) start first; then ``tether run section4 --clock realtime --duration D --quiet --listen
