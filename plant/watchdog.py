@@ -13,7 +13,7 @@ after the cut-off a vehicle lands instead of falling, and it enforces the missio
       ^                                          |  (3D: touched down; 2D: still, or land_settle in LAND)
       +--------- a valid command comes back -----+
     envelope (FLYING, measured):
-      speed beyond max_speed                           -> HOLD, latched (brakes; LAND after land_after)
+      speed beyond max_speed                           -> HOLD (brakes; FLYING again below 0.8 max_speed)
       would leave the geofence braking from here (the agent's command says FLYING)
                                                        -> HOLD, latched (LAND after land_after)
       outside the geofence (FLYING or HOLD)            -> 3D: LAND at the fence (about the nearest point
@@ -65,6 +65,12 @@ from tether import mission as ms
 from tether.vec import floats, norm
 from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES, SafetyEvent
 
+SPEED_RELEASE = 0.8
+"""A vehicle held for being beyond ``max_speed`` flies its agent again once it has braked below this
+share of it (and a valid command is fresh): the plant keeps the speed limit as a brake, so that an agent
+catching up with its slot at full acceleration (after a partition) is slowed, not grounded; a push that
+goes on is braked again each time, and the vehicle never goes beyond the limit by more than a tick of
+``max_accel``."""
 ABSURD = 10.0
 """A command of norm above ``ABSURD * max_accel`` is not valid (ignored, counted), not saturated."""
 
@@ -309,6 +315,9 @@ class Watchdog:
         elif self.mode == HOLD:
             if pl is None or vl is None:
                 self._blind = True
+            elif self.latched == "speed" and norm(vl) <= SPEED_RELEASE * s.max_speed and age <= s.cmd_timeout:
+                self.latched = ""  # braked well under the limit, its agent still commanding: fly it again
+                go(FLYING, f"speed {norm(vl):.3g} m/s back under {SPEED_RELEASE:g} max_speed, command fresh")
             elif self.latched:
                 if t - self._since >= s.land_after:
                     go(LAND, f"held for {s.land_after:g} s ({self.latched})")

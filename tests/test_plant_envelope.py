@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 import zenoh
 
-from plant.watchdog import NOTE_EVERY, SATURATED_FOR, Watchdog
+from plant.watchdog import NOTE_EVERY, SATURATED_FOR, SPEED_RELEASE, Watchdog
 from tether import catalog
 from tether import mission as ms
 from tether import transport as tp
@@ -205,9 +205,9 @@ def test_the_plant_leaves_a_fence_landing_to_an_agent_that_is_landing_already() 
 
 
 def test_beyond_max_speed_the_plant_brakes_whatever_its_agent_says() -> None:
-    """Pushed on beyond max_speed: HOLD at once, braking at max_accel down to the knee of HOLD's law
-    (``max_accel / sqrt(hold_kp)``) and then ever slower towards its anchor, never turning back;
-    latched for land_after, then LAND."""
+    """Pushed on beyond max_speed: HOLD at once, braking at max_accel, never turning back; below
+    SPEED_RELEASE max_speed it flies its (still pushing) agent again, and is braked again: the speed
+    never goes beyond the limit by more than a tick or two of max_accel."""
     dog, veh, events, track = Watchdog(SAFETY, 2, H), Point([0.0, 0.0], [29.0, 0.0]), [], []
     modes = fly(dog, veh, 1, 300, command=lambda k: [20.0, 0.0], events=events, track=track)
     k = modes.index(HOLD)
@@ -216,11 +216,11 @@ def test_beyond_max_speed_the_plant_brakes_whatever_its_agent_says() -> None:
     assert speeds.max() <= SAFETY.max_speed + 2 * SAFETY.max_accel * H
     vx = np.diff(np.array(track)[:, 0]) / H
     knee = SAFETY.max_accel / math.sqrt(SAFETY.hold_kp)
-    assert vx[k + int(1.1 * (SAFETY.max_speed - knee) / SAFETY.max_accel / H)] <= knee  # braked at max_accel
-    assert (vx[k:] >= 0.0).all() and (np.diff(vx[k:]) <= 1e-9).all()  # ever slower, never back
-    assert dog.p_hold is not None and np.array(track)[:, 0].max() <= dog.p_hold[0] + 1e-9  # at rest short of it
-    assert modes[-1] == LAND
-    assert set(modes[k:k + int(SAFETY.land_after / H) - 1]) == {HOLD}  # latched: the push never flies again
+    assert (vx[k:] >= 0.0).all()  # never back
+    assert min(vx[k:]) >= min(SPEED_RELEASE * SAFETY.max_speed, knee) - 2 * SAFETY.max_accel * H  # released
+    flown = [i for i in range(k, len(modes)) if modes[i] == FLYING]
+    assert flown and HOLD in modes[flown[0]:]  # flown again, braked again
+    assert LAND not in modes
 
 
 @pytest.mark.parametrize("ticks, noted", [(4, False), (12, True)])
