@@ -200,22 +200,11 @@ class Supervisor:
                 followed = frozenset(holding)
         new = frozenset(lost) if reachable else frozenset()
         if new != self.lost:
-            dropped, back = sorted(new - self.lost), sorted(self.lost - new)
-            words = []
-            if dropped:
-                words.append(f"{_listed(dropped)} lost: edge dropped, kappa re-normalised")
-            if back:
-                words.append(f"{_listed(back)} back: edge restored")
-            self._event(k, t, self.mode, "; ".join(words))
+            self._event(k, t, self.mode, changes(sorted(new - self.lost), sorted(self.lost - new), EDGES))
             self.lost = new
         if followed != self.followed:
-            started, ended = sorted(followed - self.followed), sorted(self.followed - followed)
-            words = []
-            if started:
-                words.append(f"{_listed(started)} holding, the only path from the leader: followed")
-            if ended:
-                words.append(f"{_listed(ended)} no longer followed as holding")
-            self._event(k, t, self.mode, "; ".join(words))
+            self._event(k, t, self.mode, changes(sorted(followed - self.followed), sorted(self.followed - followed),
+                                                 FOLLOWED))
             self.followed = followed
         return self.lost, reachable, leader_silent
 
@@ -268,7 +257,7 @@ class Supervisor:
                 cause, why = "leader stream", "leader's stream suspect (forgery or fault)"
             elif not reachable:
                 cause = "unreachable"
-                why = f"{_listed(sorted(self.missing))} lost and the leader no longer reaches this agent"
+                why = f"{listed(sorted(self.missing))} {UNREACHABLE}"
             if self.mode == FLYING and cause:
                 self._go(k, t, HOLD, why, p, v)
                 self.cause, self.latched = cause, cause == "speed"
@@ -403,8 +392,22 @@ def report_kind(mode: int) -> int:
     return REPORT_FLYING if mode == FLYING else REPORT_HOLD if mode == HOLD else REPORT_STOPPED
 
 
-def _listed(nbrs: Sequence[int]) -> str:
+EDGES = ("lost: edge dropped, kappa re-normalised", "back: edge restored")
+"""What an event says of in-neighbours whose edges were dropped, and of those restored."""
+FOLLOWED = ("holding, the only path from the leader: followed", "no longer followed as holding")
+"""What an event says of holding in-neighbours followed, and of those no longer followed."""
+UNREACHABLE = "lost and the leader no longer reaches this agent"
+
+
+def listed(nbrs: Sequence[int]) -> str:
+    """``neighbour 3`` or ``neighbours 2, 3``: how an event names in-neighbours."""
     return f"neighbour{'s' if len(nbrs) > 1 else ''} {', '.join(map(str, nbrs))}"
+
+
+def changes(first: Sequence[int], second: Sequence[int], says: tuple[str, str]) -> str:
+    """An event's reason for two sets of in-neighbours, each named with what ``says`` of it
+    (:data:`EDGES`, :data:`FOLLOWED`); the in-process engine's compiled twin words its events with it."""
+    return "; ".join(f"{listed(nbrs)} {what}" for nbrs, what in zip((first, second), says) if nbrs)
 
 
 def _max(xs: Vec) -> float:

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from agent import safety
 from agent.law import AgentLaw
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
@@ -261,29 +262,16 @@ def _events(rows: np.ndarray, floats: np.ndarray, h: float, ids: list[int], laws
     def named(i: int, mask: int) -> list[int]:
         return sorted(j for b, j in enumerate(laws[i].neighbours) if mask >> b & 1)
 
-    def listed(nbrs: list[int]) -> str:
-        return f"neighbour{'s' if len(nbrs) > 1 else ''} {', '.join(map(str, nbrs))}"
-
     out = []
     for (k, i, src, dst, kind, m1, m2), (held, speed) in zip(rows.tolist(), floats[:len(rows)].tolist()):
         if kind == _EDGES:
-            words = []
-            if m1:
-                words.append(f"{listed(named(i, m1))} lost: edge dropped, kappa re-normalised")
-            if m2:
-                words.append(f"{listed(named(i, m2))} back: edge restored")
-            why = "; ".join(words)
+            why = safety.changes(named(i, m1), named(i, m2), safety.EDGES)
         elif kind == _HOLD_LEADER:
             why = "leader silent"
         elif kind == _HOLD_UNREACHABLE:
-            why = f"{listed(named(i, m1))} lost and the leader no longer reaches this agent"
+            why = f"{safety.listed(named(i, m1))} {safety.UNREACHABLE}"
         elif kind == _FOLLOW:
-            words = []
-            if m1:
-                words.append(f"{listed(named(i, m1))} holding, the only path from the leader: followed")
-            if m2:
-                words.append(f"{listed(named(i, m2))} no longer followed as holding")
-            why = "; ".join(words)
+            why = safety.changes(named(i, m1), named(i, m2), safety.FOLLOWED)
         elif kind == _RECOVERED:
             why = f"{_CAUSES[m1]} recovered"
         elif kind == _LAND:
