@@ -96,6 +96,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -129,6 +130,20 @@ STOP_LINES = ("the survivors had", "ending the run", "s of mission time in", "in
 
 _WALL_OFFSET = time.time() - time.monotonic()
 
+
+
+def drain_stderr(p: subprocess.Popen[str], each: Callable[[str], None]) -> threading.Thread:
+    """A daemon thread that hands each line of ``p``'s stderr (without its newline) to ``each`` as it
+    comes, so that a launcher never blocks on a full pipe; join it once ``p`` has ended."""
+
+    def reader() -> None:
+        assert p.stderr is not None
+        for line in p.stderr:
+            each(line.rstrip("\n"))
+
+    th = threading.Thread(target=reader, daemon=True)
+    th.start()
+    return th
 
 def wall() -> float:
     """Wall-clock time [s since the epoch] that never steps: the monotonic clock, placed on the wall
@@ -287,16 +302,13 @@ def launch(out: Path, duration: float, faults: list[str], order: tuple[operator.
     lines: list[tuple[float, str]] = []
     stop_wall: list[float] = []
 
-    def reader() -> None:
-        assert p.stderr is not None
-        for line in p.stderr:
-            now = wall()
-            lines.append((now, line.rstrip("\n")))
-            if not stop_wall and any(s in line for s in STOP_LINES) and "launcher:" in line:
-                stop_wall.append(now)
+    def each(line: str) -> None:
+        now = wall()
+        lines.append((now, line))
+        if not stop_wall and any(s in line for s in STOP_LINES) and "launcher:" in line:
+            stop_wall.append(now)
 
-    th = threading.Thread(target=reader, daemon=True)
-    th.start()
+    th = drain_stderr(p, each)
     tap = Tap(ep, MISSION, out / "tls" / "control-0.json5" if tls else None)
     time.sleep(0.3)
     tap.open()

@@ -51,7 +51,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -62,7 +61,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from bench.faults import Tap, free_port, plant_events, wall  # noqa: E402
+from bench.faults import Tap, drain_stderr, free_port, plant_events, wall  # noqa: E402
 from deploy import operator  # noqa: E402
 from leader import profile  # noqa: E402
 from tether import catalog, wire  # noqa: E402
@@ -97,13 +96,7 @@ def run_once(repo: Path, out: Path, priority: str, action: operator.Action, args
         time.sleep(1.0)  # the busy loops are running before the swarm starts
         launcher = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=repo)
 
-        def reader() -> None:
-            assert launcher.stderr is not None
-            for line in launcher.stderr:
-                lines.append(line.rstrip("\n"))
-
-        th = threading.Thread(target=reader, daemon=True)
-        th.start()
+        th = drain_stderr(launcher, lines.append)
         tap = Tap(ep, MISSION, out / "tls" / "control-0.json5")
         order: dict[str, Any] = {}
         try:

@@ -91,7 +91,7 @@ if str(REPO) not in sys.path:
 
 import zenoh  # noqa: E402
 
-from bench.faults import fmt, pct, plant_events, wall  # noqa: E402
+from bench.faults import drain_stderr, fmt, pct, plant_events, wall  # noqa: E402
 from leader import profile  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether import failsafe  # noqa: E402
@@ -378,13 +378,7 @@ def launch(out: Path, plans: dict[str, Plan], m: ms.Mission, duration: float, gr
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
     lines: list[str] = []
 
-    def reader() -> None:
-        assert p.stderr is not None
-        for line in p.stderr:
-            lines.append(line.rstrip("\n"))
-
-    th = threading.Thread(target=reader, daemon=True)
-    th.start()
+    th = drain_stderr(p, lines.append)
     att = Attacker(ep, m, plans)
     try:
         att.open()
