@@ -1,5 +1,5 @@
 """Two checkouts of tether side by side: the same ``tether run`` from this tree and from a git
-revision, alternating, every pair in one sitting.
+revision, alternating, every pair in one run of this script.
 
     .venv/bin/python bench/ab.py --base HEAD~1                          # section4, lockstep, 100 s, 5 pairs
     .venv/bin/python bench/ab.py --base 4c4340b~1 --pairs 7 --duration 200 -- --network star
@@ -18,12 +18,12 @@ Per run, from ``/proc`` over the run's window (as ``bench/runtime.py``): speed (
 s), CPU per tick of all processes, of the median process of each role and of its main (asyncio)
 thread, and the CPU other users took meanwhile. The pairs alternate which side runs first, and each
 run waits for the machine to be quiet. Printed: every run, then each figure's median per side, new /
-base, and in how many pairs new did better. Only figures of one sitting compare: machines differ.
+base, and in how many pairs new did better. Only figures of one run of this script compare: machines differ.
 
 ``--mixed`` compares the vehicles' processes (agent and plant) within one swarm instead: half of them
 from each checkout in every run, swapped from run to run (:func:`mixed`). Two runs one after the other
 differ by more than a change of a few per cent (an agent's CPU per tick drifted by a quarter within
-one sitting of 6 pairs); two halves of one run see the same machine at every instant.
+one run of 6 pairs); two halves of one run see the same machine at every instant.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ temporary detached ``git worktree`` that is removed when the ``with`` block ends
 
 Both sides of a comparison come from fresh checkouts of the same kind: run from this repository's
 own directory, an identical runtime once measured 2–3 % slower than from a worktree, in 6 of 6
-pairs (an A/A run, ``docs/benchmarks.md``, seventh sitting). A side runs from its checkout with
+pairs (an A/A run). A side runs from its checkout with
 ``python -m`` (the working directory first on the path, inherited by child processes); pointing only
 ``PYTHONPATH`` at it from this repository's directory would import this repository.
 """

@@ -121,7 +121,7 @@ LIMIT_FACTOR = 20
 on each key a process publishes, per link; one sample per period is what a stream sends. Tried and
 not kept: 100 (a window of 0.2 ms at 50 Hz instead of 1 ms), against the samples real-time rings of
 16 agents lose (most often the leader's or a plant's of tick 1): 5 of 13 runs lost samples at 100,
-11 of 34 at 20, and 1 of 5 with the limit lifted altogether (docs/benchmarks.md, "fourth sitting")."""
+11 of 34 at 20, and 1 of 5 with the limit lifted altogether."""
 
 
 CONTROL_RATE = 50.0
@@ -140,9 +140,8 @@ def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[
     stream's own process off its key), as the flood defence. Whether the formation flies better with
     them on a loaded machine is not settled: RMS of ||xi|| over 7-14 s of 20 s authenticated real-time
     runs of Section 4 was 0.443 and 0.442 m with them (the reference simulator: 0.441 m) and 17.3, 0.70
-    and 0.99 m without (one run each, load average 8-16); in a later sitting beside two CPU-bound
-    processes, 0.69, 1.11 and 1.20 m with them and 0.46, 0.74 and 0.45 m without (docs/benchmarks.md,
-    "This sitting"). A flood on one of these keys, from any one session,
+    and 0.99 m without (one run each, load average 8-16); beside two CPU-bound
+    processes, 0.69, 1.11 and 1.20 m with them and 0.46, 0.74 and 0.45 m without. A flood on one of these keys, from any one session,
     reaches the subscribers at that rate at most, decided in Zenoh's threads before any Python
     callback, while every other session's link keeps its own budget. (Not in lockstep, whose ticks go
     out in bursts.) Exact keys only: with zenoh 1.10.2, a wildcard rule beside them

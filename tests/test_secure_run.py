@@ -271,7 +271,7 @@ def test_a_rogue_plants_flood_on_its_own_state_key_leaves_the_formation_error_wi
     """A tool holding plant 2's identity floods plant 2's state key, which agent 2 and the recorder
     hear: the router passes LIMIT_FACTOR times the rate of it per link (``deploy/localtls.py``), agent
     2 rejects and counts the junk, and the formation error stays within 10 % of the clean run of the
-    pair above (measured: 0.4413 m against 0.4412 m, docs/benchmarks.md, "fourth sitting")."""
+    pair above (measured: 0.4413 m against 0.4412 m)."""
     _clean_is_the_mission(flood_pair)
     for attempt in range(1, ATTEMPTS + 1):  # flown again while the machine could not fly it (_unfit)
         flooded, report = _flight(tmp_path / f"plant-flooded-{attempt}", f"flood-{os.getpid()}-plant-{attempt}",

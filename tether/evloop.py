@@ -2,7 +2,7 @@
 
 Why uvloop: an agent's tick is mostly wake-ups, hand-offs from Zenoh's threads and short callbacks,
 and asyncio's loop is Python at every step of them. Measured on a 2-vCPU machine (``bench/ab.py
---mixed``: half the vehicles of one swarm on each loop, ``docs/benchmarks.md``, *tenth sitting*):
+--mixed``: half the vehicles of one swarm on each loop, see ``docs/benchmarks.md``):
 section4 in lockstep, an agent's main thread 0.86 of its CPU per tick with uvloop, the whole
 process 0.90, 6 of 6 runs; its plant 0.89.
 
