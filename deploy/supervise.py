@@ -43,10 +43,10 @@ def land_bound(m: ms.Mission) -> float:
 
 class Descent:
     """How long the launcher waits for the vehicles to land after a Ctrl-C (pure): ``bound`` [s], and,
-    when ``extends`` (3D, no ``--land-timeout``), as long after it as some vehicle not yet landed has
-    come :data:`LAND_PROGRESS` lower within the last :data:`LAND_STALL` seconds, :data:`LAND_CAP`
-    times ``bound`` at most. A vehicle held up (hovering against a push, or a supervisor that does not
-    land it) stops extending it."""
+    when ``extends`` (3D, no :attr:`~deploy.options.LaunchOptions.land_timeout`), as long after it as
+    some vehicle not yet landed has come :data:`LAND_PROGRESS` lower within the last
+    :data:`LAND_STALL` seconds, :data:`LAND_CAP` times ``bound`` at most. A vehicle held up (hovering
+    against a push, or a supervisor that does not land it) stops extending it."""
 
     def __init__(self, extends: bool, bound: float):
         self.extends = extends
@@ -334,7 +334,7 @@ async def _land_then_stop(launch: Launch, session: zenoh.Session, sup: Supervisi
     mon = sup.monitor
     given = launch.opts.land_timeout
     bound = given if given is not None else land_bound(m)
-    # 3D, no --land-timeout: a descent still under way keeps the launcher waiting (LAND_PROGRESS), so
+    # 3D, no land_timeout given: a descent still under way keeps the launcher waiting (LAND_PROGRESS), so
     # that a landing slowed by a push up (a cable's pull) is not cut off at the descent's nominal time
     descent = Descent(m.dim == 3 and given is None, bound)
     log.warning("interrupted: ordering every vehicle to land (Ctrl-C again to stop at once; waiting %.1f s%s)",
