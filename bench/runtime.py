@@ -73,6 +73,7 @@ if str(REPO) not in sys.path:
 from bench import missions  # noqa: E402
 from deploy import localtls  # noqa: E402
 from deploy.children import HANDOVER  # noqa: E402
+from deploy.supervise import pace  # noqa: E402
 
 try:  # real time: agents tick this fraction of a period after plants and the leader (if the runtime does)
     from agent.node import AGENT_PHASE  # noqa: E402
@@ -448,7 +449,7 @@ def wire_sizes(m: ms.Mission) -> dict[str, int]:
     return size
 
 
-def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
+def baseline_spec(m: ms.Mission, clock: ClockKind, duration: float, wake: bool,
                   variant: dict[str, Any] | None = None) -> dict[str, Any]:
     """What every baseline process needs: the mission's shape, the sizes, the exact Zenoh configs
     (those ``deploy.local`` gives the launcher's router and its clients). ``variant`` changes one
@@ -459,8 +460,8 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
     v = variant or {}
     placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
     client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
-    # real time: the router's per-link ingress limits, as deploy.local gives the launcher's router
-    limits = localtls.run_limits(m, m.name, clock)
+    # the router's per-link ingress limits (real time), as the launcher's pace gives its router
+    limits = pace(clock).limits(m, m.name)
     router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0, ingress_limits=limits)
     configs = []
     for settings in (client, router):
@@ -720,7 +721,7 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
 
 
 # =========================================================================== baseline runs
-def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: bool = False,
+def run_baseline(m: ms.Mission, clock: ClockKind, duration: float, work: Path, probe: bool = False,
                  wake: bool = False, variant: dict[str, Any] | None = None, secure: bool = True) -> Result:
     """The same run with ``bench/baseline_node.py`` processes (hub = router + clock, like the launcher).
 
@@ -742,7 +743,7 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
         if probe:
             raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
         endpoint = "tls/" + endpoint.split("/", 1)[1]
-        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, localtls.run_limits(m, m.name, clock))
+        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, pace(clock).limits(m, m.name))
         listen = {k: "tls/" + ep.split("/", 1)[1] for k, ep in spec.get("mesh", {}).items()}
         spec["tls"] = {"router": str(sec.configs["router"]),
                        **{f"{r}-{i}": str(sec.child(r, i, endpoint, listen.get(f"{r}-{i}"))) for r, i in members}}

@@ -29,6 +29,14 @@ from tether import wire
 log = logging.getLogger("tether")
 
 
+LOG_RESERVE = 4 * 2**20
+"""Free space [bytes] a run's ``--out`` must have beyond the run file's estimate, for its logs."""
+
+HANDOVER = "(rx: (handover: app), acc: (handover: app), net: (handover: app), tx: (handover: app))"
+"""``ZENOH_RUNTIME`` of every child: Zenoh's runtime threads handed over to one thread per child
+(:attr:`LaunchOptions.handover_runtime`)."""
+
+
 def child_env(o: LaunchOptions) -> dict[str, str]:
     """The environment every child starts with: the launcher's, one BLAS thread, and Zenoh's runtime
     threads handed over (:attr:`LaunchOptions.handover_runtime`)."""
@@ -74,12 +82,6 @@ class Child:
             return "(no log)"
 
 
-LOG_RESERVE = 4 * 2**20
-"""Free space [bytes] a run's ``--out`` must have beyond the run file's estimate, for its logs."""
-
-HANDOVER = "(rx: (handover: app), acc: (handover: app), net: (handover: app), tx: (handover: app))"
-
-
 @dataclass
 class Launch:
     """The processes of one run: their command lines, logs, start and stop."""
@@ -89,6 +91,7 @@ class Launch:
     opts: LaunchOptions
     """Resolved (:func:`deploy.options.resolve`)."""
     pace: Pace
+    """How the run keeps time: what the children's command lines say of the clock."""
     children: list[Child] = field(default_factory=list)
     relays: dict[tuple[str, int], Relay] = field(default_factory=dict)
     """Processes whose link to the router goes through a relay (partition faults)."""
@@ -133,9 +136,11 @@ class Launch:
 
     @property
     def keys(self) -> wire.Keys:
+        """The run's keys, in ``--ns`` (by default the mission's name)."""
         return wire.Keys(self.opts.ns or self.mission.name)
 
     def members(self) -> list[tuple[str, int]]:
+        """Every process of the run, as ``(role, id)``, in the order they start."""
         m = self.mission
         if self.opts.colocate_plants:  # each plant inside its agent
             return [("leader", m.leader.id), *[("agent", a) for a in m.agent_ids], ("recorder", 0)]
