@@ -21,7 +21,7 @@ client) and ``ZENOH_RUNTIME`` handover as ``tether run``, but with trivial work.
    ``colocate`` compares the structures (plant processes, co-located, batched records, windows,
    ``--colocate-mesh``) each beside its bare baseline; ``network`` flies rings of N agents as a
    star and as a peer mesh (speed, start-up, the whole command), which sets
-   ``deploy.local.MESH_MAX_AGENTS``; neither runs unless named.
+   ``deploy.options.MESH_MAX_AGENTS``; neither runs unless named.
 2. ``scale``: real time at 50 Hz, N = 4, 8, 16 (32 if 16 holds) agents on a ring
    (``bench/missions.py``), stepping up until a size does not hold; late ticks from the run file's
    ``runtime.late``; total CPU of every process (launcher/router included) from
@@ -72,7 +72,8 @@ if str(REPO) not in sys.path:
 
 from bench import missions  # noqa: E402
 from deploy import localtls  # noqa: E402
-from deploy.local import HANDOVER  # noqa: E402
+from deploy.children import HANDOVER  # noqa: E402
+from deploy.supervise import pace  # noqa: E402
 
 try:  # real time: agents tick this fraction of a period after plants and the leader (if the runtime does)
     from agent.node import AGENT_PHASE  # noqa: E402
@@ -96,8 +97,8 @@ BASELINE = str(REPO / "bench" / "baseline_node.py")
 REALTIME_QOS = {"cmd": "COMMAND", "telemetry": "TELEMETRY"}
 """Real time: the presets ``agent/node.py`` declares its command and telemetry publishers with (every
 other stream, and every stream in lockstep, gets what ``Node.publisher`` gives: STATE / SYNC)."""
-START_LEAD = 1.0  # deploy.local.LaunchOptions.start_lead: tick 0 comes this long after "all up"
-WINDOW = 8  # deploy.local.WINDOW: tether run's window with one process per plant
+START_LEAD = 1.0  # deploy.options.LaunchOptions.start_lead: tick 0 comes this long after "all up"
+WINDOW = 8  # deploy.options.WINDOW: tether run's window with one process per plant
 LOOP = {"bare": "asyncio"}
 """The event loop of the bare baseline's processes (``--bare-loop``; by default tether's own,
 ``tether/evloop.py``)."""
@@ -448,7 +449,7 @@ def wire_sizes(m: ms.Mission) -> dict[str, int]:
     return size
 
 
-def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
+def baseline_spec(m: ms.Mission, clock: ClockKind, duration: float, wake: bool,
                   variant: dict[str, Any] | None = None) -> dict[str, Any]:
     """What every baseline process needs: the mission's shape, the sizes, the exact Zenoh configs
     (those ``deploy.local`` gives the launcher's router and its clients). ``variant`` changes one
@@ -459,8 +460,8 @@ def baseline_spec(m: ms.Mission, clock: str, duration: float, wake: bool,
     v = variant or {}
     placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
     client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
-    # real time: the router's per-link ingress limits, as deploy.local gives the launcher's router
-    limits = localtls.run_limits(m, m.name, clock)
+    # the router's per-link ingress limits (real time), as the launcher's pace gives its router
+    limits = pace(clock).limits(m, m.name)
     router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0, ingress_limits=limits)
     configs = []
     for settings in (client, router):
@@ -720,7 +721,7 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
 
 
 # =========================================================================== baseline runs
-def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: bool = False,
+def run_baseline(m: ms.Mission, clock: ClockKind, duration: float, work: Path, probe: bool = False,
                  wake: bool = False, variant: dict[str, Any] | None = None, secure: bool = True) -> Result:
     """The same run with ``bench/baseline_node.py`` processes (hub = router + clock, like the launcher).
 
@@ -742,7 +743,7 @@ def run_baseline(m: ms.Mission, clock: str, duration: float, work: Path, probe: 
         if probe:
             raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
         endpoint = "tls/" + endpoint.split("/", 1)[1]
-        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, localtls.run_limits(m, m.name, clock))
+        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, pace(clock).limits(m, m.name))
         listen = {k: "tls/" + ep.split("/", 1)[1] for k, ep in spec.get("mesh", {}).items()}
         spec["tls"] = {"router": str(sec.configs["router"]),
                        **{f"{r}-{i}": str(sec.child(r, i, endpoint, listen.get(f"{r}-{i}"))) for r, i in members}}
@@ -1000,7 +1001,7 @@ def colocate_structures(windows: list[str], mesh: bool = False
     samples every tick (tether: one record per tick, the bare baseline two messages); then for
     each ``WINDOW:BATCH`` of ``windows``, co-located with records of BATCH ticks and that window.
     ``mesh``: each of those also as a peer mesh (``--network mesh``, which ``tether run`` picks by
-    default for these runs up to ``deploy.local.MESH_MAX_AGENTS`` agents), beside the bare baseline
+    default for these runs up to ``deploy.options.MESH_MAX_AGENTS`` agents), beside the bare baseline
     as the same mesh."""
     out: list[tuple[str, dict[str, Any], tuple[str, ...]]] = [
         ("separate, w8", {}, ("--separate-plants", "--window", "8", "--network", "star")),
@@ -1009,7 +1010,7 @@ def colocate_structures(windows: list[str], mesh: bool = False
     for spec in windows:
         w, b = (int(x) for x in spec.split(":"))
         opts = ("--colocate-plants", "--record-batch", str(b), "--window", str(w))
-        # the star named: a co-located run of up to 16 agents is a mesh by default (deploy.local.resolve)
+        # the star named: a co-located run of up to 16 agents is a mesh by default (deploy.options.resolve)
         out.append((f"co+batch {b}, w{w}", {"colocate": True, "batch": b, "window": w}, (*opts, "--network", "star")))
         if mesh:
             out.append((f"co+b {b}, w{w}, mesh", {"colocate": True, "batch": b, "window": w, "mesh": True},
@@ -1021,8 +1022,8 @@ def case_network(a: argparse.Namespace, work: Path, report: dict) -> None:
     """Lockstep, plants co-located, the star against the peer mesh at each N of ``--network-sizes``
     (ring missions, ``--network-rate``), one after the other in each repeat: speed, start-up (the
     command's start to every process up) and the whole command's wall time; which one
-    ``tether run`` picks by default (``deploy.local.MESH_MAX_AGENTS``)."""
-    from deploy.local import MESH_MAX_AGENTS
+    ``tether run`` picks by default (``deploy.options.MESH_MAX_AGENTS``)."""
+    from deploy.options import MESH_MAX_AGENTS
 
     say(f"\n== 1c. lockstep star against mesh: ring missions, 3D, {a.network_rate:g} Hz, {a.network_duration:g} s of "
         f"mission time per run, {a.repeats} repeats, plants co-located (window 32, records of 16); speed = mission s / "
@@ -1434,7 +1435,7 @@ def profile_run(mission: str, clock: ClockKind, duration: float, who: str, work:
     import pstats
     from unittest import mock
 
-    from deploy import local
+    from deploy import children, local, options
     from tether.node import load_mission
 
     role, nid = who.split(":")
@@ -1452,10 +1453,10 @@ def profile_run(mission: str, clock: ClockKind, duration: float, who: str, work:
         return real_popen(cmd, *args, **kwargs)
 
     load_mission(path, duration)
-    window, batch = (int(x) for x in colocate.split(":")) if colocate else (local.WINDOW, None)
-    opts = local.LaunchOptions(out=out, clock=clock, duration=duration, progress=False, window=window,
-                               colocate_plants=colocate is not None, record_batch=batch)
-    with mock.patch.object(local.subprocess, "Popen", popen):  # restored when the run ends, however it ends
+    window, batch = (int(x) for x in colocate.split(":")) if colocate else (options.WINDOW, None)
+    opts = options.LaunchOptions(out=out, clock=clock, duration=duration, progress=False, window=window,
+                                 colocate_plants=colocate is not None, record_batch=batch)
+    with mock.patch.object(children.subprocess, "Popen", popen):  # restored when the run ends, however it ends
         status = asyncio.run(local.run(path, opts))
     say(f"tether run {mission} --clock {clock} --duration {duration:g}: exit {status}; profile of {role}/{nid}: {prof}")
     if prof.exists():

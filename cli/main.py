@@ -288,7 +288,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from deploy import local
+    from deploy import local, options
     from sim import figures, refsim
     from tether.node import load_mission
     from tether.runfile import Run
@@ -299,7 +299,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     m = load_mission(path, args.duration)
     out = _writable_dir("--out", args.out, ("run.npz",))
     # the architecture as deployed: one process per plant (tether run co-locates them by default in lockstep)
-    opts = local.LaunchOptions(out=out, clock="lockstep", duration=args.duration, colocate_plants=False)
+    opts = options.LaunchOptions(out=out, clock="lockstep", duration=args.duration, colocate_plants=False)
     status = evloop.run(local.run(path, opts))
     if status != 0:
         return status
@@ -565,7 +565,7 @@ def cmd_safety(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     import logging
 
-    from deploy import local
+    from deploy import local, options
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s launcher: %(message)s")
     from tether.node import load_mission
@@ -597,16 +597,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.colocate_plants and args.separate_plants:
         raise BadArgument("--separate-plants: and --colocate-plants both say where the plants run; give one of them")
     clock: Literal["lockstep", "realtime"] = args.clock or ("realtime" if args.sitl else "lockstep")
-    opts = local.LaunchOptions(out=Path(args.out), clock=clock, network=args.network, window=args.window,
-                               ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
-                               duration=args.duration, handover_runtime=not args.no_handover,
-                               listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
-                               vehicle_connect=dict(args.vehicle_connect), faults=injected,
-                               insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
-                               colocate_plants=True if args.colocate_plants else False if args.separate_plants else None,
-                               record_batch=args.record_batch,
-                               shared_plants=args.shared_plants, rt_priority=args.rt_priority,
-                               sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
+    opts = options.LaunchOptions(out=Path(args.out), clock=clock, network=args.network, window=args.window,
+                                 ns=args.ns, stall_timeout=args.stall_timeout, progress=not args.quiet,
+                                 duration=args.duration, handover_runtime=not args.no_handover,
+                                 listen=tuple(args.listen), lease=args.lease, wrap=dict(args.wrap),
+                                 vehicle_connect=dict(args.vehicle_connect), faults=injected,
+                                 insecure=args.insecure, live=args.live, mcap=not args.no_mcap,
+                                 colocate_plants=True if args.colocate_plants else False if args.separate_plants else None,
+                                 record_batch=args.record_batch,
+                                 shared_plants=args.shared_plants, rt_priority=args.rt_priority,
+                                 sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     return evloop.run(local.run(path, opts))
 
 

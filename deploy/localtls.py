@@ -156,12 +156,6 @@ def ingress_limits(m: ms.Mission, ns: str, streams: bool = True) -> tuple[tuple[
                  if x in control or (streams and x not in recorded))
 
 
-def run_limits(m: ms.Mission, ns: str, clock: str) -> tuple[tuple[str, float], ...]:
-    """The launcher's router's ingress limits for a run on ``clock``: :func:`ingress_limits` in real
-    time, none in lockstep (whose ticks go out in bursts)."""
-    return ingress_limits(m, ns) if clock == "realtime" else ()
-
-
 def recorder_only(m: ms.Mission, ns: str) -> list[str]:
     """The published keys that no process of the control loop subscribes to, only the recorder (and
     the operator's tools): each agent's telemetry, a world's state. They carry no ingress limit, so

@@ -1,6 +1,6 @@
 """Lockstep with each simulated plant computed inside its agent's process (``plant/onboard.py``), and
 the recorder's samples batched in ``wire.Record`` messages: ``tether run``'s default in lockstep
-where every plant is simulated (``deploy.local.resolve``), ``--colocate-plants`` to insist on it,
+where every plant is simulated (``deploy.options.resolve``), ``--colocate-plants`` to insist on it,
 ``--separate-plants`` for one process per plant.
 
 The run must be the one the separate plant processes give, byte for byte in every array of the run
@@ -35,6 +35,7 @@ from tether import handoff
 from tether import transport as tp
 from tether import wire
 from tether.catalog import builtin_path
+from tether.mission import Mission
 from tether.node import load_mission
 from tether.runfile import SERIES, Run
 
@@ -215,10 +216,19 @@ def test_colocate_and_separate_plants_together_exit_2(tmp_path: Path) -> None:
 
 
 def test_lockstep_co_locates_by_default_where_nothing_needs_plant_processes() -> None:
-    """``deploy.local.resolve``: co-located in lockstep with simulated plants and nothing that acts on
+    """``deploy.options.resolve``: co-located in lockstep with simulated plants and nothing that acts on
     the plant processes; else one process per plant, and why; the window follows the structure."""
     from deploy import faults
-    from deploy.local import COLOCATED_WINDOW, MESH_MAX_AGENTS, WINDOW, LaunchOptions, resolve, separate_plants_needed
+    from deploy import options
+    from deploy.options import COLOCATED_WINDOW, MESH_MAX_AGENTS, WINDOW, LaunchOptions
+    from deploy.supervise import pace
+
+    def resolve(m: Mission, o: LaunchOptions) -> LaunchOptions:  # at the pace the launcher chooses for o
+        return options.resolve(m, o, pace(o.clock))
+
+    def separate_plants_needed(m: Mission, o: LaunchOptions) -> str | None:
+        return options.separate_plants_needed(m, o, pace(o.clock))
+
 
     m, out = load_mission(SECTION4), Path("out")
     assert separate_plants_needed(m, LaunchOptions(out=out)) is None

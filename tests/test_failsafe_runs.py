@@ -168,7 +168,7 @@ def test_after_ctrl_c_the_launcher_waits_while_a_pushed_vehicle_still_descends(t
     import signal
     import time
 
-    from deploy import local
+    from deploy import supervise
     from tests.support import wait_until
     from tether import mission as ms
 
@@ -177,7 +177,7 @@ def test_after_ctrl_c_the_launcher_waits_while_a_pushed_vehicle_still_descends(t
     mission = tmp_path / "pushed.toml"
     mission.write_text(text)
     m = ms.load(mission)
-    bound = local._land_bound(m)
+    bound = supervise.land_bound(m)
     out = tmp_path / "run"
     log = tmp_path / "launcher.log"
     with open(log, "wb") as fh:

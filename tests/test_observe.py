@@ -261,7 +261,7 @@ def test_record_joins_a_running_swarm_late_with_the_operator_identity(tmp_path: 
 @pytest.mark.slow  # real processes
 def test_a_lockstep_run_stopped_by_sigint_leaves_both_files(tmp_path: Path) -> None:
     """Ctrl-C on a long lockstep run: the recorder writes ``run.npz`` then ``run.mcap`` of what it
-    recorded, and the launcher waits for it (``deploy.local.write_grace``) instead of killing it."""
+    recorded, and the launcher waits for it (``deploy.options.write_grace``) instead of killing it."""
     out = tmp_path / "run"
     out.mkdir()
     log = tmp_path / "launcher.log"

@@ -163,7 +163,7 @@ def test_a_process_not_permitted_real_time_scheduling_exits_2_naming_the_option(
 
 # --------------------------------------------------------------------------- what the launcher says at the end
 def test_late_ticks_beyond_one_percent_are_reported_with_the_remedy() -> None:
-    from deploy.local import late_report
+    from deploy.outcome import late_report
 
     late = np.full((2001, 4), np.nan)
     late[:, :] = np.linspace(0, 1, 2001)[:, None] * np.array([99, 154, 102, 118])

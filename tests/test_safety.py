@@ -572,11 +572,11 @@ def test_the_gates_first_reference_is_where_each_sender_really_starts() -> None:
 
 
 def test_after_ctrl_c_a_descent_still_under_way_extends_the_launchers_wait_and_a_stalled_one_does_not() -> None:
-    """``deploy.local.Descent`` (pure): 3D without ``--land-timeout``, the wait lasts the nominal bound
+    """``deploy.supervise.Descent`` (pure): 3D without ``--land-timeout``, the wait lasts the nominal bound
     and then as long as some vehicle not yet landed came LAND_PROGRESS lower in the last LAND_STALL
     seconds, LAND_CAP times the bound at most; a vehicle hovering (pushed up as hard as it pushes
     down) ends it; 2D or a given ``--land-timeout``: the bound, whatever the vehicles do."""
-    from deploy.local import LAND_CAP, LAND_PROGRESS, LAND_STALL, Descent
+    from deploy.supervise import LAND_CAP, LAND_PROGRESS, LAND_STALL, Descent
 
     bound = 6.0
     fixed = Descent(False, bound)
