@@ -150,7 +150,8 @@ class _Version(argparse.Action):
             version = metadata.version("tether")
         except metadata.PackageNotFoundError:
             version = "(not installed: run from a source tree)"
-        parser.exit(0, f"tether {version}\n")
+        print(f"tether {version}")
+        parser.exit(0)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:

@@ -7,12 +7,38 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cli import args as cli_args
 from cli.args import BadArgument
 from tether import catalog, evloop, jsonout
 from tether import mission as ms
 from tether.progress import Progress
+
+if TYPE_CHECKING:
+    from tether.runfile import Run
+
+FOXGLOVE_LAYOUT = "docs/foxglove/tether.json"
+"""The Foxglove layout shipped in tether's source tree (docs/foxglove.md): a run's 3D view and plots."""
+
+
+def next_steps(lines: list[str]) -> None:
+    """End a command with what to do next: one line each, on stdout."""
+    print("\nnext:")
+    for line in lines:
+        print(f"  {line}")
+
+
+def foxglove_step(mcap: Path) -> str:
+    """How to open a run's Foxglove file."""
+    return (f"open {mcap} in Foxglove (Open local file), with the layout {FOXGLOVE_LAYOUT} from tether's source "
+            "(Layout, Import from file; docs/foxglove.md)")
+
+
+def _size(run: Run) -> str:
+    """The run file's size, from its arrays (``run.npz`` stores them uncompressed)."""
+    mb = sum(a.nbytes for a in run.arrays().values()) / 1e6
+    return f"{mb:.3g} MB"
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -86,14 +112,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(f"warning: {m.name} has [safety.avoid], which the reference simulator does not fly: it computes the "
               "law alone, without the safety layer, so these vehicles may pass through each other; `tether run "
               f"{args.mission}` flies the filter (docs/safety.md)", file=sys.stderr)
+    cli_args.check_live(args.live)
+    slow = capacity.slow_path() if args.engine == "auto" else None
+    if slow is not None:
+        print(slow, file=sys.stderr)
     prog = Progress()
     live = None
-    cli_args.check_live(args.live)
     if args.live is not None:  # the live view (docs/foxglove.md): needs the viz extra
         from recorder import viz
 
         live = viz.Live(port=args.live, speed=args.speed, mission=m, scene_rate=args.scene_rate)
         print(f"live view: ws://127.0.0.1:{live.port} (Foxglove: Open connection, Foxglove WebSocket)", flush=True)
+    print(f"simulating {m.name}: {m.steps} ticks of {m.n} agents, {args.mode}", file=sys.stderr, flush=True)
     try:
         try:
             run = refsim.simulate(m, args.mode, substeps=args.substeps, progress=lambda k, n: prog(k, n, m.name),
@@ -112,6 +142,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from tether import safefs
 
     real = safefs.make_out(out)  # checked by writable_dir; made here following no link
+    print(f"writing {out / 'run.npz'} ({_size(run)})", file=sys.stderr, flush=True)
     run.save(out / "run.npz")
     summary = jsonout.finite(metrics.summary(run))
     assert isinstance(summary, dict)
@@ -127,11 +158,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.no_mcap:
         from recorder.export import mcap_beside
 
+        print(f"writing {out / 'run.mcap'} (the Foxglove file)", file=sys.stderr, flush=True)
         mcap = mcap_beside(run, m, out / "run.npz", scene_rate=args.scene_rate)
+    drawn: list[Path] = []
     if not args.no_figures:
-        figures.run_panels(run, out)
+        print(f"drawing the figures in {out}", file=sys.stderr, flush=True)
+        drawn = list(figures.run_panels(run, out))
     print(jsonout.dumps(summary))
     print(f"wrote {out / 'run.npz'}" + (f" and {mcap}" if mcap else ""))
+    steps = [f"the figures: {', '.join(str(p) for p in drawn)}"] if drawn else []
+    steps += [foxglove_step(mcap)] if mcap else []
+    steps += [f"tether run {args.mission} --out DIR: the same mission as separate processes over Zenoh"]
+    next_steps(steps)
     return 0
 
 
@@ -140,6 +178,11 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
     cli_args.load(args.what, args.duration)  # --duration checked against the mission it shortens, before anything runs
     cli_args.writable_dir("--out", args.out, ("metrics.json", "metrics.md", "report.md"))
+    from sim import capacity
+
+    slow = capacity.slow_path()
+    if slow is not None:
+        print(slow, file=sys.stderr)
     prog = Progress()
     if args.what != "section4":
         from sim import experiments
@@ -176,11 +219,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if status != 0:
         return status
     run = Run.load(out)
+    print("simulating the same mission in the reference simulator, to compare", file=sys.stderr, flush=True)
     ref = refsim.simulate(m)
     worst = max(float(np.nanmax(np.abs(getattr(run, f) - getattr(ref, f)))) for f in ("p", "v", "kp", "kv", "xi"))
-    for p in figures.run_panels(run, out):
+    print(f"drawing the figures in {out}", file=sys.stderr, flush=True)
+    drawn = list(figures.run_panels(run, out))
+    for p in drawn:
         print(f"wrote {p}")
     print(f"distributed lockstep run vs reference simulator: max |difference| over p, v, xi, Kp, Kv = {worst:.3g}")
+    steps = [f"the figures: {', '.join(str(p) for p in drawn)}"]
+    steps += [foxglove_step(out / "run.mcap")] if (out / "run.mcap").exists() else []
+    steps += [f"the processes' logs: {out / 'logs'}",
+              "tether reproduce section4 --out runs/section4: the paper's Figs. 4-6 over 1000 s and the report "
+              "(metrics.md)",
+              "tether missions: the other shipped missions, to simulate or run"]
+    next_steps(steps)
     return 0 if worst <= 1e-9 else 1
 
 

@@ -139,6 +139,12 @@ def cmd_study(args: argparse.Namespace) -> int:
         elif args.connect_timeout is not None:
             raise BadArgument("--connect-timeout: applies to --executor only; add --executor tcp://HOST:PORT")
         timeout = _number(args.connect_timeout, "--connect-timeout", 0.1, 3600.0, study.CONNECT_TIMEOUT_S)
+        if args.engine == "inprocess" and args.executor is None:
+            from sim import capacity
+
+            slow = capacity.slow_path()
+            if slow is not None:
+                print(slow, file=sys.stderr)
         prog = Progress()
         out = Path(args.out)
 

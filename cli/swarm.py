@@ -170,7 +170,16 @@ def cmd_run(args: argparse.Namespace) -> int:
                                record_batch=args.record_batch,
                                shared_plants=args.shared_plants, rt_priority=args.rt_priority,
                                sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
-    return evloop.run(local.run(path, opts))
+    status = evloop.run(local.run(path, opts))
+    out = Path(args.out)
+    if status in (0, 3) and (out / "run.npz").exists():  # finished, or ended by a failsafe: a run to look at
+        from cli.sim import foxglove_step, next_steps
+
+        steps = [f"tether plot {out}: the run's figures (safety mode changes marked)"]
+        steps += [foxglove_step(out / "run.mcap")] if (out / "run.mcap").exists() else []
+        steps += [f"the processes' logs: {out / 'logs'}"]
+        next_steps(steps)
+    return status
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:

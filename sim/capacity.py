@@ -45,3 +45,14 @@ def problems(m: ms.Mission, mode: str, substeps: int, engine: Engine, live: bool
            f"inverts the largest strongly connected block of the agents' graph, {block} agents here")
     return [("--mode", f"is continuous, which {why}; use --mode discrete (sparse, the runtime's semantics), or at "
                        f"most {DENSE_MAX} agents in one strongly connected block with the compiled engine")]
+
+
+def slow_path() -> str | None:
+    """One line for an install without the compiled kernels (numba, the ``[fast]`` extra), whose
+    simulator and in-process engine then run their numpy and Python paths; None when they can run."""
+    from sim import kernel
+
+    if kernel.AVAILABLE:
+        return None
+    return ("note: numba is not installed, so the simulator runs its numpy and Python paths: the same results, "
+            "several times slower (about 10x for a sweep); pip install 'tether[fast]' for the compiled kernels")
