@@ -148,3 +148,31 @@ def test_with_numba_no_notice(tmp_path: Path) -> None:
     pytest.importorskip("numba")
     r = tether("simulate", "section4", "--out", str(tmp_path / "s"), "--duration", "1", "--no-figures", "--no-mcap")
     assert r.returncode == 0 and "numba is not installed" not in r.stderr, r.stderr
+
+
+def test_a_process_command_loads_none_of_the_users_commands() -> None:
+    """A control process builds its own command alone: the modules of the other commands (and the
+    spelling suggestion's ``difflib``) are no part of its memory."""
+    code = ("import sys; from cli import main; main.build_parser(sys.argv[1]).parse_args(sys.argv[1:])")
+    r = subprocess.run([sys.executable, "-X", "importtime", "-c", code, "agent", "--mission", "section4", "--id", "1"],
+                       capture_output=True, text=True, timeout=TIMEOUT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    names = [ln.rsplit("|", 1)[1].strip() for ln in r.stderr.splitlines() if ln.startswith("import time:") and "|" in ln]
+    assert "cli.roles" in names and "cli.args" in names
+    bad = [n for n in names if n.startswith(("cli.sim", "cli.swarm", "cli.missions", "cli.study", "sim.", "difflib",
+                                             "importlib.metadata"))]
+    assert not bad, f"tether agent loads {bad}"
+
+
+@pytest.mark.slow  # a lockstep run of every process, then the demo's separate plant processes
+def test_run_and_demo_end_with_what_to_do_next(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    r = tether("run", "section4", "--out", str(out), "--duration", "1", "--insecure", "--quiet")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "\nnext:\n" in r.stdout and f"tether plot {out}" in r.stdout and str(out / "logs") in r.stdout
+    demo = tmp_path / "demo"
+    r = tether("demo", "--out", str(demo), "--duration", "1")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert str(demo / "xy.png") in r.stdout.split("\nnext:\n")[1]
+    assert "tether reproduce section4" in r.stdout and "tether missions" in r.stdout
+    assert "simulating the same mission in the reference simulator" in r.stderr
