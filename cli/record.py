@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cli import args as cli_args
 from tether import evloop
 
 if TYPE_CHECKING:
@@ -31,8 +32,6 @@ RETRY = 0.5
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from cli import main
-
     r = sub.add_parser("record", help="record a running (deployed) swarm from outside it: run.npz and run.mcap "
                                       "until stopped")
     r.add_argument("--mission", required=True,
@@ -40,40 +39,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "rate and length")
     r.add_argument("--ns", default=None, help="the swarm's namespace (default: the mission's name)")
     r.add_argument("--out", required=True, help="directory for run.npz and run.mcap")
-    r.add_argument("--duration", type=main._seconds, default=None,
+    r.add_argument("--duration", type=cli_args.seconds, default=None,
                    help="the swarm's --duration, when it was given one [s]")
     r.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                    help="serve the run over the Foxglove WebSocket protocol while it goes on (default port 8765)")
     r.add_argument("--live-host", default="127.0.0.1",
                    help="address the live view listens on (default 127.0.0.1; 0.0.0.0: every interface)")
     r.add_argument("--no-mcap", action="store_true", help="no run.mcap beside run.npz")
-    r.add_argument("--log-level", default="INFO")
-    main._zenoh_options(r)
+    r.add_argument("--log-level", default="INFO", help="DEBUG, INFO (default), WARNING or ERROR")
+    cli_args.zenoh_options(r)
     r.set_defaults(func=cmd_record, zenoh_mode="client", connect_timeout=2.0)
 
 
 def cmd_record(args: argparse.Namespace) -> int:
     from cli import live as live_mod
-    from cli import main
-    from tether import catalog, wire
     from tether.node import NodeArgs
 
-    path = catalog.resolve(args.mission)
-    m = main._load(args.mission, args.duration)
+    path = cli_args.mission_path(args.mission)
+    m = cli_args.load(args.mission, args.duration)
     ns = args.ns or m.name
-    try:
-        wire.Keys(ns)
-    except ValueError as exc:
-        raise main.BadArgument(f"--ns: {exc}") from None
-    if args.zenoh_config is None and not args.connect:
-        raise main.BadArgument("--connect is missing: give the swarm's router endpoint (e.g. --connect "
-                               "tcp/127.0.0.1:7447, one that tether run --listen opened) or --zenoh-config FILE "
-                               "(under mTLS the operator identity, e.g. DIR/tls/control-0.json5)")
-    out = main._writable_dir("--out", args.out, ("run.npz", "run.mcap"))
+    cli_args.check_ns(ns)
+    cli_args.need_router(args)
+    out = cli_args.writable_dir("--out", args.out, ("run.npz", "run.mcap"))
     problem = live_mod.port_problem(args.live, args.live_host)
     if problem is not None:
-        raise main.BadArgument(problem)
-    settings = main._zenoh_settings(args)
+        raise cli_args.BadArgument(problem)
+    settings = cli_args.zenoh_settings(args)
     node_args = NodeArgs(mission_path=path, role="recorder", node_id=0, clock="realtime", zenoh=settings, ns=ns,
                          duration=args.duration)
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),

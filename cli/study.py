@@ -12,6 +12,8 @@ import math
 import sys
 from pathlib import Path
 
+from cli.args import MISSION_HELP, BadArgument, load, seconds, writable_dir
+
 
 def _grid_options(p: argparse.ArgumentParser, *, seeds_required: bool) -> None:
     """The options a sweep and a Monte Carlo study share (beyond the network grid)."""
@@ -30,32 +32,47 @@ def _grid_options(p: argparse.ArgumentParser, *, seeds_required: bool) -> None:
     p.add_argument("--gamma-v", default=None, help="Gamma_v values, comma-separated")
 
 
-def extend(sub: argparse._SubParsersAction, sweep: argparse.ArgumentParser) -> None:
-    """Add the study options to the ``sweep`` parser and the ``montecarlo`` command beside it."""
-    from cli.main import _seconds
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """sweep, montecarlo."""
+    sw = sub.add_parser("sweep", help="degradation study: a mission over a grid of link loss and delay, both laws")
+    sw.add_argument("mission", help=MISSION_HELP)
+    sw.add_argument("--out", required=True, help="directory for sweep.csv, sweep.md, heatmaps and each point's mission")
+    sw.add_argument("--loss", default="0,10,30,50", help="loss ratios [%%], comma-separated (default 0,10,30,50)")
+    sw.add_argument("--delay", default="0,20,50,100,200", help="one-way delays [ms] (default 0,20,50,100,200)")
+    sw.add_argument("--burst", default="1", help="mean loss-burst lengths [messages]; 1: independent losses")
+    sw.add_argument("--jitter", type=float, default=0.0, help="uniform delay jitter, half-width [ms]")
+    sw.add_argument("--laws", default=None, help="laws to run, comma-separated: sigma, benchmark (default both)")
+    sw.add_argument("--duration", type=seconds, default=None, help="override the mission's duration [s]")
+    sw.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess",
+                    help="inprocess: the lockstep runtime's arithmetic in one process (equal bit for bit, "
+                         "several times faster: bench/sweep_engine.py); runtime: real processes over Zenoh "
+                         "(tether run) for every point")
+    sw.add_argument("--jobs", type=int, default=1, help="grid points run at once (processes)")
+    sw.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
+                    help="latency compensation on every agent (default: as the mission's [links] says)")
+    _grid_options(sw, seeds_required=False)
+    sw.set_defaults(func=cmd_study)
 
-    _grid_options(sweep, seeds_required=False)
-    sweep.set_defaults(func=cmd_study, laws=None)
     mc = sub.add_parser("montecarlo", help="Monte Carlo study: a sweep's grid, N replicates per cell, "
                                            "mean / std / 95%% CI per cell")
-    mc.add_argument("mission")
+    mc.add_argument("mission", help=MISSION_HELP)
     mc.add_argument("--out", required=True, help="directory for sweep.csv, summary.csv, sweep.md and the figure")
     mc.add_argument("--loss", default="0", help="loss ratios [%%] (default 0)")
     mc.add_argument("--delay", default="0", help="one-way delays [ms] (default 0)")
     mc.add_argument("--burst", default="1", help="mean loss-burst lengths [messages]")
     mc.add_argument("--jitter", type=float, default=0.0, help="uniform delay jitter, half-width [ms]")
     mc.add_argument("--laws", default=None, help="laws to run (default: the mission's)")
-    mc.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
-    mc.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess")
+    mc.add_argument("--duration", type=seconds, default=None, help="override the mission's duration [s]")
+    mc.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess",
+                    help="inprocess (default): every cell in one process each; runtime: real processes over Zenoh")
     mc.add_argument("--jobs", type=int, default=1, help="cells run at once (local processes)")
-    mc.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None)
+    mc.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
+                    help="latency compensation on every agent (default: as the mission's [links] says)")
     _grid_options(mc, seeds_required=True)
     mc.set_defaults(func=cmd_study, montecarlo=True)
 
 
 def _number(text: str | None, option: str, lo: float, hi: float, default: float) -> float:
-    from cli.main import BadArgument
-
     if text is None:
         return default
     try:
@@ -69,7 +86,6 @@ def _number(text: str | None, option: str, lo: float, hi: float, default: float)
 
 def _positive(text: str | None, option: str, hi: float) -> list[float] | None:
     """A comma-separated list of values in (0, hi], or None."""
-    from cli.main import BadArgument
     from sim import sweep
 
     if text is None:
@@ -82,12 +98,11 @@ def _positive(text: str | None, option: str, hi: float) -> list[float] | None:
 
 
 def cmd_study(args: argparse.Namespace) -> int:
-    from cli.main import BadArgument, _load, _writable_dir
     from sim import study, sweep
     from tether.progress import Progress
 
-    m = _load(args.mission, args.duration)
-    _writable_dir("--out", args.out, ("sweep.csv", "sweep.md", "study.jsonl"))
+    m = load(args.mission, args.duration)
+    writable_dir("--out", args.out, ("sweep.csv", "sweep.md", "study.jsonl"))
     try:
         loss = sweep.parse_list(args.loss, "--loss", 0.0, 100.0, "%", hi_open=True)
         delay = sweep.parse_list(args.delay, "--delay", 0.0, 60_000.0, "ms")
@@ -124,6 +139,12 @@ def cmd_study(args: argparse.Namespace) -> int:
         elif args.connect_timeout is not None:
             raise BadArgument("--connect-timeout: applies to --executor only; add --executor tcp://HOST:PORT")
         timeout = _number(args.connect_timeout, "--connect-timeout", 0.1, 3600.0, study.CONNECT_TIMEOUT_S)
+        if args.engine == "inprocess" and args.executor is None:
+            from sim import capacity
+
+            slow = capacity.slow_path()
+            if slow is not None:
+                print(slow, file=sys.stderr)
         prog = Progress()
         out = Path(args.out)
 
