@@ -40,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from bench import procstat  # noqa: E402
 from bench import runtime as rt  # noqa: E402
 from bench import worktree  # noqa: E402
 from tether import catalog  # noqa: E402
@@ -58,7 +59,7 @@ FIGURES: list[tuple[str, str, bool]] = [
 """(key, label, higher is better) of each figure compared."""
 
 
-def measure(res: rt.Result, ticks: float) -> dict[str, float]:
+def measure(res: procstat.Result, ticks: float) -> dict[str, float]:
     """The figures of one run (NaN where its role did not run)."""
     per = rt._per_tick(res, ticks, ROLES)  # noqa: SLF001 - the bench's own helper
     out = {"speed": res.speed if res.ran_to_end else float("nan"),
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> None:
                                       "clock": a.clock, "extra": extra, "runs": runs}, indent=1))
 
 
-def checked(res: rt.Result, trees: set[Path], what: str) -> None:
+def checked(res: procstat.Result, trees: set[Path], what: str) -> None:
     """Stop the comparison unless ``res`` went to its end and its processes ran in exactly ``trees``
     (each process imports the checkout it runs in)."""
     want = {str(t) for t in trees}
@@ -183,7 +184,7 @@ def mixed(a: argparse.Namespace, path: Path, m: Any, extra: list[str], base: Pat
             for ro, what in MIXED_FIGURES:
                 procs = [p for p in res.procs if p.role == ro and side.get(p.nid) == s_]
                 vals = [p.cpu if what == "us" else p.by_thread()[what] for p in procs]
-                row[f"{s_}:{ro}_{what}"] = rt.med(vals) * f if vals else float("nan")
+                row[f"{s_}:{ro}_{what}"] = procstat.med(vals) * f if vals else float("nan")
         out.append(row)
         rt.say(f"   run {r + 1} (base: {' '.join(str(n) for n, s_ in side.items() if s_ == 'base')})  agent "
                f"{row['base:agent_us']:6.0f} -> {row['new:agent_us']:6.0f} us (main {row['base:agent_main']:5.0f} -> "
@@ -198,8 +199,8 @@ def mixed(a: argparse.Namespace, path: Path, m: Any, extra: list[str], base: Pat
         if not pairs:
             continue
         label = f"{ro}, {'process' if what == 'us' else what + ' thread(s)'} [us]"
-        rt.say(f"   {label:32} {rt.med([b for b, _ in pairs]):>9.1f} {rt.med([n for _, n in pairs]):>9.1f} "
-               f"{rt.med([n / b for b, n in pairs]):>27.3f}  {sum(1 for b, n in pairs if n < b)} of {len(pairs)}")
+        rt.say(f"   {label:32} {procstat.med([b for b, _ in pairs]):>9.1f} {procstat.med([n for _, n in pairs]):>9.1f} "
+               f"{procstat.med([n / b for b, n in pairs]):>27.3f}  {sum(1 for b, n in pairs if n < b)} of {len(pairs)}")
     return out
 
 
@@ -213,12 +214,12 @@ def report(runs: dict[str, list[dict[str, Any]]]) -> None:
            f"   over all {len(both)} pairs")
     rt.say(f"   {'figure':42} {'base':>9} {'new':>9} {'new/base':>9}  new better in")
     for key, label, higher in FIGURES:
-        b, n = rt.med([x[key] for x, _ in quiet]), rt.med([y[key] for _, y in quiet])
+        b, n = procstat.med([x[key] for x, _ in quiet]), procstat.med([y[key] for _, y in quiet])
         if b != b and n != n:
             continue  # a role this mission does not run
         pairs = [(x[key], y[key]) for x, y in quiet if x[key] == x[key] and y[key] == y[key]]
         better = sum(1 for x, y in pairs if (y > x if higher else y < x))
-        rt.say(f"   {label:42} {b:>9.2f} {n:>9.2f} {rt.ratio(n, b):>9.3f}  {better} of {len(pairs)}")
+        rt.say(f"   {label:42} {b:>9.2f} {n:>9.2f} {procstat.ratio(n, b):>9.3f}  {better} of {len(pairs)}")
 
 
 if __name__ == "__main__":

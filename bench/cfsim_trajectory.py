@@ -17,7 +17,7 @@ import struct
 
 import numpy as np
 
-from plant.cfsim import crtp, firmware
+from plant.cfsim import commander, crtp, firmware
 from plant.quadrotor import Quadrotor, QuadrotorParams
 
 
@@ -57,7 +57,7 @@ def fly(duration: float) -> tuple[float, float, float]:
     for a in range(0, len(data), 24):
         send(crtp.Port.MEM, 2, struct.pack("<BI", 0, a) + data[a:a + 24])
     send(crtp.Port.SETPOINT_HL, 0, struct.pack("<BBBBIB", 6, 1, 1, 0, 0, len(pieces)))
-    origin = np.array(fw._hl_pos)
+    origin = np.array(fw.hl.pos)
     send(crtp.Port.SETPOINT_HL, 0, struct.pack("<BBBBBBf", 13, 0, 1, 0, 0, 1, 1.0))
     t0 = fw.t
     body = setpoint = 0.0
@@ -66,7 +66,7 @@ def fly(duration: float) -> tuple[float, float, float]:
         fw.tick()
         want = origin + point(pieces, t)
         sp = fw._applied
-        assert isinstance(sp, firmware.Track)
+        assert isinstance(sp, commander.Track)
         setpoint = max(setpoint, float(np.abs(np.array(sp.pos) - want).max()))
         body = max(body, float(np.abs(fw.quad.p - (origin + point(pieces, fw.t - t0))).max()))
     acc = max(float(np.linalg.norm(point(pieces, t, 2))) for t in np.linspace(0.0, duration, 500))

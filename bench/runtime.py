@@ -8,7 +8,8 @@
     .venv/bin/python bench/runtime.py --cases latency cpu --json /tmp/bench.json
     .venv/bin/python bench/runtime.py --profile agent:1 [--profile-clock realtime --mission FILE]
 
-The baseline (``bench/baseline_node.py``) runs the same processes with the same keys, payload
+The baseline (``bench/baseline_node.py``, started and measured by ``bench/baseline.py``; process
+figures from ``/proc`` by ``bench/procstat.py``) runs the same processes with the same keys, payload
 sizes, QoS, rates, star topology (router session in the launcher's place, every other process a
 client) and ``ZENOH_RUNTIME`` handover as ``tether run``, but with trivial work. Cases
 (``docs/benchmarks.md`` has the method, the figures and what they mean):
@@ -52,15 +53,12 @@ import json
 import os
 import queue
 import re
-import statistics
-import struct
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -71,14 +69,13 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench import missions  # noqa: E402
-from deploy import localtls  # noqa: E402
-from deploy.children import HANDOVER  # noqa: E402
-from deploy.supervise import pace  # noqa: E402
-
-try:  # real time: agents tick this fraction of a period after plants and the leader (if the runtime does)
-    from agent.node import AGENT_PHASE  # noqa: E402
-except ImportError:
-    AGENT_PHASE = 0.0
+from bench.baseline import (  # noqa: E402
+    AGENT_PHASE, LOOP, PY, START_LEAD, WINDOW, example_message, launcher_env, probe_ready, probe_stats,
+    run_baseline, spawn_probe,
+)
+from bench.procstat import (  # noqa: E402
+    Proc, Result, Window, children_of, cmdline, med, pct, ratio, read_lines, reap, wait_quiet,
+)
 from tether import mission as ms  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether import evloop  # noqa: E402
@@ -91,520 +88,8 @@ from tether import wire  # noqa: E402
 if TYPE_CHECKING:
     from tether.clock import ClockKind
 
-CLK_TCK = os.sysconf("SC_CLK_TCK")
-PY = sys.executable
-BASELINE = str(REPO / "bench" / "baseline_node.py")
-REALTIME_QOS = {"cmd": "COMMAND", "telemetry": "TELEMETRY"}
-"""Real time: the presets ``agent/node.py`` declares its command and telemetry publishers with (every
-other stream, and every stream in lockstep, gets what ``Node.publisher`` gives: STATE / SYNC)."""
-START_LEAD = 1.0  # deploy.options.LaunchOptions.start_lead: tick 0 comes this long after "all up"
-WINDOW = 8  # deploy.options.WINDOW: tether run's window with one process per plant
-LOOP = {"bare": "asyncio"}
-"""The event loop of the bare baseline's processes (``--bare-loop``; by default tether's own,
-``tether/evloop.py``)."""
-
-
-# =========================================================================== /proc
-def cpu_times(pid: int) -> tuple[float, float] | None:
-    """(utime, stime) of ``pid`` [s] (``/proc/<pid>/stat`` fields 14, 15), or None if it is gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            rest = fh.read().rpartition(")")[2].split()
-        return int(rest[11]) / CLK_TCK, int(rest[12]) / CLK_TCK
-    except (OSError, IndexError, ValueError):
-        return None
-
-
-def thread_cpu(pid: int) -> dict[int, tuple[str, float]] | None:
-    """CPU time [s] of every thread of ``pid``: tid -> (kind, seconds), kind ``main`` (the asyncio
-    thread), ``zenoh`` (Zenoh's runtime threads: ``app-*``, ``rx-*``, ``tx-*``, ``net-*``, ``acc-*``)
-    or ``callback`` (the other Python threads: zenoh-python runs one per subscriber callback)."""
-    out = {}
-    try:
-        tids = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        return None
-    for tid in tids:
-        try:
-            with open(f"/proc/{pid}/task/{tid}/comm") as fh:
-                comm = fh.read().strip()
-            with open(f"/proc/{pid}/task/{tid}/stat") as fh:
-                rest = fh.read().rpartition(")")[2].split()
-        except OSError:
-            continue
-        if int(tid) == pid:
-            kind = "main"
-        elif re.match(r"(app|rx|tx|net|acc)-\d+$", comm):
-            kind = "zenoh"
-        else:
-            kind = "callback"
-        out[int(tid)] = (kind, (int(rest[11]) + int(rest[12])) / CLK_TCK)
-    return out
-
-
-def memory_kib(pid: int) -> dict[str, int] | None:
-    """Rss, Pss (shared pages divided among their users) and USS (private pages) of ``pid`` [KiB],
-    from ``/proc/<pid>/smaps_rollup``."""
-    try:
-        with open(f"/proc/{pid}/smaps_rollup") as fh:
-            f = {line.split(":")[0]: int(line.split()[1]) for line in fh if line.split(":")[0] in
-                 ("Rss", "Pss", "Private_Clean", "Private_Dirty")}
-    except (OSError, ValueError, IndexError):
-        return None
-    return {"rss": f["Rss"], "pss": f["Pss"], "uss": f["Private_Clean"] + f["Private_Dirty"]}
-
-
-def threads(pid: int) -> int | None:
-    try:
-        return len(os.listdir(f"/proc/{pid}/task"))
-    except OSError:
-        return None
-
-
-def machine_jiffies() -> tuple[int, int]:
-    """(busy, total) jiffies of the whole machine since boot (``/proc/stat``, first line)."""
-    with open("/proc/stat") as fh:
-        f = [int(x) for x in fh.readline().split()[1:]]
-    idle = f[3] + (f[4] if len(f) > 4 else 0)  # idle + iowait
-    return sum(f) - idle, sum(f)
-
-
-def busy_cores(seconds: float = 1.0) -> float:
-    """Cores' worth of CPU the whole machine used over the next ``seconds`` (blocks that long)."""
-    b0, _ = machine_jiffies()
-    time.sleep(seconds)
-    b1, _ = machine_jiffies()
-    return (b1 - b0) / CLK_TCK / seconds
-
-
-def wait_quiet(limit: float, timeout: float) -> float:
-    """Wait (up to ``timeout`` s) until the machine uses less than ``limit`` cores with none of our runs
-    going, so that another user's burst does not land in a measurement; returns the last reading."""
-    deadline = time.monotonic() + timeout
-    busy = busy_cores()
-    while busy > limit and time.monotonic() < deadline:
-        busy = busy_cores(2.0)
-    return busy
-
-
-def rss_kib(pid: int) -> int | None:
-    try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return None
-
-
-def children_of(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as fh:
-                    if int(fh.read().rpartition(")")[2].split()[1]) == pid:
-                        out.append(int(d))
-            except (OSError, IndexError, ValueError):
-                pass
-    return out
-
-
-def reap(proc: subprocess.Popen[str], timeout: float) -> None:
-    """Wait up to ``timeout`` [s] for ``proc`` to end by itself, then kill it."""
-    try:
-        proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
-def cmdline(pid: int) -> list[str]:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as fh:
-            return [a.decode() for a in fh.read().split(b"\0") if a]
-    except OSError:
-        return []
-
-
-@dataclass
-class Proc:
-    """One measured process: its role and id, CPU [s] and RSS [KiB] at the two snapshots."""
-
-    pid: int
-    role: str
-    nid: int
-    cpu0: tuple[float, float] | None = None
-    cpu1: tuple[float, float] | None = None
-    rss: int | None = None
-    threads: int | None = None
-
-    th0: dict[int, tuple[str, float]] | None = None
-    th1: dict[int, tuple[str, float]] | None = None
-    mem: dict[str, int] | None = None
-    """Rss/Pss/USS [KiB], read now and then during the window (the last reading kept)."""
-
-    def snap_mem(self) -> None:
-        mem = memory_kib(self.pid)
-        if mem is not None:
-            self.mem = mem
-
-    def snap0(self) -> None:
-        self.cpu0 = cpu_times(self.pid)
-        self.th0 = thread_cpu(self.pid)
-
-    def snap1(self) -> None:
-        """Read the end of the window; a process already gone keeps its last sampled values."""
-        cpu, rss, nth = cpu_times(self.pid), rss_kib(self.pid), threads(self.pid)
-        th = thread_cpu(self.pid)
-        if cpu is not None and rss is not None and nth is not None and th is not None:
-            self.cpu1, self.rss, self.threads = cpu, rss, nth
-            self.th1 = {**(self.th1 or {}), **th}  # threads that ended keep their last reading
-
-    def by_thread(self) -> dict[str, float]:
-        """CPU over the window [s] by thread kind (see :func:`thread_cpu`)."""
-        out = {"main": 0.0, "callback": 0.0, "zenoh": 0.0}
-        if self.th0 is None or self.th1 is None:
-            return {k: float("nan") for k in out}
-        for tid, (kind, sec) in self.th1.items():
-            out[kind] += sec - self.th0.get(tid, (kind, 0.0))[1]
-        return out
-
-    @property
-    def cpu(self) -> float:
-        """CPU time over the window [s]."""
-        return self.user + self.system
-
-    @property
-    def user(self) -> float:
-        if self.cpu0 is None or self.cpu1 is None:
-            return float("nan")
-        return self.cpu1[0] - self.cpu0[0]
-
-    @property
-    def system(self) -> float:
-        if self.cpu0 is None or self.cpu1 is None:
-            return float("nan")
-        return self.cpu1[1] - self.cpu0[1]
-
-
-class Sampler:
-    """Samples every process's end-of-window figures every ``period`` s while the window is open, so
-    that a process that exits just before the window closes (its last tick done) is still counted."""
-
-    def __init__(self, procs: list[Proc], period: float = 0.1):
-        self.procs, self.period = procs, period
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _run(self) -> None:
-        n = 0
-        while not self._stop.wait(self.period):
-            n += 1
-            for p in self.procs:
-                p.snap1()
-                if n % 10 == 1:
-                    p.snap_mem()
-
-    def stop(self) -> None:
-        """Close the window: one last reading of every live process."""
-        self._stop.set()
-        self._thread.join()
-        for p in self.procs:
-            p.snap1()
-            p.snap_mem()
-
-
-class Window:
-    """The measured window of one run: every process's CPU, and the whole machine's."""
-
-    def __init__(self, procs: list[Proc]):
-        self.procs = procs
-        self.sampler = Sampler(procs)
-
-    def open(self) -> None:
-        self.t0 = time.monotonic()
-        self.m0 = machine_jiffies()[0]
-        for p in self.procs:
-            p.snap0()
-        self.sampler.start()
-
-    def close(self, res: "Result") -> None:
-        self.sampler.stop()
-        res.window_s = time.monotonic() - self.t0
-        machine = 100 * (machine_jiffies()[0] - self.m0) / CLK_TCK / res.window_s
-        mine = sum(100 * p.cpu / res.window_s for p in self.procs if p.cpu == p.cpu)
-        res.foreign_pct = max(0.0, machine - mine)  # both are read at 10 ms granularity
-
-
-@dataclass
-class Result:
-    """One run (tether or baseline)."""
-
-    kind: str
-    n: int
-    clock: str
-    rate: float
-    ok: bool = True
-    why: str = ""
-    status: int = 0
-    """tether run's exit status (5: recorded, but samples are missing; the run itself went to its end)."""
-    mission_s: float = float("nan")
-    wall_s: float = float("nan")
-    startup_s: float = float("nan")
-    window_s: float = float("nan")
-    """Wall time between the two CPU snapshots [s]."""
-    foreign_pct: float = float("nan")
-    """CPU used by everything else on the machine during the window [% of one core]: noise."""
-    procs: list[Proc] = field(default_factory=list)
-    late: float = float("nan")
-    """Late ticks / agent ticks (real time)."""
-    late_max: float = float("nan")
-    link_age: np.ndarray | None = None
-    meas_age: np.ndarray | None = None
-    probe: dict[str, Any] | None = None
-    complete: str = ""
-    command_s: float = float("nan")
-    """The whole ``tether run`` command's wall time [s], start-up and end included."""
-    end_s: float = float("nan")
-    """Wall time from the launcher's "ran ..." line (the last tick) to the command's exit [s]: the
-    files' end (``run.npz``, ``run.mcap``) and the processes' exits."""
-    cwds: set[str] = field(default_factory=set)
-    """The working directories of tether's processes (which checkout they import: ``run_tether``)."""
-
-    @property
-    def ran_to_end(self) -> bool:
-        """The run went to its end: clean, or recorded with samples lost on the way (exit 5)."""
-        return self.ok or self.status == 5
-
-    @property
-    def speed(self) -> float:
-        return self.mission_s / self.wall_s
-
-    def cpu_pct(self, role: str | None = None) -> list[float]:
-        """CPU per process over the window [% of one core]; every measured role but the probe by default."""
-        return [100 * p.cpu / self.window_s for p in self.procs
-                if (role is None and p.role != "probe") or p.role == role]
-
-    def thread_pct(self, role: str) -> dict[str, float]:
-        """Median over the role's processes of CPU by thread kind [% of one core]."""
-        rows = [p.by_thread() for p in self.procs if p.role == role]
-        return {k: med([100 * r[k] / self.window_s for r in rows]) for k in ("main", "callback", "zenoh")}
-
-    def total_cpu_pct(self) -> float:
-        return float(sum(x for x in self.cpu_pct() if x == x))
-
-    def mem_mib(self, role: str, kind: str) -> list[float]:
-        """``kind``: rss, pss or uss of the role's processes [MiB]."""
-        return [p.mem[kind] / 1024 for p in self.procs if p.role == role and p.mem is not None]
-
-
-# =========================================================================== sizes and specs
-def _example(cls: type, m: ms.Mission, width: int) -> Any:
-    """A message of ``cls`` filled from its schema (so that the sizes follow ``tether/wire.py`` as it
-    changes): vectors of ``dim`` numbers, ``width`` link records, plausible scalars."""
-    import msgspec
-
-    v = [0.123456789] * m.dim
-    values: dict[str, Any] = {}
-    for f in msgspec.structs.fields(cls):
-        if f.default is not msgspec.NODEFAULT or f.default_factory is not msgspec.NODEFAULT:
-            if f.name not in ("late",):
-                continue
-        t = msgspec.inspect.type_info(f.type)
-        if isinstance(t, msgspec.inspect.ListType):
-            if isinstance(t.item_type, msgspec.inspect.FloatType):
-                values[f.name] = v
-            elif isinstance(t.item_type, msgspec.inspect.StructType):
-                values[f.name] = [_example(t.item_type.cls, m, width)] * width
-            else:
-                raise TypeError(f"wire_sizes: no example for {cls.__name__}.{f.name} (a list of {t.item_type})")
-        elif isinstance(t, msgspec.inspect.DictType):
-            values[f.name] = {}
-        elif isinstance(t, msgspec.inspect.FloatType):
-            values[f.name] = 10.0 if f.name != "epoch" else time.time()
-        elif isinstance(t, msgspec.inspect.BoolType):
-            values[f.name] = False
-        elif isinstance(t, msgspec.inspect.IntType):
-            values[f.name] = 1000 if f.name != "sender" else m.leader.id
-        elif isinstance(t, msgspec.inspect.StrType):
-            values[f.name] = "recorder"
-        else:
-            raise TypeError(f"wire_sizes: no example for {cls.__name__}.{f.name} ({t})")
-    return cls(**values)
-
-
-def wire_sizes(m: ms.Mission) -> dict[str, int]:
-    """Encoded sizes of tether's messages for this mission (widest telemetry: the largest in-degree)."""
-    width = max(sum(1 for e in m.edges if e.dst == a.id) for a in m.agents)
-    size = {name: len(wire.encode(_example(cls, m, width)))
-            for name, cls in (("state", wire.State), ("plant_state", wire.PlantState), ("cmd", wire.Command),
-                              ("telemetry", wire.Telemetry), ("tick", wire.Tick), ("ack", wire.Ack),
-                              ("start", wire.Start))}
-    size["start"] = max(24, size["start"])
-    return size
-
-
-def baseline_spec(m: ms.Mission, clock: ClockKind, duration: float, wake: bool,
-                  variant: dict[str, Any] | None = None) -> dict[str, Any]:
-    """What every baseline process needs: the mission's shape, the sizes, the exact Zenoh configs
-    (those ``deploy.local`` gives the launcher's router and its clients). ``variant`` changes one
-    thing for an experiment: ``direct`` callbacks, ``qos`` (real time: stream -> preset), ``window``,
-    ``colocate`` (lockstep: plants computed inside their agents), ``handover`` (False: no
-    ``ZENOH_RUNTIME``), ``config`` (Zenoh key -> JSON value, inserted in every config), ``mesh``
-    (every process but the hub a peer: :func:`run_baseline` gives each its endpoint)."""
-    v = variant or {}
-    placeholder = tp.loopback_endpoint(7447)  # replaced by the real endpoint in each process
-    client = tp.ZenohSettings(mode="client", connect=(placeholder,), lease=2.0, connect_timeout=10.0)
-    # the router's per-link ingress limits (real time), as the launcher's pace gives its router
-    limits = pace(clock).limits(m, m.name)
-    router = tp.ZenohSettings(mode="router", listen=(placeholder,), lease=2.0, ingress_limits=limits)
-    configs = []
-    for settings in (client, router):
-        cfg = tp.zenoh_config(settings)
-        for key, value in v.get("config", {}).items():
-            cfg.insert_json5(key, json.dumps(value))
-        configs.append(str(cfg))
-    nbrs = {}
-    for a in m.agents:
-        srcs = [e.src for e in m.edges if e.dst == a.id]
-        nbrs[str(a.id)] = [["leader" if j == m.leader.id else "agent", j] for j in srcs]
-    return {
-        "ns": m.name, "clock": clock, "rate": m.rate, "steps": int(round(duration * m.rate)),
-        "window": v.get("window", WINDOW), "leader": m.leader.id, "agents": m.agent_ids, "nbrs": nbrs,
-        "sizes": wire_sizes(m), "client_config": configs[0], "router_config": configs[1],
-        "wake": wake, "start_lead": START_LEAD, "direct": bool(v.get("direct")),
-        "qos": v.get("qos", REALTIME_QOS), "agent_phase": AGENT_PHASE, "colocate": bool(v.get("colocate")),
-        "batch": int(v.get("batch", 0)), "loop": v.get("loop", LOOP["bare"]),
-    }
-
-
-def child_env(handover: bool = True) -> dict[str, str]:
-    env = dict(os.environ)
-    if handover:
-        env.setdefault("ZENOH_RUNTIME", HANDOVER)  # what deploy.local gives its children
-    else:
-        env.pop("ZENOH_RUNTIME", None)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
-
-
-def launcher_env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("ZENOH_RUNTIME", None)  # the launcher (router) itself runs Zenoh's default runtime
-    return env
-
-
-# =========================================================================== the probe (case 3)
-def run_probe(endpoint: str, ns: str, rate: float, kind: str, n_agents: int, steps: int, out: str) -> None:
-    """Child process: subscribe to every plant's and agent's state key and to the start message,
-    stamp each arrival on CLOCK_MONOTONIC in the callback (nothing else there), write them as JSON."""
-    import zenoh
-
-    cfg = tp.zenoh_config(tp.ZenohSettings(mode="client", connect=(endpoint,), lease=2.0, connect_timeout=10.0))
-    arrivals: list[tuple[int, str, bytes]] = []
-    start: list[tuple[int, float, bytes]] = []
-    expected = 2 * n_agents * (steps + 1)
-
-    def on_state(sample: zenoh.Sample) -> None:
-        arrivals.append((time.monotonic_ns(), str(sample.key_expr), sample.payload.to_bytes()))
-
-    def on_start(sample: zenoh.Sample) -> None:
-        start.append((time.monotonic_ns(), time.time(), sample.payload.to_bytes()))
-
-    with zenoh.open(cfg) as session:
-        subs = [session.declare_subscriber(f"tether/{ns}/control/0/start", on_start),
-                session.declare_subscriber(f"tether/{ns}/agent/*/state", on_state),
-                session.declare_subscriber(f"tether/{ns}/plant/*/state", on_state)]
-        print("ready", flush=True)
-        deadline = time.monotonic() + 120 + 2 * steps / rate
-        while len(arrivals) < expected and time.monotonic() < deadline:
-            time.sleep(0.2)
-            if start and time.monotonic_ns() > start[0][0] + int((START_LEAD + steps / rate + 2.0) * 1e9):
-                break
-        for sub in subs:
-            sub.undeclare()
-    if not start:
-        Path(out).write_text(json.dumps({"error": "the probe missed the start message"}))
-        return
-    got_mono, got_wall, payload = start[0]
-    if kind == "tether":
-        msg = wire.decode(payload)
-        if not isinstance(msg, wire.Start):
-            raise TypeError(f"the probe heard a {type(msg).__name__} on the start key, not a Start")
-        epoch = msg.epoch
-    else:
-        epoch = struct.unpack_from("<d", payload, 16)[0]
-    t0_ns = got_mono + (epoch - got_wall) * 1e9  # tick 0 on CLOCK_MONOTONIC, as RealtimeClock maps it
-    rows = []  # role (0 plant, 1 agent), id, k, arrival - tick instant [us], arrival - send [us] (baseline)
-    for arr, key, data in arrivals:
-        sent = None
-        if kind == "tether":
-            k = wire.decode(data).k
-        else:
-            k, sent_ns = struct.unpack_from("<qq", data)
-            sent = (arr - sent_ns) / 1e3
-        parts = key.split("/")
-        rows.append((int(parts[2] == "agent"), int(parts[3]), k, (arr - (t0_ns + k * 1e9 / rate)) / 1e3, sent))
-    Path(out).write_text(jsonout.dumps({"rows": rows, "received": len(arrivals), "expected": expected}, indent=None))
-
-
-PHASES = (0.25, 0.5, 0.75, 0.9)
-
-
-def probe_stats(probe: dict[str, Any] | None, rate: float) -> dict[str, Any]:
-    """p50/p99 [us] of: plant tick instant -> probe (one hop), agent relay of the same sample -> probe
-    (two hops), their difference per sample (one hop through the agent: its callback, hand-off,
-    decode and relay publish), and for the baseline put -> callback; sample counts; and, for agents
-    ticking a fraction ``phase`` of a period after their plants, the share of relayed samples that
-    arrive after that instant (a neighbour hears them about when the probe does)."""
-    if not probe or "error" in probe:
-        return {"error": (probe or {}).get("error", "no probe data")}
-    rows = probe["rows"]
-    plant = {(i, k): lat for role, i, k, lat, _ in rows if role == 0}
-    agent = {(i, k): lat for role, i, k, lat, _ in rows if role == 1}
-    relay = [agent[key] - plant[key] for key in agent.keys() & plant.keys()]
-    h_us = 1e6 / rate
-    out: dict[str, Any] = {"received": f"{probe['received']}/{probe['expected']}",
-                           "plant_received": len(plant), "agent_received": len(agent),
-                           "after_phase": {str(ph): float(np.mean([x > ph * h_us for x in agent.values()]))
-                                           if agent else float("nan") for ph in PHASES}}
-    for name, xs in (("plant_tick", list(plant.values())), ("agent_tick", list(agent.values())), ("relay", relay),
-                     ("put_cb", [sent for *_, sent in rows if sent is not None])):
-        out[name] = [pct(xs, 50), pct(xs, 99)] if xs else [float("nan")] * 2
-    return out
-
-
-def _spawn_probe(endpoint: str, ns: str, rate: float, kind: str, n: int, steps: int, out: Path,
-                 wait: bool = True) -> subprocess.Popen[str]:
-    """Start the probe; ``wait``: until it has subscribed (else call :func:`_probe_ready`)."""
-    p = subprocess.Popen([PY, __file__, "_probe", endpoint, ns, repr(rate), kind, str(n), str(steps), str(out)],
-                         env=child_env(), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
-                         start_new_session=True)
-    if wait:
-        _probe_ready(p)
-    return p
-
-
-def _probe_ready(p: subprocess.Popen[str]) -> None:
-    if p.stdout is None:
-        raise RuntimeError("the probe was started without a pipe on its stdout")
-    line = p.stdout.readline().strip()
-    if line != "ready":
-        raise RuntimeError(f"probe did not start (said {line!r})")
-
 
 # =========================================================================== tether runs
-def _reader(stream: Iterable[str], q: queue.Queue[str | None]) -> None:
-    for line in stream:
-        q.put(line)
-    q.put(None)
-
-
 def _tether_cmd() -> list[str]:
     exe = Path(PY).parent / "tether"
     return [str(exe)] if exe.exists() else [PY, "-m", "cli"]
@@ -633,7 +118,7 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
         # (started once the first child was seen, it lost that race under load: 'no probe data')
         ep = tp.loopback_endpoint(tp.free_tcp_port())
         cmd += ["--listen", ep]
-        probe_proc = _spawn_probe(ep, m.name, m.rate, "tether", m.n, int(round(duration * m.rate)), probe_out,
+        probe_proc = spawn_probe(ep, m.name, m.rate, "tether", m.n, int(round(duration * m.rate)), probe_out,
                                   wait=False)
     t_start = time.monotonic()
     env = launcher_env()
@@ -642,14 +127,14 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
                          cwd=tree or REPO)
     lines: queue.Queue[str | None] = queue.Queue()
-    threading.Thread(target=_reader, args=(p.stderr, lines), daemon=True).start()
+    threading.Thread(target=read_lines, args=(p.stderr, lines), daemon=True).start()
     log: list[str] = []
     timer: threading.Timer | None = None
     window: Window | None = None
     t_ran = float("nan")
     try:
         if probe_proc is not None:
-            _probe_ready(probe_proc)
+            probe_ready(probe_proc)
         deadline = time.monotonic() + timeout
         while True:
             try:
@@ -720,111 +205,6 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
     return res
 
 
-# =========================================================================== baseline runs
-def run_baseline(m: ms.Mission, clock: ClockKind, duration: float, work: Path, probe: bool = False,
-                 wake: bool = False, variant: dict[str, Any] | None = None, secure: bool = True) -> Result:
-    """The same run with ``bench/baseline_node.py`` processes (hub = router + clock, like the launcher).
-
-    ``secure`` (what ``tether run`` does without ``--insecure``): every process's session is the one
-    ``deploy.localtls`` gives the launcher's children, made for this run the same way: mTLS with one
-    certificate per process, the router's access rules and ingress limits (so the baseline pays for
-    the transport what tether pays). Otherwise plain TCP (tether with ``--insecure``)."""
-    spec = baseline_spec(m, clock, duration, wake, variant)
-    env = child_env(handover=(variant or {}).get("handover", True))
-    tag = f"baseline-{clock}-{m.n}-{time.monotonic_ns()}"
-    spec_path = work / f"{tag}.json"
-    res = Result("baseline", m.n, clock, m.rate)
-    endpoint = tp.loopback_endpoint(tp.free_tcp_port())
-    roles = ("agent",) if spec.get("colocate") else ("agent", "plant")
-    members = [("leader", m.leader.id), *[(r, a) for a in m.agent_ids for r in roles], ("recorder", 0)]
-    if (variant or {}).get("mesh"):  # every process a peer on its own port, as deploy.local's mesh
-        spec["mesh"] = {f"{r}-{i}": tp.loopback_endpoint(tp.free_tcp_port()) for r, i in members}
-    if secure:
-        if probe:
-            raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
-        endpoint = "tls/" + endpoint.split("/", 1)[1]
-        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, pace(clock).limits(m, m.name))
-        listen = {k: "tls/" + ep.split("/", 1)[1] for k, ep in spec.get("mesh", {}).items()}
-        spec["tls"] = {"router": str(sec.configs["router"]),
-                       **{f"{r}-{i}": str(sec.child(r, i, endpoint, listen.get(f"{r}-{i}"))) for r, i in members}}
-    spec_path.write_text(json.dumps(spec))
-    t_start = time.monotonic()
-    hub = subprocess.Popen([PY, BASELINE, str(spec_path), "hub", endpoint], stdout=subprocess.PIPE,
-                           stdin=subprocess.DEVNULL, text=True, env=launcher_env(), start_new_session=True)
-    kids: list[tuple[subprocess.Popen[str], str, int]] = []
-    probe_proc = None
-    probe_out = work / f"{tag}.probe.json"
-    try:
-        if hub.stdout is None:
-            raise RuntimeError("the baseline hub was started without a pipe on its stdout")
-        if hub.stdout.readline().strip() != "listening":
-            raise RuntimeError("baseline hub did not start")
-        if probe:
-            probe_proc = _spawn_probe(endpoint, m.name, m.rate, "bare", m.n, spec["steps"], probe_out)
-        for role, nid in members:
-            kp = subprocess.Popen([PY, BASELINE, str(spec_path), role, str(nid), endpoint], stdout=subprocess.PIPE,
-                                  stdin=subprocess.DEVNULL, text=True, env=env, start_new_session=True)
-            kids.append((kp, role, nid))
-        res.procs = [Proc(kp.pid, role, nid) for kp, role, nid in kids] + [Proc(hub.pid, "launcher", 0)]
-        if probe_proc is not None:
-            res.procs.append(Proc(probe_proc.pid, "probe", 0))
-        window = Window(res.procs)
-        lines: queue.Queue[str | None] = queue.Queue()
-        threading.Thread(target=_reader, args=(hub.stdout, lines), daemon=True).start()
-        deadline = time.monotonic() + 120 + 3 * duration
-        while True:
-            try:
-                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                raise TimeoutError("baseline hub did not finish in time") from None
-            if line is None:
-                break
-            word, *rest = line.split() or [""]
-            if word in ("stalled", "missing"):
-                res.ok, res.why = False, f"baseline hub: {line.strip()}"
-            if word == "up":
-                res.startup_s = time.monotonic() - t_start
-            elif word == "start":
-                if clock == "realtime":
-                    t_tick0 = time.monotonic() + (float(rest[0]) - time.time())
-                    time.sleep(max(0.0, t_tick0 - time.monotonic()))
-                window.open()
-            elif word == "ran":
-                window.close(res)
-                res.mission_s, res.wall_s = float(rest[0]), float(rest[1])
-        hub.wait(timeout=30)
-        if not res.ok:
-            return res
-        late = []
-        for kp, role, nid in kids:
-            out, _ = kp.communicate(timeout=30)
-            if kp.returncode != 0 or not out.strip():
-                res.ok, res.why = False, f"baseline {role}/{nid} exited {kp.returncode}"
-                continue
-            info = json.loads(out.strip().splitlines()[-1])
-            if role == "agent":
-                late.append(info["late"])
-            if role == "recorder":
-                res.complete = f"{info['received']}/{(1 + 2 * m.n) * (spec['steps'] + 1)}"
-        if clock == "realtime" and late:
-            steps = spec["steps"] + 1
-            res.late = sum(late) / (len(late) * steps)
-            res.late_max = max(late) / steps
-    finally:
-        for kp, _, _ in kids:
-            if kp.poll() is None:
-                kp.kill()
-                kp.wait()
-        if hub.poll() is None:
-            hub.kill()
-            hub.wait()
-        if probe_proc is not None:
-            reap(probe_proc, 30.0)
-    if probe and probe_out.exists():
-        res.probe = json.loads(probe_out.read_text())
-    return res
-
-
 # =========================================================================== helpers
 def compile_tree(tree: Path = REPO) -> int:
     """Compile the tree's bytecode into ``__pycache__``, as ``pip install`` does for a package: the
@@ -839,20 +219,6 @@ def compile_tree(tree: Path = REPO) -> int:
         for pkg in packages:
             compileall.compile_dir(str(tree / pkg), quiet=0)
     return sum(1 for line in out.getvalue().splitlines() if line.startswith("Compiling"))
-
-
-def med(xs: list[float]) -> float:
-    xs = [x for x in xs if x == x]
-    return statistics.median(xs) if xs else float("nan")
-
-
-def pct(xs: Sequence[float] | np.ndarray, q: float) -> float:
-    arr = np.asarray(xs, dtype=float)
-    return float(np.percentile(arr, q)) if arr.size else float("nan")
-
-
-def ratio(a: float, b: float) -> float:
-    return a / b if b else float("nan")
 
 
 def say(text: str = "") -> None:
@@ -1355,7 +721,7 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     d, h = m.dim, m.dt
     width = max(sum(1 for e in m.edges if e.dst == ag.id) for ag in m.agents)
     rx = wire.Receiver(d)
-    enc = {name: wire.encode(_example(cls, m, width)) for name, cls in
+    enc = {name: wire.encode(example_message(cls, m, width)) for name, cls in
            (("state", wire.State), ("plant", wire.PlantState), ("cmd", wire.Command), ("tele", wire.Telemetry))}
     vec = [0.1] * d
 
@@ -1484,9 +850,6 @@ def cprofile_child(out: str, args: list[str]) -> int:
 def main(argv: list[str]) -> None:
     if argv and argv[0] == "_cprofile":
         sys.exit(cprofile_child(argv[1], argv[2:]))
-    if argv and argv[0] == "_probe":
-        ep, ns, rate, kind, n, steps, out = argv[1:8]
-        return run_probe(ep, ns, float(rate), kind, int(n), int(steps), out)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", nargs="+",
                     choices=["lockstep", "colocate", "network", "scale", "latency", "cpu", "python"],

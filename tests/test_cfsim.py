@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plant.cfsim import crtp, firmware, toc
+from plant.cfsim import commander, crtp, firmware, high_level, toc
 from plant.quadrotor import Quadrotor, QuadrotorParams
 from tests.support import SoftwareCrazyflies, software_crazyflies, wait_until
 
@@ -69,13 +69,13 @@ def test_quaternion_decompression_inverts_cflib() -> None:
     for _ in range(200):
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
-        back = np.array(firmware.decompress_quaternion(compress_quaternion(q)))
+        back = np.array(commander.decompress_quaternion(compress_quaternion(q)))
         # same rotation (q and -q), to the 9-bit resolution of the compression
         assert min(np.abs(back - q).max(), np.abs(back + q).max()) < 2e-3
 
 
 def test_trajectory_is_rest_to_rest() -> None:
-    seg = firmware.Segment(1.0, 2.0, (0.0, 0.0, 0.0), (1.0, -2.0, 0.5), 0.0, 1.0)
+    seg = high_level.Segment(1.0, 2.0, (0.0, 0.0, 0.0), (1.0, -2.0, 0.5), 0.0, 1.0)
     start, end, mid = seg.eval(1.0), seg.eval(3.0), seg.eval(2.0)
     np.testing.assert_allclose(start.pos, (0.0, 0.0, 0.0), atol=1e-12)
     np.testing.assert_allclose(end.pos, (1.0, -2.0, 0.5), atol=1e-12)

@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from plant.cfsim import crtp, firmware, realism
+from plant.cfsim import crtp, firmware, high_level, realism
 from plant.quadrotor import Quadrotor, QuadrotorParams
 from tests.support import SoftwareCrazyflies, software_crazyflies
 
@@ -122,7 +122,7 @@ def test_link_model_is_deterministic_and_loses_the_stated_share() -> None:
 def test_spiral_meets_the_firmware_end_conditions() -> None:
     """The spiral's start and end velocities are the ones ``plan_spiral_from`` imposes."""
     r0, rf, T, angle = 0.3, 0.5, 4.0, math.pi
-    sp = firmware.Spiral(0.0, T, (1.0, 2.0, 0.5), 0.0, angle, r0, rf, 0.2, False, False)
+    sp = high_level.Spiral(0.0, T, (1.0, 2.0, 0.5), 0.0, angle, r0, rf, 0.2, False, False)
     start, mid = sp.eval(0.0), sp.eval(T - 1e-9)
     sense, omz, dr = -1.0, math.pi / T, (rf - r0) / T
     np.testing.assert_allclose(start.pos, (1.0, 2.0, 0.5), atol=1e-12)

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from plant.cfsim import crtp, firmware, trajectory
+from plant.cfsim import commander, crtp, firmware, high_level, trajectory
 from plant.cfsim.crtp import Packet, Port
 from plant.quadrotor import Quadrotor, QuadrotorParams
 from tests.support import SoftwareCrazyflies, software_crazyflies, wait_until
@@ -116,8 +116,8 @@ def test_evaluation_follows_the_pieces_with_time_scale_and_reversal(scale: float
     assert define(fw, 3, 0, len(pieces)) == 0
     t0 = fw.t
     assert start(fw, 3, scale, relative=True, reverse=reverse) == 0
-    plan = fw._segment
-    assert isinstance(plan, firmware.Uploaded)
+    plan = fw.hl.plan
+    assert isinstance(plan, high_level.Uploaded)
     total = FIG_T * scale
     start_point = poly_point(pieces, FIG_T if reverse else 0.0)
     shift = np.array([1.0, 2.0, 0.0]) - start_point[:3]  # relative: the first point is the setpoint
@@ -144,9 +144,9 @@ def test_relative_yaw_rotates_about_the_origin_as_the_firmware_does() -> None:
     c[0, :2] = (1.0, 1.0)
     upload(fw, packed([(1.0, c)]))
     define(fw, 0, 0, 1)
-    fw._hl_pos, fw._hl_yaw = (0.0, 0.0, 1.0), math.pi / 2
+    fw.hl.pos, fw.hl.yaw = (0.0, 0.0, 1.0), math.pi / 2
     assert start(fw, 0, relative=True, relative_yaw=True) == 0
-    ev = fw._segment.eval(fw.t + 0.5)  # type: ignore[union-attr]
+    ev = fw.hl.plan.eval(fw.t + 0.5)  # type: ignore[union-attr]
     np.testing.assert_allclose(ev.pos, (-1.0, 1.5, 1.0), atol=1e-6)
     np.testing.assert_allclose(ev.vel, (0.0, 1.0, 0.0), atol=1e-6)
     assert ev.yaw == pytest.approx(math.pi / 2)
@@ -190,7 +190,7 @@ def test_refusals_and_malformed_packets_never_break_the_vehicle() -> None:
     bad[8:12] = struct.pack("<f", float("nan"))
     upload(fw, bytes(bad), addr=1320)
     assert define(fw, 7, 1320, 1) == 0 and start(fw, 7) == errno.EINVAL
-    assert fw.hl_state is firmware.HlState.IDLE  # nothing of the above started anything
+    assert fw.hl_state is high_level.HlState.IDLE  # nothing of the above started anything
     assert sum("refused" in line for line in fw.console_lines) == 8
     # and the vehicle still flies a good one
     assert start(fw, 6) == 0 and fw.hl_state.value == "flying"
@@ -212,9 +212,9 @@ def test_a_trajectory_rewritten_into_garbage_while_flying_is_held_not_flown() ->
     for _ in range(100):
         fw.tick()
         sp = fw._applied
-        assert isinstance(sp, firmware.Track) and all(math.isfinite(v) for v in (*sp.pos, *sp.vel, *sp.acc))
+        assert isinstance(sp, commander.Track) and all(math.isfinite(v) for v in (*sp.pos, *sp.vel, *sp.acc))
     assert any("not finite" in line for line in fw.console_lines)
-    assert isinstance(sp, firmware.Track) and sp.pos[2] == pytest.approx(0.25, abs=0.01) and fw.quad.p[2] == pytest.approx(0.25, abs=0.03)
+    assert isinstance(sp, commander.Track) and sp.pos[2] == pytest.approx(0.25, abs=0.01) and fw.quad.p[2] == pytest.approx(0.25, abs=0.03)
 
 
 # ========================================================================= cflib flights

@@ -3,10 +3,13 @@ commander, supervisor and high-level commander, and :class:`plant.quadrotor.Quad
 
 | module | what |
 |---|---|
-| :mod:`plant.cfsim.crtp` | the packet codec: ports, channels, header byte (pure) |
-| :mod:`plant.cfsim.toc` | the log and param tables of contents and their wire forms (pure) |
+| :mod:`plant.cfsim.crtp` | the packet codec: ports, channels, command codes, header byte (pure) |
+| :mod:`plant.cfsim.commander` | setpoint types, the setpoint slot and its priorities, the low-level decoders (pure) |
+| :mod:`plant.cfsim.high_level` | the high-level commander: take-off, landing, go-to, spiral, trajectories (pure) |
 | :mod:`plant.cfsim.trajectory` | the trajectory memory and piecewise poly4d evaluation (pure) |
-| :mod:`plant.cfsim.firmware` | commander, watchdog, high-level commander, log blocks, params, world (pure) |
+| :mod:`plant.cfsim.toc` | the log and param tables of contents and their wire forms (pure) |
+| :mod:`plant.cfsim.services` | the log, param and mem services (pure) |
+| :mod:`plant.cfsim.firmware` | the packet router, supervisor, controller and world of one vehicle (pure) |
 | :mod:`plant.cfsim.server` | the asyncio UDP endpoints and the 100 Hz ticker |
 | ``python -m plant.cfsim`` | start several vehicles on ports 19850 and up |
 

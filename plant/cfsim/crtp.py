@@ -73,6 +73,35 @@ SUPERVISOR_COMMAND_CHANNEL = 1
 TOC_ITEM_V2 = 2
 TOC_INFO_V2 = 3
 
+# Command codes: the first payload byte of a port's packets (a channel's, where noted).
+# log port, settings channel (``log.c``)
+LOG_CREATE, LOG_APPEND, LOG_DELETE, LOG_START, LOG_STOP, LOG_RESET = 0, 1, 2, 3, 4, 5
+LOG_CREATE_V2, LOG_APPEND_V2, LOG_START_V2 = 6, 7, 8
+# param port, misc channel (``param_logic.c``)
+PARAM_MISC_SETBYNAME, PARAM_MISC_GET_EXTENDED_TYPE_V2, PARAM_MISC_GET_DEFAULT_V2 = 0, 7, 8
+PARAM_MISC_PERSISTENT_STORE, PARAM_MISC_PERSISTENT_GET_STATE, PARAM_MISC_PERSISTENT_CLEAR = 3, 4, 5
+# mem port (``crtp_mem.c``): info commands on channel 0, reads and writes on their own channels
+MEM_INFO_VER, MEM_INFO_NBR, MEM_INFO_DETAILS = 0, 1, 2
+MEM_READ_CHANNEL, MEM_WRITE_CHANNEL = 1, 2
+MEM_TRAJ_ID = 0
+"""The trajectory memory's id: the only memory of the simulated vehicle."""
+# high-level commander port (``crtp_commander_high_level.c``)
+HL_SET_GROUP_MASK, HL_STOP, HL_TAKEOFF_2, HL_LAND_2, HL_SPIRAL, HL_GO_TO_2 = 0, 3, 7, 8, 11, 12
+HL_START_TRAJECTORY, HL_DEFINE_TRAJECTORY, HL_START_TRAJECTORY_2 = 5, 6, 13
+# generic commander port: setpoint types on channel 0, meta commands on channel 1
+# (``crtp_commander_generic.c``)
+GENERIC_STOP, GENERIC_FULL_STATE, GENERIC_POSITION, GENERIC_VELOCITY_WORLD = 0, 6, 7, 8
+GENERIC_VELOCITY_WORLD_LEGACY, GENERIC_ZDISTANCE_LEGACY, GENERIC_HOVER_LEGACY = 1, 2, 5
+GENERIC_ZDISTANCE, GENERIC_HOVER, GENERIC_MANUAL = 9, 10, 11
+META_NOTIFY_SETPOINT_STOP = 0
+# platform port: version channel, command channel (``platformservice.c``)
+PLATFORM_VERSION_PROTOCOL, PLATFORM_VERSION_FIRMWARE, PLATFORM_VERSION_DEVICE = 0, 1, 2
+PLATFORM_ARM, PLATFORM_RECOVER, PLATFORM_NOTIFY = 1, 2, 3
+# supervisor port (``crtp_supervisor.c``); an answer repeats the command with the response bit set
+SUPERVISOR_GET_STATE_BITFIELD = 0x0C
+SUPERVISOR_ARM, SUPERVISOR_RECOVER, SUPERVISOR_EMERGENCY_STOP = 0x01, 0x02, 0x03
+SUPERVISOR_RESPONSE = 0x80
+
 NULL_HEADER = 0xFF
 """Header of the null packet (port 15, channel 3, no payload)."""
 
