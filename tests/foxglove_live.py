@@ -4,7 +4,6 @@ advertised, collect messageData and time frames until enough have come or the de
 from __future__ import annotations
 
 import json
-import socket
 import struct
 import time
 from collections import defaultdict
@@ -19,12 +18,6 @@ ws_client = pytest.importorskip("websockets.sync.client")
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 """The Foxglove WebSocket protocol's names: foxglove-sdk 0.30's server accepts only the first (the
 protocol's current name; the frames are those of ``foxglove.websocket.v1``), older servers the second."""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import support
 from tether.runfile import Run, RunMeta
 
 BAD = Path(__file__).parent / "missions_bad"
@@ -64,10 +65,8 @@ def _limit() -> None:  # runs in the child before exec
 
 def tether(*args: str, cwd: Path | None = None) -> tuple[subprocess.CompletedProcess[str], float]:
     """Run ``python -m cli ARGS`` under :data:`MEMORY` and :data:`TIMEOUT`; the result and its wall time [s]."""
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", MPLBACKEND="Agg")
     start = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=TIMEOUT,
-                       preexec_fn=_limit, env=env, cwd=cwd or REPO)
+    r = support.tether(*args, timeout=TIMEOUT, cwd=cwd, preexec_fn=_limit)
     return r, time.monotonic() - start
 
 

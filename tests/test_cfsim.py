@@ -1,7 +1,7 @@
 """The software Crazyflie (``plant/cfsim``) as cflib sees it: real cflib over ``udp://`` against
 ``python -m plant.cfsim`` started as a real process.
 
-One simulator process with five vehicles on ports 19850..19854 serves the module; every test flies
+One simulator process with five vehicles on five free UDP ports serves the module; every test flies
 its own vehicle, so the tests do not disturb each other. Every wait is on a condition with a
 timeout; every cflib link is closed in ``finally`` (its threads would keep the interpreter alive).
 A few pure checks of the codec and the trajectory math come first.
@@ -24,19 +24,20 @@ import pytest
 
 from plant.cfsim import commander, crtp, firmware, high_level, toc
 from plant.quadrotor import Quadrotor, QuadrotorParams
-from tests.support import SoftwareCrazyflies, software_crazyflies, wait_until
+from tests.support import SoftwareCrazyflies, free_port, software_crazyflies, wait_until
 
 pytestmark = pytest.mark.slow  # software Crazyflies over real UDP sockets, flown for seconds
 
 cflib_crtp = pytest.importorskip("cflib.crtp")
 from cflib.crazyflie import Crazyflie  # noqa: E402
 from cflib.crazyflie.log import LogConfig  # noqa: E402
+from cflib.crtp import udpdriver  # noqa: E402
 from cflib.crtp.udpdriver import UdpDriver  # noqa: E402
 from cflib.utils.encoding import compress_quaternion  # noqa: E402
 
-BASE_PORT = 19850
 COUNT = 5
-PORT_CONNECT, PORT_LOG, PORT_HL, PORT_WATCHDOG, PORT_STOP = range(BASE_PORT, BASE_PORT + COUNT)
+PORT_CONNECT, PORT_LOG, PORT_HL, PORT_WATCHDOG, PORT_STOP = range(COUNT)
+"""Which of the simulator's vehicles each test flies (vehicle i listens on the fixture's base port + i)."""
 STARTUP = 30.0
 """Upper bound [s] on the simulator coming up (importing numpy on a loaded two-core machine)."""
 CONNECT = 15.0
@@ -127,9 +128,10 @@ def test_watchdog_in_simulated_time() -> None:
 # =========================================================================== process helpers
 @pytest.fixture(scope="module")
 def sim() -> Iterator[SoftwareCrazyflies]:
-    with software_crazyflies(["--count", str(COUNT), "--base-port", str(BASE_PORT), "--log-level", "WARNING"],
+    base = free_port(COUNT, udp=True)
+    with software_crazyflies(["--count", str(COUNT), "--base-port", str(base), "--log-level", "WARNING"],
                              STARTUP) as sim:
-        assert sim.uris == {i: f"udp://127.0.0.1:{BASE_PORT + i}" for i in range(COUNT)}
+        assert sim.uris == {i: f"udp://127.0.0.1:{base + i}" for i in range(COUNT)}
         cflib_crtp.init_drivers()
         yield sim
         sim.proc.send_signal(signal.SIGTERM)
@@ -205,10 +207,14 @@ def cpu_seconds(pid: int) -> float:
 
 
 # =========================================================================== against cflib
-def test_every_vehicle_answers_scan_connect_and_params(sim: SoftwareCrazyflies) -> None:
+def test_every_vehicle_answers_scan_connect_and_params(sim: SoftwareCrazyflies,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    # cflib scans ten ports from its fixed 19850, which another run on this machine may hold: here it
+    # scans from the simulator's allocated base port instead
+    monkeypatch.setattr(udpdriver, "_BASE_PORT", int(sim.uris[0].rpartition(":")[2]))
     found = {uri for uri, _ in UdpDriver().scan_interface()}
     assert {sim.uris[i] for i in range(COUNT)} <= found
-    with connected(sim.uris[PORT_CONNECT - BASE_PORT]) as cf:
+    with connected(sim.uris[PORT_CONNECT]) as cf:
         assert cf.platform.get_protocol_version() == crtp.PROTOCOL_VERSION
         names = {f"{g}.{n}" for g, group in cf.log.toc.toc.items() for n in group}
         assert names == {v.full_name for v in toc.LOG_VARS}
@@ -234,7 +240,7 @@ def test_every_vehicle_answers_scan_connect_and_params(sim: SoftwareCrazyflies) 
 
 def test_log_block_at_100_hz(sim: SoftwareCrazyflies) -> None:
     names = [f"stateEstimate.{n}" for n in ("x", "y", "z", "vx", "vy", "vz")]
-    with connected(sim.uris[PORT_LOG - BASE_PORT]) as cf:
+    with connected(sim.uris[PORT_LOG]) as cf:
         stream = LogStream(cf, names)
         t0, _ = stream.wait(lambda d: True, 5.0, "the first log packet")
         c0 = cpu_seconds(sim.proc.pid)
@@ -255,7 +261,7 @@ def test_log_block_at_100_hz(sim: SoftwareCrazyflies) -> None:
 
 
 def test_high_level_take_off_and_land(sim: SoftwareCrazyflies) -> None:
-    with connected(sim.uris[PORT_HL - BASE_PORT]) as cf:
+    with connected(sim.uris[PORT_HL]) as cf:
         stream = LogStream(cf, ["stateEstimate.z", "stateEstimate.vz", "stabilizer.thrust", "supervisor.info"])
         stream.wait(lambda d: True, 5.0, "the first log packet")
         # as on a real Crazyflie: an earlier close_link left a zero setpoint at CRTP priority, which
@@ -284,7 +290,7 @@ def test_high_level_take_off_and_land(sim: SoftwareCrazyflies) -> None:
 
 
 def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: SoftwareCrazyflies) -> None:
-    with connected(sim.uris[PORT_WATCHDOG - BASE_PORT]) as cf:
+    with connected(sim.uris[PORT_WATCHDOG]) as cf:
         hover = int(cf.param.get_value("cfsim.hoverPwm"))
         att = LogStream(cf, ["stateEstimate.z", "stateEstimate.vz", "stateEstimate.roll", "stateEstimate.pitch",
                              "stabilizer.thrust", "stateEstimate.vy"])
@@ -339,7 +345,7 @@ def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: SoftwareCrazyflies
 
 
 def test_stop_setpoint_thrust_lock_and_notify_stop(sim: SoftwareCrazyflies) -> None:
-    with connected(sim.uris[PORT_STOP - BASE_PORT]) as cf:
+    with connected(sim.uris[PORT_STOP]) as cf:
         hover = int(cf.param.get_value("cfsim.hoverPwm"))
         stream = LogStream(cf, ["stateEstimate.z", "stabilizer.thrust", "supervisor.info"])
         stream.wait(lambda d: True, 5.0, "the first log packet")
@@ -370,7 +376,7 @@ def test_stop_setpoint_thrust_lock_and_notify_stop(sim: SoftwareCrazyflies) -> N
 
 
 def test_generic_position_full_state_and_velocity_setpoints(sim: SoftwareCrazyflies) -> None:
-    with connected(sim.uris[PORT_CONNECT - BASE_PORT]) as cf:
+    with connected(sim.uris[PORT_CONNECT]) as cf:
         stream = LogStream(cf, ["stateEstimate.x", "stateEstimate.y", "stateEstimate.z", "stateEstimate.vx",
                                 "stateEstimate.yaw"])
         pace = threading.Event()

@@ -4,8 +4,8 @@ setpoints, the high-level spiral, the console, persistent parameters), as a lab 
 each flight is checked on the logged ``stateEstimate.z``: the commanded height is reached and the
 vehicle lands. Then the realism options: seeded, deterministic, off by default.
 
-One simulator process serves the flights, one vehicle per test (ports 19930..19937); the realism
-flight has its own process (port 19940).
+One simulator process serves the flights, one vehicle per test (eight free UDP ports); the realism
+flight has its own process (one more).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import pytest
 
 from plant.cfsim import crtp, firmware, high_level, realism
 from plant.quadrotor import Quadrotor, QuadrotorParams
-from tests.support import SoftwareCrazyflies, software_crazyflies
+from tests.support import SoftwareCrazyflies, free_port, software_crazyflies
 
 cflib_crtp = pytest.importorskip("cflib.crtp")
 from cflib.crazyflie import Crazyflie  # noqa: E402
@@ -32,10 +32,8 @@ from cflib.crazyflie.syncCrazyflie import SyncCrazyflie  # noqa: E402
 from cflib.positioning.motion_commander import MotionCommander  # noqa: E402
 from cflib.positioning.position_hl_commander import PositionHlCommander  # noqa: E402
 
-BASE_PORT = 19930
 COUNT = 8
 MC, HOVER, ZDIST, MANUAL, SPIRAL, POSHL, CONSOLE, PARAMS = range(COUNT)
-REALISM_PORT = 19940
 STARTUP = 30.0
 
 
@@ -135,7 +133,7 @@ def test_spiral_meets_the_firmware_end_conditions() -> None:
 # =========================================================================== real processes
 @pytest.fixture(scope="module")
 def sim() -> Iterator[SoftwareCrazyflies]:
-    with software_crazyflies(["--count", str(COUNT), "--base-port", str(BASE_PORT), "--spacing", "1.0",
+    with software_crazyflies(["--count", str(COUNT), "--base-port", str(free_port(COUNT, udp=True)), "--spacing", "1.0",
                               "--log-level", "WARNING"], STARTUP) as s:
         cflib_crtp.init_drivers()
         yield s
@@ -352,7 +350,8 @@ def test_lab_params_and_persistence(sim: SoftwareCrazyflies) -> None:
 def test_realism_flight_noise_battery_and_latency() -> None:
     """Noise, a nearly empty battery and 30 ms each way on the link: cflib still flies the vehicle,
     the battery reports low power under thrust, the link echo comes back late."""
-    args = ["--count", "1", "--base-port", str(REALISM_PORT), "--noise", "0.05", "--seed", "2", "--battery",
+    port = free_port(udp=True)
+    args = ["--count", "1", "--base-port", str(port), "--noise", "0.05", "--seed", "2", "--battery",
             "--battery-charge", "0.2", "--latency", "30", "--log-level", "WARNING"]
     with software_crazyflies(args, STARTUP) as s:
         cflib_crtp.init_drivers()
@@ -360,7 +359,7 @@ def test_realism_flight_noise_battery_and_latency() -> None:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.settimeout(2.0)
             t0 = time.monotonic()
-            sock.sendto(bytes((0xFC,)) + b"ping", ("127.0.0.1", REALISM_PORT))
+            sock.sendto(bytes((0xFC,)) + b"ping", ("127.0.0.1", port))
             assert sock.recv(64)[1:] == b"ping"
             assert time.monotonic() - t0 >= 0.06
         with sync_cf(s.uris[0]) as scf:

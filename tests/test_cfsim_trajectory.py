@@ -4,7 +4,7 @@ pieces with the firmware's time-scale, relative and reversed semantics.
 
 The pure tests tick :class:`plant.cfsim.firmware.Firmware` by hand; the flights are cflib-only
 clients (``TrajectoryMemory.write_data_sync``, ``define_trajectory``, ``start_trajectory``) against
-one simulator process with two vehicles on ports 19938..19939.
+one simulator process with two vehicles on two free UDP ports.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import pytest
 from plant.cfsim import commander, crtp, firmware, high_level, trajectory
 from plant.cfsim.crtp import Packet, Port
 from plant.quadrotor import Quadrotor, QuadrotorParams
-from tests.support import SoftwareCrazyflies, software_crazyflies, wait_until
+from tests.support import SoftwareCrazyflies, free_port, software_crazyflies, wait_until
 
 cflib_crtp = pytest.importorskip("cflib.crtp")
 from cflib.crazyflie import Crazyflie  # noqa: E402
@@ -33,7 +33,6 @@ from cflib.crtp.crtpstack import CRTPPacket, CRTPPort  # noqa: E402
 
 from tests.test_cfsim_paths import Heights  # noqa: E402
 
-BASE_PORT = 19938
 FLY, BAD = 0, 1
 STARTUP = 30.0
 FIG_T = 10.0
@@ -220,7 +219,7 @@ def test_a_trajectory_rewritten_into_garbage_while_flying_is_held_not_flown() ->
 # ========================================================================= cflib flights
 @pytest.fixture(scope="module")
 def sim() -> Iterator[SoftwareCrazyflies]:
-    with software_crazyflies(["--count", "2", "--base-port", str(BASE_PORT), "--spacing", "1.0",
+    with software_crazyflies(["--count", "2", "--base-port", str(free_port(2, udp=True)), "--spacing", "1.0",
                               "--log-level", "WARNING"], STARTUP) as s:
         cflib_crtp.init_drivers()
         yield s

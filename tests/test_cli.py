@@ -1,13 +1,12 @@
 """The ``tether`` command as a user runs it: real subprocesses, exit codes, files on disk."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.support import tether
 from tether.runfile import FORMAT_VERSION, Links, Run, RunMeta
 
 BAD = """version = 1
@@ -35,11 +34,6 @@ id = 2
 p0 = [0.0, 0.0]
 offset = [0.0, 1.0]
 """
-
-
-def tether(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
-    """``python -m cli ARGS``; the timeout is generous: a short simulate took 103 s on a loaded 2-core machine."""
-    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=timeout)
 
 
 def test_check_prints_a_summary() -> None:

@@ -8,7 +8,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,16 +21,11 @@ from sim import study, sweep
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.node import load_mission
-from tests.support import wait_until
+from tests.support import free_port, tether, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 GRID = {"loss": [0.0, 30.0], "delay": [0.0, 50.0], "burst": [1.0], "laws": ("sigma", "benchmark")}
 DURATION = 8.0  # each cell about a second here: long enough to kill a worker in the middle of one
-
-
-def _cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
 
 
 def _main(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
@@ -203,15 +197,9 @@ def test_bad_study_options_are_refused_before_anything_runs(tmp_path: Path, caps
     assert not (tmp_path / "o").exists()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_an_executor_that_does_not_answer_is_exit_2_naming_it(tmp_path: Path,
                                                                capsys: pytest.CaptureFixture[str]) -> None:
-    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    address = f"tcp://127.0.0.1:{free_port()}"  # nothing listens there
     code, err = _main(capsys, "montecarlo", "section4", "--seeds", "2", "--out", str(tmp_path / "o"),
                       "--executor", address, "--connect-timeout", "1", "--duration", "1")
     assert code == 2, err
@@ -236,7 +224,7 @@ class DaskCluster:
     """A scheduler and workers, each its own process group, on loopback."""
 
     def __init__(self, tmp: Path) -> None:
-        self.port = _free_port()
+        self.port = free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
         self.env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
         self.tmp = tmp
@@ -367,7 +355,7 @@ def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_resumes(tmp_path: Path) -
     assert p.returncode == 130, err
     kept = len(results.read_text().splitlines()) - 1
     assert 1 <= kept < cells and f"{kept} of {cells} cells done" in err and "run the same command again" in err, err
-    r = _cli(*args)
+    r = tether(*args)
     assert r.returncode == 0, r.stderr
     assert f"{cells - kept} run now, {kept} kept from before" in r.stdout, r.stdout
 
@@ -375,7 +363,7 @@ def test_ctrl_c_keeps_the_finished_cells_and_the_rerun_resumes(tmp_path: Path) -
 @pytest.mark.slow  # six short runs
 def test_montecarlo_writes_mean_spread_and_interval_per_cell_and_the_figure(tmp_path: Path) -> None:
     out = tmp_path / "mc"
-    r = _cli("montecarlo", "section4", "--seeds", "3", "--delay", "0,50", "--duration", "2", "--jobs", "2",
+    r = tether("montecarlo", "section4", "--seeds", "3", "--delay", "0,50", "--duration", "2", "--jobs", "2",
              "--out", str(out))
     assert r.returncode == 0, r.stderr
     import csv

@@ -29,19 +29,18 @@ from tether.runfile import Run  # noqa: E402
 
 pytestmark = pytest.mark.slow  # real-time runs of every process flying software Crazyflies
 
-BASE_PORT = 19880
-"""Ports 19880.. (the software Crazyflie's own tests use 19850..19854)."""
 START = [(0.6, 0.0, 0.0), (0.0, 0.6, 0.0), (0.0, -0.6, 0.0), (-0.6, 0.0, 0.0)]
 
 
 @contextlib.contextmanager
 def software_crazyflies(ports: list[int], starts: list[tuple[float, float, float]]):
-    """One software Crazyflie process per vehicle (so that one can be killed alone); yields the processes."""
+    """One software Crazyflie process per vehicle (so that one can be killed alone), vehicle k on
+    ``ports[k]`` as instance k; yields the processes."""
     with contextlib.ExitStack() as stack:
         yield [stack.enter_context(support.software_crazyflies(
-                   ["--count", "1", "--base-port", str(port), "--instance", str(port - BASE_PORT),
+                   ["--count", "1", "--base-port", str(port), "--instance", str(k),
                     "--p0=" + ",".join(map(str, p0))])).proc
-               for port, p0 in zip(ports, starts)]
+               for k, (port, p0) in enumerate(zip(ports, starts))]
 
 
 def crazyflie_mission(tmp: Path, ports: list[int], duration: float) -> Path:
@@ -61,10 +60,11 @@ def crazyflie_mission(tmp: Path, ports: list[int], duration: float) -> Path:
     return path
 
 
-@pytest.mark.parametrize("mode, port", [("attitude", BASE_PORT + 10), ("full_state", BASE_PORT + 11)])
-def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str, port: int) -> None:
+@pytest.mark.parametrize("mode", ["attitude", "full_state"])
+def test_one_vehicle_takes_off_flies_its_command_and_lands(mode: str) -> None:
     from plant.crazyflie import CrazyfliePlant, LinkLost
 
+    port = support.free_port(udp=True)
     with software_crazyflies([port], [(0.0, 0.0, 0.0)]) as (proc,):
         path_m = ms.load(builtin_path("exp1"))
         spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.8, mode=mode)
@@ -116,7 +116,7 @@ def test_a_reopened_link_neither_measures_nor_commands_before_a_restart_is_handl
 
     from plant.crazyflie import CrazyfliePlant, LinkLost
 
-    port = BASE_PORT + 12
+    port = support.free_port(udp=True)
     m = one_crazyflie("cfgap", port, 10.0, takeoff_height=0.8)
     args = ["--count", "1", "--base-port", str(port), "--instance", "12", "--p0=0,0,0"]
     seen: list[str] = []
@@ -178,7 +178,7 @@ def test_a_vehicle_dying_under_load_never_blocks_the_plant_in_cflib() -> None:
 
     trials = 8
     for trial in range(trials):
-        port = BASE_PORT + 41 + trial  # 19921..19928
+        port = support.free_port(udp=True)
         m = one_crazyflie("cfdie", port, 10.0, takeoff_height=0.5)
         with support.software_crazyflies(["--count", "1", "--base-port", str(port), "--instance", str(41 + trial),
                                           "--p0=0,0,0"]) as sim:
@@ -226,13 +226,13 @@ def tick0(log: Path) -> float | None:
     return float(found.group(1)) if found else None
 
 
-def _run(path: Path, out: Path, extra: list[str] = ()) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli", "run", str(path), "--out", str(out), "--clock",
-                           "realtime", "--lease", "1", "--quiet", *extra], capture_output=True, text=True, timeout=180)
+def _run(path: Path, out: Path, extra: list[str] = ()) -> subprocess.CompletedProcess[str]:
+    return support.tether("run", str(path), "--out", str(out), "--clock", "realtime", "--lease", "1", "--quiet",
+                          *extra, timeout=180)
 
 
 def test_a_formation_of_software_crazyflies_flown_in_real_time(tmp_path: Path) -> None:
-    ports = [BASE_PORT + i for i in range(4)]
+    ports = [support.free_port(udp=True) for _ in range(4)]
     with software_crazyflies(ports, START):
         path = crazyflie_mission(tmp_path, ports, 14.0)
         r = _run(path, tmp_path / "run")
@@ -249,7 +249,7 @@ def test_a_formation_of_software_crazyflies_flown_in_real_time(tmp_path: Path) -
 
 
 def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: Path) -> None:
-    ports = [BASE_PORT + 4 + i for i in range(4)]
+    ports = [support.free_port(udp=True) for _ in range(4)]
     with software_crazyflies(ports, START) as procs:
         path = crazyflie_mission(tmp_path, ports, 14.0)
         proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(path), "--out", str(tmp_path / "run"),
@@ -282,7 +282,7 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
 
 
 def test_ctrl_c_lands_every_vehicle(tmp_path: Path) -> None:
-    ports = [BASE_PORT + 20 + i for i in range(4)]
+    ports = [support.free_port(udp=True) for _ in range(4)]
     with software_crazyflies(ports, START):
         path = crazyflie_mission(tmp_path, ports, 30.0)
         proc = subprocess.Popen([sys.executable, "-m", "cli", "run", str(path), "--out", str(tmp_path / "run"),
@@ -311,7 +311,7 @@ def test_a_frozen_vehicle_link_is_recovered_and_the_vehicle_never_falls(tmp_path
     """SIGSTOP the software Crazyflie for 3 s mid-flight, then SIGCONT: the plant must not give
     up; it gets the link back, flies on, and lands the vehicle at the end. Judged on the simulator's
     own record of the vehicle (``--trace``): never locked, never a free fall, motors off on the ground."""
-    port = BASE_PORT + 40  # (test_plants uses BASE_PORT + 30)
+    port = support.free_port(udp=True)
     trace = tmp_path / "trace.txt"
     m = one_crazyflie("cffreeze", port, 14.0)
     path = tmp_path / "cffreeze.toml"
@@ -363,7 +363,7 @@ def test_a_restarted_software_crazyflie_is_reconnected_and_rejoins(tmp_path: Pat
     thrust locked, motors off): the plant re-opens the link through cflib, finds the vehicle on the
     ground and takes it off again; its agent, holding on its silent plant meanwhile, flies it again
     through the safety supervisor ("plant recovered"), and the vehicle is back in formation."""
-    port = BASE_PORT + 50
+    port = support.free_port(udp=True)
     kill_at = 4.0
     # the agent and the plant's watchdog hold (rather than land) while the vehicle restarts
     m = one_crazyflie("cfrestart", port, 26.0, safety={"land_after": 60.0, "cmd_cutoff": 60.0})

@@ -5,7 +5,6 @@ SIGINT leaving both files. Real processes, real Zenoh on loopback, the real ``mc
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
@@ -28,46 +27,9 @@ from recorder import viz  # noqa: E402
 from tether import transport as tp  # noqa: E402
 from tether.runfile import Run  # noqa: E402
 
-from tests.foxglove_live import free_port, listen  # noqa: E402
+from tests.foxglove_live import listen  # noqa: E402
+from tests.support import REPO, finish, free_port, kill, tether_popen, wait_until  # noqa: E402
 from tests.test_viz import file_content  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
-def tether(*args: str, log: Path | None = None) -> subprocess.Popen[str]:
-    """``tether ARGS`` in its own session; its output piped, or written to ``log``."""
-    if log is None:
-        return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    with open(log, "w") as fh:
-        return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=REPO, stdin=subprocess.DEVNULL,
-                                stdout=fh, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-
-
-def finish(proc: subprocess.Popen[str], timeout: float = 120.0) -> tuple[int, str]:
-    try:
-        out, _ = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        out, _ = proc.communicate(timeout=30)
-        pytest.fail(f"still running after {timeout} s:\n{out[-3000:]}")
-    return proc.returncode, out
-
-
-def kill(proc: subprocess.Popen[str]) -> None:
-    if proc.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.communicate(timeout=30)
-
-
-def wait_for(cond, timeout: float, what: str, proc: subprocess.Popen[str] | None = None) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
-        if proc is not None and proc.poll() is not None:
-            pytest.fail(f"process ended ({proc.returncode}) while waiting for {what}:\n{proc.communicate()[0][-3000:]}")
-        time.sleep(0.1)
 
 
 def read_mcap(path: Path) -> dict[str, list[tuple[int, bytes]]]:
@@ -134,7 +96,7 @@ def test_a_bad_live_port_is_refused_before_anything_starts(tmp_path: Path, comma
 def test_run_live_serves_the_recorders_channels_while_the_run_goes_on(tmp_path: Path) -> None:
     port = free_port()
     duration = 20.0
-    proc = tether("run", "section4", "--clock", "realtime", "--duration", str(duration), "--insecure", "--quiet",
+    proc = tether_popen("run", "section4", "--clock", "realtime", "--duration", str(duration), "--insecure", "--quiet",
                   "--out", str(tmp_path / "run"), "--live", str(port))
     try:
         live = listen(port, {"/agent/2": 10, "/leader": 3, "/scene": 3, "/tf": 3}, timeout=90)
@@ -172,19 +134,19 @@ def test_record_started_before_the_swarm_records_it_until_sigint(tmp_path: Path)
     --listen`` from its start, and writes both files when stopped mid-run: its samples are the run's."""
     port = tp.free_tcp_port()
     rec_dir, run_dir = tmp_path / "rec", tmp_path / "run"
-    rec = tether("record", "--mission", "section4", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(rec_dir),
+    rec = tether_popen("record", "--mission", "section4", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(rec_dir),
                  "--duration", "12")
     run = None
     try:
         time.sleep(1.0)  # a recorder that is up before the swarm: it keeps trying the router
         assert rec.poll() is None
-        run = tether("run", "section4", "--clock", "realtime", "--duration", "12", "--insecure", "--quiet",
+        run = tether_popen("run", "section4", "--clock", "realtime", "--duration", "12", "--insecure", "--quiet",
                      "--listen", f"tcp/127.0.0.1:{port}", "--out", str(run_dir))
         logs = run_dir / "logs" / "recorder-0.log"
         # stop the recorder once the run has flown 5 s (the run's own recorder says when it started)
-        wait_for(lambda: logs.exists() and "real time: tick 0" in logs.read_text(), 90, "the run's start", run)
+        wait_until(lambda: logs.exists() and "real time: tick 0" in logs.read_text(), 90, "the run's start", run)
         started = time.monotonic()
-        wait_for(lambda: time.monotonic() - started > 6.0, 30, "5 s of flight", run)
+        wait_until(lambda: time.monotonic() - started > 6.0, 30, "5 s of flight", run)
         rec.send_signal(signal.SIGINT)
         code, out = finish(rec, 60)
         assert code == 0, out[-3000:]
@@ -229,13 +191,13 @@ def test_record_joins_a_running_swarm_late_with_the_operator_identity(tmp_path: 
     the run's file."""
     port = tp.free_tcp_port()
     rec_dir, run_dir = tmp_path / "rec", tmp_path / "run"
-    run = tether("run", "section4", "--clock", "realtime", "--duration", "20", "--quiet",
+    run = tether_popen("run", "section4", "--clock", "realtime", "--duration", "20", "--quiet",
                  "--listen", f"tls/127.0.0.1:{port}", "--out", str(run_dir))
     rec = None
     try:
         logs = run_dir / "logs" / "recorder-0.log"
-        wait_for(lambda: logs.exists() and "real time: tick 0" in logs.read_text(), 90, "the run's start", run)
-        rec = tether("record", "--mission", "section4", "--zenoh-config", str(run_dir / "tls" / "control-0.json5"),
+        wait_until(lambda: logs.exists() and "real time: tick 0" in logs.read_text(), 90, "the run's start", run)
+        rec = tether_popen("record", "--mission", "section4", "--zenoh-config", str(run_dir / "tls" / "control-0.json5"),
                      "--out", str(rec_dir), "--duration", "20")
         code, out = finish(rec, 90)
         assert code == 0, out[-3000:]
@@ -265,11 +227,11 @@ def test_a_lockstep_run_stopped_by_sigint_leaves_both_files(tmp_path: Path) -> N
     out = tmp_path / "run"
     out.mkdir()
     log = tmp_path / "launcher.log"
-    proc = tether("run", "section4", "--duration", "1000", "--insecure", "--out", str(out), log=log)
+    proc = tether_popen("run", "section4", "--duration", "1000", "--insecure", "--out", str(out), log=log)
     try:
-        wait_for(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)
+        wait_until(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)
         started = time.monotonic()
-        wait_for(lambda: time.monotonic() - started > 8.0, 30, "8 s of running", proc)
+        wait_until(lambda: time.monotonic() - started > 8.0, 30, "8 s of running", proc)
         os.killpg(proc.pid, signal.SIGINT)
         code, _ = finish(proc, 300)
     finally:
@@ -374,7 +336,7 @@ def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -
     if shutil.which("tmux") is None:
         pytest.skip("tmux is not installed (apt-get install tmux): tether top is tested in a real terminal")
     port = tp.free_tcp_port()
-    run = tether("run", "section4", "--clock", "realtime", "--duration", "30", "--insecure", "--quiet",
+    run = tether_popen("run", "section4", "--clock", "realtime", "--duration", "30", "--insecure", "--quiet",
                  "--listen", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "run"), "--fault", "kill:agent/2@12",
                  "--fault", "skew:agent/3=+0.015", "--fault", "skew:plant/3=+0.015")
     session = f"tether-top-{os.getpid()}"
@@ -405,22 +367,22 @@ def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -
         return out
 
     try:
-        wait_for(lambda: rows("FLYING") == {"1", "2", "3", "4"}, 90, "a FLYING row for every vehicle", run)
+        wait_until(lambda: rows("FLYING") == {"1", "2", "3", "4"}, 90, "a FLYING row for every vehicle", run)
         assert "tether top: namespace 'section4'" in pane()
         # vehicle 3's host 15 ms ahead (within the gate's 2 periods, so every vehicle flies): agent 4
         # hears agent 3's samples ~15 ms before their time (less the link's delay), agent 3 hears agent
         # 2's ~15 ms late (plus the delay); both are outside -5 .. +10 ms, flagged, and top shows it
         try:
-            wait_for(lambda: re.fullmatch(r"agent/3 -1\d\.\d ms !", clock("4")) is not None, 30,
+            wait_until(lambda: re.fullmatch(r"agent/3 -1\d\.\d ms !", clock("4")) is not None, 30,
                      "vehicle 4's clock cell to show agent 3 ~15 ms ahead, flagged", run)
-            wait_for(lambda: re.fullmatch(r"agent/2 \+[1-9]\d\.\d ms !", clock("3")) is not None, 30,
+            wait_until(lambda: re.fullmatch(r"agent/2 \+[1-9]\d\.\d ms !", clock("3")) is not None, 30,
                      "vehicle 3's clock cell to show agent 2's samples ~15 ms late, flagged", run)
         except pytest.fail.Exception as exc:
             raise AssertionError(f"{exc}:\n{pane()}") from None
         print(f"\ntether top clock cells: 3: {clock('3')}, 4: {clock('4')}, 1: {clock('1')}")
-        wait_for(lambda: "2" in rows("GONE") | rows("STALE"), 60, "vehicle 2 shown gone once killed", run)
+        wait_until(lambda: "2" in rows("GONE") | rows("STALE"), 60, "vehicle 2 shown gone once killed", run)
         subprocess.run([*tmux, "send-keys", "-t", session, "q"], check=True)
-        wait_for(lambda: rc.exists() and rc.read_text().strip() != "", 30, "tether top to quit on q")
+        wait_until(lambda: rc.exists() and rc.read_text().strip() != "", 30, "tether top to quit on q")
         assert rc.read_text().strip() == "0"
     finally:
         subprocess.run([*tmux, "kill-server"], capture_output=True)

@@ -8,18 +8,13 @@ import os
 import pwd
 import stat
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import pytest
 
 from tether import safefs
-from tests.support import wait_until
-
-REPO = Path(__file__).parent.parent
-RUN_TIMEOUT = 300.0
-"""A one-second secure lockstep run takes about 17 s on a loaded 2-core machine: ample margin."""
+from tests.support import tether, wait_until
 
 as_root = pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user needs root")
 
@@ -27,12 +22,6 @@ as_root = pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another
 def _nobody() -> tuple[int, int]:
     p = pwd.getpwnam("nobody")
     return p.pw_uid, p.pw_gid
-
-
-def tether(*args: str, timeout: float = RUN_TIMEOUT) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", MPLBACKEND="Agg")
-    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=timeout,
-                          env=env, cwd=REPO, stdin=subprocess.DEVNULL)
 
 
 def _refused_before_start(r: subprocess.CompletedProcess[str], out: Path, *words: str) -> None:

@@ -17,18 +17,10 @@ import pytest
 
 from tether import safefs, sched
 from tether import transport as tp
-from tests.support import wait_until
+from tests.support import tether, wait_until
 
 REPO = Path(__file__).parent.parent
-TIMEOUT = 120.0
-"""deploy-gen of Section 4 makes a CA and 11 identities with openssl: about 2 s; ample margin."""
-
 SECRET = "root only\n"
-
-
-def tether(*args: str, timeout: float = TIMEOUT) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=timeout,
-                          cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), stdin=subprocess.DEVNULL)
 
 
 def secret_file(tmp: Path) -> Path:

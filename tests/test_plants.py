@@ -95,9 +95,10 @@ def test_the_crazyflie_plant_keeps_the_contract() -> None:
     closing (landing) that may be repeated. (Tick 0's zero acceleration and determinism are
     properties of simulated plants only.)"""
     pytest.importorskip("cflib.crtp")
-    from tests.test_crazyflie import BASE_PORT, software_crazyflies
+    from tests.support import free_port
+    from tests.test_crazyflie import software_crazyflies
 
-    port = BASE_PORT + 30
+    port = free_port(udp=True)
     m = mission("quadrotor")
     spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.6)
     m = msgspec.structs.replace(m, agents=[msgspec.structs.replace(a, plant=spec) for a in m.agents])

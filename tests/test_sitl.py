@@ -1,26 +1,26 @@
 """``tether run MISSION --sitl``: the launcher starts the software Crazyflies the mission needs and
 stops them at the end, on Ctrl-C and when it is killed outright: no simulator outlives a run.
 Missions that cannot be simulated, and bad simulator options, are refused (exit 2) before anything
-starts. Real launcher, real simulators, real cflib in the plants; ports 19945..19948."""
+starts. Real launcher, real simulators, real cflib in the plants, on four free UDP ports."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
+from tests.support import free_port, tether_popen, wait_until
 from tether import catalog
 
 pytest.importorskip("cflib")
 
-ROOT = Path(__file__).resolve().parent.parent
-PORTS = range(19945, 19949)
+_BASE = free_port(4, udp=True)
+PORTS = range(_BASE, _BASE + 4)
+"""This test process's four simulator ports (each parallel test process has its own)."""
 
 
 def mission(tmp: Path, *, uri0: str | None = None) -> Path:
@@ -34,12 +34,6 @@ def mission(tmp: Path, *, uri0: str | None = None) -> Path:
     path = tmp / "exp1_cf_test.toml"
     path.write_text(text)
     return path
-
-
-def tether(*args: str) -> subprocess.Popen[str]:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-m", "cli", *args], cwd=ROOT, env=env, stdin=subprocess.DEVNULL,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
 
 
 def simulators() -> list[int]:
@@ -58,25 +52,17 @@ def simulators() -> list[int]:
     return out
 
 
-def wait_for(pred, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            pytest.fail(f"waited {timeout:g} s for {what}")
-        time.sleep(0.1)
-
-
 def test_refused_before_anything_starts(tmp_path: Path) -> None:
     bad = mission(tmp_path, uri0="radio://0/80/2M/E7E7E7E701")
-    p = tether("run", str(bad), "--sitl", "--out", str(tmp_path / "a"))
+    p = tether_popen("run", str(bad), "--sitl", "--out", str(tmp_path / "a"))
     out, _ = p.communicate(timeout=60)
     assert p.returncode == 2, out
     assert "agent 1.plant.uri" in out and "udp://127.0.0.1:PORT" in out
-    p = tether("run", str(mission(tmp_path)), "--sitl", "--sitl-args", "--noise -3", "--out", str(tmp_path / "b"))
+    p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--sitl-args", "--noise -3", "--out", str(tmp_path / "b"))
     out, _ = p.communicate(timeout=60)
     assert p.returncode == 2, out
     assert "--sitl-args" in out
-    p = tether("run", "exp1", "--sitl", "--out", str(tmp_path / "c"))
+    p = tether_popen("run", "exp1", "--sitl", "--out", str(tmp_path / "c"))
     out, _ = p.communicate(timeout=60)
     assert p.returncode == 2 and "no crazyflie agent" in out, out
     assert not simulators()
@@ -90,7 +76,7 @@ def test_an_unsafe_out_or_a_linked_simulator_log_is_refused_before_any_simulator
     shared = tmp_path / "shared"
     shared.mkdir()
     shared.chmod(0o777)
-    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(shared))
+    p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(shared))
     out, _ = p.communicate(timeout=240)
     assert p.returncode == 2, out
     assert "--out" in out and "can be written by other users" in out and "Traceback" not in out
@@ -102,7 +88,7 @@ def test_an_unsafe_out_or_a_linked_simulator_log_is_refused_before_any_simulator
     run = tmp_path / "run"
     (run / "logs").mkdir(parents=True)
     (run / "logs" / "cfsim-3.log").symlink_to(secret)
-    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(run))
+    p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(run))
     out, _ = p.communicate(timeout=240)
     assert p.returncode == 2, out
     assert "--out" in out and "cfsim-3.log is a symbolic link" in out and "Traceback" not in out, out
@@ -115,7 +101,7 @@ def test_an_unsafe_out_or_a_linked_simulator_log_is_refused_before_any_simulator
 @pytest.mark.slow
 def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
-    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(out_dir))
+    p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(out_dir))
     out, _ = p.communicate(timeout=240)
     # 0, or on a loaded machine 3 (a plant's failsafe briefly held a vehicle) or 5 (a sample lost on
     # the way to the recorder, in real time): the run happened either way, which is what this checks
@@ -129,9 +115,9 @@ def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("how", ["sigint", "sigkill"])
 def test_no_simulator_outlives_an_interrupted_or_killed_launcher(tmp_path: Path, how: str) -> None:
-    p = tether("run", str(mission(tmp_path)), "--sitl", "--duration", "60", "--out", str(tmp_path / "run"))
+    p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--duration", "60", "--out", str(tmp_path / "run"))
     try:
-        wait_for(lambda: len(simulators()) == 4, 60.0, "four simulators")
+        wait_until(lambda: len(simulators()) == 4, 60.0, "four simulators")
         time.sleep(1.0)
         if how == "sigint":
             p.send_signal(signal.SIGINT)  # Ctrl-C: the launcher lands the vehicles and stops everything
@@ -141,7 +127,7 @@ def test_no_simulator_outlives_an_interrupted_or_killed_launcher(tmp_path: Path,
             # the simulators are in sessions of their own, and their parent-death signal stops them
             os.killpg(p.pid, signal.SIGKILL)
             p.communicate(timeout=30)
-        wait_for(lambda: not simulators(), 20.0, "every simulator to exit")
+        wait_until(lambda: not simulators(), 20.0, "every simulator to exit")
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)

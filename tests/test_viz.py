@@ -27,16 +27,11 @@ from tether import mission as ms  # noqa: E402
 from tether.progress import Progress  # noqa: E402
 from tether.runfile import NO_SAMPLE, Run  # noqa: E402
 
-from tests.foxglove_live import free_port, listen  # noqa: E402
+from tests.foxglove_live import listen  # noqa: E402
+from tests.support import REPO, free_port, tether  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 FOXGLOVE_TYPES = {"/scene": "foxglove.SceneUpdate", "/tf": "foxglove.FrameTransforms", "/log": "foxglove.Log",
                   "/safety": "foxglove.Log"}
-
-
-def tether(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cli", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout, stdin=subprocess.DEVNULL)
 
 
 def read_mcap(path: Path) -> tuple[dict[str, tuple[str, str, str]], dict[str, list[tuple[int, bytes]]]]:
