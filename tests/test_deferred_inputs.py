@@ -2,7 +2,7 @@
 on loopback: a :class:`~tether.node.Node` (router session) and a client session that publishes.
 
 * ``Node.subscribe(pattern, wake=False)`` (the recorder's wildcard streams): a sample that arrives
-  wakes nobody; it waits, stamped with its arrival, until the per-period timer (``Node._pace``)
+  wakes nobody; it waits, stamped with its arrival, until the per-period timer (``Node.pace``)
   wakes the loop, at most one period later; the source's gate then sees the stamped arrival, not
   the (later) drain;
 * ``Node.quieten(src)`` (a plant's commands once it has started): the source's samples stop
@@ -92,7 +92,7 @@ async def test_a_deferred_subscription_wakes_nobody_and_is_drained_within_a_peri
         await until(lambda: len(node.deferred) == 1, "the sample in the deferred queue")
         assert woke_nobody(node)
         arrived = clock.now()
-        pacer = asyncio.get_running_loop().create_task(node._pace())
+        pacer = asyncio.get_running_loop().create_task(node.pace())
         t0 = time.monotonic()
         assert await node.wakeup.wait(WAIT)  # the period's timer
         assert time.monotonic() - t0 < 1.0  # a period (10 ms) after the timer started, give or take a loaded machine

@@ -74,7 +74,7 @@ async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> N
             k = 0
             for _ in range(100):
                 node.inputs[stream].put(tp.Received(stream, state(1, k, h)))
-                node._drain_inputs(True)
+                node._drain_inputs()
                 k += 1
                 t.advance()
             assert src.received == 100 and not node.overflow
@@ -83,7 +83,7 @@ async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> N
             for _ in range(150):
                 node.inputs[stream].put(tp.Received(stream, state(1, k, h)))
                 k += 1
-            node._drain_inputs(True)
+            node._drain_inputs()
             assert src.received == 250 and src.stale == 0 and src.newest.k == 249  # whole, in order
             assert not node.overflow
 
@@ -93,12 +93,12 @@ async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> N
                 for j in range(1000):
                     node.inputs[flooded].put(tp.Received(flooded, state(m.leader.id, 10_000 * period + j, h)))
                 before = lead.received + lead.rejected
-                node._drain_inputs(True)
+                node._drain_inputs()
                 decoded.append(lead.received + lead.rejected - before)
                 assert node.inputs[flooded].muted == (period > 0)  # period 0 took all the queue held
                 node.inputs[stream].put(tp.Received(stream, state(1, k, h)))  # the stream goes on
                 k += 1
-                node._drain_inputs(True)
+                node._drain_inputs()
                 t.advance()
             assert decoded[0] == cap  # the bucket's worth once ...
             assert decoded[1:] == [nd.INPUT_BUDGET] * 9  # ... then the budget per period
@@ -112,14 +112,14 @@ async def test_a_backlog_is_taken_whole_and_a_flood_is_held_to_the_budget() -> N
             own = flying.source(stream, wire.State, 1)
             for j in range(nd.INPUT_BUDGET + 5):
                 flying.inputs[stream].put(tp.Received(stream, state(1, j, h)))
-            flying._drain_inputs(True)
+            flying._drain_inputs()
             assert flying.overflow[stream] == 5 and own.newest.k == nd.INPUT_BUDGET + 4
             assert flying.receiver.drops == {}
 
             # after the flood the flooded key's budget refills at INPUT_BUDGET per period
             node.inputs[flooded].take(10_000)
             t.advance(3)  # four periods after the last drain
-            node._drain_inputs(True)
+            node._drain_inputs()
             assert node._budget[flooded] == 4 * nd.INPUT_BUDGET
 
             # the FIFO of every other subscription, flooded beyond its capacity between two drains:

@@ -1,8 +1,9 @@
 """What every process shares: its session, its inputs, its clock, its publishers, its lifetime.
 
 A role (leader, agent, plant, recorder) is an ``async def run(node)`` that declares its inputs and
-publishers on a :class:`Node`, calls :meth:`Node.ready`, then loops over ticks. ``Node`` hides the
-two clocks behind one code path:
+publishers on a :class:`Node`, calls :meth:`Node.ready`, then loops over ticks. ``Node`` is handed
+its clock (:class:`~tether.clock.Clock`, lockstep or real time) and leaves to it whatever the two
+differ in; neither it nor a role asks which one it holds:
 
 * inputs are :class:`Source` objects; ``await node.aligned([src, ...], k)`` returns, in lockstep,
   the samples of tick ``k`` exactly (waiting for them), and in real time the newest samples of one
@@ -33,7 +34,7 @@ from tether import evloop, handoff
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
-from tether.clock import Clock, ClockError, ClockKind, LockstepClock
+from tether.clock import Clock, ClockError, ClockKind
 from tether.clock import make as make_clock
 from tether.inputs import Link, Source
 
@@ -238,7 +239,7 @@ class Node:
         self.fifo: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY, self.wakeup)
         self.deferred: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY)
         """Real time: samples of :meth:`subscribe` ``(wake=False)`` subscriptions, which wake nobody;
-        drained with the rest, at the latest one control period after they arrive (:meth:`_pace`)."""
+        drained with the rest, at the latest one control period after they arrive (:meth:`pace`)."""
         self.tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(4096, self.wakeup)
         self.queries: handoff.BoundedFifo[tuple[Callable[[zenoh.Query], None], zenoh.Query]] = \
             handoff.BoundedFifo(64, self.wakeup)
@@ -282,7 +283,6 @@ class Node:
         self._start: Source | None = None
         self._recorded: Source | None = None
         """Lockstep, a member of the swarm: the launcher's word that every sample is recorded."""
-        self._paced = False
         self.tasks: asyncio.TaskGroup | None = None
         """The task group that owns this process's tasks (set by :func:`serve`); :meth:`ready`
         starts the real-time input pump in it, so that the pump ends with the process's work."""
@@ -312,12 +312,10 @@ class Node:
         DROP: the newest supersedes). Lockstep: always :data:`~tether.transport.SYNC` (BLOCK),
         because a lost sample would stall the run: measured here, DROP state streams lost samples
         under load and stalled lockstep runs."""
-        if self.clock.lockstep:
-            qos = tp.SYNC
-        pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
+        qos, keep = self.clock.stream(qos, self.args.window)
+        pub = tp.declare_publisher(self.session, key, qos)
         self._declared.append(pub)
-        out = Publisher(pub, self.args.node_id if sender is None else sender,
-                        keep=self.args.window + 1 if self.clock.lockstep and self.args.window else 0)
+        out = Publisher(pub, self.args.node_id if sender is None else sender, keep=keep)
         if out.kept is not None:
             self._kept.append(out)
         return out
@@ -329,15 +327,12 @@ class Node:
         ``wake=False`` (real time; lockstep ignores it, a tick waits for its inputs): its samples do
         not wake the event loop as they arrive; each is stamped with its arrival time in the
         callback (what a source's plausibility gate sees through :meth:`arrival`) and decoded at
-        the next drain, which comes at the latest one control period later (:meth:`_pace`). For a
+        the next drain, which comes at the latest one control period later (:meth:`pace`). For a
         role that reacts to no single sample (the recorder): a burst of a tick's samples then
         costs one wake-up instead of one per sample."""
-        if not wake and not self.clock.lockstep:
-            self._declared.append(tp.declare_subscriber(self.session, pattern, self.deferred,
-                                                        getattr(self.clock, "monotonic", None)))
-            self._deferring = True
-            return
-        self._declared.append(tp.declare_subscriber(self.session, pattern, self.fifo))
+        sink, stamp = self.clock.subscription(self, wake)
+        self._deferring |= sink is self.deferred
+        self._declared.append(tp.declare_subscriber(self.session, pattern, sink, stamp))
 
     def source(self, key: str, expect: type, sender: int | None,
                on_message: Callable[[Any], None] | None = None, channel: Link | None = None,
@@ -365,20 +360,32 @@ class Node:
         if channel is not None:
             self._linked.append(src)
         if subscribe:
-            sink: handoff.Sink[tp.Received] = self.fifo
-            stamp = None
-            if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
-                quiet = not wake and on_message is None and channel is None
-                # a stream's sender sends one sample a tick (its excess is a flood); an order or a
-                # control message may be repeated for one tick (the operator's land, said again)
-                tick_of = tp.tick_of if expect in TICKED else None
-                sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup,
-                                                              tick_of=tick_of)
-                stamp = getattr(self.clock, "monotonic", None) if quiet or tap is not None else None
-                if tap is not None:
-                    sink = _Tapped(sink, tap, self)
+            quiet = not wake and on_message is None and channel is None
+            sink, stamp = self.clock.input_sink(self, key, expect, quiet, tap)
             self._declared.append(tp.declare_subscriber(self.session, key, sink, stamp))
         return src
+
+    def bounded(self, key: str, expect: type, quiet: bool,
+                tap: Callable[[tp.Received], None] | None) -> handoff.Sink[tp.Received]:
+        """Real time: one bounded queue for input ``key`` (:data:`INPUT_BUDGET`), which wakes the
+        loop unless ``quiet``, its samples also handed to ``tap`` on Zenoh's thread."""
+        # a stream's sender sends one sample a tick (its excess is a flood); an order or a control
+        # message may be repeated for one tick (the operator's land, said again)
+        tick_of = tp.tick_of if expect in TICKED else None
+        queue = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup, tick_of=tick_of)
+        return queue if tap is None else _Tapped(queue, tap, self)
+
+    def tick_source(self, grant: Callable[[int], None]) -> None:
+        """Lockstep, a paced role: hear the clock source's grants."""
+        self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: grant(m.grant), keep=False)
+
+    def recorded_source(self) -> Source:
+        """Lockstep, a member of the swarm: the launcher's word that every sample is recorded."""
+        return self.source(self.keys.recorded, wire.Recorded, 0, keep=False)
+
+    @property
+    def stall_timeout(self) -> float:
+        return self.args.stall_timeout
 
     def quieten(self, src: Source) -> None:
         """Real time: ``src``'s samples no longer wake the event loop; they are decoded at the next
@@ -441,7 +448,7 @@ class Node:
             await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
-    async def _pace(self) -> None:
+    async def pace(self) -> None:
         """Real time: once per control period, wake the loop if deferred samples wait (:meth:`subscribe`)."""
         while True:
             await asyncio.sleep(self.mission.dt)
@@ -486,13 +493,8 @@ class Node:
         message that was sent before it existed."""
         if self._watched:
             self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
-        clock = self.clock
-        self._paced = paced and isinstance(clock, LockstepClock)
-        if isinstance(clock, LockstepClock) and paced:
-            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
+        self._recorded = self.clock.prepare(self, paced, member=token and self.args.role not in BACKLOG_ROLES)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
-        if isinstance(clock, LockstepClock) and token and self.args.role not in BACKLOG_ROLES:
-            self._recorded = self.source(self.keys.recorded, wire.Recorded, 0, keep=False)
         if token:
             await self._mesh_linked()
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
@@ -501,7 +503,7 @@ class Node:
         def started() -> bool:
             if start.newest is not None:
                 return True
-            if rejoin is not None and not self.clock.lockstep and (e := rejoin()) is not None:
+            if rejoin is not None and (e := rejoin()) is not None:  # never in lockstep: nothing to join
                 joined.append(e)
                 return True
             return False
@@ -512,16 +514,18 @@ class Node:
         if self.rejoined:
             log.info("joined a run already under way: tick 0 taken as %.3f from the samples heard", epoch)
         try:
-            self.clock.begin(epoch, phase)
+            began = self.clock.begin(epoch, phase)
         except ClockError as exc:
             raise Stalled(str(exc)) from None
-        if not self.clock.lockstep:
+        companions = self.clock.companions(self, self._deferring)
+        if companions:
             if self.tasks is None:
+                for _, coro in companions:
+                    coro.close()
                 raise RuntimeError("Node.ready: real time needs serve()'s task group for the input pump")
-            self.tasks.create_task(self.pump(), name="input pump")
-            if self._deferring:
-                self.tasks.create_task(self._pace(), name="deferred inputs")
-            log.info("real time: tick 0 at %.3f, phase %.2f", epoch, phase)
+            for name, coro in companions:
+                self.tasks.create_task(coro, name=name)
+        log.info("%s", began)
 
     # ------------------------------------------------------------------ inputs
     def mission_time(self) -> float:
@@ -533,11 +537,10 @@ class Node:
         """Decode every pending sample and token event (on the event loop). A sample that crosses
         an emulated link is offered to it (at its sample time in lockstep, at the current mission
         time in real time) and reaches its source when the link delivers it (:meth:`release`)."""
-        realtime = not self.clock.lockstep
         for rec in self.fifo.drain():
-            self._accept(rec, realtime)
+            self._accept(rec)
         for rec in self.deferred.drain():
-            self._accept(rec, realtime)
+            self._accept(rec)
         for name, fifo in (("inputs", self.fifo), ("deferred inputs", self.deferred)):
             lost = fifo.dropped - self._fifo_lost[name]
             if lost:  # more than FIFO_CAPACITY samples between two drains (a flood, or a stalled loop)
@@ -547,9 +550,8 @@ class Node:
                 self._fifo_lost[name] += lost
                 self.receiver.count("overflow", lost)
         if self.inputs:
-            self._drain_inputs(realtime)
-        if realtime:
-            self.release(self.mission_time())
+            self._drain_inputs()
+        self.clock.deliver(self)
         self._serve_queries()
         for ev in self.tokens.drain():
             self.token_log.append((ev.key, ev.alive))
@@ -565,53 +567,39 @@ class Node:
     def arrival(self) -> float:
         """Real time: when the sample being accepted arrived [s, mission time] (its callback's
         stamp, for an input that does not wake the loop), else now (:meth:`mission_time`)."""
-        at, origin = self._arrival, getattr(self.clock, "origin", None)
-        if at == at and origin is not None:  # stamped (not NaN)
-            return at - origin
-        return self.clock.now()
+        return self.clock.arrival(self._arrival)
 
     def arrived_ago(self) -> float:
         """Real time: how long ago [s] the sample being accepted arrived (its callback's stamp), for
         one drained later than it arrived; else 0."""
-        at, monotonic = self._arrival, getattr(self.clock, "monotonic", None)
-        return monotonic() - at if at == at and monotonic is not None else 0.0
+        return self.clock.ago(self._arrival)
 
-    def _accept(self, rec: tp.Received, realtime: bool) -> None:
+    def _accept(self, rec: tp.Received) -> None:
         src = self.sources.get(rec.key)
         if src is None:
             return
         msg = self.receiver.accept(rec.payload, src.expect, src.sender)
         if msg is None:
             return
-        if src.channel is None:
-            if not realtime and src.had(msg):
-                # lockstep: a copy sent again after a stall (resend) of a sample this source has;
-                # not a link's duplicate: whether a resend happens depends on the machine's load, and
-                # the run's arrays (link statistics, drops) must not
-                self.copies += 1
-                return
-            self._arrival = rec.at
-            try:
-                src.offer(msg, missed=not realtime)
-            finally:
-                self._arrival = math.nan
-            return
-        if not realtime and msg.k <= src.raw_k:
-            # lockstep: a copy sent again after a stall (resend) of a tick the emulated link has had;
-            # offered again, it would draw the link's random decisions anew and change the run
-            self.copies += 1
-            return
-        src.raw_k = max(src.raw_k, msg.k)
-        src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
+        self.clock.offer(self, src, msg, rec)
 
-    def _drain_inputs(self, realtime: bool) -> None:
+    def offer(self, src: Source, msg: Any, at: float, missed: bool) -> None:
+        """Hand ``msg`` to ``src``, its arrival stamp ``at`` what :meth:`arrival` says meanwhile
+        (``missed``: as :meth:`tether.inputs.Source.offer`'s)."""
+        self._arrival = at
+        try:
+            src.offer(msg, missed=missed)
+        finally:
+            self._arrival = math.nan
+
+    def _drain_inputs(self) -> None:
         """Decode what each input key's budget allows (:data:`INPUT_BUDGET` more per control period,
         saved up to :func:`input_capacity`); a key whose budget is spent is muted until the next
         period, when a timer wakes the loop to go on."""
         h = self.mission.dt
         cap = self._capacity
-        monotonic = getattr(self.clock, "monotonic", None)
-        period = int(monotonic() // h) if monotonic is not None else self._period
+        reading = self.clock.reading
+        period = int(reading() // h)
         if period != self._period:
             gained = INPUT_BUDGET * (period - self._period if self._period >= 0 else 1)
             self._period = period
@@ -633,7 +621,7 @@ class Node:
             items = q.take(int(left))
             self._budget[key] = left - len(items)
             for rec in items:
-                self._accept(rec, realtime)
+                self._accept(rec)
             if len(q) and self._budget[key] < 1:
                 q.muted = True
                 waiting = True
@@ -646,8 +634,8 @@ class Node:
                 if lost and self.args.role in BACKLOG_ROLES:  # a sample to record lost: the run file says why
                     self.receiver.count("overflow", lost)
                 self._overflow[key] = q.dropped
-        if waiting and self._rearm is None and monotonic is not None:
-            delay = (period + 1) * h - monotonic()
+        if waiting and self._rearm is None:
+            delay = (period + 1) * h - reading()
             self._rearm = asyncio.get_running_loop().call_later(max(evloop.TIMER_GRAIN, delay), self._next_period)
 
     def _next_period(self) -> None:
@@ -735,71 +723,26 @@ class Node:
         ``drain``: as :meth:`aligned`'s."""
         return (await self.aligned([src], k, drain=drain))[0]
 
-    async def aligned(self, sources: list[Source], k: int, max_lag: int = 8, drain: bool = True) -> list[Any]:
-        """One sample per source, all of the same tick where possible.
+    async def aligned(self, sources: list[Source], k: int, drain: bool = True) -> list[Any]:
+        """One sample per source, all of the same tick where possible (the clock's
+        :meth:`~tether.clock.Clock.align`).
 
         Lockstep: the samples of tick ``k`` (waits for each). Real time: among the sources whose
-        newest sample is at most ``max_lag`` ticks old, the newest tick ``c <= k`` that all of them
-        hold, so that a tick never mixes, say, an own measurement of k-1 with neighbours' of k
-        (which would show as a spurious formation error of about one period of motion); a source
-        older than that (silent, or not started) gives its newest sample, or None.
+        newest sample is at most :data:`~tether.clock.MAX_LAG` ticks old, the newest tick ``c <= k``
+        that all of them hold; a source older than that (silent, or not started) gives its newest
+        sample, or None.
 
-        ``drain=False``: the caller has just drained (a previous call at this tick; real time:
+        ``drain=False``: the caller has just drained (a previous call at this tick, or
         :meth:`tick`, as it returns); what arrived since is taken at the next drain, or (lockstep)
         by the wait for a missing sample, which drains first. A world process reading its
         vehicles' commands one by one drained every input key once per vehicle: N² queue checks
         per tick."""
-        if self.clock.lockstep:
-            out = []
-            if drain:
-                self.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
-            for src in sources:
-                if src.channel is None:
-                    if k not in src.by_tick:
-                        await self.until(lambda: k in src.by_tick, self.args.stall_timeout,
-                                         f"tick {k} on {src.key}", resend=True)
-                    out.append(src.by_tick[k])
-                    src.forget_before(k)
-                    continue
-                # through an emulated link: once the sender's tick k has entered the link, what the
-                # link has delivered by t_k is known; use the newest of it (possibly older, or none)
-                if src.raw_k < k:
-                    await self.until(lambda: src.raw_k >= k, self.args.stall_timeout,
-                                     f"tick {k} sent on {src.key}", resend=True)
-                self.release(k * self.mission.dt, only=src)
-                held = [t for t in src.by_tick if t <= k]
-                out.append(src.by_tick[max(held)] if held else None)
-                src.forget_before(max(held) if held else 0)
-            return out
-        if drain:
-            self.drain()
-        newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
-        # align the on-board and ideal inputs; an emulated link's delay is what is being studied,
-        # so its input is the newest it has delivered
-        live = [t for s, t in zip(sources, newest) if t >= k - max_lag and s.channel is None]
-        common = min(live) if live else -1
-        out = []
-        for src, t in zip(sources, newest):
-            if src.channel is not None:
-                msg = src.by_tick.get(t)
-            else:
-                msg = src.by_tick.get(common) if t >= k - max_lag else None
-            out.append(msg if msg is not None else src.newest)
-            src.forget_before(k - max_lag)
-        return out
+        return await self.clock.align(self, sources, k, self.mission.dt, drain)
 
     async def tick(self, k: int) -> float:
-        """Wait until tick ``k`` may run (draining inputs meanwhile; in real time once more as it
-        returns); returns its lateness [s]."""
-        clock = self.clock
-        if isinstance(clock, LockstepClock):
-            if self._paced:
-                await self.until(lambda: clock.granted >= k, self.args.stall_timeout,
-                                 f"the clock's grant of tick {k}", resend=True)
-            return 0.0
-        late = await self.clock.wait_for(k)
-        self.drain()
-        return late
+        """Wait until tick ``k`` may run (draining inputs meanwhile, and once more as it returns:
+        what follows at this tick may read with ``drain=False``); returns its lateness [s]."""
+        return await self.clock.gate(self, k)
 
     async def linger(self) -> None:
         """Keep the session open after the last tick until this process's last samples have left.
