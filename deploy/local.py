@@ -115,7 +115,7 @@ from tether import transport as tp
 from tether import handoff, jsonout, safefs, sched
 from tether import wire
 from tether.clock import ClockKind, LockstepSource
-from tether.node import FIFO_CAPACITY
+from tether.ingress import FIFO_CAPACITY
 from tether.progress import Progress
 
 log = logging.getLogger("tether")

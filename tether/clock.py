@@ -55,7 +55,7 @@ class ClockError(RuntimeError):
 
 
 class Inbox(Protocol):
-    """What a clock strategy asks of its process's inputs (:class:`tether.node.Node` is one)."""
+    """What a clock strategy asks of a process's inputs (:class:`tether.ingress.Ingress` is one)."""
 
     copies: int
     """Copies received of samples already had (lockstep resends), dropped."""
@@ -70,6 +70,17 @@ class Inbox(Protocol):
         """Samples that wake nobody, drained at the latest one control period after they arrive."""
         ...
 
+    def release(self, now: float, only: Source | None = None) -> None: ...
+
+    def bounded(self, key: str, expect: type, quiet: bool, tap: Callable[[tp.Received], None] | None
+                ) -> Sink[tp.Received]: ...
+
+    def offer(self, src: Source, msg: Any, at: float, missed: bool) -> None: ...
+
+
+class Waiter(Protocol):
+    """What a clock strategy asks of a process to pace it (:class:`tether.node.Node` is one)."""
+
     @property
     def stall_timeout(self) -> float:
         """Lockstep: how long a tick waits for one input [s] before :class:`~tether.node.Stalled`."""
@@ -81,11 +92,6 @@ class Inbox(Protocol):
                     resend: bool = False) -> None: ...
 
     def release(self, now: float, only: Source | None = None) -> None: ...
-
-    def bounded(self, key: str, expect: type, quiet: bool, tap: Callable[[tp.Received], None] | None
-                ) -> Sink[tp.Received]: ...
-
-    def offer(self, src: Source, msg: Any, at: float, missed: bool) -> None: ...
 
     def tick_source(self, grant: Callable[[int], None]) -> None: ...
 
@@ -193,21 +199,21 @@ class Clock(Protocol):
         """After a drain: hand what the emulated links have delivered by now to their sources."""
         ...
 
-    async def align(self, inbox: Inbox, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
+    async def align(self, node: Waiter, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
         """One sample per source for tick ``k`` of period ``dt`` [s] (see :meth:`tether.node.Node.aligned`)."""
         ...
 
-    async def gate(self, inbox: Inbox, k: int) -> float:
+    async def gate(self, node: Waiter, k: int) -> float:
         """Wait until tick ``k`` may run, inputs drained as it returns; its lateness [s]."""
         ...
 
-    def prepare(self, inbox: Inbox, paced: bool, member: bool) -> Source | None:
+    def prepare(self, node: Waiter, paced: bool, member: bool) -> Source | None:
         """Before the start: declare what this clock needs heard (``paced``: a role that follows
         the clock's grants; ``member``: a process the launcher waits for at the end). Returns the
         source of the launcher's word that every sample is recorded, or None."""
         ...
 
-    def companions(self, inbox: Inbox, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+    def companions(self, node: Waiter, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
         """After the start: the tasks that run beside the role (named), none in lockstep."""
         ...
 
@@ -304,16 +310,16 @@ class LockstepClock:
     def deliver(self, inbox: Inbox) -> None:
         """Links run on sample times here: a source takes what its link delivered at its tick (:meth:`align`)."""
 
-    async def align(self, inbox: Inbox, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
+    async def align(self, node: Waiter, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
         """The samples of tick ``k`` (waits for each); through an emulated link, the newest it had
         delivered by ``t_k`` (possibly older, or None)."""
         out = []
         if drain:
-            inbox.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
+            node.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
         for src in sources:
             if src.channel is None:
                 if k not in src.by_tick:
-                    await inbox.until(lambda: k in src.by_tick, inbox.stall_timeout,
+                    await node.until(lambda: k in src.by_tick, node.stall_timeout,
                                       f"tick {k} on {src.key}", resend=True)
                 out.append(src.by_tick[k])
                 src.forget_before(k)
@@ -321,31 +327,31 @@ class LockstepClock:
             # once the sender's tick k has entered the link, what the link has delivered by t_k is
             # known; use the newest of it (possibly older, or none)
             if src.raw_k < k:
-                await inbox.until(lambda: src.raw_k >= k, inbox.stall_timeout,
+                await node.until(lambda: src.raw_k >= k, node.stall_timeout,
                                   f"tick {k} sent on {src.key}", resend=True)
-            inbox.release(k * dt, only=src)
+            node.release(k * dt, only=src)
             held = [t for t in src.by_tick if t <= k]
             out.append(src.by_tick[max(held)] if held else None)
             src.forget_before(max(held) if held else 0)
         return out
 
-    async def gate(self, inbox: Inbox, k: int) -> float:
+    async def gate(self, node: Waiter, k: int) -> float:
         """A paced role waits for the grant of tick ``k``; every other is gated by its inputs of
         tick ``k`` (:meth:`align`), which is what makes the run deterministic."""
         if self._paced:
-            await inbox.until(lambda: self._granted >= k, inbox.stall_timeout,
+            await node.until(lambda: self._granted >= k, node.stall_timeout,
                               f"the clock's grant of tick {k}", resend=True)
         else:
-            inbox.drain()
+            node.drain()
         return 0.0
 
-    def prepare(self, inbox: Inbox, paced: bool, member: bool) -> Source | None:
+    def prepare(self, node: Waiter, paced: bool, member: bool) -> Source | None:
         self._paced = paced
         if paced:
-            inbox.tick_source(self.grant)
-        return inbox.recorded_source() if member else None
+            node.tick_source(self.grant)
+        return node.recorded_source() if member else None
 
-    def companions(self, inbox: Inbox, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+    def companions(self, node: Waiter, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
         return []
 
 
@@ -451,7 +457,7 @@ class RealtimeClock:
     def deliver(self, inbox: Inbox) -> None:
         inbox.release(self.now())
 
-    async def align(self, inbox: Inbox, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
+    async def align(self, node: Waiter, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
         """Among the sources whose newest sample is at most :attr:`max_lag` ticks old, the newest
         tick ``c <= k`` that all of them hold, so that a tick never mixes, say, an own measurement
         of k-1 with neighbours' of k (which would show as a spurious formation error of about one
@@ -459,7 +465,7 @@ class RealtimeClock:
         sample, or None. An emulated link's delay is what is being studied: its input is the
         newest it has delivered."""
         if drain:
-            inbox.drain()
+            node.drain()
         lag = self.max_lag
         newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
         live = [t for s, t in zip(sources, newest) if t >= k - lag and s.channel is None]
@@ -474,20 +480,20 @@ class RealtimeClock:
             src.forget_before(k - lag)
         return out
 
-    async def gate(self, inbox: Inbox, k: int) -> float:
+    async def gate(self, node: Waiter, k: int) -> float:
         late = await self.wait_for(k)
-        inbox.drain()
+        node.drain()
         return late
 
-    def prepare(self, inbox: Inbox, paced: bool, member: bool) -> Source | None:
+    def prepare(self, node: Waiter, paced: bool, member: bool) -> Source | None:
         return None  # every process ticks on its own clock; the end is a linger, not a word
 
-    def companions(self, inbox: Inbox, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+    def companions(self, node: Waiter, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
         """The input pump (``on_message`` hooks run as samples arrive, not at the next tick) and,
         with deferred subscriptions, their per-period wake-up."""
-        out: list[tuple[str, Coroutine[Any, Any, None]]] = [("input pump", inbox.pump())]
+        out: list[tuple[str, Coroutine[Any, Any, None]]] = [("input pump", node.pump())]
         if deferring:
-            out.append(("deferred inputs", inbox.pace()))
+            out.append(("deferred inputs", node.pace()))
         return out
 
 
