@@ -29,7 +29,7 @@ from tether import vec
 from tether import transport as tp
 from tether import wire
 from tether import skew
-from tether.clock import RealtimeClock
+from tether.clock import AGENT_PHASE
 from tether.inputs import Source
 from tether.mission import nearby_vehicles
 from tether.rejoin import Rejoin
@@ -37,10 +37,6 @@ from tether.skew import SkewMonitor
 from tether.node import Node, Stalled
 
 log = logging.getLogger("tether")
-
-AGENT_PHASE = 0.5
-"""Real time: agents tick at ``epoch + (k + AGENT_PHASE) h``; plants and the leader at ``epoch + k h``."""
-
 
 async def run(node: Node) -> None:
     m = node.mission
@@ -51,8 +47,8 @@ async def run(node: Node) -> None:
     state = node.publisher(keys.topic("agent", aid, "state"))
     onboard = None
     if node.args.colocate:  # lockstep: this process computes its plant (plant/onboard.py); no plant process runs
-        if not node.clock.lockstep:
-            raise ValueError("--colocate-plant is for lockstep runs: in real time the plant is a process of its own")
+        node.clock.require("lockstep", "--colocate-plant is for lockstep runs: in real time the plant is a process "
+                                       "of its own")
         from plant.onboard import Onboard
 
         onboard = Onboard(m, aid)
@@ -66,29 +62,29 @@ async def run(node: Node) -> None:
             return
         publish_state(msg)
 
-    lockstep = node.clock.lockstep
+    lockstep = node.clock.kind == "lockstep"  # TEMP
     sf = m.safety
     gates: list[Gate] = []
 
     # real time: each input link's clock offset, from sample times against arrival times
     # (tether/skew.py), observed before the gate, which rejects a sender too far ahead
-    clocks = None if node.clock.lockstep else SkewMonitor(m.dt)
+    clocks = None if lockstep else SkewMonitor(m.dt)
 
     # real time: a restarted agent rejoins a run under way; its plant (same host, same clock) is
     # still ticking, and the earliest arrival of its samples gives the run's start instant
-    rejoin = Rejoin(getattr(node.clock, "wall", None))
+    rejoin = Rejoin(node.clock.wall)
 
     # the leader's samples are checked against its profile (the mission's [leader]), in plain floats
     expected = profile.scalar(m.leader, m.dim)
 
     def gate(sender: int, role: str) -> Callable[[Any], str | None]:
         # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick)
-        g = for_sender(m, sender, None if node.clock.lockstep else node.arrival,
+        g = for_sender(m, sender, None if lockstep else node.arrival,
                        expect=expected if role == "leader" else None)
         gates.append(g)
 
         def admit(msg: Any) -> str | None:
-            if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+            if node.clock.unstarted():
                 # before this process's start: samples of a run already under way
                 if role == "plant":
                     rejoin.observe(msg.k, msg.t)
@@ -124,8 +120,7 @@ async def run(node: Node) -> None:
             # real time: relayed on Zenoh's callback thread as it arrives (agent/relay.py); the tick
             # reads it at its drain (until the start each sample wakes the loop: a restarted agent
             # learns the run's start from them)
-            relay_rt = Relay(aid, m.dim, m.dt, for_sender(m, aid, None), lambda: getattr(node.clock, "origin", None),
-                             publish_state, node.count_drop)
+            relay_rt = Relay(aid, m.dim, m.dt, for_sender(m, aid, None), lambda: node.clock.origin, publish_state, node.count_drop)
             relay_rt.alive_at = math.inf  # no stall before the first tick (it relays nothing before the start)
             plant = node.source(key, wire.PlantState, aid, tap=relay_rt)
         plant.admit = gate(aid, "plant")
@@ -184,11 +179,10 @@ async def run(node: Node) -> None:
     for _, s in judged:  # what was turned away before the start (a rejoin's) is no evidence
         if s.health is not None:
             s.health.reset()
-    rt_clock = node.clock if isinstance(node.clock, RealtimeClock) else None
-    if relay_rt is not None and rt_clock is not None:
+    if relay_rt is not None and (origin := node.clock.origin) is not None:
         # started: the plant's samples are relayed by the tap and read at the tick; the relay goes on
         # while this loop ticks (from its first tick's instant)
-        relay_rt.alive_at = max(rt_clock.start, rt_clock.monotonic())
+        relay_rt.alive_at = max(origin + AGENT_PHASE * m.dt, node.clock.reading())
     first = 0
     rejoining = node.rejoined
     ramp = Ramp(sf.max_accel * m.dt / REJOIN_RAMP, m.dim) if node.rejoined else None
@@ -206,16 +200,16 @@ async def run(node: Node) -> None:
     reported: list[skew.LinkClock] | None = None
     for k in range(first, m.steps + 1):
         await node.tick(k)
-        if relay_rt is not None and rt_clock is not None:
-            relay_rt.alive_at = rt_clock.monotonic()
+        if relay_rt is not None:
+            relay_rt.alive_at = node.clock.reading()
         t = k * m.dt
         if onboard is not None:
             own = onboard.advance(k, last_cmd, _order(operator))
             publish_state(own)
             got = await node.aligned([*nbrs, *proximity], k)
         else:
-            # real time: node.tick has just drained
-            own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k, drain=lockstep)
+            # node.tick has just drained
+            own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k, drain=False)
             if k == first and relay_rt is not None:  # real time, the first tick
                 if own is None and await _first_sample(node, plant):
                     own, *got = await node.aligned([*own_inputs, *nbrs, *proximity], k)

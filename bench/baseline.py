@@ -34,7 +34,7 @@ from deploy.children import HANDOVER  # noqa: E402
 from deploy.supervise import pace  # noqa: E402
 
 try:  # real time: agents tick this fraction of a period after plants and the leader (if the runtime does)
-    from agent.node import AGENT_PHASE  # noqa: E402
+    from tether.clock import AGENT_PHASE  # noqa: E402
 except ImportError:
     AGENT_PHASE = 0.0
 from tether import jsonout  # noqa: E402

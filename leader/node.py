@@ -18,8 +18,8 @@ async def run(node: Node) -> None:
     lid = m.leader.id
     state = node.publisher(node.keys.topic("leader", lid, "state"))
     batch = node.args.record_batch  # 0 unless given (the leader's --record-batch defaults to none)
-    if batch and not node.clock.lockstep:
-        raise ValueError("--record-batch is for lockstep runs: in real time the recorder hears every state")
+    if batch:
+        node.clock.require("lockstep", "--record-batch is for lockstep runs: in real time the recorder hears every state")
     records = node.publisher(node.keys.topic("leader", lid, "record")) if batch else None
     pending: list[wire.State] = []
     await node.ready(paced=True)

@@ -153,7 +153,7 @@ def apply(node: "Node", msg: wire.NetemSet) -> list[dict[str, Any]]:
             if rule.src not in (None, src):
                 continue
             now = max(ch.last_offer, 0.0)  # before the first offer: from tick 0
-            at = msg.at if msg.at is not None else (now if node.clock.lockstep else node.mission_time())
+            at = msg.at if msg.at is not None else node.clock.link_time(now)
             if at < now:
                 log.warning("netem change of link %d -> %d for t = %.3f s arrived at t = %.3f s: "
                             "applied from the next sample", src, me, at, now)

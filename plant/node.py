@@ -61,14 +61,13 @@ async def run_world(node: Node) -> None:
 
 async def _host(node: Node, ids: list[int], world: bool) -> None:
     m, keys = node.mission, node.keys
-    live = not node.clock.lockstep
-    if not live and any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids):
-        raise ValueError("a crazyflie is a real vehicle: fly this mission with --clock realtime")
     real = any(isinstance(m.agent(i).plant, ms.CrazyfliePlant) for i in ids)
+    if real:
+        node.clock.require("realtime", "a crazyflie is a real vehicle: fly this mission with --clock realtime")
     if world and real:
         raise ValueError("a crazyflie is a real vehicle: its own plant process talks to it (tether plant --id I), "
                          "never a world hosting others")
-    built = base.build(m, ids, live=live)
+    built = base.build(m, ids, live=real)  # a crazyflie is flown in real time only (refused above otherwise)
     # a [payload] world is one plant; a world of simulated vehicles without one (--shared-plants), a fleet
     plant = built[0] if len(built) == 1 else base.Fleet(built)
     if real:  # only then is the driver loaded (base.build has loaded it already)
@@ -143,10 +142,10 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
         if k > first:
             u, modes = [], []
             # real time: the tick the plant's clock has reached (a late plant is behind it)
-            k_clock = None if node.clock.lockstep else math.floor(node.mission_time() / h)
+            k_clock = node.clock.reached(h)
             for r, (aid, src, dog, trust) in enumerate(zip(ids, cmds, dogs, trusts)):
-                # one drain for every vehicle's command (in real time node.tick has just drained)
-                msg = await node.sample(src, k - 1, drain=r == 0 and node.clock.lockstep)
+                # node.tick has just drained: no drain per vehicle
+                msg = await node.sample(src, k - 1, drain=False)
                 health = src.health
                 msg, judged = trust.judge(msg, msg is not None and src.is_contested(msg),
                                           health is not None and health.suspect, t, dog.mode)

@@ -40,6 +40,7 @@ import msgspec
 
 from tether import mission as ms
 from tether import wire
+from tether.clock import AGENT_PHASE
 from tether.rejoin import Rejoin
 
 if TYPE_CHECKING:
@@ -103,16 +104,14 @@ class Resumer:
     state, asked of its agent after the start."""
 
     def __init__(self, node: Node, aid: int, cmds: list[Source]):
-        from agent.node import AGENT_PHASE
-
         self.node, self.aid = node, aid
-        self.rejoin = Rejoin(getattr(node.clock, "wall", None))
+        self.rejoin = Rejoin(node.clock.wall)
         self.lag = AGENT_PHASE * node.mission.dt
         for src in cmds:
             src.admit = self._admit
 
     def _admit(self, msg: Any) -> str | None:
-        if self.rejoin.wall is not None and getattr(self.node.clock, "origin", 0.0) is None:
+        if self.node.clock.unstarted():
             self.rejoin.observe(msg.k, msg.t)  # before this process's start: a run under way
             return "before start"
         return None

@@ -84,7 +84,7 @@ class Recording:
         if isinstance(node, RecordingContext):
             ctx = node
         else:
-            ctx = RecordingContext(mission=m, lockstep=node.clock.lockstep, namespace=node.keys.ns,
+            ctx = RecordingContext(mission=m, lockstep=(node.clock.kind == "lockstep"), namespace=node.keys.ns,
                                    mission_text=node.args.mission_path.read_text(), arrived_ago=node.arrived_ago)
         self.arrived_ago = ctx.arrived_ago
         self.mcap = mcap
@@ -562,7 +562,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         out.mkdir(parents=True, exist_ok=True)
         journal = holder["journal"] = jr.Journal.create(out, jr.Header(
             mission=m.name, mission_text=rec.run.meta.mission_text or "", namespace=keys.ns, duration=m.duration,
-            lockstep=node.clock.lockstep, started_ns=time.time_ns()))
+            lockstep=(node.clock.kind == "lockstep"), started_ns=time.time_ns()))
         keeper = asyncio.get_running_loop().create_task(_keep(node, journal), name="journal")
         # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
@@ -570,10 +570,10 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         # sample for a coming tick must not take the real one's place in the file
         # real time: a sample is judged at its arrival (the wildcard streams below are drained up to
         # a period later: they do not wake the loop)
-        now = None if node.clock.lockstep else node.arrival
+        now = None if (node.clock.kind == "lockstep") else node.arrival
         # a recorder restarted mid-run joins it from the leader's samples (tether/rejoin.py); before
         # its start, samples are not recorded
-        rejoin = Rejoin(getattr(node.clock, "wall", None))
+        rejoin = Rejoin(node.clock.wall)
         leader_gate = gate.for_sender(m, m.leader.id, now).check
         colocated = node.args.colocate
         if colocated:
@@ -583,7 +583,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                         on_message=_leader_records(node, rec, leader_gate, journal))
         else:
             def admit_leader(msg: wire.State) -> str | None:
-                if rejoin.wall is not None and getattr(node.clock, "origin", 0.0) is None:
+                if node.clock.unstarted():
                     rejoin.observe(msg.k, msg.t)
                     return "before start"
                 return leader_gate(msg)
@@ -641,7 +641,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "
                         "the ticks before are missing from the run file", node.mission_time(), rejoin.samples)
         last = m.steps
-        if node.clock.lockstep:
+        if (node.clock.kind == "lockstep"):
             for k in range(last + 1):
                 await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
                                  lambda: f"every sample of tick {k} (have {rec.count[k]} of {rec.expected}; "

@@ -2,7 +2,7 @@
 on loopback: a :class:`~tether.node.Node` (router session) and a client session that publishes.
 
 * ``Node.subscribe(pattern, wake=False)`` (the recorder's wildcard streams): a sample that arrives
-  wakes nobody; it waits, stamped with its arrival, until the per-period timer (``Node._pace``)
+  wakes nobody; it waits, stamped with its arrival, until the per-period timer (``Node.pace``)
   wakes the loop, at most one period later; the source's gate then sees the stamped arrival, not
   the (later) drain;
 * ``Node.quieten(src)`` (a plant's commands once it has started): the source's samples stop
@@ -23,6 +23,7 @@ import pytest
 import zenoh
 
 from tether import handoff
+from tether import ingress as ig
 from tether import node as nd
 from tether import transport as tp
 from tether import wire
@@ -92,7 +93,7 @@ async def test_a_deferred_subscription_wakes_nobody_and_is_drained_within_a_peri
         await until(lambda: len(node.deferred) == 1, "the sample in the deferred queue")
         assert woke_nobody(node)
         arrived = clock.now()
-        pacer = asyncio.get_running_loop().create_task(node._pace())
+        pacer = asyncio.get_running_loop().create_task(node.pace())
         t0 = time.monotonic()
         assert await node.wakeup.wait(WAIT)  # the period's timer
         assert time.monotonic() - t0 < 1.0  # a period (10 ms) after the timer started, give or take a loaded machine
@@ -252,7 +253,7 @@ async def test_a_flood_of_deferred_samples_keeps_the_newest_and_counts_the_rest(
     decoded, in order; said once in the log."""
     clock = RealtimeClock(H)
     async with live("recorder", clock) as (node, _):
-        node.deferred = handoff.BoundedFifo(4)  # FIFO_CAPACITY's role, small
+        node.ingress.deferred = handoff.BoundedFifo(4)  # FIFO_CAPACITY's role, small
         key = node.keys.topic("agent", 1, "state")
         src = node.source(key, wire.State, 1, subscribe=False, keep=False)
         node.subscribe(f"tether/{node.keys.ns}/agent/*/state", wake=False)
@@ -303,18 +304,18 @@ async def test_a_tap_runs_on_each_sample_its_failures_are_counted_and_it_stops_w
         fail[0] = False
         pub.undeclare()
 
-        sink = nd._Tapped(node.inputs[key], tap, node)
+        sink = ig._Tapped(node.inputs[key], tap, node.ingress)
         racing = threading.Thread(target=sink.put, args=(tp.Received(key, state(1, 2, H), -1.0),))
         racing.start()
         await until(inside.is_set, "the racing tap to run")
         closer = threading.Thread(target=node.close)
         closer.start()
-        await until(lambda: node.taps.closed, "the close to begin")
+        await until(lambda: node.ingress.taps.closed, "the close to begin")
         sink.put(tp.Received(key, state(1, 3, H), 0.0))  # the close has begun: queued, not tapped
-        assert closer.is_alive() and node._declared, "the close undeclared under a running tap"
+        assert closer.is_alive() and node.ingress.declared, "the close undeclared under a running tap"
         release.set()
         await until(lambda: not closer.is_alive() and not racing.is_alive(), "the close to end")
-        assert not node._declared
+        assert not node.ingress.declared
         assert [r.at for r in tapped[1:]] == [-1.0]  # the racing tap ran to its end; the later one never
         sink.put(tp.Received(key, state(1, 4, H), 0.0))  # after the close: the tap is not called
         assert len(tapped) == 2 and node.receiver.drops == {"tap_error": 1}

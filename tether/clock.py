@@ -1,6 +1,7 @@
-"""Clocks: one code path for lockstep sim time and real time.
+"""Clocks: lockstep sim time and real time, two strategies behind one :class:`Clock` protocol.
 
-Every process runs ``for k in range(first, last + 1): await clock.wait_for(k); ...``.
+Every process runs ``for k in range(first, last + 1): await node.tick(k); ...``; the clock it was
+handed decides what that means, once, where the process is built (:func:`make`):
 
 * :class:`LockstepClock` (studies and tests): tick k may start once the clock source has granted
   it (``Tick.grant >= k``). The source (:class:`LockstepSource`, pure) grants ``k`` once every
@@ -8,6 +9,10 @@ Every process runs ``for k in range(first, last + 1): await clock.wait_for(k); .
   not depend on timing: runs are deterministic and as fast as the messages flow.
 * :class:`RealtimeClock` (what flies): tick k starts at ``epoch + k h`` on the process's own
   monotonic clock; inputs are the newest samples held.
+
+Besides time, each strategy holds what the two ways of running differ in for a process: how its
+streams are published, how its inputs are queued, offered and aligned, how a tick is gated. The
+process (:class:`tether.node.Node`) calls these and never asks which clock it holds.
 
 This module is the only one of a process that reads the wall or the monotonic clock, and only
 through functions injected into :class:`RealtimeClock` (the real ones by default, fakes in tests).
@@ -18,11 +23,16 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
+from tether import transport as tp
 from tether.evloop import TIMER_GRAIN
+
+if TYPE_CHECKING:
+    from tether.handoff import Sink
+    from tether.inputs import Source
 
 ClockKind = Literal["lockstep", "realtime"]
 
@@ -30,26 +40,98 @@ EPOCH_TOLERANCE = 3600.0
 """A start instant further than this from the host's wall clock [s] is refused (the clocks of the
 launcher and this host disagree: NTP is not running, or the start message is not this run's)."""
 
+MAX_LAG = 8
+"""Real time: an input whose newest sample is more than this many ticks older than the tick being
+run takes no part in aligning the others (:meth:`RealtimeClock.align`), and samples older than
+that are forgotten: a silent or late stream then never holds the others back to its old tick."""
+
+AGENT_PHASE = 0.5
+"""Real time: agents tick at ``epoch + (k + AGENT_PHASE) h``; plants and the leader at ``epoch + k h``,
+so that the samples of tick k are usually in when an agent runs it."""
+
 
 class ClockError(RuntimeError):
     """The run's start instant cannot be mapped onto this host's clock; the message says why."""
 
 
+class Inbox(Protocol):
+    """What a clock strategy asks of a process's inputs (:class:`tether.ingress.Ingress` is one)."""
+
+    copies: int
+    """Copies received of samples already had (lockstep resends), dropped."""
+
+    @property
+    def fifo(self) -> Sink[tp.Received]:
+        """Every sample, in arrival order, each waking the event loop."""
+        ...
+
+    @property
+    def deferred(self) -> Sink[tp.Received]:
+        """Samples that wake nobody, drained at the latest one control period after they arrive."""
+        ...
+
+    def release(self, now: float, only: Source | None = None) -> None: ...
+
+    def bounded(self, key: str, expect: type, quiet: bool, tap: Callable[[tp.Received], None] | None
+                ) -> Sink[tp.Received]: ...
+
+    def offer(self, src: Source, msg: Any, at: float, missed: bool) -> None: ...
+
+
+class Waiter(Protocol):
+    """What a clock strategy asks of a process to pace it (:class:`tether.node.Node` is one)."""
+
+    @property
+    def stall_timeout(self) -> float:
+        """Lockstep: how long a tick waits for one input [s] before :class:`~tether.node.Stalled`."""
+        ...
+
+    def drain(self) -> None: ...
+
+    async def until(self, ready: Callable[[], bool], timeout: float | None, what: str | Callable[[], str],
+                    resend: bool = False) -> None: ...
+
+    def release(self, now: float, only: Source | None = None) -> None: ...
+
+    def tick_source(self, grant: Callable[[int], None]) -> None: ...
+
+    def recorded_source(self) -> Source: ...
+
+    async def pump(self) -> None: ...
+
+    async def pace(self) -> None: ...
+
+
 class Clock(Protocol):
-    """What a process ticks on. ``Node`` is given one; nothing else in a process reads time."""
+    """What a process ticks on, and how it hears and speaks meanwhile. ``Node`` is given one by
+    :func:`tether.node.serve`; nothing else in a process reads time or asks which clock it has."""
 
     kind: ClockKind
+    """Which strategy this is, for what a run records and logs (never to choose a behaviour)."""
     late: int
     """Ticks that started more than one period after their instant (0 in lockstep)."""
 
     @property
-    def lockstep(self) -> bool:
-        """True when inputs are matched by tick index (sim time), False when by arrival (real time)."""
+    def wall(self) -> Callable[[], float] | None:
+        """This process's wall clock [s since the Unix epoch], what a rejoin measures the start
+        instant with (:class:`tether.rejoin.Rejoin`); None in lockstep, where no run is joined."""
         ...
 
-    def begin(self, epoch: float, phase: float = 0.0) -> None:
+    def begin(self, epoch: float, phase: float = 0.0) -> str:
         """The run starts: tick 0 is at wall-clock instant ``epoch`` [s since the Unix epoch]; this
-        process's tick k at ``epoch + (k + phase) h``. Raises :class:`ClockError`."""
+        process's tick k at ``epoch + (k + phase) h``. Returns a line for the log saying so;
+        raises :class:`ClockError`."""
+        ...
+
+    @property
+    def origin(self) -> float | None:
+        """The run's tick 0 [s, on :meth:`reading`'s scale] once :meth:`begin` mapped it; None
+        before, and in lockstep, where tick 0 is no instant."""
+        ...
+
+    def unstarted(self) -> bool:
+        """True while samples heard belong to a run this process has not begun (real time, before
+        :meth:`begin`: a restarted process hears a run under way); always False in lockstep."""
         ...
 
     def now(self) -> float:
@@ -57,20 +139,97 @@ class Clock(Protocol):
         lockstep and before :meth:`begin`, where the network runs on sample times instead)."""
         ...
 
+    def reading(self) -> float:
+        """The clock's own reading [s, on the scale of its arrival stamps; monotonic in real time,
+        0 in lockstep]."""
+        ...
+
+    def arrival(self, at: float) -> float:
+        """The mission time [s] of an arrival stamp ``at`` [s, :meth:`reading`'s scale]; NaN (not
+        stamped): now."""
+        ...
+
+    def ago(self, at: float) -> float:
+        """How long ago [s] the arrival stamp ``at`` was taken (NaN, not stamped: 0)."""
+        ...
+
+    def reached(self, h: float) -> int | None:
+        """The tick of period ``h`` [s] this clock has reached, whatever this process has run (a
+        late process is behind it); None in lockstep, where ticks follow the grants."""
+        ...
+
+    def link_time(self, offered: float) -> float:
+        """When a change of an emulated link takes effect if it names no instant [s, mission
+        time]: now in real time; in lockstep, where links run on sample times, ``offered`` (the
+        sample time of the newest sample offered to the link)."""
+        ...
+
+    def require(self, kind: ClockKind, why: str) -> None:
+        """Raise ValueError(``why``) unless this clock is of ``kind``: a feature that exists only
+        in one of the two ways of running, refused in the other."""
+        ...
+
     async def wait_for(self, k: int) -> float:
         """Block until tick k may run; returns how late it starts [s] (0 in lockstep)."""
         ...
 
+    # ---- what the process does differently on it
+    def stream(self, qos: tp.StreamQos | None, window: int) -> tuple[tp.StreamQos, int]:
+        """A publisher's QoS (``qos`` asked, None: the default) and how many ticks of its messages
+        it keeps to send again after a stall (``window``: the lockstep clock's)."""
+        ...
+
+    def subscription(self, inbox: Inbox, wake: bool) -> tuple[Sink[tp.Received], Callable[[], float] | None]:
+        """Where a wildcard subscription's samples go, and the stamp read in its callback (None:
+        not stamped). ``wake=False``: samples that need not wake the loop as they come."""
+        ...
+
+    def input_sink(self, inbox: Inbox, key: str, expect: type, quiet: bool,
+                   tap: Callable[[tp.Received], None] | None) -> tuple[Sink[tp.Received], Callable[[], float] | None]:
+        """Where one input key's samples go, and the stamp read in its callback. ``quiet``: read at
+        the tick only; ``tap``: also handed each sample on Zenoh's thread."""
+        ...
+
+    def offer(self, inbox: Inbox, src: Source, msg: Any, rec: tp.Received) -> None:
+        """Hand a decoded sample ``msg`` (received as ``rec``) to its source, or to the emulated
+        link it crosses."""
+        ...
+
+    def deliver(self, inbox: Inbox) -> None:
+        """After a drain: hand what the emulated links have delivered by now to their sources."""
+        ...
+
+    async def align(self, node: Waiter, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
+        """One sample per source for tick ``k`` of period ``dt`` [s] (see :meth:`tether.node.Node.aligned`)."""
+        ...
+
+    async def gate(self, node: Waiter, k: int) -> float:
+        """Wait until tick ``k`` may run, inputs drained as it returns; its lateness [s]."""
+        ...
+
+    def prepare(self, node: Waiter, paced: bool, member: bool) -> Source | None:
+        """Before the start: declare what this clock needs heard (``paced``: a role that follows
+        the clock's grants; ``member``: a process the launcher waits for at the end). Returns the
+        source of the launcher's word that every sample is recorded, or None."""
+        ...
+
+    def companions(self, node: Waiter, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+        """After the start: the tasks that run beside the role (named), none in lockstep."""
+        ...
+
 
 class LockstepClock:
-    """Tick k runs once the source granted it. :meth:`grant` is called from the event loop."""
+    """Tick k runs once the source granted it, inputs matched by tick index. :meth:`grant` is
+    called from the event loop."""
 
     kind: ClockKind = "lockstep"
-    lockstep = True
+    wall: None = None
+    origin: None = None
 
     def __init__(self) -> None:
         self._granted = -1
         self._changed = asyncio.Event()
+        self._paced = False
         self.late = 0
 
     @property
@@ -82,11 +241,34 @@ class LockstepClock:
             self._granted = k
             self._changed.set()
 
-    def begin(self, epoch: float, phase: float = 0.0) -> None:
+    def begin(self, epoch: float, phase: float = 0.0) -> str:
         """Sim time has no wall-clock instant: nothing to map."""
+        return "lockstep: ticks follow the clock source's grants"
+
+    def unstarted(self) -> bool:
+        return False
 
     def now(self) -> float:
         return 0.0
+
+    def reading(self) -> float:
+        return 0.0
+
+    def arrival(self, at: float) -> float:
+        return 0.0
+
+    def ago(self, at: float) -> float:
+        return 0.0
+
+    def reached(self, h: float) -> int | None:
+        return None
+
+    def link_time(self, offered: float) -> float:
+        return offered
+
+    def require(self, kind: ClockKind, why: str) -> None:
+        if kind != self.kind:
+            raise ValueError(why)
 
     async def wait_for(self, k: int) -> float:
         while self._granted < k:
@@ -94,41 +276,146 @@ class LockstepClock:
             await self._changed.wait()
         return 0.0
 
+    def stream(self, qos: tp.StreamQos | None, window: int) -> tuple[tp.StreamQos, int]:
+        """Always :data:`~tether.transport.SYNC` (BLOCK): a lost sample would stall the run
+        (measured here, DROP state streams lost samples under load and stalled lockstep runs);
+        the last ``window + 1`` ticks kept (none without a window)."""
+        return tp.SYNC, window + 1 if window else 0
+
+    def subscription(self, inbox: Inbox, wake: bool) -> tuple[Sink[tp.Received], Callable[[], float] | None]:
+        return inbox.fifo, None  # a tick waits for its inputs: every sample wakes the loop
+
+    def input_sink(self, inbox: Inbox, key: str, expect: type, quiet: bool,
+                   tap: Callable[[tp.Received], None] | None) -> tuple[Sink[tp.Received], Callable[[], float] | None]:
+        return inbox.fifo, None  # every sample is needed, in order; none is dropped for a newer one
+
+    def offer(self, inbox: Inbox, src: Source, msg: Any, rec: tp.Received) -> None:
+        if src.channel is None:
+            if src.had(msg):
+                # a copy sent again after a stall (resend) of a sample this source has; not a link's
+                # duplicate: whether a resend happens depends on the machine's load, and the run's
+                # arrays (link statistics, drops) must not
+                inbox.copies += 1
+                return
+            inbox.offer(src, msg, rec.at, missed=True)
+            return
+        if msg.k <= src.raw_k:
+            # a copy sent again after a stall of a tick the emulated link has had; offered again, it
+            # would draw the link's random decisions anew and change the run
+            inbox.copies += 1
+            return
+        src.raw_k = msg.k
+        src.channel.send(msg.t, rec.payload)
+
+    def deliver(self, inbox: Inbox) -> None:
+        """Links run on sample times here: a source takes what its link delivered at its tick (:meth:`align`)."""
+
+    async def align(self, node: Waiter, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
+        """The samples of tick ``k`` (waits for each); through an emulated link, the newest it had
+        delivered by ``t_k`` (possibly older, or None)."""
+        out = []
+        if drain:
+            node.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
+        for src in sources:
+            if src.channel is None:
+                if k not in src.by_tick:
+                    await node.until(lambda: k in src.by_tick, node.stall_timeout,
+                                      f"tick {k} on {src.key}", resend=True)
+                out.append(src.by_tick[k])
+                src.forget_before(k)
+                continue
+            # once the sender's tick k has entered the link, what the link has delivered by t_k is
+            # known; use the newest of it (possibly older, or none)
+            if src.raw_k < k:
+                await node.until(lambda: src.raw_k >= k, node.stall_timeout,
+                                  f"tick {k} sent on {src.key}", resend=True)
+            node.release(k * dt, only=src)
+            held = [t for t in src.by_tick if t <= k]
+            out.append(src.by_tick[max(held)] if held else None)
+            src.forget_before(max(held) if held else 0)
+        return out
+
+    async def gate(self, node: Waiter, k: int) -> float:
+        """A paced role waits for the grant of tick ``k``; every other is gated by its inputs of
+        tick ``k`` (:meth:`align`), which is what makes the run deterministic."""
+        if self._paced:
+            await node.until(lambda: self._granted >= k, node.stall_timeout,
+                              f"the clock's grant of tick {k}", resend=True)
+        else:
+            node.drain()
+        return 0.0
+
+    def prepare(self, node: Waiter, paced: bool, member: bool) -> Source | None:
+        self._paced = paced
+        if paced:
+            node.tick_source(self.grant)
+        return node.recorded_source() if member else None
+
+    def companions(self, node: Waiter, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+        return []
+
 
 class RealtimeClock:
-    """Tick k at ``start + k * period`` on ``monotonic`` (seconds).
+    """Tick k at ``start + k * period`` on ``monotonic`` (seconds); inputs are the newest held.
 
     ``monotonic``, ``wall`` (seconds since the Unix epoch) and ``sleep`` are injected: processes
-    use ``time.monotonic``, ``time.time`` and ``asyncio.sleep``; tests pass fakes."""
+    use ``time.monotonic``, ``time.time`` and ``asyncio.sleep``; tests pass fakes. ``max_lag``
+    [ticks]: see :data:`MAX_LAG`."""
 
     kind: ClockKind = "realtime"
-    lockstep = False
 
     def __init__(self, period: float, start: float = 0.0,
                  monotonic: Callable[[], float] = time.monotonic,
                  wall: Callable[[], float] = time.time,
-                 sleep: Callable[[float], Awaitable[None]] = asyncio.sleep) -> None:
+                 sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
+                 max_lag: int = MAX_LAG) -> None:
         self.period = period
         self.start = start
         """This process's tick 0 [s, on ``monotonic``] (the run's tick 0 plus the phase)."""
         self.monotonic = monotonic
         self.wall = wall
         self.sleep = sleep
+        self.max_lag = max_lag
         self.origin: float | None = None
         """The run's tick 0 [s, on ``monotonic``], once :meth:`begin` mapped it."""
         self.late = 0
         """Ticks that started more than one period after their instant."""
 
-    def begin(self, epoch: float, phase: float = 0.0) -> None:
+    def begin(self, epoch: float, phase: float = 0.0) -> str:
         offset = epoch - self.wall()
         if not abs(offset) <= EPOCH_TOLERANCE:
             raise ClockError(f"the start instant {epoch} is more than an hour from this host's clock; "
                              "check the clocks (NTP) of the launcher and this host")
         self.origin = self.monotonic() + offset
         self.start = self.origin + phase * self.period
+        return f"real time: tick 0 at {epoch:.3f}, phase {phase:.2f}"
+
+    def unstarted(self) -> bool:
+        return self.origin is None
 
     def now(self) -> float:
         return self.monotonic() - self.origin if self.origin is not None else 0.0
+
+    def reading(self) -> float:
+        return self.monotonic()
+
+    def arrival(self, at: float) -> float:
+        if at == at and self.origin is not None:  # stamped (not NaN)
+            return at - self.origin
+        return self.now()
+
+    def ago(self, at: float) -> float:
+        return self.monotonic() - at if at == at else 0.0
+
+    def reached(self, h: float) -> int | None:
+        return math.floor(self.now() / h)
+
+    def link_time(self, offered: float) -> float:
+        return self.now()
+
+    def require(self, kind: ClockKind, why: str) -> None:
+        if kind != self.kind:
+            raise ValueError(why)
 
     async def wait_for(self, k: int) -> float:
         due = self.start + k * self.period
@@ -145,6 +432,69 @@ class RealtimeClock:
         if lateness > self.period:
             self.late += 1
         return max(0.0, lateness)
+
+    def stream(self, qos: tp.StreamQos | None, window: int) -> tuple[tp.StreamQos, int]:
+        """``qos``, by default :data:`~tether.transport.STATE` (DROP: the newest supersedes); nothing kept."""
+        return qos or tp.STATE, 0
+
+    def subscription(self, inbox: Inbox, wake: bool) -> tuple[Sink[tp.Received], Callable[[], float] | None]:
+        if wake:
+            return inbox.fifo, None
+        return inbox.deferred, self.monotonic  # stamped: a plausibility gate judges the arrival, not the drain
+
+    def input_sink(self, inbox: Inbox, key: str, expect: type, quiet: bool,
+                   tap: Callable[[tp.Received], None] | None) -> tuple[Sink[tp.Received], Callable[[], float] | None]:
+        # the newest, bounded: a flood on one key costs the loop a budget, not the run
+        return inbox.bounded(key, expect, quiet, tap), self.monotonic if quiet or tap is not None else None
+
+    def offer(self, inbox: Inbox, src: Source, msg: Any, rec: tp.Received) -> None:
+        if src.channel is None:
+            inbox.offer(src, msg, rec.at, missed=False)
+            return
+        src.raw_k = max(src.raw_k, msg.k)
+        src.channel.send(self.now(), rec.payload)
+
+    def deliver(self, inbox: Inbox) -> None:
+        inbox.release(self.now())
+
+    async def align(self, node: Waiter, sources: list[Source], k: int, dt: float, drain: bool) -> list[Any]:
+        """Among the sources whose newest sample is at most :attr:`max_lag` ticks old, the newest
+        tick ``c <= k`` that all of them hold, so that a tick never mixes, say, an own measurement
+        of k-1 with neighbours' of k (which would show as a spurious formation error of about one
+        period of motion); a source older than that (silent, or not started) gives its newest
+        sample, or None. An emulated link's delay is what is being studied: its input is the
+        newest it has delivered."""
+        if drain:
+            node.drain()
+        lag = self.max_lag
+        newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
+        live = [t for s, t in zip(sources, newest) if t >= k - lag and s.channel is None]
+        common = min(live) if live else -1
+        out = []
+        for src, t in zip(sources, newest):
+            if src.channel is not None:
+                msg = src.by_tick.get(t)
+            else:
+                msg = src.by_tick.get(common) if t >= k - lag else None
+            out.append(msg if msg is not None else src.newest)
+            src.forget_before(k - lag)
+        return out
+
+    async def gate(self, node: Waiter, k: int) -> float:
+        late = await self.wait_for(k)
+        node.drain()
+        return late
+
+    def prepare(self, node: Waiter, paced: bool, member: bool) -> Source | None:
+        return None  # every process ticks on its own clock; the end is a linger, not a word
+
+    def companions(self, node: Waiter, deferring: bool) -> list[tuple[str, Coroutine[Any, Any, None]]]:
+        """The input pump (``on_message`` hooks run as samples arrive, not at the next tick) and,
+        with deferred subscriptions, their per-period wake-up."""
+        out: list[tuple[str, Coroutine[Any, Any, None]]] = [("input pump", node.pump())]
+        if deferring:
+            out.append(("deferred inputs", node.pace()))
+        return out
 
 
 SKEW_LIMIT = 10.0

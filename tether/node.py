@@ -1,22 +1,23 @@
 """What every process shares: its session, its inputs, its clock, its publishers, its lifetime.
 
 A role (leader, agent, plant, recorder) is an ``async def run(node)`` that declares its inputs and
-publishers on a :class:`Node`, calls :meth:`Node.ready`, then loops over ticks. ``Node`` hides the
-two clocks behind one code path:
+publishers on a :class:`Node`, calls :meth:`Node.ready`, then loops over ticks. ``Node`` is handed
+its clock (:class:`~tether.clock.Clock`, lockstep or real time) and leaves to it whatever the two
+differ in; neither it nor a role asks which one it holds:
 
 * inputs are :class:`Source` objects; ``await node.aligned([src, ...], k)`` returns, in lockstep,
   the samples of tick ``k`` exactly (waiting for them), and in real time the newest samples of one
   common tick; an input that crosses an emulated link (``[netem]``) gives what the link delivered;
 * ``await node.tick(k)`` gates tick ``k`` (a grant in lockstep, an instant in real time).
 
-Zenoh callbacks only hand raw samples to one bounded FIFO (:class:`~tether.transport.BoundedFifo`,
-drop-oldest, counted); decoding and checks run on the event loop (:class:`~tether.wire.Receiver`).
+The node is a facade over its jobs: its inputs (:class:`~tether.ingress.Ingress`), its publishers
+(:class:`~tether.outputs.Outputs`), its pacing (the clock's, with :meth:`Node.until` to wait on inputs)
+and its life (:meth:`Node.ready`, :meth:`Node.linger`, :meth:`Node.close`, :func:`serve`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import collections
 import errno
 import logging
 import math
@@ -33,32 +34,13 @@ from tether import evloop, handoff
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
-from tether.clock import Clock, ClockError, ClockKind, LockstepClock
+from tether.clock import Clock, ClockError, ClockKind
 from tether.clock import make as make_clock
+from tether.ingress import BACKLOG_ROLES, Ingress, undeclare
 from tether.inputs import Link, Source
+from tether.outputs import Outputs, Publisher
 
 log = logging.getLogger("tether")
-
-FIFO_CAPACITY = 65536
-"""Samples a process can hold between two drains before the oldest is dropped (and counted)."""
-INPUT_BUDGET = 8
-"""Real time: samples of one input key decoded per control period, on average: each key has a
-budget (a token bucket) that gains this many per period, up to :func:`input_capacity`; a key whose
-budget is spent waits, muted (its queue overwritten by newer samples), until the next period. A
-flood on one key then costs the event loop at most this many decodes per period once the bucket
-is empty (and one bucket's worth once), and wakes it at most once per period."""
-BACKLOG = 2.0
-"""Real time: seconds of one stream's samples that an input key holds and may decode at once: the
-backlog a healed link (a partition shorter than the lease, 2 s by default) or a stalled loop
-delivers in a burst. A stream brings one sample per period and uses one of its :data:`INPUT_BUDGET`,
-so its bucket is full when the burst comes, and the burst is taken whole, not cut to the newest few."""
-
-
-TICKED = frozenset({wire.State, wire.PlantState, wire.Command, wire.Telemetry, wire.WorldState})
-"""Real time: the inputs whose sender sends one sample a tick, whose queue admits only the first
-:data:`tether.handoff.PER_TICK` of each tick (:class:`tether.handoff.InputQueue`). Orders and control
-messages (``SafetyCommand``, ``Start``, ...) are not: one may be said again for the same tick."""
-
 
 LINGER = 0.25
 """Real time: how long a process that ran to its last tick keeps its session open before closing it
@@ -77,24 +59,6 @@ makes the process send its streams' kept messages again (:meth:`Node.resend`).""
 MESH_POLL = 0.02
 """How often a peer of a mesh looks at its links while it waits for all of them [s] (Zenoh gives no
 event for a new link)."""
-
-BACKLOG_ROLES = frozenset({"recorder"})
-"""The roles whose inputs hold and take a :data:`BACKLOG`: the recorder, which wants every sample
-and runs no control loop. A role that flies (agent, plant, leader, world) holds the newest
-:data:`INPUT_BUDGET` per key and decodes at most that many per period: it acts on the newest sample
-only, and a burst of old ones decoded at once costs its loop time when it is already late (measured:
-a 20 s authenticated real-time run of Section 4 with the 2 s backlog in every process had an RMS
-formation error of 17 m against 0.44-0.70 m without it, on a loaded machine)."""
-
-
-def input_capacity(rate: float) -> int:
-    """Samples one input key's queue holds between two drains, and the most its budget saves up:
-    :data:`BACKLOG` seconds of a stream at ``rate`` [Hz], at least :data:`INPUT_BUDGET`. Older ones
-    are dropped (oldest first), counted per key in :attr:`Node.overflow` and logged once; in the
-    recorder also as ``overflow`` in its drop counts (the run file's ``recorder_drops``), where each
-    of them is a sample the run file lacks."""
-    return max(INPUT_BUDGET, math.ceil(BACKLOG * rate))
-
 
 class Stalled(RuntimeError):
     """A lockstep input did not arrive in time; the message names it."""
@@ -155,73 +119,6 @@ class NodeArgs:
     (0: none kept)."""
 
 
-TAP_DRAIN = 1.0
-"""How long :meth:`Node.close` waits for a running tap [s]: a tap is one relay put (microseconds),
-so a second only passes on a machine that gives the process no CPU."""
-
-
-class _Tapped:
-    """A sink that queues each sample, then hands it to ``tap`` on the same (Zenoh's) thread."""
-
-    def __init__(self, queue: handoff.InputQueue[tp.Received], tap: Callable[[tp.Received], None], node: "Node"):
-        self.queue, self.tap, self.node = queue, tap, node
-
-    def put(self, item: tp.Received, /) -> None:
-        self.queue.put(item)
-        if not self.node.taps.enter():
-            return  # the node is closing: its publishers are going (a relay would put on an undeclared one)
-        try:
-            self.tap(item)
-        except Exception:  # noqa: BLE001 - no input may crash Zenoh's thread; said and counted
-            drops = self.node.receiver.drops  # this key is written by taps only
-            n = drops["tap_error"] = drops.get("tap_error", 0) + 1
-            if n in (1, 10, 100, 1000):
-                log.exception("input %s: its tap failed (%d so far)", item.key, n)
-        finally:
-            self.node.taps.leave()
-
-
-class Publisher:
-    """A publisher that stamps sender, sequence number, tick and sample time on every message.
-
-    ``keep`` (lockstep): the payloads of its messages of the last ``keep`` ticks, which
-    :meth:`resend` puts again (:meth:`Node.until`, after :data:`RESEND` of waiting)."""
-
-    def __init__(self, pub: zenoh.Publisher, sender: int, keep: int = 0):
-        self._pub = pub
-        self._sender = sender
-        self.seq = 0
-        self.keep = keep
-        self.kept: collections.deque[tuple[int, bytes]] | None = collections.deque() if keep else None
-        """``(tick, payload)`` of the messages kept, oldest first."""
-
-    def send(self, cls: type, k: int, t: float, **fields: Any) -> None:
-        self.put(cls(sender=self._sender, seq=self.seq, k=k, t=t, **fields))
-
-    def put(self, msg: wire.Message) -> None:
-        """Publish a message built by the caller (its sender and sequence number are the caller's)."""
-        self.seq += 1
-        payload = wire.encode(msg)
-        self._pub.put(payload)
-        if self.kept is not None:
-            self._keep(msg.k, payload)
-
-    def _keep(self, k: int, payload: bytes) -> None:
-        kept = self.kept
-        assert kept is not None
-        kept.append((k, payload))
-        while kept[0][0] <= k - self.keep:  # a record carries many ticks: kept by its last, as many as it takes
-            kept.popleft()
-
-    def resend(self) -> int:
-        """Put the kept messages again, oldest first (the same bytes: a receiver that has one keeps
-        the first copy and counts the other as a duplicate). Returns how many."""
-        kept = list(self.kept or ())
-        for _, payload in kept:
-            self._pub.put(payload)
-        return len(kept)
-
-
 class Node:
     """A process's session, inputs, clock and lifetime; :func:`serve` makes one per process.
 
@@ -232,68 +129,74 @@ class Node:
         self.args = args
         self.mission = mission
         self.session = session
+        self.clock = clock
         self.keys = wire.Keys(args.ns or mission.name)
-        self.receiver = wire.Receiver(mission.dim)
-        self.wakeup = handoff.Wakeup()
-        self.fifo: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY, self.wakeup)
-        self.deferred: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(FIFO_CAPACITY)
-        """Real time: samples of :meth:`subscribe` ``(wake=False)`` subscriptions, which wake nobody;
-        drained with the rest, at the latest one control period after they arrive (:meth:`_pace`)."""
-        self.tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(4096, self.wakeup)
-        self.queries: handoff.BoundedFifo[tuple[Callable[[zenoh.Query], None], zenoh.Query]] = \
-            handoff.BoundedFifo(64, self.wakeup)
-        self.sources: dict[str, Source] = {}
-        self.inputs: dict[str, handoff.InputQueue[tp.Received]] = {}
-        """Real time: one bounded queue per subscribed input key (see :data:`INPUT_BUDGET`)."""
-        self._budget: dict[str, float] = {}
-        """Real time: decodes each input key has left (:data:`INPUT_BUDGET`)."""
-        self._capacity = input_capacity(mission.rate) if args.role in BACKLOG_ROLES else INPUT_BUDGET
-        self._overflow: dict[str, int] = {}
-        self._excess: dict[str, int] = {}
-        """Real time: samples each input key's queue dropped as a tick's excess, by key (counted as
-        ``excess`` in the receiver's drops)."""
-        self.overflow = self._overflow
-        """Real time: samples each input key's queue dropped (oldest first), by key."""
-        self._period = -1
-        self._rearm: asyncio.Handle | None = None
-        self._watched: dict[str, list[Source]] = {}
-        self._deferring = False
-        self._fifo_lost = {"inputs": 0, "deferred inputs": 0}
-        """Samples each FIFO had dropped at the last drain (the rest are new, counted as ``overflow``)."""
+        self.ingress = Ingress(session, self.keys, mission, clock, backlog=args.role in BACKLOG_ROLES)
+        self.outputs = Outputs(session, clock, args.node_id, args.window)
+        self._declared: list[Any] = []
+        """What a role asked to keep (:meth:`hold`), undeclared by :meth:`close`."""
         self.closing = False
         """Set when :meth:`close` begins."""
-        self.taps = handoff.TapGuard()
-        """Taps (relays published from Zenoh's thread) run inside it; :meth:`close` waits for them."""
-        self._gone: dict[str, frozenset[int]] = {}
-        """:meth:`gone`'s answers since the last token event."""
-        self._linked: list[Source] = []
-        """The sources behind an emulated link (:meth:`release` looks at these only, every drain)."""
-        self._declared: list[Any] = []
-        self._kept: list[Publisher] = []
-        """Lockstep publishers that keep their last messages (:meth:`resend`)."""
-        self.resent = 0
-        """Messages sent again so far (:meth:`resend`)."""
-        self.copies = 0
-        """Lockstep: copies received of samples already had, sent again by a peer after a stall
-        (:meth:`resend`). Dropped, counted here and logged at the end; kept out of the link statistics
-        and the drop counts, which a run records and which must not depend on the machine's load."""
         self._token: Any = None
-        self.clock = clock
         self._start: Source | None = None
         self._recorded: Source | None = None
         """Lockstep, a member of the swarm: the launcher's word that every sample is recorded."""
-        self._paced = False
         self.tasks: asyncio.TaskGroup | None = None
         """The task group that owns this process's tasks (set by :func:`serve`); :meth:`ready`
         starts the real-time input pump in it, so that the pump ends with the process's work."""
         self.stop = asyncio.Event()
-        self.token_log: list[tuple[str, bool]] = []
-        self.alive: dict[str, bool] = {}
-        """Liveliness seen so far, by token key: True while present, False once gone."""
         self.rejoined = False
         """Real time: this process joined a run already under way (see :meth:`ready`)."""
-        self._arrival = math.nan
-        """The callback's stamp of the sample being accepted (:meth:`arrival`); NaN otherwise."""
+
+    # the ingress's parts that roles read through the node
+    @property
+    def receiver(self) -> wire.Receiver:
+        """The decoder, with its drop counts by reason."""
+        return self.ingress.receiver
+
+    @property
+    def wakeup(self) -> handoff.Wakeup:
+        return self.ingress.wakeup
+
+    @property
+    def fifo(self) -> handoff.BoundedFifo[tp.Received]:
+        return self.ingress.fifo
+
+    @property
+    def deferred(self) -> handoff.BoundedFifo[tp.Received]:
+        return self.ingress.deferred
+
+    @property
+    def sources(self) -> dict[str, Source]:
+        return self.ingress.sources
+
+    @property
+    def inputs(self) -> dict[str, handoff.InputQueue[tp.Received]]:
+        return self.ingress.inputs
+
+    @property
+    def overflow(self) -> dict[str, int]:
+        """Real time: samples each input key's queue dropped (oldest first), by key."""
+        return self.ingress.overflow
+
+    @property
+    def token_log(self) -> list[tuple[str, bool]]:
+        return self.ingress.token_log
+
+    @property
+    def alive(self) -> dict[str, bool]:
+        """Liveliness seen so far, by token key: True while present, False once gone."""
+        return self.ingress.alive
+
+    @property
+    def copies(self) -> int:
+        """Lockstep: copies received of samples already had (:attr:`tether.ingress.Ingress.copies`)."""
+        return self.ingress.copies
+
+    @property
+    def resent(self) -> int:
+        """Messages sent again so far (:meth:`resend`)."""
+        return self.outputs.resent
 
     # ------------------------------------------------------------------ declarations
     def withdraw(self) -> None:
@@ -308,144 +211,65 @@ class Node:
         self._declared.extend(declared)
 
     def publisher(self, key: str, qos: tp.StreamQos | None = None, sender: int | None = None) -> Publisher:
-        """A stamped publisher on ``key``. Real time: ``qos`` (default :data:`~tether.transport.STATE`,
-        DROP: the newest supersedes). Lockstep: always :data:`~tether.transport.SYNC` (BLOCK),
-        because a lost sample would stall the run: measured here, DROP state streams lost samples
-        under load and stalled lockstep runs."""
-        if self.clock.lockstep:
-            qos = tp.SYNC
-        pub = tp.declare_publisher(self.session, key, qos or tp.STATE)
-        self._declared.append(pub)
-        out = Publisher(pub, self.args.node_id if sender is None else sender,
-                        keep=self.args.window + 1 if self.clock.lockstep and self.args.window else 0)
-        if out.kept is not None:
-            self._kept.append(out)
-        return out
+        """A stamped publisher on ``key`` (:meth:`tether.outputs.Outputs.publisher`)."""
+        return self.outputs.publisher(key, qos, sender)
 
     def subscribe(self, pattern: str, wake: bool = True) -> None:
-        """One subscription (one callback thread) for many inputs: samples on keys matching
-        ``pattern`` reach the sources declared with ``subscribe=False``; others are ignored.
-
-        ``wake=False`` (real time; lockstep ignores it, a tick waits for its inputs): its samples do
-        not wake the event loop as they arrive; each is stamped with its arrival time in the
-        callback (what a source's plausibility gate sees through :meth:`arrival`) and decoded at
-        the next drain, which comes at the latest one control period later (:meth:`_pace`). For a
-        role that reacts to no single sample (the recorder): a burst of a tick's samples then
-        costs one wake-up instead of one per sample."""
-        if not wake and not self.clock.lockstep:
-            self._declared.append(tp.declare_subscriber(self.session, pattern, self.deferred,
-                                                        getattr(self.clock, "monotonic", None)))
-            self._deferring = True
-            return
-        self._declared.append(tp.declare_subscriber(self.session, pattern, self.fifo))
+        """One subscription for many inputs (:meth:`tether.ingress.Ingress.subscribe`)."""
+        self.ingress.subscribe(pattern, wake)
 
     def source(self, key: str, expect: type, sender: int | None,
                on_message: Callable[[Any], None] | None = None, channel: Link | None = None,
                subscribe: bool = True, keep: bool = True, wake: bool = True,
                tap: Callable[[tp.Received], None] | None = None) -> Source:
-        """Subscribe to ``key``; samples are checked as ``expect`` from ``sender``. ``channel``: the
-        emulated link the samples cross from ``sender`` to this node (``[netem]``; built by the role
-        with :class:`netem.link.Channel`, so that only a mission with a ``[netem]`` section loads
-        the emulator; an ideal link delivers every sample at its own time: the run is then the
-        same as without the section, bit for bit).
+        """An input on ``key`` (:meth:`tether.ingress.Ingress.source`)."""
+        return self.ingress.source(key, expect, sender, on_message, channel, subscribe, keep, wake, tap)
 
-        ``wake=False`` (real time; an input read only at the tick, without ``on_message`` or
-        ``channel``): its samples do not wake the event loop as they arrive; they are decoded at
-        the next drain (the tick's), and each is stamped with its arrival time in the callback,
-        which is what the plausibility gate and the clock-offset monitor see (:meth:`arrival`).
-        Lockstep ignores it: a tick waits for its inputs.
+    def tick_source(self, grant: Callable[[int], None]) -> None:
+        """Lockstep, a paced role: hear the clock source's grants."""
+        self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: grant(m.grant), keep=False)
 
-        ``tap`` (real time): also called with each sample, stamped, on Zenoh's callback thread right
-        after it is queued, for work that must not wait for the event loop (an agent relaying its
-        plant's measurement: :mod:`agent.relay`). It runs beside the loop: it may touch only what
-        it owns. An exception in it is logged and counted (``tap_error``), never raised into Zenoh."""
-        src = Source(key, expect, sender, last=self.mission.steps, on_message=on_message, keep=keep,
-                     channel=channel)
-        self.sources[key] = src
-        if channel is not None:
-            self._linked.append(src)
-        if subscribe:
-            sink: handoff.Sink[tp.Received] = self.fifo
-            stamp = None
-            if not self.clock.lockstep:  # lockstep needs every sample; real time the newest, bounded
-                quiet = not wake and on_message is None and channel is None
-                # a stream's sender sends one sample a tick (its excess is a flood); an order or a
-                # control message may be repeated for one tick (the operator's land, said again)
-                tick_of = tp.tick_of if expect in TICKED else None
-                sink = self.inputs[key] = handoff.InputQueue(self._capacity, None if quiet else self.wakeup,
-                                                              tick_of=tick_of)
-                stamp = getattr(self.clock, "monotonic", None) if quiet or tap is not None else None
-                if tap is not None:
-                    sink = _Tapped(sink, tap, self)
-            self._declared.append(tp.declare_subscriber(self.session, key, sink, stamp))
-        return src
+    def recorded_source(self) -> Source:
+        """Lockstep, a member of the swarm: the launcher's word that every sample is recorded."""
+        return self.source(self.keys.recorded, wire.Recorded, 0, keep=False)
+
+    @property
+    def stall_timeout(self) -> float:
+        return self.args.stall_timeout
 
     def quieten(self, src: Source) -> None:
-        """Real time: ``src``'s samples no longer wake the event loop; they are decoded at the next
-        drain (for an input that must wake the loop only for a while: a plant's commands, until
-        its start). Lockstep: nothing changes."""
-        q = self.inputs.get(src.key)
-        if q is not None:
-            q.quieten()
+        """Real time: ``src``'s samples no longer wake the event loop (:meth:`tether.ingress.Ingress.quieten`)."""
+        self.ingress.quieten(src)
 
     def queryable(self, key: str, handle: Callable[[zenoh.Query], None]) -> None:
-        """Answer queries on ``key`` with ``handle`` (called on the event loop, from :meth:`drain`;
-        Zenoh's thread only queues the query, at most 64 waiting: more are dropped, and their askers
-        time out). The query is released after ``handle`` returns; an asker that went away is
-        logged, not raised."""
-        self._declared.append(self.session.declare_queryable(key, lambda q: self.queries.put((handle, q))))
-
-    def _serve_queries(self) -> None:
-        for handle, query in self.queries.drain():
-            try:
-                handle(query)
-            except zenoh.ZError as exc:  # the asker is gone: nothing to answer
-                log.warning("query on %s: could not answer: %s", query.key_expr, exc)
-            finally:
-                query.drop()
+        """Answer queries on ``key`` with ``handle`` (:meth:`tether.ingress.Ingress.queryable`)."""
+        self.ingress.queryable(key, handle)
 
     def count_drop(self, reason: str) -> None:
         """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
         self.receiver.count(reason)
 
     def gone(self, role: str) -> frozenset[int]:
-        """Ids of ``role`` whose liveliness token was seen and is gone now (kept between token
-        events: an agent asks every tick)."""
-        cached = self._gone.get(role)
-        if cached is None:
-            cached = self._gone[role] = frozenset(self._gone_now(role))
-        return cached
-
-    def _gone_now(self, role: str) -> set[int]:
-        out = set()
-        for key, up in self.alive.items():
-            if not up:
-                try:
-                    r, nid = wire.Keys.parse_token(key)
-                except ValueError:  # a token on a malformed key (a non-numeric id): no input may crash
-                    continue
-                if r == role:
-                    out.add(nid)
-        return out
+        """Ids of ``role`` whose liveliness token was seen and is gone now (:meth:`tether.ingress.Ingress.gone`)."""
+        return self.ingress.gone(role)
 
     def watch(self, role: str, node_id: int, *sources: Source) -> None:
         """Mark ``sources`` silent while the token of ``role``/``node_id`` is absent."""
-        key = self.keys.token(role, node_id)
-        self._watched.setdefault(key, []).extend(sources)
+        self.ingress.watch(role, node_id, *sources)
 
     async def pump(self) -> None:
         """Real time: drain inputs whenever samples arrive, so that ``on_message`` hooks (an agent
         relaying its plant's measurement) run at once instead of at the next tick."""
         while True:
-            due = self.next_delivery()
+            due = self.ingress.next_delivery()
             await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
-    async def _pace(self) -> None:
+    async def pace(self) -> None:
         """Real time: once per control period, wake the loop if deferred samples wait (:meth:`subscribe`)."""
         while True:
             await asyncio.sleep(self.mission.dt)
-            if len(self.deferred):
+            if len(self.ingress.deferred):
                 self.wakeup.notify_here()
 
     async def _mesh_linked(self) -> None:
@@ -484,15 +308,9 @@ class Node:
         already under way, once the role can tell it (a restarted agent, from its plant's samples),
         else None; the process then joins that run (:attr:`rejoined`) instead of waiting for a start
         message that was sent before it existed."""
-        if self._watched:
-            self._declared.append(tp.watch_tokens(self.session, self.keys.tokens, self.tokens))
-        clock = self.clock
-        self._paced = paced and isinstance(clock, LockstepClock)
-        if isinstance(clock, LockstepClock) and paced:
-            self.source(self.keys.tick, wire.Tick, 0, on_message=lambda m: clock.grant(m.grant), keep=False)
+        self.ingress.watch_tokens()
+        self._recorded = self.clock.prepare(self, paced, member=token and self.args.role not in BACKLOG_ROLES)
         start = self._start = self.source(self.keys.start, wire.Start, 0, keep=False)
-        if isinstance(clock, LockstepClock) and token and self.args.role not in BACKLOG_ROLES:
-            self._recorded = self.source(self.keys.recorded, wire.Recorded, 0, keep=False)
         if token:
             await self._mesh_linked()
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
@@ -501,7 +319,7 @@ class Node:
         def started() -> bool:
             if start.newest is not None:
                 return True
-            if rejoin is not None and not self.clock.lockstep and (e := rejoin()) is not None:
+            if rejoin is not None and (e := rejoin()) is not None:  # never in lockstep: nothing to join
                 joined.append(e)
                 return True
             return False
@@ -512,16 +330,18 @@ class Node:
         if self.rejoined:
             log.info("joined a run already under way: tick 0 taken as %.3f from the samples heard", epoch)
         try:
-            self.clock.begin(epoch, phase)
+            began = self.clock.begin(epoch, phase)
         except ClockError as exc:
             raise Stalled(str(exc)) from None
-        if not self.clock.lockstep:
+        companions = self.clock.companions(self, self.ingress.deferring)
+        if companions:
             if self.tasks is None:
+                for _, coro in companions:
+                    coro.close()
                 raise RuntimeError("Node.ready: real time needs serve()'s task group for the input pump")
-            self.tasks.create_task(self.pump(), name="input pump")
-            if self._deferring:
-                self.tasks.create_task(self._pace(), name="deferred inputs")
-            log.info("real time: tick 0 at %.3f, phase %.2f", epoch, phase)
+            for name, coro in companions:
+                self.tasks.create_task(coro, name=name)
+        log.info("%s", began)
 
     # ------------------------------------------------------------------ inputs
     def mission_time(self) -> float:
@@ -530,144 +350,20 @@ class Node:
         return self.clock.now()
 
     def drain(self) -> None:
-        """Decode every pending sample and token event (on the event loop). A sample that crosses
-        an emulated link is offered to it (at its sample time in lockstep, at the current mission
-        time in real time) and reaches its source when the link delivers it (:meth:`release`)."""
-        realtime = not self.clock.lockstep
-        for rec in self.fifo.drain():
-            self._accept(rec, realtime)
-        for rec in self.deferred.drain():
-            self._accept(rec, realtime)
-        for name, fifo in (("inputs", self.fifo), ("deferred inputs", self.deferred)):
-            lost = fifo.dropped - self._fifo_lost[name]
-            if lost:  # more than FIFO_CAPACITY samples between two drains (a flood, or a stalled loop)
-                if not self._fifo_lost[name]:
-                    log.warning("%s: more than %d samples between two drains; the oldest are dropped "
-                                "(counted as 'overflow')", name, fifo.capacity)
-                self._fifo_lost[name] += lost
-                self.receiver.count("overflow", lost)
-        if self.inputs:
-            self._drain_inputs(realtime)
-        if realtime:
-            self.release(self.mission_time())
-        self._serve_queries()
-        for ev in self.tokens.drain():
-            self.token_log.append((ev.key, ev.alive))
-            self.alive[ev.key] = ev.alive
-            self._gone.clear()
-            for src in self._watched.get(ev.key, ()):
-                was_gone, src.gone = src.gone, not ev.alive
-                if ev.alive and was_gone:
-                    log.warning("%s is back", ev.key)
-                elif not ev.alive and src.silent:
-                    log.warning("%s went silent (liveliness token gone)", ev.key)
+        """Decode every pending sample and token event (on the event loop; :meth:`tether.ingress.Ingress.drain`)."""
+        self.ingress.drain()
 
     def arrival(self) -> float:
-        """Real time: when the sample being accepted arrived [s, mission time] (its callback's
-        stamp, for an input that does not wake the loop), else now (:meth:`mission_time`)."""
-        at, origin = self._arrival, getattr(self.clock, "origin", None)
-        if at == at and origin is not None:  # stamped (not NaN)
-            return at - origin
-        return self.clock.now()
+        """Real time: when the sample being accepted arrived [s, mission time] (:meth:`tether.ingress.Ingress.arrival`)."""
+        return self.ingress.arrival()
 
     def arrived_ago(self) -> float:
-        """Real time: how long ago [s] the sample being accepted arrived (its callback's stamp), for
-        one drained later than it arrived; else 0."""
-        at, monotonic = self._arrival, getattr(self.clock, "monotonic", None)
-        return monotonic() - at if at == at and monotonic is not None else 0.0
-
-    def _accept(self, rec: tp.Received, realtime: bool) -> None:
-        src = self.sources.get(rec.key)
-        if src is None:
-            return
-        msg = self.receiver.accept(rec.payload, src.expect, src.sender)
-        if msg is None:
-            return
-        if src.channel is None:
-            if not realtime and src.had(msg):
-                # lockstep: a copy sent again after a stall (resend) of a sample this source has;
-                # not a link's duplicate: whether a resend happens depends on the machine's load, and
-                # the run's arrays (link statistics, drops) must not
-                self.copies += 1
-                return
-            self._arrival = rec.at
-            try:
-                src.offer(msg, missed=not realtime)
-            finally:
-                self._arrival = math.nan
-            return
-        if not realtime and msg.k <= src.raw_k:
-            # lockstep: a copy sent again after a stall (resend) of a tick the emulated link has had;
-            # offered again, it would draw the link's random decisions anew and change the run
-            self.copies += 1
-            return
-        src.raw_k = max(src.raw_k, msg.k)
-        src.channel.send(self.mission_time() if realtime else msg.t, rec.payload)
-
-    def _drain_inputs(self, realtime: bool) -> None:
-        """Decode what each input key's budget allows (:data:`INPUT_BUDGET` more per control period,
-        saved up to :func:`input_capacity`); a key whose budget is spent is muted until the next
-        period, when a timer wakes the loop to go on."""
-        h = self.mission.dt
-        cap = self._capacity
-        monotonic = getattr(self.clock, "monotonic", None)
-        period = int(monotonic() // h) if monotonic is not None else self._period
-        if period != self._period:
-            gained = INPUT_BUDGET * (period - self._period if self._period >= 0 else 1)
-            self._period = period
-            for key in self._budget:
-                self._budget[key] = min(cap, self._budget[key] + gained)
-            for q in self.inputs.values():
-                q.muted = False
-        waiting = False
-        for key, q in self.inputs.items():
-            if q.excess != self._excess.get(key, 0):  # a tick's samples beyond the first two: a flood
-                if key not in self._excess:
-                    log.warning("input %s: more than %d samples of one tick; the later ones are dropped as they "
-                                "come (counted as 'excess')", key, handoff.PER_TICK)
-                self.receiver.count("excess", q.excess - self._excess.get(key, 0))
-                self._excess[key] = q.excess
-            if not len(q):  # nothing since the last drain (nor dropped: a drop leaves the queue full)
-                continue
-            left = self._budget.get(key, cap)  # a new key starts with a full budget
-            items = q.take(int(left))
-            self._budget[key] = left - len(items)
-            for rec in items:
-                self._accept(rec, realtime)
-            if len(q) and self._budget[key] < 1:
-                q.muted = True
-                waiting = True
-            if q.dropped and key not in self._overflow:  # once per key: a flood, or this loop stalled
-                log.warning("input %s: more than %d samples between two drains; the oldest are dropped "
-                            "(counted in Node.overflow%s)", key, cap,
-                            " and as 'overflow'" if self.args.role in BACKLOG_ROLES else "")
-            if q.dropped:
-                lost = q.dropped - self._overflow.get(key, 0)
-                if lost and self.args.role in BACKLOG_ROLES:  # a sample to record lost: the run file says why
-                    self.receiver.count("overflow", lost)
-                self._overflow[key] = q.dropped
-        if waiting and self._rearm is None and monotonic is not None:
-            delay = (period + 1) * h - monotonic()
-            self._rearm = asyncio.get_running_loop().call_later(max(evloop.TIMER_GRAIN, delay), self._next_period)
-
-    def _next_period(self) -> None:
-        self._rearm = None
-        self.wakeup.notify()
+        """Real time: how long ago [s] the sample being accepted arrived (:meth:`tether.ingress.Ingress.arrived_ago`)."""
+        return self.ingress.arrived_ago()
 
     def release(self, now: float, only: Source | None = None) -> None:
-        """Hand the copies that emulated links deliver by ``now`` to their sources. A corrupted
-        copy fails its checksum: dropped and counted as ``corrupt``."""
-        for src in (only,) if only is not None else self._linked:
-            if src.channel is None:
-                continue
-            bad = src.deliver(now, lambda payload: self.receiver.accept(payload, src.expect, src.sender))
-            if bad:
-                self.receiver.count("corrupt", bad)
-
-    def next_delivery(self) -> float | None:
-        """The earliest time [s, mission time] an emulated link will deliver a copy, if any."""
-        times = [t for s in self._linked if s.channel is not None and (t := s.channel.next_at) is not None]
-        return min(times) if times else None
+        """Hand the copies that emulated links deliver by ``now`` to their sources (:meth:`tether.ingress.Ingress.release`)."""
+        self.ingress.release(now, only)
 
     async def until(self, ready: Callable[[], bool], timeout: float | None, what: str | Callable[[], str],
                     resend: bool = False) -> None:
@@ -686,7 +382,7 @@ class Node:
         began = loop.time()
         deadline = math.inf if timeout is None else began + timeout
         step = min(RESEND, timeout / 3) if timeout is not None else RESEND
-        step = step if resend and self._kept else math.inf
+        step = step if resend and self.outputs.kept else math.inf
         rang = [False]
 
         def alarm() -> None:
@@ -714,92 +410,35 @@ class Node:
                 timer.cancel()
 
     def resend(self, waiting_for: str, waited: float = RESEND) -> int:
-        """Lockstep: put every stream's kept messages (those of its last ``window + 1`` ticks) again,
-        after a tick has waited ``waited`` seconds for ``waiting_for``. A peer of a mesh can miss a
-        stream's first samples for good: the run starts once every peer is linked to every other and
-        its token is in, but a peer's subscriptions reach each other peer over their own link, and a
-        sample put before they arrive goes nowhere (a lockstep run stalled at tick 0, an agent waiting
-        for its in-neighbour's state of tick 0 while that neighbour waited further on). Sent again,
-        the sample reaches the peer that waits for it. A receiver that has it keeps the first copy; the
-        other is dropped and counted apart (:attr:`copies`, not a link's ``duplicates``), and one it
-        missed is taken as if it had come in its turn: a run's arrays stay those of a run without
-        the stall. Returns the number of messages sent again."""
-        n = sum(pub.resend() for pub in self._kept)
-        self.resent += n
-        log.warning("waited %.1f s for %s: sent the last %d messages of my %d streams again (%d so far)",
-                    waited, waiting_for, n, len(self._kept), self.resent)
-        return n
+        """Lockstep: every stream's kept messages put again after a tick has waited ``waited``
+        seconds for ``waiting_for`` (:meth:`tether.outputs.Outputs.resend`); how many."""
+        return self.outputs.resend(waiting_for, waited)
 
     async def sample(self, src: Source, k: int, drain: bool = True) -> Any:
         """Lockstep: the sample of tick ``k`` (waits). Real time: the newest held (may be None).
         ``drain``: as :meth:`aligned`'s."""
         return (await self.aligned([src], k, drain=drain))[0]
 
-    async def aligned(self, sources: list[Source], k: int, max_lag: int = 8, drain: bool = True) -> list[Any]:
-        """One sample per source, all of the same tick where possible.
+    async def aligned(self, sources: list[Source], k: int, drain: bool = True) -> list[Any]:
+        """One sample per source, all of the same tick where possible (the clock's
+        :meth:`~tether.clock.Clock.align`).
 
         Lockstep: the samples of tick ``k`` (waits for each). Real time: among the sources whose
-        newest sample is at most ``max_lag`` ticks old, the newest tick ``c <= k`` that all of them
-        hold, so that a tick never mixes, say, an own measurement of k-1 with neighbours' of k
-        (which would show as a spurious formation error of about one period of motion); a source
-        older than that (silent, or not started) gives its newest sample, or None.
+        newest sample is at most :data:`~tether.clock.MAX_LAG` ticks old, the newest tick ``c <= k``
+        that all of them hold; a source older than that (silent, or not started) gives its newest
+        sample, or None.
 
-        ``drain=False``: the caller has just drained (a previous call at this tick; real time:
+        ``drain=False``: the caller has just drained (a previous call at this tick, or
         :meth:`tick`, as it returns); what arrived since is taken at the next drain, or (lockstep)
         by the wait for a missing sample, which drains first. A world process reading its
         vehicles' commands one by one drained every input key once per vehicle: N² queue checks
         per tick."""
-        if self.clock.lockstep:
-            out = []
-            if drain:
-                self.drain()  # once for all: a source already holding its tick needs no wait (nor its timer)
-            for src in sources:
-                if src.channel is None:
-                    if k not in src.by_tick:
-                        await self.until(lambda: k in src.by_tick, self.args.stall_timeout,
-                                         f"tick {k} on {src.key}", resend=True)
-                    out.append(src.by_tick[k])
-                    src.forget_before(k)
-                    continue
-                # through an emulated link: once the sender's tick k has entered the link, what the
-                # link has delivered by t_k is known; use the newest of it (possibly older, or none)
-                if src.raw_k < k:
-                    await self.until(lambda: src.raw_k >= k, self.args.stall_timeout,
-                                     f"tick {k} sent on {src.key}", resend=True)
-                self.release(k * self.mission.dt, only=src)
-                held = [t for t in src.by_tick if t <= k]
-                out.append(src.by_tick[max(held)] if held else None)
-                src.forget_before(max(held) if held else 0)
-            return out
-        if drain:
-            self.drain()
-        newest = [max((t for t in s.by_tick if t <= k), default=-1) for s in sources]
-        # align the on-board and ideal inputs; an emulated link's delay is what is being studied,
-        # so its input is the newest it has delivered
-        live = [t for s, t in zip(sources, newest) if t >= k - max_lag and s.channel is None]
-        common = min(live) if live else -1
-        out = []
-        for src, t in zip(sources, newest):
-            if src.channel is not None:
-                msg = src.by_tick.get(t)
-            else:
-                msg = src.by_tick.get(common) if t >= k - max_lag else None
-            out.append(msg if msg is not None else src.newest)
-            src.forget_before(k - max_lag)
-        return out
+        return await self.clock.align(self, sources, k, self.mission.dt, drain)
 
     async def tick(self, k: int) -> float:
-        """Wait until tick ``k`` may run (draining inputs meanwhile; in real time once more as it
-        returns); returns its lateness [s]."""
-        clock = self.clock
-        if isinstance(clock, LockstepClock):
-            if self._paced:
-                await self.until(lambda: clock.granted >= k, self.args.stall_timeout,
-                                 f"the clock's grant of tick {k}", resend=True)
-            return 0.0
-        late = await self.clock.wait_for(k)
-        self.drain()
-        return late
+        """Wait until tick ``k`` may run (draining inputs meanwhile, and once more as it returns:
+        what follows at this tick may read with ``drain=False``); returns its lateness [s]."""
+        return await self.clock.gate(self, k)
 
     async def linger(self) -> None:
         """Keep the session open after the last tick until this process's last samples have left.
@@ -821,21 +460,12 @@ class Node:
             log.warning("%s: closing anyway", exc)
 
     def close(self) -> None:
-        """Undeclare everything this node declared, once no tap runs (blocks up to
-        :data:`TAP_DRAIN` [s] for one running on Zenoh's thread: see :class:`~tether.handoff.TapGuard`)."""
+        """Undeclare everything this node declared: its inputs first, once no tap runs (blocks up to
+        :data:`~tether.ingress.TAP_DRAIN` [s]), then its publishers, what it held, its token."""
         self.closing = True
-        if not self.taps.close(TAP_DRAIN):
-            log.warning("a tap still runs %.1f s after the close began: undeclaring anyway", TAP_DRAIN)
-        if self._rearm is not None:
-            self._rearm.cancel()
-        for obj in reversed(self._declared):
-            try:
-                obj.undeclare()
-            except zenoh.ZError:
-                pass
-            except RuntimeError as exc:  # still borrowed by a tap past TAP_DRAIN: the session's close frees it
-                log.warning("undeclaring %s: %s", type(obj).__name__, exc)
-        self._declared.clear()
+        self.ingress.close()
+        self.outputs.close()
+        undeclare(self._declared)
         if self._token is not None:
             self._token.undeclare()
             self._token = None
