@@ -7,8 +7,8 @@ body, Eq. 4 and its 500 Hz attitude/rate PID), injected by the caller.
 
 :class:`Firmware` routes each port's packets to its part, as the firmware's CRTP router does: the
 commander (:mod:`plant.cfsim.commander`), the high-level commander (:mod:`plant.cfsim.high_level`),
-the log, param and mem services (:mod:`plant.cfsim.services`); it answers the link, platform and
-supervisor ports itself, from the supervisor's state (:mod:`plant.cfsim.supervisor`).
+the supervisor (:mod:`plant.cfsim.supervisor`), the link, platform, log, param and mem services
+(:mod:`plant.cfsim.services`).
 
 What runs every tick (100 Hz), in the firmware's order (``stabilizer.c``):
 
@@ -43,7 +43,7 @@ from plant.cfsim.controller import Controller
 from plant.cfsim.crtp import Packet, Port
 from plant.cfsim.high_level import HighLevelCommander, HlState
 from plant.cfsim.motors import thrust_to_pwm
-from plant.cfsim.services import LogService, MemService, ParamService
+from plant.cfsim.services import LogService, MemService, ParamService, PlatformService, link_reply
 from plant.cfsim.supervisor import BIT_CAN_FLY, BIT_FLYING, Supervisor, SupState
 from plant.cfsim.world import World
 from plant.quadrotor import Quadrotor
@@ -90,7 +90,7 @@ class Firmware:
         k: control ticks since boot; the simulated time is ``k * PERIOD`` [s].
         dropped: packets that could not be decoded (too short, wrong length, unknown ids).
         commander, hl: the setpoint slot and the high-level commander.
-        logs, params, mem: the log, param and mem services.
+        logs, params, mem, platform: the log, param, mem and platform services.
         sup, controller, world: the supervisor, the controller and the quadrotor above its floor.
     """
 
@@ -122,6 +122,7 @@ class Firmware:
         self.hl = HighLevelCommander(vec3(self.est_p), quad.euler()[2], self.traj_mem, self.params,
                                      self.console_print)
         self.sup = Supervisor()
+        self.platform = PlatformService(self.sup)
         self.controller = Controller(quad, self.cfg.kp, self.cfg.kv, self.cfg.kv_velocity_mode,
                                      self.cfg.tilt_max_manual, PERIOD)
         self.world = World(quad, self.cfg.floor_frequency, self.cfg.floor_damping, self.cfg.contact_step)
@@ -139,7 +140,8 @@ class Firmware:
     @property
     def ignored(self) -> int:
         """Well-formed packets of features this simulator does not implement, over every port."""
-        return self._ignored + self.logs.ignored + self.params.ignored + self.mem.ignored + self.hl.ignored
+        parts = (self.logs, self.params, self.mem, self.platform, self.sup, self.hl)
+        return self._ignored + sum(part.ignored for part in parts)
 
     @property
     def est_p(self) -> np.ndarray:
@@ -176,8 +178,11 @@ class Firmware:
         return self.sup.can_fly
 
     def supervisor_bits(self) -> int:
-        hl_active = self.hl.active and self.commander.priority <= Priority.HIGH_LEVEL
-        return self.sup.bits(hl_active, self.hl.finished(self.t))
+        return self.sup.bits(self._hl_flying(), self.hl.finished(self.t))
+
+    def _hl_flying(self) -> bool:
+        """The high-level commander flies the vehicle: planning, and not overruled by a low-level setpoint."""
+        return self.hl.active and self.commander.priority <= Priority.HIGH_LEVEL
 
     def param(self, full_name: str) -> float:
         """A parameter's present value (raises ``KeyError`` for an unknown name)."""
@@ -196,60 +201,6 @@ class Firmware:
         except (struct.error, IndexError, UnicodeDecodeError, ValueError):
             self.dropped += 1
             return []
-
-    def _link(self, pkt: Packet) -> list[Packet]:
-        if pkt.channel == crtp.LINK_ECHO_CHANNEL:
-            return [pkt]
-        if pkt.channel == crtp.LINK_SOURCE_CHANNEL:
-            return [Packet(Port.LINKCTRL, crtp.LINK_SOURCE_CHANNEL, b"Bitcraze Crazyflie".ljust(crtp.MAX_DATA, b"\0"))]
-        if pkt.is_null:
-            return [Packet(0xF, 3)]  # cflib's scan probe: any answer will do
-        return []  # sink: swallowed
-
-    def _platform(self, pkt: Packet) -> list[Packet]:
-        ch, d = pkt.channel, pkt.data
-        if ch == crtp.PLATFORM_VERSION_CHANNEL:
-            cmd = d[0]
-            if cmd == crtp.PLATFORM_VERSION_PROTOCOL:
-                return [Packet(Port.PLATFORM, ch, struct.pack("<Bi", cmd, crtp.PROTOCOL_VERSION))]
-            if cmd == crtp.PLATFORM_VERSION_FIRMWARE:
-                return [Packet(Port.PLATFORM, ch, bytes((cmd,)) + crtp.FIRMWARE_TAG.encode())]
-            if cmd == crtp.PLATFORM_VERSION_DEVICE:
-                return [Packet(Port.PLATFORM, ch, bytes((cmd,)) + crtp.DEVICE_TYPE.encode())]
-            self._ignored += 1
-            return []
-        if ch == crtp.PLATFORM_COMMAND_CHANNEL:
-            cmd = d[0]
-            if cmd == crtp.PLATFORM_ARM:
-                ok = self.sup.request_arming(bool(d[1]))
-                return [Packet(Port.PLATFORM, ch, bytes((cmd, ok, self.sup.armed)))]
-            if cmd == crtp.PLATFORM_RECOVER:
-                ok = not self.sup.locked
-                return [Packet(Port.PLATFORM, ch, bytes((cmd, ok, 1)))]
-            if cmd == crtp.PLATFORM_NOTIFY:
-                return [Packet(Port.PLATFORM, ch)]
-            return [pkt]  # continuous wave and the rest: echoed, as the firmware does
-        self._ignored += 1
-        return []
-
-    def _supervisor(self, pkt: Packet) -> list[Packet]:
-        cmd = pkt.data[0]
-        if pkt.channel == crtp.SUPERVISOR_INFO_CHANNEL and cmd == crtp.SUPERVISOR_GET_STATE_BITFIELD:
-            return [Packet(Port.SUPERVISOR, pkt.channel, struct.pack("<BH", cmd | crtp.SUPERVISOR_RESPONSE,
-                                                                     self.supervisor_bits()))]
-        if pkt.channel == crtp.SUPERVISOR_COMMAND_CHANNEL:
-            if cmd == crtp.SUPERVISOR_ARM:
-                ok = self.sup.request_arming(bool(pkt.data[1]))
-                return [Packet(Port.SUPERVISOR, pkt.channel,
-                               bytes((cmd | crtp.SUPERVISOR_RESPONSE, ok, self.sup.armed)))]
-            if cmd == crtp.SUPERVISOR_RECOVER:
-                ok = not self.sup.locked
-                return [Packet(Port.SUPERVISOR, pkt.channel, bytes((cmd | crtp.SUPERVISOR_RESPONSE, ok, 1)))]
-            if cmd == crtp.SUPERVISOR_EMERGENCY_STOP:
-                self.sup.lock()
-                return []
-        self._ignored += 1
-        return []
 
     def _param_set(self, name: str, value: float) -> None:
         """What a client's parameter write does besides storing the value."""
@@ -296,6 +247,15 @@ class Firmware:
         """``commanderRelaxPriority``: the high-level commander takes over from the present state."""
         self.hl.hold(vec3(self.est_p), self.quad.euler()[2])
         self.commander.relax()
+
+    def _link(self, pkt: Packet) -> list[Packet]:
+        return link_reply(pkt)
+
+    def _platform(self, pkt: Packet) -> list[Packet]:
+        return self.platform.handle(pkt)
+
+    def _supervisor(self, pkt: Packet) -> list[Packet]:
+        return self.sup.handle(pkt, self._hl_flying(), self.hl.finished(self.t))
 
     def _high_level(self, pkt: Packet) -> list[Packet]:
         return self.hl.handle(pkt, self.t, self.sup.locked)

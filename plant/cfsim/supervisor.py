@@ -10,8 +10,11 @@ supervisor locks until a reboot. An emergency stop or the ``stabilizer.stop`` pa
 from __future__ import annotations
 
 import enum
+import struct
 
+from plant.cfsim import crtp
 from plant.cfsim.commander import OFF, ZERO3, Attitude, Hover, Manual, Setpoint, Track, Velocity, ZHold
+from plant.cfsim.crtp import Packet, Port
 
 WDT_LEVEL_OUT_MS = 500
 """Setpoint age [ms] above which a flying vehicle levels out (COMMANDER_WDT_TIMEOUT_STABILIZE)."""
@@ -44,11 +47,13 @@ class Supervisor:
     Attributes:
         state: what the supervisor holds the vehicle to be doing.
         armed: the vehicle is armed (auto-armed at boot).
+        ignored: well-formed packets of features this simulator does not implement.
     """
 
     def __init__(self) -> None:
         self.state = SupState.READY
         self.armed = True
+        self.ignored = 0
         self._last_thrust_ms: int | None = None
         """When [ms since boot] the motors last ran; None if they never did."""
 
@@ -92,6 +97,26 @@ class Supervisor:
         if hl_finished:
             bits |= 1 << BIT_HL_FINISHED
         return bits
+
+    def handle(self, pkt: Packet, hl_active: bool, hl_finished: bool) -> list[Packet]:
+        """Answer one supervisor-port packet (``crtp_supervisor.c``): the state bitfield (see
+        :meth:`bits` for the two flags), arming, recovery, emergency stop."""
+        cmd = pkt.data[0]
+        if pkt.channel == crtp.SUPERVISOR_INFO_CHANNEL and cmd == crtp.SUPERVISOR_GET_STATE_BITFIELD:
+            return [Packet(Port.SUPERVISOR, pkt.channel, struct.pack("<BH", cmd | crtp.SUPERVISOR_RESPONSE,
+                                                                     self.bits(hl_active, hl_finished)))]
+        if pkt.channel == crtp.SUPERVISOR_COMMAND_CHANNEL:
+            if cmd == crtp.SUPERVISOR_ARM:
+                ok = self.request_arming(bool(pkt.data[1]))
+                return [Packet(Port.SUPERVISOR, pkt.channel, bytes((cmd | crtp.SUPERVISOR_RESPONSE, ok, self.armed)))]
+            if cmd == crtp.SUPERVISOR_RECOVER:
+                ok = not self.locked
+                return [Packet(Port.SUPERVISOR, pkt.channel, bytes((cmd | crtp.SUPERVISOR_RESPONSE, ok, 1)))]
+            if cmd == crtp.SUPERVISOR_EMERGENCY_STOP:
+                self.lock()
+                return []
+        self.ignored += 1
+        return []
 
     def update(self, now_ms: int, age_ms: int) -> None:
         """The tick's transition at ``now_ms`` [ms since boot], the setpoint being ``age_ms`` old."""
