@@ -53,6 +53,7 @@ PERIOD = 0.01
 scheduling run at 100 Hz; the quadrotor's own attitude loop runs at its 500 Hz inside."""
 PERIOD_MS = 10
 
+
 @dataclass(frozen=True)
 class FirmwareConfig:
     """Per-vehicle settings of the simulated firmware and its world (copied on construction)."""
@@ -117,7 +118,7 @@ class Firmware:
         }, self._param_set)
         self.traj_mem = trajectory.TrajectoryMemory()
         self.mem = MemService(self.traj_mem)
-        # commanders
+        # commanders, supervisor, controller, world
         self.commander = Commander()
         self.hl = HighLevelCommander(vec3(self.est_p), quad.euler()[2], self.traj_mem, self.params,
                                      self.console_print)
