@@ -19,6 +19,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,7 @@ except ImportError:
     AGENT_PHASE = 0.0
 from tether import jsonout  # noqa: E402
 from tether import mission as ms  # noqa: E402
+from tether import safefs  # noqa: E402
 from tether import transport as tp  # noqa: E402
 from tether import wire  # noqa: E402
 
@@ -275,7 +277,8 @@ def run_baseline(m: ms.Mission, clock: ClockKind, duration: float, work: Path, p
         if probe:
             raise ValueError("the latency probe is a plain client: run the baseline with secure=False")
         endpoint = "tls/" + endpoint.split("/", 1)[1]
-        sec = localtls.prepare(m, m.name, work / tag, members, endpoint, (), 2.0, pace(clock).limits(m, m.name))
+        sec = localtls.prepare(m, m.name, safefs.make_out(work / tag), members, endpoint, (), 2.0,
+                               pace(clock).limits(m, m.name))
         listen = {k: "tls/" + ep.split("/", 1)[1] for k, ep in spec.get("mesh", {}).items()}
         spec["tls"] = {"router": str(sec.configs["router"]),
                        **{f"{r}-{i}": str(sec.child(r, i, endpoint, listen.get(f"{r}-{i}"))) for r, i in members}}
@@ -300,48 +303,11 @@ def run_baseline(m: ms.Mission, clock: ClockKind, duration: float, work: Path, p
         res.procs = [Proc(kp.pid, role, nid) for kp, role, nid in kids] + [Proc(hub.pid, "launcher", 0)]
         if probe_proc is not None:
             res.procs.append(Proc(probe_proc.pid, "probe", 0))
-        window = Window(res.procs)
-        lines: queue.Queue[str | None] = queue.Queue()
-        threading.Thread(target=read_lines, args=(hub.stdout, lines), daemon=True).start()
-        deadline = time.monotonic() + 120 + 3 * duration
-        while True:
-            try:
-                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                raise TimeoutError("baseline hub did not finish in time") from None
-            if line is None:
-                break
-            word, *rest = line.split() or [""]
-            if word in ("stalled", "missing"):
-                res.ok, res.why = False, f"baseline hub: {line.strip()}"
-            if word == "up":
-                res.startup_s = time.monotonic() - t_start
-            elif word == "start":
-                if clock == "realtime":
-                    t_tick0 = time.monotonic() + (float(rest[0]) - time.time())
-                    time.sleep(max(0.0, t_tick0 - time.monotonic()))
-                window.open()
-            elif word == "ran":
-                window.close(res)
-                res.mission_s, res.wall_s = float(rest[0]), float(rest[1])
+        _watch_hub(hub.stdout, res, Window(res.procs), clock, t_start, 120 + 3 * duration)
         hub.wait(timeout=30)
         if not res.ok:
             return res
-        late = []
-        for kp, role, nid in kids:
-            out, _ = kp.communicate(timeout=30)
-            if kp.returncode != 0 or not out.strip():
-                res.ok, res.why = False, f"baseline {role}/{nid} exited {kp.returncode}"
-                continue
-            info = json.loads(out.strip().splitlines()[-1])
-            if role == "agent":
-                late.append(info["late"])
-            if role == "recorder":
-                res.complete = f"{info['received']}/{(1 + 2 * m.n) * (spec['steps'] + 1)}"
-        if clock == "realtime" and late:
-            steps = spec["steps"] + 1
-            res.late = sum(late) / (len(late) * steps)
-            res.late_max = max(late) / steps
+        _collect(kids, res, m, spec["steps"])
     finally:
         for kp, _, _ in kids:
             if kp.poll() is None:
@@ -355,6 +321,55 @@ def run_baseline(m: ms.Mission, clock: ClockKind, duration: float, work: Path, p
     if probe and probe_out.exists():
         res.probe = json.loads(probe_out.read_text())
     return res
+
+
+
+def _watch_hub(stdout: Iterable[str], res: Result, window: Window, clock: str, t_start: float,
+               timeout: float) -> None:
+    """Follow the hub's lines until it closes its stdout: start-up time, the measured window (opened
+    at tick 0, closed at "ran ..."), a stall or missing process. Blocks up to ``timeout`` [s]."""
+    lines: queue.Queue[str | None] = queue.Queue()
+    threading.Thread(target=read_lines, args=(stdout, lines), daemon=True).start()
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
+        except queue.Empty:
+            raise TimeoutError("baseline hub did not finish in time") from None
+        if line is None:
+            return
+        word, *rest = line.split() or [""]
+        if word in ("stalled", "missing"):
+            res.ok, res.why = False, f"baseline hub: {line.strip()}"
+        if word == "up":
+            res.startup_s = time.monotonic() - t_start
+        elif word == "start":
+            if clock == "realtime":
+                t_tick0 = time.monotonic() + (float(rest[0]) - time.time())
+                time.sleep(max(0.0, t_tick0 - time.monotonic()))
+            window.open()
+        elif word == "ran":
+            window.close(res)
+            res.mission_s, res.wall_s = float(rest[0]), float(rest[1])
+
+
+def _collect(kids: list[tuple[subprocess.Popen[str], str, int]], res: Result, m: ms.Mission, steps: int) -> None:
+    """Read each member's last line (its JSON summary; blocks until it exits): the agents' late ticks
+    (real time) and the samples the recorder received."""
+    late = []
+    for kp, role, nid in kids:
+        out, _ = kp.communicate(timeout=30)
+        if kp.returncode != 0 or not out.strip():
+            res.ok, res.why = False, f"baseline {role}/{nid} exited {kp.returncode}"
+            continue
+        info = json.loads(out.strip().splitlines()[-1])
+        if role == "agent":
+            late.append(info["late"])
+        if role == "recorder":
+            res.complete = f"{info['received']}/{(1 + 2 * m.n) * (steps + 1)}"
+    if res.clock == "realtime" and late:
+        res.late = sum(late) / (len(late) * (steps + 1))
+        res.late_max = max(late) / (steps + 1)
 
 
 if __name__ == "__main__":

@@ -212,7 +212,7 @@ class Sampler:
     """Samples every process's end-of-window figures every ``period`` s while the window is open, so
     that a process that exits just before the window closes (its last tick done) is still counted."""
 
-    def __init__(self, procs: list[Proc], period: float = 0.1):
+    def __init__(self, procs: list[Proc], period: float = 0.1) -> None:
         self.procs, self.period = procs, period
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -241,7 +241,7 @@ class Sampler:
 class Window:
     """The measured window of one run: every process's CPU, and the whole machine's."""
 
-    def __init__(self, procs: list[Proc]):
+    def __init__(self, procs: list[Proc]) -> None:
         self.procs = procs
         self.sampler = Sampler(procs)
 

@@ -126,53 +126,10 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
         env["PYTHONPATH"] = str(tree)
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
                          cwd=tree or REPO)
-    lines: queue.Queue[str | None] = queue.Queue()
-    threading.Thread(target=read_lines, args=(p.stderr, lines), daemon=True).start()
-    log: list[str] = []
-    timer: threading.Timer | None = None
-    window: Window | None = None
-    t_ran = float("nan")
     try:
         if probe_proc is not None:
             probe_ready(probe_proc)
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                line = lines.get(timeout=0.02)
-            except queue.Empty:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"tether run did not finish in {timeout} s")
-                continue
-            if line is None:
-                break
-            log.append(line)
-            if "processes are up after" in line:
-                res.startup_s = time.monotonic() - t_start
-                for c in children_of(p.pid):
-                    args = cmdline(c)
-                    if "cli" in args:
-                        role = args[args.index("cli") + 1]
-                        nid = int(args[args.index("--id") + 1]) if "--id" in args else 0
-                        res.procs.append(Proc(c, role, nid))
-                        with contextlib.suppress(OSError):
-                            res.cwds.add(os.readlink(f"/proc/{c}/cwd"))
-                res.procs.append(Proc(p.pid, "launcher", 0))
-                t_up = time.monotonic()
-                lead = START_LEAD if clock == "realtime" else 0.0
-
-                if probe_proc is not None:
-                    res.procs.append(Proc(probe_proc.pid, "probe", 0))
-                window = Window(res.procs)
-                timer = threading.Timer(max(0.0, t_up + lead - time.monotonic()), window.open)
-                timer.start()
-            mo = re.search(r"ran (\S+) s of mission time in (\S+) s of wall time", line)
-            if mo:
-                if timer is None or window is None:
-                    raise RuntimeError("tether run reported its end before its processes were up: no measured window")
-                timer.join()
-                window.close(res)
-                res.mission_s, res.wall_s = float(mo[1]), float(mo[2])
-                t_ran = time.monotonic()
+        log, t_ran = _watch(p, res, clock, timeout, t_start, probe_proc)
         rc = res.status = p.wait(timeout=60)
         exited = time.monotonic()
         res.command_s, res.end_s = exited - t_start, exited - t_ran
@@ -184,25 +141,87 @@ def run_tether(mission_path: Path, m: ms.Mission, clock: str, duration: float, w
             p.wait()
         if probe_proc is not None:
             reap(probe_proc, 30.0)
-    run_file = out / "run.npz"
-    if run_file.exists():
-        with np.load(run_file) as z:
-            meta = runfile.decode_meta(str(z["meta"]))
-            res.complete = f"{meta.samples_recorded}/{meta.samples_expected}"
-            late = z["late"] if "late" in z.files else None
-            if late is not None and clock == "realtime":
-                per_agent = np.nanmax(np.where(np.isfinite(late), late, -1), axis=0)
-                per_agent = np.maximum(per_agent, 0)
-                steps = int(round(duration * m.rate)) + 1
-                res.late = float(per_agent.sum() / (m.n * steps))
-                res.late_max = float(per_agent.max() / steps)
-            for name in ("link_age", "meas_age"):
-                if name in z.files:
-                    age = z[name]
-                    setattr(res, name, age[np.isfinite(age)])
+    _read_run_file(out / "run.npz", res, m, duration)
     if probe and probe_out.exists():
         res.probe = json.loads(probe_out.read_text())
     return res
+
+
+def _watch(p: subprocess.Popen[str], res: Result, clock: str, timeout: float, t_start: float,
+           probe_proc: subprocess.Popen[str] | None) -> tuple[list[str], float]:
+    """Follow the launcher's log until it closes: once every process is up, measure them all over
+    the mission's window (opened at tick 0, closed at the "ran ..." line). Blocks until the launcher
+    closes its stderr; returns the log and the monotonic time of the "ran ..." line."""
+    lines: queue.Queue[str | None] = queue.Queue()
+    threading.Thread(target=read_lines, args=(p.stderr, lines), daemon=True).start()
+    log: list[str] = []
+    timer: threading.Timer | None = None
+    window: Window | None = None
+    t_ran = float("nan")
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            line = lines.get(timeout=0.02)
+        except queue.Empty:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"tether run did not finish in {timeout} s") from None
+            continue
+        if line is None:
+            return log, t_ran
+        log.append(line)
+        if "processes are up after" in line:
+            res.startup_s = time.monotonic() - t_start
+            _measured(p.pid, res, probe_proc)
+            t_up = time.monotonic()
+            lead = START_LEAD if clock == "realtime" else 0.0
+            window = Window(res.procs)
+            timer = threading.Timer(max(0.0, t_up + lead - time.monotonic()), window.open)
+            timer.start()
+        mo = re.search(r"ran (\S+) s of mission time in (\S+) s of wall time", line)
+        if mo:
+            if timer is None or window is None:
+                raise RuntimeError("tether run reported its end before its processes were up: no measured window")
+            timer.join()
+            window.close(res)
+            res.mission_s, res.wall_s = float(mo[1]), float(mo[2])
+            t_ran = time.monotonic()
+
+
+def _measured(launcher: int, res: Result, probe_proc: subprocess.Popen[str] | None) -> None:
+    """Add the launcher, every process it started (role and id from its command line; its working
+    directory to :attr:`Result.cwds`) and the probe to the processes ``res`` measures."""
+    for c in children_of(launcher):
+        args = cmdline(c)
+        if "cli" in args:
+            role = args[args.index("cli") + 1]
+            nid = int(args[args.index("--id") + 1]) if "--id" in args else 0
+            res.procs.append(Proc(c, role, nid))
+            with contextlib.suppress(OSError):
+                res.cwds.add(os.readlink(f"/proc/{c}/cwd"))
+    res.procs.append(Proc(launcher, "launcher", 0))
+    if probe_proc is not None:
+        res.procs.append(Proc(probe_proc.pid, "probe", 0))
+
+
+def _read_run_file(run_file: Path, res: Result, m: ms.Mission, duration: float) -> None:
+    """Fill ``res`` from the run's ``run.npz``, if it was written: samples recorded, the share of late
+    ticks (real time) and the ages of the data used."""
+    if not run_file.exists():
+        return
+    with np.load(run_file) as z:
+        meta = runfile.decode_meta(str(z["meta"]))
+        res.complete = f"{meta.samples_recorded}/{meta.samples_expected}"
+        late = z["late"] if "late" in z.files else None
+        if late is not None and res.clock == "realtime":
+            per_agent = np.nanmax(np.where(np.isfinite(late), late, -1), axis=0)
+            per_agent = np.maximum(per_agent, 0)
+            steps = int(round(duration * m.rate)) + 1
+            res.late = float(per_agent.sum() / (m.n * steps))
+            res.late_max = float(per_agent.max() / steps)
+        for name in ("link_age", "meas_age"):
+            if name in z.files:
+                age = z[name]
+                setattr(res, name, age[np.isfinite(age)])
 
 
 # =========================================================================== helpers
@@ -760,25 +779,7 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     rows["isfinite over a 3-vector: generator / map"] = us(lambda: all(math.isfinite(x) for x in vec))
     rows["  ... all(map(math.isfinite, v))"] = us(lambda: all(map(math.isfinite, vec)))
 
-    async def wakeups() -> tuple[float, float, float]:
-        w, loop, ev, n = handoff.Wakeup(), asyncio.get_running_loop(), asyncio.Event(), 20000
-        t0 = time.thread_time()
-        for _ in range(n):
-            w.notify()
-            await w.wait(30.0)
-        t1 = time.thread_time()
-        for _ in range(n):
-            w.notify()
-            await w.wait()
-        t2 = time.thread_time()
-        for _ in range(n):
-            loop.call_soon(ev.set)
-            await ev.wait()
-            ev.clear()
-        t3 = time.thread_time()
-        return 1e6 * (t1 - t0) / n, 1e6 * (t2 - t1) / n, 1e6 * (t3 - t2) / n
-
-    with_t, without_t, bare = asyncio.run(wakeups())
+    with_t, without_t, bare = asyncio.run(_wakeups())
     rows["Wakeup.notify + wait(timeout) on the loop"] = with_t
     rows["Wakeup.notify + wait() on the loop"] = without_t
     rows["bare call_soon + Event.wait"] = bare
@@ -786,6 +787,29 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
     for name, val in rows.items():
         say(f"   {name:48} {val:7.2f}")
     report["python_us"] = rows
+
+
+async def _wakeups(n: int = 20000) -> tuple[float, float, float]:
+    """CPU [us] of one hand-off on the running loop: :class:`tether.handoff.Wakeup` with a timeout,
+    without one, and a bare ``call_soon`` + ``asyncio.Event`` (``n`` of each, in this thread)."""
+    import asyncio
+
+    w, loop, ev = handoff.Wakeup(), asyncio.get_running_loop(), asyncio.Event()
+    t0 = time.thread_time()
+    for _ in range(n):
+        w.notify()
+        await w.wait(30.0)
+    t1 = time.thread_time()
+    for _ in range(n):
+        w.notify()
+        await w.wait()
+    t2 = time.thread_time()
+    for _ in range(n):
+        loop.call_soon(ev.set)
+        await ev.wait()
+        ev.clear()
+    t3 = time.thread_time()
+    return 1e6 * (t1 - t0) / n, 1e6 * (t2 - t1) / n, 1e6 * (t3 - t2) / n
 
 
 def profile_run(mission: str, clock: ClockKind, duration: float, who: str, work: Path, top: int = 25,
@@ -847,9 +871,7 @@ def cprofile_child(out: str, args: list[str]) -> int:
         prof.dump_stats(out)
 
 
-def main(argv: list[str]) -> None:
-    if argv and argv[0] == "_cprofile":
-        sys.exit(cprofile_child(argv[1], argv[2:]))
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", nargs="+",
                     choices=["lockstep", "colocate", "network", "scale", "latency", "cpu", "python"],
@@ -898,7 +920,13 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--profile-duration", type=float, default=10.0)
     ap.add_argument("--profile-colocate", metavar="WINDOW:BATCH", default=None,
                     help="--profile a lockstep run with --colocate-plants, this window and records of BATCH ticks")
-    a = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str]) -> None:
+    if argv and argv[0] == "_cprofile":
+        sys.exit(cprofile_child(argv[1], argv[2:]))
+    a = _parser().parse_args(argv)
     a.secure = not a.insecure
     tether_loop = evloop.choose()
     LOOP["bare"] = tether_loop if a.bare_loop == "tether" else a.bare_loop

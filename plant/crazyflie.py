@@ -78,7 +78,7 @@ from pathlib import Path
 import numpy as np
 
 from plant.base import Sample
-from plant.cfsim import firmware
+from plant.cfsim import motors
 from plant.quadrotor import QuadrotorParams, eq4
 from tether import mission as ms
 
@@ -107,9 +107,9 @@ class LinkLost(RuntimeError):
 
 def thrust_to_pwm(thrust: float, f_max: float = MOTOR_THRUST_MAX) -> int:
     """Collective thrust [N] -> the 16-bit ``send_setpoint`` thrust: the firmware's linear,
-    battery-compensated map (:func:`plant.cfsim.firmware.thrust_to_pwm`), rounded and clamped to
+    battery-compensated map (:func:`plant.cfsim.motors.thrust_to_pwm`), rounded and clamped to
     0..65535."""
-    return int(min(max(round(firmware.thrust_to_pwm(thrust, f_max)), 0), firmware.PWM_FULL))
+    return int(min(max(round(motors.thrust_to_pwm(thrust, f_max)), 0), motors.PWM_FULL))
 
 
 def toc_cache() -> Path:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plant.cfsim import commander, crtp, firmware, high_level, toc
+from plant.cfsim import commander, crtp, firmware, high_level, motors, supervisor, toc
 from plant.quadrotor import Quadrotor, QuadrotorParams
 from tests.support import SoftwareCrazyflies, free_port, software_crazyflies, wait_until
 
@@ -113,12 +113,12 @@ def test_watchdog_in_simulated_time() -> None:
         fw.tick()
     last = fw.k - 1  # the tick of the last setpoint
     states = []  # (tick, supervisor state after it)
-    while fw.supervisor_state is not firmware.SupState.LOCKED and fw.k < last + 300:
+    while fw.supervisor_state is not supervisor.SupState.LOCKED and fw.k < last + 300:
         k = fw.k
         fw.tick()
         states.append((k, fw.supervisor_state))
-    assert next(k for k, s in states if s is firmware.SupState.LEVEL_OUT) - last == 51  # age > 500 ms
-    assert states[-1] == (last + 201, firmware.SupState.LOCKED)  # age > 2000 ms
+    assert next(k for k, s in states if s is supervisor.SupState.LEVEL_OUT) - last == 51  # age > 500 ms
+    assert states[-1] == (last + 201, supervisor.SupState.LOCKED)  # age > 2000 ms
     assert math.degrees(quad.euler()[0]) == pytest.approx(0.0, abs=0.5)  # levelled out
     for _ in range(100):
         fw.tick()
@@ -222,7 +222,7 @@ def test_every_vehicle_answers_scan_connect_and_params(sim: SoftwareCrazyflies,
         mass = float(cf.param.get_value("cfsim.mass"))
         hover = int(cf.param.get_value("cfsim.hoverPwm"))
         qp = QuadrotorParams()
-        assert hover == pytest.approx(firmware.thrust_to_pwm(mass * qp.g, qp.motor_thrust_max), abs=1.0)
+        assert hover == pytest.approx(motors.thrust_to_pwm(mass * qp.g, qp.motor_thrust_max), abs=1.0)
         # a write is echoed and read back
         updated = threading.Event()
         cf.param.add_update_callback(group="hlCommander", name="groupmask", cb=lambda _n, v: updated.set())
@@ -272,7 +272,7 @@ def test_high_level_take_off_and_land(sim: SoftwareCrazyflies) -> None:
                     6.0, "z to settle at the take-off height 0.5 m")
         assert max(d["stateEstimate.z"] for _, d in stream.since(0.0)) < 0.55  # no overshoot to speak of
         flying = int(stream.last["supervisor.info"])
-        assert flying & (1 << firmware.BIT_FLYING) and flying & (1 << firmware.BIT_HL_ACTIVE)
+        assert flying & (1 << supervisor.BIT_FLYING) and flying & (1 << supervisor.BIT_HL_ACTIVE)
         # cflib waits only 0.2 s for the answer (an empty list after that): ask again on a loaded machine
         states = wait_until(lambda: set(cf.supervisor.read_state_list()), 5.0, "the supervisor state")
         assert {"Is flying", "Can fly", "HL control is active"} <= states
@@ -286,7 +286,7 @@ def test_high_level_take_off_and_land(sim: SoftwareCrazyflies) -> None:
         stream.wait(lambda d: d["stateEstimate.z"] < 0.01 and d["stabilizer.thrust"] == 0.0, 6.0,
                     "landing: z at the floor and the motors off")
         info = int(stream.last["supervisor.info"])
-        assert not info & (1 << firmware.BIT_LOCKED) and info & (1 << firmware.BIT_CAN_FLY)
+        assert not info & (1 << supervisor.BIT_LOCKED) and info & (1 << supervisor.BIT_CAN_FLY)
 
 
 def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: SoftwareCrazyflies) -> None:
@@ -341,7 +341,7 @@ def test_setpoints_fly_then_watchdog_levels_out_and_cuts(sim: SoftwareCrazyflies
         assert sent0 + 1.98 < t_cut < sent1 + 2.4, (t_cut - sent0, t_cut - sent1)
         assert all(d["stabilizer.thrust"] > 0 for t, d in att.since(sent1) if t < sent0 + 1.95)
         att.wait(lambda d: d["stateEstimate.z"] < 0.02, 3.0, "the vehicle to fall to the floor")
-        vel.wait(lambda d: int(d["supervisor.info"]) & (1 << firmware.BIT_LOCKED), 1.0, "the supervisor to lock")
+        vel.wait(lambda d: int(d["supervisor.info"]) & (1 << supervisor.BIT_LOCKED), 1.0, "the supervisor to lock")
 
 
 def test_stop_setpoint_thrust_lock_and_notify_stop(sim: SoftwareCrazyflies) -> None:
@@ -368,7 +368,7 @@ def test_stop_setpoint_thrust_lock_and_notify_stop(sim: SoftwareCrazyflies) -> N
         t1 = time.monotonic()
         stream.wait(lambda d: time.monotonic() > t1 + 2.5, 4.0, "2.5 s after notify-stop")
         info = int(stream.last["supervisor.info"])
-        assert not info & (1 << firmware.BIT_LOCKED) and info & (1 << firmware.BIT_CAN_FLY)
+        assert not info & (1 << supervisor.BIT_LOCKED) and info & (1 << supervisor.BIT_CAN_FLY)
         # ... so the vehicle can take off again
         cf.high_level_commander.takeoff(0.3, 1.0)
         stream.wait(lambda d: d["stateEstimate.z"] > 0.25, 4.0, "a second take-off")

@@ -7,35 +7,27 @@ body, Eq. 4 and its 500 Hz attitude/rate PID), injected by the caller.
 
 :class:`Firmware` routes each port's packets to its part, as the firmware's CRTP router does: the
 commander (:mod:`plant.cfsim.commander`), the high-level commander (:mod:`plant.cfsim.high_level`),
-the log, param and mem services (:mod:`plant.cfsim.services`); the link, platform and supervisor
-ports it answers itself. It also runs the supervisor, the controller and the world.
+the supervisor (:mod:`plant.cfsim.supervisor`), the link, platform, log, param and mem services
+(:mod:`plant.cfsim.services`).
 
 What runs every tick (100 Hz), in the firmware's order (``stabilizer.c``):
 
 1. the high-level commander, if the vehicle can fly, offers its setpoint at priority HIGH_LEVEL
    (a trajectory point while flying or landing, "motors off" while idle);
 2. the commander's setpoint is read with its age;
-3. the supervisor updates its state from the age and the motors: setpoint older than 0.5 s while
-   flying -> level out (roll = pitch = 0, yaw rate 0, thrust kept); older than 2 s -> motors off and
-   *locked* until the simulator restarts, as the firmware's supervisor locks until a reboot;
-4. the controller turns the (possibly overridden) setpoint into a command of the quadrotor:
-   ``command_attitude(T, roll, pitch, yaw_rate)`` for attitude setpoints, ``command(u, yaw)`` with
-   ``u = a_ref + Kp (p_ref - p) + Kv (v_ref - v)`` for position setpoints (Eq. 4 inside);
-5. the world advances 10 ms: the quadrotor, plus a floor at ``z = 0``;
+3. the supervisor updates its state from the age and the motors, and overrides the setpoint of a
+   vehicle that must level out or stop (:mod:`plant.cfsim.supervisor`);
+4. the controller turns the setpoint into a command of the quadrotor (:mod:`plant.cfsim.controller`);
+5. the world advances 10 ms: the quadrotor, plus a floor at ``z = 0`` (:mod:`plant.cfsim.world`);
 6. log blocks whose period elapsed are sampled.
 
 The logged ``stateEstimate.pitch`` / ``stabilizer.pitch`` are ``-pitch`` (the firmware's legacy
-frame; see :mod:`plant.cfsim.commander` for the conventions at the cflib edge).
-
-Thrust map (crazyflie-firmware ``motors.c`` with battery compensation, the default): a motor
-command ``pwm`` in 0..65535 gives ``pwm / 65535 * f_max`` newtons per motor, ``f_max`` being
-:attr:`QuadrotorParams.motor_thrust_max` (THRUST_MAX, 0.1125 N for the CF 2.1 propellers). An RPYT
-thrust therefore means a collective thrust ``T = 4 f_max pwm / 65535``.
+frame; :mod:`plant.cfsim.commander` has the conventions at the cflib edge), motor commands are PWM
+units of :mod:`plant.cfsim.motors`' thrust map.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 import struct
 from collections.abc import Callable
@@ -45,59 +37,21 @@ import numpy as np
 
 from plant.cfsim import crtp, realism, toc, trajectory
 from plant.cfsim.commander import (
-    OFF, ZERO3, Attitude, Commander, Hover, Manual, Off, Priority, Setpoint, Track, Velocity, ZHold,
-    generic_setpoint, vec3,
+    OFF, ZERO3, Commander, Hover, Priority, Setpoint, Track, Velocity, ZHold, generic_setpoint, vec3,
 )
+from plant.cfsim.controller import Controller
 from plant.cfsim.crtp import Packet, Port
 from plant.cfsim.high_level import HighLevelCommander, HlState
-from plant.cfsim.services import LogService, MemService, ParamService
-from plant.quadrotor import Quadrotor, wrap_angle
+from plant.cfsim.motors import thrust_to_pwm
+from plant.cfsim.services import LogService, MemService, ParamService, PlatformService, link_reply
+from plant.cfsim.supervisor import BIT_CAN_FLY, BIT_FLYING, Supervisor, SupState
+from plant.cfsim.world import World
+from plant.quadrotor import Quadrotor
 
 PERIOD = 0.01
 """Control period [s]: commander, high-level commander, supervisor, position controller and log
 scheduling run at 100 Hz; the quadrotor's own attitude loop runs at its 500 Hz inside."""
 PERIOD_MS = 10
-
-PWM_FULL = 65535
-"""Full-scale motor command [PWM units]."""
-
-WDT_LEVEL_OUT_MS = 500
-"""Setpoint age [ms] above which a flying vehicle levels out (COMMANDER_WDT_TIMEOUT_STABILIZE)."""
-WDT_SHUTDOWN_MS = 2000
-"""Setpoint age [ms] above which a flying vehicle's motors stop and it locks
-(COMMANDER_WDT_TIMEOUT_SHUTDOWN)."""
-IS_FLYING_HYSTERESIS_MS = 2000
-"""The supervisor counts the vehicle as flying until this long [ms] after the motors last ran.
-(Ages are counted in whole ticks, as the firmware counts them in whole milliseconds.)"""
-
-_MOTORS_STOPPED = 1e-4
-"""A motor below this fraction of the vehicle's weight counts as stopped (motors with a lag decay
-towards zero and never reach it)."""
-
-
-def pwm_to_thrust(pwm: float, motor_thrust_max: float) -> float:
-    """Collective thrust [N] of four motors commanded at ``pwm`` [0..65535]."""
-    return 4.0 * motor_thrust_max * pwm / PWM_FULL
-
-
-def thrust_to_pwm(thrust: float, motor_thrust_max: float) -> float:
-    """The PWM command [0..65535, not clipped] that gives collective thrust ``thrust`` [N]."""
-    return thrust * PWM_FULL / (4.0 * motor_thrust_max)
-
-
-class SupState(enum.Enum):
-    READY = "ready"
-    """Armed, on the ground or at least not flying."""
-    FLYING = "flying"
-    LEVEL_OUT = "level_out"
-    """Setpoint older than 0.5 s while flying: roll and pitch forced to 0."""
-    LOCKED = "locked"
-    """Setpoint older than 2 s while flying, or an emergency stop: motors off for good."""
-
-
-# Supervisor bitfield (crtp_supervisor; cflib supervisor.py).
-BIT_CAN_BE_ARMED, BIT_ARMED, BIT_AUTO_ARMED, BIT_CAN_FLY, BIT_FLYING = 0, 1, 2, 3, 4
-BIT_TUMBLED, BIT_LOCKED, BIT_CRASHED, BIT_HL_ACTIVE, BIT_HL_FINISHED, BIT_HL_DISABLED = 5, 6, 7, 8, 9, 10
 
 
 @dataclass(frozen=True)
@@ -137,7 +91,8 @@ class Firmware:
         k: control ticks since boot; the simulated time is ``k * PERIOD`` [s].
         dropped: packets that could not be decoded (too short, wrong length, unknown ids).
         commander, hl: the setpoint slot and the high-level commander.
-        logs, params, mem: the log, param and mem services.
+        logs, params, mem, platform: the log, param, mem and platform services.
+        sup, controller, world: the supervisor, the controller and the quadrotor above its floor.
     """
 
     def __init__(self, quad: Quadrotor, cfg: FirmwareConfig | None = None) -> None:
@@ -163,27 +118,19 @@ class Firmware:
         }, self._param_set)
         self.traj_mem = trajectory.TrajectoryMemory()
         self.mem = MemService(self.traj_mem)
-        # commanders
+        # commanders, supervisor, controller, world
         self.commander = Commander()
         self.hl = HighLevelCommander(vec3(self.est_p), quad.euler()[2], self.traj_mem, self.params,
                                      self.console_print)
-        # supervisor
-        self._sup = SupState.READY
-        self._armed = True
-        self._last_thrust_ms: int | None = None
-        # controller
-        self._vel_yaw: float | None = None
+        self.sup = Supervisor()
+        self.platform = PlatformService(self.sup)
+        self.controller = Controller(quad, self.cfg.kp, self.cfg.kv, self.cfg.kv_velocity_mode,
+                                     self.cfg.tilt_max_manual, PERIOD)
+        self.world = World(quad, self.cfg.floor_frequency, self.cfg.floor_damping, self.cfg.contact_step)
         self._applied: Setpoint = OFF
+        """The setpoint the controller flew in the last tick (after the supervisor's override)."""
         self._accel = np.zeros(3)
-        self._manual_att = (0.0, 0.0)
-        """Roll and pitch [rad] integrated from manual rate setpoints."""
-        # floor
-        m = quad.mass
-        w = 2.0 * math.pi * self.cfg.floor_frequency
-        self._k_floor = m * w * w
-        self._c_floor = 2.0 * self.cfg.floor_damping * m * w
-        self._z_contact = m * self._g / self._k_floor
-        """The floor spring is preloaded so that a vehicle at rest on it sits at z = 0."""
+        """Acceleration [m/s^2; world] over the last tick."""
 
     # ---------------------------------------------------------------------------- reading
     @property
@@ -194,7 +141,8 @@ class Firmware:
     @property
     def ignored(self) -> int:
         """Well-formed packets of features this simulator does not implement, over every port."""
-        return self._ignored + self.logs.ignored + self.params.ignored + self.mem.ignored + self.hl.ignored
+        parts = (self.logs, self.params, self.mem, self.platform, self.sup, self.hl)
+        return self._ignored + sum(part.ignored for part in parts)
 
     @property
     def est_p(self) -> np.ndarray:
@@ -220,7 +168,7 @@ class Firmware:
 
     @property
     def supervisor_state(self) -> SupState:
-        return self._sup
+        return self.sup.state
 
     @property
     def hl_state(self) -> HlState:
@@ -228,25 +176,14 @@ class Firmware:
 
     @property
     def can_fly(self) -> bool:
-        return self._armed and self._sup is not SupState.LOCKED
+        return self.sup.can_fly
 
     def supervisor_bits(self) -> int:
-        bits = (1 << BIT_AUTO_ARMED)
-        if self._armed:
-            bits |= 1 << BIT_ARMED
-        elif self._sup is not SupState.LOCKED:
-            bits |= 1 << BIT_CAN_BE_ARMED
-        if self.can_fly:
-            bits |= 1 << BIT_CAN_FLY
-        if self._sup in (SupState.FLYING, SupState.LEVEL_OUT):
-            bits |= 1 << BIT_FLYING
-        if self._sup is SupState.LOCKED:
-            bits |= 1 << BIT_LOCKED
-        if self.hl.active and self.commander.priority <= Priority.HIGH_LEVEL:
-            bits |= 1 << BIT_HL_ACTIVE
-        if self.hl.finished(self.t):
-            bits |= 1 << BIT_HL_FINISHED
-        return bits
+        return self.sup.bits(self._hl_flying(), self.hl.finished(self.t))
+
+    def _hl_flying(self) -> bool:
+        """The high-level commander flies the vehicle: planning, and not overruled by a low-level setpoint."""
+        return self.hl.active and self.commander.priority <= Priority.HIGH_LEVEL
 
     def param(self, full_name: str) -> float:
         """A parameter's present value (raises ``KeyError`` for an unknown name)."""
@@ -266,75 +203,10 @@ class Firmware:
             self.dropped += 1
             return []
 
-    def _link(self, pkt: Packet) -> list[Packet]:
-        if pkt.channel == crtp.LINK_ECHO_CHANNEL:
-            return [pkt]
-        if pkt.channel == crtp.LINK_SOURCE_CHANNEL:
-            return [Packet(Port.LINKCTRL, crtp.LINK_SOURCE_CHANNEL, b"Bitcraze Crazyflie".ljust(crtp.MAX_DATA, b"\0"))]
-        if pkt.is_null:
-            return [Packet(0xF, 3)]  # cflib's scan probe: any answer will do
-        return []  # sink: swallowed
-
-    def _platform(self, pkt: Packet) -> list[Packet]:
-        ch, d = pkt.channel, pkt.data
-        if ch == crtp.PLATFORM_VERSION_CHANNEL:
-            cmd = d[0]
-            if cmd == crtp.PLATFORM_VERSION_PROTOCOL:
-                return [Packet(Port.PLATFORM, ch, struct.pack("<Bi", cmd, crtp.PROTOCOL_VERSION))]
-            if cmd == crtp.PLATFORM_VERSION_FIRMWARE:
-                return [Packet(Port.PLATFORM, ch, bytes((cmd,)) + crtp.FIRMWARE_TAG.encode())]
-            if cmd == crtp.PLATFORM_VERSION_DEVICE:
-                return [Packet(Port.PLATFORM, ch, bytes((cmd,)) + crtp.DEVICE_TYPE.encode())]
-            self._ignored += 1
-            return []
-        if ch == crtp.PLATFORM_COMMAND_CHANNEL:
-            cmd = d[0]
-            if cmd == crtp.PLATFORM_ARM:
-                ok = self._request_arming(bool(d[1]))
-                return [Packet(Port.PLATFORM, ch, bytes((cmd, ok, self._armed)))]
-            if cmd == crtp.PLATFORM_RECOVER:
-                ok = self._sup is not SupState.LOCKED
-                return [Packet(Port.PLATFORM, ch, bytes((cmd, ok, 1)))]
-            if cmd == crtp.PLATFORM_NOTIFY:
-                return [Packet(Port.PLATFORM, ch)]
-            return [pkt]  # continuous wave and the rest: echoed, as the firmware does
-        self._ignored += 1
-        return []
-
-    def _supervisor(self, pkt: Packet) -> list[Packet]:
-        cmd = pkt.data[0]
-        if pkt.channel == crtp.SUPERVISOR_INFO_CHANNEL and cmd == crtp.SUPERVISOR_GET_STATE_BITFIELD:
-            return [Packet(Port.SUPERVISOR, pkt.channel, struct.pack("<BH", cmd | crtp.SUPERVISOR_RESPONSE,
-                                                                     self.supervisor_bits()))]
-        if pkt.channel == crtp.SUPERVISOR_COMMAND_CHANNEL:
-            if cmd == crtp.SUPERVISOR_ARM:
-                ok = self._request_arming(bool(pkt.data[1]))
-                return [Packet(Port.SUPERVISOR, pkt.channel,
-                               bytes((cmd | crtp.SUPERVISOR_RESPONSE, ok, self._armed)))]
-            if cmd == crtp.SUPERVISOR_RECOVER:
-                ok = self._sup is not SupState.LOCKED
-                return [Packet(Port.SUPERVISOR, pkt.channel, bytes((cmd | crtp.SUPERVISOR_RESPONSE, ok, 1)))]
-            if cmd == crtp.SUPERVISOR_EMERGENCY_STOP:
-                self._lock()
-                return []
-        self._ignored += 1
-        return []
-
-    def _request_arming(self, arm: bool) -> bool:
-        if self._sup is SupState.LOCKED:
-            return False
-        self._armed = arm
-        if not arm:
-            self._sup = SupState.READY
-        return True
-
-    def _lock(self) -> None:
-        self._sup = SupState.LOCKED
-
     def _param_set(self, name: str, value: float) -> None:
         """What a client's parameter write does besides storing the value."""
         if name == "stabilizer.stop" and value:
-            self._lock()
+            self.sup.lock()
         elif name == "kalman.resetEstimation" and value:
             if self.noise is not None:
                 self.noise.reset()
@@ -377,8 +249,17 @@ class Firmware:
         self.hl.hold(vec3(self.est_p), self.quad.euler()[2])
         self.commander.relax()
 
+    def _link(self, pkt: Packet) -> list[Packet]:
+        return link_reply(pkt)
+
+    def _platform(self, pkt: Packet) -> list[Packet]:
+        return self.platform.handle(pkt)
+
+    def _supervisor(self, pkt: Packet) -> list[Packet]:
+        return self.sup.handle(pkt, self._hl_flying(), self.hl.finished(self.t))
+
     def _high_level(self, pkt: Packet) -> list[Packet]:
-        return self.hl.handle(pkt, self.t, self._sup is SupState.LOCKED)
+        return self.hl.handle(pkt, self.t, self.sup.locked)
 
     def _mem(self, pkt: Packet) -> list[Packet]:
         return self.mem.handle(pkt)
@@ -417,7 +298,7 @@ class Firmware:
                     self.console_print(f"PM: battery low, {self.battery.vbat:.2f} V\n")
                 elif self.battery.state == realism.PM_SHUTDOWN:
                     self.console_print("PM: battery empty, motors off\n")
-                    self._lock()
+                    self.sup.lock()
         # 1. high-level commander
         if self.can_fly:
             if self.hl.state is HlState.IDLE:
@@ -427,134 +308,20 @@ class Firmware:
                 self._set_setpoint(self.hl.step(t), Priority.HIGH_LEVEL)
         # 2.-3. setpoint age and supervisor
         now_ms = self.k * PERIOD_MS
-        age = now_ms - self.commander.stamp_ms
-        flying = self._last_thrust_ms is not None and now_ms - self._last_thrust_ms < IS_FLYING_HYSTERESIS_MS
-        sup = self._sup
-        if sup is SupState.READY and flying and self._armed:
-            sup = SupState.FLYING
-        elif sup in (SupState.FLYING, SupState.LEVEL_OUT):
-            if age > WDT_SHUTDOWN_MS:
-                sup = SupState.LOCKED
-            elif age > WDT_LEVEL_OUT_MS:
-                sup = SupState.LEVEL_OUT
-            elif not flying:
-                sup = SupState.READY
-            else:
-                sup = SupState.FLYING
-        self._sup = sup
-        sp = self._override(self.commander.setpoint)
+        self.sup.update(now_ms, now_ms - self.commander.stamp_ms)
+        sp = self.sup.override(self.commander.setpoint)
         # 4. controller
-        self._control(sp)
+        self._applied = sp
+        self.controller.command(sp, self.est_p, self.est_v)
         # 5. world
         v0 = quad.v
-        self._advance_world(sp)
+        self.world.advance(PERIOD, sp)
         self.k += 1
         self._accel = (quad.v - v0) / PERIOD
         if any(f > 0.0 for f in quad.motor_commands):
-            self._last_thrust_ms = self.k * PERIOD_MS
+            self.sup.motors_ran(self.k * PERIOD_MS)
         # 6. logs and console
         return self.logs.sample(self.k * PERIOD_MS, self.telemetry) + self._console_packets()
-
-    def _override(self, sp: Setpoint) -> Setpoint:
-        """``supervisorOverrideSetpoint``."""
-        if not self.can_fly:
-            return OFF
-        if self._sup is SupState.LEVEL_OUT:
-            if isinstance(sp, Attitude):
-                return Attitude(sp.thrust_pwm, 0.0, 0.0, 0.0)
-            if isinstance(sp, Track):
-                p = sp.pos
-                return Track((float("nan"), float("nan"), p[2]), (0.0, 0.0, sp.vel[2]), ZERO3, sp.yaw)
-            if isinstance(sp, Velocity):
-                return Velocity((float("nan"), float("nan"), sp.vel[2]), 0.0)
-            if isinstance(sp, (Hover, ZHold)):
-                return ZHold(0.0, 0.0, sp.z, 0.0)
-            if isinstance(sp, Manual):
-                return Manual(sp.thrust_pwm, 0.0, 0.0, 0.0, False)
-        return sp
-
-    def _control(self, sp: Setpoint) -> None:
-        quad = self.quad
-        self._applied = sp
-        if isinstance(sp, Off):
-            quad.command_attitude(0.0, 0.0, 0.0, 0.0)
-            self._vel_yaw = None
-        elif isinstance(sp, Attitude):
-            quad.command_attitude(pwm_to_thrust(sp.thrust_pwm, self._fmax), sp.roll, sp.pitch, sp.yaw_rate)
-            self._vel_yaw = None
-        elif isinstance(sp, Manual):
-            if sp.rate:
-                lim = self.cfg.tilt_max_manual
-                r, pt = self._manual_att
-                self._manual_att = (max(-lim, min(lim, r + sp.roll * PERIOD)),
-                                    max(-lim, min(lim, pt + sp.pitch * PERIOD)))
-            else:
-                self._manual_att = (sp.roll, sp.pitch)
-            quad.command_attitude(pwm_to_thrust(sp.thrust_pwm, self._fmax), *self._manual_att, sp.yaw_rate)
-            self._vel_yaw = None
-        elif isinstance(sp, ZHold):
-            p, v = self.est_p, self.est_v
-            uz = self.cfg.kp[2] * (sp.z - p[2]) - self.cfg.kv[2] * v[2]
-            tilt = max(0.1, math.cos(sp.roll) * math.cos(sp.pitch))
-            thrust = min(quad.params.collective_thrust_max, max(0.0, quad.mass * (self._g + uz) / tilt))
-            quad.command_attitude(thrust, sp.roll, sp.pitch, sp.yaw_rate)
-            self._vel_yaw = None
-        elif isinstance(sp, Hover):
-            p, v = self.est_p, self.est_v
-            if self._vel_yaw is None:
-                self._vel_yaw = quad.euler()[2]
-            self._vel_yaw = wrap_angle(self._vel_yaw + sp.yaw_rate * PERIOD)
-            c, s = math.cos(self._vel_yaw), math.sin(self._vel_yaw)
-            vref = (c * sp.vx_body - s * sp.vy_body, s * sp.vx_body + c * sp.vy_body)
-            kv = self.cfg.kv_velocity_mode
-            u = [kv[0] * (vref[0] - v[0]), kv[1] * (vref[1] - v[1]),
-                 self.cfg.kp[2] * (sp.z - p[2]) - self.cfg.kv[2] * v[2]]
-            quad.command(np.array(u), self._vel_yaw)
-        elif isinstance(sp, Track):
-            p, v = self.est_p, self.est_v
-            kp, kv = self.cfg.kp, self.cfg.kv
-            u = [0.0 if math.isnan(sp.pos[i]) else
-                 sp.acc[i] + kp[i] * (sp.pos[i] - p[i]) + kv[i] * (sp.vel[i] - v[i]) for i in range(3)]
-            quad.command(np.array(u), sp.yaw)
-            self._vel_yaw = None
-        else:
-            v = self.est_v
-            kv = self.cfg.kv_velocity_mode
-            if self._vel_yaw is None:
-                self._vel_yaw = quad.euler()[2]
-            self._vel_yaw = wrap_angle(self._vel_yaw + sp.yaw_rate * PERIOD)
-            u = [0.0 if math.isnan(sp.vel[i]) else kv[i] * (sp.vel[i] - v[i]) for i in range(3)]
-            quad.command(np.array(u), self._vel_yaw)
-
-    def _advance_world(self, sp: Setpoint) -> None:
-        """Advance the quadrotor by one period with the floor: one call while it cannot reach the
-        floor within the period, steps of ``contact_step`` with the contact force held otherwise,
-        nothing at all while it lies still on the floor with its motors off."""
-        quad = self.quad
-        remaining = PERIOD
-        while remaining > 1e-12:
-            p, v = quad.p, quad.v
-            lowest = p[2] + min(0.0, v[2]) * remaining - 0.5 * self._g * remaining * remaining
-            if lowest > self._z_contact:
-                quad.advance(remaining)
-                return
-            if (isinstance(sp, Off) or (isinstance(sp, (Attitude, Manual)) and sp.thrust_pwm == 0.0)) \
-                    and p[2] <= self._z_contact and float(np.abs(v).max()) < 1e-3 \
-                    and float(np.abs(quad.omega).max()) < 1e-2 \
-                    and float(quad.motor_thrusts.max()) < _MOTORS_STOPPED * quad.mass * self._g:
-                return  # at rest on the floor, motors off: nothing moves
-            h = min(self.cfg.contact_step, remaining)
-            quad.advance(h, self._floor_force(p, v))
-            remaining -= h
-
-    def _floor_force(self, p: np.ndarray, v: np.ndarray) -> np.ndarray | None:
-        """The floor's push [N; world]: a one-sided, preloaded spring-damper under ``z_contact``,
-        with viscous friction on the horizontal velocity while in contact."""
-        depth = self._z_contact - p[2]
-        if depth <= 0.0:
-            return None
-        c = self._c_floor
-        return np.array([-c * v[0], -c * v[1], max(0.0, self._k_floor * depth - c * v[2])])
 
     # --------------------------------------------------------------------------------- logs
     def telemetry(self) -> list[float]:

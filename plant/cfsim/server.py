@@ -149,7 +149,7 @@ class Ticker:
     trace: TextIO | None = None
     """Where to record, after each tick, ``k instance x y z vx vy vz thrust supervisor`` per vehicle:
     tick, position [m] and velocity [m/s] (world frame), collective motor thrust [N] and the
-    supervisor's state (``plant.cfsim.firmware.SupState`` value)."""
+    supervisor's state (``plant.cfsim.supervisor.SupState`` value)."""
 
     async def run(self) -> None:
         """Tick forever (until cancelled)."""

@@ -1,9 +1,10 @@
-"""The simulated Crazyflie's services: log blocks, parameters and memory, each answering its CRTP
-port. Pure.
+"""The simulated Crazyflie's services: link control, platform, log blocks, parameters and memory,
+each answering its CRTP port. Pure.
 
-As in the firmware (``log.c``, ``param_logic.c``, ``crtp_mem.c``), a service knows nothing of what
-it serves: the log service samples the values it is handed, the parameter service tells its owner
-which parameter changed, the memory service reads and writes the memory it is given.
+As in the firmware (``crtpservice.c``, ``platformservice.c``, ``log.c``, ``param_logic.c``,
+``crtp_mem.c``), a service knows nothing of what it serves: the log service samples the values it
+is handed, the parameter service tells its owner which parameter changed, the memory service reads
+and writes the memory it is given, the platform service asks the supervisor to arm.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from dataclasses import dataclass, field
 
 from plant.cfsim import crtp, toc, trajectory
 from plant.cfsim.crtp import Packet, Port
+from plant.cfsim.supervisor import Supervisor
 
 LOG_MAX_BLOCKS = 16
 LOG_MAX_OPS = 128
@@ -23,6 +25,60 @@ LOG_MAX_LEN = 26
 """Largest log block payload [bytes] (30 minus block id and 3-byte timestamp)."""
 
 
+# ---------------------------------------------------------------------- link and platform
+def link_reply(pkt: Packet) -> list[Packet]:
+    """Answer one link-control packet: echo, the source's fixed text, the null packet; a sink packet
+    is swallowed."""
+    if pkt.channel == crtp.LINK_ECHO_CHANNEL:
+        return [pkt]
+    if pkt.channel == crtp.LINK_SOURCE_CHANNEL:
+        return [Packet(Port.LINKCTRL, crtp.LINK_SOURCE_CHANNEL, b"Bitcraze Crazyflie".ljust(crtp.MAX_DATA, b"\0"))]
+    if pkt.is_null:
+        return [Packet(0xF, 3)]  # cflib's scan probe: any answer will do
+    return []
+
+
+class PlatformService:
+    """The platform port: version queries, and the arming and recovery commands older cflib sends
+    here instead of to the supervisor port. Not thread-safe; calls return at once.
+
+    Attributes:
+        ignored: well-formed packets of features this simulator does not implement.
+    """
+
+    def __init__(self, sup: Supervisor) -> None:
+        self.sup = sup
+        self.ignored = 0
+
+    def handle(self, pkt: Packet) -> list[Packet]:
+        """Answer one platform-port packet."""
+        ch, d = pkt.channel, pkt.data
+        if ch == crtp.PLATFORM_VERSION_CHANNEL:
+            cmd = d[0]
+            if cmd == crtp.PLATFORM_VERSION_PROTOCOL:
+                return [Packet(Port.PLATFORM, ch, struct.pack("<Bi", cmd, crtp.PROTOCOL_VERSION))]
+            if cmd == crtp.PLATFORM_VERSION_FIRMWARE:
+                return [Packet(Port.PLATFORM, ch, bytes((cmd,)) + crtp.FIRMWARE_TAG.encode())]
+            if cmd == crtp.PLATFORM_VERSION_DEVICE:
+                return [Packet(Port.PLATFORM, ch, bytes((cmd,)) + crtp.DEVICE_TYPE.encode())]
+            self.ignored += 1
+            return []
+        if ch == crtp.PLATFORM_COMMAND_CHANNEL:
+            cmd = d[0]
+            if cmd == crtp.PLATFORM_ARM:
+                ok = self.sup.request_arming(bool(d[1]))
+                return [Packet(Port.PLATFORM, ch, bytes((cmd, ok, self.sup.armed)))]
+            if cmd == crtp.PLATFORM_RECOVER:
+                ok = not self.sup.locked
+                return [Packet(Port.PLATFORM, ch, bytes((cmd, ok, 1)))]
+            if cmd == crtp.PLATFORM_NOTIFY:
+                return [Packet(Port.PLATFORM, ch)]
+            return [pkt]  # continuous wave and the rest: echoed, as the firmware does
+        self.ignored += 1
+        return []
+
+
+# ------------------------------------------------------------------------------------- TOC
 def toc_reply(port: Port, d: bytes, items: list[bytes], extra: bytes = b"") -> list[Packet] | None:
     """Answer a TOC command (channel 0 of the log and param ports) from the wire forms ``items``;
     ``extra`` follows the TOC info. None for the v1 commands (protocol < 4), which are not served."""
