@@ -161,7 +161,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     (``deploy.gen`` alone brings ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
     p = _Tether(prog="tether", description=DESCRIPTION, epilog=EPILOG)
     p.add_argument("--version", action=_Version)
-    p.commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p.commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     if command in roles.PROCESSES:
         roles.add_parsers(p.commands)
         return p
