@@ -176,6 +176,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     swarm.add_deploy_parsers(p.commands)
     record.add_parser(p.commands)
     top.add_parser(p.commands)
+    for listed in p.commands._choices_actions:  # `tether X --help` opens with what X does
+        parser = p.commands.choices[listed.dest]
+        if parser.description is None and listed.help:
+            parser.description = f"{listed.help[0].upper()}{listed.help[1:]}."
     return p
 
 

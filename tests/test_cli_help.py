@@ -183,3 +183,4 @@ def test_every_commands_help_is_shown() -> None:
         assert f"usage: tether {name}" in p.format_help(), name
     r = tether("run", "--help")
     assert r.returncode == 0 and "usage: tether run" in r.stdout and "--stall-timeout" in r.stdout, r.stderr
+    assert "Run a mission as separate processes over Zenoh" in " ".join(r.stdout.split())  # what it does, first
