@@ -161,7 +161,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     (``deploy.gen`` alone brings ``subprocess``, ``hashlib``, ``secrets`` and ``tempfile``)."""
     p = _Tether(prog="tether", description=DESCRIPTION, epilog=EPILOG)
     p.add_argument("--version", action=_Version)
-    p.commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p.commands = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     if command in roles.PROCESSES:
         roles.add_parsers(p.commands)
         return p
@@ -176,6 +176,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     swarm.add_deploy_parsers(p.commands)
     record.add_parser(p.commands)
     top.add_parser(p.commands)
+    for listed in p.commands._choices_actions:  # `tether X --help` opens with what X does
+        parser = p.commands.choices[listed.dest]
+        if parser.description is None and listed.help:
+            parser.description = f"{listed.help[0].upper()}{listed.help[1:]}."
     return p
 
 

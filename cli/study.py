@@ -64,7 +64,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     mc.add_argument("--laws", default=None, help="laws to run (default: the mission's)")
     mc.add_argument("--duration", type=seconds, default=None, help="override the mission's duration [s]")
     mc.add_argument("--engine", choices=["inprocess", "runtime"], default="inprocess",
-                    help="inprocess (default): every cell in one process each; runtime: real processes over Zenoh")
+                    help="inprocess (default): the lockstep runtime's arithmetic, one process per cell (equal bit for "
+                         "bit, faster); runtime: real processes over Zenoh (tether run) for every cell")
     mc.add_argument("--jobs", type=int, default=1, help="cells run at once (local processes)")
     mc.add_argument("--compensate", action=argparse.BooleanOptionalAction, default=None,
                     help="latency compensation on every agent (default: as the mission's [links] says)")

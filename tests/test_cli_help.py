@@ -176,3 +176,11 @@ def test_run_and_demo_end_with_what_to_do_next(tmp_path: Path) -> None:
     assert str(demo / "xy.png") in r.stdout.split("\nnext:\n")[1]
     assert "tether reproduce section4" in r.stdout and "tether missions" in r.stdout
     assert "simulating the same mission in the reference simulator" in r.stderr
+
+
+def test_every_commands_help_is_shown() -> None:
+    for name, p in _commands().items():
+        assert f"usage: tether {name}" in p.format_help(), name
+    r = tether("run", "--help")
+    assert r.returncode == 0 and "usage: tether run" in r.stdout and "--stall-timeout" in r.stdout, r.stderr
+    assert "Run a mission as separate processes over Zenoh" in " ".join(r.stdout.split())  # what it does, first
