@@ -89,7 +89,7 @@ def loaded_by_command(argv: list[str]) -> list[str]:
 def test_a_control_process_loads_no_other_subcommand(role: str) -> None:
     """A process command builds only its own part of the command line: the study, deployment,
     recording and terminal subcommands (and ``subprocess``, ``hashlib``, ``tempfile`` they bring) cost
-    every process about 1 MiB of memory (docs/benchmarks.md, "An agent's memory")."""
+    every process about 1 MiB of memory."""
     argv = [role, "--mission", "section4"] + (["--id", "1"] if role in ("agent", "plant") else []) \
         + (["--out", "run"] if role == "recorder" else [])
     names = loaded_by_command(argv)
