@@ -53,7 +53,7 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
     pos[0, :, :n], vel[0, :, :n] = s.p0.T, s.v0.T
     meas = np.zeros((d, n))
     state = layout(bound, n, d)
-    coef = bound.coefficients(h)  # per axis a tuple (the kernels index it by axis)
+    coef = lawkernels.coefficients(bound, h)
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     kept = ticks if record else ticks[-1:]
@@ -144,7 +144,7 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
                                    for x in ref(times.ravel()))
         kern.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, exp_lead, lead0, decay,
                           em, xm, kappa,
-                          slot_src, slot_w, swd, a_lead, *plan.kernel_args(), bound.rates(), const, amp, *sines,
+                          slot_src, slot_w, swd, a_lead, *plan.kernel_args(), lawkernels.rates(bound), const, amp, *sines,
                           table, hold, has_random, sin_m, cos_m, *_outputs(run))
         if progress is not None and k1 <= steps:
             progress(k0, steps)

@@ -314,8 +314,8 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
     one thread (``blocks`` is :func:`discrete_parallel`'s, unused here).
 
     Structure of arrays, axis first: ``pos, vel, acc`` ``(2, d, N+1)`` (double-buffered: ``[k % 2]``
-    is tick k's; column N the leader), ``meas`` ``(d, N)``, ``state`` ``(S, d, N)`` (the law's; ``coef`` per axis
-    the tuple of its coefficients), the
+    is tick k's; column N the leader), ``meas`` ``(d, N)``, ``state`` ``(S, d, N)`` (the law's; ``coef`` ``(d, C)``
+    its coefficients, row c axis c's), the
     bank's ``(n, d)`` arrays transposed to ``(d, n)``. Samples go to row k of ``out_*`` ``(T, N, d)``
     (``record``) or row 0 at ``k == steps``."""
     d, n = meas.shape
@@ -548,7 +548,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                exp_lead: bool, lead0: np.ndarray, decay: float, em: np.ndarray, xm: np.ndarray,
                kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
                perm: np.ndarray, dense: bool, block_ptr: np.ndarray, ext_ptr: np.ndarray, ext_src: np.ndarray,
-               ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, rcoef: tuple,
+               ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, rcoef: np.ndarray,
                const: np.ndarray, amp: np.ndarray, u_omega: np.ndarray, u_phase: np.ndarray, u_inv: np.ndarray,
                table: np.ndarray, hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
                out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
@@ -560,7 +560,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     in solving order (:class:`SolvePlan`; agent ``perm[q]`` at position q, the samples written back
     in the mission's order), ``x = c (N+1) + N`` the leader's. ``y`` ``(2 + S, d (N+1))`` the state
     [p, v, the law's S state variables] (the leader's elements unused: its state is its reference);
-    ``rcoef`` per axis the coefficients of the law's ``rate``; the bank's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; the leader's reference at
+    ``rcoef`` ``(d, R)`` per axis the coefficients of the law's ``rate``; the bank's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; the leader's reference at
     the stage times (:func:`stage_times`), ``ref_*`` ``(d, (k1 - k0) substeps 3)``, unless
     ``exp_lead``: then the leader is :class:`leader.profile.ExpAccel` (``lead0`` its ``p0, v0, a0``,
     ``(3, d)``; ``decay``), evaluated here in closed form (``em, xm``: :func:`exp_tables`), and

@@ -27,8 +27,9 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from agent.laws import FormationLaw
-from agent.laws import sigma
+import numpy as np
+
+from agent.laws import Bound, FormationLaw, sigma
 
 _BUILT: dict[tuple[str, type], ModuleType] = {}
 
@@ -107,3 +108,16 @@ def of(template: str, law: FormationLaw) -> ModuleType:
 def kernel_of(template: str, law: FormationLaw) -> Any:
     """:func:`of`, typed loosely for its callers (the generated module's names are the template's)."""
     return of(template, law)
+
+
+def coefficients(bound: Bound, h: float) -> np.ndarray:
+    """The law's coefficients for the period ``h`` as the compiled engines take them: ``(d, C)``,
+    row c axis c's (the step indexes a row as it indexes its tuple)."""
+    cf = bound.coefficients(h)
+    return np.array(cf, dtype=float).reshape(len(cf), len(cf[0]) if cf else 0)
+
+
+def rates(bound: Bound) -> np.ndarray:
+    """The law's continuous-time coefficients, ``(d, R)`` as :func:`coefficients`."""
+    rc = bound.rates()
+    return np.array(rc, dtype=float).reshape(len(rc), len(rc[0]) if rc else 0)

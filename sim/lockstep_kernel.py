@@ -207,7 +207,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     # the law's state, (S, N, d) (one row of zeros for a law without state: an array numba can index)
     init = bound.initial() or ((0.0,) * d,)
     state = np.ascontiguousarray(np.stack([np.broadcast_to(np.asarray(row, dtype=float), (n, d)) for row in init]))
-    coef = laws[0].coefficients
+    coef = lawkernels.coefficients(bound, h)
     ticks = lawkernels.kernel_of("sim.lockstep_kernel", bound.law)._ticks
     last_u = np.zeros((n, d))
     used = np.zeros(links, dtype=np.int64)
@@ -415,7 +415,7 @@ _reach = kernel.jit(_reach_py)
 
 
 def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, three: bool, ground: float,
-              kappa: np.ndarray, swd: np.ndarray, coef: tuple, state: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
+              kappa: np.ndarray, swd: np.ndarray, coef: np.ndarray, state: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
               neighbour_timeout: float, max_err: float, gain_cap: float, max_speed: float, max_accel: float,
               diverge_at: float, off: np.ndarray, l_src: np.ndarray, l_leader: np.ndarray, l_w: np.ndarray,
               l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, lead: np.ndarray,
@@ -434,7 +434,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     the Python engine.
 
     State carried between calls: ``p, v, a`` (the plants), ``last_u``, the law's ``state``
-    ``(S, N, d)`` (``coef``: per axis, its coefficients), ``used``, the
+    ``(S, N, d)`` (``coef`` ``(d, C)``: per axis, its coefficients), ``used``, the
     history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N the leader) and ``hmode``
     ``(R, N+1)`` (the mode each sample carried), and each supervisor's ``mode, cause, since, p_hold,
     lost`` (the dropped edges: bit b for link slot b) with the law over its surviving edges

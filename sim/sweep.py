@@ -317,6 +317,8 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
     if executor is not None and engine == "runtime":
         raise SweepError("--executor: the runtime engine writes each point's run file on the machine that runs "
                          "it; use --engine inprocess with --executor")
+    if m.law.kind == "custom" and tuple(laws) == LAWS:  # the paper's two laws by default; a law of one's own alone
+        laws = ("custom",)
     points = points_of(m, loss=loss, delay=delay, burst=burst, laws=laws, sigma=sigma, gamma_p=gamma_p,
                        gamma_v=gamma_v, seeds=seeds)
     if len(points) > study.MAX_CELLS:

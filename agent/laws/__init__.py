@@ -20,7 +20,8 @@ A formation law is a class with
   axis; ``sp, sv, sa`` the weighted sums ``sum_j a_ij p_j``, ``sum_j a_ij v_j``, ``sum_j a_ij a_j``
   over its in-neighbours (the leader among them where it hears it; ``sa`` is 0 with
   ``feedforward = "none"``); ``sd = sum_j a_ij delta_ij`` [m], the constant formation offset term;
-  ``x`` the tuple of its state, ``c`` the tuple of its coefficients. It returns the command ``u``
+  ``x`` the tuple of its state, ``c`` its coefficients (a tuple, or in the compiled engines a row
+  of an array: the step only indexes it, ``c[0]``). It returns the command ``u``
   [m/s^2], the errors ``xi`` and ``zeta`` recorded beside it (Eq. 8, 9, or what the law calls its
   errors), and the state for the next tick (``len(state)`` floats).
 * ``rate`` (optional; the reference simulator's ``continuous`` mode needs it): the law in

@@ -48,7 +48,7 @@ class PDConsensus(FormationLaw):
         out = axis_problems(params.kp, dim, "kp") + axis_problems(params.kv, dim, "kv")
         for name in ("kp", "kv"):
             value = getattr(params, name)
-            for k, g in enumerate(per_axis(value, dim) if not out else ()):
+            for k, g in enumerate((value if isinstance(value, list) else [value]) if not out else []):
                 if not g > 0:
                     field = name + (f"[{k}]" if isinstance(value, list) else "")
                     out.append((field, f"is {g}; a PD gain must be > 0 (e.g. {name} = 2.0)"))
