@@ -7,12 +7,14 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
 import pytest
 
 from agent import laws
+from agent.laws import FormationLaw
 from sim import lockstep, lockstep_kernel, refsim
 from tether import mission as ms
 from tether.node import load_mission
@@ -21,6 +23,35 @@ from tether.runfile import Run
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "custom_law" / "mission.toml"
 SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d")
+
+
+class PIParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    kp: float
+    kv: float
+    ki: float
+
+
+def pi_step(ka: Any, p: Any, v: Any, sp: Any, sv: Any, sa: Any, sd: Any, x: tuple[Any], c: Any) -> tuple[Any, ...]:
+    """PD with an integral of xi (one state variable per axis; ``c = (kp, kv, ki, h)``)."""
+    (s,) = x
+    e = ka * p - sp - sd
+    z = ka * v - sv
+    return (sa - c[0] * e - c[1] * z - c[2] * s) / ka, e, z, (s + c[3] * e,)
+
+
+class PIConsensus(FormationLaw):
+    """A law with one state variable per axis, as an integrator has: the engines' state of any size."""
+
+    name = "pi"
+    state = ("integral",)
+    Params = PIParams
+    step = staticmethod(pi_step)
+
+    def initial(self, params: PIParams, dim: int) -> tuple[tuple[float, ...], ...]:
+        return ((0.0,) * dim,)
+
+    def coefficients(self, params: PIParams, h: float, dim: int) -> tuple[tuple[float, ...], ...]:
+        return ((params.kp, params.kv, params.ki, h),) * dim
 
 
 def example(duration: float = 3.0) -> ms.Mission:
@@ -83,6 +114,21 @@ def test_in_process_engine_and_its_twin_equal_the_reference_bit_for_bit() -> Non
     assert np.all(python.kp == 0.0) and np.abs(python.xi).max() > 0.1  # no state; a run that moved
 
 
+def test_a_law_with_one_state_variable_is_equal_in_every_engine() -> None:
+    pytest.importorskip("numba")
+    raw = msgspec.to_builtins(example())
+    raw["law"] = {"use": "tests.test_law_custom:PIConsensus", "params": {"kp": 2.0, "kv": 2.0, "ki": 0.5}}
+    m = msgspec.convert(raw, ms.Mission)
+    a = refsim.simulate(m, engine="numpy")
+    assert np.abs(a.kp).max() > 0.01 and np.all(a.kv == 0.0)  # the integral recorded in the first column
+    assert_same(a, refsim.simulate(m, engine="compiled"))
+    python = lockstep.simulate(m, engine="python")
+    assert_same(a, python)
+    twin = lockstep_kernel.simulate(m)
+    assert twin is not None
+    assert_same(python, twin)
+
+
 def test_a_law_without_a_continuous_form_refuses_the_continuous_mode() -> None:
     with pytest.raises(ValueError, match="continuous-time form"):
         refsim.simulate(example(), "continuous")
@@ -102,9 +148,9 @@ SUMMED = {
 @pytest.mark.parametrize("terms", sorted(SUMMED))
 @pytest.mark.parametrize("mission", ["custom", "section4"])
 def test_summed_disturbances_equal_in_every_engine(terms: str, mission: str) -> None:
-    """Several models summed on each agent (a held term and a sinusoid: where the compiled kernel
-    once added in another order): the numpy path, the compiled kernel, the in-process engine and
-    its twin give the same bits, for the example law and Eq. 17."""
+    """Several models summed on each agent (a held term and a sinusoid, whose increments differ in
+    the last bits when added in another order): the numpy path, the compiled kernel, the in-process
+    engine and its twin give the same bits, for the example law and Eq. 17."""
     pytest.importorskip("numba")
     from tether.catalog import builtin_path
 
