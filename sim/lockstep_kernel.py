@@ -208,7 +208,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     init = bound.initial() or ((0.0,) * d,)
     state = np.ascontiguousarray(np.stack([np.broadcast_to(np.asarray(row, dtype=float), (n, d)) for row in init]))
     coef = lawkernels.coefficients(bound, h)
-    ticks = lawkernels.kernel_of("sim.lockstep_kernel", bound.law)._ticks
+    try:
+        ticks = lawkernels.kernel_of("sim.lockstep_kernel", bound.law)._ticks
+    except OSError:  # no writable cache for another law's kernels: the Python engine runs it
+        return None
     last_u = np.zeros((n, d))
     used = np.zeros(links, dtype=np.int64)
     r_said = np.zeros(links, dtype=np.int64)
