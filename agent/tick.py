@@ -7,13 +7,13 @@ The agent process (``agent/node.py``) and the in-process engine (``sim/lockstep.
   (:meth:`AgentTick.shared`) and whether the neighbours' accelerations enter Eq. 17 at all;
 * the neighbour-sample policy (``[links]``, :func:`agent.law.neighbour_sample`): a sample older
   than ``max_age``, or none, stands for "in formation, not accelerating"; latency compensation;
-* the law step (:meth:`agent.law.AgentLaw.step`) with the gains ``K(t_k)``, then the exact gain
-  update for the next tick;
+* the law step (:meth:`agent.law.AgentLaw.step`, the mission's :class:`agent.laws.FormationLaw`)
+  with its state at ``t_k``, and its state for the next tick;
 * the per-link statistics the tick itself knows: samples used, and the ages of the samples used
   over the last :data:`AGE_WINDOW` ticks (their percentiles are computed only when asked);
 * the safety supervisor (:class:`agent.safety.Supervisor`): lost in-neighbours dropped with
   kappa_i re-normalised, the mode, and the command that leaves the agent (saturated; HOLD, LAND,
-  LANDED or ESTOP when something is wrong). The gains advance only while FLYING.
+  LANDED or ESTOP when something is wrong). The law's state advances only while FLYING.
 
 The reference simulator (``sim/refsim.py``) keeps its vectorised form of the same arithmetic and
 is tested equal to both.
@@ -50,7 +50,8 @@ class TickResult(NamedTuple):
         u: the command that leaves the agent at this tick [m/s^2; world frame], ``d`` floats
             (the supervisor's: the law's saturated while FLYING).
         xi, zeta: the errors (Eq. 8, 9), ``d`` floats.
-        kp, kv: the gains used for ``u`` (``K(t_k)``), ``d`` floats.
+        kp, kv: the law's first two state variables at ``t_k`` (Eq. 17's gains ``K(t_k)``), ``d``
+            floats each (zeros for a law with fewer).
         ages: per in-neighbour, the age of its newest sample [s] (NaN: none held).
         used: per in-neighbour, whether its sample was used (else it was substituted).
         mode: the supervisor's mode after this tick (a code of :data:`tether.wire.MODES`).
@@ -67,7 +68,7 @@ class TickResult(NamedTuple):
 
 
 class AgentTick:
-    """Agent i's state between ticks (gains, previous command, link statistics) and its tick."""
+    """Agent i's state between ticks (the law's, previous command, link statistics) and its tick."""
 
     def __init__(self, law: AgentLaw, policy: LinkPolicy, feedforward: str, dim: int,
                  supervisor: Supervisor, age_window: int = AGE_WINDOW) -> None:
@@ -76,8 +77,9 @@ class AgentTick:
         self._laws: dict[frozenset[int], AgentLaw] = {frozenset(): law}
         self.policy = policy
         self.feedforward = feedforward
-        self.kp: list[float] = list(law.params.kp0)
-        self.kv: list[float] = list(law.params.kv0)
+        self._zero = [0.0] * dim
+        self.state: list[list[float]] = law.initial()
+        """The law's state at the coming tick: per state variable, ``dim`` floats."""
         self.last_u: list[float] = [0.0] * dim
         """The command of the previous tick: what the agent shares as its acceleration with
         ``feedforward = "commanded"`` (the plant's sample of tick k comes after the command of k-1)."""
@@ -142,16 +144,18 @@ class AgentTick:
         lost, reachable, leader_silent = sup.links(k, t, ages, status)
         cached = self._laws.get(lost)
         law = cached if cached is not None else self._laws.setdefault(lost, self.law.without(lost))
-        u_law, xi, zeta, kp_next, kv_next = law.step(p, v, nb_p, nb_v, nb_a, self.kp, self.kv)
-        u = sup.command(k, t, p, v, u_law, xi, self.kp, self.kv, reachable, leader_silent, status)
+        state = self.state
+        u_law, xi, zeta, *state_next = law.step(p, v, nb_p, nb_v, nb_a, *state)
+        kp, kv = law.bound.shown(state, self._zero)
+        u = sup.command(k, t, p, v, u_law, xi, kp, kv, reachable, leader_silent, status)
         av = sup.cfg.avoid
         if av is not None and near and (sup.flying or sup.mode in (HOLD, LAND)):
             filtered = filter_command(u, p, v, near, av.radius, av.sensing, av.gain, av.brake)
             safe = failsafe.saturate(filtered, sup.cfg.max_accel)
             u = u if safe is None else safe
-        out = TickResult(u, xi, zeta, self.kp, self.kv, ages, oks, sup.mode)
+        out = TickResult(u, xi, zeta, kp, kv, ages, oks, sup.mode)
         if sup.flying:
-            self.kp, self.kv = kp_next, kv_next
+            self.state = state_next
         self.last_u = u
         return out
 

@@ -770,7 +770,7 @@ def case_python(a: argparse.Namespace, work: Path, report: dict) -> None:
         sender=1, seq=1, k=1, t=0.01, **dict(zip(("p", "vel", "a"), (x.tolist() for x in ref(0.05)))))))
     law = AgentLaw.from_mission(m, m.agent_ids[0])
     nb = np.zeros((len(law.neighbours), d))
-    kp, kv = np.array(law.params.kp0), np.array(law.params.kv0)
+    kp, kv = (np.array(x) for x in law.initial())
     # AgentLaw.step takes numpy arrays as well as lists (its docstring), but is annotated for lists
     # (tether.vec.Vec): the arrays this figure times, cast outside the timed call (the same objects)
     p0_s, kp_s, kv_s = cast(Sequence[float], p0), cast(Sequence[float], kp), cast(Sequence[float], kv)

@@ -56,7 +56,7 @@ def main() -> None:
     nb_p = np.array([h[1] for h in heard])
     nb_v = np.array([h[2] for h in heard])
     nb_a = np.zeros((nb, d))
-    kp, kv = np.array(law.params.kp0), np.array(law.params.kv0)
+    kp, kv = (np.array(x) for x in law.initial())
     h = m.dt
     # the tick takes samples as they come off the wire: lists of floats
     pl, vl, al = p.tolist(), v.tolist(), a.tolist()

@@ -28,7 +28,8 @@ plant's step.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
 
@@ -138,6 +139,24 @@ class DisturbanceBank:
         object.__setattr__(self, "_has_random", bool(np.any(self.table != 0.0)))
         object.__setattr__(self, "_has_const", bool(np.any(self.const != 0.0)))
         object.__setattr__(self, "_block", {"k0": 0, "ticks": 0})
+
+    @property
+    def flags(self) -> tuple[bool, bool, bool]:
+        """Which models the bank holds: ``(sinusoids, random terms, constants)``."""
+        return bool(self._has_sine), bool(self._has_random), bool(self._has_const)
+
+    @property
+    def layout_known(self) -> bool:
+        """Whether this bank's fields are those :meth:`arrays` describes (a bank of a subclass, or of
+        a model added since, is not: the compiled engines then use its methods)."""
+        return type(self) is DisturbanceBank and frozenset(f.name for f in fields(self)) == _LAYOUT
+
+    def arrays(self) -> tuple[Any, ...]:
+        """The bank as the compiled kernels take it (``sim.kernel``): ``const, amp, omega, phase,
+        table, hold_ticks`` (int64), the sinusoids' increment coefficients ``cv_s, cv_c, cp_s, cp_c``
+        (``dv = sin cv_s + cos cv_c``, ``dp = sin cp_s + cos cp_c``), then :attr:`flags`."""
+        return (self.const, self.amp, self.omega, self.phase, self.table, self.hold_ticks.astype(np.int64),
+                self._cv_s, self._cv_c, self._cp_s, self._cp_c, *self.flags)
 
     @property
     def is_zero(self) -> bool:
@@ -253,6 +272,11 @@ class DisturbanceBank:
         dv, dp = s0 * self._cv_s + c0 * self._cv_c, s0 * self._cp_s + c0 * self._cp_c
         lead = s0.ndim - self._cv_s.ndim
         return _layers(dv, lead), _layers(dp, lead)
+
+
+_LAYOUT = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s", "_cp_c",
+                     "_has_sine", "_has_random", "_has_const", "_block"})
+"""The fields :meth:`DisturbanceBank.arrays` describes."""
 
 
 def _layers(x: np.ndarray, lead: int) -> np.ndarray:

@@ -9,8 +9,9 @@ from __future__ import annotations
 import msgspec
 import numpy as np
 
+from agent import laws
 from leader import profile
-from sim import kernel
+from sim import kernel, lawkernels
 from sim.refsim import Progress, Setup, check_continuous
 from tether import wire
 from tether.runfile import Run, RunMeta
@@ -20,6 +21,15 @@ _FEED = {"measured": 0, "commanded": 1, "none": 2}
 
 def _outputs(run: Run) -> tuple[np.ndarray, ...]:
     return run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, run.d
+
+
+def layout(bound: laws.Bound, n: int, d: int) -> np.ndarray:
+    """The law's initial state as the kernels take it: ``(S, d, N)``, axis first (``(1, d, N)`` of
+    zeros for a law without state, so that the array has a shape numba can index)."""
+    rows = bound.initial()
+    if not rows:
+        return np.zeros((1, d, n))
+    return np.ascontiguousarray(np.stack([np.broadcast_to(np.asarray(r, dtype=float)[:, None], (d, n)) for r in rows]))
 
 
 def _chunks(steps: int) -> list[tuple[int, int]]:
@@ -32,11 +42,9 @@ def _chunks(steps: int) -> list[tuple[int, int]]:
 def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta, threads: int = 1) -> Run:
     """:func:`sim.refsim.simulate`'s discrete mode, bit for bit. ``threads > 1`` splits each tick's agents
     into that many blocks computed on numba's threads (the same run bit for bit)."""
-    from agent import law
-
-    m, topo, prm = s.mission, s.topo, s.params
+    m, topo, bound = s.mission, s.topo, s.bound
     n, d, h = m.n, m.dim, m.dt
-    gs = law.GainStep.over(prm.sigma, h)
+    kern = lawkernels.kernel_of("sim.kernel", bound.law)
     ticks = np.arange(steps + 1)
     lp, lv, la = s.ref(ticks * h)
     lp, lv, la = (np.array(np.broadcast_to(x, (steps + 1, d)), dtype=float, order="C") for x in (lp, lv, la))
@@ -44,8 +52,8 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
     pos, vel, acc = np.zeros((2, d, n + 1)), np.zeros((2, d, n + 1)), np.zeros((2, d, n + 1))
     pos[0, :, :n], vel[0, :, :n] = s.p0.T, s.v0.T
     meas = np.zeros((d, n))
-    gains = np.ascontiguousarray(np.stack([np.broadcast_to(prm.kp0, (n, d)).T, np.broadcast_to(prm.kv0, (n, d)).T]),
-                                 dtype=float)
+    state = layout(bound, n, d)
+    coef = lawkernels.coefficients(bound, h)
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     kept = ticks if record else ticks[-1:]
@@ -53,16 +61,15 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
     run.leader_p[:], run.leader_v[:], run.leader_a[:] = lp[kept], lv[kept], la[kept]
     slot_w = np.ascontiguousarray(topo.slot_weight[:, :, 0])
     bank = tuple(np.ascontiguousarray(x.T) if isinstance(x, np.ndarray) and x.ndim == 2 else x
-                 for x in kernel.bank_arrays(s.dist))
+                 for x in s.dist.arrays())
     swd = np.ascontiguousarray(s.sum_wdelta.T)
     feed = _FEED[m.law.feedforward]
     u_omega, u_phase, inv = kernel.sine_pairs(bank[2], bank[3])
     blocks = max(1, min(threads, n))
-    step = kernel.discrete if blocks == 1 else kernel.discrete_parallel
+    step = kern.discrete if blocks == 1 else kern.discrete_parallel
     for k0, k1 in _chunks(steps):
         step(k0, k1, steps, record, h, 0.5 * h * h, topo.kappa, topo.slot_src, slot_w, swd,
-             feed, gs.decay, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, lp, lv, la,
-             pos, vel, acc, meas, gains, *bank, *_outputs(run), u_omega, u_phase, inv, blocks)
+             feed, coef, lp, lv, la, pos, vel, acc, meas, state, *bank, *_outputs(run), u_omega, u_phase, inv, blocks)
         if progress is not None and k1 <= steps:
             progress(k0, steps)
     if progress is not None:
@@ -72,8 +79,9 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
 
 def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta) -> Run:
     """:func:`sim.refsim.simulate`'s continuous mode, to round-off."""
-    m, topo, prm = s.mission, s.topo, s.params
+    m, topo, bound = s.mission, s.topo, s.bound
     check_continuous(m)
+    kern = lawkernels.kernel_of("sim.kernel", bound.law)
     n, d, h = m.n, m.dim, m.dt
     plan = kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa)
     perm = plan.perm  # the kernel numbers the agents in solving order: agent perm[q] at position q
@@ -84,11 +92,13 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
         return np.ascontiguousarray(np.asarray(x, dtype=float)[perm].T)
 
     meta = msgspec.structs.replace(meta, substeps=substeps)
-    # structure of arrays, axis first: the state [p, v, Kp, Kv] (column N the leader's, unused: kernel.continuous)
-    y = np.ones((4, d, n + 1))
+    # structure of arrays, axis first: the state [p, v, the law's] (column N the leader's, unused:
+    # kernel.continuous)
+    init = bound.initial()
+    y = np.ones((2 + len(init), d, n + 1))
     y[0, :, :n], y[1, :, :n] = axis_first(s.p0), axis_first(s.v0)
-    y[2, :, :n] = axis_first(np.broadcast_to(prm.kp0, (n, d)))
-    y[3, :, :n] = axis_first(np.broadcast_to(prm.kv0, (n, d)))
+    for row, x0 in enumerate(init):
+        y[2 + row, :, :n] = axis_first(np.broadcast_to(x0, (n, d)))
     rows = steps + 1 if record else 1
     run = Run.empty(rows, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     ticks = np.arange(steps + 1)
@@ -102,7 +112,7 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     a_lead = np.zeros(n)  # a_i0, from the edge arrays (topo.adjacency is N^2)
     a_lead[topo.dst[topo.src == n]] = topo.weight[topo.src == n]
     a_lead = np.ascontiguousarray(a_lead[perm])
-    bank = kernel.bank_arrays(s.dist)
+    bank = s.dist.arrays()
 
     def flat(x: np.ndarray) -> np.ndarray:  # (N, d) per agent -> (d (N+1),), the leader's elements zero
         out = np.zeros((d, n + 1))
@@ -114,7 +124,7 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
     swd = flat(s.sum_wdelta)
     sin_m, cos_m = kernel.rotation_tables(omega, h, substeps)
     sines = kernel.sine_pairs(omega, phase)  # the leader's elements (0, 0): sin 0, amplitude 0
-    state = y.reshape(4, d * (n + 1))  # a view: the kernel's flat layout
+    state = y.reshape(len(y), d * (n + 1))  # a view: the kernel's flat layout
     # the exponential profile (Section 4's, a hold's) in closed form in the kernel; any other
     # evaluated here at every stage time
     ref = s.ref
@@ -132,10 +142,10 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
             # axis first, (d, stages)
             ref_p, ref_v, ref_a = (np.ascontiguousarray(np.broadcast_to(x, (times.size, d)).T)
                                    for x in ref(times.ravel()))
-        kernel.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, exp_lead, lead0, decay,
+        kern.continuous(k0, k1, steps, record, h, substeps, state, ref_p, ref_v, ref_a, exp_lead, lead0, decay,
                           em, xm, kappa,
-                          slot_src, slot_w, swd, a_lead, *plan.kernel_args(), prm.gamma_p, prm.gamma_v,
-                          prm.sigma, const, amp, *sines, table, hold, has_random, sin_m, cos_m, *_outputs(run))
+                          slot_src, slot_w, swd, a_lead, *plan.kernel_args(), lawkernels.rates(bound), const, amp, *sines,
+                          table, hold, has_random, sin_m, cos_m, *_outputs(run))
         if progress is not None and k1 <= steps:
             progress(k0, steps)
     if progress is not None:

@@ -23,9 +23,12 @@ arithmetic, operation for operation, agent by agent, without a numpy temporary p
   angle-addition formula (two sines a control step per axis instead of forty) and the stages at
   one time share theirs: it equals the numpy path to round-off, not bit for bit.
 
-The disturbance bank is read from its arrays (:func:`bank_arrays`); a bank whose layout this module
-does not know (a model added to :mod:`plant.disturbance` since) makes :func:`supports` say no, and
-the simulator keeps its numpy path, which goes through the bank's own methods.
+The disturbance bank is read from its arrays (:meth:`~plant.disturbance.DisturbanceBank.arrays`); a
+bank of another layout (``layout_known`` False) makes :func:`supports` say no, and the simulator
+keeps its numpy path, which goes through the bank's own methods.
+
+The law is the mission's :class:`agent.laws.FormationLaw`, called through ``law_step`` and
+``law_rate`` (:mod:`sim.lawkernels` compiles a copy of this module for a law other than Eq. 17's).
 
 Without numba installed, :data:`AVAILABLE` is False and nothing here is compiled.
 """
@@ -38,6 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from agent.laws import sigma
 from plant.disturbance import DisturbanceBank
 from tether import graph
 
@@ -50,25 +54,12 @@ except ImportError:  # exercised where numba is missing (tests/test_refsim_kerne
 AVAILABLE = numba is not None
 """Whether the compiled kernels can run here (numba imports)."""
 
-_BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s",
-                          "_cp_c", "_has_sine", "_has_random", "_has_const", "_block"})
-"""The :class:`DisturbanceBank` layout the kernels evaluate."""
-
-
 def supports(dist: DisturbanceBank) -> bool:
     """Whether the kernels evaluate ``dist`` exactly as its own methods do (its layout is known)."""
-    return (AVAILABLE and type(dist) is DisturbanceBank
-            and frozenset(f.name for f in dataclasses.fields(dist)) == _BANK_FIELDS
+    return (AVAILABLE and dist.layout_known
             # one layer of each model: a summed disturbance of several sinusoids or random terms
             # ((L, n, d) and (R, n, M, d) arrays) is evaluated by the numpy path
             and dist.amp.ndim == 2 and dist.table.ndim == 3 and dist.hold_ticks.ndim == 1)
-
-
-def bank_arrays(dist: DisturbanceBank) -> tuple[Any, ...]:
-    """The bank as the kernels take it: its arrays, flags and coefficients."""
-    return (dist.const, dist.amp, dist.omega, dist.phase, dist.table, dist.hold_ticks.astype(np.int64),
-            dist._cv_s, dist._cv_c, dist._cp_s, dist._cp_c,
-            bool(dist._has_sine), bool(dist._has_random), bool(dist._has_const))
 
 
 def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -79,6 +70,28 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
 jit = _jit
 """Compile ``fn`` as every kernel of this package is compiled (cached, no GIL, no fast-math); ``fn``
 itself without numba."""
+
+# The law the kernels run (sim.lawkernels rebinds these five names in a copy of this module for
+# another law): Eq. 17's step and continuous-time form, and its two state variables moved between
+# the (S, j, k) state arrays and the step's tuples.
+law_step = _jit(sigma.step)
+law_rate = _jit(sigma.rate)
+
+
+@_jit
+def law_load(a: np.ndarray, j: int, k: int) -> tuple[float, float]:
+    return (a[0, j, k], a[1, j, k])
+
+
+@_jit
+def law_store(a: np.ndarray, j: int, k: int, x: tuple[float, float]) -> None:
+    a[0, j, k] = x[0]
+    a[1, j, k] = x[1]
+
+
+@_jit
+def law_shown(x: tuple[float, float]) -> tuple[float, float]:
+    return (x[0], x[1])
 
 
 @_jit
@@ -125,8 +138,8 @@ def sine_pairs(omega: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.nda
 @_jit
 def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: float,
            kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray,
-           feed: int, decay: float, gp_gain: float, gv_gain: float,
-           pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, gains: np.ndarray,
+           feed: int, coef: np.ndarray,
+           pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, state: np.ndarray,
            const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
            hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
            has_sine: bool, has_random: bool, has_const: bool,
@@ -136,7 +149,7 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
            snb: np.ndarray, csb: np.ndarray, inv: np.ndarray, snu: np.ndarray, csu: np.ndarray,
            own: bool = False) -> None:
     """Tick k of agents ``lo .. hi-1``, axis by axis: the neighbour sums slot by slot (as
-    :func:`tether.graph.neighbour_sums`), the disturbance increments, then the law, the gains and
+    :func:`tether.graph.neighbour_sums`), the disturbance increments, then the law's step and
     the plant element-wise. Reads tick k's half of the double buffers, writes tick k+1's half and
     the rows ``lo .. hi`` of everything else: blocks of agents can run at the same time. The sines
     are those of :func:`_sines` (``snu, csu``), or with ``own`` computed here for these agents
@@ -204,14 +217,15 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
                 for i in range(m):
                     dps[i] = dps[i] * hh2
                 if has_sine:
+                    # the held terms plus the sinusoids' increments, summed first: the bank's order
                     a1 = cv_s[c, lo:hi]
                     a2 = cv_c[c, lo:hi]
                     for i in range(m):
-                        dvs[i] = dvs[i] + sns[i] * a1[i] + css[i] * a2[i]
+                        dvs[i] = dvs[i] + (sns[i] * a1[i] + css[i] * a2[i])
                     a1 = cp_s[c, lo:hi]
                     a2 = cp_c[c, lo:hi]
                     for i in range(m):
-                        dps[i] = dps[i] + sns[i] * a1[i] + css[i] * a2[i]
+                        dps[i] = dps[i] + (sns[i] * a1[i] + css[i] * a2[i])
             elif has_sine:
                 a1 = cv_s[c, lo:hi]
                 a2 = cv_c[c, lo:hi]
@@ -229,19 +243,25 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
         p = pc[lo:hi]
         v = vc[lo:hi]
         sw = swd[c, lo:hi]
-        g0 = gains[0, c, lo:hi]
-        g1 = gains[1, c, lo:hi]
-        # the law (tether's agent.law.errors and control), element-wise: xi into xs, zeta into zs, u into us
-        for i in range(m):
-            xs[i] = ka[i] * p[i] - xs[i] - sw[i]
-        for i in range(m):
-            zs[i] = ka[i] * v[i] - zs[i]
+        # the law's step (law_step), element-wise: xi into xs, zeta into zs, u into us; the state
+        # recorded as it was at tick k, then advanced in place
+        cf = coef[c]
         if feed == 2:
             for i in range(m):
-                us[i] = (0.0 - g0[i] * xs[i] - g1[i] * zs[i]) / ka[i]
-        else:
-            for i in range(m):
-                us[i] = (us[i] - g0[i] * xs[i] - g1[i] * zs[i]) / ka[i]
+                us[i] = 0.0
+        for i in range(m):
+            q = lo + i
+            x = law_load(state, c, q)
+            u_, e_, z_, xn = law_step(ka[i], p[i], v[i], xs[i], zs[i], us[i], sw[i], x, cf)
+            xs[i] = e_
+            zs[i] = z_
+            us[i] = u_
+            if keep:
+                shown = law_shown(x)
+                out_kp[r, q, c] = shown[0]
+                out_kv[r, q, c] = shown[1]
+            if not last:
+                law_store(state, c, q, xn)
         if keep:
             mc = meas[c, lo:hi]
             for i in range(m):
@@ -252,8 +272,6 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
                 out_u[r, q, c] = us[i]
                 out_xi[r, q, c] = xs[i]
                 out_zeta[r, q, c] = zs[i]
-                out_kp[r, q, c] = g0[i]
-                out_kv[r, q, c] = g1[i]
                 if zero_d:
                     out_d[r, q, c] = 0.0
                 else:
@@ -261,11 +279,7 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
                                       + (_random(table, hold, q, k, c) if has_random else 0.0))
         if last:
             continue
-        # the exact gain step, then plant.double_integrator.step
-        for i in range(m):
-            g0[i] = 1.0 + (g0[i] - 1.0) * decay + gp_gain * (xs[i] * xs[i])
-        for i in range(m):
-            g1[i] = 1.0 + (g1[i] - 1.0) * decay + gv_gain * (zs[i] * zs[i])
+        # plant.double_integrator.step
         pn = pos[nxt, c, lo:hi]
         vn = vel[nxt, c, lo:hi]
         an = acc[nxt, c, lo:hi]
@@ -287,9 +301,9 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
 @_jit
 def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
              kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray,
-             feed: int, decay: float, gp_gain: float, gv_gain: float,
+             feed: int, coef: np.ndarray,
              lp: np.ndarray, lv: np.ndarray, la: np.ndarray,
-             pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, gains: np.ndarray,
+             pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, state: np.ndarray,
              const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
              hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
              has_sine: bool, has_random: bool, has_const: bool,
@@ -300,7 +314,8 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
     one thread (``blocks`` is :func:`discrete_parallel`'s, unused here).
 
     Structure of arrays, axis first: ``pos, vel, acc`` ``(2, d, N+1)`` (double-buffered: ``[k % 2]``
-    is tick k's; column N the leader), ``meas`` ``(d, N)``, ``gains`` ``(2, d, N)`` [Kp, Kv], the
+    is tick k's; column N the leader), ``meas`` ``(d, N)``, ``state`` ``(S, d, N)`` (the law's; ``coef`` ``(d, C)``
+    its coefficients, row c axis c's), the
     bank's ``(n, d)`` arrays transposed to ``(d, n)``. Samples go to row k of ``out_*`` ``(T, N, d)``
     (``record``) or row 0 at ``k == steps``."""
     d, n = meas.shape
@@ -317,8 +332,8 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
             vel[cur, c, n] = lv[k, c]
             acc[cur, c, n] = la[k, c]
         _sines(k, 0, pairs, steps, record, h, has_sine, zero_d, u_omega, u_phase, snu, csu)
-        _block(k, 0, n, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, decay, gp_gain, gv_gain,
-               pos, vel, acc, meas, gains, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
+        _block(k, 0, n, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, coef,
+               pos, vel, acc, meas, state, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
                has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
                out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu)
 
@@ -326,9 +341,9 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
 @_jit_parallel
 def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
                       kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray,
-                      feed: int, decay: float, gp_gain: float, gv_gain: float,
+                      feed: int, coef: np.ndarray,
                       lp: np.ndarray, lv: np.ndarray, la: np.ndarray,
-                      pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, gains: np.ndarray,
+                      pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, meas: np.ndarray, state: np.ndarray,
                       const: np.ndarray, amp: np.ndarray, omega: np.ndarray, phase: np.ndarray, table: np.ndarray,
                       hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
                       has_sine: bool, has_random: bool, has_const: bool,
@@ -361,8 +376,8 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
         for b in numba.prange(blocks):
             lo = min(b * size, n)
             hi = min(lo + size, n)
-            _block(k, lo, hi, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, decay, gp_gain, gv_gain,
-                   pos, vel, acc, meas, gains, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
+            _block(k, lo, hi, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, coef,
+                   pos, vel, acc, meas, state, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
                    has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
                    out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu, own)
 
@@ -533,7 +548,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                exp_lead: bool, lead0: np.ndarray, decay: float, em: np.ndarray, xm: np.ndarray,
                kappa: np.ndarray, slot_src: np.ndarray, slot_w: np.ndarray, swd: np.ndarray, a_lead: np.ndarray,
                perm: np.ndarray, dense: bool, block_ptr: np.ndarray, ext_ptr: np.ndarray, ext_src: np.ndarray,
-               ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, gamma_p: float, gamma_v: float, sigma: float,
+               ext_w: np.ndarray, inv_ptr: np.ndarray, inv: np.ndarray, rcoef: np.ndarray,
                const: np.ndarray, amp: np.ndarray, u_omega: np.ndarray, u_phase: np.ndarray, u_inv: np.ndarray,
                table: np.ndarray, hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
                out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
@@ -543,9 +558,9 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
 
     Structure of arrays, axis first and flat: element ``x = c (N+1) + i`` is agent i's axis c, agents
     in solving order (:class:`SolvePlan`; agent ``perm[q]`` at position q, the samples written back
-    in the mission's order), ``x = c (N+1) + N`` the leader's. ``y`` ``(4, d (N+1))`` the state
-    [p, v, Kp, Kv] (the leader's elements unused: its state is its reference); the bank's and the
-    law's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; the leader's reference at
+    in the mission's order), ``x = c (N+1) + N`` the leader's. ``y`` ``(2 + S, d (N+1))`` the state
+    [p, v, the law's S state variables] (the leader's elements unused: its state is its reference);
+    ``rcoef`` ``(d, R)`` per axis the coefficients of the law's ``rate``; the bank's per-axis arrays ``(d (N+1),)``, zero at the leader's elements; the leader's reference at
     the stage times (:func:`stage_times`), ``ref_*`` ``(d, (k1 - k0) substeps 3)``, unless
     ``exp_lead``: then the leader is :class:`leader.profile.ExpAccel` (``lead0`` its ``p0, v0, a0``,
     ``(3, d)``; ``decay``), evaluated here in closed form (``em, xm``: :func:`exp_tables`), and
@@ -581,12 +596,14 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
     # ... the previous stage's slopes (the position's is the previous vin), RK4's running sums;
     # zero at first, so that the leader's elements stay finite
     sl_v = np.zeros(nx)
-    sl_kp = np.zeros(nx)
-    sl_kv = np.zeros(nx)
     ac_p = np.zeros(nx)
     ac_v = np.zeros(nx)
-    ac_kp = np.zeros(nx)
-    ac_kv = np.zeros(nx)
+    # the law's state: y's rows 2 .. (S of them), its stage input, slopes and running sums, (S, 1, nx)
+    ns = y.shape[0] - 2
+    ys = y[2:].reshape(ns, 1, nx)
+    xin = np.zeros((max(ns, 1), 1, nx))
+    sl_x = np.zeros((max(ns, 1), 1, nx))
+    ac_x = np.zeros((max(ns, 1), 1, nx))
     xi = np.zeros(nx)
     zeta = np.zeros(nx)
     bb = np.zeros(nx)
@@ -693,20 +710,20 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                             sp += w * pin[s_]
                             sv += w * vin[s_]
                         ki = kappa[i]
-                        e = ki * pin[x] - sp - swd[x]
-                        z = ki * vin[x] - sv
+                        if st == 0:
+                            for s in range(ns):
+                                xin[s, 0, x] = y[2 + s, x]
+                        else:
+                            for s in range(ns):
+                                xin[s, 0, x] = y[2 + s, x] + a * sl_x[s, 0, x]
+                        di = dist1[x] if at == 1 else dist0[x]
+                        # the law's continuous-time form (law_rate): agent i's row of L1 vdot = b
+                        row, e, z, xr = law_rate(ki, pin[x], vin[x], sp, sv, swd[x], a_lead[i] * lac + ki * di,
+                                                 law_load(xin, 0, x), rcoef[c])
                         xi[x] = e
                         zeta[x] = z
-                        if st == 0:
-                            kpi = y[2, x]
-                            kvi = y[3, x]
-                        else:
-                            kpi = y[2, x] + a * sl_kp[x]
-                            kvi = y[3, x] + a * sl_kv[x]
-                        di = dist1[x] if at == 1 else dist0[x]
-                        bb[x] = a_lead[i] * lac + ki * di - kpi * e - kvi * z
-                        sl_kp[x] = -sigma * (kpi - 1.0) + gamma_p * (e * e)
-                        sl_kv[x] = -sigma * (kvi - 1.0) + gamma_v * (z * z)
+                        bb[x] = row
+                        law_store(sl_x, 0, x, xr)
                     # the accelerations: L1 a = b (SolvePlan), this axis
                     if dense:
                         for r_ in range(n):
@@ -746,14 +763,16 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                     for x in range(nx):
                         ac_p[x] = vin[x]
                         ac_v[x] = sl_v[x]
-                        ac_kp[x] = sl_kp[x]
-                        ac_kv[x] = sl_kv[x]
+                    for s in range(ns):
+                        for x in range(nx):
+                            ac_x[s, 0, x] = sl_x[s, 0, x]
                 else:
                     for x in range(nx):
                         ac_p[x] = ac_p[x] + ws * vin[x]
                         ac_v[x] = ac_v[x] + ws * sl_v[x]
-                        ac_kp[x] = ac_kp[x] + ws * sl_kp[x]
-                        ac_kv[x] = ac_kv[x] + ws * sl_kv[x]
+                    for s in range(ns):
+                        for x in range(nx):
+                            ac_x[s, 0, x] = ac_x[s, 0, x] + ws * sl_x[s, 0, x]
                 if st == 0 and j == 0 and (record or final):  # tick k's sample
                     r = k if record else 0
                     for c in range(d):
@@ -766,16 +785,18 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                             out_u[r, ag, c] = sl_v[x] - dist0[x]
                             out_xi[r, ag, c] = xi[x]
                             out_zeta[r, ag, c] = zeta[x]
-                            out_kp[r, ag, c] = y[2, x]
-                            out_kv[r, ag, c] = y[3, x]
+                            shown = law_shown(law_load(ys, 0, x))
+                            out_kp[r, ag, c] = shown[0]
+                            out_kv[r, ag, c] = shown[1]
                             out_d[r, ag, c] = dist0[x]
                 if final:
                     return
             for x in range(nx):
                 y[0, x] = y[0, x] + w6 * ac_p[x]
                 y[1, x] = y[1, x] + w6 * ac_v[x]
-                y[2, x] = y[2, x] + w6 * ac_kp[x]
-                y[3, x] = y[3, x] + w6 * ac_kv[x]
+            for s in range(ns):
+                for x in range(nx):
+                    y[2 + s, x] = y[2 + s, x] + w6 * ac_x[s, 0, x]
 
 
 def exp_tables(decay: float, h: float, substeps: int) -> tuple[np.ndarray, np.ndarray]:

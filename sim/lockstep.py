@@ -30,7 +30,6 @@ physical scale (``diverge_at``) or not finite, is stopped there: the rest of its
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -285,14 +284,7 @@ def _branches(m: Mission, host: plants.Plant) -> tuple | None:
     if type(host) is not plants.DoubleIntegratorPlant:
         return None
     bank = DisturbanceBank.from_mission(m, list(host.ids))
-    flags = tuple(getattr(bank, f, None) for f in ("_has_sine", "_has_random", "_has_const"))
-    known = {f.name for f in dataclasses.fields(bank)} == _BANK_FIELDS
-    return flags if known and None not in flags else None
-
-
-_BANK_FIELDS = frozenset({"h", "const", "amp", "omega", "phase", "table", "hold_ticks", "_cv_s", "_cv_c", "_cp_s",
-                          "_cp_c", "_has_sine", "_has_random", "_has_const", "_block"})
-"""The bank layout whose branches :func:`_branches` knows (another makes every plant its own host)."""
+    return bank.flags if bank.layout_known else None
 
 
 def _record_plants(rec: PlantRecord, samples: dict[int, plants.Sample], order: list, r: int, rows: int) -> None:

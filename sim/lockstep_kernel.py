@@ -44,7 +44,8 @@ from agent import safety
 from agent.law import AgentLaw
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
-from sim import kernel, lockstep
+from sim import kernel, lawkernels, lockstep
+from sim.kernel import law_load, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
 from tether import failsafe, wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
@@ -70,6 +71,8 @@ _EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED, _LAND, _LANDED, _FOLLOW = r
 """The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
 unreachable), back to FLYING, LAND (held past ``land_after``), LANDED (2D: still, or ``land_settle``),
 holding neighbours followed or no longer."""
+
+jit = kernel.jit
 
 _CAUSES = ("", "leader", "unreachable")
 """HOLD's causes by code (``Supervisor.cause``): the kinds of HOLD above."""
@@ -200,9 +203,15 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                        cfg.mode_confirm], dtype=float)
     follow = np.zeros(n, dtype=np.int64)
     found: list[wire.SafetyEvent] = []
-    prm, gs = laws[0].params, laws[0].gains
-    kp = np.array([prm.kp0] * n, dtype=float).reshape(n, d)
-    kv = np.array([prm.kv0] * n, dtype=float).reshape(n, d)
+    bound = laws[0].bound
+    # the law's state, (S, N, d) (one row of zeros for a law without state: an array numba can index)
+    init = bound.initial() or ((0.0,) * d,)
+    state = np.ascontiguousarray(np.stack([np.broadcast_to(np.asarray(row, dtype=float), (n, d)) for row in init]))
+    coef = lawkernels.coefficients(bound, h)
+    try:
+        ticks = lawkernels.kernel_of("sim.lockstep_kernel", bound.law)._ticks
+    except OSError:  # no writable cache for another law's kernels: the Python engine runs it
+        return None
     last_u = np.zeros((n, d))
     used = np.zeros(links, dtype=np.int64)
     r_said = np.zeros(links, dtype=np.int64)
@@ -223,8 +232,8 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 run.d[k0:k1, rows] = value
             elif k1 == steps + 1:
                 run.d[0, rows] = value[-1]
-        left = _ticks(k0, k1, steps, record, h, 0.5 * h * h, d == 3, float(cfg.ground),
-                      kappa, swd, prm.gamma_p * gs.gain, prm.gamma_v * gs.gain, gs.decay, kp, kv,
+        left = ticks(k0, k1, steps, record, h, 0.5 * h * h, d == 3, float(cfg.ground),
+                      kappa, swd, coef, state,
                       _FEED[m.law.feedforward], float(m.links.max_age), bool(m.links.compensate),
                       float(cfg.leader_timeout), float(cfg.neighbour_timeout), float(cfg.max_formation_error),
                       float(cfg.gain_cap), float(cfg.max_speed), float(cfg.max_accel), float(diverge_at),
@@ -409,8 +418,7 @@ _reach = kernel.jit(_reach_py)
 
 
 def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, three: bool, ground: float,
-              kappa: np.ndarray, swd: np.ndarray, gp: float, gv: float, decay: float, kp: np.ndarray,
-              kv: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
+              kappa: np.ndarray, swd: np.ndarray, coef: np.ndarray, state: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
               neighbour_timeout: float, max_err: float, gain_cap: float, max_speed: float, max_accel: float,
               diverge_at: float, off: np.ndarray, l_src: np.ndarray, l_leader: np.ndarray, l_w: np.ndarray,
               l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, lead: np.ndarray,
@@ -428,7 +436,8 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     ``[safety]`` reached, a landing in 3D or a value not finite where a mode would take it is left to
     the Python engine.
 
-    State carried between calls: ``p, v, a`` (the plants), ``last_u``, ``kp, kv``, ``used``, the
+    State carried between calls: ``p, v, a`` (the plants), ``last_u``, the law's ``state``
+    ``(S, N, d)`` (``coef`` ``(d, C)``: per axis, its coefficients), ``used``, the
     history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N the leader) and ``hmode``
     ``(R, N+1)`` (the mode each sample carried), and each supervisor's ``mode, cause, since, p_hold,
     lost`` (the dropped edges: bit b for link slot b) with the law over its surviving edges
@@ -455,8 +464,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
     u = np.empty((n, d))
     xi = np.empty(d)
     zeta = np.empty(d)
-    kpn = np.empty(d)
-    kvn = np.empty(d)
+    nstate = np.empty((state.shape[0], 1, d))  # the law's next state, one agent's
     seen = np.zeros(n + 1, dtype=np.bool_)
     gone = np.zeros(n + 1, dtype=np.bool_)
     stack = np.empty(n + 1, dtype=np.int64)
@@ -585,13 +593,12 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         sp = sp + w * pj
                         sv = sv + w * vj
                         sa = sa + w * aj
-                e = ka * p[i, c] - sp - cur_swd[i, c]
-                z = ka * v[i, c] - sv
+                uu, e, z, xn = law_step(ka, p[i, c], v[i, c], sp, sv, sa, cur_swd[i, c], law_load(state, i, c),
+                                        coef[c])
                 xi[c] = e
                 zeta[c] = z
-                u[i, c] = (sa - kp[i, c] * e - kv[i, c] * z) / ka
-                kpn[c] = 1.0 + (kp[i, c] - 1.0) * decay + gp * (e * e)
-                kvn[c] = 1.0 + (kv[i, c] - 1.0) * decay + gv * (z * z)
+                u[i, c] = uu
+                law_store(nstate, 0, c, xn)
             # the engine's diverge_at (every mode): the run ends there
             for c in range(d):
                 if not abs(xi[c]) <= diverge_at:
@@ -607,7 +614,8 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 if not err <= max_err:
                     return k
                 for c in range(d):
-                    if not (kp[i, c] <= gain_cap and kv[i, c] <= gain_cap) or not math.isfinite(u[i, c]):
+                    shown = law_shown(law_load(state, i, c))
+                    if not (shown[0] <= gain_cap and shown[1] <= gain_cap) or not math.isfinite(u[i, c]):
                         return k
                 if _norm(v, i) > max_speed:
                     return k
@@ -689,8 +697,9 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     out_u[r, i, c] = u[i, c]
                     out_xi[r, i, c] = xi[c]
                     out_zeta[r, i, c] = zeta[c]
-                    out_kp[r, i, c] = kp[i, c]
-                    out_kv[r, i, c] = kv[i, c]
+                    shown = law_shown(law_load(state, i, c))
+                    out_kp[r, i, c] = shown[0]
+                    out_kv[r, i, c] = shown[1]
                 out_mode[r, i] = mode[i]
                 out_pmode[r, i] = landed if mode[i] == landed else flying  # the plant's watchdog
             for l in range(lo, hi):
@@ -701,11 +710,10 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     used[l] += 1
                 if keep:
                     out_age[r, i, l - lo] = age if ok else nan
-            # the gains advance while FLYING; the command is the one shared next tick
+            # the law's state advances while FLYING; the command is the one shared next tick
             if mode[i] == flying:
                 for c in range(d):
-                    kp[i, c] = kpn[c]
-                    kv[i, c] = kvn[c]
+                    law_store(state, i, c, law_load(nstate, 0, c))
             for c in range(d):
                 last_u[i, c] = u[i, c]
         if k == steps:

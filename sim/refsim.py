@@ -38,7 +38,7 @@ from typing import Callable, Literal
 import msgspec
 import numpy as np
 
-from agent import law
+from agent import laws
 from leader import profile
 from plant import double_integrator
 from plant.disturbance import DisturbanceBank
@@ -61,7 +61,7 @@ class Setup:
 
     mission: Mission
     topo: graph.Topology
-    params: law.LawParams
+    bound: laws.Bound
     ref: profile.Reference
     dist: DisturbanceBank
     offsets: np.ndarray  # (N+1, d), the leader's row 0
@@ -78,7 +78,7 @@ class Setup:
         sum_wdelta = topo.kappa[:, None] * offsets[:n] - graph.neighbour_sums(topo, offsets)  # O(edges), no N x N
         p0 = np.array([a.p0 for a in m.agents], dtype=float)
         v0 = np.array([a.v0 if a.v0 is not None else [0.0] * d for a in m.agents], dtype=float)
-        return cls(m, topo, law.LawParams.from_mission(m), profile.build(m.leader, d),
+        return cls(m, topo, laws.of_mission(m), profile.build(m.leader, d),
                    DisturbanceBank.from_mission(m), offsets, sum_wdelta, p0, v0)
 
 
@@ -179,12 +179,16 @@ def takes_kernel(s: Setup, engine: Engine, on_tick: OnTick | None) -> bool:
 
 def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta: RunMeta,
               on_tick: OnTick | None = None) -> Run:
-    m, topo, prm = s.mission, s.topo, s.params
+    m, topo, bound = s.mission, s.topo, s.bound
     n, d, h = m.n, m.dim, m.dt
     # full-shape kappa and weights: numpy is several times slower broadcasting (N, 1) over (N, d)
     kappa = np.repeat(topo.kappa[:, None], d, axis=1)
     weight = np.repeat(topo.slot_weight, d, axis=2)
-    gs = law.GainStep.over(prm.sigma, h)
+    step = bound.law.step
+    # the law's per-axis coefficients as (d,) arrays (they broadcast over the agents) and its state
+    # as (N, d) arrays: its step then runs on every agent at once, element for element the agent's
+    coef = tuple(np.array(col, dtype=float) for col in zip(*bound.coefficients(h)))
+    state = tuple(np.array(np.broadcast_to(row, (n, d)), dtype=float) for row in bound.initial())
     lp, lv, la = s.ref(np.arange(steps + 1) * h)
 
     # one contiguous (N+1, d) array per quantity, agents first and the leader last: strided views
@@ -195,9 +199,6 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     feed = m.law.feedforward
     none = np.zeros((n, d))
     pos[:n], vel[:n] = s.p0, s.v0
-    gains = np.stack([np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))])  # [Kp, Kv]
-    gamma = np.repeat(np.array([prm.gamma_p, prm.gamma_v])[:, None, None], n, axis=1).repeat(d, axis=2)
-    err = np.empty((2, n, d))  # [xi, zeta]
     zero_d = s.dist.is_zero
     run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     every = max(1, steps // 100)
@@ -206,21 +207,22 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     for k in range(steps + 1):
         pos[n], vel[n], acc[n] = lp[k], lv[k], la[k]
         p, v, a = pos[:n], vel[:n], meas
-        err[0], err[1] = law.errors(kappa, p, v, nsum(topo, pos, weight), nsum(topo, vel, weight), s.sum_wdelta)
-        xi, zeta, kp, kv = err[0], err[1], gains[0], gains[1]
-        u = law.control(kappa, none if feed == "none" else nsum(topo, acc, weight), xi, zeta, kp, kv)
+        sa = none if feed == "none" else nsum(topo, acc, weight)
+        u, xi, zeta, nxt = step(kappa, p, v, nsum(topo, pos, weight), nsum(topo, vel, weight), sa, s.sum_wdelta,
+                                state, coef)
         if record or k == steps:
             r = k if record else 0
             run.t[r] = k * h
             run.p[r], run.v[r], run.a[r], run.u[r] = p, v, a, u
-            run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = xi, zeta, kp, kv
+            run.xi[r], run.zeta[r] = xi, zeta
+            run.kp[r], run.kv[r] = bound.shown(state, 0.0)
             run.d[r] = 0.0 if zero_d else s.dist.value(k)
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp[k], lv[k], la[k]
             if on_tick is not None:
                 on_tick(run, r)
         if k == steps:
             break
-        gains = law.gain_update(gains, err, gamma, gs)  # Kp and Kv in one call
+        state = tuple(np.broadcast_to(x, (n, d)) for x in nxt)
         dv, dp = s.dist.increments(k)
         pos[:n], vel[:n], meas = double_integrator.step(p, v, u, dv, dp, h)
         acc[:n] = u if feed == "commanded" else meas
@@ -232,7 +234,12 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
 
 
 def check_continuous(m: Mission) -> None:
-    """The continuous mode feeds forward the exact accelerations: a mission asking otherwise is refused."""
+    """The continuous mode feeds forward the exact accelerations, and runs a law's continuous-time
+    form (``rate``, :mod:`agent.laws`): a mission asking otherwise is refused."""
+    law = laws.of_mission(m).law
+    if getattr(law, "rate", None) is None:
+        raise ValueError(f"law {law.name!r} has no continuous-time form (a `rate`, docs/laws.md): run the discrete "
+                         "mode")
     if m.law.feedforward != "measured":
         raise ValueError(f"law.feedforward = {m.law.feedforward!r}: the continuous mode feeds forward the exact "
                          "accelerations only; use the discrete mode")
@@ -240,8 +247,10 @@ def check_continuous(m: Mission) -> None:
 
 def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta,
                 on_tick: OnTick | None = None) -> Run:
-    m, topo, prm = s.mission, s.topo, s.params
+    m, topo, bound = s.mission, s.topo, s.bound
     check_continuous(m)
+    rate = getattr(bound.law, "rate")
+    rcoef = tuple(np.array(col, dtype=float) for col in zip(*bound.rates()))
     n, d, h = m.n, m.dim, m.dt
     hf = h / substeps
     kappa = topo.kappa[:, None]
@@ -251,20 +260,19 @@ def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Pro
     meta = msgspec.structs.replace(meta, substeps=substeps)
 
     def rhs(t: float, y: np.ndarray) -> tuple[np.ndarray, dict]:
-        p, v, kp, kv = y
+        p, v, *x = y
         lp, lv, la = s.ref(t)
         xp = np.vstack([p, lp])
         xv = np.vstack([v, lv])
         sp = neighbour_sums(topo, xp)
         sv = neighbour_sums(topo, xv)
-        xi, zeta = law.errors(kappa, p, v, sp, sv, s.sum_wdelta)
         dist = s.dist.value_at(t)
-        vdot = l1_inv @ (a_lead * la + kappa * dist - kp * xi - kv * zeta)
-        dy = np.stack([v, vdot, law.gain_rate(kp, xi, prm.gamma_p, prm.sigma),
-                       law.gain_rate(kv, zeta, prm.gamma_v, prm.sigma)])
+        row, xi, zeta, rates = rate(kappa, p, v, sp, sv, s.sum_wdelta, a_lead * la + kappa * dist, tuple(x), rcoef)
+        vdot = l1_inv @ row
+        dy = np.stack([v, vdot, *rates])
         return dy, {"xi": xi, "zeta": zeta, "vdot": vdot, "d": dist, "lead": (lp, lv, la)}
 
-    y = np.stack([s.p0, s.v0, np.broadcast_to(prm.kp0, (n, d)), np.broadcast_to(prm.kv0, (n, d))]).astype(float)
+    y = np.stack([s.p0, s.v0, *(np.broadcast_to(row, (n, d)) for row in bound.initial())]).astype(float)
     run = Run.empty(steps + 1 if record else 1, m.agent_ids, d, meta, mode=wire.FLYING)  # no supervisor here
     every = max(1, steps // 100)
     for k in range(steps + 1):
@@ -275,7 +283,8 @@ def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Pro
             run.t[r] = t
             run.p[r], run.v[r], run.a[r] = y[0], y[1], aux["vdot"]
             run.u[r] = aux["vdot"] - aux["d"]
-            run.xi[r], run.zeta[r], run.kp[r], run.kv[r] = aux["xi"], aux["zeta"], y[2], y[3]
+            run.xi[r], run.zeta[r] = aux["xi"], aux["zeta"]
+            run.kp[r], run.kv[r] = bound.shown(y[2:], 0.0)
             run.d[r] = aux["d"]
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = aux["lead"]
             if on_tick is not None:

@@ -47,7 +47,7 @@ def study_figures(rows: list[dict], summary: list[dict] | None, out: Path, meta:
     """Draw ``study.png`` (see the module docstring); returns its path."""
     cells = summary if summary is not None else rows
     vary = _varying(cells)
-    x_axis = "sigma" if "sigma" in vary else ("delay_ms" if "delay_ms" in vary else (vary[0] if vary else "sigma"))
+    x_axis = "sigma" if "sigma" in vary else ("delay_ms" if "delay_ms" in vary else (vary[0] if vary else "delay_ms"))
     series_axes = [a for a in vary if a != x_axis]
     groups: dict[tuple, list[dict]] = {}
     for r in cells:

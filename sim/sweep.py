@@ -114,7 +114,14 @@ def point_mission(m: ms.Mission, pt: Point, jitter_ms: float = 0.0, duration: fl
     when set) with the point's network everywhere (and ``[links] compensate`` set when
     ``compensate`` is given), as replicate ``pt.rep`` when set (start positions jittered by up to
     ``p0_jitter`` m)."""
-    if pt.law not in LAWS:
+    if m.law.kind == "custom":  # a law of one's own: run as it is, with the point's network
+        if pt.law != "custom":
+            raise SweepError(f"--laws: this mission runs its own law ({m.law.use}), which cannot become {pt.law!r}; "
+                             "give --laws custom")
+        if pt.sigma is not None or pt.gamma_p is not None or pt.gamma_v is not None:
+            raise SweepError("--sigma, --gamma-p, --gamma-v: this mission runs its own law "
+                             f"({m.law.use}); set its parameters in the mission's [law] params")
+    elif pt.law not in LAWS:
         raise SweepError(f"--laws: {pt.law!r} is not a law; use sigma, benchmark or both")
     if pt.law == "benchmark" and pt.sigma is not None:
         raise SweepError("--sigma: the benchmark law has no sigma; give --laws sigma with a --sigma grid")
@@ -310,6 +317,8 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
     if executor is not None and engine == "runtime":
         raise SweepError("--executor: the runtime engine writes each point's run file on the machine that runs "
                          "it; use --engine inprocess with --executor")
+    if m.law.kind == "custom" and tuple(laws) == LAWS:  # the paper's two laws by default; a law of one's own alone
+        laws = ("custom",)
     points = points_of(m, loss=loss, delay=delay, burst=burst, laws=laws, sigma=sigma, gamma_p=gamma_p,
                        gamma_v=gamma_v, seeds=seeds)
     if len(points) > study.MAX_CELLS:

@@ -35,8 +35,8 @@ def lagged_ring(tau: float, feed: str, duration: float = 40.0) -> float:
     h, sub = m.dt, 10
     p = np.array([a.p0 for a in m.agents], dtype=float)
     v, acc, lag, u_prev = (np.zeros((4, 3)) for _ in range(4))
-    kp = [np.array(law.params.kp0) for law in laws]
-    kv = [np.array(law.params.kv0) for law in laws]
+    kp = [np.array(law.initial()[0]) for law in laws]
+    kv = [np.array(law.initial()[1]) for law in laws]
     worst = 0.0
     steps = int(duration / h)
     for k in range(steps):

@@ -1,20 +1,29 @@
-"""The laws as pure functions: shapes, the exact gain step, single-agent vs all-agent forms."""
+"""The laws as pure functions: the exact gain step, single-agent vs all-agent forms, the contract."""
 
 import math
 
 import numpy as np
 import pytest
 
-from agent import law
+from agent import law, laws
+from agent.laws import sigma as eq17
 from sim import refsim
 from tests.factories import random_mission
+
+
+def _gain_step(k: np.ndarray, e: np.ndarray, gamma: float, s: float, h: float) -> np.ndarray:
+    """Eq. 17's gain update through its step: Kp's next value for errors ``e`` (zeta 0)."""
+    decay, gain = eq17.gain_coefficients(s, h)
+    one = np.ones_like(k)
+    _, _, _, (kp, _) = eq17.step(one, e, 0.0 * e, 0.0 * e, 0.0 * e, 0.0 * e, 0.0 * e, (k, one),
+                                 (decay, gamma * gain, gamma * gain))
+    return kp
 
 
 def test_gain_step_is_the_exact_solution_of_the_gain_ode() -> None:
     # K' = -sigma (K - 1) + Gamma e^2 with e held: K(h) = 1 + (K0-1) e^{-sigma h} + Gamma e^2 (1 - e^{-sigma h}) / sigma
     sigma, gamma, h, k0, e = 0.7, 0.3, 0.05, np.array([1.4, 3.0]), np.array([0.5, -2.0])
-    step = law.GainStep.over(sigma, h)
-    got = law.gain_update(k0, e, gamma, step)
+    got = _gain_step(k0, e, gamma, sigma, h)
     # independent check: fine RK4 on the ODE
     k, n = k0.copy(), 20000
     dt = h / n
@@ -26,9 +35,8 @@ def test_gain_step_is_the_exact_solution_of_the_gain_ode() -> None:
 
 
 def test_benchmark_gain_step_is_euler_exact() -> None:
-    step = law.GainStep.over(0.0, 0.01)
-    assert step.decay == 1.0 and step.gain == 0.01
-    np.testing.assert_allclose(law.gain_update(np.array([0.2]), np.array([3.0]), 0.5, step), [0.2 + 0.5 * 9 * 0.01],
+    assert eq17.gain_coefficients(0.0, 0.01) == (1.0, 0.01)
+    np.testing.assert_allclose(_gain_step(np.array([0.2]), np.array([3.0]), 0.5, 0.0, 0.01), [0.2 + 0.5 * 9 * 0.01],
                                rtol=0, atol=1e-15)
 
 
@@ -39,9 +47,8 @@ def test_gain_step_keeps_k_at_least_one(seed: int) -> None:
     h = float(rng.uniform(1e-4, 1.0))
     k = 1.0 + rng.exponential(1.0, 3) * rng.integers(0, 2, 3)  # some exactly 1
     e = rng.normal(0, 10, 3) * rng.integers(0, 2, 3)  # some exactly 0
-    step = law.GainStep.over(sigma, h)
     for _ in range(200):
-        k = law.gain_update(k, e, 0.1, step)
+        k = _gain_step(k, e, 0.1, sigma, h)
         assert np.all(k >= 1.0)
         e = e * 0.5
 
@@ -62,40 +69,23 @@ def test_single_agent_and_all_agent_forms_agree_bit_for_bit(seed: int) -> None:
     kv = rng.uniform(1, 5, (n, d))
     sums = refsim.neighbour_sums(s.topo, x.reshape(n + 1, 3 * d)).reshape(n, 3, d)
     kappa = s.topo.kappa[:, None]
-    xi, zeta = law.errors(kappa, x[:n, 0], x[:n, 1], sums[:, 0], sums[:, 1], s.sum_wdelta)
-    u = law.control(kappa, sums[:, 2], xi, zeta, kp, kv)
-    gs = law.GainStep.over(s.params.sigma, m.dt)
-    kp1 = law.gain_update(kp, xi, s.params.gamma_p, gs)
+    coef = tuple(np.array(col) for col in zip(*s.bound.coefficients(m.dt)))
+    u, xi, zeta, (kp1, kv1) = s.bound.law.step(kappa, x[:n, 0], x[:n, 1], sums[:, 0], sums[:, 1], sums[:, 2],
+                                               s.sum_wdelta, (kp, kv), coef)
     for i, a in enumerate(m.agents):
         al = law.AgentLaw.from_mission(m, a.id)
         rows = [m.index_of(j) for j in al.neighbours]
         assert al.kappa == s.topo.kappa[i]
         np.testing.assert_array_equal(al.sum_wdelta, s.sum_wdelta[i])
-        for step in (al.step, al.step_numpy):
-            ui, xii, zetai, kpi, _ = step(x[i, 0], x[i, 1], x[rows, 0], x[rows, 1], x[rows, 2], kp[i], kv[i])
+        for arg in (lambda z: z, lambda z: z.tolist()):  # numpy rows and Python floats
+            ui, xii, zetai, kpi, kvi = al.step(arg(x[i, 0]), arg(x[i, 1]), arg(x[rows, 0]), arg(x[rows, 1]),
+                                                 arg(x[rows, 2]), arg(kp[i]), arg(kv[i]))
             np.testing.assert_array_equal(ui, u[i])
             np.testing.assert_array_equal(xii, xi[i])
             np.testing.assert_array_equal(zetai, zeta[i])
             np.testing.assert_array_equal(kpi, kp1[i])
+            np.testing.assert_array_equal(kvi, kv1[i])
 
-
-
-@pytest.mark.parametrize("seed", range(8))
-def test_step_on_floats_equals_its_vectorised_form_bit_for_bit(seed: int) -> None:
-    """AgentLaw.step (term by term on Python floats, the hot path) against step_numpy (the same law
-    written with errors(), control() and gain_update()): every output identical, not merely close."""
-    rng = np.random.default_rng(100 + seed)
-    m = random_mission(rng, int(rng.integers(2, 7)))
-    for a in m.agents:
-        al = law.AgentLaw.from_mission(m, a.id)
-        k = len(al.neighbours)
-        p, v = rng.normal(0, 3, m.dim), rng.normal(0, 3, m.dim)
-        nb = rng.normal(0, 3, (3, k, m.dim))
-        kp, kv = rng.uniform(1, 5, m.dim), rng.uniform(1, 5, m.dim)
-        fast = al.step(p, v, nb[0], nb[1], nb[2], kp, kv)
-        ref = al.step_numpy(p, v, nb[0], nb[1], nb[2], kp, kv)
-        for got, want in zip(fast, ref):
-            assert np.array_equal(got, want), (got, want)
 
 def test_errors_match_the_paper_definition() -> None:
     """xi_i = sum_j a_ij (p_i - p_j - delta_ij) computed literally, against the kappa form."""
@@ -108,11 +98,33 @@ def test_errors_match_the_paper_definition() -> None:
     a = s.topo.adjacency
     literal = np.array([sum(a[i, j] * (p[i] - p[j] - (h[i] - h[j])) for j in range(n + 1)) for i in range(n)])
     sp = refsim.neighbour_sums(s.topo, p)
-    xi, _ = law.errors(s.topo.kappa[:, None], p[:n], p[:n], sp, sp, s.sum_wdelta)
+    one = np.ones_like(p[:n])
+    _, xi, _, _ = eq17.step(s.topo.kappa[:, None], p[:n], p[:n], sp, sp, sp, s.sum_wdelta, (one, one),
+                            (1.0, 0.0, 0.0))
     np.testing.assert_allclose(xi, literal, rtol=0, atol=1e-12)
 
 
 def test_gain_step_sigma_limit() -> None:
-    a = law.GainStep.over(1e-12, 0.01)
-    b = law.GainStep.over(0.0, 0.01)
-    assert math.isclose(a.gain, b.gain, rel_tol=1e-9)
+    a = eq17.gain_coefficients(1e-12, 0.01)
+    b = eq17.gain_coefficients(0.0, 0.01)
+    assert math.isclose(a[1], b[1], rel_tol=1e-9)
+
+
+def test_builtin_and_imported_laws_resolve() -> None:
+    assert laws.resolve("sigma").name == "sigma"
+    assert laws.resolve("benchmark").name == "benchmark"
+    assert type(laws.resolve("agent.laws.sigma:Sigma")) is eq17.Sigma
+    for bad, why in (("nonsense", "package.module:Class"), ("no_such_module_xyz:Law", "does not import"),
+                     ("agent.laws.sigma:step", "FormationLaw subclass")):
+        with pytest.raises(laws.LawNotFound, match=why):
+            laws.resolve(bad)
+
+
+def test_per_axis_rates_reach_the_coefficients() -> None:
+    """Eq. 30's diag(Gamma_p): one adaptation rate per axis."""
+    law_ = laws.resolve("benchmark")
+    prm = law_.Params(kp0=1.0, kv0=[1.0, 2.0], gamma_p=[0.1, 0.2], gamma_v=0.3)
+    assert law_.check(prm, 2) == []
+    assert law_.coefficients(prm, 0.01, 2) == ((1.0, 0.1 * 0.01, 0.3 * 0.01), (1.0, 0.2 * 0.01, 0.3 * 0.01))
+    assert [f for f, _ in law_.check(law_.Params(kp0=1.0, kv0=1.0, gamma_p=[0.1, -1.0], gamma_v=0.3), 2)] \
+        == ["gamma_p[1]"]

@@ -227,7 +227,7 @@ def test_a_bank_layout_the_kernels_do_not_know_keeps_the_numpy_path() -> None:
     d = s.dist
     odd = _Gusts(d.h, d.const, d.amp, d.omega, d.phase, d.table, d.hold_ticks, gust=1.0)
     assert not kernel.supports(odd)
-    odd_setup = refsim.Setup(s.mission, s.topo, s.params, s.ref, odd, s.offsets, s.sum_wdelta, s.p0, s.v0)
+    odd_setup = refsim.Setup(s.mission, s.topo, s.bound, s.ref, odd, s.offsets, s.sum_wdelta, s.p0, s.v0)
     assert not refsim.takes_kernel(odd_setup, "auto", None)
     with pytest.raises(ValueError, match="cannot run"):
         refsim.takes_kernel(odd_setup, "compiled", None)

@@ -151,11 +151,11 @@ def test_a_lost_neighbour_without_another_path_from_the_leader_holds_then_lands(
     p = np.array([2.0, 0.0, 1.0])
     out = tick.step(0, 0.0, p, np.zeros(3), np.zeros(3), heard, Status(gone=[True]))
     assert out.mode == HOLD and "no longer reaches" in tick.supervisor.events[-1].reason
-    kp = tick.kp.copy()
+    kp = list(tick.state[0])
     for k in range(1, 101):
         out = tick.step(k, k * H, p, np.zeros(3), np.zeros(3), heard, Status(gone=[True]))
     assert out.mode == LAND
-    np.testing.assert_array_equal(tick.kp, kp)  # gains frozen while not flying
+    np.testing.assert_array_equal(tick.state[0], kp)  # gains frozen while not flying
 
 
 def test_reachability_is_assumption_1_on_the_surviving_graph() -> None:

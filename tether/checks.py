@@ -24,6 +24,8 @@ import math
 import msgspec
 import msgspec.structs
 
+from agent import laws
+
 from tether.mission import (
     BoundedRandom,
     Constant,
@@ -299,33 +301,8 @@ def validate(m: Mission) -> Problems:
                                "merge them into one edge with one weight"))
         pairs.setdefault(key, k)
 
-    # law
-    law = m.law
-    _check_per_axis(law.kp0, d, "law.kp0", out)
-    _check_per_axis(law.kv0, d, "law.kv0", out)
-    floor = 1.0 if law.kind == "sigma" else 0.0
-    why = ("Theorem 1 needs K(0) >= 1 for the sigma law" if law.kind == "sigma"
-           else "Eq. 30 needs K(0) >= 0")
-    for name, val in (("kp0", law.kp0), ("kv0", law.kv0)):
-        values = val if isinstance(val, list) else [val]
-        for k, x in enumerate(values):
-            if x < floor:
-                field = f"law.{name}" + (f"[{k}]" if isinstance(val, list) else "")
-                out.append((field, f"is {x}, below {floor:g} ({why}); raise it to >= {floor:g}"))
-    for name in ("gamma_p", "gamma_v"):
-        value = getattr(law, name)
-        if value <= 0:
-            out.append((f"law.{name}", f"is {value}; set an adaptation rate > 0, e.g. `{name} = 0.05`"))
-    if law.kind == "sigma":
-        if law.sigma is None:
-            out.append(("law.sigma", "is missing but the sigma law (Eq. 17) needs it; add e.g. `sigma = 1.0`, "
-                                     "or use kind = \"benchmark\""))
-        elif law.sigma <= 0:
-            out.append(("law.sigma", f"is {law.sigma} but Theorem 1 needs sigma > 0; set e.g. `sigma = 1.0`, "
-                                     "or use kind = \"benchmark\" for a law without leakage"))
-    elif law.sigma is not None:
-        out.append(("law.sigma", "is set but the benchmark law (Eq. 30) has no sigma; remove it, "
-                                 "or use kind = \"sigma\""))
+    # law: its parameters, validated by the law itself
+    out.extend(laws.bind(m)[1])
 
     _validate_physics(m, out)
     if m.links.max_age <= 0:
@@ -360,9 +337,10 @@ def _validate_bounds(m: Mission, out: Problems) -> None:
     supervisors call it divergence, or the reference leaves every vehicle behind)."""
     sf = m.safety
     cap = sf.gain_cap
-    if cap > 1:
+    law = m.law
+    if cap > 1 and law.kind != "custom":
         for name in ("kp0", "kv0"):
-            val = getattr(m.law, name)
+            val = getattr(law, name)
             for k, x in enumerate(val if isinstance(val, list) else [val]):
                 if x > cap:
                     field = f"law.{name}" + (f"[{k}]" if isinstance(val, list) else "")

@@ -19,7 +19,7 @@ import math
 import re
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 import msgspec.inspect
@@ -281,19 +281,26 @@ class Edge(Strict, frozen=True):
 
 
 class Law(Strict, frozen=True):
-    """Eq. 17 (``kind = "sigma"``) or the benchmark Eq. 30 (``kind = "benchmark"``, no ``sigma``)."""
+    """The formation law: Eq. 17 (``kind = "sigma"``), the benchmark Eq. 30 (``kind = "benchmark"``,
+    no ``sigma``), or a law of one's own (``use = "package.module:Class"``, its parameters in
+    ``[law.params]``; ``docs/laws.md``)."""
 
-    kind: Literal["sigma", "benchmark"]
-    kp0: PerAxis
-    """Initial position gains ``Kp(0)`` per axis [1/s^2 after the 1/kappa scaling]."""
-    kv0: PerAxis
-    """Initial velocity gains ``Kv(0)`` per axis [1/s]."""
-    gamma_p: float
-    """Adaptation rate ``Gamma_p`` of Kp."""
-    gamma_v: float
-    """Adaptation rate ``Gamma_v`` of Kv."""
+    kind: Literal["sigma", "benchmark", "custom"] = "custom"
+    """A law shipped with tether; ``custom`` (the default when ``use`` is given) runs ``use``."""
+    kp0: PerAxis = 1.0
+    """Initial position gains ``Kp(0)`` per axis [1/s^2 after the 1/kappa scaling] (sigma, benchmark)."""
+    kv0: PerAxis = 1.0
+    """Initial velocity gains ``Kv(0)`` per axis [1/s] (sigma, benchmark)."""
+    gamma_p: PerAxis = 0.0
+    """Adaptation rate ``Gamma_p`` of Kp, one or one per axis (``diag(Gamma_p)``; sigma, benchmark: > 0)."""
+    gamma_v: PerAxis = 0.0
+    """Adaptation rate ``Gamma_v`` of Kv, one or one per axis (sigma, benchmark: > 0)."""
     sigma: float | None = None
     """Leakage ``sigma`` of the sigma-modification [1/s]; required for ``sigma``, absent for ``benchmark``."""
+    use: str = ""
+    """With ``kind = "custom"``: the law's class, ``"package.module:Class"`` (:func:`agent.laws.resolve`)."""
+    params: dict[str, Any] = {}
+    """With ``kind = "custom"``: the law's parameters, decoded into its ``Params``."""
     feedforward: Literal["measured", "commanded", "none"] = "measured"
     """What Eq. 17's ``sum_j a_ij vdot_j`` uses for an agent neighbour's ``vdot_j``: its measured
     acceleration (the mean over the previous period; the paper's law as written), its command of
