@@ -89,14 +89,15 @@ def test_tether_check_exits_2_naming_the_field(tmp_path: Path) -> None:
 
 
 def test_a_constant_disturbance_is_removed_where_eq17_leaves_an_offset() -> None:
-    """Over the last 20 % of 150 s, with a 12 % mass error's bias on agent 1 and nothing else:
-    measured 0.0 (below 1e-6 m) for the integral law, 0.25 m worst-agent for Eq. 17."""
+    """Over the last 20 % of 150 s, with a 12 % mass error's bias on agent 1 and nothing else, the
+    worst agent's mean ||xi||: measured 2.84e-4 m for the integral law (the soft bound's leak,
+    ``lambda s (kappa d / a_I)^16`` with ``kappa d = 2.1 m/s^2``) and 1.807 m for Eq. 17."""
     tails = {}
     for law in ("integral", "sigma"):
         run = refsim.simulate(biased(law, 150.0), engine="numpy")
         tails[law] = metrics.xi_norm(run)[metrics.tail_slice(run, 0.2)].mean(axis=0).max()
     assert tails["integral"] < 1e-3
-    assert tails["sigma"] > 0.1
+    assert tails["sigma"] > 1.0
 
 
 def test_the_integrator_stays_bounded_when_the_error_does_not_go() -> None:
