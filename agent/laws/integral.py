@@ -15,16 +15,16 @@ applied here to a graph rooted at a virtual leader, which pins the integrators' 
     zeta_i = kappa_i v_i - sum_wv                       (Eq. 9)
     u_i    = (sum_wa - Kp xi_i - Kv zeta_i - k_I s_i) / kappa_i
     Kp', Kv' as Eq. 17 (sigma-modified adaptation)
-    s_i'   = xi_i - lambda s_i (s_i / S)^8,   S = a_I / k_I
+    s_i'   = xi_i - lambda s_i (s_i / S)^16,   S = a_I / k_I
 
 With a constant disturbance ``d_i`` the equilibrium has ``k_I s_i = kappa_i d_i`` and
-``xi_i = lambda s_i (s_i / S)^8``: zero up to a term of eighth order in ``kappa_i d_i / a_I`` (for
-``kappa d = a_I / 4`` it is ``1.5e-5 lambda s_i``). The last term is a soft anti-windup bound:
+``xi_i = lambda s_i (s_i / S)^16``: zero up to a term of order 16 in ``kappa_i d_i / a_I`` (for
+``kappa d = a_I / 2`` it is ``1.5e-5 lambda s_i``). The last term is a soft anti-windup bound:
 negligible well inside ``|k_I s| < a_I`` [m/s^2], a strong leak beyond it, so that a vehicle that
 cannot follow its command (saturated at ``safety.max_accel``, or held by something) does not wind
 its integrator up without bound. It is written with ``+ - * /`` only (the contract of
 :mod:`agent.laws` has no ``min`` or ``abs``), and stepped semi-implicitly,
-``s+ = (s + h xi) / (1 + h lambda (s / S)^8)``, which is stable for every ``s`` and every ``h``.
+``s+ = (s + h xi) / (1 + h lambda (s / S)^16)``, which is stable for every ``s`` and every ``h``.
 
 Like every law's state, ``s`` advances only while the supervisor's mode is FLYING: in HOLD, LAND
 or on the ground it keeps the value it had, and the law resumes from it.
@@ -37,7 +37,7 @@ from typing import Any
 
 import msgspec
 
-from agent.laws import Problems, axis_problems, per_axis
+from agent.laws import FormationLaw, Problems, axis_problems, per_axis
 from agent.laws.sigma import PerAxis, Sigma, gain_coefficients
 
 
@@ -53,8 +53,9 @@ def step(ka: Any, p: Any, v: Any, sp: Any, sv: Any, sa: Any, sd: Any, x: tuple[A
     r = s * c[6]
     r2 = r * r
     r4 = r2 * r2
+    r8 = r4 * r4
     return u, e, z, (1.0 + (kp - 1.0) * c[0] + c[1] * (e * e), 1.0 + (kv - 1.0) * c[0] + c[2] * (z * z),
-                     (s + c[3] * e) / (1.0 + c[5] * (r4 * r4)))
+                     (s + c[3] * e) / (1.0 + c[5] * (r8 * r8)))
 
 
 def rate(ka: Any, p: Any, v: Any, sp: Any, sv: Any, sd: Any, b: Any, x: tuple[Any, ...],
@@ -67,9 +68,10 @@ def rate(ka: Any, p: Any, v: Any, sp: Any, sv: Any, sd: Any, b: Any, x: tuple[An
     q = s * r[5]
     q2 = q * q
     q4 = q2 * q2
+    q8 = q4 * q4
     return (b - kp * e - kv * z - r[3] * s, e, z,
             (-r[0] * (kp - 1.0) + r[1] * (e * e), -r[0] * (kv - 1.0) + r[2] * (z * z),
-             e - r[4] * s * (q4 * q4)))
+             e - r[4] * s * (q8 * q8)))
 
 
 class IntegralParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -84,24 +86,24 @@ class IntegralParams(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Integral gain ``k_I`` [1/s^3 after the 1/kappa scaling], one or one per axis; > 0."""
     integral_limit: float
     """Soft bound ``a_I`` on the integral term ``|k_I s|`` [m/s^2]; > 0. Give it room above the
-    largest ``kappa_i |d_i|`` to cancel: the steady error grows as ``(kappa d / a_I)^8``."""
+    largest ``kappa_i |d_i|`` to cancel: the steady error is ``lambda s (kappa d / a_I)^16`` [m]."""
     sigma: float = 1.0
     """Leakage of the gains' adaptation [1/s], as Eq. 17's; >= 0 (0: Eq. 30's adaptation)."""
     limit_rate: float = 1.0
     """``lambda`` [1/s]: the integrator's leak rate at ``|k_I s| = a_I``; > 0."""
 
 
-class Integral(Sigma):
+class Integral(FormationLaw):
     """Eq. 17 plus a soft-bounded integral of the formation error (module docstring)."""
 
     name = "integral"
     state = ("kp", "kv", "s")
-    Params = IntegralParams  # type: ignore[assignment]  # Eq. 17's fields and the integrator's
+    Params = IntegralParams
     step = staticmethod(step)
     rate = staticmethod(rate)
 
     def check(self, params: Any, dim: int) -> Problems:
-        out = super().check(params, dim) + axis_problems(params.ki, dim, "ki")
+        out = Sigma().check(params, dim) + axis_problems(params.ki, dim, "ki")  # Eq. 17's fields as Eq. 17's
         if not axis_problems(params.ki, dim, "ki"):
             for k, g in enumerate(per_axis(params.ki, dim)):
                 if not (g > 0 and math.isfinite(g)):
