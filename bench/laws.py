@@ -2,7 +2,7 @@
 (``benchmark``) and Eq. 17 with integral action (``integral``, ``agent/laws/integral.py``).
 
     PYTHONPATH=. python bench/laws.py --out docs/results/laws          # runs, table, figures, sweep
-    PYTHONPATH=. python bench/laws.py --out /tmp/laws --no-sweep         # the runs and figures only
+    PYTHONPATH=. python bench/laws.py --out OUT --no-sweep                # the runs and figures only
 
 Scenarios (each flown by the three laws, nothing else changed):
 

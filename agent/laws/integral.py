@@ -26,6 +26,9 @@ its integrator up without bound. It is written with ``+ - * /`` only (the contra
 :mod:`agent.laws` has no ``min`` or ``abs``), and stepped semi-implicitly,
 ``s+ = (s + h xi) / (1 + h lambda (s / S)^16)``, which is stable for every ``s`` and every ``h``.
 
+Too large a ``k_I`` destabilises the loop: linearised at held gains, a mode of eigenvalue ``mu``
+of ``K^-1 L1`` is stable only while ``k_I < Kp Kv mu`` (real ``mu``; docs/laws.md, "Choosing ki").
+
 Like every law's state, ``s`` advances only while the supervisor's mode is FLYING: in HOLD, LAND
 or on the ground it keeps the value it had, and the law resumes from it.
 """
@@ -108,7 +111,8 @@ class Integral(FormationLaw):
             for k, g in enumerate(per_axis(params.ki, dim)):
                 if not (g > 0 and math.isfinite(g)):
                     field = "ki" + (f"[{k}]" if isinstance(params.ki, list) else "")
-                    out.append((field, f"is {g}; the integral gain must be finite and > 0 (e.g. ki = 0.5)"))
+                    out.append((field, f"is {g}; the integral gain must be finite and > 0, and below Kp Kv mu_min "
+                                       "(docs/laws.md, Choosing ki; e.g. ki = 0.2)"))
                     break
         if not params.sigma >= 0 or not math.isfinite(params.sigma):
             out.append(("sigma", f"is {params.sigma}; the leakage must be finite and >= 0 (e.g. sigma = 1.0)"))
