@@ -110,6 +110,7 @@ def axis_problems(value: float | Sequence[float], dim: int, field: str) -> Probl
 BUILTIN: dict[str, str] = {
     "sigma": "agent.laws.sigma:Sigma",
     "benchmark": "agent.laws.benchmark:Benchmark",
+    "integral": "agent.laws.integral:Integral",
 }
 """The laws shipped with tether, by the name a mission's ``[law] kind`` gives them."""
 
