@@ -51,9 +51,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     n = m.n
     print(f"mission {m.name!r} (version {m.version}): {n} agents, dim {m.dim}, {m.rate:g} Hz, "
           f"{m.duration:g} s ({m.steps} steps), seed {m.seed}")
-    law = m.law
-    print(f"law {law.kind}: Kp(0)={ms.per_axis(law.kp0, m.dim)} Kv(0)={ms.per_axis(law.kv0, m.dim)} "
-          f"Gamma_p={law.gamma_p:g} Gamma_v={law.gamma_v:g}" + (f" sigma={law.sigma:g}" if law.sigma else ""))
+    print(_law_line(m))
     print(f"leader {m.leader.id}: p0={m.leader.p0} profile={type(m.leader.profile).__name__}")
     lemma = ("Lemma 3 checked (-L1^-1 L2 >= 0, unit row sums)" if numeric else
              f"Lemma 3 follows from Assumption 1 (N > {graph.DENSE_MAX}: not re-computed densely)")
@@ -74,3 +72,17 @@ def cmd_check(args: argparse.Namespace) -> int:
     for line in checks.ground_starts(m):  # a warning: exit status 0 (a pad start is by design)
         print(f"warning: {line}", file=sys.stderr)
     return 0
+
+
+def _law_line(m: ms.Mission) -> str:
+    """``law NAME (state ...): param=value ...``: the law a mission flies, by the names it gives its
+    state and parameters (a per-axis parameter as its list)."""
+    import msgspec
+
+    from agent import laws
+
+    bound = laws.of_mission(m)  # the mission loaded: its law is known to bind
+    params = ", ".join(f"{k}={v}" for k, v in msgspec.structs.asdict(bound.params).items())
+    state = f" (state per axis: {', '.join(bound.law.state)})" if bound.law.state else ""
+    use = f" [{m.law.use}]" if m.law.use else ""
+    return f"law {bound.name}{use}{state}: {params}"

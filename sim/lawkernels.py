@@ -86,8 +86,12 @@ def of(template: str, law: FormationLaw) -> ModuleType:
     if key in _BUILT:
         return _BUILT[key]
     source = inspect.getsource(base) + footer(law)
-    digest = hashlib.sha256(source.encode()).hexdigest()[:16]
     cls = type(law)
+    # numba keys a cached kernel on its own file alone, not on the functions it calls: the law's
+    # modules go into the name, so that an edited law compiles afresh instead of running the old step
+    law_sources = {sys.modules[cls.__module__], sys.modules[law.step.__module__]}
+    stamp = source + "".join(sorted(inspect.getsource(mod) for mod in law_sources))
+    digest = hashlib.sha256(stamp.encode()).hexdigest()[:16]
     name = f"_tether_{template.replace('.', '_')}__{cls.__module__.replace('.', '_')}_{cls.__qualname__}_{digest}"
     folder = cache_dir()
     path = folder / f"{name}.py"
