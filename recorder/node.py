@@ -84,7 +84,7 @@ class Recording:
         if isinstance(node, RecordingContext):
             ctx = node
         else:
-            ctx = RecordingContext(mission=m, lockstep=(node.clock.kind == "lockstep"), namespace=node.keys.ns,
+            ctx = RecordingContext(mission=m, lockstep=node.clock.kind == "lockstep", namespace=node.keys.ns,
                                    mission_text=node.args.mission_path.read_text(), arrived_ago=node.arrived_ago)
         self.arrived_ago = ctx.arrived_ago
         self.mcap = mcap
@@ -546,23 +546,33 @@ def _save(node: Node, rec: Recording, journal: jr.Journal | None, complete: bool
     journal.discard()
 
 
-def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
-         live_host: str = "127.0.0.1") -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node], None]]:
-    """The recorder role writing to ``out``, and its stop hook (writes a partial file).
+class Recorder:
+    """The recorder role writing to ``out`` (:meth:`run`), and its stop hook (:meth:`on_stop`:
+    writes a partial file).
 
     ``live``: also serve the run over the Foxglove WebSocket protocol on this port (:class:`Feed`).
     ``attach``: record a swarm from outside it (``tether record``): no token, no acknowledgements,
     records until the last tick or a stop, whoever comes and goes. ``mcap``: write ``run.mcap``."""
-    holder: dict[str, Any] = {}
 
-    async def run(node: Node) -> None:
+    def __init__(self, out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
+                 live_host: str = "127.0.0.1") -> None:
+        self.out, self.live, self.attach, self.mcap, self.live_host = out, live, attach, mcap, live_host
+        self.rec: Recording | None = None
+        """The run being filled, once :meth:`run` began."""
+        self.journal: jr.Journal | None = None
+        self.feed: Feed | None = None
+        """The live view, while it runs."""
+        self.started = False
+        """The run has started (:meth:`tether.node.Node.ready` returned)."""
+
+    async def run(self, node: Node) -> None:
+        out, attach, live = self.out, self.attach, self.live
         m, keys = node.mission, node.keys
-        rec = Recording(node, out, mcap=mcap)
-        holder["rec"] = rec
+        rec = self.rec = Recording(node, out, mcap=self.mcap)
         out.mkdir(parents=True, exist_ok=True)
-        journal = holder["journal"] = jr.Journal.create(out, jr.Header(
+        journal = self.journal = jr.Journal.create(out, jr.Header(
             mission=m.name, mission_text=rec.run.meta.mission_text or "", namespace=keys.ns, duration=m.duration,
-            lockstep=(node.clock.kind == "lockstep"), started_ns=time.time_ns()))
+            lockstep=node.clock.kind == "lockstep", started_ns=time.time_ns()))
         keeper = asyncio.get_running_loop().create_task(_keep(node, journal), name="journal")
         # three wildcard subscriptions, not 2N+1: each subscription costs a callback thread woken
         # per sample (measured: half the recorder's CPU, docs/benchmarks.md)
@@ -570,7 +580,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         # sample for a coming tick must not take the real one's place in the file
         # real time: a sample is judged at its arrival (the wildcard streams below are drained up to
         # a period later: they do not wake the loop)
-        now = None if (node.clock.kind == "lockstep") else node.arrival
+        now = node.clock.arrivals(node.arrival)
         # a recorder restarted mid-run joins it from the leader's samples (tether/rejoin.py); before
         # its start, samples are not recorded
         rejoin = Rejoin(node.clock.wall)
@@ -625,7 +635,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         feed = None
         if live is not None:
             try:
-                feed = holder["feed"] = Feed(rec, live, live_host)
+                feed = self.feed = Feed(rec, live, self.live_host)
             except Exception as exc:  # noqa: BLE001 - the port was taken since it was checked: record anyway
                 log.error("--live: no live view on port %d (%s: %s); recording without it",
                           live, type(exc).__name__, exc)
@@ -636,12 +646,12 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
         else:
             await node.ready(rejoin=rejoin.epoch)
         rec.cpu_ready = time.process_time()
-        holder["started"] = rec
+        self.started = True
         if node.rejoined and not attach:
             log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "
                         "the ticks before are missing from the run file", node.mission_time(), rejoin.samples)
         last = m.steps
-        if (node.clock.kind == "lockstep"):
+        if node.clock.exact:  # the clock source waits for this process's acknowledgements
             for k in range(last + 1):
                 await node.until(lambda: rec.count[k] >= rec.expected, node.args.stall_timeout,
                                  lambda: f"every sample of tick {k} (have {rec.count[k]} of {rec.expected}; "
@@ -689,7 +699,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                 poker.cancel()
         complete = bool(np.all(rec.count >= rec.expected))
         if feed is not None:
-            holder.pop("feed", None)
+            self.feed = None
             feed.close()
         keeper.cancel()
         _save(node, rec, journal, complete)
@@ -705,14 +715,16 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             raise RuntimeError("every producer left before the last tick: the run was cut short "
                                f"(recorded {int(rec.count.sum())} of {rec.expected * len(rec.count)} samples)")
 
-    def on_stop(node: Node) -> None:
-        feed = holder.pop("feed", None)
+    def on_stop(self, node: Node) -> None:
+        """After a stop: write what was recorded (a partial run file), unless it was written."""
+        out, attach = self.out, self.attach
+        feed, self.feed = self.feed, None
         if feed is not None:
             try:
                 feed.close()
             except Exception as exc:  # noqa: BLE001 - the files matter more than the live view
                 log.warning("live view: %s: %s", type(exc).__name__, exc)
-        rec, journal = holder.get("rec"), holder.get("journal")
+        rec, journal = self.rec, self.journal
         if rec is None or rec.saved or rec.failed is not None:
             return
         if attach and not rec.count.any():
@@ -720,7 +732,7 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
             if journal is not None:
                 journal.discard()
             return
-        if "started" not in holder:  # stopped before any start: another process's file stays
+        if not self.started:  # stopped before any start: another process's file stays
             log.warning("stopped before the run started: no run file written")
             if journal is not None:
                 journal.discard()
@@ -736,4 +748,9 @@ def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = 
                  rec.expected * len(rec.count))
         _save(node, rec, journal, complete=False)
 
-    return run, on_stop
+
+def make(out: Path, live: int | None = None, attach: bool = False, mcap: bool = True,
+         live_host: str = "127.0.0.1") -> tuple[Callable[[Node], Awaitable[None]], Callable[[Node], None]]:
+    """The recorder role writing to ``out``, and its stop hook (:class:`Recorder`'s arguments)."""
+    recorder = Recorder(out, live, attach, mcap, live_host)
+    return recorder.run, recorder.on_stop

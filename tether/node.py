@@ -315,11 +315,12 @@ class Node:
             await self._mesh_linked()
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
         joined: list[float] = []
+        rejoin = self.clock.join(rejoin)
 
         def started() -> bool:
             if start.newest is not None:
                 return True
-            if rejoin is not None and (e := rejoin()) is not None:  # never in lockstep: nothing to join
+            if rejoin is not None and (e := rejoin()) is not None:
                 joined.append(e)
                 return True
             return False
