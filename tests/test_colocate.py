@@ -464,7 +464,7 @@ def test_the_recorder_writes_a_record_at_once_as_it_would_sample_by_sample() -> 
     the run, links that change in number."""
     from types import SimpleNamespace
 
-    from recorder.node import Recording
+    from recorder.recording import Recording
 
     m = load_mission(SECTION4)
     # the recorder's bookkeeping asks its node for these alone
