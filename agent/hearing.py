@@ -50,6 +50,8 @@ class Hearing:
         keys = node.keys
         clock = node.clock
         self.node, self.m, self.aid, self.neighbours = node, m, aid, tick.law.neighbours
+        self.last = m.steps
+        self.cmd_timeout = m.safety.cmd_timeout
         self.gates: list[Gate] = []
         # each input link's clock offset, from sample times against arrival times (tether/skew.py),
         # observed before the gate, which rejects a sender too far ahead (real time)
@@ -129,6 +131,8 @@ class Hearing:
         """The positions in :attr:`nbrs` of the in-neighbours that are vehicles (not the leader)."""
         self.judged = [(aid, s) for s in self.own] + list(zip(self.neighbours, self.nbrs))
         """Each stream whose health the supervisor hears, by sender."""
+        self._all = [*self.own, *self.nbrs, *self.proximity]
+        """Every input read at the tick, in :meth:`inputs`' order."""
         self._others = set(self.neighbours) | {aid}
         self._holding = False
         self._gone_at: int | None = None
@@ -183,7 +187,7 @@ class Hearing:
         node = self.node
         if self.relay is not None:
             self.relay.alive_at = node.clock.reading()
-        sources = [*self.own, *self.nbrs, *self.proximity]
+        sources = self._all
         got = await node.aligned(sources, k, drain=False)
         if self.plant is not None and k == first:
             if got[0] is None and await _first_sample(node, self.plant):
@@ -213,6 +217,15 @@ class Hearing:
                     log.warning("%s", skew.describe(c, f"agent/{self.aid}", offsets.limits))
         return self.clock
 
+    def _gone(self, k: int) -> frozenset[int]:
+        """The other members whose tokens went, as far as this agent's reachability goes at tick ``k``:
+        an agent that left after its last tick is not lost (only the last ticks can see that); a
+        gone leader reaches nobody."""
+        if k >= self.last - 1:
+            return frozenset()
+        gone = self.node.ingress.gone
+        return (gone("agent") - self._others) | gone("leader")
+
     def plant_stale(self, k: int, t: float, own: wire.PlantState, mode: int) -> tuple[bool, bool, list[wire.SafetyEvent]]:
         """Whether the plant's measurements stopped while its process lives (``stale``), whether
         it is restarting after its process died, and the event of a change of either, at tick
@@ -227,7 +240,7 @@ class Hearing:
         and a restarted one learns the run's start from its agent's commands (plant/resume.py)
         before it publishes again."""
         clock, plant = self.node.clock, self.own[0]
-        stale = clock.silent(plant, k) or clock.overdue(t - own.t, self.m.safety.cmd_timeout)
+        stale = clock.silent(plant, k) or clock.overdue(t - own.t, self.cmd_timeout)
         if clock.gone(plant):
             self._gone_at = own.k
         restarting = self._gone_at is not None and own.k <= self._gone_at
@@ -241,17 +254,14 @@ class Hearing:
 
     def status(self, k: int, got: list[Any], plant_silent: bool, rejoining: bool) -> Status:
         """What the supervisor knows at tick ``k`` beyond the samples ``got`` of the in-neighbours."""
-        m, node, clock = self.m, self.node, self.node.clock
+        last, clock = self.last, self.node.clock
         said = [wire.FLYING if msg is None else msg.mode for msg in got]
         suspect = frozenset(j for j, s in self.judged if s.health is not None and s.health.suspect)
-        if k == m.steps:
+        if k == last:
             # the last tick: the others may already have finished and left
             return Status(modes=said, operator=self.order, plant_mode=self.modes.believed, suspect=suspect)
-        # an agent that left after its last tick is not lost; only the last ticks can see that;
-        # a gone leader reaches nobody
-        gone = (node.gone("agent") - self._others) | node.gone("leader") if k < m.steps - 1 else frozenset()
         return Status(gone=[clock.silent(s, k) for s in self.nbrs], modes=said,
-                      others_gone=clock.departed(frozenset(gone)), operator=self.order,
+                      others_gone=clock.departed(lambda: self._gone(k)), operator=self.order,
                       plant_silent=plant_silent, plant_mode=self.modes.believed, rejoining=rejoining,
                       suspect=suspect)
 

@@ -494,7 +494,7 @@ def window_max(m: ms.Mission) -> int:
     """The largest lockstep window for ``m``: a process may have to hold a window of ticks of every
     stream it hears before it drains them, and the recorder hears 1 + 2N streams a tick (the leader's,
     every plant's, every agent's telemetry); a window of them must fit in half an input queue
-    (:data:`tether.node.FIFO_CAPACITY`), or the oldest would be dropped and the run stall."""
+    (:data:`tether.ingress.FIFO_CAPACITY`), or the oldest would be dropped and the run stall."""
     return max(1, (FIFO_CAPACITY // 2) // (1 + 2 * m.n))
 
 

@@ -198,8 +198,8 @@ class Clock(Protocol):
         """A sample ``age`` seconds old is past ``limit`` [s]."""
         ...
 
-    def departed(self, ids: frozenset[int]) -> frozenset[int]:
-        """Of the members whose tokens went (``ids``), those to count as gone."""
+    def departed(self, gone: Callable[[], frozenset[int]]) -> frozenset[int]:
+        """Of the members whose tokens went (``gone()`` says which), those to count as gone."""
         ...
 
     def received(self, src: Source, k: int) -> int:
@@ -342,7 +342,7 @@ class LockstepClock:
     def overdue(self, age: float, limit: float) -> bool:
         return False
 
-    def departed(self, ids: frozenset[int]) -> frozenset[int]:
+    def departed(self, gone: Callable[[], frozenset[int]]) -> frozenset[int]:
         return frozenset()  # a member that finished first is not lost
 
     def received(self, src: Source, k: int) -> int:
@@ -382,7 +382,7 @@ class LockstepClock:
                 # arrays (link statistics, drops) must not
                 inbox.copies += 1
                 return
-            inbox.offer(src, msg, rec.at, missed=True)
+            src.offer(msg, missed=True)  # not stamped: arrival times mean nothing here
             return
         if msg.k <= src.raw_k:
             # a copy sent again after a stall of a tick the emulated link has had; offered again, it
@@ -532,8 +532,8 @@ class RealtimeClock:
     def overdue(self, age: float, limit: float) -> bool:
         return age > limit
 
-    def departed(self, ids: frozenset[int]) -> frozenset[int]:
-        return ids
+    def departed(self, gone: Callable[[], frozenset[int]]) -> frozenset[int]:
+        return gone()
 
     def received(self, src: Source, k: int) -> int:
         return src.received

@@ -247,7 +247,7 @@ class Node:
 
     def count_drop(self, reason: str) -> None:
         """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
-        self.receiver.count(reason)
+        self.ingress.receiver.count(reason)
 
     def gone(self, role: str) -> frozenset[int]:
         """Ids of ``role`` whose liveliness token was seen and is gone now (:meth:`tether.ingress.Ingress.gone`)."""
@@ -262,7 +262,7 @@ class Node:
         relaying its plant's measurement) run at once instead of at the next tick."""
         while True:
             due = self.ingress.next_delivery()
-            await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
+            await self.ingress.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
     async def pace(self) -> None:
@@ -270,7 +270,7 @@ class Node:
         while True:
             await asyncio.sleep(self.mission.dt)
             if len(self.ingress.deferred):
-                self.wakeup.notify_here()
+                self.ingress.wakeup.notify_here()
 
     async def _mesh_linked(self) -> None:
         """A peer of a mesh (``--mesh-peers N``): wait until the session is linked to N other peers.
@@ -388,7 +388,7 @@ class Node:
 
         def alarm() -> None:
             rang[0] = True
-            self.wakeup.notify_here()
+            self.ingress.wakeup.notify_here()
 
         def arm() -> asyncio.TimerHandle | None:
             at = min(deadline, loop.time() + step)
@@ -404,7 +404,7 @@ class Node:
                         raise Stalled(f"waited {timeout:g} s for {missing}")
                     self.resend(missing, loop.time() - began)
                     timer = arm()
-                await self.wakeup.wait(None)
+                await self.ingress.wakeup.wait(None)
                 self.drain()
         finally:
             if timer is not None:
