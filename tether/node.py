@@ -130,6 +130,8 @@ class Node:
         self.mission = mission
         self.session = session
         self.clock = clock
+        self._dt = mission.dt
+        """The control period [s] (a property of the mission, computed once here)."""
         self.keys = wire.Keys(args.ns or mission.name)
         self.ingress = Ingress(session, self.keys, mission, clock, backlog=args.role in BACKLOG_ROLES)
         self.outputs = Outputs(session, clock, args.node_id, args.window)
@@ -434,7 +436,7 @@ class Node:
         by the wait for a missing sample, which drains first. A world process reading its
         vehicles' commands one by one drained every input key once per vehicle: N² queue checks
         per tick."""
-        return await self.clock.align(self, sources, k, self.mission.dt, drain)
+        return await self.clock.align(self, sources, k, self._dt, drain)
 
     async def tick(self, k: int) -> float:
         """Wait until tick ``k`` may run (draining inputs meanwhile, and once more as it returns:
