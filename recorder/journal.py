@@ -17,7 +17,7 @@ clock, the namespace); ``tether.drops`` metadata records carry the recorder's dr
 they change; ``tether.end`` closes a journal whose recorder finished.
 
 :func:`recover` replays a journal through the recorder's own bookkeeping
-(:class:`recorder.node.Recording`) into a :class:`~tether.runfile.Run`, the same run the recorder
+(:class:`recorder.recording.Recording`) into a :class:`~tether.runfile.Run`, the same run the recorder
 would have written, marked incomplete and ``recovered``; :func:`load` reads a run directory either
 way, and :func:`rebuild` writes the rebuilt run as ``run.npz`` and ``run.mcap``. A recorder that
 finishes writes ``run.npz`` (and ``run.mcap``), ``fsync``-s it and removes its journal.
@@ -276,9 +276,9 @@ def read(path: str | Path) -> Contents:
 
 
 def replay(contents: Contents) -> Any:
-    """The recorder's bookkeeping (:class:`recorder.node.Recording`) filled with the journal's
+    """The recorder's bookkeeping (:class:`recorder.recording.Recording`) filled with the journal's
     messages, in the order it took them (pure: nothing is written)."""
-    from recorder.node import Recording, RecordingContext
+    from recorder.recording import Recording, RecordingContext
     from tether import mission as ms
 
     h = contents.header

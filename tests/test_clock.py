@@ -1,4 +1,5 @@
-"""tether.clock: the lockstep source's bookkeeping, the lockstep clock's grants, the real-time clock.
+"""tether.clock: the lockstep source's bookkeeping, the lockstep clock's grants, the real-time clock,
+and the contract both clocks keep as strategies (what a process asks of its clock).
 
 The real-time clock reads time only through the ``monotonic`` function it is given; here that is a
 fake whose readings the test sets, so a tick "in the past" costs no sleep at all and a tick in the
@@ -8,12 +9,15 @@ future costs the few milliseconds the test chooses.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 
 import numpy as np
 import pytest
 
-from tether.clock import LockstepClock, LockstepSource, RealtimeClock
+from tether import transport as tp
+from tether.clock import MAX_LAG, Clock, LockstepClock, LockstepSource, RealtimeClock
+from tether.inputs import Source
 from tether.evloop import TIMER_GRAIN
 
 WAIT = 2.0
@@ -266,3 +270,60 @@ async def test_realtime_clock_schedule_is_start_plus_k_periods() -> None:
         fake.now = 50.0 + k * 0.02 + 0.03  # every tick asked for 30 ms (1.5 periods) after its instant
         assert await clock.wait_for(k) == pytest.approx(0.03, abs=1e-9)
     assert clock.late == 501
+
+
+# --------------------------------------------------------------------------- the Clock contract
+def _clocks() -> list[Clock]:
+    """One of each strategy; the real-time one on a fake monotonic clock at 100 s and a wall clock
+    at 1000 s (so tick 0 at wall 1000 maps to monotonic 100)."""
+    return [LockstepClock(), RealtimeClock(period=0.01, monotonic=lambda: 100.0, wall=lambda: 1000.0)]
+
+
+@pytest.mark.parametrize("clock", _clocks(), ids=lambda c: c.kind)
+def test_every_clock_keeps_the_contract(clock: Clock) -> None:
+    """What a process asks of its clock, asked of each: the answers have the protocol's types, and
+    each strategy is consistent with itself (what it refuses, what it joins, how it publishes)."""
+    other = "realtime" if clock.kind == "lockstep" else "lockstep"
+    clock.require(clock.kind, "never raised")
+    with pytest.raises(ValueError, match="the other"):
+        clock.require(other, "the other")
+    qos, keep = clock.stream(None, 4)
+    assert isinstance(qos, tp.StreamQos) and keep in (0, 5)
+    assert clock.stream(None, 0)[1] == 0  # no window: nothing kept
+    hook = clock.hook(print, print)
+    assert (hook[0] is None) != (hook[1] is None)  # a relay runs in one place
+    assert clock.join(None) is None
+    assert clock.departed(lambda: frozenset({3})) in (frozenset(), frozenset({3}))
+    assert clock.ago(math.nan) == 0.0
+    assert isinstance(clock.begin(1000.0, 0.5), str)
+    assert not clock.unstarted()
+    assert clock.now() == 0.0  # tick 0 now, on either clock
+
+
+def test_the_lockstep_clock_judges_no_input_by_its_timing() -> None:
+    """A tick waits for its inputs: nothing is silent, gone, overdue or departed, no arrival
+    is judged and no offset monitored; a relay runs on the loop and no run under way is joined."""
+    clock = LockstepClock()
+    src = Source("k", object, 1, last=10)
+    src.gone = True
+    assert clock.exact and not clock.silent(src, 5) and not clock.gone(src) and not clock.overdue(9.0, 1.0)
+    assert clock.departed(lambda: frozenset({2})) == frozenset()
+    assert clock.arrivals(lambda: 1.0) is None and clock.offsets(0.01) is None
+    assert clock.join(lambda: 1.0) is None and clock.wall is None and clock.origin is None
+    assert clock.hook(print, print) == (print, None)
+
+
+def test_the_realtime_clock_maps_tick_0_and_judges_inputs_by_time() -> None:
+    mono = [100.0]
+    clock = RealtimeClock(period=0.01, monotonic=lambda: mono[0], wall=lambda: 1000.0, max_lag=MAX_LAG)
+    assert clock.unstarted() and clock.origin is None and clock.now() == 0.0
+    clock.begin(1000.5, phase=0.5)  # tick 0 half a second from now
+    assert not clock.unstarted() and clock.origin == 100.5 and clock.start == pytest.approx(100.505)
+    mono[0] = 101.0
+    assert clock.now() == pytest.approx(0.5) and clock.reached(0.01) == 50
+    assert clock.arrival(100.75) == pytest.approx(0.25) and clock.ago(100.75) == pytest.approx(0.25)
+    assert clock.link_time(0.1) == pytest.approx(0.5)  # now, not the sample's time
+    assert clock.overdue(0.3, 0.25) and not clock.overdue(0.2, 0.25)
+    assert clock.departed(lambda: frozenset({2})) == frozenset({2})
+    assert clock.offsets(0.01) is not None and clock.hook(print, print) == (None, print)
+    assert not clock.exact and clock.max_lag == MAX_LAG

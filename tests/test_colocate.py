@@ -474,11 +474,11 @@ def test_the_recorder_writes_a_record_at_once_as_it_would_sample_by_sample() -> 
     the run, links that change in number."""
     from types import SimpleNamespace
 
-    from recorder.node import Recording
+    from recorder.recording import Recording
 
     m = load_mission(SECTION4)
     # the recorder's bookkeeping asks its node for these alone
-    node = SimpleNamespace(mission=m, clock=SimpleNamespace(lockstep=True), keys=wire.Keys("test"),
+    node = SimpleNamespace(mission=m, clock=SimpleNamespace(kind="lockstep"), keys=wire.Keys("test"),
                            args=SimpleNamespace(mission_path=SECTION4), arrived_ago=lambda: 0.0)
     rng = np.random.default_rng(5)
     one, block = Recording(node, Path("unused")), Recording(node, Path("unused"))  # type: ignore[arg-type]

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 from tether import transport as tp
 from tether.evloop import TIMER_GRAIN
+from tether.skew import SkewMonitor
 
 if TYPE_CHECKING:
     from tether.handoff import Sink
@@ -129,6 +130,12 @@ class Clock(Protocol):
         before, and in lockstep, where tick 0 is no instant."""
         ...
 
+    def join(self, rejoin: Callable[[], float | None] | None) -> Callable[[], float | None] | None:
+        """The rejoin hook a process honours while it waits for the start (``rejoin``: tells the
+        start instant of a run under way, once it can): itself in real time; None in lockstep,
+        where a run under way is never joined (ticks follow the clock source's grants)."""
+        ...
+
     def unstarted(self) -> bool:
         """True while samples heard belong to a run this process has not begun (real time, before
         :meth:`begin`: a restarted process hears a run under way); always False in lockstep."""
@@ -171,6 +178,51 @@ class Clock(Protocol):
 
     async def wait_for(self, k: int) -> float:
         """Block until tick k may run; returns how late it starts [s] (0 in lockstep)."""
+        ...
+
+    # ---- what a role judges differently on it
+    exact: bool
+    """Inputs are matched by tick index: a tick runs with exactly its tick's samples, so nothing
+    heard can be silent, stale or late, and a sample's arrival time means nothing (lockstep).
+    False: a tick takes the newest held, judged by when it came (real time)."""
+
+    def silent(self, src: Source, k: int) -> bool:
+        """``src`` went silent before delivering tick ``k`` (:meth:`~tether.inputs.Source.silent_at`)."""
+        ...
+
+    def gone(self, src: Source) -> bool:
+        """``src``'s producer's liveliness token is gone (:attr:`~tether.inputs.Source.gone`)."""
+        ...
+
+    def overdue(self, age: float, limit: float) -> bool:
+        """A sample ``age`` seconds old is past ``limit`` [s]."""
+        ...
+
+    def departed(self, gone: Callable[[], frozenset[int]]) -> frozenset[int]:
+        """Of the members whose tokens went (``gone()`` says which), those to count as gone."""
+        ...
+
+    def received(self, src: Source, k: int) -> int:
+        """Samples of ``src`` counted as received at tick ``k``."""
+        ...
+
+    def sent(self, src: Source, k: int) -> int:
+        """Samples ``src``'s sender had sent at tick ``k``, as far as its newest received tells."""
+        ...
+
+    def arrivals(self, now: Callable[[], float]) -> Callable[[], float] | None:
+        """What a plausibility gate reads as a sample's arrival: ``now`` [s, mission time], or None
+        where arrival times mean nothing."""
+        ...
+
+    def offsets(self, period: float) -> SkewMonitor | None:
+        """A monitor of the input links' clock offsets (:mod:`tether.skew`), where they can be seen."""
+        ...
+
+    def hook(self, on_loop: Callable[[Any], None], on_thread: Callable[[tp.Received], None]
+             ) -> tuple[Callable[[Any], None] | None, Callable[[tp.Received], None] | None]:
+        """Where a relay of an input runs: the ``on_message`` and ``tap`` to give
+        :meth:`tether.node.Node.source`, one of them None."""
         ...
 
     # ---- what the process does differently on it
@@ -245,6 +297,9 @@ class LockstepClock:
         """Sim time has no wall-clock instant: nothing to map."""
         return "lockstep: ticks follow the clock source's grants"
 
+    def join(self, rejoin: Callable[[], float | None] | None) -> Callable[[], float | None] | None:
+        return None
+
     def unstarted(self) -> bool:
         return False
 
@@ -276,6 +331,36 @@ class LockstepClock:
             await self._changed.wait()
         return 0.0
 
+    exact = True
+
+    def silent(self, src: Source, k: int) -> bool:
+        return False  # a tick waits for its inputs: nothing can be silent
+
+    def gone(self, src: Source) -> bool:
+        return False
+
+    def overdue(self, age: float, limit: float) -> bool:
+        return False
+
+    def departed(self, gone: Callable[[], frozenset[int]]) -> frozenset[int]:
+        return frozenset()  # a member that finished first is not lost
+
+    def received(self, src: Source, k: int) -> int:
+        return src.received_upto(k)  # what tick k could have seen, whatever arrived early
+
+    def sent(self, src: Source, k: int) -> int:
+        return 0 if src.newest is None else min(src.newest.seq, k) + 1  # one a tick, of ticks <= k
+
+    def arrivals(self, now: Callable[[], float]) -> Callable[[], float] | None:
+        return None
+
+    def offsets(self, period: float) -> SkewMonitor | None:
+        return None
+
+    def hook(self, on_loop: Callable[[Any], None], on_thread: Callable[[tp.Received], None]
+             ) -> tuple[Callable[[Any], None] | None, Callable[[tp.Received], None] | None]:
+        return on_loop, None  # in order, from the loop (a callback must not publish BLOCK)
+
     def stream(self, qos: tp.StreamQos | None, window: int) -> tuple[tp.StreamQos, int]:
         """Always :data:`~tether.transport.SYNC` (BLOCK): a lost sample would stall the run
         (measured here, DROP state streams lost samples under load and stalled lockstep runs);
@@ -297,7 +382,7 @@ class LockstepClock:
                 # arrays (link statistics, drops) must not
                 inbox.copies += 1
                 return
-            inbox.offer(src, msg, rec.at, missed=True)
+            src.offer(msg, missed=True)  # not stamped: arrival times mean nothing here
             return
         if msg.k <= src.raw_k:
             # a copy sent again after a stall of a tick the emulated link has had; offered again, it
@@ -390,6 +475,9 @@ class RealtimeClock:
         self.start = self.origin + phase * self.period
         return f"real time: tick 0 at {epoch:.3f}, phase {phase:.2f}"
 
+    def join(self, rejoin: Callable[[], float | None] | None) -> Callable[[], float | None] | None:
+        return rejoin
+
     def unstarted(self) -> bool:
         return self.origin is None
 
@@ -432,6 +520,36 @@ class RealtimeClock:
         if lateness > self.period:
             self.late += 1
         return max(0.0, lateness)
+
+    exact = False
+
+    def silent(self, src: Source, k: int) -> bool:
+        return src.silent_at(k)
+
+    def gone(self, src: Source) -> bool:
+        return src.gone
+
+    def overdue(self, age: float, limit: float) -> bool:
+        return age > limit
+
+    def departed(self, gone: Callable[[], frozenset[int]]) -> frozenset[int]:
+        return gone()
+
+    def received(self, src: Source, k: int) -> int:
+        return src.received
+
+    def sent(self, src: Source, k: int) -> int:
+        return 0 if src.newest is None else src.newest.seq + 1
+
+    def arrivals(self, now: Callable[[], float]) -> Callable[[], float] | None:
+        return now
+
+    def offsets(self, period: float) -> SkewMonitor | None:
+        return SkewMonitor(period)
+
+    def hook(self, on_loop: Callable[[Any], None], on_thread: Callable[[tp.Received], None]
+             ) -> tuple[Callable[[Any], None] | None, Callable[[tp.Received], None] | None]:
+        return None, on_thread  # as it arrives, on Zenoh's thread, without waiting for the loop
 
     def stream(self, qos: tp.StreamQos | None, window: int) -> tuple[tp.StreamQos, int]:
         """``qos``, by default :data:`~tether.transport.STATE` (DROP: the newest supersedes); nothing kept."""

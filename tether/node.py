@@ -130,6 +130,8 @@ class Node:
         self.mission = mission
         self.session = session
         self.clock = clock
+        self._dt = mission.dt
+        """The control period [s] (a property of the mission, computed once here)."""
         self.keys = wire.Keys(args.ns or mission.name)
         self.ingress = Ingress(session, self.keys, mission, clock, backlog=args.role in BACKLOG_ROLES)
         self.outputs = Outputs(session, clock, args.node_id, args.window)
@@ -247,7 +249,7 @@ class Node:
 
     def count_drop(self, reason: str) -> None:
         """Count one input dropped for ``reason`` (reported in telemetry with the decoder's drops)."""
-        self.receiver.count(reason)
+        self.ingress.receiver.count(reason)
 
     def gone(self, role: str) -> frozenset[int]:
         """Ids of ``role`` whose liveliness token was seen and is gone now (:meth:`tether.ingress.Ingress.gone`)."""
@@ -262,7 +264,7 @@ class Node:
         relaying its plant's measurement) run at once instead of at the next tick."""
         while True:
             due = self.ingress.next_delivery()
-            await self.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
+            await self.ingress.wakeup.wait(None if due is None else max(0.0, due - self.mission_time()))
             self.drain()
 
     async def pace(self) -> None:
@@ -270,7 +272,7 @@ class Node:
         while True:
             await asyncio.sleep(self.mission.dt)
             if len(self.ingress.deferred):
-                self.wakeup.notify_here()
+                self.ingress.wakeup.notify_here()
 
     async def _mesh_linked(self) -> None:
         """A peer of a mesh (``--mesh-peers N``): wait until the session is linked to N other peers.
@@ -315,11 +317,12 @@ class Node:
             await self._mesh_linked()
             self._token = tp.declare_token(self.session, self.keys.token(self.args.role, self.args.node_id))
         joined: list[float] = []
+        rejoin = self.clock.join(rejoin)
 
         def started() -> bool:
             if start.newest is not None:
                 return True
-            if rejoin is not None and (e := rejoin()) is not None:  # never in lockstep: nothing to join
+            if rejoin is not None and (e := rejoin()) is not None:
                 joined.append(e)
                 return True
             return False
@@ -387,7 +390,7 @@ class Node:
 
         def alarm() -> None:
             rang[0] = True
-            self.wakeup.notify_here()
+            self.ingress.wakeup.notify_here()
 
         def arm() -> asyncio.TimerHandle | None:
             at = min(deadline, loop.time() + step)
@@ -403,7 +406,7 @@ class Node:
                         raise Stalled(f"waited {timeout:g} s for {missing}")
                     self.resend(missing, loop.time() - began)
                     timer = arm()
-                await self.wakeup.wait(None)
+                await self.ingress.wakeup.wait(None)
                 self.drain()
         finally:
             if timer is not None:
@@ -433,7 +436,7 @@ class Node:
         by the wait for a missing sample, which drains first. A world process reading its
         vehicles' commands one by one drained every input key once per vehicle: N² queue checks
         per tick."""
-        return await self.clock.align(self, sources, k, self.mission.dt, drain)
+        return await self.clock.align(self, sources, k, self._dt, drain)
 
     async def tick(self, k: int) -> float:
         """Wait until tick ``k`` may run (draining inputs meanwhile, and once more as it returns:
