@@ -21,3 +21,17 @@ def pytest_configure(config: pytest.Config) -> None:
     that a developer's own choice stands."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.hookimpl(trylast=True)  # after ``-m``/``-k`` have deselected: only the tests that will run count
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Deal the files out to the parallel workers (``--dist loadfile``: a file's tests run on one worker,
+    so its module fixtures start once) heaviest first, then the rest: a long file dealt out last would
+    leave every other worker idle while it runs. Heaviest is most slow tests (real processes, seconds
+    each), then most tests. The order within a file stays."""
+    weight: dict[str, list[int]] = {}
+    for item in items:
+        w = weight.setdefault(item.nodeid.partition("::")[0], [0, 0])
+        w[0] += item.get_closest_marker("slow") is not None
+        w[1] += 1
+    items.sort(key=lambda item: [-x for x in weight[item.nodeid.partition("::")[0]]])
