@@ -28,11 +28,11 @@ REPO = Path(__file__).resolve().parent.parent
 
 # =========================================================================== the tether command
 def cli_env(extra: Mapping[str, str] | None = None) -> dict[str, str]:
-    """The environment of a ``tether`` subprocess: this checkout first on the import path (the code under
-    test, whatever is installed), one BLAS thread (two cores are shared by every process of a test) and
-    matplotlib's file backend (no display)."""
+    """The environment of a ``tether`` subprocess: this test's (``tests/conftest.py`` sets one BLAS thread
+    and no display there) with this checkout first on the import path, the code under test whatever is
+    installed, and ``extra``."""
     path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
-    return {**os.environ, "PYTHONPATH": path, "OPENBLAS_NUM_THREADS": "1", "MPLBACKEND": "Agg", **(extra or {})}
+    return {**os.environ, "PYTHONPATH": path, **(extra or {})}
 
 
 def tether(*args: str, timeout: float = 600.0, cwd: Path | None = None, env: Mapping[str, str] | None = None,

@@ -21,7 +21,7 @@ from recorder import journal  # noqa: E402
 from tether import wire  # noqa: E402
 from tether.runfile import Run  # noqa: E402
 
-from tests.test_observe import finish, kill, tether, wait_for  # noqa: E402
+from tests.support import finish, kill, tether_popen, wait_until  # noqa: E402
 
 AGENTS = (1, 2, 3, 4)
 SLACK = 1.5
@@ -99,7 +99,7 @@ def start_lockstep(tmp_path: Path, *extra: str) -> tuple[Path, Path, object]:
     out = tmp_path / "run"
     out.mkdir()
     log = tmp_path / "launcher.log"
-    proc = tether("run", "section4", "--clock", "lockstep", "--duration", "600", "--insecure", "--out", str(out),
+    proc = tether_popen("run", "section4", "--clock", "lockstep", "--duration", "600", "--insecure", "--out", str(out),
                   *extra, log=log)
     return out, log, proc
 
@@ -229,8 +229,8 @@ def test_every_process_killed_at_once_leaves_a_journal_up_to_the_last_second(tmp
     writes a run file; the journal holds every tick taken up to within a second of the kill."""
     out, log, proc = start_lockstep(tmp_path)
     try:
-        wait_for(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)  # type: ignore[arg-type]
-        wait_for(lambda: (out / journal.NAME).exists() and (out / journal.NAME).stat().st_size > 300_000,
+        wait_until(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)  # type: ignore[arg-type]
+        wait_until(lambda: (out / journal.NAME).exists() and (out / journal.NAME).stat().st_size > 300_000,
                  120, "a journal of a few seconds of mission", proc)  # type: ignore[arg-type]
         pids = [proc.pid, *descendants(proc.pid)]  # type: ignore[attr-defined]
         killed = time.time_ns()
@@ -238,7 +238,7 @@ def test_every_process_killed_at_once_leaves_a_journal_up_to_the_last_second(tmp
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         proc.communicate(timeout=30)  # type: ignore[attr-defined]
-        wait_for(lambda: not any(alive(p) for p in pids), 30, "every process gone")
+        wait_until(lambda: not any(alive(p) for p in pids), 30, "every process gone")
     finally:
         kill(proc)  # type: ignore[arg-type]
     check_journal(out, killed)
@@ -250,13 +250,13 @@ def test_a_launcher_killed_mid_run_leaves_a_run_file_of_every_tick_taken(tmp_pat
     ``run.npz`` of every tick it took (incomplete, nothing after the last), then removes its journal."""
     out, log, proc = start_lockstep(tmp_path)
     try:
-        wait_for(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)  # type: ignore[arg-type]
-        wait_for(lambda: (out / journal.NAME).exists() and (out / journal.NAME).stat().st_size > 300_000,
+        wait_until(lambda: "processes are up" in log.read_text(), 120, "every process up", proc)  # type: ignore[arg-type]
+        wait_until(lambda: (out / journal.NAME).exists() and (out / journal.NAME).stat().st_size > 300_000,
                  120, "a journal of a few seconds of mission", proc)  # type: ignore[arg-type]
         children = descendants(proc.pid)  # type: ignore[attr-defined]
         os.kill(proc.pid, signal.SIGKILL)  # type: ignore[attr-defined]
         proc.communicate(timeout=30)  # type: ignore[attr-defined]
-        wait_for(lambda: not any(alive(p) for p in children), 120, "the launcher's processes stopping")
+        wait_until(lambda: not any(alive(p) for p in children), 120, "the launcher's processes stopping")
     finally:
         kill(proc)  # type: ignore[arg-type]
         for pid in descendants(os.getpid()):
