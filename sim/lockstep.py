@@ -90,6 +90,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         why = lockstep_kernel.unsupported(m) if engine == "compiled" else None
         if why is not None:
             raise ValueError(f"the compiled engine cannot run {m.name}: {why}")
+        from sim import warm
+
+        warm.warm_lockstep(m)  # one compile per machine: blocks while another process compiles
         fast = lockstep_kernel.simulate(m, duration=duration, record=record, progress=progress,
                                         diverge_at=diverge_at)  # None: unsupported, or given back
         if fast is not None:
