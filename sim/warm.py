@@ -155,8 +155,8 @@ def warm(m: Any, parts: tuple[str, ...] = ("refsim-discrete", "refsim-continuous
                 check_continuous(m)
             except ValueError:
                 continue
-        meta = RunMeta(mission=m.name, source=f"reference-{mode}", law=m.law.kind, rate=m.rate,
-                       steps=WARMUP_TICKS, seed=m.seed)
+        meta = RunMeta(mission=m.name, source="reference-continuous" if mode == "continuous" else "reference-discrete",
+                       law=m.law.kind, rate=m.rate, steps=WARMUP_TICKS, seed=m.seed)
         done[part] = warm_refsim(Setup.of(m), mode, 2 if part.endswith("parallel") else 1, meta)
     return done
 
