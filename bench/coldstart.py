@@ -68,7 +68,7 @@ def main() -> None:
         for what in a.what:
             args = COMMANDS[what]
             warm_cache = base / f"{what}-warm"
-            run(tree, args, warm_cache, base / "prime")  # fills the warm caches, untimed
+            run(tree, args, warm_cache, base / f"prime-{what}")  # fills the warm caches, untimed
             cold: list[tuple[float, float]] = []
             warm: list[tuple[float, float]] = []
             loads: list[float] = []
