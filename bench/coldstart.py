@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 COMMANDS: dict[str, list[str]] = {
     "simulate": ["simulate", "section4", "--no-figures", "--no-mcap"],
+    "simulate-short": ["simulate", "section4", "--no-figures", "--no-mcap", "--duration", "200"],
     "sweep1": ["sweep", "section4", "--loss", "0", "--delay", "0", "--laws", "sigma", "--jobs", "1"],
     "sweep8": ["sweep", "section4", "--loss", "0,10,30,50", "--delay", "0,100", "--laws", "sigma", "--jobs", "2"],
     "montecarlo": ["montecarlo", "section4", "--seeds", "2", "--jobs", "1", "--duration", "10"],

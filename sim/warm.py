@@ -25,6 +25,7 @@ import fcntl
 import hashlib
 import inspect
 import os
+import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -103,6 +104,50 @@ def ensure(part: str, law: Any, compile_: Callable[[], object]) -> bool:
         os.close(fd)  # closing the descriptor releases the lock
 
 
+NUMPY_WHILE_COLD = (30_000, 50)
+"""The largest discrete run (ticks, agents) that ``engine="auto"`` runs on the numpy path while its
+kernels are not compiled yet. The numpy loop's cost is mostly a fixed cost per tick up to tens of
+agents, about 70 us of CPU; the discrete kernel's compile costs about 9 s of CPU, some 120 000
+ticks (bench/coldstart.py). 30 000 ticks keep a cold run within about 2 s of CPU of a warm one;
+a longer run waits for the compile."""
+
+
+def compiled_or_background(s: Any, mode: str, threads: int, steps: int) -> bool:
+    """For ``engine="auto"``: whether a reference-simulator run takes the compiled kernels now.
+    False for a short discrete run whose kernels are not compiled on this machine yet: the numpy
+    path (the same run bit for bit) runs it, and a detached ``python -m sim.warm`` compiles them
+    for the next run, unless another process already is. Does not block."""
+    if mode != "discrete" or steps > NUMPY_WHILE_COLD[0] or s.mission.n > NUMPY_WHILE_COLD[1]:
+        return True
+    part = refsim_part(mode, threads)
+    k = key(part, s.bound.law)
+    if k in _DONE or (marks_dir() / f"{k}.done").exists():
+        return True
+    try:
+        folder = marks_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / f"{k}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        return True  # no cache to coordinate in: compile here, as without this module
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False  # being compiled by another process
+    finally:
+        os.close(fd)  # free it for the compiler (two started at once: the second finds the mark)
+    from tether import mission as ms
+
+    text = folder / f"{k}.{os.getpid()}.toml"
+    try:
+        text.write_text(ms.dumps(s.mission), encoding="utf-8")
+        subprocess.Popen([sys.executable, "-m", "sim.warm", str(text), "--parts", part, "--remove-mission"],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True)  # outlives this command: the compile is for the next run
+    except OSError:
+        return True  # no background compile to be had: compile here
+    return False
+
+
 def refsim_part(mode: str, threads: int) -> str:
     """The part a reference-simulator run in ``mode`` with ``threads`` takes."""
     if mode == "continuous":
@@ -169,8 +214,12 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m sim.warm", description=__doc__.splitlines()[0])
     ap.add_argument("mission", nargs="?", default="section4", help="a mission file or built-in name")
     ap.add_argument("--parts", nargs="+", choices=PARTS, default=["refsim-discrete", "refsim-continuous", "lockstep"])
+    ap.add_argument("--remove-mission", action="store_true", help="remove the mission file once read")
     a = ap.parse_args(argv)
-    m = ms.load(catalog.resolve(a.mission))
+    path = catalog.resolve(a.mission)
+    m = ms.load(path)
+    if a.remove_mission:
+        path.unlink(missing_ok=True)
     for part, compiled in warm(m, tuple(a.parts)).items():
         print(f"{part}: {'compiled' if compiled else 'already in the cache'}")
 
