@@ -96,3 +96,34 @@ def test_two_cold_processes_compile_once_and_agree(tmp_path: Path) -> None:
     loaded = next(r for r in results if not r["compiled"])
     assert loaded["misses"] == 0
     assert results[0]["digest"] == results[1]["digest"]
+
+
+# a short cold discrete run: which path it took and the run's bytes
+SHORT = """
+import hashlib, json
+from tether import catalog, mission as ms
+from sim import kernel, refsim
+m = ms.load(catalog.builtin_path("section4"))
+run = refsim.simulate(m, "discrete", duration=20.0, ENGINE)
+misses = sum(kernel.discrete.stats.cache_misses.values())
+hits = sum(kernel.discrete.stats.cache_hits.values())
+digest = hashlib.sha256(b"".join(x.tobytes() for x in (run.p, run.v, run.u, run.xi, run.zeta))).hexdigest()
+print(json.dumps({"calls": misses + hits, "misses": misses, "digest": digest}))
+"""
+
+
+@pytest.mark.slow
+def test_a_short_cold_run_takes_numpy_and_the_next_one_the_cache(tmp_path: Path) -> None:
+    """A short discrete run with cold caches runs on the numpy path (no kernel call) and starts the
+    compile in the background; once its mark is written a run loads the kernel from the cache. All
+    three runs (cold auto, numpy, warm auto) are the same bit for bit."""
+    pytest.importorskip("numba")
+    cold = _result(_start(SHORT.replace("ENGINE", "engine='auto'"), tmp_path), 600)
+    assert cold["calls"] == 0
+    marks = tmp_path / "tether" / "warm"
+    wait_until(lambda: any(marks.glob("refsim-discrete-*.done")), 900, "the background compile's mark")
+    warm = _result(_start(SHORT.replace("ENGINE", "engine='auto'"), tmp_path), 600)
+    assert warm["calls"] > 0 and warm["misses"] == 0
+    ref = _result(_start(SHORT.replace("ENGINE", "engine='numpy'"), tmp_path), 600)
+    assert cold["digest"] == warm["digest"] == ref["digest"]
+    assert not list(marks.glob("*.toml"))  # the background compile removed its mission file
