@@ -29,7 +29,7 @@ import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from sim import lawkernels
 
@@ -42,6 +42,8 @@ _TEMPLATE = {"refsim-discrete": "sim.kernel", "refsim-discrete-parallel": "sim.k
 WARMUP_TICKS = 5
 """Ticks of the caller's run that the compiling process runs (enough to call every kernel once)."""
 
+T = TypeVar("T")
+
 _DONE: set[str] = set()  # keys marked in this process: a sweep worker's later cells skip the stat
 
 
@@ -50,8 +52,18 @@ def marks_dir() -> Path:
     return lawkernels.cache_dir().parent / "warm"
 
 
+_KEYS: dict[tuple[str, type, str], str] = {}  # hashing the sources once per process, not per sweep cell
+
+
 def key(part: str, law: Any) -> str:
     """The mark's name for ``part`` compiled for ``law`` (a :class:`agent.laws.FormationLaw`)."""
+    memo = (part, type(law), os.environ.get("NUMBA_CACHE_DIR", ""))
+    if memo not in _KEYS:
+        _KEYS[memo] = _key(part, law)
+    return _KEYS[memo]
+
+
+def _key(part: str, law: Any) -> str:
     import numba
 
     template = sys.modules.get(_TEMPLATE[part]) or __import__(_TEMPLATE[part], fromlist=["_"])
@@ -68,6 +80,16 @@ def is_warm(part: str, law: Any) -> bool:
     """Whether ``part``'s kernels for ``law`` are marked compiled on this machine (does not block)."""
     k = key(part, law)
     return k in _DONE or (marks_dir() / f"{k}.done").exists()
+
+
+def first_run(part: str, law: Any, run: Callable[[], T]) -> T:
+    """``run()``, the caller's run on ``part``'s kernels for ``law``; where they are not marked
+    compiled on this machine, under the lock (**blocks** while another process compiles them), so
+    that its first call compiles them for every process and no warm-up run is needed (its own
+    argument types, its own ticks). A process that waited loads them from the cache."""
+    box: list[T] = []
+    ensure(part, law, lambda: box.append(run()))
+    return box[0] if box else run()
 
 
 def ensure(part: str, law: Any, compile_: Callable[[], object]) -> bool:
@@ -169,15 +191,15 @@ def warm_refsim(s: Any, mode: str, threads: int, meta: Any) -> bool:
 
 
 def warm_lockstep(m: Any) -> bool:
-    """:func:`ensure` for an in-process lockstep run of mission ``m``: compiles with a few of its
-    ticks (nothing where the compiled twin cannot run ``m``). **Blocks** while another process compiles."""
+    """:func:`ensure` for an in-process lockstep run of mission ``m``: compiles with a whole run of
+    ``m`` (a few ticks may stop before a delayed link's first message; nothing where the compiled twin
+    cannot run ``m``). **Blocks** while another process compiles."""
     from agent import laws
     from sim import lockstep_kernel
 
     if lockstep_kernel.unsupported(m) is not None:
         return False
-    return ensure("lockstep", laws.of_mission(m).law,
-                  lambda: lockstep_kernel.simulate(m, duration=WARMUP_TICKS * m.dt, record=False))
+    return ensure("lockstep", laws.of_mission(m).law, lambda: lockstep_kernel.simulate(m, record=False))
 
 
 def warm(m: Any, parts: tuple[str, ...] = ("refsim-discrete", "refsim-continuous", "lockstep")) -> dict[str, bool]:
