@@ -2,11 +2,18 @@
 
 numba compiles a kernel at its first call in a process and writes it to its cache (``cache=True``);
 a later process loads it from there. Processes that start before the cache is written (a study's
-workers, several Dask workers on one host, two commands at once) each compile the same kernels,
-each paying the whole compile on a shared CPU. :func:`ensure` puts that first compile under a lock
-file beside the compile cache: one process compiles a few ticks of the caller's own run (so the
-kernels get the run's own argument types) and marks the part done; the others wait for the lock
-and then load the kernels from the cache. A part already marked costs a ``stat``.
+workers, several Dask workers on one host, two commands at once) each compiled the same kernels,
+each paying the whole compile on a shared CPU. Here the first compile of each part (:data:`PARTS`:
+a run compiles only its own) happens under a lock file beside the compile cache, and a mark says
+when it is done; a part already marked costs a ``stat``:
+
+* the in-process lockstep engine (:func:`first_run`): a cold run is itself the compile, under the
+  lock; the other processes wait for it and load the kernels from the cache;
+* the reference simulator, discrete mode, a short run (:func:`compiled_or_background`): it runs on
+  the numpy path (the same run bit for bit) while a detached ``python -m sim.warm`` compiles the
+  part for the next run;
+* the reference simulator otherwise (:func:`warm_refsim`): a few ticks of the caller's own run
+  compile the part under the lock (the run's own argument types), then the run goes on.
 
     python -m sim.warm [MISSION] [--parts refsim-discrete refsim-continuous lockstep]
 
