@@ -11,6 +11,26 @@ alternate, so both see the same machine load. Prints, per command, the median wa
 
 ``--tree DIR``: run the tether source tree at ``DIR`` (e.g. a ``git archive`` of a base commit)
 instead of this one, to compare a base with this tree under the same load.
+
+Figures (one repeat each, a 2-core machine shared at load 9-28, so wall times swing with the load;
+CPU time is the figure to compare). "before": the engines without :mod:`sim.warm`; "after": with it.
+
+=============== ====== ================ ================ ===============
+command         tree   cold CPU [s]     warm CPU [s]     cold wall [s]
+=============== ====== ================ ================ ===============
+simulate-short  before 11.6             2.3              128.1 (32.6 warm)
+simulate-short  after  4.0              2.5              47.4 (24.0 warm)
+sweep8          before 31.9             10.2             188.1 (95.1 warm)
+sweep8          after  24.2             10.0             298.7 (45.6 warm)
+sweep1          before 16.7             3.9              116.4 (19.6 warm)
+sweep1          after  13.9             3.2              32.4 (4.8 warm)
+simulate        before 10.9             2.3              54.9 (10.9 warm)
+montecarlo      before 17.6             3.2              268.3 (68.6 warm)
+=============== ====== ================ ================ ===============
+
+A cold single-process run of the full Section 4 still pays one compile (about 9 s of CPU for the
+discrete reference kernel, 10 s for the continuous one, 14 s for the lockstep engine: ``python -m
+sim.warm --parts PART`` with empty caches); ``python -m sim.warm`` pays it ahead of the first run.
 """
 
 from __future__ import annotations
