@@ -26,6 +26,7 @@ sweep1          before 16.7             3.9              116.4 (19.6 warm)
 sweep1          after  13.9             3.2              32.4 (4.8 warm)
 simulate        before 10.9             2.3              54.9 (10.9 warm)
 montecarlo      before 17.6             3.2              268.3 (68.6 warm)
+montecarlo      after  16.4             2.5              46.6 (3.7 warm)
 =============== ====== ================ ================ ===============
 
 A cold single-process run of the full Section 4 still pays one compile (about 9 s of CPU for the
