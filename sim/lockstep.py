@@ -90,8 +90,13 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         why = lockstep_kernel.unsupported(m) if engine == "compiled" else None
         if why is not None:
             raise ValueError(f"the compiled engine cannot run {m.name}: {why}")
-        fast = lockstep_kernel.simulate(m, duration=duration, record=record, progress=progress,
-                                        diverge_at=diverge_at)  # None: unsupported, or given back
+        from agent import laws
+        from sim import warm
+
+        # one compile per machine: the first run compiles under a lock that other processes wait on
+        fast = warm.first_run("lockstep", laws.of_mission(m).law, lambda: lockstep_kernel.simulate(
+            m, duration=duration, record=record, progress=progress, diverge_at=diverge_at)) \
+            if lockstep_kernel.unsupported(m) is None else None  # None: unsupported, or given back
         if fast is not None:
             return fast
     h, d = m.dt, m.dim

@@ -141,9 +141,12 @@ def _simulate(m: Mission, mode: Mode, duration: float | None, record: bool, subs
                    seed=m.seed)
     if mode not in ("discrete", "continuous"):
         raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
-    if takes_kernel(s, engine, on_tick):
+    from sim import warm
+
+    if takes_kernel(s, engine, on_tick) and (engine != "auto" or warm.compiled_or_background(s, mode, threads, steps)):
         from sim import fast
         try:
+            warm.warm_refsim(s, mode, threads, meta)  # one compile per machine: blocks while another compiles
             if mode == "discrete":
                 return fast.discrete(s, steps, record, progress, meta, threads)
             return fast.continuous(s, steps, substeps, record, progress, meta)
