@@ -36,7 +36,7 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("start here", ("demo", "reproduce", "missions")),
     ("a mission", ("check", "simulate", "run")),
     ("a run's files", ("plot", "mcap")),
-    ("studies", ("sweep", "montecarlo")),
+    ("studies", ("sweep", "montecarlo", "warm")),
     ("a swarm that is flying", ("record", "top", "netem-set", "land", "estop")),
     ("deployment", ("deploy-gen", "rehearse")),
     (roles.HEADING, roles.PROCESSES),

@@ -33,7 +33,9 @@ def _grid_options(p: argparse.ArgumentParser, *, seeds_required: bool) -> None:
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """sweep, montecarlo."""
+    """sweep, montecarlo, warm."""
+    from sim.warm import PARTS
+
     sw = sub.add_parser("sweep", help="degradation study: a mission over a grid of link loss and delay, both laws")
     sw.add_argument("mission", help=MISSION_HELP)
     sw.add_argument("--out", required=True, help="directory for sweep.csv, sweep.md, heatmaps and each point's mission")
@@ -71,6 +73,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                     help="latency compensation on every agent (default: as the mission's [links] says)")
     _grid_options(mc, seeds_required=True)
     mc.set_defaults(func=cmd_study, montecarlo=True)
+    wm = sub.add_parser("warm", help="compile the engines a mission's runs take, once for this machine (after "
+                                     "installing, on a CI runner, on each Dask host)")
+    wm.add_argument("mission", nargs="?", default="section4", help=MISSION_HELP + " (default section4)")
+    wm.add_argument("--parts", nargs="+", choices=PARTS, default=None, help="the compiled pieces to warm (default: discrete, continuous and the "
+                                       "in-process engine)")
+    wm.set_defaults(func=cmd_warm)
 
 
 def _number(text: str | None, option: str, lo: float, hi: float, default: float) -> float:
@@ -176,4 +184,19 @@ def cmd_study(args: argparse.Namespace) -> int:
     print(f"{len(rows)} cells ({meta['ran_now']} run now, {meta['resumed']} kept from before), {diverged} diverged; "
           f"cells per worker: {workers}")
     print(f"wrote {out / 'sweep.csv'}" + (", summary.csv" if seeds else "") + ", sweep.md and figures")
+    return 0
+
+
+
+def cmd_warm(args: argparse.Namespace) -> int:
+    """Compile the kernels the mission's runs take into the machine's cache; blocks until done."""
+    from sim import kernel, warm
+
+    if not kernel.AVAILABLE:
+        print("tether warm: numba is not installed, nothing to compile (pip install 'tether[fast]')", file=sys.stderr)
+        return 0
+    m = load(args.mission)
+    parts = tuple(args.parts) if args.parts else ("refsim-discrete", "refsim-continuous", "lockstep")
+    for part, compiled in warm.warm(m, parts).items():
+        print(f"{part}: {'compiled' if compiled else 'already in the cache'}")
     return 0
