@@ -55,7 +55,7 @@ def _run(cells: list[study.Cell], address: str | None, jobs: int, tmp: Path, **k
     out = Path(tempfile.mkdtemp(dir=tmp))
     t0 = time.perf_counter()
     with study.open_executor(address, jobs) as eng:
-        outcome = study.run(cells, study.StudyFile(out / "study.jsonl"), eng, meta={}, **kw)  # type: ignore[arg-type]
+        outcome = study.run(cells, study.StudyFile(out / "study.jsonl"), eng, sweep.run_point, meta={}, **kw)  # type: ignore[arg-type]
     return time.perf_counter() - t0, outcome
 
 
@@ -131,13 +131,13 @@ def main() -> int:
             t0 = time.perf_counter()
             try:
                 with study.open_executor(None, 2) as eng:
-                    study.run(cells, study.StudyFile(out / "study.jsonl"), eng, meta={}, stop_after=half)
+                    study.run(cells, study.StudyFile(out / "study.jsonl"), eng, sweep.run_point, meta={}, stop_after=half)
             except study.StudyInterrupted as exc:
                 first = exc.done
             t_first = time.perf_counter() - t0
             t0 = time.perf_counter()
             with study.open_executor(None, 2) as eng:
-                resumed = study.run(cells, study.StudyFile(out / "study.jsonl"), eng, meta={})
+                resumed = study.run(cells, study.StudyFile(out / "study.jsonl"), eng, sweep.run_point, meta={})
             t_second = time.perf_counter() - t0
             if _rows(resumed) != want:
                 print("the resumed study's rows differ", file=sys.stderr)
@@ -176,7 +176,7 @@ def _pool1(cells: list[study.Cell], tmp: Path) -> tuple[float, study.Outcome]:
     out = Path(tempfile.mkdtemp(dir=tmp))
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn")) as pool:
-        o = study.run(cells, study.StudyFile(out / "study.jsonl"), study.Engine(pool, "local", 1), meta={})
+        o = study.run(cells, study.StudyFile(out / "study.jsonl"), study.Engine(pool, "local", 1), sweep.run_point, meta={})
     return time.perf_counter() - t0, o
 
 

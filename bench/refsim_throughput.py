@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.factories import build  # noqa: E402
 from sim import kernel, refsim  # noqa: E402
+from sim.setup import Engine, Mode
 from tether.mission import Mission  # noqa: E402
 
 
@@ -58,7 +59,7 @@ def mission(n: int, steps: int, seed: int = 0, disturbance: bool | str = True, e
     })
 
 
-def rate(m: Mission, mode: refsim.Mode, engine: refsim.Engine, n: int, steps: int, repeats: int,
+def rate(m: Mission, mode: Mode, engine: Engine, n: int, steps: int, repeats: int,
          threads: int = 1) -> tuple[list[float], list[float]]:
     """Agent-steps per second of wall time and per second of this process's CPU time, per repeat."""
     wall, cpu = [], []
@@ -91,13 +92,13 @@ def main() -> None:
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2],
                     help="also run the compiled discrete mode on this many of numba's threads (1: only one)")
     args = ap.parse_args()
-    engines: list[refsim.Engine] = ["numpy", "compiled"] if kernel.AVAILABLE else ["numpy"]
+    engines: list[Engine] = ["numpy", "compiled"] if kernel.AVAILABLE else ["numpy"]
     if kernel.AVAILABLE:
         print(f"compiled kernels, first call in a fresh process [s]: {float(first_call()):.2f} (then warm: "
               f"{float(first_call()):.2f})")
     else:
         print("numba is not installed: numpy path only (pip install 'tether[fast]')")
-    modes: tuple[tuple[refsim.Mode, int], ...] = (("discrete", args.steps), ("continuous", args.continuous_steps))
+    modes: tuple[tuple[Mode, int], ...] = (("discrete", args.steps), ("continuous", args.continuous_steps))
     for mode, steps in modes:
         print(f"\n{mode}, {steps} steps; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
         print(f"{'N':>6} {'disturbance':>12} {'engine':>11} {'median agent-steps/s':>20} {'min':>10} {'max':>10} "
@@ -110,7 +111,7 @@ def main() -> None:
             # stage: minutes at N = 1000), on the random tree without extra edges, which it solves
             # agent by agent (O(N)); with them, one block holds most agents and L1^-1 is dense
             m = mission(n, steps, disturbance=dist, extra=not tree)
-            runs: list[tuple[refsim.Engine, int]] = [(e, 1) for e in engines] if not tree else [("compiled", 1)]
+            runs: list[tuple[Engine, int]] = [(e, 1) for e in engines] if not tree else [("compiled", 1)]
             if "compiled" in engines and mode == "discrete":
                 runs += [("compiled", t) for t in args.threads if t > 1]
             for engine, threads in runs[1:]:

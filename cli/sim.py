@@ -100,7 +100,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from sim import capacity, figures, metrics, refsim
-    from sim.refsim import Setup
+    from sim.setup import Setup
 
     path = cli_args.mission_path(args.mission)
     m = cli_args.load(args.mission, args.duration)

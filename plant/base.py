@@ -16,8 +16,8 @@ commands of tick k held (:meth:`Plant.step`). The mission chooses the plant by n
 
 A mission disturbance ``d_i(t)`` [m/s^2] acts on a vehicle with mass as the force ``m d_i``,
 held over each period at its value at the period's midpoint (the double integrator integrates it
-exactly instead). :func:`build` makes the plants of a mission; the plant process and the
-in-process engine (:mod:`sim.lockstep`) both use it, so they fly the same arithmetic.
+exactly instead). :func:`plant.build.build` makes the plants of a mission; the plant process and
+the in-process engine (:mod:`sim.lockstep`) both use it, so they fly the same arithmetic.
 """
 
 from __future__ import annotations
@@ -329,27 +329,3 @@ class Fleet:
     def close(self) -> None:
         for p in self.plants:
             p.close()
-
-
-def build(m: ms.Mission, ids: list[int] | None = None, live: bool = False) -> list[Plant]:
-    """The plants hosting agents ``ids`` (all by default): one :class:`PayloadPlant` for a payload
-    mission (which must host all of them), else one plant per agent. ``live``: the caller runs in
-    real time (a plant process), so real vehicles (``crazyflie``) may be built; they are returned
-    unconnected, for the caller to :meth:`~plant.crazyflie.CrazyfliePlant.open` (it blocks: the
-    plant process runs it in a thread)."""
-    ids = m.agent_ids if ids is None else list(ids)
-    if m.payload is not None:
-        return [PayloadPlant(m, ids)]
-    out: list[Plant] = []
-    for aid in ids:
-        spec = m.agent(aid).plant
-        if isinstance(spec, ms.CrazyfliePlant):
-            if not live:
-                raise ValueError(f"agent {aid}'s plant is a crazyflie, a real vehicle: it flies in real time "
-                                 "(tether run --clock realtime), not in a simulator")
-            from plant.crazyflie import CrazyfliePlant
-
-            out.append(CrazyfliePlant(m, [aid]))  # not connected: the caller opens it (blocking)
-            continue
-        out.append(DoubleIntegratorPlant(m, [aid]) if isinstance(spec, ms.DoubleIntegrator) else VehiclePlant(m, [aid]))
-    return out

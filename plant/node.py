@@ -1,6 +1,6 @@
 """A plant's process (``plant``: one vehicle) or a world's (``world``: every vehicle of a
 ``[payload]`` mission and the payload, or every simulated vehicle of a mission without one when
-``tether run --shared-plants`` asks, as a :class:`plant.base.Fleet`), around :func:`plant.base.build`
+``tether run --shared-plants`` asks, as a :class:`plant.base.Fleet`), around :func:`plant.build.build`
 and one command watchdog per vehicle (:mod:`plant.watchdog`).
 
 Tick k: advance ``[t_{k-1}, t_k]`` with what each vehicle's watchdog decides from its agent's
@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from plant import base, resume
+
+from plant.build import build
 from plant.onboard import Trust
 from plant.rest import Resting
 from plant.watchdog import Watchdog
@@ -67,10 +69,10 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     if world and real:
         raise ValueError("a crazyflie is a real vehicle: its own plant process talks to it (tether plant --id I), "
                          "never a world hosting others")
-    built = base.build(m, ids, live=real)  # a crazyflie is flown in real time only (refused above otherwise)
+    built = build(m, ids, live=real)  # a crazyflie is flown in real time only (refused above otherwise)
     # a [payload] world is one plant; a world of simulated vehicles without one (--shared-plants), a fleet
     plant = built[0] if len(built) == 1 else base.Fleet(built)
-    if real:  # only then is the driver loaded (base.build has loaded it already)
+    if real:  # only then is the driver loaded (build has loaded it already)
         from plant.crazyflie import CrazyfliePlant, LinkLost
     if real and isinstance(plant, CrazyfliePlant):
         await asyncio.to_thread(plant.open)  # connect and take off: seconds, off the event loop

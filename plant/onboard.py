@@ -2,7 +2,7 @@
 only). Pure: no I/O.
 
 The same pieces as a plant process (``plant/node.py``), composed the same way: the mission's plant
-model and disturbance bank (:func:`plant.base.build`: a double integrator, a point mass or a
+model and disturbance bank (:func:`plant.build.build`: a double integrator, a point mass or a
 quadrotor), ground contact and motors-off (:class:`plant.rest.Resting`), and the command watchdog
 (:class:`plant.watchdog.Watchdog`), which saturates every command to ``safety.max_accel`` and
 replaces a non-finite or missing one by its failsafe before the model sees it. Tick k: the
@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from plant import base, double_integrator
+
+from plant.build import build
 from plant.rest import Resting
 from plant.watchdog import NOTE_EVERY, Event, Watchdog
 from tether import mission as ms
@@ -110,7 +112,7 @@ class Onboard:
         why = problem(m, aid)
         if why is not None:
             raise ValueError(f"agent {aid}'s plant cannot be co-located: {why}")
-        (inner,) = base.build(m, [aid], live=False)
+        (inner,) = build(m, [aid], live=False)
         self.plant = Resting(inner, m.dim, m.safety.ground)
         self.dog = Watchdog(m.safety, m.dim, m.dt)
         self.trust = Trust()

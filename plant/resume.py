@@ -152,13 +152,14 @@ def resumed(m: ms.Mission, aid: int, last: wire.PlantState, k: int) -> Resting:
     """Vehicle ``aid``'s simulated plant placed at ``last``'s position and velocity, its
     disturbances at tick ``k``."""
     from plant import base
+    from plant.build import build
     from plant.rest import Resting
 
     d = m.dim
     v0 = list(last.vel) + [0.0] * (len(m.agent(aid).p0) - d)
     agents = [msgspec.structs.replace(a, p0=list(last.p), v0=v0[:len(last.p)]) if a.id == aid else a
               for a in m.agents]
-    (inner,) = base.build(msgspec.structs.replace(m, agents=agents), [aid], live=True)
+    (inner,) = build(msgspec.structs.replace(m, agents=agents), [aid], live=True)
     if not isinstance(inner, (base.DoubleIntegratorPlant, base.VehiclePlant)):
         raise TypeError(f"agent {aid}: a {type(inner).__name__} is not resumed (plant/resume.py)")
     inner.seek(k)

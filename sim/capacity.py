@@ -8,7 +8,7 @@ The mission's own size (ticks, agents, the run file) is checked where the missio
 from __future__ import annotations
 
 from sim import refsim
-from sim.refsim import Engine, Setup
+from sim.setup import Engine, Setup
 from tether import mission as ms
 from tether.checks import MAX_AGENT_TICKS
 from tether.graph import DENSE_MAX

@@ -12,7 +12,7 @@ import numpy as np
 from agent import laws
 from leader import profile
 from sim import kernel, lawkernels
-from sim.refsim import Progress, Setup, check_continuous
+from sim.setup import Progress, Setup, check_continuous
 from tether import wire
 from tether.runfile import Run, RunMeta
 

@@ -5,7 +5,7 @@ Zenoh; a lockstep run is fully determined by the mission (seed included), so the
 done in one loop gives the same run. This module is that loop, written against the very functions
 the processes call, in the order they call them:
 
-* the plants (``plant/node.py``, ``plant/world.py``): :func:`plant.base.build`'s plants, stepped
+* the plants (``plant/node.py``, ``plant/world.py``): :func:`plant.build.build`'s plants, stepped
   with the commands of tick k-1 (an exact double integrator per agent, vehicles with mass, or a
   payload world hosting all of them);
 * agent i relays its plant's sample of tick k as a :class:`~tether.wire.State` with sequence
@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,20 +40,15 @@ from agent.safety import Status
 from agent.tick import AgentTick, Heard
 from leader import profile
 from plant import base as plants
-from plant.disturbance import DisturbanceBank
 from plant.rest import Resting
 from tether import wire
 from tether.inputs import Source
 from tether.mission import Mission
-from tether.runfile import Links, PlantRecord, Run, RunMeta
+from sim.setup import DIVERGE_AT, Progress, hosts_of, leader_of, meta_of, steps_of
+from tether.runfile import Links, PlantRecord, Run
 
 if TYPE_CHECKING:
     from netem.link import Channel
-
-Progress = Callable[[int, int], None]
-
-DIVERGE_AT = 1e6
-"""A formation error beyond this [m] counts as divergence and ends the run."""
 
 
 @dataclass
@@ -241,55 +236,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     return run
 
 
-def steps_of(m: Mission, duration: float | None) -> int:
-    """The run's last tick: the mission's, or ``duration`` [s] at its rate."""
-    return m.steps if duration is None else int(round(duration * m.rate))
-
-
-def meta_of(m: Mission, steps: int) -> RunMeta:
-    """The in-process engine's run metadata (either form of it)."""
-    return RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
-                   seed=m.seed)
-
-
-def leader_of(m: Mission, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The leader's reference ``p, v, a`` at every tick time, ``(T, d)`` each (numpy evaluates the
-    profile element by element: the same values as the leader process's one call per tick)."""
-    p, v, a = (np.broadcast_to(np.asarray(x, dtype=float), (len(times), m.dim))
-               for x in profile.build(m.leader, m.dim)(times))
-    return p, v, a
-
-
 def _abs_max(xs: list[float]) -> float:
     """``numpy.abs(xs).max()`` of a short list: NaN if any element is."""
     return math.nan if any(x != x for x in xs) else max(map(abs, xs))
-
-
-def hosts_of(m: Mission) -> list[plants.Plant]:
-    """:func:`plant.base.build`'s plants, the double integrators whose disturbance banks take the
-    same branches (their models' flags) hosted together: one row per vehicle of one vectorised
-    host, each row's arithmetic element-wise that of its own plant process."""
-    built = plants.build(m)
-    if m.payload is not None:
-        return built
-    groups: dict[tuple, list[int]] = {}
-    out: list[plants.Plant] = []
-    for host in built:
-        key = _branches(m, host)
-        if key is None:
-            out.append(host)
-        else:
-            groups.setdefault(key, []).extend(host.ids)
-    return out + [plants.DoubleIntegratorPlant(m, group) for group in groups.values()]
-
-
-def _branches(m: Mission, host: plants.Plant) -> tuple | None:
-    """Which branches of :class:`~plant.disturbance.DisturbanceBank` a one-vehicle double
-    integrator's bank takes (None: not such a plant, or a bank whose flags are unknown here)."""
-    if type(host) is not plants.DoubleIntegratorPlant:
-        return None
-    bank = DisturbanceBank.from_mission(m, list(host.ids))
-    return bank.flags if bank.layout_known else None
 
 
 def _record_plants(rec: PlantRecord, samples: dict[int, plants.Sample], order: list, r: int, rows: int) -> None:

@@ -36,7 +36,7 @@ rate limit or an outage) runs there from the start too.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,7 +44,8 @@ from agent import safety
 from agent.law import AgentLaw
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
-from sim import kernel, lawkernels, lockstep
+from sim import kernel, lawkernels
+from sim.setup import DIVERGE_AT, Progress, hosts_of, leader_of, meta_of, steps_of
 from sim.kernel import law_load, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
 from tether import failsafe, wire
 from tether.inputs import RECENT_SEQS
@@ -54,7 +55,6 @@ from tether.runfile import Links, Run
 if TYPE_CHECKING:
     from netem.link import Channel
 
-Progress = Callable[[int, int], None]
 
 CHUNK = 4096
 """Ticks per call of the compiled loop (the disturbance of so many ticks is held at once)."""
@@ -93,7 +93,7 @@ def unsupported(m: Mission) -> str | None:
     if m.law.feedforward not in _FEED:
         return f"feedforward {m.law.feedforward!r}"
     # the Python engine's hosts (its grouping of the plants decides the banks' branches)
-    if any(type(host) is not plants.DoubleIntegratorPlant for host in lockstep.hosts_of(m)):
+    if any(type(host) is not plants.DoubleIntegratorPlant for host in hosts_of(m)):
         return "a vehicle with mass (only double integrators are compiled)"
     ins = {i: AgentLaw.from_mission(m, i).neighbours for i in m.agent_ids}
     if max(map(len, ins.values()), default=0) > MAX_IN:
@@ -111,21 +111,21 @@ def unsupported(m: Mission) -> str | None:
 
 
 def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
-             progress: Progress | None = None, diverge_at: float = lockstep.DIVERGE_AT) -> Run | None:
+             progress: Progress | None = None, diverge_at: float = DIVERGE_AT) -> Run | None:
     """:func:`sim.lockstep.simulate` of ``m``, compiled: the same run bit for bit, or None when a
     tick is one the loop does not model (or :func:`unsupported` says no) and the Python engine must
     run it."""
     if unsupported(m) is not None:
         return None
     h, d = m.dt, m.dim
-    steps = lockstep.steps_of(m, duration)
+    steps = steps_of(m, duration)
     ids = m.agent_ids
     n = len(ids)
     lid = m.leader.id
     col = {aid: i for i, aid in enumerate(ids)}
     col[lid] = n  # the leader's column of the sample history
     laws = [AgentLaw.from_mission(m, i) for i in ids]
-    hosts = lockstep.hosts_of(m)
+    hosts = hosts_of(m)
     banks = [(DisturbanceBank.from_mission(m, list(host.ids)), [col[a] for a in host.ids]) for host in hosts]
     p = np.empty((n, d))
     v = np.empty((n, d))
@@ -180,10 +180,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         out_ptr[src_c + 1] += 1
     out_ptr = np.cumsum(out_ptr)
     out_dst = np.array([dst_c for _, dst_c in edges], dtype=np.int64)
-    lead = np.ascontiguousarray(np.stack(lockstep.leader_of(m, times)))
+    lead = np.ascontiguousarray(np.stack(leader_of(m, times)))
 
     rows_n = steps + 1 if record else 1
-    run = Run.empty(rows_n, ids, d, lockstep.meta_of(m, steps), mode=wire.FLYING)
+    run = Run.empty(rows_n, ids, d, meta_of(m, steps), mode=wire.FLYING)
     ages = np.full((rows_n, n, width), np.nan)
     kappa = np.array([law.kappa for law in laws])
     swd = np.array([law.sum_wdelta for law in laws], dtype=float).reshape(n, d)

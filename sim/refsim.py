@@ -32,55 +32,18 @@ run has no ``on_tick`` (a live view paces the run sample by sample: the numpy lo
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-from typing import Callable, Literal
 
 import msgspec
 import numpy as np
 
-from agent import laws
 from leader import profile
 from plant import double_integrator
-from plant.disturbance import DisturbanceBank
+from sim.setup import Engine, Mode, OnTick, Progress, Setup, check_continuous
 from tether import graph, wire
 from tether.mission import Mission
 from tether.runfile import Run, RunMeta, Source
 
 log = logging.getLogger("tether")
-
-Mode = Literal["discrete", "continuous"]
-Engine = Literal["auto", "numpy", "compiled"]
-Progress = Callable[[int, int], None]
-OnTick = Callable[[Run, int], None]
-"""Called with the run being filled and the index of the sample just recorded (live views)."""
-
-
-@dataclass(frozen=True)
-class Setup:
-    """Arrays derived once from a mission."""
-
-    mission: Mission
-    topo: graph.Topology
-    bound: laws.Bound
-    ref: profile.Reference
-    dist: DisturbanceBank
-    offsets: np.ndarray  # (N+1, d), the leader's row 0
-    sum_wdelta: np.ndarray  # (N, d): sum_j a_ij delta_ij
-    p0: np.ndarray  # (N, d)
-    v0: np.ndarray  # (N, d)
-
-    @classmethod
-    def of(cls, m: Mission) -> "Setup":
-        topo = graph.topology(m)
-        n, d = m.n, m.dim
-        offsets = np.zeros((n + 1, d))
-        offsets[:n] = [a.offset for a in m.agents]
-        sum_wdelta = topo.kappa[:, None] * offsets[:n] - graph.neighbour_sums(topo, offsets)  # O(edges), no N x N
-        p0 = np.array([a.p0 for a in m.agents], dtype=float)
-        v0 = np.array([a.v0 if a.v0 is not None else [0.0] * d for a in m.agents], dtype=float)
-        return cls(m, topo, laws.of_mission(m), profile.build(m.leader, d),
-                   DisturbanceBank.from_mission(m), offsets, sum_wdelta, p0, v0)
-
 
 neighbour_sums = graph.neighbour_sums
 
@@ -234,18 +197,6 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
     if progress is not None:
         progress(steps, steps)
     return run
-
-
-def check_continuous(m: Mission) -> None:
-    """The continuous mode feeds forward the exact accelerations, and runs a law's continuous-time
-    form (``rate``, :mod:`agent.laws`): a mission asking otherwise is refused."""
-    law = laws.of_mission(m).law
-    if getattr(law, "rate", None) is None:
-        raise ValueError(f"law {law.name!r} has no continuous-time form (a `rate`, docs/laws.md): run the discrete "
-                         "mode")
-    if m.law.feedforward != "measured":
-        raise ValueError(f"law.feedforward = {m.law.feedforward!r}: the continuous mode feeds forward the exact "
-                         "accelerations only; use the discrete mode")
 
 
 def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Progress | None, meta: RunMeta,

@@ -16,6 +16,7 @@ import numpy as np
 
 from recorder.export import mcap_beside
 from sim import figures, metrics, refsim
+from sim.setup import Mode
 from tether import jsonout
 from tether import mission as ms
 from tether.catalog import builtin_path
@@ -41,7 +42,7 @@ def section4(out: Path, duration: float | None = None, continuous: bool = False,
     m = mission if mission is not None else ms.load(builtin_path("section4"))
     out.mkdir(parents=True, exist_ok=True)
     laws = {"sigma": m, "benchmark": with_law(m, "benchmark")}
-    modes: list[refsim.Mode] = ["discrete", "continuous"] if continuous else ["discrete"]
+    modes: list[Mode] = ["discrete", "continuous"] if continuous else ["discrete"]
     runs: dict[str, Run] = {}
     table: dict[str, dict] = {}
     for mode in modes:

@@ -2,7 +2,7 @@
 kept as they finish, resumable, with Monte Carlo replicates and their statistics.
 
 * **Cells.** A cell is the TOML text of one mission plus the engine that runs it
-  (:func:`sim.sweep.run_point`): a pure function of its text. Everything random in a run (random
+  (the ``point`` a study is given, :func:`sim.sweep.run_point`): a pure function of its text. Everything random in a run (random
   disturbances, network models, a Monte Carlo replicate's draws) is seeded from the text, never
   from the worker, the submission order or the clock, so a cell gives the same row wherever it
   runs: inline, in a local process pool or on a Dask cluster.
@@ -119,12 +119,15 @@ def worker_id() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def run_cell(text: str, engine: str, workdir: str | None) -> dict:
-    """Run one cell (in whichever process the executor chose): ``{"row", "worker", "wall_s"}``."""
-    from sim import sweep
+Point = Callable[..., dict]
+"""What runs one cell: ``point(text, engine, workdir) -> row``, a module-level function (the
+executors pickle it by name), e.g. :func:`sim.sweep.run_point`."""
 
+
+def run_cell(point: Point, text: str, engine: str, workdir: str | None) -> dict:
+    """Run one cell with ``point`` (in whichever process the executor chose): ``{"row", "worker", "wall_s"}``."""
     t0 = time.perf_counter()
-    row = sweep.run_point(text, engine, workdir)  # type: ignore[arg-type]
+    row = point(text, engine, workdir)
     row.pop("wall_s", None)
     return {"row": row, "worker": worker_id(), "wall_s": time.perf_counter() - t0}
 
@@ -429,10 +432,10 @@ class Outcome:
     wall_s: float
 
 
-def run(cells: Sequence[Cell], results: StudyFile, engine: Engine, *, meta: dict,
+def run(cells: Sequence[Cell], results: StudyFile, engine: Engine, point: Point, *, meta: dict,
         workdir: Callable[[Cell], str | None] = lambda c: None, progress: Progress | None = None,
         stop_after: int | None = None) -> Outcome:
-    """Run every cell of ``cells`` not already in ``results`` through ``engine``, appending each as it
+    """Run every cell of ``cells`` not already in ``results`` through ``engine`` with ``point``, appending each as it
     finishes. ``progress(done, total, label, note=...)`` is told after each. Ctrl-C (or
     ``stop_after`` cells run, for measurements) raises :class:`StudyInterrupted` with what is kept."""
     key = study_key(cells)
@@ -466,7 +469,7 @@ def run(cells: Sequence[Cell], results: StudyFile, engine: Engine, *, meta: dict
                     c = next(it, None)
                     if c is None:
                         break
-                    pending[engine.executor.submit(run_cell, c.text, c.engine, workdir(c))] = c
+                    pending[engine.executor.submit(run_cell, point, c.text, c.engine, workdir(c))] = c
                 if not pending:
                     break
                 finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)

@@ -16,7 +16,7 @@ The mission file of every point is written beside the results, so any cell can b
 Figures of merit (``docs/metrics.md``): the ultimate bound of the *true* formation error
 ``||xi||`` (Eq. 8 from the vehicles' positions) over the last 10 % of the run, and of the ``xi`` the
 agents computed from the (old, lost, substituted) data they had; the peak gain ``max(Kp, Kv)``, the gains' growth rate over the second half, divergence (the
-formation error non-finite or beyond :data:`sim.lockstep.DIVERGE_AT`), and what the links did
+formation error non-finite or beyond :data:`sim.setup.DIVERGE_AT`), and what the links did
 (delivery ratio, age of the neighbour data used, p50 and p99).
 """
 
@@ -43,6 +43,7 @@ from tether import graph, wire
 from sim import lockstep, metrics
 from tether import mission as ms
 from sim.reproduce import with_law
+from sim.setup import DIVERGE_AT
 from tether.runfile import Run
 
 Engine = Literal["inprocess", "runtime"]
@@ -176,7 +177,7 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
         "kv_growth_per_s": s["kv_growth_per_s"],
         "max_xi_m": s["max_xi_m"],
         "diverged": bool(s["diverged"] or run.meta.diverged_at is not None
-                         or not true_max <= lockstep.DIVERGE_AT),
+                         or not true_max <= DIVERGE_AT),
         "diverged_at_s": run.meta.diverged_at,
         # the safety layer's part: when its first event came, and how many vehicles it grounded
         "failsafe_at_s": run.safety.events[0].t if run.safety.events else None,
@@ -349,7 +350,7 @@ def sweep(m: ms.Mission, out: Path, *, loss: list[float], delay: list[float], bu
                 f.write_text(text)
         if on_start is not None:
             on_start(len(points), eng.kind)
-        outcome = study.run(cell_list, results, eng, meta=meta, workdir=lambda c: dirs[c.digest],
+        outcome = study.run(cell_list, results, eng, run_point, meta=meta, workdir=lambda c: dirs[c.digest],
                             progress=progress, stop_after=stop_after)
     if outcome.failed:
         raise StudyFailed(outcome.failed, len(outcome.records), len(points))

@@ -185,7 +185,7 @@ def refsim_part(mode: str, threads: int) -> str:
 
 
 def warm_refsim(s: Any, mode: str, threads: int, meta: Any) -> bool:
-    """:func:`ensure` for a reference-simulator run of setup ``s`` (:class:`sim.refsim.Setup`):
+    """:func:`ensure` for a reference-simulator run of setup ``s`` (:class:`sim.setup.Setup`):
     compiles with a few of its ticks. **Blocks** while another process compiles."""
     from sim import fast
 
@@ -213,7 +213,7 @@ def warm(m: Any, parts: tuple[str, ...] = ("refsim-discrete", "refsim-continuous
     """Compile ``parts`` for mission ``m`` (its law) ahead of any run; **blocks** until they are in the
     cache. Returns, per part, whether this process compiled it."""
     from sim import kernel
-    from sim.refsim import Setup, check_continuous
+    from sim.setup import Setup, check_continuous
     from tether.runfile import RunMeta
 
     done: dict[str, bool] = {}

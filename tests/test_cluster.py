@@ -129,7 +129,7 @@ def test_ctrl_c_while_a_cell_is_written_reports_what_the_file_holds(tmp_path: Pa
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with study.open_executor(None, 1) as engine, pytest.raises(study.StudyInterrupted) as info:
-            study.run(cells, f, engine, meta={})
+            study.run(cells, f, engine, sweep.run_point, meta={})
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Python's own handler is back
     finally:
         signal.signal(signal.SIGINT, before)

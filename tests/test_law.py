@@ -8,6 +8,7 @@ import pytest
 from agent import law, laws
 from agent.laws import sigma as eq17
 from sim import refsim
+from sim.setup import Setup
 from tests.factories import random_mission
 
 
@@ -62,7 +63,7 @@ def test_single_agent_and_all_agent_forms_agree_bit_for_bit(seed: int) -> None:
     rng = np.random.default_rng(100 + seed)
     m = random_mission(rng, int(rng.integers(2, 15)) if seed < 6 else int(rng.integers(3, 13)), dim=3,
                        dense=seed >= 6)
-    s = refsim.Setup.of(m)
+    s = Setup.of(m)
     n, d = m.n, m.dim
     x = rng.normal(0, 3, (n + 1, 3, d))  # p, v, a of every node, leader last
     kp = rng.uniform(1, 5, (n, d))
@@ -91,7 +92,7 @@ def test_errors_match_the_paper_definition() -> None:
     """xi_i = sum_j a_ij (p_i - p_j - delta_ij) computed literally, against the kappa form."""
     rng = np.random.default_rng(5)
     m = random_mission(rng, 6)
-    s = refsim.Setup.of(m)
+    s = Setup.of(m)
     n = m.n
     p = rng.normal(0, 2, (n + 1, m.dim))
     h = s.offsets

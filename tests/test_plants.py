@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from plant import base
+
+from plant.build import build
 from tether import mission as ms
 from tether.catalog import builtin_path
 
@@ -26,7 +28,7 @@ KINDS = ["double_integrator", "point_mass", "quadrotor", "payload"]
 
 
 def fly(m: ms.Mission, u: np.ndarray, ticks: int) -> list[base.Sample]:
-    hosts = base.build(m)
+    hosts = build(m)
     out = []
     for _ in range(ticks):
         samples = [h.state() for h in hosts]
@@ -42,7 +44,7 @@ def fly(m: ms.Mission, u: np.ndarray, ticks: int) -> list[base.Sample]:
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_plant_keeps_the_contract(kind: str) -> None:
     m = mission(kind)
-    hosts = base.build(m)
+    hosts = build(m)
     assert sorted(i for h in hosts for i in h.ids) == sorted(m.agent_ids)
     for h in hosts:
         assert isinstance(h, base.Plant)
@@ -82,7 +84,7 @@ def test_a_held_command_is_the_measured_acceleration(kind: str, tol: float) -> N
 
 def test_the_payload_world_reports_its_cables() -> None:
     m = mission("payload")
-    (world,) = base.build(m)
+    (world,) = build(m)
     s = world.state()
     assert s.payload.tension.shape == (m.n,) and s.payload.p.shape == (3,)
     np.testing.assert_array_equal(s.payload.tension, 0.0)  # on the floor, cables slack
@@ -103,9 +105,9 @@ def test_the_crazyflie_plant_keeps_the_contract() -> None:
     spec = ms.CrazyfliePlant(uri=f"udp://127.0.0.1:{port}", takeoff_height=0.6)
     m = msgspec.structs.replace(m, agents=[msgspec.structs.replace(a, plant=spec) for a in m.agents])
     with pytest.raises(ValueError, match="real vehicle"):
-        base.build(m)  # never inside a simulator
+        build(m)  # never inside a simulator
     with software_crazyflies([port], [(0.0, 0.0, 0.0)]):
-        (plant,) = base.build(m, [1], live=True)
+        (plant,) = build(m, [1], live=True)
         plant.open()  # build leaves a real vehicle unconnected (opening blocks)
         try:
             assert isinstance(plant, base.Plant) and plant.ids == (1,)

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from sim import metrics, refsim
+
+from sim.setup import Setup
 from tests.factories import one_agent, random_mission
 
 
@@ -117,7 +119,7 @@ def test_formation_is_reached_without_disturbance(seed: int) -> None:
                "segments": [{"t": 0.0, "v": [0.0, 0.0]}, {"t": 5.0, "v": [0.3, -0.2]}, {"t": 30.0, "v": [0.0, 0.1]}]}
     m = random_mission(rng, int(rng.integers(2, 7)), duration=120.0, profile=profile)
     run = refsim.simulate(m, "discrete")
-    offsets = refsim.Setup.of(m).offsets[: m.n]
+    offsets = Setup.of(m).offsets[: m.n]
     err = np.linalg.norm(run.p[-1] - offsets - run.leader_p[-1], axis=1)
     assert err.max() < 1e-3, err
     np.testing.assert_allclose(run.v[-1], np.broadcast_to(run.leader_v[-1], run.v[-1].shape), rtol=0, atol=1e-3)
@@ -135,7 +137,7 @@ def test_ultimate_boundedness_under_bounded_disturbance(seed: int) -> None:
     rms_mid, rms_last = np.sqrt(np.mean(xn[q : 2 * q] ** 2)), np.sqrt(np.mean(xn[3 * q :] ** 2))
     assert rms_last <= 1.5 * rms_mid + 0.01, (rms_mid, rms_last)
     # and bounded in absolute terms: ||d_hat_i|| <= kappa_i d0 drives a loop whose gains are >= 1
-    kappa_max = refsim.Setup.of(m).topo.kappa.max()
+    kappa_max = Setup.of(m).topo.kappa.max()
     assert xn[2 * q :].max() <= 10.0 * kappa_max * 0.5
     assert metrics.growth_rate(run.t, run.kp) < 1e-3
 

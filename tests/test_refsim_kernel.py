@@ -16,6 +16,7 @@ import pytest
 
 from plant.disturbance import DisturbanceBank
 from sim import refsim
+from sim.setup import Mode, Setup
 from tests.factories import build, random_mission
 from tether import mission as ms
 
@@ -42,7 +43,7 @@ def _mixed(m: ms.Mission, rng: np.random.Generator) -> ms.Mission:
     return msgspec.structs.replace(m, agents=agents)
 
 
-def _pair(m: ms.Mission, mode: refsim.Mode = "discrete", **kw: object) -> tuple[object, object]:
+def _pair(m: ms.Mission, mode: Mode = "discrete", **kw: object) -> tuple[object, object]:
     return (refsim.simulate(m, mode, engine="numpy", **kw),  # type: ignore[arg-type]
             refsim.simulate(m, mode, engine="compiled", **kw))  # type: ignore[arg-type]
 
@@ -152,7 +153,7 @@ def test_the_solve_plan_orders_blocks_after_what_they_hear_and_solves_l1() -> No
     for edges, dense in ((_chain_with_short_cycles(n, rng), False),
                          ({(n + 1, 1): 1.0, **{(i, i % n + 1): 1.0 for i in range(1, n + 1)}}, True),  # a ring
                          ({(n + 1, 1): 1.0, **{(i, i + 1): 1.0 for i in range(1, n)}}, False)):  # a chain
-        topo = refsim.Setup.of(_graph_mission(n, edges, rng)).topo
+        topo = Setup.of(_graph_mission(n, edges, rng)).topo
         plan = kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa)
         assert plan.dense is dense
         assert sorted(plan.perm.tolist()) == list(range(n))
@@ -195,7 +196,7 @@ def test_continuous_kernel_equals_the_numpy_path_on_large_graphs(graph_kind: str
     else:
         edges = _chain_with_short_cycles(n, rng)
     m = _graph_mission(n, edges, rng)
-    topo = refsim.Setup.of(m).topo
+    topo = Setup.of(m).topo
     plan = kernel.solve_plan(n, topo.src, topo.dst, topo.weight, topo.kappa)
     assert plan.dense is (graph_kind == "ring")
     assert (len(plan.block_ptr) - 1 == n) is (graph_kind == "tree")
@@ -222,12 +223,12 @@ class _Gusts(DisturbanceBank):
 
 def test_a_bank_layout_the_kernels_do_not_know_keeps_the_numpy_path() -> None:
     m = random_mission(np.random.default_rng(2), 3, disturbance="sinusoid", duration=1.0)
-    s = refsim.Setup.of(m)
+    s = Setup.of(m)
     assert kernel.supports(s.dist)
     d = s.dist
     odd = _Gusts(d.h, d.const, d.amp, d.omega, d.phase, d.table, d.hold_ticks, gust=1.0)
     assert not kernel.supports(odd)
-    odd_setup = refsim.Setup(s.mission, s.topo, s.bound, s.ref, odd, s.offsets, s.sum_wdelta, s.p0, s.v0)
+    odd_setup = Setup(s.mission, s.topo, s.bound, s.ref, odd, s.offsets, s.sum_wdelta, s.p0, s.v0)
     assert not refsim.takes_kernel(odd_setup, "auto", None)
     with pytest.raises(ValueError, match="cannot run"):
         refsim.takes_kernel(odd_setup, "compiled", None)
@@ -316,7 +317,7 @@ def test_discrete_kernel_on_threads_with_every_agent_its_own_sines_equals_the_nu
     # most sines distinct: each block of agents takes its own agents' sines (kernel.discrete_parallel's `own`)
     rng = np.random.default_rng(91)
     m = random_mission(rng, 29, disturbance="sinusoid", duration=2.0, profile=PROFILES["exp_accel"])
-    s = refsim.Setup.of(m)
+    s = Setup.of(m)
     u_omega, _, _ = kernel.sine_pairs(s.dist.omega.T, s.dist.phase.T)
     assert 2 * len(u_omega) > m.n * m.dim  # the path under test
     for threads in (2, 3):

@@ -45,6 +45,7 @@ import tether
 import tether.wire
 from leader import profile
 from sim import refsim
+from sim.setup import Setup
 from tests.support import read, rt_permitted, wait_until
 from tether import transport as tp
 from tether import handoff
@@ -751,7 +752,7 @@ def fresh_ticks(run: Run) -> np.ndarray:
 def physical_envelope(run: Run, since: float) -> float:
     """The same envelope with xi recomputed (Eq. 8) from the plants' measurements and the leader's
     state of one and the same tick: the formation as it was, not as the agents perceived it."""
-    setup = refsim.Setup.of(load_mission(SECTION4, float(run.t[-1])))
+    setup = Setup.of(load_mission(SECTION4, float(run.t[-1])))
     recent = np.nonzero(run.t >= since - 1e-9)[0]
     p = run.runtime.plant_p if run.runtime is not None else run.p
     kappa = setup.topo.kappa[:, None]

@@ -33,6 +33,7 @@ import pytest
 
 from deploy import acl, localtls
 from plant import base
+from plant.build import build
 from tests.factories import random_mission
 from tests.support import read
 from tests.support import wait_until
@@ -57,8 +58,8 @@ def _mixed_kinds(n: int) -> ms.Mission:
 
 def test_a_fleet_steps_each_vehicle_as_its_own_plant_does_bit_for_bit() -> None:
     m = _mixed_kinds(5)
-    fleet = base.Fleet(base.build(m))
-    alone = base.build(m)
+    fleet = base.Fleet(build(m))
+    alone = build(m)
     assert fleet.ids == tuple(m.agent_ids)
     rng = np.random.default_rng(1)
     for k in range(60):
@@ -78,12 +79,12 @@ def test_a_fleet_steps_each_vehicle_as_its_own_plant_does_bit_for_bit() -> None:
         fleet.step(u)
         for r, p in enumerate(alone):
             p.step(u[r:r + 1])
-    assert np.any(fleet.state().p != base.build(m)[0].state().p[0])  # it moved
+    assert np.any(fleet.state().p != build(m)[0].state().p[0])  # it moved
 
 
 def test_a_fleet_of_double_integrators_reports_no_attitude() -> None:
     m = load_mission(builtin_path("section4"))
-    fleet = base.Fleet(base.build(m))
+    fleet = base.Fleet(build(m))
     assert fleet.state().attitude is None and fleet.state().p.shape == (4, 2)
     with pytest.raises(ValueError, match="at least one plant"):
         base.Fleet([])

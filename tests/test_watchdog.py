@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 from plant import base
+
+from plant.build import build
 from plant.rest import Resting
 from plant.vehicle import G
 from plant.watchdog import ABSURD, Watchdog
@@ -240,7 +242,7 @@ def one_vehicle(dim: int, p0: list[float], v0: list[float], plant: dict | None =
 
 def test_resting_is_transparent_while_the_vehicle_flies() -> None:
     m = one_vehicle(3, [0.0, 0.0, 1.0], [0.3, 0.0, 0.1])
-    (bare,), (inner,) = base.build(m), base.build(m)
+    (bare,), (inner,) = build(m), build(m)
     wrapped = Resting(inner, 3, 0.0)
     rng = np.random.default_rng(2)
     for _ in range(50):
@@ -254,7 +256,7 @@ def test_resting_is_transparent_while_the_vehicle_flies() -> None:
 @pytest.mark.parametrize("plant", [None, {"kind": "quadrotor"}])
 def test_estop_falls_under_gravity_to_the_ground_then_rests(plant: dict | None) -> None:
     m = one_vehicle(3, [0.5, 0.0, 1.0], [0.0, 0.0, 0.0], plant)
-    (inner,) = base.build(m)
+    (inner,) = build(m)
     veh = Resting(inner, 3, 0.0)
     zs = []
     for _ in range(200):
@@ -271,7 +273,7 @@ def test_estop_falls_under_gravity_to_the_ground_then_rests(plant: dict | None) 
 
 def test_landed_rests_where_it_touched_down_and_2d_estop_stops() -> None:
     m = one_vehicle(3, [0.5, 0.2, 0.01], [0.0, 0.0, -0.05])
-    (inner,) = base.build(m)
+    (inner,) = build(m)
     veh = Resting(inner, 3, 0.0)
     veh.step(np.zeros((1, 3)), [LANDED])
     rest = veh.state()
@@ -280,7 +282,7 @@ def test_landed_rests_where_it_touched_down_and_2d_estop_stops() -> None:
         s = veh.state()
         assert np.array_equal(s.p, rest.p) and not np.any(s.v)
     m2 = one_vehicle(2, [0.5, 0.2], [1.0, 0.0])
-    (inner2,) = base.build(m2)
+    (inner2,) = build(m2)
     veh2 = Resting(inner2, 2, 0.0)
     p0 = veh2.state().p.copy()
     veh2.step(np.zeros((1, 2)), [ESTOP])
@@ -305,7 +307,7 @@ def test_the_ground_stops_a_vehicle_its_agent_lands_while_the_watchdog_says_flyi
     agent's LAND commands): the ground must stop the vehicle all the same (measured before the fix:
     8 cm below the ground, bench/faults.py freeze:agent/1)."""
     m = one_vehicle(3, [0.5, 0.0, 0.05], [0.0, 0.0, -0.6])
-    (inner,) = base.build(m)
+    (inner,) = build(m)
     veh = Resting(inner, 3, 0.0)
     dog = Watchdog(SAFETY, 3, H)
     zs = []
