@@ -268,6 +268,7 @@ def _threads_equal_numpy(m: ms.Mission, threads: int) -> None:
         np.testing.assert_array_equal(getattr(last, f)[0], getattr(a, f)[-1], err_msg=f)
 
 
+@pytest.mark.slow  # compiles the parallel kernel, about a minute of CPU on a cold cache
 @pytest.mark.parametrize("threads", [2, 3])
 def test_discrete_kernel_on_threads_equals_the_numpy_path_bit_for_bit(threads: int) -> None:
     # blocks of agents on numba's threads (prange): an agent's arithmetic does not depend on the split
