@@ -9,7 +9,9 @@ for TCP and for the software Crazyflies' UDP), the condition waits and the softw
 
 from __future__ import annotations
 
+import fcntl
 import os
+from collections.abc import Iterator
 
 import pytest
 
@@ -35,3 +37,34 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         w[0] += item.get_closest_marker("slow") is not None
         w[1] += 1
     items.sort(key=lambda item: [-x for x in weight[item.nodeid.partition("::")[0]]])
+
+
+REAL_TIME_FILES = frozenset({
+    "test_busy_host.py", "test_cfsim.py", "test_cfsim_paths.py", "test_cfsim_trajectory.py", "test_colocate.py",
+    "test_crazyflie.py", "test_deploy.py", "test_failsafe_runs.py", "test_faults.py", "test_hold_anchor.py",
+    "test_lies.py", "test_observe.py", "test_partition.py", "test_plant_envelope.py", "test_plant_watchdog.py",
+    "test_record_crash.py", "test_redteam.py", "test_rehearse.py", "test_rejoin.py", "test_relay.py",
+    "test_rt_priority.py", "test_runtime.py", "test_runtime_netem.py", "test_secure_run.py", "test_shared_plants.py",
+    "test_sites.py", "test_sitl.py", "test_skew.py",
+})
+"""Files whose slow tests fly swarms (or Crazyflies) in real time."""
+
+
+@pytest.fixture(autouse=True)
+def _one_real_time_swarm_at_a_time(request: pytest.FixtureRequest,
+                                   tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """A slow test of :data:`REAL_TIME_FILES` holds a lock shared by every worker of the run: two real-time
+    swarms (a dozen processes each, at the same real-time priority) on two cores starve each other's
+    ticks, which is not what such a test measures. The other workers go on with everything else, which
+    runs below the swarm's real-time priority."""
+    if request.node.get_closest_marker("slow") is None or request.node.path.name not in REAL_TIME_FILES:
+        yield
+        return
+    # the run's directory, shared by its workers (each worker's own is popen-gwN inside it)
+    lock = tmp_path_factory.getbasetemp().parent / "tether-real-time.lock"
+    with open(lock, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
