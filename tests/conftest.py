@@ -18,7 +18,7 @@ import pytest
 
 def pytest_configure(config: pytest.Config) -> None:
     """One BLAS thread per process and matplotlib's file backend, for the tests and every process they
-    start: the suite runs on every core at once (pytest-xdist), and a swarm is a dozen processes, so BLAS
+    start: the suite may run on every core at once (``pytest -n auto``), and a swarm is a dozen processes, so BLAS
     thread pools would only fight over the same cores; no test has a display. Set only where unset, so
     that a developer's own choice stands."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
