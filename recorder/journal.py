@@ -3,9 +3,10 @@ mid-run (``kill -9``, its launcher killed, its machine stopped) leaves a run tha
 
 ``journal.mcap`` in the run directory is an MCAP file (the format Foxglove and ``mcap`` read, made
 for recording as you go): zstd-compressed chunks, one closed and handed to the operating system at
-least every :data:`FLUSH_PERIOD`, then ``fsync``-ed from a worker thread (the event loop never
-waits for the disk). A chunk is whole or absent: a file cut anywhere reads up to its last whole
-chunk, i.e. everything recorded up to one flush period before the cut (:func:`read`).
+least every :data:`FLUSH_PERIOD` of wall time and of mission time (a lockstep run goes faster than
+the wall clock), then ``fsync``-ed from a worker thread (the event loop never waits for the disk).
+A chunk is whole or absent: a file cut anywhere reads up to its last whole chunk, i.e. everything
+recorded up to one flush period before the cut, on either clock (:func:`read`).
 
 Each message is one wire message exactly as the recorder took it, after its plausibility gate
 (``tether.wire.encode``: msgpack, message encoding ``msgpack``, a JSON schema per type): the
@@ -26,6 +27,7 @@ finishes writes ``run.npz`` (and ``run.mcap``), ``fsync``-s it and removes its j
 from __future__ import annotations
 
 import logging
+import math
 import os
 import struct
 import time
@@ -50,8 +52,8 @@ NAME = "journal.mcap"
 VERSION = 1
 """The journal's layout version (:class:`Header`)."""
 FLUSH_PERIOD = 1.0
-"""At most this long between two flushes [s]: what a killed recorder can lose (plus what its input
-queues held)."""
+"""At most this long between two flushes [s], of wall time and of mission time (the sample time of
+the messages taken): what a killed recorder can lose (plus what its input queues held)."""
 CHUNK_BYTES = 4 << 20
 """A chunk is closed at this size even within a flush period (lockstep runs fast) [bytes]."""
 MESSAGE_ENCODING = "msgpack"
@@ -89,6 +91,8 @@ class Journal:
         self.sync_seconds = 0.0
         """Wall time spent in ``fsync`` [s] (on a worker thread)."""
         self.sync_max = 0.0
+        self._flush_at = FLUSH_PERIOD
+        """The next multiple of :data:`FLUSH_PERIOD` of mission time: a message at or past it flushes."""
         self.closed = False
         self.error: OSError | None = None
         """Why the journal stopped before its end (a failed write), if it did."""
@@ -127,7 +131,8 @@ class Journal:
         return cid
 
     def add(self, msg: wire.Message) -> None:
-        """Journal one message the recorder took (buffered until the next :meth:`flush`)."""
+        """Journal one message the recorder took (buffered until the next :meth:`flush`, which the
+        first message at or past each :data:`FLUSH_PERIOD` of mission time makes itself)."""
         if self.closed:
             return
         t_ns = int(msg.t * 1e9) if 0.0 <= msg.t < 1.8e10 else 0
@@ -138,6 +143,9 @@ class Journal:
             self._fail(exc)
             return
         self.messages += 1
+        if math.isfinite(msg.t) and msg.t >= self._flush_at:  # (a non-finite t: the wall-time flush)
+            self.flush()
+            self._flush_at = (math.floor(msg.t / FLUSH_PERIOD) + 1) * FLUSH_PERIOD
 
     def drops(self, counts: dict[str, int]) -> None:
         """Note the recorder's drop counts (a metadata record, only when they changed)."""

@@ -7,9 +7,9 @@ every sample of k, so the clock never runs ahead of what is recorded. In real ti
 until every producer has sent its last tick or gone, or until it is stopped; the file is written
 in both cases (a stopped run is marked ``complete = false``), with ``run.mcap`` beside it when the
 Foxglove SDK is installed (``recorder/export.py``, ``docs/foxglove.md``). Meanwhile every sample it
-takes goes to its journal (``journal.mcap``, ``recorder/journal.py``), flushed every second, so that
-a recorder killed before it writes the run file leaves one that can be rebuilt; the journal is
-removed once the run file is written and synced.
+takes goes to its journal (``journal.mcap``, ``recorder/journal.py``), flushed every second of wall
+and of mission time, so that a recorder killed before it writes the run file leaves one that can be
+rebuilt; the journal is removed once the run file is written and synced.
 
 The same role serves two more uses (:func:`make`): ``live`` serves every tick over the Foxglove
 WebSocket protocol while the run goes on (``tether run --live``, ``tether record --live``: a

@@ -130,7 +130,8 @@ def check_journal(out: Path, killed_ns: int) -> Run:
 
 
 def _journal_of(tmp_path: Path, chunks: int, per_chunk: int) -> tuple[Path, list[wire.Message]]:
-    """A real-time section4 journal of ``chunks`` flushes of ``per_chunk`` leader samples each."""
+    """A real-time section4 journal of ``chunks`` flushes of ``per_chunk`` leader samples each (sample
+    times 1 ms apart: no whole second of mission time, whose first message would flush itself)."""
     from tether import catalog
 
     text = catalog.resolve("section4").read_text()
@@ -140,7 +141,7 @@ def _journal_of(tmp_path: Path, chunks: int, per_chunk: int) -> tuple[Path, list
     for c in range(chunks):
         for n in range(per_chunk):
             k = c * per_chunk + n
-            msg = wire.State(sender=5, seq=k, k=k, t=k / 100, p=[0.1 * k, 0.0], vel=[1.0, 0.0], a=[0.0, 0.0])
+            msg = wire.State(sender=5, seq=k, k=k, t=k / 1000, p=[0.1 * k, 0.0], vel=[1.0, 0.0], a=[0.0, 0.0])
             j.add(msg)
             sent.append(msg)
         j.flush()
@@ -289,3 +290,20 @@ def test_tether_mcap_and_plot_read_a_killed_recorders_journal_and_say_what_is_mi
         assert "missing: recovered: from the recorder's journal" in done.stdout, done.stdout
         assert any(line.startswith("missing: leader:") for line in done.stdout.splitlines()), done.stdout
         assert (run_dir / made).exists() or any(run_dir.glob("*.png")), sorted(p.name for p in run_dir.iterdir())
+
+
+def test_a_journal_flushes_every_second_of_mission_time_however_fast_the_run(tmp_path: Path) -> None:
+    """A lockstep run can take many mission seconds within one wall second: the first message at or
+    past each whole second of mission time closes a chunk itself, so a cut loses at most one mission
+    second too; a non-finite sample time flushes nothing and raises nothing."""
+    j = journal.Journal.create(tmp_path, journal.Header(mission="section4", mission_text="", namespace="t",
+                                                        duration=10.0, lockstep=True, started_ns=0),
+                               now_ns=lambda: 0)
+    before = j.flushes
+    for k in range(350):  # 3.5 s of mission time at once, no wall time passing
+        j.add(wire.State(sender=1, seq=k, k=k, t=0.01 * k, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0]))
+    assert j.flushes - before == 3  # at t = 1.00, 2.00 and 3.00 s
+    j.add(wire.State(sender=1, seq=350, k=350, t=float("nan"), p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0]))
+    assert j.flushes - before == 3 and not j.closed
+    got = journal.read(j.path)
+    assert len(got.messages) == 301 and got.messages[-1].t == 3.0  # up to the last whole second's first message
