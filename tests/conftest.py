@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import fcntl
 import os
+import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -51,17 +53,15 @@ REAL_TIME_FILES = frozenset({
 
 
 @pytest.fixture(autouse=True)
-def _one_real_time_swarm_at_a_time(request: pytest.FixtureRequest,
-                                   tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
-    """A slow test of :data:`REAL_TIME_FILES` holds a lock shared by every worker of the run: two real-time
-    swarms (a dozen processes each, at the same real-time priority) on two cores starve each other's
-    ticks, which is not what such a test measures. The other workers go on with everything else, which
-    runs below the swarm's real-time priority."""
+def _one_real_time_swarm_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A slow test of :data:`REAL_TIME_FILES` holds a lock shared by every test run on the machine (every
+    worker of this run, and any other run beside it): two real-time swarms (a dozen processes each, at
+    the same real-time priority) on two cores starve each other's ticks, which is not what such a test
+    measures. Everything else goes on meanwhile, below the swarm's real-time priority."""
     if request.node.get_closest_marker("slow") is None or request.node.path.name not in REAL_TIME_FILES:
         yield
         return
-    # the run's directory, shared by its workers (each worker's own is popen-gwN inside it)
-    lock = tmp_path_factory.getbasetemp().parent / "tether-real-time.lock"
+    lock = Path(tempfile.gettempdir()) / f"tether-real-time-{os.getuid()}.lock"
     with open(lock, "a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         try:
