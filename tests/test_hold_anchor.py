@@ -164,7 +164,7 @@ def test_a_formation_braking_from_9_m_per_s_comes_to_rest_without_turning_back()
 LAND_AT = 18.0
 """Mission time of the operator's land [s]: section4's vehicles at about 8 m/s."""
 SEPARATION = 0.1
-"""The separation a swarm that lands must keep [m] (issue 42; section4 has no [safety.avoid])."""
+"""The separation a swarm that lands must keep [m] (section4 has no [safety.avoid])."""
 
 
 @pytest.mark.slow

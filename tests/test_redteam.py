@@ -6,11 +6,9 @@ profile, the envelope, the reactions): one absurdly stamped command on ``agent/2
 one ``plant/2/state`` saying ESTOP at 10 s. The full table is ``python bench/redteam.py``
 (``docs/results/redteam.md``).
 
-The defended behaviour is what issue #42 asks for: the plant drops a command whose stamp is not its
-tick's and says so; an agent never e-stops its real plant because of a report it heard; no vehicle
-leaves its envelope. The envelope, the forged ESTOP report and the formation error hold; that both
-forgeries are detected within DETECT_WITHIN is still an expected failure (``xfail(strict=False)``:
-it passes silently the day the fix lands, and then the mark goes).
+The defended behaviour: the plant drops a command whose stamp is not its tick's and says so; an agent
+never e-stops its real plant because of a report it heard; no vehicle leaves its envelope; both
+forgeries are detected within DETECT_WITHIN.
 """
 
 from __future__ import annotations
@@ -37,8 +35,6 @@ ERR_LAST10 = 5.0
 """Largest true formation error over the last 10 s of a defended run [m]: an undisturbed run on a
 host loaded by other work reached 3.0 m (vehicles held for late ticks and caught up; the ``none``
 row of ``docs/results/redteam.md``), a vehicle that flies away reaches tens of metres."""
-
-NOT_YET = "issue #42: a forgery's detection within DETECT_WITHIN is not yet seen by this analysis"
 
 
 @dataclass(frozen=True)
@@ -105,7 +101,6 @@ def test_formation_error_stays_bounded(attacked: Attacked) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=NOT_YET)
 def test_each_forgery_is_detected(attacked: Attacked) -> None:
     res = attacked.res
     stamp = reactions(res, res["sent"]["stamp"], 2)
