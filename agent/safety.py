@@ -19,8 +19,11 @@ Transitions:
   own speed is beyond ``max_speed`` (latched); the plant is silent; the agent was restarted into a
   running swarm and its inputs are not fresh yet (``Status.rejoining``: its first tick holds).
 * HOLD → FLYING: the cause is gone (the leader is heard again, the graph reaches this agent
-  again, the plant is back), unless it was latched.
-* HOLD → LAND: the cause has lasted ``land_after``.
+  again, the plant is back), unless it was latched; after recent recoveries, only once it has been
+  gone ``resume_dwell`` times their number (:func:`transition`: no flapping).
+* HOLD → LAND: held for ``land_after`` (the cause still there, or gone but not yet for the dwell).
+* FLYING → LAND: a cause to hold after ``flap_limit`` recoveries, each within :data:`FLAP_WINDOW`
+  of the last.
 * FLYING/HOLD → LAND (or the configured action): the operator's ``land``; divergence
   (‖ξ‖ > ``max_formation_error``, a gain beyond ``gain_cap``, a non-finite command); a predicted
   geofence breach (the position plus the braking distance outside the box).
@@ -42,6 +45,12 @@ mode change while the leader still reaches this agent through the survivors (Ass
 surviving graph, recomputed from the mission's graph and the liveliness this agent sees): the edge
 is dropped and κ_i re-normalised over the remaining in-neighbours (an event records it); when the
 neighbour is back, the edge is restored.
+
+The rule between FLYING, HOLD and LAND and the weighing of neighbours' reports are pure functions of
+scalars at the end of this module (:func:`transition`, :func:`hold_cause`, :func:`believe`,
+:func:`silent`, :func:`report_kind`): :class:`Supervisor` calls them, and the in-process engine's
+compiled twin (``sim/lockstep_kernel.py``) compiles these same functions with numba. Keep them to
+what numba compiles (scalars, no strings, no containers).
 """
 
 from __future__ import annotations

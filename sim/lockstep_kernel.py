@@ -3,10 +3,13 @@
 :func:`sim.lockstep.simulate` runs the agent processes' own Python (``agent/tick.py``) at every
 tick. Most ticks of a study are one of a few kinds: every vehicle FLYING or holding (HOLD) while
 its leader is silent or out of reach, in-neighbours' edges dropped and restored, and in 2D a vehicle
-held past ``land_after`` landing (LAND, then LANDED: its plant rests); no bound of ``[safety]``
-reached. This module runs those ticks in one compiled loop, operation for operation as
+landing (LAND, held past ``land_after`` or flapping; then LANDED: its plant rests); no bound of
+``[safety]`` reached. This module runs those ticks in one compiled loop, operation for operation as
 the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a run equals the
-Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``):
+Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``).
+The supervisor's rule is not written here: the loop calls ``agent.safety``'s own pure functions
+(``transition``, ``hold_cause``, ``believe``, ``silent``, ``report_kind``), compiled
+(``tests/test_supervisor_rule.py``):
 
 * what each agent hears is decided before the loop: an emulated link that only loses and delays
   (:func:`netem.channel.batchable`: Bernoulli or Gilbert-Elliott loss, a constant or jittered delay)
@@ -21,8 +24,8 @@ Python engine's bit for bit, its safety events worded the same (``tests/test_loc
   the supervisor's link check (the leader silent; an in-neighbour silent, or believed to stop or to
   hold from its mode reports; the leader's reach over the survivors; edges dropped and kappa
   re-normalised; holding neighbours followed), ``AgentLaw.step``, the
-  supervisor's bounds, HOLD (anchored at ``failsafe.hold_point``) and its recovery, LAND and
-  LANDED in 2D (``failsafe.landed``), ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
+  supervisor's bounds, its rule (HOLD anchored at ``failsafe.hold_point``, its recovery, LAND)
+  and LANDED in 2D (``failsafe.landed``), ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
   ``plant/double_integrator.py`` (a LANDED vehicle resting, as ``plant.rest.Resting`` has it); the events it records are worded by
   :func:`_events` as ``agent.safety.Supervisor`` words them.
 
