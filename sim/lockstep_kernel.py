@@ -78,7 +78,7 @@ neighbours followed or no longer."""
 jit = kernel.jit
 
 # The supervisor's rule, compiled from its one definition (agent/safety.py): never re-typed here
-# (tests/test_lockstep_kernel.py checks that the loop calls these and compares nothing of its own).
+# (tests/test_supervisor_rule.py checks that the loop calls these and compares nothing of its own).
 _transition = jit(safety.transition)
 _hold_cause = jit(safety.hold_cause)
 _believe = jit(safety.believe)
