@@ -19,8 +19,11 @@ Transitions:
   own speed is beyond ``max_speed`` (latched); the plant is silent; the agent was restarted into a
   running swarm and its inputs are not fresh yet (``Status.rejoining``: its first tick holds).
 * HOLD → FLYING: the cause is gone (the leader is heard again, the graph reaches this agent
-  again, the plant is back), unless it was latched.
-* HOLD → LAND: the cause has lasted ``land_after``.
+  again, the plant is back), unless it was latched; after recent recoveries, only once it has been
+  gone ``resume_dwell`` times their number (:func:`transition`: no flapping).
+* HOLD → LAND: held for ``land_after`` (the cause still there, or gone but not yet for the dwell).
+* FLYING → LAND: a cause to hold after ``flap_limit`` recoveries, each within :data:`FLAP_WINDOW`
+  of the last.
 * FLYING/HOLD → LAND (or the configured action): the operator's ``land``; divergence
   (‖ξ‖ > ``max_formation_error``, a gain beyond ``gain_cap``, a non-finite command); a predicted
   geofence breach (the position plus the braking distance outside the box).
@@ -42,6 +45,12 @@ mode change while the leader still reaches this agent through the survivors (Ass
 surviving graph, recomputed from the mission's graph and the liveliness this agent sees): the edge
 is dropped and κ_i re-normalised over the remaining in-neighbours (an event records it); when the
 neighbour is back, the edge is restored.
+
+The rule between FLYING, HOLD and LAND and the weighing of neighbours' reports are pure functions of
+scalars at the end of this module (:func:`transition`, :func:`hold_cause`, :func:`believe`,
+:func:`silent`, :func:`report_kind`): :class:`Supervisor` calls them, and the in-process engine's
+compiled twin (``sim/lockstep_kernel.py``) compiles these same functions with numba. Keep them to
+what numba compiles (scalars, no strings, no containers).
 """
 
 from __future__ import annotations
@@ -126,6 +135,12 @@ class Supervisor:
         self.cause = ""
         """Why the vehicle holds: ``speed``, ``plant``, ``leader``, ``unreachable`` or a latched reason."""
         self.latched = False
+        self.healthy = math.nan
+        """Since when HOLD's cause has been gone [s] (NaN: not holding, or the cause is there)."""
+        self.flaps = 0
+        """Recoveries from HOLD in the current run of them, each within :data:`FLAP_WINDOW` of the last."""
+        self.last_flap = -math.inf
+        """When the last recovery from HOLD was [s]."""
         self.missing: frozenset[int] = frozenset()
         """In-neighbours (agents) lost at the last tick, reachable or not."""
         self.since = 0.0
@@ -175,17 +190,13 @@ class Supervisor:
             gone = bool(status.gone[n]) if n < len(status.gone) else False
             never = math.isnan(age)
             if j == self.leader:
-                leader_silent = gone or (age > cfg.leader_timeout) or (never and t > cfg.leader_timeout)
+                leader_silent = gone or silent(age, t, cfg.leader_timeout)
                 continue
-            silent = gone or age > cfg.neighbour_timeout or (never and t > cfg.neighbour_timeout)
-            said = REPORT_FLYING if silent or never or n >= len(status.modes) else report_kind(status.modes[n])
-            if said == self._said[n]:
-                self._run[n] += 1
-            else:
-                self._said[n], self._run[n] = said, 1
-            if self._run[n] >= cfg.mode_confirm:
-                self.believed[n] = said
-            if silent or j in status.suspect or self.believed[n] == REPORT_STOPPED:
+            quiet = gone or silent(age, t, cfg.neighbour_timeout)
+            said = REPORT_FLYING if quiet or never or n >= len(status.modes) else report_kind(status.modes[n])
+            self._said[n], self._run[n], self.believed[n] = believe(said, self._said[n], self._run[n],
+                                                                    self.believed[n], cfg.mode_confirm)
+            if quiet or j in status.suspect or self.believed[n] == REPORT_STOPPED:
                 lost.add(j)
             elif self.believed[n] == REPORT_HOLD:
                 holding.add(j)
@@ -241,33 +252,23 @@ class Supervisor:
         if self.mode == ESTOP:
             return zero
         if self.mode in (FLYING, HOLD):
-            cause, why = "", ""
             speed = vec.norm(v)
-            if speed > cfg.max_speed:
-                cause, why = "speed", f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s"
-            elif status.plant_silent:
-                cause, why = "plant", "plant silent"
-            elif self.agent_id in status.suspect:
-                cause, why = "plant stream", "own plant's stream suspect (forgery or sensor fault)"
-            elif status.rejoining:
-                cause, why = "rejoin", "restarted into a running swarm: holding until every input is fresh"
-            elif leader_silent and self.hears_leader:
-                cause, why = "leader", "leader silent"
-            elif self.hears_leader and self.leader in status.suspect:
-                cause, why = "leader stream", "leader's stream suspect (forgery or fault)"
-            elif not reachable:
-                cause = "unreachable"
-                why = f"{listed(sorted(self.missing))} {UNREACHABLE}"
-            if self.mode == FLYING and cause:
-                self._go(k, t, HOLD, why, p, v)
-                self.cause, self.latched = cause, cause == "speed"
-            elif self.mode == HOLD and not self.latched and cause and cause != self.cause:
-                self.cause = cause  # another reason keeps it holding; the clock to LAND runs on
-            elif self.mode == HOLD:
-                if not cause and not self.latched:
-                    self._go(k, t, FLYING, f"{self.cause} recovered", p, v)
-                elif t - self.since >= cfg.land_after:
-                    self._go(k, t, LAND, f"held for {cfg.land_after:g} s ({self.cause})", p, v)
+            code = hold_cause(speed > cfg.max_speed, status.plant_silent, self.agent_id in status.suspect,
+                              status.rejoining, leader_silent and self.hears_leader,
+                              self.hears_leader and self.leader in status.suspect, reachable)
+            held = CAUSES.index(self.cause) if self.cause in CAUSES else LATCHED
+            mode, code_now, self.latched, _, self.healthy, self.flaps, self.last_flap, kind = transition(
+                self.mode, held, self.latched, self.since, self.healthy, self.flaps, self.last_flap, code, t,
+                cfg.land_after, cfg.flap_limit, cfg.resume_dwell)
+            if code_now != held:
+                self.cause = CAUSES[code_now]
+            if kind == HELD:
+                why = (f"speed {speed:.3g} m/s beyond max_speed {cfg.max_speed:g} m/s" if code == SPEED
+                       else f"{listed(sorted(self.missing))} {UNREACHABLE}" if code == UNREACHABLE_CAUSE
+                       else HOLD_WHY[code])
+                self._go(k, t, mode, why, p, v)
+            elif kind != STAY:
+                self._go(k, t, mode, reason(kind, self.cause, self.flaps, cfg.land_after, cfg.resume_dwell), p, v)
         if self.mode == FLYING:
             out = failsafe.saturate(u, cfg.max_accel)
             if out is None:  # cannot be: a non-finite u in FLYING or HOLD is a divergence above, whose action
@@ -362,6 +363,128 @@ class Supervisor:
         ev = SafetyEvent(k=k, t=t, vehicle=self.agent_id, src=self.mode, dst=mode, reason=why)
         self.events.append(ev)
         self._new.append(ev)
+
+
+# ---------------------------------------------------------------------- the pure rule
+# HOLD's causes by code, strongest first (the order hold_cause tests them); LATCHED stands for a latched
+# cause of another name (a divergence or a geofence whose action is hold), which never changes.
+CAUSES = ("", "speed", "plant", "plant stream", "rejoin", "leader", "leader stream", "unreachable")
+"""HOLD's causes by code (:attr:`Supervisor.cause`); code 0: none."""
+SPEED, PLANT, PLANT_STREAM, REJOIN, LEADER, LEADER_STREAM, UNREACHABLE_CAUSE = range(1, len(CAUSES))
+LATCHED = len(CAUSES)
+HOLD_WHY = ("", "", "plant silent", "own plant's stream suspect (forgery or sensor fault)",
+            "restarted into a running swarm: holding until every input is fresh", "leader silent",
+            "leader's stream suspect (forgery or fault)", "")
+"""What a HOLD event says of its cause (speed and unreachable are worded with their figures)."""
+
+STAY, HELD, RECOVERED, LAND_HELD, LAND_UNSETTLED, LAND_FLAPPING = range(6)
+"""What :func:`transition` did: nothing worth an event; FLYING → HOLD; HOLD → FLYING; HOLD → LAND
+after ``land_after`` with the cause still there (or latched); HOLD → LAND after ``land_after`` with
+the cause gone but not yet for the dwell a resume needs; FLYING → LAND instead of a HOLD that would
+be one flap too many."""
+
+FLAP_WINDOW = 60.0
+"""Recoveries from HOLD each within this long [s] of the previous one count as one run of flaps."""
+
+
+def hold_cause(fast: bool, plant_silent: bool, plant_suspect: bool, rejoining: bool, leader_silent: bool,
+               leader_suspect: bool, reachable: bool) -> int:
+    """The code (:data:`CAUSES`) of the strongest reason to hold, 0 for none: the own speed beyond
+    ``max_speed``; the own plant silent, or its stream suspect; a rejoin with inputs not yet fresh;
+    the leader silent or its stream suspect (for an agent that hears it); the leader not reaching
+    this agent in the surviving graph. Pure; compiled as it is by the in-process engine's twin."""
+    if fast:
+        return SPEED
+    if plant_silent:
+        return PLANT
+    if plant_suspect:
+        return PLANT_STREAM
+    if rejoining:
+        return REJOIN
+    if leader_silent:
+        return LEADER
+    if leader_suspect:
+        return LEADER_STREAM
+    if not reachable:
+        return UNREACHABLE_CAUSE
+    return 0
+
+
+def transition(mode: int, cause: int, latched: bool, since: float, healthy: float, flaps: int,
+               last_flap: float, why: int, t: float, land_after: float, flap_limit: int,
+               resume_dwell: float) -> tuple[int, int, bool, float, float, int, float, int]:
+    """One tick of the rule between FLYING, HOLD and LAND, for a vehicle FLYING or holding (HOLD)
+    whose strongest reason to hold now is ``why`` (:func:`hold_cause`; 0: none) at time ``t`` [s].
+
+    State in and out: the ``mode``, HOLD's ``cause`` (a code of :data:`CAUSES`, or
+    :data:`LATCHED`) and whether it is ``latched``, ``since`` when the mode began [s], ``healthy``
+    since when the cause has been gone while holding [s] (NaN: it is there), ``flaps`` the
+    recoveries of the current run, ``last_flap`` the time of the last [s]; last, the ``kind`` of
+    the change (:data:`STAY` ... :data:`LAND_FLAPPING`). The rule (``docs/safety.md``, *No flapping*):
+
+    * FLYING with a cause: HOLD (latched for ``speed``); LAND instead when ``flap_limit``
+      recoveries, each within :data:`FLAP_WINDOW` of the last, came before it.
+    * HOLD, not latched, another cause: the cause changes; the clock to LAND runs on.
+    * HOLD, not latched, the cause gone: FLYING once it has been gone ``resume_dwell`` times the
+      recent recoveries (at once after none: an isolated loss recovers as it always did).
+    * HOLD otherwise: LAND once held ``land_after``.
+
+    Pure and scalar: the agents' supervisor calls it, and the in-process engine's twin compiles
+    this very function (``sim/lockstep_kernel.py``)."""
+    recent = flaps if t - last_flap <= FLAP_WINDOW else 0
+    if mode == FLYING:
+        if why == 0:
+            return mode, cause, latched, since, healthy, flaps, last_flap, STAY
+        if recent >= flap_limit:
+            return LAND, why, False, t, math.nan, recent, last_flap, LAND_FLAPPING
+        return HOLD, why, why == SPEED, t, math.nan, recent, last_flap, HELD
+    if not latched and why != 0 and why != cause:
+        return mode, why, latched, since, math.nan, flaps, last_flap, STAY
+    if why == 0 and not latched:
+        if healthy != healthy:
+            healthy = t
+        if t - healthy >= resume_dwell * recent:
+            return FLYING, cause, False, t, math.nan, recent + 1, t, RECOVERED
+        if t - since >= land_after:
+            return LAND, cause, latched, t, healthy, recent, last_flap, LAND_UNSETTLED
+        return mode, cause, latched, since, healthy, flaps, last_flap, STAY
+    if t - since >= land_after:
+        return LAND, cause, latched, t, math.nan, flaps, last_flap, LAND_HELD
+    return mode, cause, latched, since, math.nan, flaps, last_flap, STAY
+
+
+def reason(kind: int, cause: str, flaps: int, land_after: float, resume_dwell: float) -> str:
+    """What the event of a :func:`transition` of ``kind`` other than :data:`HELD` says (``cause``:
+    HOLD's, by name; ``flaps``: the recoveries it counted)."""
+    if kind == RECOVERED:
+        return f"{cause} recovered"
+    if kind == LAND_HELD:
+        return f"held for {land_after:g} s ({cause})"
+    if kind == LAND_UNSETTLED:
+        return (f"held for {land_after:g} s ({cause}): back, but not yet for the {resume_dwell * flaps:g} s "
+                f"a resume needs after {flaps} recoveries within {FLAP_WINDOW:g} s of each other")
+    return (f"flapping: {cause} again after {flaps} recoveries from HOLD within {FLAP_WINDOW:g} s of each "
+            "other (flap_limit): landing instead of holding")
+
+
+def believe(said: int, r_said: int, r_run: int, belief: int, confirm: int) -> tuple[int, int, int]:
+    """A neighbour's mode report weighed (:meth:`Supervisor.links`): the kind ``said`` this tick
+    (:func:`report_kind`), the kind said last (``r_said``) and for how many consecutive ticks
+    (``r_run``), the kind believed; a kind is believed once ``confirm`` consecutive ticks say it.
+    Returns the new ``(r_said, r_run, belief)``. Pure; the in-process engine's twin compiles it."""
+    if said == r_said:
+        r_run += 1
+    else:
+        r_said, r_run = said, 1
+    if r_run >= confirm:
+        belief = said
+    return r_said, r_run, belief
+
+
+def silent(age: float, t: float, timeout: float) -> bool:
+    """Whether a sender whose newest sample is ``age`` old [s] (NaN: none yet) at time ``t`` [s] is
+    silent: older than ``timeout``, or none past ``timeout`` into the run. Pure; compiled by the twin."""
+    return age > timeout or (age != age and t > timeout)
 
 
 def anchor(cfg: Safety, p: Vec, v: Vec) -> list[float]:

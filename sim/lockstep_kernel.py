@@ -3,10 +3,13 @@
 :func:`sim.lockstep.simulate` runs the agent processes' own Python (``agent/tick.py``) at every
 tick. Most ticks of a study are one of a few kinds: every vehicle FLYING or holding (HOLD) while
 its leader is silent or out of reach, in-neighbours' edges dropped and restored, and in 2D a vehicle
-held past ``land_after`` landing (LAND, then LANDED: its plant rests); no bound of ``[safety]``
-reached. This module runs those ticks in one compiled loop, operation for operation as
+landing (LAND, held past ``land_after`` or flapping; then LANDED: its plant rests); no bound of
+``[safety]`` reached. This module runs those ticks in one compiled loop, operation for operation as
 the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a run equals the
-Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``):
+Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``).
+The supervisor's rule is not written here: the loop calls ``agent.safety``'s own pure functions
+(``transition``, ``hold_cause``, ``believe``, ``silent``, ``report_kind``), compiled
+(``tests/test_supervisor_rule.py``):
 
 * what each agent hears is decided before the loop: an emulated link that only loses and delays
   (:func:`netem.channel.batchable`: Bernoulli or Gilbert-Elliott loss, a constant or jittered delay)
@@ -21,8 +24,8 @@ Python engine's bit for bit, its safety events worded the same (``tests/test_loc
   the supervisor's link check (the leader silent; an in-neighbour silent, or believed to stop or to
   hold from its mode reports; the leader's reach over the survivors; edges dropped and kappa
   re-normalised; holding neighbours followed), ``AgentLaw.step``, the
-  supervisor's bounds, HOLD (anchored at ``failsafe.hold_point``) and its recovery, LAND and
-  LANDED in 2D (``failsafe.landed``), ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
+  supervisor's bounds, its rule (HOLD anchored at ``failsafe.hold_point``, its recovery, LAND)
+  and LANDED in 2D (``failsafe.landed``), ``failsafe.hold`` and ``failsafe.saturate``, and the exact double integrator of
   ``plant/double_integrator.py`` (a LANDED vehicle resting, as ``plant.rest.Resting`` has it); the events it records are worded by
   :func:`_events` as ``agent.safety.Supervisor`` words them.
 
@@ -67,15 +70,40 @@ MAX_IN = 62
 EVENTS = 4096
 """Room for the supervisors' events of one call of the loop (more leave it to the Python engine)."""
 
-_EDGES, _HOLD_LEADER, _HOLD_UNREACHABLE, _RECOVERED, _LAND, _LANDED, _FOLLOW = range(7)
-"""The kinds of event the loop records: edges dropped or restored, HOLD (the leader silent, or
-unreachable), back to FLYING, LAND (held past ``land_after``), LANDED (2D: still, or ``land_settle``),
-holding neighbours followed or no longer."""
+_EDGES, _LANDED, _FOLLOW = 100, 101, 102
+"""The kinds of event the loop records beside :func:`agent.safety.transition`'s (``HELD`` ...
+``LAND_FLAPPING``): edges dropped or restored, LANDED (2D: still, or ``land_settle``), holding
+neighbours followed or no longer."""
 
 jit = kernel.jit
 
-_CAUSES = ("", "leader", "unreachable")
-"""HOLD's causes by code (``Supervisor.cause``): the kinds of HOLD above."""
+# The supervisor's rule, compiled from its one definition (agent/safety.py): never re-typed here
+# (tests/test_supervisor_rule.py checks that the loop calls these and compares nothing of its own).
+_transition = jit(safety.transition)
+_hold_cause = jit(safety.hold_cause)
+_believe = jit(safety.believe)
+_report_kind = jit(safety.report_kind)
+_silent = jit(safety.silent)
+_STAY, _HELD = safety.STAY, safety.HELD
+_REPORT_FLYING, _REPORT_HOLD, _REPORT_STOPPED = safety.REPORT_FLYING, safety.REPORT_HOLD, safety.REPORT_STOPPED
+
+# Columns of the loop's grouped arrays. ``cfg`` (float): the engine's and ``[safety]``'s numbers.
+(_H, _HH2, _GROUND, _THREE, _FEED_CODE, _MAX_AGE, _COMPENSATE, _LEADER_TIMEOUT, _NEIGHBOUR_TIMEOUT, _MAX_ERR,
+ _GAIN_CAP, _MAX_SPEED, _MAX_ACCEL, _DIVERGE_AT, _LAND_AFTER, _HOLD_KP, _HOLD_KV, _LAND_SETTLE, _STILL, _CONFIRM,
+ _FLAP_LIMIT, _RESUME_DWELL) = range(22)
+_CFG = 22
+# ``sup`` (int, per agent): its supervisor's mode, HOLD's cause (agent.safety.CAUSES), the dropped
+# edges and the holding neighbours followed (masks of link slots), the recoveries of the current run
+_MODE, _CAUSE, _LOST, _FOLLOWED, _FLAPS = range(5)
+_SUP = 5
+# ``clock`` (float, per agent): since when the mode holds, since when HOLD's cause is gone, the last recovery
+_SINCE, _HEALTHY, _LAST_FLAP = range(3)
+_CLOCK = 3
+# ``reports`` (int, per link slot): agent.safety.believe's state (the kind said, for how long, believed)
+_SAID, _RUN, _BELIEF = range(3)
+_REPORTS = 3
+# ``outs``: the run's per-tick arrays the loop fills (``Run`` fields of that name), in this order
+_OUTS = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv")
 
 _FLYING, _HOLD, _LAND_MODE, _LANDED_MODE = wire.FLYING, wire.HOLD, wire.LAND, wire.LANDED
 
@@ -137,12 +165,11 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
 
     # the links, flattened in agent order then in-neighbour order
     off = np.zeros(n + 1, dtype=np.int64)
-    l_src, l_leader, l_w, l_delta, l_id = [], [], [], [], []
+    l_src, l_w, l_delta, l_id = [], [], [], []
     for i, law in enumerate(laws):
         off[i + 1] = off[i] + len(law.neighbours)
         for j, w, delta in zip(law.neighbours, law.weights, law.deltas):
             l_src.append(col[j])
-            l_leader.append(j == lid)
             l_w.append(w)
             l_delta.append(delta)
             l_id.append(j)
@@ -187,21 +214,30 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     ages = np.full((rows_n, n, width), np.nan)
     kappa = np.array([law.kappa for law in laws])
     swd = np.array([law.sum_wdelta for law in laws], dtype=float).reshape(n, d)
-    # each supervisor: mode, HOLD's cause, since, p_hold, the dropped edges (a mask of link slots), and
-    # the law over the surviving edges (kappa_i, sum_wdelta)
-    mode = np.full(n, wire.FLYING, dtype=np.int64)
-    cause = np.zeros(n, dtype=np.int64)
-    since = np.zeros(n)
+    # each supervisor (columns _MODE ..., _SINCE ...), p_hold, and the law over the surviving edges
+    # (kappa_i, sum_wdelta)
+    sup = np.zeros((n, _SUP), dtype=np.int64)
+    sup[:, _MODE] = wire.FLYING
+    clock = np.zeros((n, _CLOCK))
+    clock[:, _HEALTHY] = math.nan
+    clock[:, _LAST_FLAP] = -math.inf
     p_hold = np.zeros((n, d))
-    lost = np.zeros(n, dtype=np.int64)
     cur_kappa = kappa.copy()
     cur_swd = swd.copy()
     events = np.zeros((EVENTS, 7), dtype=np.int64)
     floats = np.zeros((EVENTS, 2))  # LANDED's: how long it held, its speed
     fired = np.zeros(1, dtype=np.int64)
-    params = np.array([cfg.land_after, cfg.hold_kp, cfg.hold_kv, cfg.land_settle, failsafe.STILL,
-                       cfg.mode_confirm], dtype=float)
-    follow = np.zeros(n, dtype=np.int64)
+    numbers = np.zeros(_CFG)
+    for col_, number in ((_H, h), (_HH2, 0.5 * h * h), (_GROUND, cfg.ground), (_THREE, d == 3),
+                        (_FEED_CODE, _FEED[m.law.feedforward]), (_MAX_AGE, m.links.max_age),
+                        (_COMPENSATE, m.links.compensate), (_LEADER_TIMEOUT, cfg.leader_timeout),
+                        (_NEIGHBOUR_TIMEOUT, cfg.neighbour_timeout), (_MAX_ERR, cfg.max_formation_error),
+                        (_GAIN_CAP, cfg.gain_cap), (_MAX_SPEED, cfg.max_speed), (_MAX_ACCEL, cfg.max_accel),
+                        (_DIVERGE_AT, diverge_at), (_LAND_AFTER, cfg.land_after), (_HOLD_KP, cfg.hold_kp),
+                        (_HOLD_KV, cfg.hold_kv), (_LAND_SETTLE, cfg.land_settle), (_STILL, failsafe.STILL),
+                        (_CONFIRM, cfg.mode_confirm), (_FLAP_LIMIT, cfg.flap_limit),
+                        (_RESUME_DWELL, cfg.resume_dwell)):
+        numbers[col_] = float(number)
     found: list[wire.SafetyEvent] = []
     bound = laws[0].bound
     # the law's state, (S, N, d) (one row of zeros for a law without state: an array numba can index)
@@ -214,11 +250,9 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
         return None
     last_u = np.zeros((n, d))
     used = np.zeros(links, dtype=np.int64)
-    r_said = np.zeros(links, dtype=np.int64)
-    r_run = np.zeros(links, dtype=np.int64)
-    belief = np.zeros(links, dtype=np.int64)
-    l_src_a = np.array(l_src, dtype=np.int64)
-    l_leader_a = np.array(l_leader, dtype=np.bool_)
+    reports = np.zeros((links, _REPORTS), dtype=np.int64)
+    l_src_a = np.array(l_src, dtype=np.int64)  # the leader's links: column n
+    outs = tuple(getattr(run, name) for name in _OUTS)
     l_w_a = np.array(l_w, dtype=float)
     l_delta_a = np.array(l_delta, dtype=float).reshape(links, d)
     for k0 in range(0, steps + 1, CHUNK):
@@ -232,20 +266,13 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                 run.d[k0:k1, rows] = value
             elif k1 == steps + 1:
                 run.d[0, rows] = value[-1]
-        left = ticks(k0, k1, steps, record, h, 0.5 * h * h, d == 3, float(cfg.ground),
-                      kappa, swd, coef, state,
-                      _FEED[m.law.feedforward], float(m.links.max_age), bool(m.links.compensate),
-                      float(cfg.leader_timeout), float(cfg.neighbour_timeout), float(cfg.max_formation_error),
-                      float(cfg.gain_cap), float(cfg.max_speed), float(cfg.max_accel), float(diverge_at),
-                      off, l_src_a, l_leader_a, l_w_a, l_delta_a, newest, used, hist, lead,
-                      p, v, a, last_u, dv, dp,
-                      run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages,
-                      hmode, out_ptr, out_dst, mode, cause, since, p_hold, lost, cur_kappa, cur_swd, params,
-                      events, floats, fired, run.safety.safety_mode, run.safety.plant_mode,
-                      r_said, r_run, belief, follow)
+        left = ticks(k0, k1, steps, record, numbers, kappa, swd, coef, state,
+                     off, l_src_a, l_w_a, l_delta_a, newest, used, hist, hmode, lead, out_ptr, out_dst,
+                     p, v, a, last_u, dv, dp, outs, ages, run.safety.safety_mode, run.safety.plant_mode,
+                     sup, clock, p_hold, reports, cur_kappa, cur_swd, events, floats, fired)
         if left >= 0:
             return None
-        found += _events(events[:int(fired[0])], floats, h, ids, laws, cfg.land_after)
+        found += _events(events[:int(fired[0])], floats, h, ids, laws, cfg.land_after, cfg.resume_dwell)
         fired[0] = 0
     if record:
         run.t[:] = times
@@ -264,9 +291,10 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
 
 
 def _events(rows: np.ndarray, floats: np.ndarray, h: float, ids: list[int], laws: list[AgentLaw],
-            land_after: float) -> list[wire.SafetyEvent]:
-    """The loop's event rows ``(k, agent, from, to, kind, mask, mask)`` as the supervisor words them
-    (``agent.safety.Supervisor.links`` and ``command``)."""
+            land_after: float, resume_dwell: float) -> list[wire.SafetyEvent]:
+    """The loop's event rows ``(k, agent, from, to, kind, m1, m2)`` as the supervisor words them
+    (``agent.safety.Supervisor.links`` and ``command``): for a kind of :func:`agent.safety.transition`,
+    m1 is HOLD's cause and m2 the lost in-neighbours (``HELD``) or the recoveries counted."""
 
     def named(i: int, mask: int) -> list[int]:
         return sorted(j for b, j in enumerate(laws[i].neighbours) if mask >> b & 1)
@@ -275,16 +303,13 @@ def _events(rows: np.ndarray, floats: np.ndarray, h: float, ids: list[int], laws
     for (k, i, src, dst, kind, m1, m2), (held, speed) in zip(rows.tolist(), floats[:len(rows)].tolist()):
         if kind == _EDGES:
             why = safety.changes(named(i, m1), named(i, m2), safety.EDGES)
-        elif kind == _HOLD_LEADER:
-            why = "leader silent"
-        elif kind == _HOLD_UNREACHABLE:
-            why = f"{safety.listed(named(i, m1))} {safety.UNREACHABLE}"
         elif kind == _FOLLOW:
             why = safety.changes(named(i, m1), named(i, m2), safety.FOLLOWED)
-        elif kind == _RECOVERED:
-            why = f"{_CAUSES[m1]} recovered"
-        elif kind == _LAND:
-            why = f"held for {land_after:g} s ({_CAUSES[m1]})"
+        elif kind == _HELD:
+            why = (f"{safety.listed(named(i, m2))} {safety.UNREACHABLE}" if m1 == safety.UNREACHABLE_CAUSE
+                   else safety.HOLD_WHY[m1])
+        elif kind != _LANDED:
+            why = safety.reason(kind, safety.CAUSES[m1], m2, land_after, resume_dwell)
         else:  # failsafe.why_landed, 2D
             why = "still" if speed < failsafe.STILL else (
                 f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped")
@@ -417,48 +442,63 @@ def _reach_py(i: int, n: int, lo: int, hi: int, mask: int, l_src: np.ndarray, ou
 _reach = kernel.jit(_reach_py)
 
 
-def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, three: bool, ground: float,
-              kappa: np.ndarray, swd: np.ndarray, coef: np.ndarray, state: np.ndarray, feed: int, max_age: float, compensate: bool, leader_timeout: float,
-              neighbour_timeout: float, max_err: float, gain_cap: float, max_speed: float, max_accel: float,
-              diverge_at: float, off: np.ndarray, l_src: np.ndarray, l_leader: np.ndarray, l_w: np.ndarray,
-              l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, lead: np.ndarray,
-              p: np.ndarray, v: np.ndarray, a: np.ndarray, last_u: np.ndarray, dv: np.ndarray, dp: np.ndarray,
-              out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
-              out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_age: np.ndarray,
-              hmode: np.ndarray, out_ptr: np.ndarray, out_dst: np.ndarray, mode: np.ndarray, cause: np.ndarray,
-              since: np.ndarray, p_hold: np.ndarray, lost: np.ndarray, cur_kappa: np.ndarray, cur_swd: np.ndarray,
-              params: np.ndarray, events: np.ndarray, floats: np.ndarray, fired: np.ndarray, out_mode: np.ndarray,
-              out_pmode: np.ndarray, r_said: np.ndarray, r_run: np.ndarray, belief: np.ndarray,
-              follow: np.ndarray) -> int:
-    """Ticks ``k0 .. k1-1``; returns -1, or the first tick this loop does not model (nothing of that
-    tick is kept). It models FLYING and HOLD with the causes ``leader`` and ``unreachable``, edges
-    dropped and restored, and in 2D LAND and LANDED (``agent.safety.Supervisor``); a bound of
-    ``[safety]`` reached, a landing in 3D or a value not finite where a mode would take it is left to
-    the Python engine.
+def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa: np.ndarray, swd: np.ndarray,
+              coef: np.ndarray, state: np.ndarray, off: np.ndarray, l_src: np.ndarray, l_w: np.ndarray,
+              l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, hmode: np.ndarray,
+              lead: np.ndarray, out_ptr: np.ndarray, out_dst: np.ndarray, p: np.ndarray, v: np.ndarray,
+              a: np.ndarray, last_u: np.ndarray, dv: np.ndarray, dp: np.ndarray, outs: tuple[np.ndarray, ...],
+              out_age: np.ndarray, out_mode: np.ndarray, out_pmode: np.ndarray, sup: np.ndarray,
+              clock: np.ndarray, p_hold: np.ndarray, reports: np.ndarray, cur_kappa: np.ndarray,
+              cur_swd: np.ndarray, events: np.ndarray, floats: np.ndarray, fired: np.ndarray) -> int:
+    """Ticks ``k0 .. k1-1`` of the in-process engine (the rows of ``outs``, the run's
+    ``p, v, a, u, xi, zeta, kp, kv``: every tick when ``record``, else only the last tick's into row
+    0). Returns -1, or the first tick this loop does not model (nothing of that tick is kept). It
+    models FLYING and HOLD with the causes ``leader`` and ``unreachable``, edges dropped and
+    restored, and in 2D LAND (after ``land_after``, or instead of one flap too many) and LANDED
+    (``agent.safety.Supervisor``); a bound of ``[safety]`` reached, a landing in 3D or a value not
+    finite where a mode would take it is left to the Python engine.
 
-    State carried between calls: ``p, v, a`` (the plants), ``last_u``, the law's ``state``
-    ``(S, N, d)`` (``coef`` ``(d, C)``: per axis, its coefficients), ``used``, the
-    history ring ``hist`` ``(3, R, N+1, d)`` (p, v, shared a; column N the leader) and ``hmode``
-    ``(R, N+1)`` (the mode each sample carried), and each supervisor's ``mode, cause, since, p_hold,
-    lost`` (the dropped edges: bit b for link slot b) with the law over its surviving edges
-    (``cur_kappa, cur_swd``; ``kappa, swd`` the mission's), and ``follow`` (holding neighbours
-    followed, a mask of link slots); per link slot, the neighbour's mode reports as
-    ``agent.safety.Supervisor.links`` weighs them (``r_said``, ``r_run``: the kind said and for how
-    many consecutive ticks; ``belief``: the kind believed, ``agent.safety.report_kind``'s codes).
-    ``params``: ``land_after, hold_kp, hold_kv, land_settle, STILL, mode_confirm``. Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, mask,
-    mask (LANDED's held time and speed to ``floats``); ``fired[0]`` counts them. ``dv, dp``: the disturbance increments of these ticks. Every expression below is the
-    Python's, in its order (the comments name the function)."""
+    ``cfg``: the numbers of the run (columns ``_H`` ... ``_RESUME_DWELL``). Links, flattened in agent
+    order then in-neighbour order (agent i's slots ``off[i] .. off[i+1]-1``): the sender's column
+    ``l_src`` (the leader's: N), weight ``l_w`` and offset ``l_delta``. State carried between calls:
+    ``p, v, a`` (the plants), ``last_u``, the law's ``state`` ``(S, N, d)`` (``coef`` ``(d, C)``:
+    per axis, its coefficients), ``used``, the history ring ``hist`` ``(3, R, N+1, d)`` (p, v,
+    shared a; column N the leader) and ``hmode`` ``(R, N+1)`` (the mode each sample carried), each
+    supervisor's ``sup`` and ``clock`` (columns ``_MODE`` ..., ``_SINCE`` ...) and ``p_hold``, the
+    law over its surviving edges (``cur_kappa, cur_swd``; ``kappa, swd`` the mission's), and per
+    link slot the neighbour's mode reports (``reports``: :func:`agent.safety.believe`'s state).
+    Events go to ``events`` ``(E, 7)``: k, agent, from, to, kind, m1, m2 (LANDED's held time and
+    speed to ``floats``); ``fired[0]`` counts them. ``dv, dp``: the disturbance increments of these
+    ticks. The supervisor's rule is :mod:`agent.safety`'s own functions, compiled; every other
+    expression below is the Python's, in its order (the comments name the function)."""
+    out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv = outs
+    h = cfg[_H]
+    hh2 = cfg[_HH2]
+    ground = cfg[_GROUND]
+    three = cfg[_THREE] != 0.0
+    feed = int(cfg[_FEED_CODE])
+    max_age = cfg[_MAX_AGE]
+    compensate = cfg[_COMPENSATE] != 0.0
+    leader_timeout = cfg[_LEADER_TIMEOUT]
+    neighbour_timeout = cfg[_NEIGHBOUR_TIMEOUT]
+    max_err = cfg[_MAX_ERR]
+    gain_cap = cfg[_GAIN_CAP]
+    max_speed = cfg[_MAX_SPEED]
+    max_accel = cfg[_MAX_ACCEL]
+    diverge_at = cfg[_DIVERGE_AT]
+    land_after = cfg[_LAND_AFTER]
+    hold_kp = cfg[_HOLD_KP]
+    hold_kv = cfg[_HOLD_KV]
+    land_settle = cfg[_LAND_SETTLE]
+    still = cfg[_STILL]
+    confirm = int(cfg[_CONFIRM])
+    flap_limit = int(cfg[_FLAP_LIMIT])
+    resume_dwell = cfg[_RESUME_DWELL]
     n, d = p.shape
     ring = hist.shape[1]
     hp = hist[0]
     hv = hist[1]
     ha = hist[2]
-    land_after = params[0]
-    hold_kp = params[1]
-    hold_kv = params[2]
-    land_settle = params[3]
-    still = params[4]
-    confirm = params[5]
     width = out_age.shape[2]
     age_of = np.empty(max(width, 1))
     u = np.empty((n, d))
@@ -487,7 +527,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 hp[q, i, c] = p[i, c]
                 hv[q, i, c] = v[i, c]
                 ha[q, i, c] = a[i, c] if feed == 0 else last_u[i, c]
-            hmode[q, i] = mode[i]
+            hmode[q, i] = sup[i, _MODE]
         for i in range(n):
             lo = off[i]
             hi = off[i + 1]
@@ -501,25 +541,19 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 never = s < 0
                 age = nan if never else t - s * h
                 age_of[l - lo] = age
-                if l_leader[l]:
-                    silent = age > leader_timeout or (never and t > leader_timeout)
+                if l_src[l] == n:  # the leader
+                    silent = _silent(age, t, leader_timeout)
                 else:
                     # the neighbour's mode report, believed once `confirm` consecutive ticks say it
-                    quiet = age > neighbour_timeout or (never and t > neighbour_timeout)
-                    said = 0
+                    quiet = _silent(age, t, neighbour_timeout)
+                    said = _REPORT_FLYING
                     if not (quiet or never):
-                        md = hmode[s % ring, l_src[l]]
-                        said = 0 if md == flying else 1 if md == hold else 2
-                    if said == r_said[l]:
-                        r_run[l] += 1
-                    else:
-                        r_said[l] = said
-                        r_run[l] = 1
-                    if r_run[l] >= confirm:
-                        belief[l] = said
-                    if quiet or belief[l] == 2:
+                        said = _report_kind(hmode[s % ring, l_src[l]])
+                    reports[l, _SAID], reports[l, _RUN], reports[l, _BELIEF] = _believe(
+                        said, reports[l, _SAID], reports[l, _RUN], reports[l, _BELIEF], confirm)
+                    if quiet or reports[l, _BELIEF] == _REPORT_STOPPED:
                         missing |= 1 << (l - lo)
-                    elif belief[l] == 1:
+                    elif reports[l, _BELIEF] == _REPORT_HOLD:
                         holding |= 1 << (l - lo)
             reachable = True
             if missing != 0:  # tether's reaches(): the leader to this agent without the lost ones
@@ -532,10 +566,10 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 else:
                     follow_new = holding
             new = drop if reachable else 0
-            if new != lost[i]:  # edges dropped or restored: an event, and the law over the others
-                if not _event(events, fired, k, i, mode[i], mode[i], _EDGES, new & ~lost[i], lost[i] & ~new):
+            if new != sup[i, _LOST]:  # edges dropped or restored: an event, and the law over the others
+                if not _event(events, fired, k, i, sup[i, _MODE], sup[i, _MODE], _EDGES, new & ~sup[i, _LOST], sup[i, _LOST] & ~new):
                     return k
-                lost[i] = new
+                sup[i, _LOST] = new
                 if new == 0:  # the mission's own law
                     cur_kappa[i] = kappa[i]
                     for c in range(d):
@@ -554,11 +588,11 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                             else:
                                 sd = sd + w * l_delta[l, c]
                         cur_swd[i, c] = sd
-            if follow_new != follow[i]:  # holding neighbours followed, or no longer
-                if not _event(events, fired, k, i, mode[i], mode[i], _FOLLOW, follow_new & ~follow[i],
-                              follow[i] & ~follow_new):
+            if follow_new != sup[i, _FOLLOWED]:  # holding neighbours followed, or no longer
+                if not _event(events, fired, k, i, sup[i, _MODE], sup[i, _MODE], _FOLLOW, follow_new & ~sup[i, _FOLLOWED],
+                              sup[i, _FOLLOWED] & ~follow_new):
                     return k
-                follow[i] = follow_new
+                sup[i, _FOLLOWED] = follow_new
             # agent.law.neighbour_sample per in-neighbour, AgentLaw.step (weighted_sum term by term)
             ka = cur_kappa[i]
             for c in range(d):
@@ -584,7 +618,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         aj = 0.0
                     if feed == 2:
                         aj = 0.0
-                    w = 0.0 if lost[i] >> (l - lo) & 1 else l_w[l]
+                    w = 0.0 if sup[i, _LOST] >> (l - lo) & 1 else l_w[l]
                     if l == lo:
                         sp = w * pj
                         sv = w * vj
@@ -603,7 +637,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
             for c in range(d):
                 if not abs(xi[c]) <= diverge_at:
                     return k
-            active = mode[i] == flying or mode[i] == hold
+            active = sup[i, _MODE] == flying or sup[i, _MODE] == hold
             if active:
                 # Supervisor._diverged (|xi|, the gains, a finite command) and the speed bound: mode
                 # changes this loop does not follow
@@ -619,49 +653,42 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         return k
                 if _norm(v, i) > max_speed:
                     return k
-            # Supervisor.command: HOLD's causes (the leader silent for an agent that hears it, then
-            # the leader no longer reaching it), and what each does to the mode
-            why = 0  # a code of _CAUSES
-            if silent:
-                why = _HOLD_LEADER
-            elif not reachable:
-                why = _HOLD_UNREACHABLE
-            change = -1
-            kind = 0
-            if active and mode[i] == flying and why != 0:
-                for c in range(d):
-                    if not math.isfinite(p[i, c]):
-                        return k  # HOLD with nowhere to hold: the Python engine's (a zero command)
-                change, kind = hold, why
-                cause[i] = why
-                # agent.safety.anchor: failsafe.hold_point (3D: floor at the ground; no geofence here)
-                speed = _norm(v, i)
-                if speed > 0.0 and math.isfinite(speed):
-                    scale = _stopping(speed, hold_kp, max_accel) / speed
-                    for c in range(d):
-                        p_hold[i, c] = p[i, c] + v[i, c] * scale
-                    if three and p_hold[i, d - 1] < ground:
-                        p_hold[i, d - 1] = ground if p[i, d - 1] >= ground else p[i, d - 1]
-                else:
-                    for c in range(d):
-                        p_hold[i, c] = p[i, c]
-            elif active and mode[i] == hold and why != 0 and why != cause[i]:
-                cause[i] = why  # another reason keeps it holding; the clock to LAND runs on
-            elif active and mode[i] == hold:
-                if why == 0:
-                    change, kind = flying, _RECOVERED
-                elif t - since[i] >= land_after:
-                    if three:
-                        return k  # a 3D landing (Landing's memory, the ground): the Python engine's
-                    change, kind = land, _LAND
-            if change >= 0:
-                if not _event(events, fired, k, i, mode[i], change, kind,
-                              missing if kind == _HOLD_UNREACHABLE else cause[i], 0):
-                    return k
-                mode[i] = change
-                since[i] = t
-            if mode[i] == land:  # 2D: failsafe.landed (still, or held land_settle), else HOLD's law
-                held = t - since[i]
+            # Supervisor.command: HOLD's cause (the loop models the leader silent, for an agent that
+            # hears it, and the leader no longer reaching it) and agent.safety.transition, compiled
+            if active:
+                md = sup[i, _MODE]
+                why = _hold_cause(False, False, False, False, silent, False, reachable)
+                nm, nc, _, nsince, nhealthy, nflaps, nlast, kind = _transition(
+                    md, sup[i, _CAUSE], False, clock[i, _SINCE], clock[i, _HEALTHY], sup[i, _FLAPS],
+                    clock[i, _LAST_FLAP], why, t, land_after, flap_limit, resume_dwell)
+                if nm == land and three:
+                    return k  # a 3D landing (Landing's memory, the ground): the Python engine's
+                if kind != _STAY:
+                    if md == flying:  # HOLD or LAND begins: agent.safety.anchor
+                        for c in range(d):
+                            if not math.isfinite(p[i, c]):
+                                return k  # nowhere to hold: the Python engine's (a zero command)
+                        # failsafe.hold_point (3D: floor at the ground; no geofence here)
+                        speed = _norm(v, i)
+                        if speed > 0.0 and math.isfinite(speed):
+                            scale = _stopping(speed, hold_kp, max_accel) / speed
+                            for c in range(d):
+                                p_hold[i, c] = p[i, c] + v[i, c] * scale
+                            if three and p_hold[i, d - 1] < ground:
+                                p_hold[i, d - 1] = ground if p[i, d - 1] >= ground else p[i, d - 1]
+                        else:
+                            for c in range(d):
+                                p_hold[i, c] = p[i, c]
+                    if not _event(events, fired, k, i, md, nm, kind, nc, missing if kind == _HELD else nflaps):
+                        return k
+                sup[i, _MODE] = nm
+                sup[i, _CAUSE] = nc
+                sup[i, _FLAPS] = nflaps
+                clock[i, _SINCE] = nsince
+                clock[i, _HEALTHY] = nhealthy
+                clock[i, _LAST_FLAP] = nlast
+            if sup[i, _MODE] == land:  # 2D: failsafe.landed (still, or held land_settle), else HOLD's law
+                held = t - clock[i, _SINCE]
                 speed = _norm(v, i)
                 if speed < still or held >= land_settle:
                     row = fired[0]
@@ -669,13 +696,13 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                         return k
                     floats[row, 0] = held
                     floats[row, 1] = speed
-                    mode[i] = landed
-                    since[i] = t
-            if mode[i] == landed:  # a zero command; the plant rests
+                    sup[i, _MODE] = landed
+                    clock[i, _SINCE] = t
+            if sup[i, _MODE] == landed:  # a zero command; the plant rests
                 for c in range(d):
                     u[i, c] = 0.0
             else:
-                if mode[i] != flying:  # failsafe.hold (LAND in 2D too): brake, return to p_hold
+                if sup[i, _MODE] != flying:  # failsafe.hold (LAND in 2D too): brake, return to p_hold
                     for c in range(d):
                         u[i, c] = -hold_kv * v[i, c] - hold_kp * (p[i, c] - p_hold[i, c])
                 # failsafe.saturate
@@ -700,8 +727,8 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     shown = law_shown(law_load(state, i, c))
                     out_kp[r, i, c] = shown[0]
                     out_kv[r, i, c] = shown[1]
-                out_mode[r, i] = mode[i]
-                out_pmode[r, i] = landed if mode[i] == landed else flying  # the plant's watchdog
+                out_mode[r, i] = sup[i, _MODE]
+                out_pmode[r, i] = landed if sup[i, _MODE] == landed else flying  # the plant's watchdog
             for l in range(lo, hi):
                 s = newest[k, l]
                 age = age_of[l - lo]
@@ -711,7 +738,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                 if keep:
                     out_age[r, i, l - lo] = age if ok else nan
             # the law's state advances while FLYING; the command is the one shared next tick
-            if mode[i] == flying:
+            if sup[i, _MODE] == flying:
                 for c in range(d):
                     law_store(state, i, c, law_load(nstate, 0, c))
             for c in range(d):
@@ -722,7 +749,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
         # where it was (plant.rest.Resting: its model, stepped on, is never reported again)
         j = k - k0
         for i in range(n):
-            if mode[i] == landed:
+            if sup[i, _MODE] == landed:
                 for c in range(d):
                     v[i, c] = 0.0
                     a[i, c] = 0.0

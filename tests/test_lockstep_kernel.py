@@ -17,6 +17,7 @@ from sim import lockstep, lockstep_kernel, sweep
 from tests.factories import build, random_mission
 from tether import mission as ms
 from tether import failsafe, wire
+from agent import safety
 from tether.catalog import builtin_path
 from tether.inputs import Source
 from tether.netprofile import Bernoulli, Corrupt, Delay, GilbertElliott, LinkProfile, LinkRule, Network, Rate, Reorder
@@ -226,14 +227,33 @@ def test_progress_never_goes_back_when_the_twin_gives_a_run_back() -> None:
 @pytest.mark.parametrize("cell", [(50, 100, 20), (40, 50, 30)])
 def test_bursty_cells_whose_agents_hold_and_recover_equal_the_python_engine(cell: tuple[int, int, int]) -> None:
     """Long loss bursts silence the leader past leader_timeout: agent 1 holds, the ring behind it
-    loses its path from the leader and holds too, and all fly on when the samples are back (over a
-    hundred mode changes a minute). The twin follows them itself, events and reasons included."""
+    loses its path from the leader and holds too, and all fly on when the samples are back. With the
+    flapping rule opened wide (``flap_limit`` 1000, no dwell) that is over a hundred mode changes a
+    minute; the twin follows them itself, events and reasons included."""
     base = load_mission(builtin_path("section4"), 60.0)
-    run = compiled_equals_python(sweep.point_mission(base, sweep.Point("sigma", *cell), duration=60.0))
+    m = sweep.point_mission(base, sweep.Point("sigma", *cell), duration=60.0)
+    run = compiled_equals_python(replace(m, safety=replace(m.safety, flap_limit=1000, resume_dwell=0.0)))
     reasons = {e.reason for e in run.safety.events}
     assert {"leader silent", "leader recovered", "unreachable recovered"} <= reasons
     assert any("no longer reaches" in why for why in reasons)
     assert (run.safety.safety_mode == wire.HOLD).any() and (run.safety.safety_mode == wire.FLYING).any()
+
+
+@pytest.mark.parametrize("cell", [(50, 100, 20), (40, 50, 30)])
+def test_bursty_cells_land_flapping_agents_as_the_python_engine_does(cell: tuple[int, int, int]) -> None:
+    """The same cells with the default ``[safety]``: no agent recovers from HOLD more than
+    ``flap_limit`` times within ``FLAP_WINDOW`` of each other; the next HOLD is a LAND saying why
+    (or a HOLD whose resume waits past ``land_after`` lands), in the twin as in the Python engine."""
+    base = load_mission(builtin_path("section4"), 60.0)
+    m = sweep.point_mission(base, sweep.Point("sigma", *cell), duration=60.0)
+    run = compiled_equals_python(m)
+    limit = m.safety.flap_limit
+    for vehicle in m.agent_ids:
+        back = [e.t for e in run.safety.events if e.vehicle == vehicle and e.src == wire.HOLD and e.dst == wire.FLYING]
+        assert all(b - a > safety.FLAP_WINDOW for a, b in zip(back, back[limit:])), (vehicle, back)
+    reasons = [e.reason for e in run.safety.events if e.src != e.dst == wire.LAND]
+    assert any(why.startswith("flapping: ") or "a resume needs" in why for why in reasons), reasons
+    assert (run.safety.safety_mode[-1] == wire.LANDED).any()
 
 
 def test_an_edge_dropped_and_restored_while_the_leader_still_reaches_equals_the_python_engine() -> None:

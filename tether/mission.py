@@ -389,6 +389,12 @@ class Safety(Strict, frozen=True):
     dropped and kappa_i re-normalised while the leader still reaches this agent, else HOLD."""
     land_after: float = 2.0
     """HOLD for a lost input turns into LAND after this long [s] if the input has not come back."""
+    flap_limit: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 3
+    """Recoveries from HOLD, each within 60 s of the last, after which the next HOLD is a LAND
+    instead (``docs/safety.md``, *No flapping*)."""
+    resume_dwell: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 0.5
+    """HOLD → FLYING waits for the cause to be gone this long [s] times the recent recoveries (not
+    at all after none)."""
     land_speed: float = 0.3
     """Descent rate in LAND [m/s] (3D)."""
     ground: float = 0.0
