@@ -57,7 +57,8 @@ class Report:
             sender=self.aid, seq=self.seq, k=k, t=t, clock=hearing.clocks(), netem=decisions, meas_t=own.t, p=own.p,
             vel=own.vel, a=own.a, u=u, xi=out.xi, zeta=out.zeta, kp=out.kp, kv=out.kv,
             links=self.links(k, tick, out), drops=dict(node.ingress.receiver.drops), late=node.clock.late, mode=out.mode,
-            events=events, gate=_with_conflicts(merged(hearing.gates), [s for _, s in hearing.judged]))
+            events=events, gate=_with_conflicts(merged(hearing.gates), [s for _, s in hearing.judged]),
+            x=[c for var in out.x for c in var])
         self.seq += 1
         if self.tele is not None:
             self.tele.put(report)

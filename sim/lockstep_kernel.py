@@ -46,7 +46,7 @@ from plant import base as plants
 from plant.disturbance import DisturbanceBank
 from sim import kernel, lawkernels
 from sim.setup import DIVERGE_AT, Progress, hosts_of, leader_of, meta_of, steps_of
-from sim.kernel import law_load, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
+from sim.kernel import law_load, law_record, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
 from tether import failsafe, wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
@@ -239,7 +239,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                       float(cfg.gain_cap), float(cfg.max_speed), float(cfg.max_accel), float(diverge_at),
                       off, l_src_a, l_leader_a, l_w_a, l_delta_a, newest, used, hist, lead,
                       p, v, a, last_u, dv, dp,
-                      run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, ages,
+                      run.p, run.v, run.a, run.u, run.xi, run.zeta, run.law_state, ages,
                       hmode, out_ptr, out_dst, mode, cause, since, p_hold, lost, cur_kappa, cur_swd, params,
                       events, floats, fired, run.safety.safety_mode, run.safety.plant_mode,
                       r_said, r_run, belief, follow)
@@ -258,6 +258,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     run.links = Links(age=ages, **counts)
     # the plant's watchdog follows HOLD (it rests or cuts its motors only for LANDED and ESTOP)
     run.safety.events = sorted(found, key=lambda e: (e.k, e.vehicle))
+    run.zero_absent_shown()  # the kernel records law_state alone
     if progress is not None:  # once, at the end: a run given back to the Python engine never reports
         progress(steps, steps)  # a progress that it would then start again from 0
     return run
@@ -424,7 +425,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
               l_delta: np.ndarray, newest: np.ndarray, used: np.ndarray, hist: np.ndarray, lead: np.ndarray,
               p: np.ndarray, v: np.ndarray, a: np.ndarray, last_u: np.ndarray, dv: np.ndarray, dp: np.ndarray,
               out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
-              out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_age: np.ndarray,
+              out_zeta: np.ndarray, out_x: np.ndarray, out_age: np.ndarray,
               hmode: np.ndarray, out_ptr: np.ndarray, out_dst: np.ndarray, mode: np.ndarray, cause: np.ndarray,
               since: np.ndarray, p_hold: np.ndarray, lost: np.ndarray, cur_kappa: np.ndarray, cur_swd: np.ndarray,
               params: np.ndarray, events: np.ndarray, floats: np.ndarray, fired: np.ndarray, out_mode: np.ndarray,
@@ -697,9 +698,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float, 
                     out_u[r, i, c] = u[i, c]
                     out_xi[r, i, c] = xi[c]
                     out_zeta[r, i, c] = zeta[c]
-                    shown = law_shown(law_load(state, i, c))
-                    out_kp[r, i, c] = shown[0]
-                    out_kv[r, i, c] = shown[1]
+                    law_record(out_x, r, i, c, law_load(state, i, c))
                 out_mode[r, i] = mode[i]
                 out_pmode[r, i] = landed if mode[i] == landed else flying  # the plant's watchdog
             for l in range(lo, hi):
