@@ -233,14 +233,19 @@ class Recording:
     def _law_state(self, msgs: list[wire.Telemetry], ks: int | slice, i: int) -> None:
         """The law's state ``x`` of agent ``i``'s telemetry ``msgs`` (of ticks ``ks``) into
         ``law_state``, after ``kp``/``kv`` (its first two, as the message says them): a message
-        without it leaves the rest NaN; one of another size than the law's is counted, not used."""
-        size = self.states * self.mission.dim
+        without it leaves the rest NaN; one of another size or other names than the law's is
+        counted, not used."""
+        size, names = self.states * self.mission.dim, list(self.run.meta.law_state)
+
+        def fits(msg: wire.Telemetry) -> bool:
+            return len(msg.x) == size and (not msg.x_names or msg.x_names == names)
+
         if not size:
             return
-        if not all(len(msg.x) == size for msg in msgs):
-            self.state_mismatch += sum(1 for msg in msgs if msg.x and len(msg.x) != size)
+        if not all(fits(msg) for msg in msgs):
+            self.state_mismatch += sum(1 for msg in msgs if msg.x and not fits(msg))
             for n, msg in enumerate(msgs):
-                if len(msg.x) == size:
+                if fits(msg):
                     self._law_state([msg], ks if isinstance(ks, int) else ks.start + n, i)
             return
         rows = np.array([msg.x for msg in msgs], dtype=float).reshape(len(msgs), self.states, self.mission.dim)
@@ -370,8 +375,8 @@ class Recording:
             drops = {**drops, "duplicate_sample": self.duplicates}
         if self.state_mismatch:
             drops = {**drops, "law_state": self.state_mismatch}
-            log.warning("%d telemetry messages carried a law state of another size than the law's %d variables: "
-                        "their law_state is NaN", self.state_mismatch, self.states)
+            log.warning("%d telemetry messages carried a law state other than the law's %s: their law_state is NaN",
+                        self.state_mismatch, ", ".join(self.run.meta.law_state))
             log.warning("%d samples heard again for a tick that had them (a replay?): each recorded once",
                         self.duplicates)
         meta.recorder_drops = DropCounts.of(drops)

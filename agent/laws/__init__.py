@@ -167,9 +167,10 @@ def state_problem(law: FormationLaw) -> str:
     that are not distinct Python identifiers (they name arrays and columns), or a ``units`` that is
     neither empty nor one unit per state variable."""
     names, units = law.state, law.units
-    bad = [x for x in names if not (isinstance(x, str) and x.isidentifier())]
+    bad = [x for x in names if not (isinstance(x, str) and x.isidentifier() and len(x) <= wire.MAX_NAME)]
     if bad:
-        return f"state names {bad!r} are not Python identifiers; name each state variable like a variable"
+        return (f"state names {bad!r} are not Python identifiers of at most {wire.MAX_NAME} characters; name each "
+                "state variable like a variable")
     if len(set(names)) != len(names):
         return f"state names {names!r} repeat a name; give each state variable its own name"
     if units and (len(units) != len(names) or not all(isinstance(x, str) for x in units)):
