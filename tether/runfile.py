@@ -404,9 +404,13 @@ class Run:
             except msgspec.ValidationError as exc:
                 raise ValueError(f"{path}: run file metadata (format version {version}): {exc}") from None
             arrays = {k: z[k] for k in z.files if k != "meta"}
+        stray = {}
         if version < 5:  # the two columns were the law's state as the file knew it
+            if "law_state" in arrays:
+                stray["law_state"] = arrays.pop("law_state")
             meta = msgspec.structs.replace(meta, law_state=SHOWN, law_units=())
-            arrays["law_state"] = np.stack([arrays.pop(k) for k in SHOWN])
+            if all(k in arrays for k in SHOWN):
+                arrays["law_state"] = np.stack([arrays.pop(k) for k in SHOWN])
         law_state = arrays.pop("law_state", None)
         if law_state is None or law_state.ndim != 4 or len(law_state) != len(meta.law_state) \
                 or len(meta.law_units) not in (0, len(meta.law_state)):
@@ -435,6 +439,7 @@ class Run:
                     groups[attr] = kind(**fields)
                 except TypeError as exc:
                     raise ValueError(f"{path}: incomplete {kind.__name__} arrays: {exc}") from None
+        arrays.update(stray)
         if arrays:
             raise ValueError(f"{path}: arrays unknown to run file format version {version}: {', '.join(sorted(arrays))}")
         return cls(meta=meta, law_state=law_state, **groups, **base)
