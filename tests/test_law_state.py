@@ -41,7 +41,8 @@ def test_the_laws_declare_their_state_and_its_units() -> None:
     assert laws.resolve("examples.custom_law.pd:PDConsensus").state == ()
 
 
-def test_a_law_whose_state_names_are_not_identifiers_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_law_whose_state_names_are_not_identifiers_is_refused(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     (tmp_path / "badlaw.py").write_text(
         "from agent.laws.sigma import Sigma\n"
         "class Spaced(Sigma):\n    state = ('k p', 'kv')\n"

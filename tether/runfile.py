@@ -28,9 +28,9 @@ file opens with nothing but numpy: ``numpy.load("run.npz")``. Files of format ve
 the safety record) still load: their modes read -1 (no sample), with no events; files of version 2
 (before the clock record) load with ``clock`` None; files of version 3 (before the plants' own
 events) load with no plant events; files of version 4 and older (before the law's named state)
-load with ``law_state`` their ``kp`` and ``kv``, named so. :func:`gaps` says which samples a run lacks (a run stopped early,
-a recorder frozen or killed: ``recorder/journal.py`` rebuilds a run from what a killed recorder
-wrote as it went).
+load with ``law_state`` their ``kp`` and ``kv``, named so. :func:`gaps` says which samples a run
+lacks (a run stopped early, a recorder frozen or killed: ``recorder/journal.py`` rebuilds a run
+from what a killed recorder wrote as it went).
 """
 
 from __future__ import annotations
@@ -413,6 +413,7 @@ class Run:
                 arrays["law_state"] = np.stack([arrays.pop(k) for k in SHOWN])
         law_state = arrays.pop("law_state", None)
         if law_state is None or law_state.ndim != 4 or len(law_state) != len(meta.law_state) \
+                or ("xi" in arrays and law_state.shape[1:] != arrays["xi"].shape) \
                 or len(meta.law_units) not in (0, len(meta.law_state)):
             raise ValueError(f"{path}: law_state does not match the metadata's law_state "
                              f"{list(meta.law_state)} and law_units {list(meta.law_units)}")
