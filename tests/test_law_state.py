@@ -223,12 +223,15 @@ def test_simulate_writes_the_state_by_name_in_run_npz_and_run_mcap(tmp_path: Pat
 
 
 @pytest.mark.slow  # real processes
-def test_tether_run_in_lockstep_records_the_state_as_the_in_process_engine(tmp_path: Path) -> None:
+@pytest.mark.parametrize("plants", ["--colocate-plants", "--separate-plants"])
+def test_tether_run_in_lockstep_records_the_state_as_the_in_process_engine(tmp_path: Path, plants: str) -> None:
+    """The agents' telemetry in records of many ticks (plants on board) and one message a tick
+    (plant processes): the recorder files the same state as the in-process engine computes."""
     pytest.importorskip("mcap")
     pytest.importorskip("foxglove")
     out = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "cli", "run", str(integral_mission(tmp_path)), "--out", str(out),
-                        "--duration", "1", "--quiet", "--ns", f"lawstate-{os.getpid()}"],
+                        "--duration", "1", "--quiet", "--ns", f"lawstate-{os.getpid()}", plants],
                        capture_output=True, text=True, timeout=400, cwd=REPO)
     assert r.returncode == 0, r.stderr[-3000:]
     run = Run.load(out)
