@@ -6,6 +6,7 @@ the plant's samples too.
 
 from __future__ import annotations
 
+from agent import laws
 from agent.hearing import Hearing
 from agent.tick import AgentTick, TickResult
 from tether import transport as tp
@@ -31,6 +32,8 @@ class Report:
         self.pending: tuple[list[wire.PlantState], list[wire.Telemetry]] = ([], [])
         """With a co-located plant: the plant samples and telemetry not yet sent to the recorder."""
         self.seq = 0
+        self.x_names = list(laws.of_mission(node.mission).law.state)
+        """The law's state variables' names, said with each telemetry's state."""
 
     def links(self, k: int, tick: AgentTick, out: TickResult) -> list[wire.LinkStats]:
         """Each in-link's statistics at tick ``k``."""
@@ -57,7 +60,8 @@ class Report:
             sender=self.aid, seq=self.seq, k=k, t=t, clock=hearing.clocks(), netem=decisions, meas_t=own.t, p=own.p,
             vel=own.vel, a=own.a, u=u, xi=out.xi, zeta=out.zeta, kp=out.kp, kv=out.kv,
             links=self.links(k, tick, out), drops=dict(node.ingress.receiver.drops), late=node.clock.late, mode=out.mode,
-            events=events, gate=_with_conflicts(merged(hearing.gates), [s for _, s in hearing.judged]))
+            events=events, gate=_with_conflicts(merged(hearing.gates), [s for _, s in hearing.judged]),
+            x=[c for var in out.x for c in var], x_names=self.x_names)
         self.seq += 1
         if self.tele is not None:
             self.tele.put(report)

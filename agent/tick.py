@@ -55,6 +55,7 @@ class TickResult(NamedTuple):
         ages: per in-neighbour, the age of its newest sample [s] (NaN: none held).
         used: per in-neighbour, whether its sample was used (else it was substituted).
         mode: the supervisor's mode after this tick (a code of :data:`tether.wire.MODES`).
+        x: the law's state at ``t_k``: per state variable (``FormationLaw.state``), ``d`` floats.
     """
 
     u: list[float]
@@ -65,6 +66,7 @@ class TickResult(NamedTuple):
     ages: list[float]
     used: list[bool]
     mode: int
+    x: list[list[float]]
 
 
 class AgentTick:
@@ -153,7 +155,7 @@ class AgentTick:
             filtered = filter_command(u, p, v, near, av.radius, av.sensing, av.gain, av.brake)
             safe = failsafe.saturate(filtered, sup.cfg.max_accel)
             u = u if safe is None else safe
-        out = TickResult(u, xi, zeta, kp, kv, ages, oks, sup.mode)
+        out = TickResult(u, xi, zeta, kp, kv, ages, oks, sup.mode, state)
         if sup.flying:
             self.state = state_next
         self.last_u = u

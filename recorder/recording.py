@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from recorder.export import mcap_beside
+from agent import laws
 from tether import jsonout, wire
 from tether.mission import Mission
 from tether.node import Node
@@ -72,9 +73,16 @@ class Recording:
         self.degree = {a.id: sum(1 for e in m.edges if e.dst == a.id) for a in m.agents}
         width = max(self.degree.values())
         source: Source = "runtime-lockstep" if ctx.lockstep else "runtime-realtime"
+        bound = laws.of_mission(m)
+        self.states = len(bound.law.state)
+        """The law's state variables per axis (each telemetry's ``x`` holds ``states * d`` floats)."""
         meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate,
-                       steps=m.steps, seed=m.seed, namespace=ctx.namespace, mission_text=ctx.mission_text)
+                       steps=m.steps, seed=m.seed, namespace=ctx.namespace, mission_text=ctx.mission_text,
+                       law_state=bound.law.state, law_units=bound.units)
         self.run = Run.empty(T, m.agent_ids, d, meta)
+        self.state_mismatch = 0
+        """Telemetry whose law state ``x`` is not the law's size (recorded without it; counted as
+        the drop reason ``law_state``)."""
         self.run.t[:] = np.arange(T) * m.dt
         self.rt = self.run.runtime = RuntimeRecord.empty(T, n, d)
         """The run's runtime record (``run.runtime``, never None here)."""
@@ -194,6 +202,7 @@ class Recording:
         i, r, lk, rt = self.col[msgs[0].sender], self.run, self.lk, self.rt
         r.p[ks, i], r.v[ks, i], r.a[ks, i], r.u[ks, i], r.xi[ks, i], r.zeta[ks, i], r.kp[ks, i], r.kv[ks, i] = \
             _block(msgs, _TELEMETRY_VECTORS, self.mission.dim)
+        self._law_state(msgs, ks, i)
         for n in range(min(len(msgs[0].links), lk.src.shape[1])):
             links = [msg.links[n] for msg in msgs]
             lk.src[i, n] = links[-1].src
@@ -220,6 +229,27 @@ class Recording:
                                    "at": d.at})
         if ks.stop - 1 > self.gate[i][0]:
             self.gate[i] = (ks.stop - 1, dict(msgs[-1].gate))
+
+    def _law_state(self, msgs: list[wire.Telemetry], ks: int | slice, i: int) -> None:
+        """The law's state ``x`` of agent ``i``'s telemetry ``msgs`` (of ticks ``ks``) into
+        ``law_state``, after ``kp``/``kv`` (its first two, as the message says them): a message
+        without it leaves the rest NaN; one of another size or other names than the law's is
+        counted, not used."""
+        size, names = self.states * self.mission.dim, list(self.run.meta.law_state)
+
+        def fits(msg: wire.Telemetry) -> bool:
+            return len(msg.x) == size and (not msg.x_names or msg.x_names == names)
+
+        if not size:
+            return
+        if not all(fits(msg) for msg in msgs):
+            self.state_mismatch += sum(1 for msg in msgs if msg.x and not fits(msg))
+            for n, msg in enumerate(msgs):
+                if fits(msg):
+                    self._law_state([msg], ks if isinstance(ks, int) else ks.start + n, i)
+            return
+        rows = np.array([msg.x for msg in msgs], dtype=float).reshape(len(msgs), self.states, self.mission.dim)
+        self.run.law_state[:, ks, i] = rows[0] if isinstance(ks, int) else rows.transpose(1, 0, 2)
 
     def _span(self, msgs: list[Any], column: int) -> slice | None:
         """The ticks of ``msgs`` (one sender's, in ``column`` + its index of :attr:`have`), taken
@@ -284,6 +314,7 @@ class Recording:
         i, r, lk, rt = self.col[msg.sender], self.run, self.lk, self.rt
         r.p[k, i], r.v[k, i], r.a[k, i], r.u[k, i] = msg.p, msg.vel, msg.a, msg.u
         r.xi[k, i], r.zeta[k, i], r.kp[k, i], r.kv[k, i] = msg.xi, msg.zeta, msg.kp, msg.kv
+        self._law_state([msg], k, i)
         for n, link in enumerate(msg.links[: lk.src.shape[1]]):
             lk.src[i, n] = link.src
             lk.age[k, i, n] = link.age
@@ -342,6 +373,10 @@ class Recording:
         meta.complete = complete
         if self.duplicates:
             drops = {**drops, "duplicate_sample": self.duplicates}
+        if self.state_mismatch:
+            drops = {**drops, "law_state": self.state_mismatch}
+            log.warning("%d telemetry messages carried a law state other than the law's %s: their law_state is NaN",
+                        self.state_mismatch, ", ".join(self.run.meta.law_state))
             log.warning("%d samples heard again for a tick that had them (a replay?): each recorded once",
                         self.duplicates)
         meta.recorder_drops = DropCounts.of(drops)

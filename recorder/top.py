@@ -3,7 +3,8 @@
 It is a plain Zenoh client that hears the telemetry the agents already publish
 (``tether/<ns>/agent/<i>/telemetry``, :class:`tether.wire.Telemetry`) and the swarm's liveliness
 tokens, and draws with ``rich`` in an ordinary terminal (over SSH too): per vehicle its safety mode,
-‖ξ_i‖, the gains Kp and Kv (per axis), ‖u_i‖, the worst link's delivery ratio and age p99, the
+‖ξ_i‖, the law's state by the names the law gives it (Eq. 17's gains ``kp kv``, the integral
+law's ``kp kv s``; per axis), ‖u_i‖, the worst link's delivery ratio and age p99, the
 clock-offset estimate of its most offset input link (``Telemetry.clock``, :mod:`tether.skew`;
 ``!`` and red when the agent flagged it, as the run's warning does), and the last event: its supervisor's
 newest mode change, or its plant's watchdog's newest event when that came later (``plant t=…``, from
@@ -147,6 +148,13 @@ class Board:
         if role == "agent":
             self._row(vehicle).alive = alive
 
+    def state_heading(self) -> str:
+        """The law state column's heading: the names the law gives its state variables, as the
+        agents' telemetry says them (``kp  kv  s (per axis)``); ``Kp  Kv`` before any says them."""
+        named = [law_state(r.msg)[0] for r in self.rows.values() if r.msg is not None and r.msg.x_names]
+        names = max(named, key=len, default=["Kp", "Kv"])
+        return "  ".join(names) + " (per axis)"
+
     def cells(self, row: Row, now: float) -> tuple[list[str], list[str]]:
         """The row's cells as text, and a style per cell ("" for none)."""
         msg = row.msg
@@ -166,8 +174,9 @@ class Board:
         styles.append(mstyle)
         xi = _norm(msg.xi)
         styles.append("red" if not xi <= self.xi_warn else "")
-        gains = "  ".join("/".join(_num(x) for x in v) for v in (msg.kp, msg.kv))
-        styles.append("red" if not all(map(math.isfinite, msg.kp + msg.kv)) else "")
+        _, values = law_state(msg)
+        gains = "  ".join("/".join(_num(x) for x in v) for v in values)
+        styles.append("red" if not all(math.isfinite(x) for v in values for x in v) else "")
         u = _norm(msg.u)
         styles.append("red" if not math.isfinite(u) else "")
         links = msg.links
@@ -204,13 +213,22 @@ class Board:
             f"{n} {why}" for why, n in sorted(self.drops.items())) if dropped else "")
         t = Table(title=heading, caption=caption, expand=False)
         for name, justify in (("vehicle", "right"), ("mode", "left"), ("|xi| [m]", "right"),
-                              ("Kp  Kv (per axis)", "left"), ("|u| [m/s2]", "right"), ("link delivery", "right"),
+                              (self.state_heading(), "left"), ("|u| [m/s2]", "right"), ("link delivery", "right"),
                               ("age p99", "right"), ("clock", "right"), ("last event", "left")):
             t.add_column(name, justify=justify)  # type: ignore[arg-type]
         for vehicle in sorted(self.rows):
             cells, styles = self.cells(self.rows[vehicle], now)
             t.add_row(*[f"[{s}]{_escape(c)}[/]" if s else _escape(c) for c, s in zip(cells, styles)])
         return t
+
+
+def law_state(msg: wire.Telemetry) -> tuple[list[str], list[list[float]]]:
+    """The law's state variables of ``msg``: their names and per-axis values (``Telemetry.x`` with
+    ``x_names``); the first two, ``kp`` and ``kv``, from a telemetry that does not name them."""
+    if msg.x_names:
+        d = len(msg.x) // len(msg.x_names)
+        return list(msg.x_names), [msg.x[s * d:(s + 1) * d] for s in range(len(msg.x_names))]
+    return ["Kp", "Kv"], [msg.kp, msg.kv]
 
 
 def _clock(links: list[wire.ClockLink]) -> tuple[str, str]:

@@ -117,6 +117,14 @@ def _num(desc: str) -> dict:
     return {"type": ["number", "null"], "description": desc}
 
 
+def law_state_fields(run: Run) -> dict[str, str]:
+    """The law's state variables of ``run`` by name, each with a description that gives its unit
+    where the law declares one (``"s [m s]: the law's state variable s"``)."""
+    units = run.meta.law_units or ("",) * len(run.meta.law_state)
+    return {name: f"{name}{f' [{unit}]' if unit else ''}: the law's state variable {name}"
+            for name, unit in zip(run.meta.law_state, units)}
+
+
 class Layout:
     """What a run's view is made of: its agents, dimension, offsets, and which groups it has."""
 
@@ -124,6 +132,8 @@ class Layout:
         self.ids = [int(a) for a in run.agent_ids]
         self.n, self.dim = len(self.ids), run.p.shape[2]
         self.modes = tuple(run.meta.modes)
+        self.law_state = law_state_fields(run)
+        """The law's state variables by name, with the description of each (:func:`law_state_fields`)."""
         self.offsets = np.zeros((self.n, 3))
         self.fence = None
         self.nominal_tension = 0.0
@@ -162,6 +172,9 @@ class Layout:
             "safety_mode_name": {"type": "string"},
             "plant_mode": {"type": "integer", "description": "plant watchdog mode code (-1: no sample)"},
         }
+        if self.law_state:
+            props["law"] = {"type": "object", "description": "the law's state at t_k, by the law's names",
+                            "properties": {name: _vec_schema(desc, d) for name, desc in self.law_state.items()}}
         if self.link_src is not None:
             link = {"src": {"type": "integer"}, "age": _num("age of j's sample when used [s]")}
             if self.link_delivery:
@@ -215,6 +228,8 @@ class Rows:
             arrays["tension"], arrays["slack_events"] = run.plant.tension, run.plant.slack_events
         if layout.attitude:
             arrays["quat"] = None
+        if layout.law_state:
+            arrays["law_state"] = None
         self.arrays = arrays
         if whole:  # the ticks written only (a stopped run's empty rest is never converted)
             index = np.flatnonzero(np.isfinite(run.t))
@@ -225,6 +240,8 @@ class Rows:
     def _full(self, name: str, k: slice | int | np.ndarray = slice(None)) -> np.ndarray:
         if name == "xi_norm":
             return np.linalg.norm(self.run.xi[k], axis=-1)
+        if name == "law_state":  # (S, T, N, d) -> per tick (N, S, d)
+            return np.moveaxis(self.run.law_state[:, k], 0, -2)
         if name == "quat":
             attitude = self.run.plant.attitude
             assert attitude is not None  # only in the layout when recorded
@@ -368,6 +385,8 @@ class View:
                                 for n, s in enumerate(L.link_src[i]) if s != 0]
             if L.runtime:
                 msg["meas_age"], msg["drops"] = r["meas_age"][i], r["drops"][i]
+            if L.law_state:
+                msg["law"] = dict(zip(L.law_state, r["law_state"][i]))
             ch.log(enc.encode(msg), ns)
         self.leader.log(enc.encode({"t": t, "k": k, "p": r["leader_p"], "v": r["leader_v"], "a": r["leader_a"]}), ns)
         if self.payload is not None:

@@ -20,7 +20,7 @@ _FEED = {"measured": 0, "commanded": 1, "none": 2}
 
 
 def _outputs(run: Run) -> tuple[np.ndarray, ...]:
-    return run.p, run.v, run.a, run.u, run.xi, run.zeta, run.kp, run.kv, run.d
+    return run.p, run.v, run.a, run.u, run.xi, run.zeta, run.law_state, run.d
 
 
 def layout(bound: laws.Bound, n: int, d: int) -> np.ndarray:
@@ -74,6 +74,7 @@ def discrete(s: Setup, steps: int, record: bool, progress: Progress | None, meta
             progress(k0, steps)
     if progress is not None:
         progress(steps, steps)
+    run.zero_absent_shown()  # the kernels record law_state alone
     return run
 
 
@@ -150,4 +151,5 @@ def continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Prog
             progress(k0, steps)
     if progress is not None:
         progress(steps, steps)
+    run.zero_absent_shown()  # the kernels record law_state alone
     return run

@@ -94,15 +94,29 @@ def note_coinciding(ax: Axes, curves: list[tuple[str, np.ndarray]]) -> list[list
     return groups
 
 
+def further_state(runs: Iterable[Run]) -> dict[str, str]:
+    """The law state variables of ``runs`` beyond the two gain rows (the third and later of each
+    law's ``state``), by name in order of first appearance, each with its axis label: its name and
+    the unit the law declares (``"s [m s]"``)."""
+    out: dict[str, str] = {}
+    for run in runs:
+        units = run.meta.law_units or ("",) * len(run.meta.law_state)
+        for name, unit in list(zip(run.meta.law_state, units))[2:]:
+            out.setdefault(name, f"{name} [{unit}]" if unit else name)
+    return out
+
+
 def comparison_figure(runs: dict[str, Run], title: str = "") -> Figure:
     """Fig. 4 layout (:func:`comparison`), unsaved."""
     cols = len(runs)
-    fig, ax = plt.subplots(3, cols, figsize=(5.2 * cols, 8.0), sharex="col", squeeze=False)
+    more = further_state(runs.values())
+    rows = 3 + len(more)
+    fig, ax = plt.subplots(rows, cols, figsize=(5.2 * cols, 8.0 * rows / 3), sharex="col", squeeze=False)
     for c, (label, run) in enumerate(runs.items()):
         sl = _decimate(run)
         t = run.t[sl]
         xn = metrics.xi_norm(run)[sl]
-        curves: list[list[tuple[str, np.ndarray]]] = [[], [], []]
+        curves: list[list[tuple[str, np.ndarray]]] = [[] for _ in range(rows)]
         for i, aid in enumerate(run.agent_ids):
             ax[0, c].plot(t, xn[:, i], lw=0.8, color=colour(i), label=f"agent {aid}")
             curves[0].append((f"{aid}", xn[:, i]))
@@ -112,13 +126,23 @@ def comparison_figure(runs: dict[str, Run], title: str = "") -> Figure:
                 ax[2, c].plot(t, run.kv[sl, i, k], lw=0.8, color=colour(i), ls=ls, label=f"{aid}{AXES[k]}")
                 curves[1].append((f"{aid}{AXES[k]}", run.kp[sl, i, k]))
                 curves[2].append((f"{aid}{AXES[k]}", run.kv[sl, i, k]))
+        for row, (name, axis_label) in enumerate(more.items(), start=3):  # one panel per further variable
+            ax[row, c].set_ylabel(axis_label)
+            if name not in run.meta.law_state:
+                continue
+            x = run.state(name)
+            for i, aid in enumerate(run.agent_ids):
+                for k in range(x.shape[2]):
+                    ax[row, c].plot(t, x[sl, i, k], lw=0.8, color=colour(i), ls=LINESTYLES[k % 3],
+                                    label=f"{aid}{AXES[k]}")
+                    curves[row].append((f"{aid}{AXES[k]}", x[sl, i, k]))
         ax[0, c].set_title(label)
         mark_events(run, ax[:, c])
         ax[0, c].set_ylabel(r"$\|\xi_i\|$ [m]")
         ax[1, c].set_ylabel(r"$K_p$ " + GAIN_UNIT)
         ax[2, c].set_ylabel(r"$K_v$ " + GAIN_UNIT)
-        ax[2, c].set_xlabel("t [s]")
-        for r in range(3):
+        ax[rows - 1, c].set_xlabel("t [s]")
+        for r in range(rows):
             ax[r, c].grid(True, lw=0.3)
             note_coinciding(ax[r, c], curves[r])
         ax[0, c].legend(fontsize=7, loc="upper right")
@@ -138,9 +162,10 @@ def _save(fig: Figure, path: str | Path) -> Path:
 
 
 def comparison(runs: dict[str, Run], path: str | Path, title: str = "") -> Path:
-    """Fig. 4 layout: one column per run (e.g. sigma-modification, benchmark), rows ||xi_i||, Kp, Kv;
-    one colour per agent (:func:`colour`), one line style per axis in the gain rows, and a note
-    where curves coincide."""
+    """Fig. 4 layout: one column per run (e.g. sigma-modification, benchmark), rows ||xi_i||, Kp, Kv,
+    then one row per further state variable of the laws (the integral law's ``s``), labelled with
+    its name and unit (:func:`further_state`); one colour per agent (:func:`colour`), one line
+    style per axis in the state rows, and a note where curves coincide."""
     return _save(comparison_figure(runs, title), path)
 
 

@@ -71,7 +71,7 @@ jit = _jit
 """Compile ``fn`` as every kernel of this package is compiled (cached, no GIL, no fast-math); ``fn``
 itself without numba."""
 
-# The law the kernels run (sim.lawkernels rebinds these five names in a copy of this module for
+# The law the kernels run (sim.lawkernels rebinds these six names in a copy of this module for
 # another law): Eq. 17's step and continuous-time form, and its two state variables moved between
 # the (S, j, k) state arrays and the step's tuples.
 law_step = _jit(sigma.step)
@@ -92,6 +92,13 @@ def law_store(a: np.ndarray, j: int, k: int, x: tuple[float, float]) -> None:
 @_jit
 def law_shown(x: tuple[float, float]) -> tuple[float, float]:
     return (x[0], x[1])
+
+
+@_jit
+def law_record(out: np.ndarray, r: int, i: int, c: int, x: tuple[float, float]) -> None:
+    """Agent ``i``'s state ``x`` on axis ``c`` into row ``r`` of ``out`` ``(S, T, N, d)`` (``Run.law_state``)."""
+    out[0, r, i, c] = x[0]
+    out[1, r, i, c] = x[1]
 
 
 @_jit
@@ -144,7 +151,7 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
            hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
            has_sine: bool, has_random: bool, has_const: bool,
            out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
-           out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray,
+           out_zeta: np.ndarray, out_x: np.ndarray, out_d: np.ndarray,
            sp: np.ndarray, sv: np.ndarray, sa: np.ndarray, dvb: np.ndarray, dpb: np.ndarray,
            snb: np.ndarray, csb: np.ndarray, inv: np.ndarray, snu: np.ndarray, csu: np.ndarray,
            own: bool = False) -> None:
@@ -257,9 +264,7 @@ def _block(k: int, lo: int, hi: int, steps: int, record: bool, h: float, hh2: fl
             zs[i] = z_
             us[i] = u_
             if keep:
-                shown = law_shown(x)
-                out_kp[r, q, c] = shown[0]
-                out_kv[r, q, c] = shown[1]
+                law_record(out_x, r, q, c, x)
             if not last:
                 law_store(state, c, q, xn)
         if keep:
@@ -308,7 +313,7 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
              hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
              has_sine: bool, has_random: bool, has_const: bool,
              out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
-             out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray,
+             out_zeta: np.ndarray, out_x: np.ndarray, out_d: np.ndarray,
              u_omega: np.ndarray, u_phase: np.ndarray, inv: np.ndarray, blocks: int) -> None:
     """Ticks ``k0 .. k1-1`` of the discrete mode (``feed``: 0 measured, 1 commanded, 2 none), on
     one thread (``blocks`` is :func:`discrete_parallel`'s, unused here).
@@ -334,7 +339,7 @@ def discrete(k0: int, k1: int, steps: int, record: bool, h: float, hh2: float,
         _sines(k, 0, pairs, steps, record, h, has_sine, zero_d, u_omega, u_phase, snu, csu)
         _block(k, 0, n, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, coef,
                pos, vel, acc, meas, state, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
-               has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
+               has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_x,
                out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu)
 
 
@@ -348,7 +353,7 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
                       hold: np.ndarray, cv_s: np.ndarray, cv_c: np.ndarray, cp_s: np.ndarray, cp_c: np.ndarray,
                       has_sine: bool, has_random: bool, has_const: bool,
                       out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray,
-                      out_xi: np.ndarray, out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray,
+                      out_xi: np.ndarray, out_zeta: np.ndarray, out_x: np.ndarray,
                       out_d: np.ndarray, u_omega: np.ndarray, u_phase: np.ndarray, inv: np.ndarray,
                       blocks: int) -> None:
     """:func:`discrete` with each tick's agents split into ``blocks`` runs of agents (multiples of
@@ -378,7 +383,7 @@ def discrete_parallel(k0: int, k1: int, steps: int, record: bool, h: float, hh2:
             hi = min(lo + size, n)
             _block(k, lo, hi, steps, record, h, hh2, kappa, slot_src, slot_w, swd, feed, coef,
                    pos, vel, acc, meas, state, const, amp, omega, phase, table, hold, cv_s, cv_c, cp_s, cp_c,
-                   has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv,
+                   has_sine, has_random, has_const, out_p, out_v, out_a, out_u, out_xi, out_zeta, out_x,
                    out_d, sp, sv, sa, dvb, dpb, snb, csb, inv, snu, csu, own)
 
 
@@ -552,7 +557,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                const: np.ndarray, amp: np.ndarray, u_omega: np.ndarray, u_phase: np.ndarray, u_inv: np.ndarray,
                table: np.ndarray, hold: np.ndarray, has_random: bool, sin_m: np.ndarray, cos_m: np.ndarray,
                out_p: np.ndarray, out_v: np.ndarray, out_a: np.ndarray, out_u: np.ndarray, out_xi: np.ndarray,
-               out_zeta: np.ndarray, out_kp: np.ndarray, out_kv: np.ndarray, out_d: np.ndarray) -> None:
+               out_zeta: np.ndarray, out_x: np.ndarray, out_d: np.ndarray) -> None:
     """Control steps ``k0 .. k1-1`` of the continuous mode: record tick k's sample, then ``substeps``
     RK4 steps in place.
 
@@ -785,9 +790,7 @@ def continuous(k0: int, k1: int, steps: int, record: bool, h: float, substeps: i
                             out_u[r, ag, c] = sl_v[x] - dist0[x]
                             out_xi[r, ag, c] = xi[x]
                             out_zeta[r, ag, c] = zeta[x]
-                            shown = law_shown(law_load(ys, 0, x))
-                            out_kp[r, ag, c] = shown[0]
-                            out_kv[r, ag, c] = shown[1]
+                            law_record(out_x, r, ag, c, law_load(ys, 0, x))
                             out_d[r, ag, c] = dist0[x]
                 if final:
                     return

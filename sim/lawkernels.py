@@ -3,7 +3,7 @@
 :mod:`sim.kernel` (the reference simulator's kernels) and :mod:`sim.lockstep_kernel` (the
 in-process engine's twin) are written once, against four module-level names: ``law_step`` (the
 law's per-axis step, :mod:`agent.laws`), ``law_rate`` (its continuous-time form), and the
-``law_load``, ``law_store``, ``law_shown`` helpers that move its state between the engines'
+``law_load``, ``law_store``, ``law_shown``, ``law_record`` helpers that move its state between the engines'
 ``(S, ., .)`` arrays and the tuples the step takes. As written they hold Eq. 17's (``sigma``;
 ``benchmark`` shares its step), which the modules themselves compile and cache.
 
@@ -50,6 +50,7 @@ def footer(law: FormationLaw) -> str:
     loads = ", ".join(f"a[{s}, j, k]" for s in range(n))
     stores = "".join(f"\n    a[{s}, j, k] = x[{s}]" for s in range(n)) or "\n    pass"
     shown = ", ".join(f"x[{s}]" if s < n else "0.0" for s in range(2))
+    records = "".join(f"\n    out[{s}, r, i, c] = x[{s}]" for s in range(n)) or "\n    pass"
     has_rate = getattr(law, "rate", None) is not None
     return f'''
 
@@ -72,6 +73,10 @@ def law_store(a, j, k, x):{stores}
 @jit
 def law_shown(x):
     return ({shown})
+
+
+@jit
+def law_record(out, r, i, c, x):{records}
 '''
 
 

@@ -128,7 +128,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     # same values as the leader process's one call per tick)
     lead_p, lead_v, lead_a = leader_of(m, np.arange(steps + 1) * h)
     single = len(hosts) == 1 and order == [(hosts[0], r) for r in range(n)]  # one host, in agent order
-    out_rows: list[list] = [[] for _ in range(6)]  # this tick's u, xi, zeta, kp, kv and modes, per agent
+    out_rows: list[list] = [[] for _ in range(7)]  # this tick's u, xi, zeta, kp, kv, modes and law states, per agent
 
     for k in range(steps + 1):
         t = k * h
@@ -183,7 +183,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             if keep:
                 if width:
                     ages[r, i, :len(row)] = [age if ok else math.nan for age, ok in zip(out.ages, out.used)]
-                for col, x in zip(out_rows, (out.u, out.xi, out.zeta, out.kp, out.kv, out.mode)):
+                for col, x in zip(out_rows, (out.u, out.xi, out.zeta, out.kp, out.kv, out.mode, out.x)):
                     col.append(x)
         if keep:
             run.t[r] = t
@@ -192,6 +192,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             # the one place this engine records a safety mode: the agent's supervisor, and the
             # plant's command watchdog (the in-process plants follow every command, and rest or
             # cut their motors with their agent, as Command.mode makes the plant process do)
+            run.law_state[:, r] = np.reshape(out_rows[6], (n, len(run.law_state), d)).transpose(1, 0, 2)
             run.safety.safety_mode[r] = out_rows[5]
             run.safety.plant_mode[r] = [mode if mode in (wire.LANDED, wire.ESTOP) else wire.FLYING
                                         for mode in out_rows[5]]
@@ -205,6 +206,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
             if record:
                 for name in ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d"):
                     getattr(run, name)[k + 1:] = np.nan
+                run.law_state[:, k + 1:] = np.nan
                 run.t[k + 1:] = np.arange(k + 1, steps + 1) * h
                 run.leader_p[k + 1:] = np.nan
             break

@@ -49,7 +49,7 @@ from plant import base as plants
 from plant.disturbance import DisturbanceBank
 from sim import kernel, lawkernels
 from sim.setup import DIVERGE_AT, Progress, hosts_of, leader_of, meta_of, steps_of
-from sim.kernel import law_load, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
+from sim.kernel import law_load, law_record, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
 from tether import failsafe, wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
@@ -103,7 +103,7 @@ _CLOCK = 3
 _SAID, _RUN, _BELIEF = range(3)
 _REPORTS = 3
 # ``outs``: the run's per-tick arrays the loop fills (``Run`` fields of that name), in this order
-_OUTS = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv")
+_OUTS = ("p", "v", "a", "u", "xi", "zeta", "law_state")
 
 _FLYING, _HOLD, _LAND_MODE, _LANDED_MODE = wire.FLYING, wire.HOLD, wire.LAND, wire.LANDED
 
@@ -285,6 +285,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
     run.links = Links(age=ages, **counts)
     # the plant's watchdog follows HOLD (it rests or cuts its motors only for LANDED and ESTOP)
     run.safety.events = sorted(found, key=lambda e: (e.k, e.vehicle))
+    run.zero_absent_shown()  # the kernel records law_state alone
     if progress is not None:  # once, at the end: a run given back to the Python engine never reports
         progress(steps, steps)  # a progress that it would then start again from 0
     return run
@@ -451,7 +452,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
               clock: np.ndarray, p_hold: np.ndarray, reports: np.ndarray, cur_kappa: np.ndarray,
               cur_swd: np.ndarray, events: np.ndarray, floats: np.ndarray, fired: np.ndarray) -> int:
     """Ticks ``k0 .. k1-1`` of the in-process engine (the rows of ``outs``, the run's
-    ``p, v, a, u, xi, zeta, kp, kv``: every tick when ``record``, else only the last tick's into row
+    ``p, v, a, u, xi, zeta, law_state``: every tick when ``record``, else only the last tick's into row
     0). Returns -1, or the first tick this loop does not model (nothing of that tick is kept). It
     models FLYING and HOLD with the causes ``leader`` and ``unreachable``, edges dropped and
     restored, and in 2D LAND (after ``land_after``, or instead of one flap too many) and LANDED
@@ -471,7 +472,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
     speed to ``floats``); ``fired[0]`` counts them. ``dv, dp``: the disturbance increments of these
     ticks. The supervisor's rule is :mod:`agent.safety`'s own functions, compiled; every other
     expression below is the Python's, in its order (the comments name the function)."""
-    out_p, out_v, out_a, out_u, out_xi, out_zeta, out_kp, out_kv = outs
+    out_p, out_v, out_a, out_u, out_xi, out_zeta, out_x = outs
     h = cfg[_H]
     hh2 = cfg[_HH2]
     ground = cfg[_GROUND]
@@ -724,9 +725,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
                     out_u[r, i, c] = u[i, c]
                     out_xi[r, i, c] = xi[c]
                     out_zeta[r, i, c] = zeta[c]
-                    shown = law_shown(law_load(state, i, c))
-                    out_kp[r, i, c] = shown[0]
-                    out_kv[r, i, c] = shown[1]
+                    law_record(out_x, r, i, c, law_load(state, i, c))
                 out_mode[r, i] = sup[i, _MODE]
                 out_pmode[r, i] = landed if sup[i, _MODE] == landed else flying  # the plant's watchdog
             for l in range(lo, hi):

@@ -101,7 +101,7 @@ def _simulate(m: Mission, mode: Mode, duration: float | None, record: bool, subs
     steps = m.steps if duration is None else int(round(duration * m.rate))
     source: Source = "reference-discrete" if mode == "discrete" else "reference-continuous"
     meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate, steps=steps,
-                   seed=m.seed)
+                   seed=m.seed, law_state=s.bound.law.state, law_units=s.bound.units)
     if mode not in ("discrete", "continuous"):
         raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")
     from sim import warm
@@ -181,6 +181,8 @@ def _discrete(s: Setup, steps: int, record: bool, progress: Progress | None, met
             run.t[r] = k * h
             run.p[r], run.v[r], run.a[r], run.u[r] = p, v, a, u
             run.xi[r], run.zeta[r] = xi, zeta
+            for row, x in zip(run.law_state, state):
+                row[r] = x
             run.kp[r], run.kv[r] = bound.shown(state, 0.0)
             run.d[r] = 0.0 if zero_d else s.dist.value(k)
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = lp[k], lv[k], la[k]
@@ -238,6 +240,7 @@ def _continuous(s: Setup, steps: int, substeps: int, record: bool, progress: Pro
             run.p[r], run.v[r], run.a[r] = y[0], y[1], aux["vdot"]
             run.u[r] = aux["vdot"] - aux["d"]
             run.xi[r], run.zeta[r] = aux["xi"], aux["zeta"]
+            run.law_state[:, r] = y[2:]
             run.kp[r], run.kv[r] = bound.shown(y[2:], 0.0)
             run.d[r] = aux["d"]
             run.leader_p[r], run.leader_v[r], run.leader_a[r] = aux["lead"]

@@ -75,8 +75,9 @@ def steps_of(m: Mission, duration: float | None) -> int:
 
 def meta_of(m: Mission, steps: int) -> RunMeta:
     """The in-process engine's run metadata (either form of it)."""
+    bound = laws.of_mission(m)
     return RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
-                   seed=m.seed)
+                   seed=m.seed, law_state=bound.law.state, law_units=bound.units)
 
 
 def leader_of(m: Mission, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

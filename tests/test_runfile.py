@@ -66,7 +66,7 @@ def test_every_typed_record_round_trips(tmp_path: Path) -> None:
     run = _full_run()
     run.save(tmp_path / "run.npz")
     back = Run.load(tmp_path)
-    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 4
+    assert back.meta == run.meta and back.meta.format_version == FORMAT_VERSION == 5
     assert back.meta.recorder_drops == DropCounts(malformed=2, size=1, other={"new_reason": 4})
     assert back.meta.recorder_drops.total() == 7
     assert back.meta.modes == wire.MODES
@@ -84,7 +84,7 @@ def test_numpy_alone_reads_the_file_and_names_the_modes(tmp_path: Path) -> None:
     _full_run().save(tmp_path / "run.npz")
     with np.load(tmp_path / "run.npz", allow_pickle=False) as z:
         meta = json.loads(str(z["meta"]))
-        assert meta["format_version"] == 4 and meta["recorder_drops"]["malformed"] == 2
+        assert meta["format_version"] == 5 and meta["recorder_drops"]["malformed"] == 2
         names = [meta["modes"][c] for c in z["event_dst"]]
         assert names == ["HOLD", "ESTOP"] and list(z["event_vehicle"]) == [5, 8]
         assert list(z["event_reason"]) == ["leader silent 0.5 s", "operator"]
@@ -108,7 +108,8 @@ def test_a_version_1_file_still_loads(tmp_path: Path) -> None:
     """Written as format version 1 did: meta a plain JSON object, drops a reason -> count object."""
     run = _full_run()
     arrays = {k: v for k, v in run.arrays().items()
-              if not k.startswith(("event_", "plant_event_", "gate_")) and k not in ("safety_mode", "plant_mode")}
+              if not k.startswith(("event_", "plant_event_", "gate_")) and k not in ("safety_mode", "plant_mode",
+                                                                                      "law_state")}
     meta = {"mission": "m", "source": "runtime-lockstep", "law": "sigma", "rate": 50.0, "steps": 3, "seed": 0,
             "namespace": "ns", "mission_text": "x", "complete": True, "recorder_drops": {"size": 3},
             "samples_recorded": 28, "samples_expected": 28, "format_version": 1}
@@ -124,9 +125,9 @@ def test_a_version_1_file_still_loads(tmp_path: Path) -> None:
 def test_another_version_or_an_unknown_array_is_an_error_that_names_it(tmp_path: Path) -> None:
     run = Run.empty(T, IDS, 2, _meta())
     arrays = run.arrays()
-    np.savez(tmp_path / "v5.npz", meta=np.array(json.dumps({"format_version": 5})), **arrays)
-    with pytest.raises(ValueError, match="format version 5"):
-        Run.load(tmp_path / "v5.npz")
+    np.savez(tmp_path / "v6.npz", meta=np.array(json.dumps({"format_version": 6})), **arrays)
+    with pytest.raises(ValueError, match="format version 6"):
+        Run.load(tmp_path / "v6.npz")
     run.save(tmp_path / "ok.npz")
     with np.load(tmp_path / "ok.npz") as z:
         np.savez(tmp_path / "typo.npz", **{k: z[k] for k in z.files}, link_recieved=np.zeros(1))
@@ -161,7 +162,7 @@ def test_figures_mark_mode_changes_only_when_there_are_events(tmp_path: Path) ->
 def test_a_version_2_file_loads_without_a_clock_record(tmp_path: Path) -> None:
     """Written as format version 2 did: no ``clock_*`` arrays."""
     run = _full_run()
-    arrays = {k: v for k, v in run.arrays().items() if not k.startswith(("clock_", "plant_event_"))}
+    arrays = {k: v for k, v in run.arrays().items() if not k.startswith(("clock_", "plant_event_", "law_state"))}
     meta = json.loads(msgspec.json.encode(run.meta).decode()) | {"format_version": 2}
     np.savez(tmp_path / "run.npz", meta=np.array(json.dumps(meta)), **arrays)
     back = Run.load(tmp_path)
@@ -175,7 +176,7 @@ def test_a_version_3_file_loads_without_plant_events_and_refuses_them(tmp_path: 
     run = _full_run()
     meta = json.loads(msgspec.json.encode(run.meta).decode()) | {"format_version": 3}
     del meta["recovered"]
-    arrays = {k: v for k, v in run.arrays().items() if not k.startswith("plant_event_")}
+    arrays = {k: v for k, v in run.arrays().items() if not k.startswith(("plant_event_", "law_state"))}
     np.savez(tmp_path / "run.npz", meta=np.array(json.dumps(meta)), **arrays)
     back = Run.load(tmp_path)
     assert back.meta.format_version == 3 and back.safety.plant_events == [] and back.safety.events == run.safety.events

@@ -9,12 +9,15 @@ said; T samples, N agents, d dimensions; SI units, world frame):
 ``a``              (T, N, d)    measured acceleration shared with neighbours at t_k [m/s^2]
 ``u``              (T, N, d)    command computed at t_k and held over [t_k, t_k+h) [m/s^2]
 ``xi`` ``zeta``    (T, N, d)    formation error [m] (Eq. 8), velocity error [m/s] (Eq. 9) at t_k
-``kp`` ``kv``      (T, N, d)    gains used for u at t_k
+``law_state``      (S, T, N, d) the law's S state variables at t_k (its gains, integrators ...),
+                               named by ``meta.law_state``, units ``meta.law_units``
+``kp`` ``kv``      (T, N, d)    the first two state variables (views of ``law_state``; stored
+                               only where the law has fewer, as zeros)
 ``d``              (T, N, d)    disturbance d(t_k) [m/s^2] (NaN where the recorder cannot know it)
 ``leader_p/v/a``   (T, d)       the virtual leader's state at t_k
 ``safety_mode``    (T, N) int   the agent's safety supervisor mode at t_k (code of ``meta.modes``; -1: no sample)
 ``plant_mode``     (T, N) int   the plant's command watchdog mode at t_k (same codes; -1: no sample)
-``meta``           () str       JSON of :class:`RunMeta` (``format_version`` 4)
+``meta``           () str       JSON of :class:`RunMeta` (``format_version`` 5)
 =================  ===========  ====================================================================
 
 The optional groups are typed containers, each with the arrays of its npz names: :class:`Links`
@@ -24,9 +27,10 @@ The optional groups are typed containers, each with the arrays of its npz names:
 file opens with nothing but numpy: ``numpy.load("run.npz")``. Files of format version 1 (before
 the safety record) still load: their modes read -1 (no sample), with no events; files of version 2
 (before the clock record) load with ``clock`` None; files of version 3 (before the plants' own
-events) load with no plant events. :func:`gaps` says which samples a run lacks (a run stopped early,
-a recorder frozen or killed: ``recorder/journal.py`` rebuilds a run from what a killed recorder
-wrote as it went).
+events) load with no plant events; files of version 4 and older (before the law's named state)
+load with ``law_state`` their ``kp`` and ``kv``, named so. :func:`gaps` says which samples a run
+lacks (a run stopped early, a recorder frozen or killed: ``recorder/journal.py`` rebuilds a run
+from what a killed recorder wrote as it went).
 """
 
 from __future__ import annotations
@@ -42,11 +46,13 @@ import numpy as np
 
 from tether.wire import MODES, SafetyEvent
 
-FORMAT_VERSION = 4
-READS = (1, 2, 3, 4)
+FORMAT_VERSION = 5
+READS = (1, 2, 3, 4, 5)
 """Format versions :meth:`Run.load` reads (a version-1 file is upgraded on load)."""
 SERIES = ("p", "v", "a", "u", "xi", "zeta", "kp", "kv", "d")
 BASE = ("t", "agent_ids", *SERIES, "leader_p", "leader_v", "leader_a")
+SHOWN = ("kp", "kv")
+"""The columns of the law's first two state variables (:meth:`agent.laws.Bound.shown`)."""
 NO_SAMPLE = -1
 """The mode code of a (tick, vehicle) with no sample."""
 
@@ -103,6 +109,11 @@ class RunMeta(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     seed: int = 0
     """The mission's seed."""
     format_version: int = FORMAT_VERSION
+    law_state: tuple[str, ...] = ()
+    """The names of the law's state variables (``FormationLaw.state``), in the order of the first
+    axis of ``Run.law_state``."""
+    law_units: tuple[str, ...] = ()
+    """Their units, in the same order (``''``: the law does not say); empty when none is known."""
     modes: tuple[str, ...] = MODES
     """Safety mode names by integer code (``safety_mode``, ``plant_mode``, ``event_src/dst``)."""
     mission_text: str | None = None
@@ -289,20 +300,27 @@ class Run:
     runtime: RuntimeRecord | None = None
     plant: PlantRecord = field(default_factory=PlantRecord)
     clock: ClockRecord | None = None
+    law_state: np.ndarray = field(default_factory=lambda: np.empty((0, 0, 0, 0)))
+    """``(S, T, N, d)``: the law's state variable ``s`` at t_k in ``law_state[s]`` (named by
+    ``meta.law_state[s]``; :meth:`state` by name). Variable first, so that each one is a contiguous
+    ``(T, N, d)`` block: ``kp`` and ``kv`` are views of the first two."""
 
     @classmethod
     def empty(cls, samples: int, agent_ids: list[int], dim: int, meta: RunMeta, mode: int = NO_SAMPLE) -> "Run":
-        """NaN series; both mode columns filled with ``mode`` (an engine without a supervisor passes FLYING)."""
+        """NaN series, with one ``law_state`` block per name of ``meta.law_state``; both mode columns
+        filled with ``mode`` (an engine without a supervisor passes FLYING)."""
         n = len(agent_ids)
 
         def series() -> np.ndarray:  # one of SERIES
             return np.full((samples, n, dim), np.nan)
 
+        law_state = np.full((len(meta.law_state), samples, n, dim), np.nan)
+        kp, kv = (law_state[s] if s < len(law_state) else series() for s in range(len(SHOWN)))
         return cls(
             t=np.full(samples, np.nan),
             agent_ids=np.array(agent_ids, dtype=np.int64),
-            p=series(), v=series(), a=series(), u=series(), xi=series(), zeta=series(), kp=series(), kv=series(),
-            d=series(),
+            p=series(), v=series(), a=series(), u=series(), xi=series(), zeta=series(), kp=kp, kv=kv,
+            d=series(), law_state=law_state,
             leader_p=np.full((samples, dim), np.nan),
             leader_v=np.full((samples, dim), np.nan),
             leader_a=np.full((samples, dim), np.nan),
@@ -310,9 +328,27 @@ class Run:
             safety=SafetyRecord.empty(samples, n, mode),
         )
 
+    def state(self, name: str) -> np.ndarray:
+        """The law's state variable ``name``, ``(T, N, d)`` (a view of :attr:`law_state`). Raises
+        KeyError naming the law's state variables when it has none of that name."""
+        names = self.meta.law_state
+        if name not in names:
+            raise KeyError(f"{name!r}: the law {self.meta.law!r} of this run has state "
+                           f"{', '.join(names) if names else 'none'}")
+        return self.law_state[names.index(name)]
+
+    def zero_absent_shown(self) -> None:
+        """Zeros in ``kp``/``kv`` where the law has no such state variable (fewer than two), at the
+        ticks that hold a sample (``xi`` recorded): what :meth:`agent.laws.Bound.shown` gives."""
+        for s in range(len(self.law_state), len(SHOWN)):
+            column = getattr(self, SHOWN[s])
+            column[~np.isnan(self.xi)] = 0.0
+
     def arrays(self) -> dict[str, np.ndarray]:
-        """Every array of the run under its npz name (as :meth:`save` writes them)."""
-        out = {name: getattr(self, name) for name in BASE}
+        """Every array of the run under its npz name (as :meth:`save` writes them): ``kp``/``kv``
+        only where the law has fewer state variables (else they are ``law_state``'s first two)."""
+        out = {name: getattr(self, name) for name in BASE if name not in SHOWN[:len(self.law_state)]}
+        out["law_state"] = self.law_state
         for attr, (_, prefix) in _GROUPS.items():
             out.update(_arrays_of(getattr(self, attr), prefix))
         for attr, prefix in EVENT_PREFIXES.items():
@@ -368,6 +404,24 @@ class Run:
             except msgspec.ValidationError as exc:
                 raise ValueError(f"{path}: run file metadata (format version {version}): {exc}") from None
             arrays = {k: z[k] for k in z.files if k != "meta"}
+        stray = {}
+        if version < 5:  # the two columns were the law's state as the file knew it
+            if "law_state" in arrays:
+                stray["law_state"] = arrays.pop("law_state")
+            meta = msgspec.structs.replace(meta, law_state=SHOWN, law_units=())
+            if all(k in arrays for k in SHOWN):
+                arrays["law_state"] = np.stack([arrays.pop(k) for k in SHOWN])
+        law_state = arrays.pop("law_state", None)
+        if law_state is None or law_state.ndim != 4 or len(law_state) != len(meta.law_state) \
+                or ("xi" in arrays and law_state.shape[1:] != arrays["xi"].shape) \
+                or len(meta.law_units) not in (0, len(meta.law_state)):
+            raise ValueError(f"{path}: law_state does not match the metadata's law_state "
+                             f"{list(meta.law_state)} and law_units {list(meta.law_units)}")
+        for s, name in enumerate(SHOWN[:len(law_state)]):
+            arrays[name] = law_state[s]
+        missing = [k for k in BASE if k not in arrays]
+        if missing:
+            raise ValueError(f"{path}: run file (format version {version}) lacks {', '.join(missing)}")
         base = {k: arrays.pop(k) for k in BASE}
         kinds = EVENT_PREFIXES if version >= 4 else {"events": "event_"}  # the plants' events since 4
         events = {attr: _events({f: arrays.pop(prefix + f) for f in EVENT_FIELDS if prefix + f in arrays})
@@ -386,9 +440,10 @@ class Run:
                     groups[attr] = kind(**fields)
                 except TypeError as exc:
                     raise ValueError(f"{path}: incomplete {kind.__name__} arrays: {exc}") from None
+        arrays.update(stray)
         if arrays:
             raise ValueError(f"{path}: arrays unknown to run file format version {version}: {', '.join(sorted(arrays))}")
-        return cls(meta=meta, **groups, **base)
+        return cls(meta=meta, law_state=law_state, **groups, **base)
 
 
 def decode_meta(text: str) -> RunMeta:

@@ -194,6 +194,7 @@ class Telemetry(_Msg, tag="telemetry", frozen=True):
     zeta: list[float]
     kp: list[float]
     kv: list[float]
+    """The law's first two state variables (zeros where it has fewer), ``d`` floats each."""
     links: list[LinkStats]
     drops: dict[str, int]
     """Messages dropped since start, by reason (see :class:`Receiver`)."""
@@ -210,6 +211,13 @@ class Telemetry(_Msg, tag="telemetry", frozen=True):
     clock: list[ClockLink] = []
     """Real time: each input link's clock-offset bound that has an estimate (:mod:`tether.skew`);
     absent from older senders' messages."""
+    x: list[float] = []
+    """The law's state at t_k, every variable of ``FormationLaw.state`` in its order, ``d`` floats
+    each (variable-major: ``x[s * d + c]``); at most :data:`MAX_STATE` variables. Empty: the sender
+    does not say it."""
+    x_names: list[str] = []
+    """The names of ``x``'s variables (``FormationLaw.state``), one per ``d`` floats, so that a
+    listener without the mission (``tether top``) shows them by name; empty: not said."""
 
 
 class Tick(_Msg, tag="tick", frozen=True):
@@ -378,6 +386,11 @@ class Keys:
 
 
 # --------------------------------------------------------------------------- checked receive
+MAX_STATE = 4
+"""The most per-axis state variables a law may have (:data:`agent.laws.MAX_STATE`): a
+:class:`Telemetry`'s ``x`` holds at most this many times ``d`` floats."""
+MAX_NAME = 32
+"""The longest name of a law's state variable a :class:`Telemetry` may carry (characters)."""
 RECORD_MAX = 256
 """The most ticks one :class:`Record` may carry (a larger one is dropped as ``size``)."""
 _VECTOR_FIELDS = {State: ("p", "vel", "a"), PlantState: ("p", "vel", "a"), Command: ("u",),
@@ -393,8 +406,11 @@ class Receiver:
     from the key's), ``size`` (a vector of the wrong dimension), ``nonfinite`` (NaN/Inf where a
     number must be finite), ``record`` (a :class:`Record` whose items are not one of each stream
     per tick for consecutive ticks ending at its ``k``). Counted by others through :meth:`count`:
-    ``overflow``, ``corrupt``. (A lockstep copy sent again after a stall is no drop of these:
-    :attr:`tether.node.Node.copies`.)
+    ``overflow``, ``corrupt``. A :class:`Telemetry`'s law state ``x`` must be a whole number of
+    vectors, at most :data:`MAX_STATE`, and finite, with a name (an identifier of at most
+    :data:`MAX_NAME` characters) per vector where it names them (its count against the mission's law is the
+    recorder's to check: the receiver does not know the law). (A lockstep copy sent again after a
+    stall is no drop of these: :attr:`tether.node.Node.copies`.)
     """
 
     dim: int
@@ -472,5 +488,13 @@ class Receiver:
             if len(vec) != self.dim:
                 return "size"
             if not all(map(math.isfinite, vec)):
+                return "nonfinite"
+        if isinstance(msg, Telemetry):
+            if len(msg.x) % self.dim or len(msg.x) > MAX_STATE * self.dim \
+                    or (msg.x_names and len(msg.x_names) * self.dim != len(msg.x)):
+                return "size"
+            if not all(0 < len(name) <= MAX_NAME and name.isidentifier() for name in msg.x_names):
+                return "malformed"
+            if not all(map(math.isfinite, msg.x)):
                 return "nonfinite"
         return None

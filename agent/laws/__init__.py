@@ -4,7 +4,10 @@ A formation law is a class with
 
 * ``name``: what the run file and ``tether top`` call it;
 * ``state``: the names of its per-axis state (Eq. 17's ``("kp", "kv")``; ``()`` for a law without
-  memory). Each name is one float per axis per agent;
+  memory). Each name is one float per axis per agent, and is what the run file, the MCAP export,
+  ``tether top`` and the figures call that variable (a Python identifier, distinct);
+* ``units`` (optional): the unit of each state variable, in the order of ``state`` (e.g.
+  ``("1/s^2", "1/s")``); ``()`` when the law does not say;
 * ``Params``: a :class:`msgspec.Struct` of its parameters, read from the mission's ``[law.params]``
   (a built-in law reads the ``[law]`` fields it always had); :meth:`FormationLaw.check` adds what a
   type cannot say, as ``(field, message)`` pairs that name the field and the fix;
@@ -38,9 +41,11 @@ in the same order, so a law's runs are equal bit for bit across the engines.
 
 What the contract excludes: the neighbour sums are weighted sums in row order, taken by the
 engine (a law cannot see its neighbours one by one, nor their ids); the safety supervisor, the
-saturation, collision avoidance and the link policy wrap every law alike; the run file, the wire
-and the supervisor's gain bound carry two per-axis state columns, ``kp`` and ``kv``: a law's first
-two state variables (zeros where it has fewer; a third and later ones are not recorded).
+saturation, collision avoidance and the link policy wrap every law alike. The run file, the
+telemetry and what is shown of a run carry every state variable by its name
+(``Run.law_state``, ``Telemetry.x``); the supervisor's gain bound and the ``kp``/``kv`` columns
+kept for the callers that read them are the first two state variables (zeros where a law has
+fewer).
 
 A mission names a law by ``[law] kind`` (``"sigma"``, ``"benchmark"``: :data:`BUILTIN`) or by
 ``[law] use = "package.module:Class"`` (:func:`resolve`).
@@ -56,11 +61,13 @@ from typing import Any, ClassVar
 
 import msgspec
 
+from tether import wire
+
 Problems = list[tuple[str, str]]
 """``(field, message)`` pairs, as :func:`tether.checks.validate` gives them."""
 
-MAX_STATE = 4
-"""The most per-axis state variables a law may have (the compiled engines' loaders)."""
+MAX_STATE = wire.MAX_STATE
+"""The most per-axis state variables a law may have (the compiled engines' loaders, the telemetry)."""
 
 MAX_COEFFICIENTS = 8
 """The most per-axis coefficients a law may have."""
@@ -71,6 +78,7 @@ class FormationLaw:
 
     name: ClassVar[str]
     state: ClassVar[tuple[str, ...]] = ()
+    units: ClassVar[tuple[str, ...]] = ()
     Params: ClassVar[type[msgspec.Struct]]
     step: ClassVar[Callable[..., tuple[Any, Any, Any, tuple[Any, ...]]]]
 
@@ -148,7 +156,27 @@ def resolve(use: str) -> FormationLaw:
     if len(law.state) > MAX_STATE:
         raise LawNotFound(f"is {use!r}, a law of {len(law.state)} state variables per axis; the engines take at "
                           f"most {MAX_STATE}")
+    why = state_problem(law)
+    if why:
+        raise LawNotFound(f"is {use!r}, whose {why}")
     return law
+
+
+def state_problem(law: FormationLaw) -> str:
+    """What is wrong with ``law``'s ``state`` and ``units`` declaration ('' when nothing): names
+    that are not distinct Python identifiers (they name arrays and columns), or a ``units`` that is
+    neither empty nor one unit per state variable."""
+    names, units = law.state, law.units
+    bad = [x for x in names if not (isinstance(x, str) and x.isidentifier() and len(x) <= wire.MAX_NAME)]
+    if bad:
+        return (f"state names {bad!r} are not Python identifiers of at most {wire.MAX_NAME} characters; name each "
+                "state variable like a variable")
+    if len(set(names)) != len(names):
+        return f"state names {names!r} repeat a name; give each state variable its own name"
+    if units and (len(units) != len(names) or not all(isinstance(x, str) for x in units)):
+        return (f"units {units!r} do not match its state {names!r}; give one unit (a string) per state variable, "
+                "or none")
+    return ""
 
 
 class Bound(msgspec.Struct, frozen=True):
@@ -174,9 +202,14 @@ class Bound(msgspec.Struct, frozen=True):
         """Per axis, the continuous-time form's coefficients."""
         return tuple(tuple(float(x) for x in row) for row in self.law.rates(self.params, self.dim))
 
+    @property
+    def units(self) -> tuple[str, ...]:
+        """The unit of each state variable ('' where the law does not say)."""
+        return tuple(self.law.units) or ("",) * len(self.law.state)
+
     def shown(self, state: Any, zero: Any) -> tuple[Any, Any]:
-        """The two state columns the run file, the wire and the supervisor's gain bound carry: the
-        first two state variables, ``zero`` where the law has fewer."""
+        """The two state columns the supervisor's gain bound reads (and ``Run.kp``/``Run.kv``,
+        ``Telemetry.kp``/``kv``): the first two state variables, ``zero`` where the law has fewer."""
         return (state[0] if len(state) > 0 else zero), (state[1] if len(state) > 1 else zero)
 
 

@@ -101,6 +101,7 @@ class Integral(FormationLaw):
 
     name = "integral"
     state = ("kp", "kv", "s")
+    units = ("1/s^2", "1/s", "m s")  # s integrates xi [m]
     Params = IntegralParams
     step = staticmethod(step)
     rate = staticmethod(rate)

@@ -69,6 +69,7 @@ class Sigma(FormationLaw):
 
     name = "sigma"
     state = ("kp", "kv")
+    units = ("1/s^2", "1/s")  # u = -(Kp xi + Kv zeta) / kappa: xi [m], zeta [m/s], u [m/s^2]
     Params = SigmaParams
     step = staticmethod(step)
     rate = staticmethod(rate)
