@@ -32,9 +32,30 @@ from tether.rejoin import Rejoin
 
 log = logging.getLogger("tether")
 
+LEAD_LIMIT = 0.05
+"""The most [s] the gate's ``future`` bound is moved for a sender whose clock is seen ahead
+(:func:`sender_lead`): 50 ms, ten times what hosts synchronised by chrony or PTP disagree by on a
+LAN, and five periods at 100 Hz. A sender further ahead is not corrected for beyond it (its samples
+stay rejected as ``future`` and the link stays flagged: its host's clock must be fixed), and no
+estimate, however forged, opens the gate wider."""
+
 WITNESS_TICKS = 8
 """Real time: ticks of a neighbour's plant measurements kept to corroborate its relayed states (the
 window :meth:`tether.node.Node.aligned` keeps of every input, :data:`tether.clock.MAX_LAG`)."""
+
+
+def sender_lead(estimate: float | None, period: float, limit: float = LEAD_LIMIT) -> float:
+    """How far ahead [s] the gate takes a sender's clock to be, for its ``future`` check: on a link
+    flagged for a sender ahead (its offset bound ``estimate`` below ``-period / 2``,
+    :func:`tether.skew.bounds`), ``-estimate`` (the sender is ahead by at least that) up to ``limit``;
+    otherwise (no estimate yet, within the bounds, the receiver ahead, not finite) 0. Pure.
+
+    The bound ``estimate`` is a median of per-block minima (:mod:`tether.skew`), so a few forged
+    samples do not move it; a forger that floods every block can, but never beyond ``limit``, and a
+    sample let through must still be where its sender could be (the gate's ``jump`` rule)."""
+    if estimate is None or not estimate < skew.bounds(period)[0]:
+        return 0.0
+    return min(-estimate, limit)
 
 
 class Hearing:
@@ -150,9 +171,13 @@ class Hearing:
 
     def _gate(self, sender: int, role: str) -> Callable[[Any], str | None]:
         node, clock, rejoin, offsets = self.node, self.node.clock, self.rejoin, self.offsets
-        # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick)
-        g = for_sender(self.m, sender, clock.arrivals(node.arrival),
-                       expect=self._expected if role == "leader" else None)
+        # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick),
+        # on the receiver's clock moved by the sender's estimated lead, where the link is flagged
+        # for a sender ahead (sender_lead): a skewed sender is not taken for one from the future
+        now = clock.arrivals(node.arrival)
+        if now is not None and offsets is not None:
+            now = self._corrected(now, offsets.link(role, sender))
+        g = for_sender(self.m, sender, now, expect=self._expected if role == "leader" else None)
         self.gates.append(g)
 
         def admit(msg: Any) -> str | None:
@@ -170,6 +195,19 @@ class Hearing:
             return why
 
         return admit
+
+    def _corrected(self, now: Callable[[], float], link: skew.LinkEstimator) -> Callable[[], float]:
+        """``now`` [s, mission time] moved by :func:`sender_lead` of ``link``'s current estimate
+        (worked out again only when a block of the estimator completes)."""
+        h = self.m.dt
+        memo = [-1, 0.0]  # (link.changes it was worked out at, the lead)
+
+        def corrected() -> float:
+            if memo[0] != link.changes:
+                memo[0], memo[1] = link.changes, sender_lead(link.estimate, h)
+            return now() + memo[1]
+
+        return corrected
 
     def started(self) -> None:
         """The run has started (:meth:`Node.ready` returned): what was turned away before (a

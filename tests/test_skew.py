@@ -221,3 +221,40 @@ def test_an_agent_whose_first_tick_comes_before_its_plants_first_sample_waits_fo
     i3 = list(rec.agent_ids).index(3)
     assert np.isfinite(rec.xi[0, i3]).all(), "agent 3's telemetry of tick 0 is not in the run"
     assert np.isfinite(rec.u[:5, i3]).all()
+
+
+def test_the_gate_allows_for_a_flagged_senders_lead_within_a_bound() -> None:
+    """A link flagged for a sender ahead (offset bound below -h/2) moves the gate's ``future`` bound
+    by the lead it proves, at most ``LEAD_LIMIT``; no estimate, one within the bounds, a receiver
+    ahead or a non-finite one move nothing; a forged huge lead is capped."""
+    from agent.hearing import LEAD_LIMIT, sender_lead
+    from tether.gate import Gate
+
+    assert LEAD_LIMIT == 0.05
+    for e, lead in ((None, 0.0), (0.002, 0.0), (-0.004, 0.0), (0.03, 0.0), (math.nan, 0.0), (-0.027, 0.027),
+                    (-0.05, 0.05), (-0.2, LEAD_LIMIT), (-1e9, LEAD_LIMIT), (-math.inf, LEAD_LIMIT)):
+        assert sender_lead(e, H) == lead, e
+    # a sender 30 ms ahead, its samples arriving 3 ms after they left: rejected as future by the
+    # receiver's clock alone (2 periods: 20 ms), taken with the lead its link proves; a sample
+    # stamped beyond the capped lead is still rejected, however huge the estimate
+    rng = np.random.default_rng(5)
+    est = skew.LinkEstimator()
+    for k in range(300):
+        est.observe(k * H, k * H - 0.030 + 0.003 + rng.exponential(0.002))
+    assert est.estimate is not None and -0.028 <= est.estimate <= -0.026
+
+    class Sample(msgspec.Struct):
+        k: int
+        t: float
+        p: list[float]
+        vel: list[float]
+        a: list[float]
+
+    def gate(now: float, lead: float) -> Gate:
+        return Gate(H, 30.0, 1.0, [0.0, 0.0], future_window=2, now=lambda: now + lead, t_ref=3.0)
+
+    ahead = Sample(k=303, t=3.03, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0])  # at the receiver's 3.003 s
+    assert gate(3.003, 0.0).check(ahead) == "future"
+    assert gate(3.003, sender_lead(est.estimate, H)).check(ahead) is None
+    forged = Sample(k=400, t=4.0, p=[0.0, 0.0], vel=[0.0, 0.0], a=[0.0, 0.0])
+    assert gate(3.003, sender_lead(-1e6, H)).check(forged) == "future"
