@@ -39,6 +39,12 @@ LAN, and five periods at 100 Hz. A sender further ahead is not corrected for bey
 stay rejected as ``future`` and the link stays flagged: its host's clock must be fixed), and no
 estimate, however forged, opens the gate wider."""
 
+FIRST_SAMPLES = 5
+"""Before a link has its estimate (:data:`tether.skew.MIN_BLOCKS` blocks, 0.75 s), the gate takes the
+smallest offset of the link's samples so far as its bound once it has this many (:func:`link_offset`),
+so that a skewed sender's first samples are not all rejected as ``future`` and its stream judged a
+forgery before the estimate is in."""
+
 WITNESS_TICKS = 8
 """Real time: ticks of a neighbour's plant measurements kept to corroborate its relayed states (the
 window :meth:`tether.node.Node.aligned` keeps of every input, :data:`tether.clock.MAX_LAG`)."""
@@ -56,6 +62,17 @@ def sender_lead(estimate: float | None, period: float, limit: float = LEAD_LIMIT
     if estimate is None or not estimate < skew.bounds(period)[0]:
         return 0.0
     return min(-estimate, limit)
+
+
+def link_offset(link: skew.LinkEstimator) -> float | None:
+    """The offset bound [s] the gate uses for ``link``: its estimate (:mod:`tether.skew`) once it has
+    one; before that, from :data:`FIRST_SAMPLES` samples on, the smallest ``now - t`` seen (no
+    delay is negative, so the sender is ahead by at least its negative; one forged sample can move
+    it, within :data:`LEAD_LIMIT`); None before. Pure."""
+    e = link.estimate
+    if e is not None or link.samples < FIRST_SAMPLES:
+        return e
+    return min([*link.minima, link.current_min])
 
 
 class Hearing:
@@ -197,14 +214,15 @@ class Hearing:
         return admit
 
     def _corrected(self, now: Callable[[], float], link: skew.LinkEstimator) -> Callable[[], float]:
-        """``now`` [s, mission time] moved by :func:`sender_lead` of ``link``'s current estimate
-        (worked out again only when a block of the estimator completes)."""
+        """``now`` [s, mission time] moved by :func:`sender_lead` of ``link``'s offset bound
+        (:func:`link_offset`; worked out again only when a block of the estimator completes, once
+        it has its estimate)."""
         h = self.m.dt
         memo = [-1, 0.0]  # (link.changes it was worked out at, the lead)
 
         def corrected() -> float:
-            if memo[0] != link.changes:
-                memo[0], memo[1] = link.changes, sender_lead(link.estimate, h)
+            if memo[0] != link.changes or len(link.minima) < skew.MIN_BLOCKS:
+                memo[0], memo[1] = link.changes, sender_lead(link_offset(link), h)
             return now() + memo[1]
 
         return corrected

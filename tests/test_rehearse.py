@@ -719,3 +719,50 @@ def test_a_restarted_plant_resumes_from_its_last_state(tmp_path: Path) -> None:
           + (f"; after: {np.nanmax(tail):.2f} m" if tail.size else ""))
     for aid in (1, 3, 4):
         assert np.nanmax(norm[:, col[aid]]) < 500.0, aid
+
+
+# =========================================================================== a partitioned site's events
+PART_AT, PART_FOR, PART_DURATION = 5.0, 8.0, 18.0
+"""The two sites' routers cut apart at mission time PART_AT [s] for PART_FOR [s], in a run of
+PART_DURATION [s]."""
+PART_SAFETY = "\n[safety]\nland_after = 3.0\n"
+"""The field side holds (its only path to the leader is cut) and lands 3 s later, both while cut off."""
+
+
+@pytest.mark.slow  # a real-time rehearsal of 18 s on two sites with their link cut for 8 s
+def test_a_partitioned_sites_events_reach_the_run_file_and_the_exit_status(tmp_path: Path) -> None:
+    """Two sites (tests/test_sites.py): the field side's agents 3 and 4 hold and land while their
+    router is cut off from the ground's, where the recorder is; their telemetry, and the events it
+    carried, are lost meanwhile. The run file holds those events all the same (merged from the
+    field side's logs), ``events.json`` lists the failsafe, and the exit status is 3, as
+    ``tether run``'s for a failsafe."""
+    needs_namespaces()
+    from tests.test_sites import write_hosts
+
+    mission = tmp_path / "mission.toml"
+    mission.write_text(SECTION4.read_text() + PART_SAFETY)
+    path, out = write_hosts(tmp_path)
+    gen.generate(mission, out, hosts=path)
+    run_dir = tmp_path / "run"
+    status, output = run_rehearsal(tmp_path / "rehearse.log", str(out), "--out", str(run_dir), "--duration",
+                                   repr(PART_DURATION), "--partition",
+                                   f"router-ground:router-field@{PART_AT:g}+{PART_FOR:g}", timeout=140)
+    assert status == 3, output[-4000:]  # a failsafe fired; no process died
+    merged = re.search(r"(\d+) safety event\(s\) the recorder did not hear .* merged into", output)
+    assert merged is not None and int(merged.group(1)) > 0, output[-4000:]
+    record = json.loads((run_dir / "rehearsal.json").read_text())
+    (cut,) = record["partitions"]
+    t_cut, t_heal = cut["cut_mission_time"], cut["heal_mission_time"]
+    run = Run.load(run_dir)
+    mode = {e.dst: e.t for e in reversed(run.safety.events) if e.vehicle == 3}
+    assert 1 in mode and 2 in mode, run.safety.events  # HOLD, LAND
+    print(f"\nagent 3 in the run file: HOLD at {mode[1]:.2f} s, LAND at {mode[2]:.2f} s (cut {t_cut:.2f}-{t_heal:.2f} s); "
+          f"{merged.group(1)} event(s) merged from the sites' logs")
+    assert t_cut <= mode[1] < mode[2] < t_heal
+    # the recorder heard nothing of agent 3 at either instant: these came from its own log
+    col = {int(a): i for i, a in enumerate(run.agent_ids)}
+    heard = np.isfinite(run.xi[:, col[3]]).all(axis=-1)
+    assert not heard[round(mode[2] / run.t[1])]
+    events = json.loads((run_dir / "events.json").read_text())
+    assert ("agent/3", "failsafe") in {(e["who"], e["what"]) for e in events}
+    assert not [e for e in events if e["what"] == "died"]
