@@ -37,8 +37,8 @@ network namespace of its own (root only, like ``ip netns``):
   namespace (which removes its veth and, with the switch, the bridge). The same happens on Ctrl-C
   or SIGTERM. ``RUN/rehearsal.json`` lists the namespaces, addresses, commands, exits and restarts;
   ``RUN/logs/<unit>.log`` each unit's output; the recorder's ``run.npz`` (and ``run.mcap``) is copied
-  from its unit's ``--out`` into ``RUN`` (a ``run.npz`` left there by an earlier run is removed
-  first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
+  from its unit's ``--out`` into ``RUN`` (a ``run.npz`` and ``run.mcap`` left there by an earlier run
+  are removed first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
 * **Files.** As ``tether run`` makes its own (``tether/safefs.py``): ``RUN`` (and the recorder unit's
   ``--out``) must be the user's and writable by nobody else, on a path others cannot redirect, or the
   rehearsal exits 2 before anything starts; every log is made (appended to, across a unit's restarts)
