@@ -260,10 +260,11 @@ def test_the_gate_allows_for_a_flagged_senders_lead_within_a_bound() -> None:
     assert gate(3.003, sender_lead(-1e6, H)).check(forged) == "future"
 
 
-def test_before_its_estimate_a_link_is_bounded_by_its_first_samples() -> None:
-    """From the fifth sample until the estimate is in (0.75 s), the smallest offset seen so far; then
-    the estimate (the median of the blocks' minima: a forged sample no longer moves it)."""
-    from agent.hearing import FIRST_SAMPLES, link_offset
+def test_the_gate_takes_the_strongest_proof_of_a_lead_in_the_window() -> None:
+    """From the fifth sample on, the smallest offset of the last 2 s: a stall that delays a burst of
+    samples (which raises the median estimate for seconds) does not hide the lead; a forged stamp
+    lowers it, within the cap, and leaves the window after 2 s."""
+    from agent.hearing import FIRST_SAMPLES, LEAD_LIMIT, link_offset, sender_lead
 
     est = skew.LinkEstimator()
     for k in range(FIRST_SAMPLES - 1):
@@ -274,9 +275,15 @@ def test_before_its_estimate_a_link_is_bounded_by_its_first_samples() -> None:
     rng = np.random.default_rng(6)
     for k in range(5, 100):
         est.observe(k * H, k * H - 0.027 + rng.exponential(0.002))
-    assert est.estimate is not None and link_offset(est) == est.estimate
-    est.observe(1.0, 1.0 - 5.0)  # a forgery claiming its sender 5 s ahead
-    assert link_offset(est) == est.estimate and est.estimate > -0.03
+    for k in range(100, 300):  # a stall: 2 s of samples delivered 0.3 s late, save one
+        est.observe(k * H, k * H - 0.027 + (0.0005 if k == 150 else 0.3))
+    assert est.estimate is not None and est.estimate > 0.2  # the median says the receiver is ahead
+    assert link_offset(est) == pytest.approx(-0.0265, abs=1e-4)  # the lead is still proven
+    est.observe(3.0, 3.0 - 5.0)  # a forgery claiming its sender 5 s ahead
+    assert link_offset(est) == pytest.approx(-5.0) and sender_lead(link_offset(est), H) == LEAD_LIMIT
+    for k in range(300, 600):
+        est.observe(k * H, k * H - 0.027 + rng.exponential(0.002))
+    assert -0.03 < link_offset(est) < -0.026  # gone with its block
 
 
 SKEW_DURATION = 16.0
