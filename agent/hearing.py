@@ -32,9 +32,50 @@ from tether.rejoin import Rejoin
 
 log = logging.getLogger("tether")
 
+LEAD_LIMIT = 0.05
+"""The most [s] the gate's ``future`` bound is moved for a sender whose clock is seen ahead
+(:func:`sender_lead`): 50 ms, ten times what hosts synchronised by chrony or PTP disagree by on a
+LAN, and five periods at 100 Hz. A sender further ahead is not corrected for beyond it (its samples
+stay rejected as ``future`` and the link stays flagged: its host's clock must be fixed), and no
+estimate, however forged, opens the gate wider."""
+
+FIRST_SAMPLES = 5
+"""The gate allows for a sender's lead once its link has this many samples (:func:`link_offset`), so
+that a skewed sender's first samples are not all rejected as ``future`` and its stream judged a
+forgery before the link's estimate is in (0.75 s)."""
+
 WITNESS_TICKS = 8
 """Real time: ticks of a neighbour's plant measurements kept to corroborate its relayed states (the
 window :meth:`tether.node.Node.aligned` keeps of every input, :data:`tether.clock.MAX_LAG`)."""
+
+
+def sender_lead(estimate: float | None, period: float, limit: float = LEAD_LIMIT) -> float:
+    """How far ahead [s] the gate takes a sender's clock to be, for its ``future`` check: where the
+    link's offset bound ``estimate`` (:func:`link_offset`) proves the sender ahead by more than half a
+    period (below ``-period / 2``, the flag of :func:`tether.skew.bounds`), ``-estimate`` up to
+    ``limit``; otherwise (no bound yet, within the bounds, the receiver ahead, not finite) 0. Pure.
+
+    Nothing moves the gate by more than ``limit``, however forged, and a sample let through must
+    still be where its sender could be (the gate's ``jump`` rule)."""
+    if estimate is None or not estimate < skew.bounds(period)[0]:
+        return 0.0
+    return min(-estimate, limit)
+
+
+def link_offset(link: skew.LinkEstimator) -> float | None:
+    """The offset bound [s] the gate allows for on ``link``: the smallest ``now - t`` of the link's
+    window (its complete blocks' minima and the block being filled: the last 2 s), from
+    :data:`FIRST_SAMPLES` samples on; None before. Pure.
+
+    Not the link's reported estimate (the median of the minima, :mod:`tether.skew`): a delay never
+    makes a sender look ahead, but a stall (a loaded host delivering a burst late) raises the median
+    for seconds, and a skewed sender's samples were then rejected as ``future`` again (measured:
+    a rehearsal's estimate at +50..+600 ms for 3 s, agent 4 holding). The smallest value is the
+    strongest proof of a lead in the window; only a real lead or a forged stamp lowers it, and a
+    forged one moves the gate by :data:`LEAD_LIMIT` at most, for the 2 s it stays in the window."""
+    if link.samples < FIRST_SAMPLES:
+        return None
+    return min([*link.minima, link.current_min])
 
 
 class Hearing:
@@ -150,9 +191,13 @@ class Hearing:
 
     def _gate(self, sender: int, role: str) -> Callable[[Any], str | None]:
         node, clock, rejoin, offsets = self.node, self.node.clock, self.rejoin, self.offsets
-        # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick)
-        g = for_sender(self.m, sender, clock.arrivals(node.arrival),
-                       expect=self._expected if role == "leader" else None)
+        # real time: a sample is judged at its arrival (a neighbour's waits in its queue until the tick),
+        # on the receiver's clock moved by the sender's estimated lead, where the link is flagged
+        # for a sender ahead (sender_lead): a skewed sender is not taken for one from the future
+        now = clock.arrivals(node.arrival)
+        if now is not None and offsets is not None:
+            now = self._corrected(now, offsets.link(role, sender))
+        g = for_sender(self.m, sender, now, expect=self._expected if role == "leader" else None)
         self.gates.append(g)
 
         def admit(msg: Any) -> str | None:
@@ -170,6 +215,16 @@ class Hearing:
             return why
 
         return admit
+
+    def _corrected(self, now: Callable[[], float], link: skew.LinkEstimator) -> Callable[[], float]:
+        """``now`` [s, mission time] moved by :func:`sender_lead` of ``link``'s offset bound
+        (:func:`link_offset`, a minimum over at most 9 numbers: cheap at every sample)."""
+        h = self.m.dt
+
+        def corrected() -> float:
+            return now() + sender_lead(link_offset(link), h)
+
+        return corrected
 
     def started(self) -> None:
         """The run has started (:meth:`Node.ready` returned): what was turned away before (a

@@ -5,7 +5,7 @@ network namespace of its own (root only, like ``ip netns``):
 
 * **Hosts.** Every host directory ``DEPLOY_DIR/hosts/<host>/`` is placed at its address, read from
   its certificates' subject alternative names (what the hosts file gave, and what the others dial
-  and verify). Host directories with one address are one machine (router, leader and recorder on
+  and verify; a DNS name: see Names). Host directories with one address are one machine (router, leader and recorder on
   a ground station): one namespace. Each namespace holds one veth whose other end is a port of a
   Linux bridge, and the bridge lives in a namespace of its own (the "switch"): nothing is added to
   this machine's own network, no address, route or interface. Each host address is a /32 with an
@@ -37,17 +37,30 @@ network namespace of its own (root only, like ``ip netns``):
   namespace (which removes its veth and, with the switch, the bridge). The same happens on Ctrl-C
   or SIGTERM. ``RUN/rehearsal.json`` lists the namespaces, addresses, commands, exits and restarts;
   ``RUN/logs/<unit>.log`` each unit's output; the recorder's ``run.npz`` (and ``run.mcap``) is copied
-  from its unit's ``--out`` into ``RUN`` (a ``run.npz`` left there by an earlier run is removed
-  first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
+  from its unit's ``--out`` into ``RUN`` (a ``run.npz`` and ``run.mcap`` left there by an earlier run
+  are removed first): the same run file as ``tether run`` writes. A second Ctrl-C during the teardown is ignored.
 * **Files.** As ``tether run`` makes its own (``tether/safefs.py``): ``RUN`` (and the recorder unit's
   ``--out``) must be the user's and writable by nobody else, on a path others cannot redirect, or the
   rehearsal exits 2 before anything starts; every log is made (appended to, across a unit's restarts)
   following no link, a log that is a link or another user's file refused (exit 2); the run files and
   ``rehearsal.json`` are written under an exclusive temporary name and renamed into place.
 
-Exit status: 0 the run ended and was recorded; 1 a unit failed for good, or the run did not end in
-time, or nothing was recorded; 2 bad input (not root, not a deployment, an address a namespace
-cannot take, an unsafe ``--out``), before anything starts; 130 interrupted.
+* **Names.** A host the hosts file names by DNS name (``uav1.local``) is put at an address of
+  :data:`NAME_NET`, and every namespace resolves every such name to its host's address (a hosts
+  file per namespace, :data:`NETNS_ETC`): the deployment a lab flies is the one it rehearses.
+* **The truth.** At the end the safety events every agent and plant logged on its own host that
+  the run file lacks (a site cut off from the recorder by a partition) are merged into ``run.npz``
+  (:mod:`deploy.sitelogs`), and ``RUN/events.json`` lists the units that died and the run's
+  failsafes and divergences. An ``--out`` that holds an earlier run (``rehearsal.json``, a run
+  file, a unit log with something in it) is refused unless ``--replace`` is given, which removes
+  those files first: a rehearsal never reads or appends to an earlier run's logs.
+
+Exit status, as ``tether run``'s (``docs/exit-status.md``, :mod:`deploy.outcome`): 0 the run ended
+and was recorded, clean; 3 a failsafe fired or a value diverged; 4 a process died (a unit exited
+with a failure status or a signal while the run went on, restarted or not); 5 recorded with samples
+missing; 1 the start failed, the run did not end in time, or nothing was recorded; 2 bad input (not
+root, not a deployment, an address a namespace cannot take, an unsafe ``--out`` or one holding an
+earlier run), before anything starts; 130 interrupted.
 """
 
 from __future__ import annotations
@@ -70,6 +83,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from deploy import inject, outcome
+from tether import mission as ms
 from tether import safefs, sched
 
 log = logging.getLogger("tether")
@@ -197,8 +212,11 @@ class Plan:
 
     deploy: Path
     hosts: dict[str, str]
-    """Host directory name -> address."""
+    """Host directory name -> IPv4 address (a DNS name's is the one :data:`NAME_NET` gave it)."""
     units: list[Unit]
+    names: dict[str, str] = field(default_factory=dict)
+    """DNS name the hosts file gave -> the address the rehearsal puts that host at (every namespace
+    resolves the name to it: :data:`NETNS_ETC`)."""
 
     @property
     def machines(self) -> dict[str, list[str]]:
@@ -209,21 +227,39 @@ class Plan:
         return out
 
 
+NAME_NET = ipaddress.ip_network("10.78.0.0/16")
+"""Where a rehearsal puts hosts that the hosts file names by DNS name (one address per distinct
+name, skipping the addresses other hosts were given)."""
+NETNS_ETC = Path("/etc/netns")
+"""``ip netns exec NS`` bind-mounts ``/etc/netns/NS/hosts`` over ``/etc/hosts`` for the command it
+runs (iproute2's per-namespace configuration): a rehearsal writes there each name's address, for
+its namespaces only, and removes it at the teardown."""
+
+
+def _is_ip(addr: str) -> bool:
+    try:
+        ipaddress.ip_address(addr)
+    except ValueError:
+        return False
+    return True
+
+
 def plan(deploy: Path) -> Plan:
-    """Read a generated deployment. Raises :class:`RehearseError` naming what is wrong and the fix."""
+    """Read a generated deployment. Raises :class:`RehearseError` naming what is wrong and the fix.
+    A host named by a DNS name in the hosts file is put at an address of :data:`NAME_NET`, and every
+    namespace resolves the name to it (:attr:`Plan.names`)."""
     root = deploy / "hosts"
     if not root.is_dir():
         raise RehearseError(f"{deploy}: no hosts/ directory; give the --out of tether deploy-gen")
     hosts: dict[str, str] = {}
     units: list[Unit] = []
+    given = {hdir.name: host_address(hdir) for hdir in sorted(p for p in root.iterdir() if p.is_dir())}
+    taken = {a for a in given.values() if _is_ip(a)}
+    free = (str(ip) for ip in NAME_NET.hosts() if str(ip) not in taken)
+    names = {name: next(free) for name in sorted({a for a in given.values() if not _is_ip(a)})}
     for hdir in sorted(p for p in root.iterdir() if p.is_dir()):
-        addr = host_address(hdir)
-        try:
-            ip = ipaddress.ip_address(addr)
-        except ValueError:
-            raise RehearseError(f"host {hdir.name}: its address {addr!r} is a name; a rehearsal puts each host at an "
-                                "IP address of its own: give the hosts file IPv4 addresses (e.g. 10.77.0.11) and "
-                                "generate again") from None
+        addr = names.get(given[hdir.name], given[hdir.name])
+        ip = ipaddress.ip_address(addr)
         if ip.version != 4 or ip.is_loopback or ip.is_unspecified or ip.is_multicast:
             raise RehearseError(f"host {hdir.name}: address {addr} cannot be a host of its own in a namespace (every "
                                 "namespace has its own loopback); give each host a unicast IPv4 address in the hosts "
@@ -241,7 +277,7 @@ def plan(deploy: Path) -> Plan:
     if scheduled and shutil.which("chrt") is None:
         raise RehearseError(f"unit {scheduled[0]} sets CPUSchedulingPolicy=, which a rehearsal applies with chrt "
                             "(util-linux): install it")
-    return Plan(deploy, hosts, units)
+    return Plan(deploy, hosts, units, names)
 
 
 TETHER_ROLES = ("agent", "plant", "leader", "recorder", "world")
@@ -314,7 +350,9 @@ class Network:
     def switch(self) -> str:
         return f"{self.tag}-sw"
 
-    def create(self, machines: dict[str, list[str]]) -> None:
+    def create(self, machines: dict[str, list[str]], names: dict[str, str] | None = None) -> None:
+        """Make the switch and one namespace per machine (address -> its host directories); with
+        ``names`` (DNS name -> address), each namespace resolves those names (:data:`NETNS_ETC`)."""
         self.destroy()
         _ip("netns", "add", self.switch)
         self.spaces["switch"] = self.switch
@@ -332,6 +370,11 @@ class Network:
             _ip("-n", ns, "addr", "add", f"{addr}/32", "dev", "eth0")
             _ip("-n", ns, "link", "set", "eth0", "up")
             _ip("-n", ns, "route", "add", "default", "dev", "eth0")
+            if names:
+                etc = NETNS_ETC / ns
+                etc.mkdir(parents=True, exist_ok=True)
+                lines = ["127.0.0.1 localhost", "::1 localhost", *(f"{a} {n}" for n, a in sorted(names.items()))]
+                (etc / "hosts").write_text("\n".join(lines) + "\n")
 
     def cut(self, a: str, b: str) -> None:
         """No packet between machines ``a`` and ``b`` (addresses) any more: each drops what it would
@@ -356,6 +399,7 @@ class Network:
                     pass
         for ns in names:
             _ip("netns", "del", ns, check=False)
+            shutil.rmtree(NETNS_ETC / ns, ignore_errors=True)
         self.spaces.clear()
 
 
@@ -415,15 +459,66 @@ class Options:
     """(host A, host B, mission time [s], duration [s]): no packet passes between the two hosts'
     machines from then for that long (two sites cut apart: their routers)."""
     grace: float = 5.0
+    replace: bool = False
+    """Remove an earlier run's files from ``out`` (:data:`EARLIER`) instead of refusing it."""
 
 
-def _mission_duration(p: Plan, opts: Options) -> float:
-    from tether import mission as ms
-
-    if opts.duration is not None:
-        return opts.duration
+def _mission(p: Plan) -> ms.Mission:
     leader_dir = p.deploy / "hosts" / next(h for h in p.hosts if h != "router")
-    return ms.load(leader_dir / "mission.toml").duration
+    return ms.load(leader_dir / "mission.toml")
+
+
+def _lost(runs: list[Running], epoch: float | None) -> list[inject.Event]:
+    """A ``died`` event for every exit of a unit with a failure status or a signal while the run
+    went on (the teardown's are not counted), as ``tether run``'s launcher reports its children."""
+    out = []
+    for r in runs:
+        if r.unit.role == "start":
+            continue
+        for wall, rc in r.exits:
+            if rc != 0:
+                out.append(inject.Event(None if epoch is None else wall - epoch, r.unit.name, "died",
+                                        inject.describe_exit(rc)))
+    return out
+
+
+def conclude(out: Path, runs: list[Running], m: ms.Mission, lost: list[inject.Event], ended: bool) -> int:
+    """The rehearsal's exit status once the recorder has written ``out/run.npz``, as
+    ``tether run``'s (:mod:`deploy.outcome`): the events every site logged that the run file lacks
+    are merged into it (:mod:`deploy.sitelogs`), ``events.json`` lists what happened (``lost``: the
+    units that died; the run's failsafes and divergences), and the status follows them (4 a process
+    died, 3 a failsafe fired, 5 samples missing); :data:`~deploy.outcome.EXIT_FAILED` when the run
+    did not end (``ended`` false)."""
+    from deploy import sitelogs
+    from tether import jsonout
+    from tether.runfile import Run
+
+    path = out / "run.npz"
+    try:
+        run = Run.load(path)
+    except (OSError, ValueError, KeyError) as exc:
+        log.error("no readable run file at %s (%s)", path, exc)
+        return outcome.EXIT_FAILED
+    agents, plants = [], []
+    for r in runs:
+        if r.unit.role in ("agent", "plant", "world"):
+            text = r.log_path.read_text(errors="replace")
+            if r.unit.role == "agent":
+                agents += sitelogs.agent_events(text, int(r.unit.name.rsplit("-", 1)[1]), m.dt)
+            else:
+                plants += sitelogs.plant_events(text, m.dt)
+    run, added = sitelogs.merge(run, agents, plants)
+    if added:
+        run.save(path)
+        log.warning("%d safety event(s) the recorder did not hear (a site cut off) merged into %s from the "
+                    "units' logs", added, path)
+    events = [*lost, *sitelogs.run_events(run, m.safety.max_formation_error)]
+    safefs.write_file(out / "events.json", (jsonout.dumps([e.to_json() for e in events]) + "\n").encode())
+    if events:
+        log.warning("%d event(s) in this run (who, when, what, why):", len(events))
+        for e in events:
+            log.warning("  %s", e.line())
+    return outcome.recorded(path, outcome.from_events(events) if ended else outcome.EXIT_FAILED, None)
 
 
 def _epoch(log_text: str) -> float | None:
@@ -432,16 +527,44 @@ def _epoch(log_text: str) -> float | None:
     return float(mt.group(1)) if mt else None
 
 
-def _make_dirs(out: Path, runs: list[Running], rec_out: Path | None) -> tuple[Path, Path | None]:
-    """Make ``out``, its ``logs/`` and every unit's log, and the recorder unit's ``--out``
+EARLIER = ("rehearsal.json", "run.npz", "run.mcap", "events.json")
+"""Files of ``--out`` that only a rehearsal writes: one there (or a unit log with something in it)
+is an earlier run."""
+
+
+def earlier_run(out: Path) -> list[str]:
+    """The files of an earlier run in ``out`` (relative names; none if ``out`` does not exist). Only
+    plain files count (never followed: a link in ``logs/`` is refused by :func:`_make_dirs`)."""
+    found = [n for n in EARLIER if stat.S_ISREG(_lmode(out / n))]
+    logs = out / "logs"
+    if stat.S_ISDIR(_lmode(logs)):
+        found += [f"logs/{p.name}" for p in sorted(logs.iterdir())
+                  if p.name.endswith(".log") and stat.S_ISREG(_lmode(p)) and p.lstat().st_size > 0]
+    return found
+
+
+def _lmode(path: Path) -> int:
+    try:
+        return path.lstat().st_mode
+    except FileNotFoundError:
+        return 0
+
+
+def _make_dirs(out: Path, runs: list[Running], rec_out: Path | None,
+               replace: bool = False) -> tuple[Path, Path | None]:
+    """Make ``out``, its ``logs/`` and every unit's log (empty), and the recorder unit's ``--out``
     ``rec_out``, through :mod:`tether.safefs` (following no link; a log that is a link or another
-    user's file is refused): their real paths. :class:`RehearseError` naming the option and the
-    file at fault, before anything starts."""
+    user's file is refused): their real paths. ``replace``: remove an earlier run's files first
+    (:func:`earlier_run`). :class:`RehearseError` naming the option and the file at fault, before
+    anything starts."""
     from tether.node import os_error
 
     try:
         real = safefs.make_out(out)
         with safefs.Dir.open(real) as top, top.sub("logs") as logs:
+            if replace:
+                for name in earlier_run(real):
+                    (logs if name.startswith("logs/") else top).remove(name.removeprefix("logs/"))
             for r in runs:
                 logs.open_append(r.log_path.name).close()
     except OSError as exc:
@@ -467,6 +590,12 @@ def rehearse(deploy: Path, opts: Options) -> int:
         unsafe = f"cannot check {exc.filename or opts.out}: {exc.strerror}; give another directory"
     if unsafe is not None:
         print(f"error: --out: {unsafe}", file=sys.stderr)
+        return 2
+    old = earlier_run(opts.out)
+    if old and not opts.replace:
+        print(f"error: --out: {opts.out} holds an earlier run ({', '.join(old[:4])}"
+              f"{', ...' if len(old) > 4 else ''}); give a fresh directory, or --replace to remove that run's files "
+              "first", file=sys.stderr)
         return 2
     try:
         pl = plan(deploy)
@@ -496,12 +625,13 @@ def rehearse(deploy: Path, opts: Options) -> int:
         for unit, _ in opts.kills:
             if unit not in names:
                 raise RehearseError(f"--kill {unit}: no such unit; use one of {', '.join(sorted(names))}")
-        duration = _mission_duration(pl, opts)
+        mission = _mission(pl)
+        duration = opts.duration if opts.duration is not None else mission.duration
     except RehearseError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
-        out, out_dir = _make_dirs(opts.out, runs, out_dir)
+        out, out_dir = _make_dirs(opts.out, runs, out_dir, opts.replace)
     except RehearseError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -519,12 +649,13 @@ def rehearse(deploy: Path, opts: Options) -> int:
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        net.create(pl.machines)
+        net.create(pl.machines, pl.names)
         record["namespaces"] = {net.spaces[a]: {"address": a, "hosts": hs} for a, hs in pl.machines.items()}
         record["namespaces"][net.switch] = {"bridge": "br0"}
         if out_dir is not None:
             with safefs.Dir.open(out_dir) as rec:
-                rec.remove("run.npz")
+                for name in ("run.npz", "run.mcap"):
+                    rec.remove(name)
         ns_of.update({host: net.spaces[addr] for host, addr in pl.hosts.items()})
         router = [r for r in runs if r.unit.role == "router"]
         starter = next(r for r in runs if r.unit.name == "tether-start")
@@ -612,12 +743,13 @@ def rehearse(deploy: Path, opts: Options) -> int:
                 break
             time.sleep(0.05)
         stopping = True
-        good = starter.done and starter.exits[-1][1] == 0 and all(r.done and r.exits[-1][1] == 0 for r in others)
+        lost = _lost(runs, epoch)
+        ended = starter.done and starter.exits[-1][1] == 0 and all(r.done for r in others)
         recorded = out_dir is not None and (out_dir / "run.npz").exists()
         if recorded and out_dir is not None and out_dir != out:
             for name in ("run.npz", "run.mcap"):
                 _copy_in(out_dir, name, out)
-        status = 0 if good and recorded else 1
+        status = conclude(out, runs, mission, lost, ended) if recorded else outcome.EXIT_FAILED
     except KeyboardInterrupt:
         log.warning("interrupted: tearing down")
         status = 130
@@ -742,6 +874,8 @@ def _seconds(text: str) -> float:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("deploy", help="a deployment written by tether deploy-gen (its --out)")
     p.add_argument("--out", required=True, help="directory for the run file, the units' logs and rehearsal.json")
+    p.add_argument("--replace", action="store_true",
+                   help="--out may hold an earlier run: remove its files first (without it, such an --out is refused)")
     p.add_argument("--duration", type=_seconds, default=None, help="override the mission's duration [s]")
     p.add_argument("--timeout", type=_seconds, default=None,
                    help="give up this long after the units start [s] (default: the duration + 180 s)")
@@ -759,7 +893,7 @@ def run_args(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s rehearse: %(message)s")
     return rehearse(Path(args.deploy), Options(out=Path(args.out), duration=args.duration, timeout=args.timeout,
                                                kills=list(args.kill), skews=dict(args.skew),
-                                               partitions=list(args.partition)))
+                                               partitions=list(args.partition), replace=args.replace))
 
 
 def main(argv: list[str] | None = None) -> int:

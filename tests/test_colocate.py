@@ -342,7 +342,8 @@ def test_the_plain_float_plant_equals_the_general_path_bit_for_bit(dim: int, scr
     rng = np.random.default_rng(dim)
     cmd = None
     went = None
-    for k in range(700 if script == "silent" else 120):
+    # silent: 30 ticks of commands, cmd_cutoff without, then the landing
+    for k in range(30 + round(m.safety.cmd_cutoff / m.dt) + 470 if script == "silent" else 120):
         operator = script if script in ("land", "estop") and k >= 20 else None
         got, want = lean.advance(k, cmd, operator), ref.advance(k, cmd, operator)
         assert msgspec.structs.asdict(got) == msgspec.structs.asdict(want), (k, got, want)

@@ -41,6 +41,11 @@ def assert_same_run(a: Run, b: Run) -> None:
     assert a.safety.events == b.safety.events
 
 
+def short_failsafes(m: ms.Mission) -> ms.Mission:
+    """``m`` with the firmware's 2 s from a lost input to LAND (the defaults wait 10 s, for a restart)."""
+    return replace(m, safety=replace(m.safety, land_after=2.0, cmd_cutoff=2.0))
+
+
 def compiled_equals_python(m: ms.Mission, **kw: object) -> Run:
     """The twin runs ``m`` itself (no fallback) and equals the Python engine; returns the twin's run."""
     fast = lockstep_kernel.simulate(m, **kw)  # type: ignore[arg-type]
@@ -312,7 +317,7 @@ def test_an_orphan_held_past_land_after_lands_in_2d_as_in_the_python_engine() ->
     """Agent 3 hears nothing from agent 2 from t = 2 s: edge lost, the leader no longer reaches it,
     HOLD, LAND after land_after, LANDED (still, or held land_settle); its plant rests where it was, and
     agent 4 behind it loses it in turn. The twin follows every step, events worded as the supervisor's."""
-    m = load_mission(builtin_path("section4"), 16.0)
+    m = short_failsafes(load_mission(builtin_path("section4"), 16.0))
     net = Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=2.0, src=2, dst=3),))
     run = compiled_equals_python(replace(m, netem=net))
     reasons = [e.reason for e in run.safety.events]
@@ -329,7 +334,7 @@ def test_an_orphan_held_past_land_after_lands_in_2d_as_in_the_python_engine() ->
 def test_a_silent_leader_lands_every_agent_in_2d_as_in_the_python_engine(settle: float) -> None:
     """Every agent lands: still (the default land_settle), or stopped after land_settle while its
     HOLD law still sways it (0.2 s)."""
-    m = load_mission(builtin_path("section4"), 12.0)
+    m = short_failsafes(load_mission(builtin_path("section4"), 12.0))
     lid = m.leader.id
     net = Network(rules=(LinkRule(profile=LinkProfile(delay=Delay(constant=0.8)), src=lid),))
     run = compiled_equals_python(replace(m, netem=net, safety=replace(m.safety, land_settle=settle)))
@@ -346,7 +351,7 @@ def test_a_hold_and_a_landing_at_speed_are_anchored_as_in_the_python_engine() ->
     """The leader lost at 15 s, the vehicles at about 8 m/s: each HOLD is anchored where its brake
     brings it to rest (failsafe.hold_point, compiled from its own stopping_distance), then 2D LAND
     and LANDED about that anchor; the twin's floats are the supervisor's, and no vehicle turns back."""
-    m = load_mission(builtin_path("section4"), 24.0)
+    m = short_failsafes(load_mission(builtin_path("section4"), 24.0))
     net = Network(rules=(LinkRule(profile=LinkProfile(loss=Bernoulli(p=1.0)), start=15.0, src=m.leader.id),))
     run = compiled_equals_python(replace(m, netem=net))
     dst = [ev.dst for ev in run.safety.events if ev.src != ev.dst]

@@ -10,6 +10,7 @@ import time
 import uuid
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -26,9 +27,10 @@ from tether.runfile import Run
 from tether.wire import FLYING, HOLD, LAND, LANDED, MODES
 
 H = 0.02
-SAFETY = ms.Safety()
-FENCE = ms.Safety(geofence=ms.Geofence(min=[-4.0, -4.0, 0.0], max=[4.0, 4.0, 3.0]))
-FENCE_2D = ms.Safety(geofence=ms.Geofence(min=[-4.0, -4.0], max=[4.0, 4.0]))
+SAFETY = ms.Safety(land_after=2.0, cmd_cutoff=2.0)
+"""The firmware's 2 s to LAND (shorter than the defaults, so that the landings fit these runs)."""
+FENCE = msgspec.structs.replace(SAFETY, geofence=ms.Geofence(min=[-4.0, -4.0, 0.0], max=[4.0, 4.0, 3.0]))
+FENCE_2D = msgspec.structs.replace(SAFETY, geofence=ms.Geofence(min=[-4.0, -4.0], max=[4.0, 4.0]))
 
 
 class Point:

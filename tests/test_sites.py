@@ -187,7 +187,7 @@ def test_two_sites_fly_survive_a_partition_and_rejoin(tmp_path: Path) -> None:
     status, output = run_rehearsal(tmp_path / "rehearse.log", str(out), "--out", str(run_dir), "--duration",
                                    repr(DURATION), "--partition", f"router-ground:router-field@{CUT_AT:g}+{CUT_FOR:g}",
                                    timeout=140)
-    assert status == 0, output[-4000:]
+    assert status == 3, output[-4000:]  # the far side held: a failsafe fired, as tether run would say
     record = json.loads((run_dir / "rehearsal.json").read_text())
     spaces = {u: v["namespace"] for u, v in record["units"].items()}
     assert spaces["tether-router-ground"] == spaces["tether-leader-5"] != spaces["tether-router-field"]

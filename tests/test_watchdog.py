@@ -20,7 +20,8 @@ from tether import mission as ms
 from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED
 
 H = 0.02
-SAFETY = ms.Safety()
+SAFETY = ms.Safety(land_after=2.0, cmd_cutoff=2.0)
+"""The firmware's 2 s from a silent agent to LAND (shorter than the defaults, so that the landings fit these runs)."""
 
 
 class Fake:

@@ -78,7 +78,7 @@ MIN_AGE = 1e-3
 time, so a smaller value would throw away every real-time sample."""
 MAX_WAIT = 60.0
 """Longest any ``[safety]`` wait may be [s] (``leader_timeout``, ``neighbour_timeout``,
-``cmd_timeout``, ``cmd_cutoff``, ``land_after``, ``land_settle``): the longest default is 5 s, and a
+``cmd_timeout``, ``cmd_cutoff``, ``land_after``, ``land_settle``): the longest default is 10 s, and a
 supervisor that leaves a lost input unanswered for more than a minute (a vehicle drifting at 1 m/s
 is 60 m away by then) is switched off, not tuned."""
 MAX_ACCEL = 100.0

@@ -387,8 +387,11 @@ class Safety(Strict, frozen=True):
     neighbour_timeout: float = 1.0
     """An in-neighbour (agent) silent this long [s], or whose token is gone, is lost: its edge is
     dropped and kappa_i re-normalised while the leader still reaches this agent, else HOLD."""
-    land_after: float = 2.0
-    """HOLD for a lost input turns into LAND after this long [s] if the input has not come back."""
+    land_after: float = 10.0
+    """HOLD for a lost input turns into LAND after this long [s] if the input has not come back.
+    Longer than a restart of a killed agent (the unit's ``RestartSec=2`` and a cold start: kill to
+    rejoined 2.8-4.8 s measured, ``docs/watchdog.md``), so that the vehicles it cut off hold rather
+    than land while it comes back; a held vehicle brakes to rest where it is (``docs/safety.md``)."""
     flap_limit: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 3
     """Recoveries from HOLD, each within 60 s of the last, after which the next HOLD is a LAND
     instead (``docs/safety.md``, *No flapping*)."""
@@ -410,8 +413,10 @@ class Safety(Strict, frozen=True):
     """HOLD's velocity gain [1/s]."""
     cmd_timeout: float = 0.5
     """A plant with no valid command for this long [s] holds (brakes to zero velocity, level)."""
-    cmd_cutoff: float = 2.0
-    """A plant with no valid command for this long [s] lands (never just stops)."""
+    cmd_cutoff: float = 10.0
+    """A plant with no valid command for this long [s] lands (never just stops); until then it holds
+    (from ``cmd_timeout``), so that its agent, restarted by its unit, finds it in the air and flies
+    it again (``docs/watchdog.md``, "Restart and rejoin")."""
     geofence: Geofence | None = None
     avoid: Avoidance | None = None
 
