@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shlex
 import sys
 from dataclasses import dataclass, field
 from importlib import resources
@@ -38,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy import acl, pki
-from deploy.hosts import HostsError, Placement, Plan, load, plan
+from deploy.hosts import HostsError, Placement, Plan, control_character, load, plan
 from tether import catalog
 from tether import mission as ms
 from tether import safefs
@@ -114,16 +115,62 @@ def _json5(header: list[str], body: dict[str, Any]) -> str:
 
 # --------------------------------------------------------------------------- systemd units
 _PLACEHOLDER = re.compile(r"@([A-Z_]+)@")
+_BARE = re.compile(r"[A-Za-z0-9_./:=+,@-]+")
+WORD_LISTS = ("ExecStart", "ReadWritePaths")
+"""Directives whose value systemd splits into words (unquoting each): a filled word is quoted whole."""
+
+
+def exec_word(value: str) -> str:
+    """``value`` as one word of an ``ExecStart=`` command line (or another list of words) that systemd
+    reads back as ``value`` (systemd.service(5), *Command lines*; systemd.syntax(7), *Quoting*):
+    ``%`` doubled (specifiers are expanded inside quotes too) and ``$`` doubled (variables likewise);
+    a word with anything but letters, digits and ``_./:=+,@-`` in double quotes, with ``\\`` and ``"``
+    escaped inside them (so a space, a lone ``;`` or a quote stays inside the word). A control
+    character cannot be written in a unit and raises :class:`GenerateError`. Pure."""
+    if (bad := control_character(value)) is not None:
+        raise GenerateError(f"{value!r} holds a control character ({bad}), which no unit file can carry")
+    text = value.replace("%", "%%").replace("$", "$$")
+    if _BARE.fullmatch(value):
+        return text
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def unit(role: str, values: dict[str, str]) -> str:
     """The role's unit template with every ``@NAME@`` filled from ``values``; a placeholder without
-    a value is an error (a template and the generator out of step)."""
-    text = (resources.files("deploy") / "systemd" / UNITS[role]).read_text()
-    missing = sorted({m for m in _PLACEHOLDER.findall(text) if m not in values})
+    a value is an error (a template and the generator out of step).
+
+    Values come from a checked :class:`~deploy.hosts.Plan` (no control character, paths absolute and
+    normalised: :func:`deploy.hosts.path_problem`) and are written so that systemd reads them back
+    unchanged: a word of ``ExecStart=`` or ``ReadWritePaths=`` that holds a placeholder is quoted
+    whole (:func:`exec_word`); elsewhere ``%`` is doubled. The result has the template's lines, no
+    more (checked): no value can add a directive."""
+    template = (resources.files("deploy") / "systemd" / UNITS[role]).read_text()
+    missing = sorted({m for m in _PLACEHOLDER.findall(template) if m not in values})
     if missing:
         raise GenerateError(f"template {UNITS[role]} has placeholders the generator does not fill: {missing}")
-    return _PLACEHOLDER.sub(lambda mt: values[mt.group(1)], text)
+    for name, value in values.items():
+        if (bad := control_character(value)) is not None:
+            raise GenerateError(f"{name} = {value!r} holds a control character ({bad}); no unit is written")
+
+    def fill(text: str, escape: bool = True) -> str:
+        return _PLACEHOLDER.sub(lambda mt: values[mt.group(1)].replace("%", "%%") if escape
+                                else values[mt.group(1)], text)
+
+    lines = []
+    for line in template.splitlines():
+        key, sep, rest = line.partition("=")
+        if sep and key in WORD_LISTS:
+            line = key + "=" + " ".join(exec_word(fill(w, escape=False)) if _PLACEHOLDER.search(w) else w
+                                        for w in rest.split(" "))
+        elif line.startswith("#"):
+            line = fill(line, escape=False)  # a comment: no specifiers
+        else:
+            line = fill(line)
+        lines.append(line)
+    text = "\n".join(lines) + "\n"
+    if text.count("\n") != template.count("\n") + (not template.endswith("\n")):
+        raise GenerateError(f"unit {UNITS[role]}: a value changed the number of lines")
+    return text
 
 
 def unit_name(p: Placement) -> str:
@@ -237,6 +284,7 @@ def _bind_of(p: Placement) -> str | None:
 def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
     """The generated DEPLOY.md: hosts, files, commands, and what the access control allows."""
     pl = dep.plan
+    q = shlex.quote  # the guide's commands are for a shell
     lines = [f"# Deployment of mission `{m.name}` (namespace `{pl.ns}`)", "",
              f"Written by `tether deploy-gen`. Network: **{pl.hosts.network}**; every link is TLS 1.3 with client "
              f"certificates (mTLS) signed by `ca/ca.crt`; certificates expire on "
@@ -256,19 +304,20 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
               "On each host: copy `hosts/<host>/` to the directory above (owned by root, readable by user "
               f"`{pl.hosts.user}`; the `*.key` files mode 0600 and owned by `{pl.hosts.user}`), install tether "
               f"so that `{pl.hosts.tether}` and `{pl.hosts.python}` exist, then",
-              "", "```sh", f"sudo cp {pl.config_dir('<host>')}/systemd/*.service /etc/systemd/system/",
+              "", "```sh", f"sudo cp {shlex.quote(pl.config_dir('<host>'))}/systemd/*.service /etc/systemd/system/",
               "sudo systemctl daemon-reload", "```", "", "## Run", "",
               "1. router host" + ("s" if len(pl.routers) > 1 else "") + ": "
               + ", ".join(f"`sudo systemctl enable --now tether-{r.name}`" for r in pl.routers),
               "2. every other host: `sudo systemctl start tether-<process>` for each of its services "
               "(each waits for the start)",
-              f"3. leader host: `sudo systemctl start tether-start` (or `{pl.hosts.python} -m deploy.start --mission "
-              f"{pl.config_dir('leader')}/mission.toml --ns {pl.ns} --zenoh-config {pl.config_dir('leader')}/control-0.json5`): "
+              f"3. leader host: `sudo systemctl start tether-start` (or `{q(pl.hosts.python)} -m deploy.start --mission "
+              f"{q(pl.config_dir('leader') + '/mission.toml')} --ns {pl.ns} "
+              f"--zenoh-config {q(pl.config_dir('leader') + '/control-0.json5')}`): "
               "waits for every process's liveliness token, then announces tick 0 three seconds ahead",
               f"4. the recorder writes `{pl.hosts.recorder.out if pl.hosts.recorder else '/var/lib/tether/runs'}/run.npz` "
               "on its host; every process exits 0 after the last tick",
-              f"5. to stop the swarm, on the leader host: `{pl.hosts.tether} land --ns {pl.ns} --zenoh-config "
-              f"{pl.config_dir('leader')}/control-0.json5` (every vehicle lands), or `{pl.hosts.tether} estop ...` "
+              f"5. to stop the swarm, on the leader host: `{q(pl.hosts.tether)} land --ns {pl.ns} --zenoh-config "
+              f"{q(pl.config_dir('leader') + '/control-0.json5')}` (every vehicle lands), or `{q(pl.hosts.tether)} estop ...` "
               "(every motor off at once); only this identity may publish that order", "",
               "## What each identity may do (access control, default deny)", "",
               acl.describe(grants), "",
