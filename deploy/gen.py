@@ -46,8 +46,12 @@ from tether import safefs
 from tether import transport as tp
 
 UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "control": "tether-start.service",
-         "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service"}
-"""Template of each role's systemd unit, in ``deploy/systemd/``."""
+         "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service",
+         "plant-crazyflie": "tether-plant-crazyflie.service"}
+"""Template of each role's systemd unit, in ``deploy/systemd/`` (a Crazyflie's plant has its own: the
+radio's USB device and cflib's cache directory)."""
+HARDENING = "hardening.conf"
+"""The sandboxing every unit holds, in ``deploy/systemd/``: a template's ``@HARDENING@`` line."""
 
 
 @dataclass
@@ -135,6 +139,13 @@ def exec_word(value: str) -> str:
     return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+def template_text(role: str) -> str:
+    """The unit template of ``role`` (a key of :data:`UNITS`), its ``@HARDENING@`` line replaced by
+    :data:`HARDENING`'s lines."""
+    folder = resources.files("deploy") / "systemd"
+    return (folder / UNITS[role]).read_text().replace("@HARDENING@\n", (folder / HARDENING).read_text())
+
+
 def unit(role: str, values: dict[str, str]) -> str:
     """The role's unit template with every ``@NAME@`` filled from ``values``; a placeholder without
     a value is an error (a template and the generator out of step).
@@ -144,7 +155,7 @@ def unit(role: str, values: dict[str, str]) -> str:
     unchanged: a word of ``ExecStart=`` or ``ReadWritePaths=`` that holds a placeholder is quoted
     whole (:func:`exec_word`); elsewhere ``%`` is doubled. The result has the template's lines, no
     more (checked): no value can add a directive."""
-    template = (resources.files("deploy") / "systemd" / UNITS[role]).read_text()
+    template = template_text(role)
     missing = sorted({m for m in _PLACEHOLDER.findall(template) if m not in values})
     if missing:
         raise GenerateError(f"template {UNITS[role]} has placeholders the generator does not fill: {missing}")
@@ -171,6 +182,13 @@ def unit(role: str, values: dict[str, str]) -> str:
     if text.count("\n") != template.count("\n") + (not template.endswith("\n")):
         raise GenerateError(f"unit {UNITS[role]}: a value changed the number of lines")
     return text
+
+
+def template_of(p: Placement, m: ms.Mission) -> str:
+    """The key in :data:`UNITS` of the unit template of process ``p`` of mission ``m``."""
+    if p.role == "plant" and isinstance(next(a for a in m.agents if a.id == p.node_id).plant, ms.CrazyfliePlant):
+        return "plant-crazyflie"
+    return p.role
 
 
 def unit_name(p: Placement) -> str:
@@ -264,7 +282,7 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
                          f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
                          + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
                         profile(p, pl, access)).encode())
-                    svc = sd.replace(unit_name(p), unit(p.role, {
+                    svc = sd.replace(unit_name(p), unit(template_of(p, m), {
                         "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
                         "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
                         "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",

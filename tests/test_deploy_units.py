@@ -18,7 +18,6 @@ import json
 import re
 import shutil
 import subprocess
-from importlib import resources
 from pathlib import Path
 
 import pytest
@@ -164,14 +163,13 @@ def test_every_field_refuses_or_quotes_every_character_class(field: str, value: 
         assert not out.exists()  # nothing written
         return
     assert status == 0, err
-    templates = {name: (resources.files("deploy") / "systemd" / name).read_text() for name in gen.UNITS.values()}
     units = sorted(out.glob("hosts/*/systemd/*.service"))
     assert len(units) == 10
     for u in units:
         text = u.read_text()
         host = u.parent.parent.name
         role = "control" if u.name == "tether-start.service" else u.name.removesuffix(".service").split("-")[1]
-        template = templates[gen.UNITS[role]]
+        template = gen.template_text(role)
         assert directives(text) == directives(template), u  # no injected line
         assert text.count("\n") == template.count("\n"), u
         line = next(ln for ln in text.splitlines() if ln.startswith("ExecStart=")).partition("=")[2]
@@ -214,3 +212,67 @@ def test_path_problem_names_the_fix() -> None:
     assert "'..'" in (hosts.path_problem("/opt/../bin") or "")
     assert "write '/opt/bin'" in (hosts.path_problem("/opt//bin") or "")
     assert "U+000A at position 4" in (hosts.path_problem("/opt\n") or "")
+
+
+# --------------------------------------------------------------------------- hardening
+def exposure(unit: Path) -> tuple[float, str]:
+    """``systemd-analyze security --offline=yes``'s overall exposure of ``unit`` and its word (OK, ...)."""
+    done = subprocess.run([SYSTEMD_ANALYZE or "systemd-analyze", "security", "--offline=yes", str(unit)],
+                          capture_output=True, text=True, timeout=120)
+    found = re.search(r"Overall exposure level for \S+: ([0-9.]+) (\w+)", done.stdout + done.stderr)
+    assert found, done.stdout + done.stderr
+    return float(found.group(1)), found.group(2)
+
+
+def settings(text: str) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for ln in text.splitlines():
+        if "=" in ln and not ln.startswith("#"):
+            key, _, value = ln.partition("=")
+            out.setdefault(key, []).append(value)
+    return out
+
+
+@pytest.mark.skipif(SYSTEMD_ANALYZE is None, reason="systemd-analyze is not installed")
+def test_every_generated_unit_is_rated_ok_by_systemd_analyze(tmp_path: Path) -> None:
+    """Every unit of a simulated (Section 4) and a Crazyflie (Exp. 1 on Crazyflies) deployment: exposure
+    at most 3.0 ("OK"), while keeping what each needs (the control loop's real-time policy, set by
+    systemd at exec; the radio's USB devices and cflib's cache directory for a Crazyflie plant)."""
+    from tether.catalog import builtin_path
+
+    ratings: dict[str, tuple[float, str]] = {}
+    for name in ("section4", "exp1_cf"):
+        out = tmp_path / name
+        gen.generate(builtin_path(name), out)
+        for u in sorted(out.glob("hosts/*/systemd/*.service")):
+            ratings[f"{name}/{u.name}"] = exposure(u)
+            s = settings(u.read_text())
+            role = "control" if u.name == "tether-start.service" else u.name.removesuffix(".service").split("-")[1]
+            assert s["CapabilityBoundingSet"] == [""] and s["NoNewPrivileges"] == ["yes"], u
+            assert s["ProtectSystem"] == ["strict"] and s["ProtectHome"] == ["yes"], u
+            assert (s.get("CPUSchedulingPolicy") == ["rr"]) == (role in ("agent", "plant", "leader", "router")), u
+            crazyflie = name == "exp1_cf" and role == "plant"
+            assert (s.get("DeviceAllow") == ["char-usb_device rw"]) == crazyflie, u
+            assert s["PrivateDevices"][-1] == ("no" if crazyflie else "yes"), u  # the last assignment wins
+            if crazyflie:
+                assert s["SupplementaryGroups"] == ["plugdev"] and s["DevicePolicy"] == ["closed"]
+                cache = s["CacheDirectory"][0]
+                assert s["Environment"] == [f"XDG_CACHE_HOME=%C/{cache}"], u  # cflib's TOC cache (toc_cache)
+            if role == "recorder":
+                assert s["ReadWritePaths"] == ["/var/lib/tether/runs"]
+    for name, (level, word) in ratings.items():
+        print(f"{name}: {level} {word}")
+    assert len(ratings) == 24
+    assert all(level <= 3.0 for level, _ in ratings.values()), ratings
+
+
+def test_a_crazyflie_plant_caches_its_toc_in_the_units_cache_directory(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """``XDG_CACHE_HOME`` as the Crazyflie plant's unit sets it (its ``CacheDirectory=``, which systemd
+    makes the user's) is where cflib's TOC cache goes: nothing under the home, which the unit hides."""
+    from plant.crazyflie import toc_cache
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "tether-plant-3"))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert toc_cache() == tmp_path / "tether-plant-3" / "tether" / "cf-toc" and toc_cache().is_dir()
+    assert not (tmp_path / "home").exists()
