@@ -259,6 +259,9 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
 
     grants = acl.grants(m, pl.ns, routers=tuple(r.name for r in pl.routers))
     access = acl.access_control(grants, pl.ns)
+    links = link_grants(pl, grants)
+    router_access = {r: acl.access_control([g for g in grants if g.name not in links] + gs, pl.ns)
+                     for r, gs in links.items()}
     top.replace("acl.json5", _json5(
         [f"access_control of deployment {pl.ns!r} (mission {m.name!r}), as every listener's profile holds it.",
          "Identities are certificate CNs <process>.<ns>; see DEPLOY.md for what each may do."], access).encode())
@@ -281,15 +284,26 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
                          f"deployment {pl.ns!r}; written by tether deploy-gen.",
                          f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
                          + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
-                        profile(p, pl, access)).encode())
+                        profile(p, pl, router_access.get(p.name, access))).encode())
                     svc = sd.replace(unit_name(p), unit(template_of(p, m), {
                         "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
                         "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
                         "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
                     }).encode())
                     written += [cert, key, conf, svc]
-    top.replace("DEPLOY.md", guide(dep, m, grants).encode())
+    top.replace("DEPLOY.md", guide(dep, m, grants, links).encode())
     return dep
+
+
+def link_grants(pl: Plan, grants: list[acl.Grant]) -> dict[str, list[acl.Grant]]:
+    """Per router of a several-site deployment, the grants of its neighbour routers on their links
+    (:func:`acl.link_grant`: what the processes on the neighbour's side may do); empty for one router.
+    A router that is not a neighbour gets no grant there: it has no link to open."""
+    if len(pl.routers) < 2:
+        return {}
+    by_name = {g.name: g for g in grants}
+    return {r.name: [acl.link_grant(n, [by_name[q.name] for q in pl.behind(r.name, n)]) for n in pl.neighbours(r.name)]
+            for r in pl.routers}
 
 
 def _bind_of(p: Placement) -> str | None:
@@ -299,7 +313,8 @@ def _bind_of(p: Placement) -> str | None:
     return None if host in ("0.0.0.0", "::") else host  # a wildcard bind names no host
 
 
-def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
+def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant],
+          links: dict[str, list[acl.Grant]] | None = None) -> str:
     """The generated DEPLOY.md: hosts, files, commands, and what the access control allows."""
     pl = dep.plan
     q = shlex.quote  # the guide's commands are for a shell
@@ -314,10 +329,10 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
         listens = ", ".join(p.listen for p in ps if p.listen) or "–"
         lines.append(f"| `hosts/{host}/` → `{pl.config_dir(host)}` | {ps[0].address} | "
                      f"{', '.join(p.name for p in ps)} | {listens} | {', '.join(unit_name(p) for p in ps)} |")
-    links = [(r.name, n) for r in pl.routers for n in r.via.split(",") if n]
-    if links:
-        lines += ["", "Router-to-router links (each dialled by the first, TLS with the same mTLS and access rules): "
-                  + ", ".join(f"`{a}` → `{b}`" for a, b in links) + "."]
+    if pl.links():
+        lines += ["", "Router-to-router links (each dialled by the first, TLS with the same mTLS): "
+                  + ", ".join(f"`{a}` → `{b}`" for a, b in pl.links()) + ". On each, a router may say and hear "
+                  "only what the processes on its side may (the tables below, per router)."]
     lines += ["", "## Install", "",
               "On each host: copy `hosts/<host>/` to the directory above (owned by root, readable by user "
               f"`{pl.hosts.user}`; the `*.key` files mode 0600 and owned by `{pl.hosts.user}`), install tether "
@@ -338,7 +353,9 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
               f"{q(pl.config_dir('leader') + '/control-0.json5')}` (every vehicle lands), or `{q(pl.hosts.tether)} estop ...` "
               "(every motor off at once); only this identity may publish that order", "",
               "## What each identity may do (access control, default deny)", "",
-              acl.describe(grants), "",
+              acl.describe([g for g in grants if not links or g.name not in links]), "",
+              *(line for r, gs in (links or {}).items()
+                for line in (f"At `{r}`, over its router-to-router links:", "", acl.describe(gs), "")),
               "Every identity may also be told of other processes' subscriptions in the namespace (its "
               "publishers need them to send) and of liveliness interest; nothing else (no queries, no deletes, "
               "no other key) passes a listener.", ""]

@@ -188,6 +188,26 @@ class Plan:
         names = [n for n in p.via.split(",") if n]
         return [d for n in names if (d := self.process(n).dial) is not None]
 
+    def links(self) -> list[tuple[str, str]]:
+        """The router-to-router links, ``(dialler, dialled)`` router process names."""
+        return [(r.name, n) for r in self.routers for n in r.via.split(",") if n]
+
+    def neighbours(self, router: str) -> list[str]:
+        """The routers linked to router process ``router`` (``router-field``), either way."""
+        return [b if a == router else a for a, b in self.links() if router in (a, b)]
+
+    def behind(self, router: str, neighbour: str) -> list[Placement]:
+        """The processes (routers aside) whose messages reach ``router`` over its link to ``neighbour``:
+        every process of a router on ``neighbour``'s side of that link (the links form a tree)."""
+        side, todo = {neighbour}, [neighbour]
+        while todo:
+            here = todo.pop()
+            for n in self.neighbours(here):
+                if n != router and n not in side:
+                    side.add(n)
+                    todo.append(n)
+        return [p for p in self.placements if p.role != "router" and p.via in side]
+
     def on(self, host: str) -> list[Placement]:
         return [p for p in self.placements if p.host == host]
 
