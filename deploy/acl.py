@@ -118,7 +118,11 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
     ]
     for aid in m.agent_ids:
         nbrs = [j for j, _ in ms.in_neighbours(m, aid)]  # the keys the agent subscribes to
-        near = ms.nearby_vehicles(m, aid)  # collision avoidance's, besides the law's inputs
+        # collision avoidance's, besides the law's inputs: every other vehicle's state, granted as one
+        # expression (agent/*/state includes each key the agent declares) so that the rules grow as N,
+        # not N^2 (docs/deploy.md, Scale)
+        near = ms.nearby_vehicles(m, aid)
+        vehicles = (f"tether/{ns}/agent/*/state",) if near else ()
         out.append(Grant(
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)
@@ -127,7 +131,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             # against them (real time, agent/node.py)
             subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs),
                        *(k.topic("plant", j, "state") for j in nbrs if j != lid),
-                       *(k.topic("agent", j, "state") for j in near), k.start, k.recorded, k.safety),
+                       *vehicles, k.start, k.recorded, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
