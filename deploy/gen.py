@@ -33,6 +33,7 @@ import json
 import re
 import shlex
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -50,6 +51,9 @@ UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "
          "plant-crazyflie": "tether-plant-crazyflie.service"}
 """Template of each role's systemd unit, in ``deploy/systemd/`` (a Crazyflie's plant has its own: the
 radio's USB device and cflib's cache directory)."""
+OPENSSL_JOBS = 4
+"""Hosts written at once (each certificate is one ``openssl`` process; ``bench/deploygen.py`` times
+the whole command)."""
 HARDENING = "hardening.conf"
 """The sandboxing every unit holds, in ``deploy/systemd/``: a template's ``@HARDENING@`` line."""
 
@@ -268,29 +272,36 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
 
     dep = Deployment(top.path, pl, authority)
     mission_text = mission_path.read_bytes()
-    with top.sub("hosts") as hosts_dir:
-        for host in pl.host_names:
-            with hosts_dir.sub(host) as hdir, hdir.sub("tls", private=True) as tls, hdir.sub("systemd") as sd:
-                written = dep.files.setdefault(host, [])
-                written.append(tls.replace("ca.crt", ca_cert))
-                if any(p.role != "router" for p in pl.on(host)):
-                    written.append(hdir.replace("mission.toml", mission_text))
-                for p in pl.on(host):
-                    addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
-                    cert, key = pki.issue(authority, tls, p.name, p.common_name(pl.ns), addresses,
-                                          pl.hosts.cert_days)
-                    conf = hdir.replace(f"{p.name}.json5", _json5(
-                        [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
-                         f"deployment {pl.ns!r}; written by tether deploy-gen.",
-                         f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
-                         + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
-                        profile(p, pl, router_access.get(p.name, access))).encode())
-                    svc = sd.replace(unit_name(p), unit(template_of(p, m), {
-                        "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
-                        "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
-                        "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
-                    }).encode())
-                    written += [cert, key, conf, svc]
+    for host in pl.host_names:
+        dep.files[host] = []
+
+    def write_host(hosts_dir: safefs.Dir, host: str) -> None:
+        with hosts_dir.sub(host) as hdir, hdir.sub("tls", private=True) as tls, hdir.sub("systemd") as sd:
+            written = dep.files[host]
+            written.append(tls.replace("ca.crt", ca_cert))
+            if any(p.role != "router" for p in pl.on(host)):
+                written.append(hdir.replace("mission.toml", mission_text))
+            for p in pl.on(host):
+                addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
+                cert, key = pki.issue_one_step(authority, tls, p.name, p.common_name(pl.ns), addresses,
+                                               pl.hosts.cert_days)
+                conf = hdir.replace(f"{p.name}.json5", _json5(
+                    [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
+                     f"deployment {pl.ns!r}; written by tether deploy-gen.",
+                     f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
+                     + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
+                    profile(p, pl, router_access.get(p.name, access))).encode())
+                svc = sd.replace(unit_name(p), unit(template_of(p, m), {
+                    "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
+                    "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
+                    "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
+                }).encode())
+                written += [cert, key, conf, svc]
+
+    with top.sub("hosts") as hosts_dir, ThreadPoolExecutor(max_workers=OPENSSL_JOBS) as pool:
+        # openssl runs in processes of its own: hosts are written side by side, each in its own directory
+        for done in [pool.submit(write_host, hosts_dir, host) for host in pl.host_names]:
+            done.result()
     top.replace("DEPLOY.md", guide(dep, m, grants, links).encode())
     return dep
 
