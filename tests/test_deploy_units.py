@@ -9,7 +9,11 @@ refused with the fix or written so that systemd reads it back unchanged; the uni
   fix, and writes nothing) or accepted, and then every unit keeps its template's directives (no
   injected line) and its words read back, by an independent reading of systemd.syntax(7), by
   ``tether rehearse``'s parser and, for a program's path, by ``systemd-analyze verify`` itself,
-  as the value given.
+  as the value given. A router's name (two sites) with any of these classes is refused.
+* Every generated unit of a simulated and of a Crazyflie deployment is rated "OK" (exposure at most
+  3.0) by ``systemd-analyze security --offline=yes`` (skipped where it is not installed; each rating
+  printed), keeping the control loop's real-time policy, and for a Crazyflie plant its USB devices,
+  group ``plugdev`` and a cache directory of its own, which cflib's TOC cache uses.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import pytest
 from deploy import gen, hosts
 from deploy.rehearse import parse_unit
 from tests.test_deploy import MISSION
+from tether import mission as ms
 
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
 
@@ -276,3 +281,15 @@ def test_a_crazyflie_plant_caches_its_toc_in_the_units_cache_directory(tmp_path:
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     assert toc_cache() == tmp_path / "tether-plant-3" / "tether" / "cf-toc" and toc_cache().is_dir()
     assert not (tmp_path / "home").exists()
+
+
+@pytest.mark.parametrize("cls", list(CLASSES), ids=list(CLASSES))
+def test_a_router_name_with_any_character_class_is_refused(cls: str) -> None:
+    """Two sites: a router's name goes into host directories, unit, file and certificate names."""
+    m = ms.loads(MISSION)
+    text = ('version = 1\n[[routers]]\nname = "ground"\naddress = "10.0.0.1"\n[[routers]]\n'
+            f'name = {json.dumps("field" + CLASSES[cls])}\naddress = "10.0.0.2"\nconnect = ["ground"]\n')
+    with pytest.raises(hosts.HostsError) as err:
+        hosts.plan(m, hosts.loads(text, "h.toml"), "h.toml")
+    problems = dict(err.value.problems)
+    assert "lower-case name" in problems["routers[1].name"], err.value
