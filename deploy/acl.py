@@ -28,7 +28,7 @@ the very expression the code declares.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 from tether import mission as ms
@@ -79,8 +79,9 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
     it; every agent (its safety supervisor) and every plant (its command watchdog) may subscribe.
 
     ``routers``: the router processes (``router``, or ``router-ground``, ``router-field`` for two
-    sites); each may route everything in the namespace, so that a router-to-router link carries the
-    whole swarm's traffic, which each router has checked at its own edge."""
+    sites); each may route everything in the namespace to a listening peer, which it relays the whole
+    swarm's traffic to. On a router-to-router link a router holds :func:`link_grant` instead: what the
+    processes on its side may do, no more."""
     k = wire.Keys(ns)
     lid = m.leader.id
     every_token = k.tokens  # @tether/<ns>/**: what Node.watch and wait_for_tokens subscribe to
@@ -117,7 +118,11 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
     ]
     for aid in m.agent_ids:
         nbrs = [j for j, _ in ms.in_neighbours(m, aid)]  # the keys the agent subscribes to
-        near = ms.nearby_vehicles(m, aid)  # collision avoidance's, besides the law's inputs
+        # collision avoidance's, besides the law's inputs: every other vehicle's state, granted as one
+        # expression (agent/*/state includes each key the agent declares) so that the rules grow as N,
+        # not N^2 (docs/deploy.md, Scale)
+        near = ms.nearby_vehicles(m, aid)
+        vehicles = (f"tether/{ns}/agent/*/state",) if near else ()
         out.append(Grant(
             f"agent-{aid}",
             # record: lockstep with the plant co-located in the agent (--colocate-plants)
@@ -126,7 +131,7 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             # against them (real time, agent/node.py)
             subscribe=(k.topic("plant", aid, "state"), *(state_of(j) for j in nbrs),
                        *(k.topic("plant", j, "state") for j in nbrs if j != lid),
-                       *(k.topic("agent", j, "state") for j in near), k.start, k.recorded, k.safety),
+                       *vehicles, k.start, k.recorded, k.safety),
             tokens=(k.token("agent", aid),),
             watch=(every_token,),
             sees=(k.token("plant", aid), *(token_of(j) for j in nbrs)),
@@ -146,6 +151,17 @@ def grants(m: ms.Mission, ns: str, routers: tuple[str, ...] = ("router",)) -> li
             asks=(k.topic("agent", aid, "lastplant"),),  # a restarted plant's last state (plant/resume.py)
         ))
     return out
+
+
+def link_grant(name: str, behind: list[Grant]) -> Grant:
+    """The grant of router ``name`` on a router-to-router link: exactly what the processes ``behind``
+    it (its side of the link) may do, field by field the union of their grants, so that a router's
+    link carries nothing that none of its processes may say or hear. One definition of who may say
+    what: the processes' grants. Pure."""
+    def union(field: str) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(k for g in behind for k in getattr(g, field)))
+
+    return Grant(name, **{f.name: union(f.name) for f in fields(Grant) if f.name != "name"})
 
 
 def access_control(gs: list[Grant], ns: str) -> dict[str, Any]:

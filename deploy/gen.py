@@ -31,22 +31,31 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shlex
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from deploy import acl, pki
-from deploy.hosts import HostsError, Placement, Plan, load, plan
+from deploy.hosts import HostsError, Placement, Plan, control_character, load, plan
 from tether import catalog
 from tether import mission as ms
 from tether import safefs
 from tether import transport as tp
 
 UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "control": "tether-start.service",
-         "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service"}
-"""Template of each role's systemd unit, in ``deploy/systemd/``."""
+         "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service",
+         "plant-crazyflie": "tether-plant-crazyflie.service"}
+"""Template of each role's systemd unit, in ``deploy/systemd/`` (a Crazyflie's plant has its own: the
+radio's USB device and cflib's cache directory)."""
+OPENSSL_JOBS = 4
+"""Hosts written at once (each certificate is one ``openssl`` process; ``bench/deploygen.py`` times
+the whole command)."""
+HARDENING = "hardening.conf"
+"""The sandboxing every unit holds, in ``deploy/systemd/``: a template's ``@HARDENING@`` line."""
 
 
 @dataclass
@@ -114,16 +123,76 @@ def _json5(header: list[str], body: dict[str, Any]) -> str:
 
 # --------------------------------------------------------------------------- systemd units
 _PLACEHOLDER = re.compile(r"@([A-Z_]+)@")
+_BARE = re.compile(r"[A-Za-z0-9_./:=+,@-]+")
+WORD_LISTS = ("ExecStart", "ReadWritePaths")
+"""Directives whose value systemd splits into words (unquoting each): a filled word is quoted whole."""
+
+
+def exec_word(value: str) -> str:
+    """``value`` as one word of an ``ExecStart=`` command line (or another list of words) that systemd
+    reads back as ``value`` (systemd.service(5), *Command lines*; systemd.syntax(7), *Quoting*):
+    ``%`` doubled (specifiers are expanded inside quotes too) and ``$`` doubled (variables likewise);
+    a word with anything but letters, digits and ``_./:=+,@-`` in double quotes, with ``\\`` and ``"``
+    escaped inside them (so a space, a lone ``;`` or a quote stays inside the word). A control
+    character cannot be written in a unit and raises :class:`GenerateError`. Pure."""
+    if (bad := control_character(value)) is not None:
+        raise GenerateError(f"{value!r} holds a control character ({bad}), which no unit file can carry")
+    text = value.replace("%", "%%").replace("$", "$$")
+    if _BARE.fullmatch(value):
+        return text
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def template_text(role: str) -> str:
+    """The unit template of ``role`` (a key of :data:`UNITS`), its ``@HARDENING@`` line replaced by
+    :data:`HARDENING`'s lines."""
+    folder = resources.files("deploy") / "systemd"
+    return (folder / UNITS[role]).read_text().replace("@HARDENING@\n", (folder / HARDENING).read_text())
 
 
 def unit(role: str, values: dict[str, str]) -> str:
     """The role's unit template with every ``@NAME@`` filled from ``values``; a placeholder without
-    a value is an error (a template and the generator out of step)."""
-    text = (resources.files("deploy") / "systemd" / UNITS[role]).read_text()
-    missing = sorted({m for m in _PLACEHOLDER.findall(text) if m not in values})
+    a value is an error (a template and the generator out of step).
+
+    Values come from a checked :class:`~deploy.hosts.Plan` (no control character, paths absolute and
+    normalised: :func:`deploy.hosts.path_problem`) and are written so that systemd reads them back
+    unchanged: a word of ``ExecStart=`` or ``ReadWritePaths=`` that holds a placeholder is quoted
+    whole (:func:`exec_word`); elsewhere ``%`` is doubled. The result has the template's lines, no
+    more (checked): no value can add a directive."""
+    template = template_text(role)
+    missing = sorted({m for m in _PLACEHOLDER.findall(template) if m not in values})
     if missing:
         raise GenerateError(f"template {UNITS[role]} has placeholders the generator does not fill: {missing}")
-    return _PLACEHOLDER.sub(lambda mt: values[mt.group(1)], text)
+    for name, value in values.items():
+        if (bad := control_character(value)) is not None:
+            raise GenerateError(f"{name} = {value!r} holds a control character ({bad}); no unit is written")
+
+    def fill(text: str, escape: bool = True) -> str:
+        return _PLACEHOLDER.sub(lambda mt: values[mt.group(1)].replace("%", "%%") if escape
+                                else values[mt.group(1)], text)
+
+    lines = []
+    for line in template.splitlines():
+        key, sep, rest = line.partition("=")
+        if sep and key in WORD_LISTS:
+            line = key + "=" + " ".join(exec_word(fill(w, escape=False)) if _PLACEHOLDER.search(w) else w
+                                        for w in rest.split(" "))
+        elif line.startswith("#"):
+            line = fill(line, escape=False)  # a comment: no specifiers
+        else:
+            line = fill(line)
+        lines.append(line)
+    text = "\n".join(lines) + "\n"
+    if text.count("\n") != template.count("\n") + (not template.endswith("\n")):
+        raise GenerateError(f"unit {UNITS[role]}: a value changed the number of lines")
+    return text
+
+
+def template_of(p: Placement, m: ms.Mission) -> str:
+    """The key in :data:`UNITS` of the unit template of process ``p`` of mission ``m``."""
+    if p.role == "plant" and isinstance(next(a for a in m.agents if a.id == p.node_id).plant, ms.CrazyfliePlant):
+        return "plant-crazyflie"
+    return p.role
 
 
 def unit_name(p: Placement) -> str:
@@ -194,37 +263,58 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
 
     grants = acl.grants(m, pl.ns, routers=tuple(r.name for r in pl.routers))
     access = acl.access_control(grants, pl.ns)
+    links = link_grants(pl, grants)
+    router_access = {r: acl.access_control([g for g in grants if g.name not in links] + gs, pl.ns)
+                     for r, gs in links.items()}
     top.replace("acl.json5", _json5(
         [f"access_control of deployment {pl.ns!r} (mission {m.name!r}), as every listener's profile holds it.",
          "Identities are certificate CNs <process>.<ns>; see DEPLOY.md for what each may do."], access).encode())
 
     dep = Deployment(top.path, pl, authority)
     mission_text = mission_path.read_bytes()
-    with top.sub("hosts") as hosts_dir:
-        for host in pl.host_names:
-            with hosts_dir.sub(host) as hdir, hdir.sub("tls", private=True) as tls, hdir.sub("systemd") as sd:
-                written = dep.files.setdefault(host, [])
-                written.append(tls.replace("ca.crt", ca_cert))
-                if any(p.role != "router" for p in pl.on(host)):
-                    written.append(hdir.replace("mission.toml", mission_text))
-                for p in pl.on(host):
-                    addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
-                    cert, key = pki.issue(authority, tls, p.name, p.common_name(pl.ns), addresses,
-                                          pl.hosts.cert_days)
-                    conf = hdir.replace(f"{p.name}.json5", _json5(
-                        [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
-                         f"deployment {pl.ns!r}; written by tether deploy-gen.",
-                         f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
-                         + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
-                        profile(p, pl, access)).encode())
-                    svc = sd.replace(unit_name(p), unit(p.role, {
-                        "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
-                        "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
-                        "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
-                    }).encode())
-                    written += [cert, key, conf, svc]
-    top.replace("DEPLOY.md", guide(dep, m, grants).encode())
+    for host in pl.host_names:
+        dep.files[host] = []
+
+    def write_host(hosts_dir: safefs.Dir, host: str) -> None:
+        with hosts_dir.sub(host) as hdir, hdir.sub("tls", private=True) as tls, hdir.sub("systemd") as sd:
+            written = dep.files[host]
+            written.append(tls.replace("ca.crt", ca_cert))
+            if any(p.role != "router" for p in pl.on(host)):
+                written.append(hdir.replace("mission.toml", mission_text))
+            for p in pl.on(host):
+                addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
+                cert, key = pki.issue_one_step(authority, tls, p.name, p.common_name(pl.ns), addresses,
+                                               pl.hosts.cert_days)
+                conf = hdir.replace(f"{p.name}.json5", _json5(
+                    [f"Zenoh configuration of {p.name} (CN {p.common_name(pl.ns)}) on host {host!r}, "
+                     f"deployment {pl.ns!r}; written by tether deploy-gen.",
+                     f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
+                     + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
+                    profile(p, pl, router_access.get(p.name, access))).encode())
+                svc = sd.replace(unit_name(p), unit(template_of(p, m), {
+                    "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
+                    "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
+                    "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
+                }).encode())
+                written += [cert, key, conf, svc]
+
+    with top.sub("hosts") as hosts_dir, ThreadPoolExecutor(max_workers=OPENSSL_JOBS) as pool:
+        # openssl runs in processes of its own: hosts are written side by side, each in its own directory
+        for done in [pool.submit(write_host, hosts_dir, host) for host in pl.host_names]:
+            done.result()
+    top.replace("DEPLOY.md", guide(dep, m, grants, links).encode())
     return dep
+
+
+def link_grants(pl: Plan, grants: list[acl.Grant]) -> dict[str, list[acl.Grant]]:
+    """Per router of a several-site deployment, the grants of its neighbour routers on their links
+    (:func:`acl.link_grant`: what the processes on the neighbour's side may do); empty for one router.
+    A router that is not a neighbour gets no grant there: it has no link to open."""
+    if len(pl.routers) < 2:
+        return {}
+    by_name = {g.name: g for g in grants}
+    return {r.name: [acl.link_grant(n, [by_name[q.name] for q in pl.behind(r.name, n)]) for n in pl.neighbours(r.name)]
+            for r in pl.routers}
 
 
 def _bind_of(p: Placement) -> str | None:
@@ -234,9 +324,11 @@ def _bind_of(p: Placement) -> str | None:
     return None if host in ("0.0.0.0", "::") else host  # a wildcard bind names no host
 
 
-def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
+def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant],
+          links: dict[str, list[acl.Grant]] | None = None) -> str:
     """The generated DEPLOY.md: hosts, files, commands, and what the access control allows."""
     pl = dep.plan
+    q = shlex.quote  # the guide's commands are for a shell
     lines = [f"# Deployment of mission `{m.name}` (namespace `{pl.ns}`)", "",
              f"Written by `tether deploy-gen`. Network: **{pl.hosts.network}**; every link is TLS 1.3 with client "
              f"certificates (mTLS) signed by `ca/ca.crt`; certificates expire on "
@@ -248,30 +340,33 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant]) -> str:
         listens = ", ".join(p.listen for p in ps if p.listen) or "–"
         lines.append(f"| `hosts/{host}/` → `{pl.config_dir(host)}` | {ps[0].address} | "
                      f"{', '.join(p.name for p in ps)} | {listens} | {', '.join(unit_name(p) for p in ps)} |")
-    links = [(r.name, n) for r in pl.routers for n in r.via.split(",") if n]
-    if links:
-        lines += ["", "Router-to-router links (each dialled by the first, TLS with the same mTLS and access rules): "
-                  + ", ".join(f"`{a}` → `{b}`" for a, b in links) + "."]
+    if pl.links():
+        lines += ["", "Router-to-router links (each dialled by the first, TLS with the same mTLS): "
+                  + ", ".join(f"`{a}` → `{b}`" for a, b in pl.links()) + ". On each, a router may say and hear "
+                  "only what the processes on its side may (the tables below, per router)."]
     lines += ["", "## Install", "",
               "On each host: copy `hosts/<host>/` to the directory above (owned by root, readable by user "
               f"`{pl.hosts.user}`; the `*.key` files mode 0600 and owned by `{pl.hosts.user}`), install tether "
               f"so that `{pl.hosts.tether}` and `{pl.hosts.python}` exist, then",
-              "", "```sh", f"sudo cp {pl.config_dir('<host>')}/systemd/*.service /etc/systemd/system/",
+              "", "```sh", f"sudo cp {shlex.quote(pl.config_dir('<host>'))}/systemd/*.service /etc/systemd/system/",
               "sudo systemctl daemon-reload", "```", "", "## Run", "",
               "1. router host" + ("s" if len(pl.routers) > 1 else "") + ": "
               + ", ".join(f"`sudo systemctl enable --now tether-{r.name}`" for r in pl.routers),
               "2. every other host: `sudo systemctl start tether-<process>` for each of its services "
               "(each waits for the start)",
-              f"3. leader host: `sudo systemctl start tether-start` (or `{pl.hosts.python} -m deploy.start --mission "
-              f"{pl.config_dir('leader')}/mission.toml --ns {pl.ns} --zenoh-config {pl.config_dir('leader')}/control-0.json5`): "
+              f"3. leader host: `sudo systemctl start tether-start` (or `{q(pl.hosts.python)} -m deploy.start --mission "
+              f"{q(pl.config_dir('leader') + '/mission.toml')} --ns {pl.ns} "
+              f"--zenoh-config {q(pl.config_dir('leader') + '/control-0.json5')}`): "
               "waits for every process's liveliness token, then announces tick 0 three seconds ahead",
               f"4. the recorder writes `{pl.hosts.recorder.out if pl.hosts.recorder else '/var/lib/tether/runs'}/run.npz` "
               "on its host; every process exits 0 after the last tick",
-              f"5. to stop the swarm, on the leader host: `{pl.hosts.tether} land --ns {pl.ns} --zenoh-config "
-              f"{pl.config_dir('leader')}/control-0.json5` (every vehicle lands), or `{pl.hosts.tether} estop ...` "
+              f"5. to stop the swarm, on the leader host: `{q(pl.hosts.tether)} land --ns {pl.ns} --zenoh-config "
+              f"{q(pl.config_dir('leader') + '/control-0.json5')}` (every vehicle lands), or `{q(pl.hosts.tether)} estop ...` "
               "(every motor off at once); only this identity may publish that order", "",
               "## What each identity may do (access control, default deny)", "",
-              acl.describe(grants), "",
+              acl.describe([g for g in grants if not links or g.name not in links]), "",
+              *(line for r, gs in (links or {}).items()
+                for line in (f"At `{r}`, over its router-to-router links:", "", acl.describe(gs), "")),
               "Every identity may also be told of other processes' subscriptions in the namespace (its "
               "publishers need them to send) and of liveliness interest; nothing else (no queries, no deletes, "
               "no other key) passes a listener.", ""]

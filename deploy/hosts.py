@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import difflib
 import ipaddress
+import posixpath
 import re
 import tomllib
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -29,7 +31,6 @@ import msgspec
 
 from deploy import acl
 from tether import mission as ms
-from tether import wire
 from tether.schema import Problems, SchemaError, Strict, read_issue
 
 HOSTS_VERSION = 1
@@ -125,7 +126,7 @@ class HostsError(SchemaError):
 
 # --------------------------------------------------------------------------- placements
 Role = Literal["router", "leader", "control", "recorder", "agent", "plant"]
-ROUTER_NAME = re.compile(r"^[a-z][a-z0-9]{0,23}$")
+ROUTER_NAME = re.compile(r"[a-z][a-z0-9]{0,23}")
 """A site's name: it goes into host directory, unit, file and certificate names."""
 
 
@@ -186,6 +187,26 @@ class Plan:
         """The endpoints process ``p`` connects to: its router's; a router's, the routers it links to."""
         names = [n for n in p.via.split(",") if n]
         return [d for n in names if (d := self.process(n).dial) is not None]
+
+    def links(self) -> list[tuple[str, str]]:
+        """The router-to-router links, ``(dialler, dialled)`` router process names."""
+        return [(r.name, n) for r in self.routers for n in r.via.split(",") if n]
+
+    def neighbours(self, router: str) -> list[str]:
+        """The routers linked to router process ``router`` (``router-field``), either way."""
+        return [b if a == router else a for a, b in self.links() if router in (a, b)]
+
+    def behind(self, router: str, neighbour: str) -> list[Placement]:
+        """The processes (routers aside) whose messages reach ``router`` over its link to ``neighbour``:
+        every process of a router on ``neighbour``'s side of that link (the links form a tree)."""
+        side, todo = {neighbour}, [neighbour]
+        while todo:
+            here = todo.pop()
+            for n in self.neighbours(here):
+                if n != router and n not in side:
+                    side.add(n)
+                    todo.append(n)
+        return [p for p in self.placements if p.role != "router" and p.via in side]
 
     def on(self, host: str) -> list[Placement]:
         return [p for p in self.placements if p.host == host]
@@ -271,7 +292,7 @@ def _field_of(exc: msgspec.ValidationError) -> tuple[str, str]:
 
 
 # --------------------------------------------------------------------------- checks
-_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+_HOSTNAME = re.compile(r"(?=.{1,253}\Z)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*")
 
 
 def is_ip(address: str) -> bool:
@@ -285,10 +306,61 @@ def is_ip(address: str) -> bool:
 def _address_problem(value: object) -> str | None:
     if not isinstance(value, str) or not value:
         return f"is {value!r}; give an IP address or a DNS name, e.g. \"192.168.1.11\""
-    if is_ip(value) or _HOSTNAME.match(value):
+    if is_ip(value) or _HOSTNAME.fullmatch(value):
         return None
     return (f"is {value!r}, neither an IP address nor a DNS name; write e.g. \"192.168.1.11\" or "
             "\"uav1.local\" (no scheme, no port: the port has its own field)")
+
+
+NAMESPACE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,62}")
+"""A deployment's key namespace: it goes into keys, certificate CNs, unit descriptions and command lines."""
+USER_NAME = re.compile(r"[a-z_][a-z0-9_-]{0,31}")
+"""A Unix user name as ``useradd`` takes it by default."""
+PATH_MAX = 4096
+
+_NOT_IN_PATHS = {'"': "a double quote", "'": "a single quote", "\\": "a backslash", "$": "a dollar sign"}
+"""Characters refused in every path: systemd refuses quotes and backslashes in a program's path
+(``systemd-analyze verify``: "Executable name contains special characters") and keeps ``$$`` there
+as written; in an argument they would need escapes that every reader of the units (systemd,
+``tether rehearse``) must agree on."""
+
+
+def control_character(value: str) -> str | None:
+    """The first character of ``value`` that is not printable text (Unicode categories C* — control,
+    format such as a bidirectional override, private use, surrogate, unassigned — and the line and
+    paragraph separators), described as ``U+000A at position 12``; None when there is none."""
+    for k, ch in enumerate(value):
+        if unicodedata.category(ch)[0] == "C" or unicodedata.category(ch) in ("Zl", "Zp"):
+            return f"U+{ord(ch):04X} at position {k}"
+    return None
+
+
+def path_problem(value: str, program: bool = False) -> str | None:
+    """Why ``value`` cannot be a path on the hosts in a unit file or a command line, with the fix; None
+    when it can. A path must be absolute and normalised (no ``.``, ``..``, ``//`` or trailing ``/``),
+    printable (no control character anywhere), without a quote, a backslash or a dollar sign,
+    without leading or trailing space. Spaces, ``%``, ``;`` and non-ASCII letters are allowed:
+    the generator quotes them (:func:`deploy.gen.exec_word`). Pure."""
+    if (bad := control_character(value)) is not None:
+        return (f"is {value!r}, which holds a control character ({bad}); remove it (a newline in a unit "
+                "file starts another directive)")
+    for ch, name in _NOT_IN_PATHS.items():
+        if ch in value:
+            return f"is {value!r}, which holds {name}; install into a directory whose path has none"
+    if not value.startswith("/"):
+        return f"is {value!r}; give an absolute path on the hosts (starting with '/'; systemd needs one)"
+    if value != value.strip():
+        return f"is {value!r}, with a space at its end; remove it"
+    if len(value.encode()) > PATH_MAX:
+        return f"is {len(value.encode())} bytes long; a path is at most {PATH_MAX}"
+    parts = value.split("/")[1:]
+    if ".." in parts:
+        return f"is {value!r}, with '..'; write the directory it means, without '..'"
+    if posixpath.normpath(value) != value:
+        return f"is {value!r}, not normalised; write {posixpath.normpath(value)!r}"
+    if program and value == "/":
+        return f"is {value!r}; give the path of the program"
+    return None
 
 
 def _endpoint(address: str, port: int) -> str:
@@ -317,12 +389,11 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
                                                         "computers; deploy the mission without [payload] (the real "
                                                         "vehicles carry the real payload)")])
     ns = h.ns if h.ns is not None else m.name
-    try:
-        wire.Keys(ns)
-    except ValueError:
+    if not NAMESPACE.fullmatch(ns):
         field = "ns" if h.ns is not None else "<mission name>"
-        out.append((field, f"is {ns!r}, not usable as a key chunk (no '/', '*', '$', '#', '?', '@' or spaces); "
-                           "set `ns = \"...\"` in the hosts file to a plain name"))
+        out.append((field, f"is {ns!r}, not a plain name (it goes into keys, certificate names and unit "
+                           "files); set `ns = \"...\"` in the hosts file to letters, digits, '_', '-' and '.', "
+                           "at most 63, starting with a letter or a digit"))
     if not 1 <= h.port <= 65535:
         out.append(("port", f"is {h.port}; a TLS port is 1 to 65535 (7447 is Zenoh's)"))
     if not h.lease > 0:
@@ -331,14 +402,16 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
         out.append(("connect_timeout", f"is {h.connect_timeout} s; give seconds > 0, e.g. 30.0"))
     if not h.cert_days >= 1:
         out.append(("cert_days", f"is {h.cert_days}; certificates must be valid for >= 1 day"))
-    for name in ("config_dir", "tether", "python"):
-        value = getattr(h, name)
-        if not value.startswith("/"):
-            out.append((name, f"is {value!r}; give an absolute path on the hosts (systemd needs one)"))
-    if not re.match(r"^[a-z_][a-z0-9_-]*$", h.user):
-        out.append(("user", f"is {h.user!r}; give a Unix user name, e.g. \"tether\""))
-    if h.recorder is not None and not h.recorder.out.startswith("/"):
-        out.append(("recorder.out", f"is {h.recorder.out!r}; give an absolute path on the recorder's host"))
+    for name in ("tether", "python"):
+        if (problem := path_problem(getattr(h, name), program=True)) is not None:
+            out.append((name, problem))
+    if (problem := path_problem(h.config_dir.replace("{host}", "agent-1"))) is not None:
+        out.append(("config_dir", problem.replace("agent-1", "{host}")))
+    if not USER_NAME.fullmatch(h.user):
+        out.append(("user", f"is {h.user!r}; give a Unix user name (lower-case letters, digits, '_' and '-', "
+                            "at most 32), e.g. \"tether\""))
+    if h.recorder is not None and (problem := path_problem(h.recorder.out)) is not None:
+        out.append(("recorder.out", problem))
 
     defaults = _default_hosts(m)
     if h.router is not None and h.routers is not None:
@@ -441,7 +514,7 @@ def _check_sites(sites: list[RouterHost] | None, nodes: list[tuple[str, NodeHost
         return {where: "router" for where, _ in nodes}
     names: dict[str, int] = {}
     for k, r in enumerate(sites):
-        if not ROUTER_NAME.match(r.name):
+        if not ROUTER_NAME.fullmatch(r.name):
             out.append((f"routers[{k}].name", f"is {r.name!r}; give a short lower-case name of letters and digits, "
                                               "e.g. \"ground\" or \"field\" (it names files and certificates)"))
         elif r.name in names:

@@ -317,9 +317,11 @@ def test_collision_avoidance_lets_each_agent_hear_every_other_vehicle_and_nothin
     assert m.safety.avoid is not None
     for aid in m.agent_ids:
         g = {x.name: x for x in acl.grants(m, "sw")}[f"agent-{aid}"]
-        others = {f"tether/sw/agent/{j}/state" for j in m.agent_ids if j != aid}
-        assert others <= set(g.subscribe), (aid, g.subscribe)
-        assert f"tether/sw/agent/{aid}/state" not in g.subscribe
+        # every key the agent declares (agent/node.py) is included by a granted expression, as Zenoh checks
+        # (one wildcard for every vehicle: the rules grow as N, not N^2)
+        declared = {f"tether/sw/agent/{j}/state" for j in m.agent_ids if j != aid}
+        assert all(any(zenoh.KeyExpr(x).includes(zenoh.KeyExpr(d)) for x in g.subscribe) for d in declared), g
+        assert "tether/sw/agent/*/state" in g.subscribe
         ins = {f"tether/sw/plant/{j}/state" for j, _ in ms.in_neighbours(m, aid) if j != m.leader.id}
         assert not any(k.endswith("/cmd") or "/plant/" in k and k != f"tether/sw/plant/{aid}/state" and k not in ins
                        for k in g.subscribe), g.subscribe
@@ -337,7 +339,7 @@ def test_units_run_the_entry_points_with_arguments_they_accept(deployment: gen.D
     assert len(units) == 10
     for u in units:
         text = u.read_text()
-        assert "@" not in text.replace("@tether", ""), u  # every placeholder filled
+        assert not gen._PLACEHOLDER.search(text), u  # every placeholder filled
         argv = shlex.split(next(line for line in text.splitlines() if line.startswith("ExecStart=")).partition("=")[2])
         if argv[0] == PYTHON_ON_HOSTS:
             parser = {"deploy.router": router_cli, "deploy.start": start_cli}[argv[2]].build_parser()
