@@ -63,16 +63,18 @@ def test_airtime_is_shared_by_the_dongles_vehicles_and_bounded() -> None:
 
 
 @pytest.mark.parametrize("field,value", [("rate", 0.0), ("loss", 1.5), ("retries", -1), ("retries", 16),
-                                         ("jitter", float("nan")), ("degrade_at", -1.0)])
+                                         ("jitter", float("nan")), ("degrade", ((-1.0, 0.5),)),
+                                         ("degrade", ((2.0, 0.5), (1.0, 0.1))), ("degrade", ((1.0, 2.0),))])
 def test_absurd_radio_settings_are_refused_naming_the_field(field: str, value: float) -> None:
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=field.split("_")[0]):
         RadioConfig(**{field: value})  # type: ignore[arg-type]
 
 
 def test_degradation_starts_at_its_time() -> None:
-    radio = Radio(RadioConfig(rate=1e6, loss=0.0, retries=0, degrade_at=1.0, degraded_loss=1.0))
+    radio = Radio(RadioConfig(rate=1e6, loss=0.0, retries=0, degrade=((1.0, 1.0), (2.0, 0.0))))
     assert radio.transmit(0.999, UP) is not None
     assert radio.transmit(1.0, UP) is None
+    assert radio.transmit(2.0, UP) is not None
 
 
 # =========================================================================== real cflib through it

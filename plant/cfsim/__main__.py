@@ -83,8 +83,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                        help="with --radio: retransmissions before a packet is lost (default 3)")
     radio.add_argument("--per-radio", type=int, default=0, metavar="N",
                        help="with --radio: vehicles per simulated dongle (default 0: all of this process on one)")
-    radio.add_argument("--degrade", default=None, metavar="T:P",
-                       help="with --radio: from T seconds after start, attempts are lost with probability P")
+    radio.add_argument("--degrade", action="append", default=[], metavar="T:P",
+                       help="with --radio: from T seconds after start, attempts are lost with probability P "
+                            "(repeat for more steps, in time order)")
     ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = ap.parse_args(argv)
     if args.count < 1:
@@ -114,18 +115,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _radio(args: argparse.Namespace) -> realism.RadioConfig:
     """The ``--radio`` options as a :class:`realism.RadioConfig`; ``ValueError`` names the bad one."""
-    at, lossy = math.inf, 0.0
-    if args.degrade is not None:
+    steps = []
+    for step in args.degrade:
         try:
-            t, p = (float(x) for x in args.degrade.split(":"))
+            t, p = (float(x) for x in step.split(":"))
         except ValueError:
-            raise ValueError(f"--degrade {args.degrade!r}: give T:P, seconds after start and a loss, e.g. 10:0.6")
-        at, lossy = t, p
+            raise ValueError(f"--degrade {step!r}: give T:P, seconds after start and a loss, e.g. 10:0.6") from None
+        steps.append((t, p))
     if args.per_radio < 0:
         raise ValueError(f"--per-radio {args.per_radio}: give 0 (all on one dongle) or more")
     return realism.RadioConfig(rate=args.radio_rate, retries=args.radio_retries, loss=args.loss,
-                               latency=args.latency / 1000.0, jitter=args.jitter / 1000.0, degrade_at=at,
-                               degraded_loss=lossy, seed=args.seed)
+                               latency=args.latency / 1000.0, jitter=args.jitter / 1000.0,
+                               degrade=tuple(steps), seed=args.seed)
 
 
 def config(args: argparse.Namespace) -> server.SimConfig:

@@ -217,22 +217,32 @@ class RadioConfig:
     """Extra delay, uniform in [0, jitter] [s]; never reorders."""
     queue: float = 0.1
     """Longest wait for airtime [s] before a packet is dropped."""
-    degrade_at: float = math.inf
-    """From this time [s, on the caller's clock] on, attempts are lost with ``degraded_loss`` instead."""
-    degraded_loss: float = 0.0
+    degrade: tuple[tuple[float, float], ...] = ()
+    """Steps ``(t, loss)``, in time order: from ``t`` [s, on the caller's clock] on, attempts are lost
+    with probability ``loss`` instead (a vehicle flying out of range, a crowded channel)."""
     seed: int = 0
 
     def __post_init__(self) -> None:
         _check("rate", self.rate, open_lo=True)
         _check("loss", self.loss, 0.0, 1.0)
-        _check("degraded_loss", self.degraded_loss, 0.0, 1.0)
         _check("latency", self.latency, 0.0, 5.0)
         _check("jitter", self.jitter, 0.0, 5.0)
         _check("queue", self.queue, 0.0, 5.0)
         if not (isinstance(self.retries, int) and 0 <= self.retries <= 15):
             raise ValueError(f"retries = {self.retries!r}: give a whole number in [0, 15] (the nRF24's limit)")
-        if math.isnan(self.degrade_at) or self.degrade_at < 0.0:
-            raise ValueError(f"degrade_at = {self.degrade_at!r}: give a time [s] >= 0")
+        for t, p in self.degrade:
+            _check("degrade time", t)
+            _check("degrade loss", p, 0.0, 1.0)
+        if [t for t, _ in self.degrade] != sorted(t for t, _ in self.degrade):
+            raise ValueError(f"degrade = {self.degrade!r}: give the steps in time order")
+
+    def loss_at(self, now: float) -> float:
+        """Probability [0..1] that an attempt at ``now`` [s] is lost."""
+        loss = self.loss
+        for t, p in self.degrade:
+            if now >= t:
+                loss = p
+        return loss
 
 
 @dataclass
@@ -268,7 +278,7 @@ class Radio:
         if start - now > c.queue:
             n.overflow[way] += 1
             return None
-        loss = c.degraded_loss if now >= c.degrade_at else c.loss
+        loss = c.loss_at(now)
         tries, delivered = 0, False
         while not delivered and tries <= c.retries:
             tries += 1
