@@ -5,8 +5,9 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
 
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
-2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` and ``stateEstimate.ax/ay/az`` (world frame, in g) in
-   two blocks at 100 Hz, cflib's fastest (one block cannot hold nine floats: 26 bytes per packet).
+2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` at 100 Hz, cflib's fastest, and ``stateEstimate.ax/ay/az``
+   (world frame, in g) at 50 Hz, in two blocks (one block cannot hold nine floats: 26 bytes per
+   packet; the rates fit four vehicles on one radio, ``docs/crazyflie.md``).
 3. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
 4. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
 
@@ -90,6 +91,10 @@ G = _CF21.g
 MOTOR_THRUST_MAX = _CF21.motor_thrust_max
 """Per-motor thrust at full command [N] (a Crazyflie 2.1's, with its source in ``plant.quadrotor``)."""
 LOG_PERIOD_MS = 10
+"""Period of the position and velocity log block [ms] (100 Hz, cflib's fastest)."""
+ACC_PERIOD_MS = 20
+"""Period of the acceleration log block [ms]: 50 Hz, so that four vehicles fit on one radio with room
+to spare (the radio budget in ``docs/crazyflie.md``, ``python bench/radio.py``)."""
 STALE_AFTER = 1.0
 """A link whose state estimate has not come for this long [s] counts as down (100 log packets at
 100 Hz; a loaded host can delay a few tens of them)."""
@@ -232,12 +237,12 @@ class CrazyfliePlant:
         pv = LogConfig(name="tether_pv", period_in_ms=LOG_PERIOD_MS)
         for n in ("x", "y", "z", "vx", "vy", "vz"):
             pv.add_variable(f"stateEstimate.{n}", "float")
-        acc = LogConfig(name="tether_a", period_in_ms=LOG_PERIOD_MS)
+        acc = LogConfig(name="tether_a", period_in_ms=ACC_PERIOD_MS)
         for n in ("ax", "ay", "az"):
             acc.add_variable(f"stateEstimate.{n}", "float")
         pv.data_received_cb.add_callback(self._on_pv)
         acc.data_received_cb.add_callback(self._on_acc)
-        self._watch_link(len((pv, acc)) * 1000.0 / LOG_PERIOD_MS)
+        self._watch_link(1000.0 / LOG_PERIOD_MS + 1000.0 / ACC_PERIOD_MS)
         since = time.monotonic()
         self._fresh.clear()
         for block in (pv, acc):
