@@ -5,9 +5,10 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
 
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
-2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` at 100 Hz, cflib's fastest, and ``stateEstimate.ax/ay/az``
-   (world frame, in g) at 50 Hz, in two blocks (one block cannot hold nine floats: 26 bytes per
-   packet; the rates fit four vehicles on one radio, ``docs/crazyflie.md``).
+2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` once a control tick (at most 100 Hz, cflib's fastest) and
+   ``stateEstimate.ax/ay/az`` (world frame, in g) every other tick, in two blocks (one block cannot hold
+   nine floats: 26 bytes per packet; :func:`log_periods`: four vehicles at 100 Hz, eight at 50 Hz fit
+   on one radio, ``docs/crazyflie.md``).
 3. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
 4. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
 
@@ -91,10 +92,16 @@ G = _CF21.g
 MOTOR_THRUST_MAX = _CF21.motor_thrust_max
 """Per-motor thrust at full command [N] (a Crazyflie 2.1's, with its source in ``plant.quadrotor``)."""
 LOG_PERIOD_MS = 10
-"""Period of the position and velocity log block [ms] (100 Hz, cflib's fastest)."""
-ACC_PERIOD_MS = 20
-"""Period of the acceleration log block [ms]: 50 Hz, so that four vehicles fit on one radio with room
-to spare (the radio budget in ``docs/crazyflie.md``, ``python bench/radio.py``)."""
+"""Shortest period of the position and velocity log block [ms] (100 Hz, cflib's fastest)."""
+
+
+def log_periods(dt: float) -> tuple[int, int]:
+    """The log blocks' periods [ms] for a plant ticking every ``dt`` [s]: position and velocity once a
+    tick (never faster than :data:`LOG_PERIOD_MS`: a sample per tick is all the plant reads),
+    acceleration every other tick. Four vehicles at 100 Hz or eight at 50 Hz fit on one radio (the
+    radio budget in ``docs/crazyflie.md``, ``python bench/radio.py``)."""
+    pv = max(LOG_PERIOD_MS, int(round(1000.0 * dt)))
+    return pv, 2 * pv
 STALE_AFTER = 1.0
 """A link whose state estimate has not come for this long [s] counts as down (100 log packets at
 100 Hz; a loaded host can delay a few tens of them)."""
@@ -234,15 +241,16 @@ class CrazyfliePlant:
     def _start_logs(self) -> None:
         from cflib.crazyflie.log import LogConfig
 
-        pv = LogConfig(name="tether_pv", period_in_ms=LOG_PERIOD_MS)
+        pv_ms, acc_ms = log_periods(self._h)
+        pv = LogConfig(name="tether_pv", period_in_ms=pv_ms)
         for n in ("x", "y", "z", "vx", "vy", "vz"):
             pv.add_variable(f"stateEstimate.{n}", "float")
-        acc = LogConfig(name="tether_a", period_in_ms=ACC_PERIOD_MS)
+        acc = LogConfig(name="tether_a", period_in_ms=acc_ms)
         for n in ("ax", "ay", "az"):
             acc.add_variable(f"stateEstimate.{n}", "float")
         pv.data_received_cb.add_callback(self._on_pv)
         acc.data_received_cb.add_callback(self._on_acc)
-        self._watch_link(1000.0 / LOG_PERIOD_MS + 1000.0 / ACC_PERIOD_MS)
+        self._watch_link(1000.0 / pv_ms + 1000.0 / acc_ms)
         since = time.monotonic()
         self._fresh.clear()
         for block in (pv, acc):

@@ -126,3 +126,12 @@ def test_a_degrading_radio_warns_then_holds_and_lands_the_vehicle(tmp_path: Path
     assert np.all(flying[:, 8] > 0.1), "the motors stopped in the air"
     assert np.max(np.abs(rows[t > FAIL_AT, 7])) < 1.2  # a 2 s landing from 0.8 m peaks at 0.9 m/s; a fall at 4
     assert rows[-1, 4] < 0.1
+
+
+def test_log_rates_follow_the_control_rate_so_that_the_radio_budget_holds() -> None:
+    pytest.importorskip("cflib.crtp")
+    from plant.crazyflie import log_periods
+
+    assert log_periods(0.01) == (10, 20)  # 100 Hz: position every tick, acceleration every other
+    assert log_periods(0.02) == (20, 40)  # 50 Hz: eight vehicles fit on one radio
+    assert log_periods(0.002) == (10, 20)  # never faster than cflib's 100 Hz
