@@ -31,6 +31,7 @@ from cli import roles
 from cli.args import BadArgument
 from cli.main import build_parser
 from tether import evloop
+from tether import mission as ms
 
 if TYPE_CHECKING:
     from tether.node import NodeArgs
@@ -89,7 +90,7 @@ async def serve_all(vehicles: list[tuple[str, NodeArgs]]) -> int:
         VEHICLE.set(name)
         try:
             mission = load_mission(args.mission_path, args.duration)
-        except Exception as exc:  # a MissionError: named, nothing started for this vehicle
+        except ms.MissionError as exc:  # named; nothing started for this vehicle
             logging.getLogger("tether").error("%s", exc)
             return EXIT_BAD_INPUT
         async with tp.open_session(args.zenoh) as session:

@@ -365,7 +365,7 @@ class CrazyfliePlant:
             p = None if self._pos is None else self._pos.copy()
         log.error("crazyflie %d: %s; holding %s, then landing, on its own", self.ids[0], self._down(),
                   None if p is None else np.round(p, 2).tolist())
-        self._stopped = True  # never flown by setpoints again
+        # from here on healthy() is False for good: step() sends nothing, the onboard commander flies
         for _ in range(FAILSAFE_REPEATS):
             cmd.send_notify_setpoint_stop()
         for _ in range(FAILSAFE_REPEATS):
@@ -377,12 +377,15 @@ class CrazyfliePlant:
             hl.land(0.0, sp.land_time)
             time.sleep(0.02)
         deadline = time.monotonic() + sp.land_time + 5.0
-        while time.monotonic() < deadline and self._lost is None:
+        while time.monotonic() < deadline and self._lost is None and not self._stopped:
             with self._lock:
-                if self._pos is not None and self._pos[2] <= 0.05:
-                    break
+                self._stopped = self._pos is not None and self._pos[2] <= 0.05  # down: motors may stop
             time.sleep(0.05)
-        log.error("crazyflie %d: landed on its own after its link failed", self.ids[0])
+        if self._stopped:
+            log.error("crazyflie %d: landed on its own after its link failed", self.ids[0])
+        else:  # close() then leaves it to its onboard commander, without a zero-thrust setpoint
+            log.error("crazyflie %d: not seen on the ground within %g s of the order to land", self.ids[0],
+                      sp.land_time + 5.0)
 
     def _down(self) -> str:
         if self.monitor is not None and self.monitor.failed is not None:

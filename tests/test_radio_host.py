@@ -36,6 +36,19 @@ def test_software_crazyflies_are_grouped_by_host_in_port_order_four_to_a_simulat
         radio.dongles(uris, sim_size=0)
 
 
+def test_the_radio_host_takes_one_plant_command_line_per_vehicle() -> None:
+    from cli import radio as host
+    from cli.args import BadArgument
+
+    assert host.split(["--", "--mission", "m.toml", "--id", "1", "--", "--id", "2"]) == \
+        [["--mission", "m.toml", "--id", "1"], ["--id", "2"]]
+    for bad in ([], ["--mission", "m.toml"], ["--", "--id", "1", "--"]):
+        with pytest.raises(BadArgument):
+            host.split(bad)
+    assert host.main(["--log-fds", "5,6", "--", "--id", "1", "--", "--id", "2"]) == 2  # one descriptor too many
+    assert host.main(["--", "--mission", "exp1_cf", "--id", "1", "--", "--mission", "exp1_cf", "--id", "1"]) == 2
+
+
 @pytest.mark.slow
 def test_four_crazyflies_on_one_simulated_radio_fly_exp1_cf_from_one_radio_host(tmp_path: Path) -> None:
     out_dir = tmp_path / "run"
