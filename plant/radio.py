@@ -7,7 +7,7 @@ no clock: the caller gives the time).
   process gets "device busy"), so every vehicle on a dongle must be flown from one process.
 * :class:`LinkMonitor` judges one vehicle's link from what the plant can count itself on any cflib
   driver: the share of the expected log packets that came (the downlink's delivery rate; on a radio,
-  the acknowledgements that carried them) and the ping's round trip.
+  the acknowledgements that carried them) and the pings' median round trip, both over the last window.
 """
 
 from __future__ import annotations
@@ -85,8 +85,10 @@ class LinkLimits:
     fail_latency: float = 0.25
     """A ping round trip beyond this [s], held for ``fail_after``: the link has failed (the vehicle
     flies on data this old, and its commands arrive as late)."""
-    fail_after: float = 1.0
-    """How long [s] a failing measure must last."""
+    fail_after: float = 4.0
+    """How long [s] a failing measure must last: as long as a silent link is given to speak again
+    (``plant.crazyflie.RELINK_AFTER``), so that a brief fade, or a starved host, is ridden out as an
+    outage is, and only a link that stays poor lands its vehicle."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.fail_rate <= self.warn_rate <= 1.0:
@@ -127,8 +129,10 @@ class LinkMonitor:
         self.limits = limits or LinkLimits()
         self.expected = expected
         self._arrivals: deque[float] = deque()
+        self._pongs: deque[tuple[float, float]] = deque()
         self._start: float | None = None
         self.latency = 0.0
+        """Median ping round trip [s] over the last window (0 while none came)."""
         self._bad_since: float | None = None
         self.failed: LinkReport | None = None
 
@@ -138,9 +142,9 @@ class LinkMonitor:
             self._start = now
         self._arrivals.append(now)
 
-    def round_trip(self, seconds: float) -> None:
-        """A ping came back after ``seconds``."""
-        self.latency = seconds
+    def round_trip(self, now: float, seconds: float) -> None:
+        """A ping came back at ``now`` [s] after ``seconds``."""
+        self._pongs.append((now, seconds))
 
     def judge(self, now: float) -> LinkReport:
         """The link's state at ``now`` [s] (see the class docstring)."""
@@ -149,6 +153,10 @@ class LinkMonitor:
         lim = self.limits
         while self._arrivals and self._arrivals[0] <= now - lim.window:
             self._arrivals.popleft()
+        while self._pongs and self._pongs[0][0] <= now - lim.window:
+            self._pongs.popleft()
+        rtts = sorted(r for _, r in self._pongs)
+        self.latency = rtts[len(rtts) // 2] if rtts else 0.0  # the median: one stalled ping is no trend
         if self._start is None or now - self._start < lim.window:  # not a whole window yet
             return LinkReport(OK, 1.0, self.latency, "")
         rate = min(1.0, len(self._arrivals) / (self.expected * lim.window))
