@@ -122,8 +122,9 @@ LINK_WARN_EVERY = 5.0
 """Seconds between two messages about a degraded link (a link at the threshold would flap)."""
 FAILED_HOLD = 1.0
 """How long [s] a vehicle whose link failed holds its position before it lands."""
-FAILSAFE_REPEATS = 8
-"""Copies of each order sent to a vehicle whose link failed (half its packets lost: 1 in 256 lost)."""
+FAILSAFE_REPEATS = 16
+"""Copies of each order sent to a vehicle whose link failed (60 % of its packets lost: 1 in 3500 orders
+lost)."""
 
 
 class LinkLost(RuntimeError):
@@ -376,11 +377,11 @@ class CrazyfliePlant:
                   None if p is None else np.round(p, 2).tolist())
         # from here on healthy() is False for good: step() sends nothing, the onboard commander flies
         for _ in range(FAILSAFE_REPEATS):
+            # each hand-over at once followed by its order: a stopped planner heard alone offers motors off
             cmd.send_notify_setpoint_stop()
-        for _ in range(FAILSAFE_REPEATS):
             if p is not None:
                 hl.go_to(float(p[0]), float(p[1]), float(p[2]), sp.yaw, 1.0)
-                time.sleep(0.02)
+            time.sleep(0.02)
         time.sleep(FAILED_HOLD)
         for _ in range(FAILSAFE_REPEATS):
             hl.land(0.0, sp.land_time)
