@@ -154,7 +154,12 @@ class Launch:
         if not self.logs:
             self.open_logs()
         env = child_env(self.opts)
+        hosted = self.radio_groups()
         for role, nid in self.members():
+            if role == "plant" and nid in hosted:
+                if hosted[nid][0] == nid:
+                    self.spawn_radio_host(hosted[nid], router, sec, env)
+                continue
             cmd = self.argv(role, nid, router, sec)
             fh = self.logs.pop((role, nid))
             path = Path(fh.name)
@@ -162,6 +167,37 @@ class Launch:
                 proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
                                         env=env, start_new_session=True)
             self.children.append(Child(role, nid, proc, path))
+
+    def radio_groups(self) -> dict[int, tuple[int, ...]]:
+        """Crazyflies that share a dongle with another (:func:`plant.radio.dongles`), by agent id: the
+        ids of its dongle's vehicles. They are flown by one radio host process (:mod:`cli.radio`)."""
+        from plant import radio
+
+        o = self.opts
+        if o.colocate_plants or o.shared_plants or self.mission.payload is not None or o.wrap:
+            return {}
+        cfs = [(a.id, a.plant.uri) for a in self.mission.agents if isinstance(a.plant, ms.CrazyfliePlant)]
+        return {aid: d.agents for d in radio.dongles(cfs) if len(d.agents) > 1 for aid in d.agents}
+
+    def spawn_radio_host(self, ids: tuple[int, ...], router: str, sec: localtls.Security | None,
+                         env: dict[str, str]) -> None:
+        """Start one radio host for the plants ``ids``: each keeps its command line (its identity, its
+        endpoints) and its log; the process is each plant's :class:`Child`."""
+        cmd = [sys.executable, "-m", "cli.radio"]
+        fhs = [self.logs.pop(("plant", nid)) for nid in ids]
+        if len(ids) > 1:
+            cmd += ["--log-fds", ",".join(str(fh.fileno()) for fh in fhs[1:])]
+        for nid in ids:
+            full = self.argv("plant", nid, router, sec)
+            cmd += ["--", *full[full.index("plant") + 1:]]  # its options, after python -m cli plant
+        try:
+            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=fhs[0], stderr=subprocess.STDOUT, env=env,
+                                    start_new_session=True, pass_fds=[fh.fileno() for fh in fhs[1:]])
+        finally:
+            for fh in fhs:
+                fh.close()
+        for nid, fh in zip(ids, fhs):
+            self.children.append(Child("plant", nid, proc, Path(fh.name)))
 
     def argv(self, role: str, nid: int, router: str, sec: localtls.Security | None) -> list[str]:
         """The command line of member ``role/nid`` (see :meth:`spawn`)."""

@@ -1,9 +1,12 @@
 """``tether run MISSION --sitl``: start the software Crazyflies a Crazyflie mission needs, stop them
 at the end.
 
-Every agent whose plant is ``crazyflie`` with a ``udp://HOST:PORT`` URI on this machine gets one
-``python -m plant.cfsim --count 1 --base-port PORT --instance ID --p0 X,Y,Z`` process (its agent's
-``p0``, so the vehicle stands where the mission says it starts). The launcher waits, with a deadline,
+Every agent whose plant is ``crazyflie`` with a ``udp://HOST:PORT`` URI on this machine gets a
+software Crazyflie on that port, standing at its agent's ``p0``. The vehicles are grouped by simulated
+dongle as ``tether run`` groups real ones (:func:`plant.radio.dongles`: four to a dongle, in port
+order), and each group is one ``python -m plant.cfsim --radio --count N --port P... --p0 X,Y,Z...``
+process: its vehicles share the dongle's airtime over a Crazyradio-like link (retries, in order),
+and the radio host that flies them is one process too. The launcher waits, with a deadline,
 for each to print ``cfsim ready``; then the run proceeds as against real vehicles. The simulators are
 stopped (SIGTERM, then SIGKILL after a grace) whatever ends the run: its end, a failure, Ctrl-C or
 SIGTERM. Each is started in its own session (a terminal's Ctrl-C reaches the launcher only, which
@@ -44,6 +47,15 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost", "0.0.0.0")
 STARTUP_TIMEOUT = 30.0
 """How long [s] a simulator may take to print ``cfsim ready`` (numpy's import on a loaded machine)."""
 STOP_GRACE = 5.0
+
+
+def groups(m: ms.Mission) -> list[list["SitlVehicle"]]:
+    """The software Crazyflies of ``m`` by simulated dongle (:func:`plant.radio.dongles`)."""
+    from plant import radio
+
+    by_id = {v.agent_id: v for v in vehicles(m)}
+    uris = [(v.agent_id, f"udp://{v.host}:{v.port}") for v in by_id.values()]
+    return [[by_id[a] for a in d.agents] for d in radio.dongles(uris)]
 
 
 @dataclass(frozen=True)
@@ -155,8 +167,8 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
     files: dict[int, BinaryIO] = {}
     try:
         with safefs.Dir.open(logs.parent) as top, top.sub(logs.name) as d:
-            for v in vehicles(m):
-                files[v.agent_id] = d.open_log(f"cfsim-{v.agent_id}.log")
+            for g in groups(m):
+                files[g[0].agent_id] = d.open_log(f"cfsim-{g[0].agent_id}.log")
     except OSError as exc:
         from tether.node import os_error
 
@@ -170,15 +182,17 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     try:
-        for v in vehicles(m):
-            cmd = [sys.executable, "-m", "plant.cfsim", "--count", "1", "--host", v.host if v.host != "localhost" else "127.0.0.1",
-                   "--base-port", str(v.port), "--instance", str(v.agent_id),
-                   "--p0=" + ",".join(repr(c) for c in v.p0), "--log-level", "WARNING", *extra]
+        for g in groups(m):
+            v, aid = g[0], g[0].agent_id
+            cmd = [sys.executable, "-m", "plant.cfsim", "--radio", "--count", str(len(g)),
+                   "--host", v.host if v.host != "localhost" else "127.0.0.1", "--instance", str(aid),
+                   *(a for w in g for a in ("--port", str(w.port))), *("--p0=" + ",".join(repr(c) for c in w.p0) for w in g),
+                   "--log-level", "INFO", *extra]
             p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  text=True, env=env, preexec_fn=_set_pdeathsig)  # noqa: PLW1509 (setsid + prctl only)
-            sitl.procs[v.agent_id] = p
-            sitl.stderr[v.agent_id] = []
-            _pump(v.agent_id, p, sitl.stderr[v.agent_id], ready, files.pop(v.agent_id))
+            sitl.procs[aid] = p
+            sitl.stderr[aid] = []
+            _pump(aid, p, sitl.stderr[aid], ready, files.pop(aid))
         waiting = set(sitl.procs)
         deadline = time.monotonic() + timeout
         while waiting:

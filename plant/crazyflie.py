@@ -5,8 +5,10 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
 
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
-2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` and ``stateEstimate.ax/ay/az`` (world frame, in g) in
-   two blocks at 100 Hz, cflib's fastest (one block cannot hold nine floats: 26 bytes per packet).
+2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` once a control tick (at most 100 Hz, cflib's fastest) and
+   ``stateEstimate.ax/ay/az`` (world frame, in g) every other tick, in two blocks (one block cannot hold
+   nine floats: 26 bytes per packet; :func:`log_periods`: four vehicles at 100 Hz, eight at 50 Hz fit
+   on one radio, ``docs/crazyflie.md``).
 3. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
 4. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
 
@@ -69,6 +71,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -77,6 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plant import radio
 from plant.base import Sample
 from plant.cfsim import motors
 from plant.quadrotor import QuadrotorParams, eq4
@@ -89,6 +93,16 @@ G = _CF21.g
 MOTOR_THRUST_MAX = _CF21.motor_thrust_max
 """Per-motor thrust at full command [N] (a Crazyflie 2.1's, with its source in ``plant.quadrotor``)."""
 LOG_PERIOD_MS = 10
+"""Shortest period of the position and velocity log block [ms] (100 Hz, cflib's fastest)."""
+
+
+def log_periods(dt: float) -> tuple[int, int]:
+    """The log blocks' periods [ms] for a plant ticking every ``dt`` [s]: position and velocity once a
+    tick (never faster than :data:`LOG_PERIOD_MS`: a sample per tick is all the plant reads),
+    acceleration every other tick. Four vehicles at 100 Hz or eight at 50 Hz fit on one radio (the
+    radio budget in ``docs/crazyflie.md``, ``python bench/radio.py``)."""
+    pv = max(LOG_PERIOD_MS, int(round(1000.0 * dt)))
+    return pv, 2 * pv
 STALE_AFTER = 1.0
 """A link whose state estimate has not come for this long [s] counts as down (100 log packets at
 100 Hz; a loaded host can delay a few tens of them)."""
@@ -99,6 +113,18 @@ RECONNECT_ATTEMPTS = 4
 """Reconnections tried before the plant gives the vehicle up."""
 RECONNECT_BACKOFF = 0.25
 """Pause before the second attempt [s]; doubled before each further one."""
+
+
+LINK_LIMITS = radio.LinkLimits()
+"""When the link is worth a warning and when it fails (below 90 % of the log packets: a warning, as
+Crazyswarm2 warns; below 50 %, or pings slower than 250 ms, for 4 s: failed)."""
+LINK_WARN_EVERY = 5.0
+"""Seconds between two messages about a degraded link (a link at the threshold would flap)."""
+FAILED_HOLD = 1.0
+"""How long [s] a vehicle whose link failed holds its position before it lands."""
+FAILSAFE_REPEATS = 16
+"""Copies of each order sent to a vehicle whose link failed (60 % of its packets lost: 1 in 3500 orders
+lost)."""
 
 
 class LinkLost(RuntimeError):
@@ -156,6 +182,10 @@ class CrazyfliePlant:
         """Where the vehicle was when the link closed (after landing) [m]."""
         self.cf: Any = None
         """``cflib.crazyflie.Crazyflie`` once :meth:`_connect` ran (cflib ships no type information)."""
+        self.monitor: radio.LinkMonitor | None = None
+        """The link's delivery rate and ping round trip (:meth:`_watch_link`), from the logs' start."""
+        self._link_said = (radio.OK, -math.inf)
+        """The last warning's state and when it was logged (:meth:`_link_failed`)."""
 
     def open(self) -> "CrazyfliePlant":
         """Connect, start the logs and take off (blocks until airborne; every wait bounded).
@@ -213,14 +243,16 @@ class CrazyfliePlant:
     def _start_logs(self) -> None:
         from cflib.crazyflie.log import LogConfig
 
-        pv = LogConfig(name="tether_pv", period_in_ms=LOG_PERIOD_MS)
+        pv_ms, acc_ms = log_periods(self._h)
+        pv = LogConfig(name="tether_pv", period_in_ms=pv_ms)
         for n in ("x", "y", "z", "vx", "vy", "vz"):
             pv.add_variable(f"stateEstimate.{n}", "float")
-        acc = LogConfig(name="tether_a", period_in_ms=LOG_PERIOD_MS)
+        acc = LogConfig(name="tether_a", period_in_ms=acc_ms)
         for n in ("ax", "ay", "az"):
             acc.add_variable(f"stateEstimate.{n}", "float")
         pv.data_received_cb.add_callback(self._on_pv)
         acc.data_received_cb.add_callback(self._on_acc)
+        self._watch_link(1000.0 / pv_ms + 1000.0 / acc_ms)
         since = time.monotonic()
         self._fresh.clear()
         for block in (pv, acc):
@@ -243,12 +275,16 @@ class CrazyfliePlant:
     def _on_pv(self, timestamp: int, data: dict[str, float], block: Any) -> None:
         self._last_log = time.monotonic()
         with self._lock:
+            if self.monitor is not None:
+                self.monitor.packet(self._last_log)
             self._pos = np.array([data[f"stateEstimate.{n}"] for n in ("x", "y", "z")], dtype=float)
             self._vel = np.array([data[f"stateEstimate.{n}"] for n in ("vx", "vy", "vz")], dtype=float)
         self._fresh.set()
 
     def _on_acc(self, timestamp: int, data: dict[str, float], block: Any) -> None:
         with self._lock:
+            if self.monitor is not None:
+                self.monitor.packet(time.monotonic())
             self._acc = G * np.array([data[f"stateEstimate.{n}"] for n in ("ax", "ay", "az")], dtype=float)
 
     def _wait_until(self, ready: Callable[[], bool], timeout: float, what: str) -> None:
@@ -286,10 +322,84 @@ class CrazyfliePlant:
     # ------------------------------------------------------------------ the protocol
     # ------------------------------------------------------------------ link health
     def healthy(self) -> bool:
-        """The link is up and the state estimate fresh (not older than ``STALE_AFTER``)."""
-        return self._lost is None and time.monotonic() - self._last_log <= STALE_AFTER
+        """The link is up, fit to fly (:meth:`_link_failed`) and the state estimate fresh (not older than
+        ``STALE_AFTER``)."""
+        return self._lost is None and time.monotonic() - self._last_log <= STALE_AFTER and not self._link_failed()
+
+    def _watch_link(self, expected: float) -> None:
+        """Count this link's log packets (``expected`` a second) and ping round trips from now on."""
+        from cflib.crtp.crtpstack import CRTPPort
+
+        mon = radio.LinkMonitor(expected, LINK_LIMITS)
+        with self._lock:
+            self.monitor = mon
+
+        def pong(packet: Any) -> None:  # cflib's echo: (header 0, the sender's time.time()) as Latency.ping sends it
+            data = bytes(packet.data)
+            if len(data) == 9 and data[0] == 0:
+                with self._lock:
+                    mon.round_trip(time.monotonic(), time.time() - struct.unpack("<d", data[1:])[0])
+
+        self.cf.add_header_callback(pong, CRTPPort.LINKCTRL, 0)
+
+    def _link_failed(self) -> bool:
+        """Judge the link (:class:`plant.radio.LinkMonitor`): log a warning when it degrades (again at most
+        every :data:`LINK_WARN_EVERY`); True once it has failed, for good: the plant then lands the
+        vehicle (:meth:`recover`)."""
+        if self.monitor is None:
+            return False
+        now = time.monotonic()
+        with self._lock:
+            rep = self.monitor.judge(now)
+        said, when = self._link_said
+        if rep.state == radio.FAIL and said != radio.FAIL:
+            self._link_said = (rep.state, now)
+            log.error("crazyflie %d: link failed: %s (fails below %.0f %% or above %.0f ms for %g s)", self.ids[0],
+                      rep.why, 100 * LINK_LIMITS.fail_rate, 1000 * LINK_LIMITS.fail_latency, LINK_LIMITS.fail_after)
+        elif rep.state == radio.WARN and now - when >= LINK_WARN_EVERY:
+            self._link_said = (rep.state, now)
+            log.warning("crazyflie %d: link degraded: %s (warns below %.0f %%)", self.ids[0], rep.why,
+                        100 * LINK_LIMITS.warn_rate)
+        elif rep.state == radio.OK and said == radio.WARN and now - when >= LINK_WARN_EVERY:
+            self._link_said = (rep.state, now)
+            log.warning("crazyflie %d: link good again: %s", self.ids[0], rep.why)
+        return rep.state == radio.FAIL
+
+    def _hold_then_land(self) -> None:
+        """A link no longer fit to fly: the vehicle holds its last position on its own for
+        :data:`FAILED_HOLD`, then lands with its high-level commander (neither needs the link once
+        heard; each order is sent :data:`FAILSAFE_REPEATS` times, since a failing link loses many);
+        the plant sends it nothing more. Blocks, bounded."""
+        sp, cmd, hl = self.spec, self.cf.commander, self.cf.high_level_commander
+        with self._lock:
+            p = None if self._pos is None else self._pos.copy()
+        log.error("crazyflie %d: %s; holding %s, then landing, on its own", self.ids[0], self._down(),
+                  None if p is None else np.round(p, 2).tolist())
+        # from here on healthy() is False for good: step() sends nothing, the onboard commander flies
+        for _ in range(FAILSAFE_REPEATS):
+            # each hand-over at once followed by its order: a stopped planner heard alone offers motors off
+            cmd.send_notify_setpoint_stop()
+            if p is not None:
+                hl.go_to(float(p[0]), float(p[1]), float(p[2]), sp.yaw, 1.0)
+            time.sleep(0.02)
+        time.sleep(FAILED_HOLD)
+        for _ in range(FAILSAFE_REPEATS):
+            hl.land(0.0, sp.land_time)
+            time.sleep(0.02)
+        deadline = time.monotonic() + sp.land_time + 5.0
+        while time.monotonic() < deadline and self._lost is None and not self._stopped:
+            with self._lock:
+                self._stopped = self._pos is not None and self._pos[2] <= 0.05  # down: motors may stop
+            time.sleep(0.05)
+        if self._stopped:
+            log.error("crazyflie %d: landed on its own after its link failed", self.ids[0])
+        else:  # close() then leaves it to its onboard commander, without a zero-thrust setpoint
+            log.error("crazyflie %d: not seen on the ground within %g s of the order to land", self.ids[0],
+                      sp.land_time + 5.0)
 
     def _down(self) -> str:
+        if self.monitor is not None and self.monitor.failed is not None:
+            return f"link failed: {self.monitor.failed.why}"
         if self._lost is not None:
             return self._lost
         return f"no state estimate for {time.monotonic() - self._last_log:.2f} s"
@@ -313,6 +423,9 @@ class CrazyfliePlant:
         import asyncio
 
         uid = self.ids[0]
+        if self.monitor is not None and self.monitor.failed is not None:  # reconnecting mends no radio
+            await asyncio.to_thread(self._hold_then_land)
+            return False
         self.hold_blind()
         deadline = time.monotonic() + RELINK_AFTER
         while self._lost is None and not self.healthy() and time.monotonic() < deadline:

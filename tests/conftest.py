@@ -47,7 +47,7 @@ REAL_TIME_FILES = frozenset({
     "test_lies.py", "test_observe.py", "test_partition.py", "test_plant_envelope.py", "test_plant_watchdog.py",
     "test_record_crash.py", "test_redteam.py", "test_rehearse.py", "test_rejoin.py", "test_relay.py",
     "test_rt_priority.py", "test_runtime.py", "test_runtime_netem.py", "test_secure_run.py", "test_shared_plants.py",
-    "test_sites.py", "test_sitl.py", "test_skew.py",
+    "test_radio_host.py", "test_radio_link.py", "test_radio_monitor.py", "test_sites.py", "test_sitl.py", "test_skew.py",
 })
 """Files whose slow tests fly swarms (or Crazyflies) in real time."""
 

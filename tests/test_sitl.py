@@ -71,7 +71,7 @@ def test_refused_before_anything_starts(tmp_path: Path) -> None:
 @pytest.mark.slow  # real launchers, refused before any simulator starts
 def test_an_unsafe_out_or_a_linked_simulator_log_is_refused_before_any_simulator_starts(tmp_path: Path) -> None:
     """``--out`` another user could write is refused (exit 2) before anything starts; so is a
-    simulator's log (``logs/cfsim-<id>.log``) that is a link to a root-only file, which is named,
+    simulator's log (``logs/cfsim-<id>.log``, by its first vehicle) that is a link to a root-only file, which is named,
     never followed, and its target left untouched."""
     shared = tmp_path / "shared"
     shared.mkdir()
@@ -87,13 +87,13 @@ def test_an_unsafe_out_or_a_linked_simulator_log_is_refused_before_any_simulator
     secret.chmod(0o600)
     run = tmp_path / "run"
     (run / "logs").mkdir(parents=True)
-    (run / "logs" / "cfsim-3.log").symlink_to(secret)
+    (run / "logs" / "cfsim-1.log").symlink_to(secret)
     p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--duration", "2", "--out", str(run))
     out, _ = p.communicate(timeout=240)
     assert p.returncode == 2, out
-    assert "--out" in out and "cfsim-3.log is a symbolic link" in out and "Traceback" not in out, out
+    assert "--out" in out and "cfsim-1.log is a symbolic link" in out and "Traceback" not in out, out
     assert "software Crazyflies ready" not in out and "router listening" not in out
-    assert secret.read_text() == "root only\n" and (run / "logs" / "cfsim-3.log").is_symlink()
+    assert secret.read_text() == "root only\n" and (run / "logs" / "cfsim-1.log").is_symlink()
     assert not (run / "run.npz").exists()
     assert not simulators()
 
@@ -108,7 +108,9 @@ def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
     assert p.returncode in (0, 3, 5), out
     assert "software Crazyflies ready" in out and "software Crazyflies stopped" in out
     assert (out_dir / "run.npz").is_file()
-    assert sorted(f.name for f in (out_dir / "logs").glob("cfsim-*.log")) == [f"cfsim-{i}.log" for i in (1, 2, 3, 4)]
+    # four vehicles on one simulated dongle: one simulator, one radio host
+    assert sorted(f.name for f in (out_dir / "logs").glob("cfsim-*.log")) == ["cfsim-1.log"]
+    assert " radio 0: up " in (out_dir / "logs" / "cfsim-1.log").read_text()
     assert not simulators()
 
 
@@ -117,7 +119,7 @@ def test_sitl_run_flies_and_stops_its_simulators(tmp_path: Path) -> None:
 def test_no_simulator_outlives_an_interrupted_or_killed_launcher(tmp_path: Path, how: str) -> None:
     p = tether_popen("run", str(mission(tmp_path)), "--sitl", "--duration", "60", "--out", str(tmp_path / "run"))
     try:
-        wait_until(lambda: len(simulators()) == 4, 60.0, "four simulators")
+        wait_until(lambda: len(simulators()) == 1, 60.0, "the simulated radio's simulator")
         time.sleep(1.0)
         if how == "sigint":
             p.send_signal(signal.SIGINT)  # Ctrl-C: the launcher lands the vehicles and stops everything

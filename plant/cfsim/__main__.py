@@ -41,6 +41,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m plant.cfsim", description=__doc__.split("\n")[0])
     ap.add_argument("--count", type=int, default=1, help="number of vehicles (default 1)")
     ap.add_argument("--base-port", type=int, default=19850, help="UDP port of vehicle 0 (default 19850)")
+    ap.add_argument("--port", type=int, action="append", metavar="P",
+                    help="UDP port of the next vehicle, instead of --base-port + i; give it once per vehicle")
     ap.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     ap.add_argument("--instance", type=int, default=0,
                     help="index of the first vehicle, reported in param cfsim.instance (default 0)")
@@ -71,11 +73,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                       help="extra link delay, uniform in [0, MS] (default 0)")
     real.add_argument("--loss", type=float, default=0.0, metavar="P",
                       help="probability that a datagram is lost, each way, 0..1 (default 0)")
+    radio = ap.add_argument_group("a Crazyradio-like link (off by default; --loss, --latency, --jitter then apply "
+                                  "to it: --loss per attempt, --jitter never reorders)")
+    radio.add_argument("--radio", action="store_true",
+                       help="acknowledgements and bounded retries, in-order delivery, airtime shared per dongle")
+    radio.add_argument("--radio-rate", type=float, default=1000.0, metavar="HZ",
+                       help="with --radio: attempts per second one dongle carries, each way (default 1000)")
+    radio.add_argument("--radio-retries", type=int, default=3, metavar="N",
+                       help="with --radio: retransmissions before a packet is lost (default 3)")
+    radio.add_argument("--per-radio", type=int, default=0, metavar="N",
+                       help="with --radio: vehicles per simulated dongle (default 0: all of this process on one)")
+    radio.add_argument("--degrade", action="append", default=[], metavar="T:P",
+                       help="with --radio: from T seconds after start, attempts are lost with probability P "
+                            "(repeat for more steps, in time order)")
     ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = ap.parse_args(argv)
     if args.count < 1:
         ap.error(f"--count {args.count}: give at least 1")
-    if not 1 <= args.base_port <= 65536 - args.count:
+    if args.port is not None and len(args.port) != args.count:
+        ap.error(f"--port given {len(args.port)} times for --count {args.count}: give it once per vehicle or not at all")
+    if args.port is not None and not all(1 <= p <= 65535 for p in args.port):
+        ap.error(f"--port {args.port}: every port must lie in 1..65535")
+    if args.port is None and not 1 <= args.base_port <= 65536 - args.count:
         ap.error(f"--base-port {args.base_port}: ports {args.base_port}..{args.base_port + args.count - 1} "
                  "must lie in 1..65535")
     if args.p0 is not None and len(args.p0) != args.count:
@@ -88,9 +107,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.battery_cfg = (realism.BatteryConfig(capacity_mah=args.battery_mah, charge=args.battery_charge)
                             if args.battery else None)
         args.link_cfg = realism.LinkConfig(args.latency / 1000.0, args.jitter / 1000.0, args.loss, args.seed)
+        args.radio_cfg = _radio(args) if args.radio else None
     except ValueError as e:
         ap.error(f"realism option: {e}")
     return args
+
+
+def _radio(args: argparse.Namespace) -> realism.RadioConfig:
+    """The ``--radio`` options as a :class:`realism.RadioConfig`; ``ValueError`` names the bad one."""
+    steps = []
+    for step in args.degrade:
+        try:
+            t, p = (float(x) for x in step.split(":"))
+        except ValueError:
+            raise ValueError(f"--degrade {step!r}: give T:P, seconds after start and a loss, e.g. 10:0.6") from None
+        steps.append((t, p))
+    if args.per_radio < 0:
+        raise ValueError(f"--per-radio {args.per_radio}: give 0 (all on one dongle) or more")
+    return realism.RadioConfig(rate=args.radio_rate, retries=args.radio_retries, loss=args.loss,
+                               latency=args.latency / 1000.0, jitter=args.jitter / 1000.0,
+                               degrade=tuple(steps), seed=args.seed)
 
 
 def config(args: argparse.Namespace) -> server.SimConfig:
@@ -101,14 +137,16 @@ def config(args: argparse.Namespace) -> server.SimConfig:
 
     return server.SimConfig(
         vehicles=tuple(
-            server.VehicleConfig(port=args.base_port + i, p0=p0,
+            server.VehicleConfig(port=args.port[i] if args.port else args.base_port + i, p0=p0,
                                  firmware=FirmwareConfig(instance=args.instance + i, noise=noise(args.instance + i),
                                                          battery=args.battery_cfg))
             for i, p0 in enumerate(starts)
         ),
         host=args.host,
         trace=args.trace,
-        link=args.link_cfg,
+        link=realism.LinkConfig() if args.radio_cfg else args.link_cfg,
+        radio=args.radio_cfg,
+        per_radio=args.per_radio,
     )
 
 

@@ -20,7 +20,7 @@ a seed and the sequence of calls fix every outcome. All three are off by default
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -184,3 +184,109 @@ class LinkModel:
             return None
         self.passed += 1
         return c.latency + c.jitter * float(j)
+
+
+UP, DOWN = 0, 1
+"""The two ways of a radio link: from the ground (cflib) to the vehicle, and back."""
+
+
+@dataclass(frozen=True)
+class RadioConfig:
+    """A Crazyradio-like link (``--radio``): one simulated dongle carries every vehicle on it.
+
+    A packet is transmitted in attempts, one ``1 / rate`` airtime slot each, on the dongle's shared
+    airtime of its way (uplink and downlink each carry ``rate`` slots a second: on a real Crazyradio a
+    downlink packet rides on the acknowledgement of an uplink one, so the two ways run side by side);
+    an attempt is lost with probability ``loss`` and retried, up to ``retries`` times (the nRF24's
+    automatic retransmission; the Crazyradio's default is 3), after which the packet is lost and
+    counted. A packet that would wait more than ``queue`` [s] for airtime is dropped and counted (a
+    full queue). Packets of one vehicle and one way arrive in the order they were sent, ``latency``
+    (plus a uniform jitter up to ``jitter``) after their last attempt ends: jitter delays, never
+    reorders, as on a radio."""
+
+    rate: float = 1000.0
+    """Attempts per second the dongle's airtime carries, each way [1/s] (a Crazyradio PA at 2 Mbit/s
+    with cflib is of this order; give the figure measured on your own dongle)."""
+    retries: int = 3
+    """Retransmissions of a packet whose attempt was lost, before it counts as lost."""
+    loss: float = 0.0
+    """Probability that one attempt (the packet or its acknowledgement) is lost."""
+    latency: float = 0.0
+    """Delay [s] from the end of the successful attempt to delivery (USB and host scheduling)."""
+    jitter: float = 0.0
+    """Extra delay, uniform in [0, jitter] [s]; never reorders."""
+    queue: float = 0.1
+    """Longest wait for airtime [s] before a packet is dropped."""
+    degrade: tuple[tuple[float, float], ...] = ()
+    """Steps ``(t, loss)``, in time order: from ``t`` [s, on the caller's clock] on, attempts are lost
+    with probability ``loss`` instead (a vehicle flying out of range, a crowded channel)."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check("rate", self.rate, open_lo=True)
+        _check("loss", self.loss, 0.0, 1.0)
+        _check("latency", self.latency, 0.0, 5.0)
+        _check("jitter", self.jitter, 0.0, 5.0)
+        _check("queue", self.queue, 0.0, 5.0)
+        if not (isinstance(self.retries, int) and 0 <= self.retries <= 15):
+            raise ValueError(f"retries = {self.retries!r}: give a whole number in [0, 15] (the nRF24's limit)")
+        for t, p in self.degrade:
+            _check("degrade time", t)
+            _check("degrade loss", p, 0.0, 1.0)
+        if [t for t, _ in self.degrade] != sorted(t for t, _ in self.degrade):
+            raise ValueError(f"degrade = {self.degrade!r}: give the steps in time order")
+
+    def loss_at(self, now: float) -> float:
+        """Probability [0..1] that an attempt at ``now`` [s] is lost."""
+        loss = self.loss
+        for t, p in self.degrade:
+            if now >= t:
+                loss = p
+        return loss
+
+
+@dataclass
+class RadioCounts:
+    """What one simulated dongle did, per way (index :data:`UP` or :data:`DOWN`)."""
+
+    sent: list[int] = field(default_factory=lambda: [0, 0])
+    """Packets delivered."""
+    attempts: list[int] = field(default_factory=lambda: [0, 0])
+    """Attempts made (each one slot of airtime)."""
+    lost: list[int] = field(default_factory=lambda: [0, 0])
+    """Packets lost after every retry."""
+    overflow: list[int] = field(default_factory=lambda: [0, 0])
+    """Packets dropped because the queue for airtime was full."""
+
+
+class Radio:
+    """One simulated dongle's airtime and losses, shared by its vehicles (see :class:`RadioConfig`).
+    Pure: the caller gives the time, a seeded generator draws the losses."""
+
+    def __init__(self, cfg: RadioConfig) -> None:
+        self.cfg = cfg
+        self._rng = np.random.default_rng(cfg.seed)
+        self._free = [-math.inf, -math.inf]
+        """When each way's airtime is next free [s]."""
+        self.counts = RadioCounts()
+
+    def transmit(self, now: float, way: int, after: float = -math.inf) -> float | None:
+        """Send one packet at ``now`` [s] on ``way``; returns when it arrives [s], never before
+        ``after`` (the arrival of the same stream's previous packet), or ``None`` if it is lost."""
+        c, n = self.cfg, self.counts
+        start = max(now, self._free[way])
+        if start - now > c.queue:
+            n.overflow[way] += 1
+            return None
+        loss = c.loss_at(now)
+        tries, delivered = 0, False
+        while not delivered and tries <= c.retries:
+            tries += 1
+            delivered = self._rng.random() >= loss
+        self._free[way] = start + tries / c.rate
+        n.attempts[way] += tries
+        if not delivered:
+            n.lost[way] += 1
+            return None
+        n.sent[way] += 1
+        return max(after, self._free[way] + c.latency + c.jitter * float(self._rng.random()))

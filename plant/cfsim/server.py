@@ -17,9 +17,12 @@ missing time is skipped instead and counted in :attr:`Ticker.slips`.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import logging
+import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TextIO
@@ -62,14 +65,48 @@ class SimConfig:
     """File to record every vehicle's true state in, one line per vehicle and tick (see :class:`Ticker`)."""
     link: realism.LinkConfig = field(default_factory=realism.LinkConfig)
     """Latency and loss of every vehicle's link, both ways (vehicle i seeds its link with seed + i)."""
+    radio: realism.RadioConfig | None = None
+    """A Crazyradio-like link instead of ``link`` (:class:`RadioLink`); None: plain UDP."""
+    per_radio: int = 0
+    """With ``radio``: vehicles per simulated dongle (vehicle i of the process is on dongle
+    ``i // per_radio``, seeded ``seed + dongle``); 0: every vehicle of the process on one."""
+
+
+class RadioLink:
+    """One vehicle's two streams through its simulated dongle (:class:`realism.Radio`, shared with the
+    dongle's other vehicles): each datagram waits for airtime and its retries, and arrives in order
+    or not at all. Runs in the event loop's thread; a FIFO per way holds what is in the air, so that
+    two arrivals due at the same instant still come out in the order they were sent."""
+
+    def __init__(self, radio: realism.Radio, monotonic: Callable[[], float], t0: float) -> None:
+        self.radio = radio
+        self._monotonic = monotonic
+        self._t0 = t0
+        self._last = [-math.inf, -math.inf]
+        self._air: tuple[deque[Callable[[], None]], deque[Callable[[], None]]] = (deque(), deque())
+
+    def carry(self, way: int, deliver: Callable[[], None]) -> None:
+        """Put one datagram on ``way`` (:data:`realism.UP` or :data:`realism.DOWN`); ``deliver`` is
+        called when it arrives, never if it is lost. Returns at once."""
+        now = self._monotonic() - self._t0
+        at = self.radio.transmit(now, way, self._last[way])
+        if at is None:
+            return
+        self._last[way] = at
+        self._air[way].append(deliver)
+        asyncio.get_running_loop().call_later(max(0.0, at - now), self._land, way)
+
+    def _land(self, way: int) -> None:
+        self._air[way].popleft()()
 
 
 class Endpoint(asyncio.DatagramProtocol):
     """One vehicle's UDP endpoint. Datagrams are handled in the event loop's thread, in order."""
 
     def __init__(self, fw: Firmware, client_timeout: float, monotonic: Callable[[], float],
-                 link: realism.LinkConfig | None = None) -> None:
+                 link: realism.LinkConfig | None = None, radio: RadioLink | None = None) -> None:
         self.fw = fw
+        self._radio = radio
         self._link_in = realism.LinkModel(link) if link is not None and link.active else None
         self._link_out = (realism.LinkModel(realism.LinkConfig(link.latency, link.jitter, link.loss, link.seed + 1_000_003))
                           if link is not None and link.active else None)
@@ -86,6 +123,9 @@ class Endpoint(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: Address) -> None:
         self.received += 1
+        if self._radio is not None:
+            self._radio.carry(realism.UP, functools.partial(self._receive, data, addr))
+            return
         if self._link_in is not None:
             delay = self._link_in.decide()
             if delay is None:
@@ -120,6 +160,9 @@ class Endpoint(asyncio.DatagramProtocol):
             self._send(pk, self.client)
 
     def _send(self, pkt: crtp.Packet, addr: Address) -> None:
+        if self._radio is not None:
+            self._radio.carry(realism.DOWN, functools.partial(self._sendto, crtp.encode(pkt), addr))
+            return
         if self._link_out is not None:
             delay = self._link_out.decide()
             if delay is None:
@@ -182,13 +225,16 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
     loop = asyncio.get_running_loop()
     endpoints: list[Endpoint] = []
     trace: TextIO | None = None
+    radios = _radios(cfg)
+    t0 = monotonic()
     try:
-        for v in cfg.vehicles:
+        for i, v in enumerate(cfg.vehicles):
             quad = Quadrotor(cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
             link = cfg.link
             if link.active:
                 link = realism.LinkConfig(link.latency, link.jitter, link.loss, link.seed + v.firmware.instance)
-            ep = Endpoint(Firmware(quad, v.firmware), cfg.client_timeout, monotonic, link)
+            radio = None if not radios else RadioLink(radios[i // (cfg.per_radio or len(cfg.vehicles))], monotonic, t0)
+            ep = Endpoint(Firmware(quad, v.firmware), cfg.client_timeout, monotonic, None if radio else link, radio)
             await loop.create_datagram_endpoint(functools.partial(_same, ep), local_addr=(cfg.host, v.port))
             endpoints.append(ep)
         if on_ready is not None:
@@ -197,8 +243,23 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
         ticker = Ticker(endpoints, RealtimeClock(PERIOD, monotonic(), monotonic), cfg.max_lag, trace=trace)
         await ticker.run()
     finally:
+        for r, dongle in enumerate(radios):
+            n = dongle.counts
+            log.info("radio %d: up %d sent, %d lost, %d dropped (queue), %d attempts; down %d sent, %d lost, "
+                     "%d dropped (queue), %d attempts", r, n.sent[0], n.lost[0], n.overflow[0], n.attempts[0],
+                     n.sent[1], n.lost[1], n.overflow[1], n.attempts[1])
         if trace is not None:
             trace.close()
         for ep in endpoints:
             if ep.transport is not None:
                 ep.transport.close()
+
+
+def _radios(cfg: SimConfig) -> list[realism.Radio]:
+    """The simulated dongles of ``cfg`` (none without ``radio``), dongle d seeded ``seed + d``."""
+    rc = cfg.radio
+    if rc is None:
+        return []
+    per = cfg.per_radio or len(cfg.vehicles)
+    count = -(-len(cfg.vehicles) // per)
+    return [realism.Radio(dataclasses.replace(rc, seed=rc.seed + d)) for d in range(count)]
