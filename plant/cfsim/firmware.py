@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plant.cfsim import crtp, realism, toc, trajectory
+from plant.cfsim.estimator import EstimatorConfig, PositionEstimator
 from plant.cfsim.commander import (
     OFF, ZERO3, Commander, Hover, Priority, Setpoint, Track, Velocity, ZHold, generic_setpoint, vec3,
 )
@@ -81,6 +82,11 @@ class FirmwareConfig:
     """A battery that drains with thrust (off: ``pm.vbat`` is the constant :attr:`vbat`)."""
     tilt_max_manual: float = math.radians(30.0)
     """Largest roll/pitch [rad] that integrated manual rate setpoints reach."""
+    estimator: EstimatorConfig = EstimatorConfig()
+    """Where the position estimate comes from (onboard positioning, or external positions only)."""
+    radio_id: int = 0xE7
+    """Last byte of the vehicle's radio address: the id packed external positions are matched
+    against (``crtp_localization_service.c`` ``my_id``)."""
 
 
 class Firmware:
@@ -101,6 +107,7 @@ class Firmware:
         # realism
         self.noise = realism.EstimatorNoise(self.cfg.noise, PERIOD) if self.cfg.noise is not None else None
         self.battery = realism.Battery(self.cfg.battery) if self.cfg.battery is not None else None
+        self.estimator = PositionEstimator(self.cfg.estimator, quad.p)
         self._fmax = quad.params.motor_thrust_max
         self._g = quad.params.g
         self.k = 0
@@ -146,8 +153,10 @@ class Firmware:
 
     @property
     def est_p(self) -> np.ndarray:
-        """The position estimate [m; world]: the truth plus the estimator's error, if modelled."""
-        return self.quad.p if self.noise is None else self.quad.p + self.noise.position
+        """The position estimate [m; world]: the estimator's (:mod:`plant.cfsim.estimator`), plus the
+        estimator noise of :mod:`plant.cfsim.realism`, if modelled."""
+        p = self.estimator.p
+        return p.copy() if self.noise is None else p + self.noise.position
 
     @property
     def est_v(self) -> np.ndarray:
@@ -208,6 +217,7 @@ class Firmware:
         if name == "stabilizer.stop" and value:
             self.sup.lock()
         elif name == "kalman.resetEstimation" and value:
+            self.estimator.reset()
             if self.noise is not None:
                 self.noise.reset()
             self.console_print("CFSIM: state estimate reset\n")
@@ -256,7 +266,31 @@ class Firmware:
         return self.platform.handle(pkt)
 
     def _supervisor(self, pkt: Packet) -> list[Packet]:
-        return self.sup.handle(pkt, self._hl_flying(), self.hl.finished(self.t))
+        return self.sup.handle(pkt, self._hl_flying(), self.hl.finished(self.t), self.k * PERIOD_MS)
+
+    def _localization(self, pkt: Packet) -> list[Packet]:
+        """The localization service (``crtp_localization_service.c``): external positions into the
+        estimator, the deprecated emergency stop and its watchdog. Answers nothing."""
+        d = pkt.data
+        std = self.params.get("locSrv.extPosStdDev")
+        if pkt.channel == crtp.LOC_EXT_POSITION_CHANNEL:
+            self.estimator.extpos(np.array(struct.unpack("<fff", d)), std)
+        elif pkt.channel == crtp.LOC_EXT_POSITION_PACKED_CHANNEL:
+            if len(d) % 7:
+                raise ValueError("packed external positions come in 7-byte items")
+            for ident, x, y, z in struct.iter_unpack("<Bhhh", d):
+                if ident == self.cfg.radio_id:  # others' positions go to peer localization: not modelled
+                    self.estimator.extpos(np.array((x, y, z)) / 1000.0, std)
+        elif pkt.channel == crtp.LOC_GENERIC_CHANNEL and d[0] == crtp.LOC_EMERGENCY_STOP:
+            self.sup.lock()
+        elif pkt.channel == crtp.LOC_GENERIC_CHANNEL and d[0] == crtp.LOC_EMERGENCY_STOP_WATCHDOG:
+            self.sup.notify_estop_watchdog(self.k * PERIOD_MS)
+        elif pkt.channel == crtp.LOC_GENERIC_CHANNEL and d[0] == crtp.LOC_EXT_POSE:
+            _, x, y, z, *_quat = struct.unpack("<B7f", d)  # the attitude part is not modelled
+            self.estimator.extpos(np.array((x, y, z)), std)
+        else:
+            self._ignored += 1
+        return []
 
     def _high_level(self, pkt: Packet) -> list[Packet]:
         return self.hl.handle(pkt, self.t, self.sup.locked)
@@ -274,6 +308,7 @@ class Firmware:
         Port.LINKCTRL: _link,
         Port.PLATFORM: _platform,
         Port.SUPERVISOR: _supervisor,
+        Port.LOCALIZATION: _localization,
         Port.MEM: _mem,
         Port.LOG: _log,
         Port.PARAM: _param,
@@ -313,11 +348,12 @@ class Firmware:
         # 4. controller
         self._applied = sp
         self.controller.command(sp, self.est_p, self.est_v)
-        # 5. world
-        v0 = quad.v
+        # 5. world, and the estimator's view of the move
+        v0, p0 = quad.v, quad.p
         self.world.advance(PERIOD, sp)
         self.k += 1
         self._accel = (quad.v - v0) / PERIOD
+        self.estimator.tick(quad.p - p0, quad.p, PERIOD)
         if any(f > 0.0 for f in quad.motor_commands):
             self.sup.motors_ran(self.k * PERIOD_MS)
         # 6. logs and console
@@ -357,5 +393,7 @@ class Firmware:
             "pm.vbat": vbat, "pm.state": realism.PM_BATTERY if bat is None else bat.state, "pm.batteryLevel": level,
             "supervisor.info": bits,
             "sys.canfly": (bits >> BIT_CAN_FLY) & 1, "sys.isFlying": (bits >> BIT_FLYING) & 1, "sys.isTumbled": 0,
+            "kalman.varPX": self.estimator.var[0], "kalman.varPY": self.estimator.var[1],
+            "kalman.varPZ": self.estimator.var[2],
         }
         return [float(values[v.full_name]) for v in toc.LOG_VARS]
