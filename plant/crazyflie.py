@@ -156,17 +156,139 @@ class CrazyfliePlant:
         """Where the vehicle was when the link closed (after landing) [m]."""
         self.cf: Any = None
         """``cflib.crazyflie.Crazyflie`` once :meth:`_connect` ran (cflib ships no type information)."""
+        self._fleet_path = m.fleet
+        self.vehicle: Any = None
+        """The fleet's ``tether.fleet.Vehicle`` of this URI, once :meth:`open` read the fleet file."""
+        self._fleet: Any = None
+        self._mocap: Any = None
+        """The running ``plant.mocap.MocapFeed`` of a vehicle that flies on motion capture."""
+        self.health: Any = None
+        """The pre-flight ``plant.preflight.Readings`` the take-off was allowed on."""
 
     def open(self) -> "CrazyfliePlant":
         """Connect, start the logs and take off (blocks until airborne; every wait bounded).
         Raises ``ConnectionError`` naming the URI, or ``TimeoutError``; the link is closed then."""
         self._connect()
         try:
+            self._prepare()
             self._take_off()
         except BaseException:
+            self._stop_mocap()
             self.cf.close_link()
             raise
         return self
+
+    # ------------------------------------------------------------------ lab: fleet, mocap, pre-flight
+    @property
+    def mass(self) -> float:
+        """The vehicle's mass [kg] Eq. 4 uses: the fleet's for this vehicle, else the plant table's."""
+        return float(self._fleet.mass_of(self.vehicle)) if self.vehicle is not None else self.spec.mass
+
+    def _prepare(self) -> None:
+        """Before take-off (blocks, bounded): the fleet's firmware parameters, its motion-capture feed
+        and an estimator reset, if the mission names a fleet; then the pre-flight checks
+        (:mod:`plant.preflight`). Raises :class:`plant.preflight.PreflightRefused` naming the vehicle."""
+        from plant import preflight
+
+        uid, cf = self.ids[0], self.cf
+        limits, settle = preflight.Limits(), 10.0
+        name = f"crazyflie {uid} ({self.spec.uri})"
+        if self._fleet_path is not None:
+            from tether import fleet as fl
+
+            self._fleet = f = fl.load(self._fleet_path)
+            self.vehicle = v = f.by_uri(self.spec.uri)
+            if v is None:
+                raise preflight.PreflightRefused(f"{name}: no vehicle of the fleet {self._fleet_path} has this URI")
+            name = f"crazyflie {uid} ({self.spec.uri}, fleet vehicle {v.name})"
+            h = f.health
+            limits, settle = preflight.Limits(h.battery_min, h.variance_max, h.link_min), h.settle_timeout
+            vtype = f.type_of(v)
+            for param, value in vtype.params.items():
+                try:
+                    cf.param.set_value(param, value)
+                except (KeyError, AttributeError) as exc:
+                    raise preflight.PreflightRefused(f"{name}: the firmware has no parameter {param} ({exc}); "
+                                                     f"remove it from the fleet's type {v.type}") from None
+            if vtype.position_source == "mocap":
+                self._start_mocap(f, v)
+            cf.param.set_value("kalman.resetEstimation", 1)
+            cf.param.set_value("kalman.resetEstimation", 0)
+        readings = self._read_health(limits, settle)
+        why = preflight.refusals(readings, limits)
+        if why:
+            raise preflight.PreflightRefused(f"{name} refused take-off: " + "; ".join(why))
+        self.health = readings
+        log.info("crazyflie %d: pre-flight passed (%.2f V, variance %.1e m^2, link %.0f %%)", uid, readings.vbat,
+                 max(readings.variance), 100 * readings.link)
+
+    def _start_mocap(self, f: Any, v: Any) -> None:
+        from plant.mocap import MocapFeed
+
+        cf = self.cf
+        feed = MocapFeed(f.mocap.backend, f.mocap.hostname,
+                         [(v.name, lambda p: cf.extpos.send_extpos(float(p[0]), float(p[1]), float(p[2])))],
+                         options=f.mocap.options)
+        self._mocap = feed.__enter__()
+        log.info("crazyflie %d: motion capture %s %s feeds rigid body %s as extpos", self.ids[0], f.mocap.backend,
+                 f.mocap.hostname, v.name)
+
+    def _stop_mocap(self) -> None:
+        if self._mocap is not None:
+            self._mocap.__exit__(None, None, None)
+            self._mocap = None
+
+    def _read_health(self, limits: Any, settle: float) -> Any:
+        """Log what the pre-flight checks need at 10 Hz until the estimator converged (or ``settle``
+        [s] passed) and at least a second went by; the link is judged by the share of those packets
+        that came. Blocks, bounded by ``settle`` + 2 s."""
+        from cflib.crazyflie.log import LogConfig
+
+        from plant import preflight
+
+        period = 0.1
+        block = LogConfig(name="tether_health", period_in_ms=int(period * 1000))
+        for n in ("kalman.varPX", "kalman.varPY", "kalman.varPZ", "pm.vbat"):
+            block.add_variable(n, "float")
+        block.add_variable("pm.state", "int8_t")
+        block.add_variable("supervisor.info", "uint16_t")
+        got: list[dict[str, float]] = []
+        came = threading.Event()
+
+        def on_data(_stamp: int, data: dict[str, float], _block: Any) -> None:
+            got.append(dict(data))
+            came.set()
+
+        block.data_received_cb.add_callback(on_data)
+        try:
+            self.cf.log.add_config(block)
+        except KeyError as exc:
+            raise preflight.PreflightRefused(f"crazyflie {self.ids[0]} ({self.spec.uri}): the firmware does not log "
+                                             f"{exc}; pre-flight needs the Kalman estimator "
+                                             "(stabilizer.estimator = 2)") from None
+        t0 = time.monotonic()
+        block.start()
+        try:
+            while True:
+                self._check()
+                now = time.monotonic()
+                last = got[-1] if got else None
+                ok = last is not None and preflight.converged(
+                    (last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]), limits)
+                if (ok and now - t0 >= 1.0) or now - t0 >= settle + 1.0:
+                    break
+                came.clear()
+                came.wait(period)
+        finally:
+            block.delete()
+        elapsed = time.monotonic() - t0
+        if not got:
+            return preflight.Readings(math.nan, -1, 0, (math.nan,) * 3, 0.0)
+        last = got[-1]
+        return preflight.Readings(
+            vbat=last["pm.vbat"], pm_state=int(last["pm.state"]), supervisor=int(last["supervisor.info"]),
+            variance=(last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]),
+            link=min(1.0, len(got) / max(1.0, (elapsed - period) / period)))
 
     def _connect(self) -> None:
         """Open the link and start the logs (blocks, bounded by ``connect_timeout`` twice). Raises
@@ -410,7 +532,7 @@ class CrazyfliePlant:
                 (p + v * h + 0.5 * h * h * u).tolist(), (v + u * h).tolist(), u.tolist(),
                 [0.0, 0.0, math.sin(sp.yaw / 2.0), math.cos(sp.yaw / 2.0)], 0.0, 0.0, 0.0)
             return
-        thrust, roll, pitch, _ = eq4(u, sp.yaw, sp.mass + sp.feedforward_mass, G, math.radians(sp.tilt_max),
+        thrust, roll, pitch, _ = eq4(u, sp.yaw, self.mass + sp.feedforward_mass, G, math.radians(sp.tilt_max),
                                      4.0 * MOTOR_THRUST_MAX)
         self.cf.commander.send_setpoint(math.degrees(roll), math.degrees(pitch), 0.0, thrust_to_pwm(thrust))
 
@@ -439,6 +561,7 @@ class CrazyfliePlant:
                     log.error("%s", exc)
                 self.cf.high_level_commander.stop()
         finally:
+            self._stop_mocap()
             with self._lock:
                 self.final_position = None if self._pos is None else self._pos.copy()
             if self._stopped or self.healthy():
