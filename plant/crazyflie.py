@@ -240,9 +240,13 @@ class CrazyfliePlant:
 
     def _read_health(self, limits: Any, settle: float) -> Any:
         """Log what the pre-flight checks need at 10 Hz until the estimator converged (or ``settle``
-        [s] passed) and at least a second went by; the link is judged by the share of those packets
-        that came. Blocks, bounded by ``settle`` + 2 s."""
+        [s] passed) and at least a second went by, pinging the vehicle meanwhile; the link is the
+        share of those pings answered (:data:`HEALTH_PING_TAG`; a late answer counts, a lost one does
+        not). Blocks, bounded by ``settle`` + 2 s."""
+        import struct
+
         from cflib.crazyflie.log import LogConfig
+        from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
 
         from plant import preflight
 
@@ -266,11 +270,24 @@ class CrazyfliePlant:
             raise preflight.PreflightRefused(f"crazyflie {self.ids[0]} ({self.spec.uri}): the firmware does not log "
                                              f"{exc}; pre-flight needs the Kalman estimator "
                                              "(stabilizer.estimator = 2)") from None
+        answered: set[int] = set()
+
+        def on_echo(pk: Any) -> None:
+            if len(pk.data) == 5 and pk.data[0] == HEALTH_PING_TAG:
+                answered.add(struct.unpack_from("<I", pk.data, 1)[0])
+
+        self.cf.add_header_callback(on_echo, CRTPPort.LINKCTRL, 0)
+        sent = 0
         t0 = time.monotonic()
         block.start()
         try:
             while True:
                 self._check()
+                ping = CRTPPacket()
+                ping.set_header(CRTPPort.LINKCTRL, 0)
+                ping.data = struct.pack("<BI", HEALTH_PING_TAG, sent)
+                self.cf.send_packet(ping)
+                sent += 1
                 now = time.monotonic()
                 last = got[-1] if got else None
                 ok = last is not None and preflight.converged(
@@ -279,16 +296,20 @@ class CrazyfliePlant:
                     break
                 came.clear()
                 came.wait(period)
+            deadline = time.monotonic() + 0.5  # the last answers may be on their way
+            while len(answered) < sent and time.monotonic() < deadline:
+                came.clear()
+                came.wait(0.05)
         finally:
             block.delete()
-        elapsed = time.monotonic() - t0
+            self.cf.remove_header_callback(on_echo, CRTPPort.LINKCTRL, 0)
+        link = len(answered) / sent
         if not got:
-            return preflight.Readings(math.nan, -1, 0, (math.nan,) * 3, 0.0)
+            return preflight.Readings(math.nan, -1, 0, (math.nan,) * 3, link)
         last = got[-1]
         return preflight.Readings(
             vbat=last["pm.vbat"], pm_state=int(last["pm.state"]), supervisor=int(last["supervisor.info"]),
-            variance=(last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]),
-            link=min(1.0, len(got) / max(1.0, (elapsed - period) / period)))
+            variance=(last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]), link=link)
 
     def _connect(self) -> None:
         """Open the link and start the logs (blocks, bounded by ``connect_timeout`` twice). Raises
@@ -570,6 +591,8 @@ class CrazyfliePlant:
                 _drop_link(self.cf)
 
 
+HEALTH_PING_TAG = 0x7E
+"""First byte of the pre-flight's link pings (echo requests; cflib's own latency pings start with 0)."""
 PING_PERIOD = 0.1
 """Seconds between the link pings the plant sends (cflib's own ping thread's period)."""
 

@@ -7,8 +7,8 @@ A vehicle is refused take-off, with every reason named, when
   power state (``pm.state``) is low power or shut down;
 * its supervisor cannot fly (``supervisor.info`` bit 3 clear) or is locked (bit 6: an emergency stop,
   a watchdog cut; the firmware needs a restart);
-* its link delivers less than ``health.link_min`` of the state-estimate packets it should (100 a
-  second at the plant's 10 ms log period, counted over the last second);
+* its link answers less than ``health.link_min`` of the echo requests (pings) the plant sent it, ten a
+  second while the estimator converges (at least a second);
 * its estimator has not converged: a position variance (``kalman.varPX/PY/PZ``) above
   ``health.variance_max`` once ``health.settle_timeout`` has passed since the estimator was reset.
 """
@@ -42,7 +42,7 @@ class Readings:
     variance: tuple[float, float, float]
     """Position variance per axis [m^2]."""
     link: float
-    """Fraction of the expected state-estimate packets received [0..1]."""
+    """Fraction of the plant's pings the vehicle answered [0..1]."""
 
 
 @dataclass(frozen=True)
@@ -73,7 +73,7 @@ def refusals(r: Readings, lim: Limits) -> list[str]:
     elif not r.supervisor >> BIT_CAN_FLY & 1:
         out.append("the supervisor says it cannot fly (not armed?); arm it or check its deck and sensors")
     if not (math.isfinite(r.link) and r.link >= lim.link_min):
-        out.append(f"the link delivers {100 * r.link:.0f} % of the state estimates (needs {100 * lim.link_min:.0f} "
+        out.append(f"the link answers {100 * r.link:.0f} % of the pings (needs {100 * lim.link_min:.0f} "
                    "%); move the Crazyradio closer, change channel, or fly fewer vehicles per radio")
     if not converged(r.variance, lim):
         worst = max(r.variance) if all(math.isfinite(v) for v in r.variance) else math.nan
