@@ -1,14 +1,18 @@
 """A Crazyflie through cflib: a real vehicle (``radio://``, ``usb://``) or the software one
 (``udp://``, ``python -m plant.cfsim``). The :class:`plant.base.Plant` of ``plant = "crazyflie"``.
 
-Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout, cflib's own ``open_link`` has none):
+Lifetime (:meth:`CrazyfliePlant.open` does 1-4; every step bounded by a timeout, cflib's own ``open_link`` has none):
 
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
 2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` and ``stateEstimate.ax/ay/az`` (world frame, in g) in
    two blocks at 100 Hz, cflib's fastest (one block cannot hold nine floats: 26 bytes per packet).
-3. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
-4. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
+3. **Prepare** (:meth:`CrazyfliePlant._prepare`): with a fleet file (``tether/fleet.py``), set the
+   vehicle type's firmware parameters, start its motion-capture feed (:mod:`plant.mocap`) and reset
+   its estimator; then the pre-flight checks (:mod:`plant.preflight`): a refusal raises
+   :class:`plant.preflight.PreflightRefused` naming the vehicle, before anything flies.
+4. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
+5. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
 
    * ``mode = "attitude"`` (default): Eq. 4 turns the agent's ``u`` into thrust, roll and pitch
      (:func:`plant.quadrotor.eq4`, tilt limit, thrust limit) and ``send_setpoint(roll [deg],
@@ -25,7 +29,7 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
      position and velocity feedback around the law's (a different closed loop from the paper's:
      stiffer, but not Eq. 17 alone).
 
-5. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
+6. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
    with the high-level commander, wait until down (bounded), stop, close the link. A vehicle its
    watchdog already landed (LANDED) or stopped (ESTOP) is not flown again.
 
