@@ -7,8 +7,8 @@ body, Eq. 4 and its 500 Hz attitude/rate PID), injected by the caller.
 
 :class:`Firmware` routes each port's packets to its part, as the firmware's CRTP router does: the
 commander (:mod:`plant.cfsim.commander`), the high-level commander (:mod:`plant.cfsim.high_level`),
-the supervisor (:mod:`plant.cfsim.supervisor`), the link, platform, log, param and mem services
-(:mod:`plant.cfsim.services`).
+the supervisor (:mod:`plant.cfsim.supervisor`), the localization service (external positions into
+the estimator), the link, platform, log, param and mem services (:mod:`plant.cfsim.services`).
 
 What runs every tick (100 Hz), in the firmware's order (``stabilizer.c``):
 
@@ -18,7 +18,9 @@ What runs every tick (100 Hz), in the firmware's order (``stabilizer.c``):
 3. the supervisor updates its state from the age and the motors, and overrides the setpoint of a
    vehicle that must level out or stop (:mod:`plant.cfsim.supervisor`);
 4. the controller turns the setpoint into a command of the quadrotor (:mod:`plant.cfsim.controller`);
-5. the world advances 10 ms: the quadrotor, plus a floor at ``z = 0`` (:mod:`plant.cfsim.world`);
+5. the world advances 10 ms: the quadrotor, plus a floor at ``z = 0`` (:mod:`plant.cfsim.world`), and
+   the position estimator follows the move (:mod:`plant.cfsim.estimator`; external positions reach it
+   from the localization port as they come);
 6. log blocks whose period elapsed are sampled.
 
 The logged ``stateEstimate.pitch`` / ``stabilizer.pitch`` are ``-pitch`` (the firmware's legacy
