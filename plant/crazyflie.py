@@ -219,7 +219,9 @@ class CrazyfliePlant:
             cf.param.set_value("kalman.resetEstimation", 1)
             cf.param.set_value("kalman.resetEstimation", 0)
         readings = self._read_health(limits, settle)
-        why = preflight.refusals(readings, limits)
+        place = None if self.vehicle is None else (float(self.vehicle.p0[0]), float(self.vehicle.p0[1]),
+                                                   float(self.vehicle.p0[2]))
+        why = preflight.refusals(readings, limits, place)
         if why:
             raise preflight.PreflightRefused(f"{name} refused take-off: " + "; ".join(why))
         self.health = readings
@@ -311,9 +313,11 @@ class CrazyfliePlant:
         if not got:
             return preflight.Readings(math.nan, -1, 0, (math.nan,) * 3, link)
         last = got[-1]
+        with self._lock:
+            p = None if self._pos is None else (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
         return preflight.Readings(
             vbat=last["pm.vbat"], pm_state=int(last["pm.state"]), supervisor=int(last["supervisor.info"]),
-            variance=(last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]), link=link)
+            variance=(last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]), link=link, position=p)
 
     def _connect(self) -> None:
         """Open the link and start the logs (blocks, bounded by ``connect_timeout`` twice). Raises

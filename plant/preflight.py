@@ -10,13 +10,18 @@ A vehicle is refused take-off, with every reason named, when
 * its link answers less than ``health.link_min`` of the echo requests (pings) the plant sent it, ten a
   second while the estimator converges (at least a second);
 * its estimator has not converged: a position variance (``kalman.varPX/PY/PZ``) above
-  ``health.variance_max`` once ``health.settle_timeout`` has passed since the estimator was reset.
+  ``health.variance_max`` once ``health.settle_timeout`` has passed since the estimator was reset;
+* its estimate puts it more than ``tether.fleet.PLACE_TOLERANCE`` (0.3 m) from where the fleet file says it stands
+  (plausible but false: two rigid bodies or two radio addresses swapped, a vehicle put down on the
+  wrong spot).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+from tether.fleet import PLACE_TOLERANCE
 
 BIT_CAN_FLY = 3
 BIT_LOCKED = 6
@@ -43,6 +48,8 @@ class Readings:
     """Position variance per axis [m^2]."""
     link: float
     """Fraction of the plant's pings the vehicle answered [0..1]."""
+    position: tuple[float, float, float] | None = None
+    """The state estimate's position [m; world frame], if one came."""
 
 
 @dataclass(frozen=True)
@@ -60,8 +67,9 @@ def converged(variance: tuple[float, float, float], lim: Limits) -> bool:
     return all(math.isfinite(v) and v <= lim.variance_max for v in variance)
 
 
-def refusals(r: Readings, lim: Limits) -> list[str]:
-    """Every reason the vehicle must not take off, each ``"<what>; <fix>"``; empty: it may."""
+def refusals(r: Readings, lim: Limits, place: tuple[float, float, float] | None = None) -> list[str]:
+    """Every reason the vehicle must not take off, each ``"<what>; <fix>"``; empty: it may.
+    ``place``: where the fleet file says the vehicle stands [m], if it says."""
     out: list[str] = []
     if not (math.isfinite(r.vbat) and r.vbat >= lim.battery_min):
         out.append(f"battery {r.vbat:.2f} V is below {lim.battery_min:.2f} V; charge or swap the battery")
@@ -80,4 +88,12 @@ def refusals(r: Readings, lim: Limits) -> list[str]:
         out.append(f"the position estimate has not converged (variance {worst:.2g} m^2 > {lim.variance_max:g}); "
                    "check the positioning system sees the vehicle (motion-capture rigid body, base stations, "
                    "anchors)")
+    elif place is not None:
+        p = r.position
+        d = math.dist(p, place) if p is not None and all(math.isfinite(c) for c in p) else math.inf
+        if not d <= PLACE_TOLERANCE:
+            where = "nowhere" if p is None or math.isinf(d) else "[" + ", ".join(f"{c:.2f}" for c in p) + "]"
+            out.append(f"its estimate puts it at {where}, {d:.2f} m from its place in the fleet file "
+                       f"[{', '.join(f'{c:.2f}' for c in place)}]; check the rigid body's name, the radio address "
+                       "and where the vehicle was put down")
     return out

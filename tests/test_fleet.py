@@ -87,6 +87,10 @@ def test_a_mission_names_its_fleet_and_every_vehicle_must_be_in_it(tmp_path: Pat
     with pytest.raises(ms.MissionError) as err:
         ms.load(_mission_with_fleet(tmp_path, EXAMPLE.read_text(), uri="udp://127.0.0.1:19999"))
     assert err.value.problems[0][0] == "agent 1.plant.uri" and "[[vehicles]]" in str(err.value)
+    moved = EXAMPLE.read_text().replace("p0 = [-1.2, -1.9, 0.0]", "p0 = [1.2, 1.9, 0.0]", 1)
+    with pytest.raises(ms.MissionError) as err:
+        ms.load(_mission_with_fleet(tmp_path, moved))
+    assert err.value.problems[0][0] == "agent 1.p0" and "vehicle cf1" in str(err.value)
 
 
 @pytest.mark.slow  # the command as a subprocess

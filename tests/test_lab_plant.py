@@ -32,6 +32,13 @@ def test_refusals_name_every_reason() -> None:
     assert any("cannot fly" in w for w in preflight.refusals(no_fly, lim))
     nan = preflight.Readings(float("nan"), 0, 0b1000, (float("nan"),) * 3, float("nan"))
     assert len(preflight.refusals(nan, lim)) == 3  # a non-finite reading never passes
+    # plausible but false: the estimate is fine but puts the vehicle on another's spot
+    here = preflight.Readings(3.9, 0, 0b1000, (1e-5,) * 3, 1.0, position=(1.0, 0.0, 0.0))
+    assert preflight.refusals(here, lim, place=(1.1, 0.1, 0.0)) == []
+    (why,) = preflight.refusals(here, lim, place=(0.0, 0.0, 0.0))
+    assert "1.00 m from its place in the fleet file" in why and "rigid body" in why
+    nowhere = preflight.Readings(3.9, 0, 0b1000, (1e-5,) * 3, 1.0)
+    assert "nowhere" in preflight.refusals(nowhere, lim, place=(0.0, 0.0, 0.0))[0]
 
 
 FLEET = """

@@ -49,6 +49,9 @@ BACKENDS = ("vicon", "optitrack", "optitrack_closed_source", "qualisys", "vrpn",
             "fzmotion", "mock")
 """Backend names ``motioncapture.connect`` accepts (libmotioncapture 1.x)."""
 MAX_FILE_BYTES = 1 << 20
+PLACE_TOLERANCE = 0.3
+"""Largest distance [m] between a vehicle's place in the fleet and its agent's ``p0`` in a mission, and
+between that place and the vehicle's own estimate at take-off (``plant/preflight.py``)."""
 
 PARAM_RANGES: dict[str, tuple[float, float]] = {
     "stabilizer.estimator": (0, 3),

@@ -636,9 +636,15 @@ def _with_fleet(m: Mission, path: Path) -> Mission:
     f = fl.load(where)
     problems: Problems = []
     for a in m.agents:
-        if isinstance(a.plant, CrazyfliePlant) and f.by_uri(a.plant.uri) is None:
+        if not isinstance(a.plant, CrazyfliePlant):
+            continue
+        v = f.by_uri(a.plant.uri)
+        if v is None:
             problems.append((f"agent {a.id}.plant.uri", f"{a.plant.uri} is no vehicle of the fleet {m.fleet}; "
                                                         "add it there as a [[vehicles]] table or fix the URI"))
+        elif len(a.p0) == len(v.p0) and math.dist(a.p0, v.p0) > fl.PLACE_TOLERANCE:
+            problems.append((f"agent {a.id}.p0", f"is {a.p0} but the fleet puts vehicle {v.name} ({a.plant.uri}) "
+                                                 f"at {v.p0}; make them agree (the vehicle starts where it stands)"))
     if problems:
         raise MissionError(str(path), problems)
     return msgspec.structs.replace(m, fleet=str(where))
