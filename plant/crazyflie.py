@@ -279,7 +279,7 @@ class CrazyfliePlant:
         answered: set[int] = set()
 
         def on_echo(pk: Any) -> None:
-            if len(pk.data) == 5 and pk.data[0] == HEALTH_PING_TAG:
+            if len(pk.data) == 9 and pk.data[0] == HEALTH_PING_TAG:
                 answered.add(struct.unpack_from("<I", pk.data, 1)[0])
 
         self.cf.add_header_callback(on_echo, CRTPPort.LINKCTRL, 0)
@@ -291,7 +291,7 @@ class CrazyfliePlant:
                 self._check()
                 ping = CRTPPacket()
                 ping.set_header(CRTPPort.LINKCTRL, 0)
-                ping.data = struct.pack("<BI", HEALTH_PING_TAG, sent)
+                ping.data = struct.pack("<BI4x", HEALTH_PING_TAG, sent)  # cflib's ping size: its handler reads 9
                 self.cf.send_packet(ping)
                 sent += 1
                 now = time.monotonic()
@@ -600,7 +600,8 @@ class CrazyfliePlant:
 
 
 HEALTH_PING_TAG = 0x7E
-"""First byte of the pre-flight's link pings (echo requests; cflib's own latency pings start with 0)."""
+"""First byte of the pre-flight's link pings (9-byte echo requests, as cflib's own latency pings, which
+start with 0: cflib's echo handler reads every echo as ``<Bd`` and ignores other first bytes)."""
 PING_PERIOD = 0.1
 """Seconds between the link pings the plant sends (cflib's own ping thread's period)."""
 
