@@ -248,7 +248,7 @@ class CrazyfliePlant:
         """Log what the pre-flight checks need at 10 Hz until the estimator converged (or ``settle``
         [s] passed) and at least a second went by, pinging the vehicle meanwhile; the link is the
         share of those pings answered (:data:`HEALTH_PING_TAG`; a late answer counts, a lost one does
-        not). Blocks, bounded by ``settle`` + 2 s."""
+        not). Blocks, bounded by ``settle`` + 3 s."""
         import struct
 
         from cflib.crazyflie.log import LogConfig
@@ -302,7 +302,7 @@ class CrazyfliePlant:
                     break
                 came.clear()
                 came.wait(period)
-            deadline = time.monotonic() + 0.5  # the last answers may be on their way
+            deadline = time.monotonic() + HEALTH_PING_GRACE  # late answers count: a loaded host delays them
             while len(answered) < sent and time.monotonic() < deadline:
                 came.clear()
                 came.wait(0.05)
@@ -599,6 +599,9 @@ class CrazyfliePlant:
                 _drop_link(self.cf)
 
 
+HEALTH_PING_GRACE = 2.0
+"""How long [s] the pre-flight waits after its last ping for answers still on their way: a late answer
+(a loaded host, a simulator catching up) is an answer; only a lost one counts against the link."""
 HEALTH_PING_TAG = 0x7E
 """First byte of the pre-flight's link pings (9-byte echo requests, as cflib's own latency pings, which
 start with 0: cflib's echo handler reads every echo as ``<Bd`` and ignores other first bytes)."""

@@ -8,7 +8,7 @@ A vehicle is refused take-off, with every reason named, when
 * its supervisor cannot fly (``supervisor.info`` bit 3 clear) or is locked (bit 6: an emergency stop,
   a watchdog cut; the firmware needs a restart);
 * its link answers less than ``health.link_min`` of the echo requests (pings) the plant sent it, ten a
-  second while the estimator converges (at least a second);
+  second while the estimator converges (at least a second; an answer up to 2 s late counts);
 * its estimator has not converged: a position variance (``kalman.varPX/PY/PZ``) above
   ``health.variance_max`` once ``health.settle_timeout`` has passed since the estimator was reset;
 * its estimate puts it more than ``tether.fleet.PLACE_TOLERANCE`` (0.3 m) from where the fleet file says it stands
