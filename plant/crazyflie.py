@@ -216,8 +216,7 @@ class CrazyfliePlant:
                                                      f"remove it from the fleet's type {v.type}") from None
             if vtype.position_source == "mocap":
                 self._start_mocap(f, v)
-            cf.param.set_value("kalman.resetEstimation", 1)
-            cf.param.set_value("kalman.resetEstimation", 0)
+            cf.param.set_value("kalman.resetEstimation", 1)  # the estimator clears it once reset
         readings = self._read_health(limits, settle)
         place = None if self.vehicle is None else (float(self.vehicle.p0[0]), float(self.vehicle.p0[1]),
                                                    float(self.vehicle.p0[2]))

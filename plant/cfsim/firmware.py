@@ -219,6 +219,7 @@ class Firmware:
         if name == "stabilizer.stop" and value:
             self.sup.lock()
         elif name == "kalman.resetEstimation" and value:
+            self.params.put(name, 0)  # cleared once done (estimator_kalman.c)
             self.estimator.reset()
             if self.noise is not None:
                 self.noise.reset()
