@@ -85,8 +85,9 @@ def test_a_low_battery_is_refused_before_take_off_naming_the_vehicle(tmp_path: P
 @pytest.mark.slow
 def test_the_fleets_mass_feeds_eq4(tmp_path: Path) -> None:
     """A vehicle 12 % heavier than a Crazyflie 2.1 (``--mass 0.0325``), commanded only to brake its
-    vertical velocity (u = -2 v_z): with the plant table's default mass Eq. 4's thrust is short by
-    ~1 m/s^2 and it sinks at ~0.5 m/s; with the fleet's mass it holds its height."""
+    vertical velocity (u = -4 v_z): with the plant table's default mass Eq. 4's thrust is short by
+    ~1.06 m/s^2 and it sinks at ~0.26 m/s; with the fleet's mass it holds its height. The rate is the
+    least-squares slope of the logged height over the second second."""
     from plant.crazyflie import CrazyfliePlant
 
     def sink_rate(fleet: bool) -> float:
@@ -99,22 +100,25 @@ def test_the_fleets_mass_feeds_eq4(tmp_path: Path) -> None:
             try:
                 t0 = time.monotonic()
                 samples: list[tuple[float, float]] = []
-                while time.monotonic() < t0 + 1.5:
+                while time.monotonic() < t0 + 2.0:
                     s = plant.state()
                     samples.append((time.monotonic() - t0, float(s.p[0, 2])))
-                    plant.step(np.array([[0.0, 0.0, -2.0 * float(s.v[0, 2])]]))
+                    plant.step(np.array([[0.0, 0.0, -4.0 * float(s.v[0, 2])]]))
                     time.sleep(0.01)
             finally:
                 plant.close()
-        late = [(t, z) for t, z in samples if t >= 1.0]
-        return (late[0][1] - late[-1][1]) / (late[-1][0] - late[0][0])
+        late = np.array([(t, z) for t, z in samples if t >= 1.0])
+        assert len(late) >= 10, samples  # a loop starved for a whole second measures nothing
+        return float(-np.polyfit(late[:, 0], late[:, 1], 1)[0])
 
     port = support.free_port(udp=True)
     plain = msgspec.structs.replace(_mission(tmp_path, port, mass=0.0325), fleet=None)
     assert CrazyfliePlant(plain, [1]).mass == 0.029
     without, with_fleet = sink_rate(False), sink_rate(True)
-    assert without > 0.25, without
-    assert abs(with_fleet) < 0.1, with_fleet
+    print(f"\n12 % heavier vehicle under u = -4 v_z: sinks at {without:.3f} m/s with the mission's mass, "
+          f"{with_fleet:.3f} m/s with the fleet's")
+    assert without > 0.15, without
+    assert abs(with_fleet) < 0.08, with_fleet
 
 
 @pytest.mark.slow
