@@ -1,7 +1,7 @@
 """A Crazyflie through cflib: a real vehicle (``radio://``, ``usb://``) or the software one
 (``udp://``, ``python -m plant.cfsim``). The :class:`plant.base.Plant` of ``plant = "crazyflie"``.
 
-Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout, cflib's own ``open_link`` has none):
+Lifetime (:meth:`CrazyfliePlant.open` does 1-4; every step bounded by a timeout, cflib's own ``open_link`` has none):
 
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
@@ -9,8 +9,12 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
    ``stateEstimate.ax/ay/az`` (world frame, in g) every other tick, in two blocks (one block cannot hold
    nine floats: 26 bytes per packet; :func:`log_periods`: four vehicles at 100 Hz, eight at 50 Hz fit
    on one radio, ``docs/crazyflie.md``).
-3. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
-4. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
+3. **Prepare** (:meth:`CrazyfliePlant._prepare`): with a fleet file (``tether/fleet.py``), set the
+   vehicle type's firmware parameters, start its motion-capture feed (:mod:`plant.mocap`) and reset
+   its estimator; then the pre-flight checks (:mod:`plant.preflight`): a refusal raises
+   :class:`plant.preflight.PreflightRefused` naming the vehicle, before anything flies.
+4. **Take off** with the high-level commander to ``takeoff_height`` and wait until there.
+5. **Fly** one setpoint per control tick (100 Hz keeps the 500 ms watchdog fed):
 
    * ``mode = "attitude"`` (default): Eq. 4 turns the agent's ``u`` into thrust, roll and pitch
      (:func:`plant.quadrotor.eq4`, tilt limit, thrust limit) and ``send_setpoint(roll [deg],
@@ -27,7 +31,7 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-3; every step bounded by a timeout,
      position and velocity feedback around the law's (a different closed loop from the paper's:
      stiffer, but not Eq. 17 alone).
 
-5. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
+6. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
    with the high-level commander, wait until down (bounded), stop, close the link. A vehicle its
    watchdog already landed (LANDED) or stopped (ESTOP) is not flown again.
 
@@ -186,17 +190,163 @@ class CrazyfliePlant:
         """The link's delivery rate and ping round trip (:meth:`_watch_link`), from the logs' start."""
         self._link_said = (radio.OK, -math.inf)
         """The last warning's state and when it was logged (:meth:`_link_failed`)."""
+        self._fleet_path = m.fleet
+        self.vehicle: Any = None
+        """The fleet's ``tether.fleet.Vehicle`` of this URI, once :meth:`open` read the fleet file."""
+        self._fleet: Any = None
+        self._mocap: Any = None
+        """The running ``plant.mocap.MocapFeed`` of a vehicle that flies on motion capture."""
+        self.health: Any = None
+        """The pre-flight ``plant.preflight.Readings`` the take-off was allowed on."""
 
     def open(self) -> "CrazyfliePlant":
         """Connect, start the logs and take off (blocks until airborne; every wait bounded).
         Raises ``ConnectionError`` naming the URI, or ``TimeoutError``; the link is closed then."""
         self._connect()
         try:
+            self._prepare()
             self._take_off()
         except BaseException:
+            self._stop_mocap()
             self.cf.close_link()
             raise
         return self
+
+    # ------------------------------------------------------------------ lab: fleet, mocap, pre-flight
+    @property
+    def mass(self) -> float:
+        """The vehicle's mass [kg] Eq. 4 uses: the fleet's for this vehicle, else the plant table's."""
+        return float(self._fleet.mass_of(self.vehicle)) if self.vehicle is not None else self.spec.mass
+
+    def _prepare(self) -> None:
+        """Before take-off (blocks, bounded): the fleet's firmware parameters, its motion-capture feed
+        and an estimator reset, if the mission names a fleet; then the pre-flight checks
+        (:mod:`plant.preflight`). Raises :class:`plant.preflight.PreflightRefused` naming the vehicle."""
+        from plant import preflight
+
+        uid, cf = self.ids[0], self.cf
+        limits, settle = preflight.Limits(), 10.0
+        name = f"crazyflie {uid} ({self.spec.uri})"
+        if self._fleet_path is not None:
+            from tether import fleet as fl
+
+            self._fleet = f = fl.load(self._fleet_path)
+            self.vehicle = v = f.by_uri(self.spec.uri)
+            if v is None:
+                raise preflight.PreflightRefused(f"{name}: no vehicle of the fleet {self._fleet_path} has this URI")
+            name = f"crazyflie {uid} ({self.spec.uri}, fleet vehicle {v.name})"
+            h = f.health
+            limits, settle = preflight.Limits(h.battery_min, h.variance_max, h.link_min), h.settle_timeout
+            vtype = f.type_of(v)
+            for param, value in vtype.params.items():
+                try:
+                    cf.param.set_value(param, value)
+                except (KeyError, AttributeError) as exc:
+                    raise preflight.PreflightRefused(f"{name}: the firmware has no parameter {param} ({exc}); "
+                                                     f"remove it from the fleet's type {v.type}") from None
+            if vtype.position_source == "mocap":
+                self._start_mocap(f, v)
+            cf.param.set_value("kalman.resetEstimation", 1)  # the estimator clears it once reset
+        readings = self._read_health(limits, settle)
+        place = None if self.vehicle is None else (float(self.vehicle.p0[0]), float(self.vehicle.p0[1]),
+                                                   float(self.vehicle.p0[2]))
+        why = preflight.refusals(readings, limits, place)
+        if why:
+            raise preflight.PreflightRefused(f"{name} refused take-off: " + "; ".join(why))
+        self.health = readings
+        log.info("crazyflie %d: pre-flight passed (%.2f V, variance %.1e m^2, link %.0f %%)", uid, readings.vbat,
+                 max(readings.variance), 100 * readings.link)
+
+    def _start_mocap(self, f: Any, v: Any) -> None:
+        from plant.mocap import MocapFeed
+
+        cf = self.cf
+        feed = MocapFeed(f.mocap.backend, f.mocap.hostname,
+                         [(v.name, lambda p: cf.extpos.send_extpos(float(p[0]), float(p[1]), float(p[2])))],
+                         options=f.mocap.options)
+        self._mocap = feed.__enter__()
+        log.info("crazyflie %d: motion capture %s %s feeds rigid body %s as extpos", self.ids[0], f.mocap.backend,
+                 f.mocap.hostname, v.name)
+
+    def _stop_mocap(self) -> None:
+        if self._mocap is not None:
+            self._mocap.__exit__(None, None, None)
+            self._mocap = None
+
+    def _read_health(self, limits: Any, settle: float) -> Any:
+        """Log what the pre-flight checks need at 10 Hz until the estimator converged (or ``settle``
+        [s] passed) and at least a second went by, pinging the vehicle meanwhile; the link is the
+        share of those pings answered (:data:`HEALTH_PING_TAG`; a late answer counts, a lost one does
+        not). Blocks, bounded by ``settle`` + 3 s."""
+        import struct
+
+        from cflib.crazyflie.log import LogConfig
+        from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
+
+        from plant import preflight
+
+        period = 0.1
+        block = LogConfig(name="tether_health", period_in_ms=int(period * 1000))
+        for n in ("kalman.varPX", "kalman.varPY", "kalman.varPZ", "pm.vbat"):
+            block.add_variable(n, "float")
+        block.add_variable("pm.state", "int8_t")
+        block.add_variable("supervisor.info", "uint16_t")
+        got: list[dict[str, float]] = []
+        came = threading.Event()
+
+        def on_data(_stamp: int, data: dict[str, float], _block: Any) -> None:
+            got.append(dict(data))
+            came.set()
+
+        block.data_received_cb.add_callback(on_data)
+        try:
+            self.cf.log.add_config(block)
+        except KeyError as exc:
+            raise preflight.PreflightRefused(f"crazyflie {self.ids[0]} ({self.spec.uri}): the firmware does not log "
+                                             f"{exc}; pre-flight needs the Kalman estimator "
+                                             "(stabilizer.estimator = 2)") from None
+        answered: set[int] = set()
+
+        def on_echo(pk: Any) -> None:
+            if len(pk.data) == 9 and pk.data[0] == HEALTH_PING_TAG:
+                answered.add(struct.unpack_from("<I", pk.data, 1)[0])
+
+        self.cf.add_header_callback(on_echo, CRTPPort.LINKCTRL, 0)
+        sent = 0
+        t0 = time.monotonic()
+        block.start()
+        try:
+            while True:
+                self._check()
+                ping = CRTPPacket()
+                ping.set_header(CRTPPort.LINKCTRL, 0)
+                ping.data = struct.pack("<BI4x", HEALTH_PING_TAG, sent)  # cflib's ping size: its handler reads 9
+                self.cf.send_packet(ping)
+                sent += 1
+                now = time.monotonic()
+                last = got[-1] if got else None
+                ok = last is not None and preflight.converged(
+                    (last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]), limits)
+                if (ok and now - t0 >= 1.0) or now - t0 >= settle + 1.0:
+                    break
+                came.clear()
+                came.wait(period)
+            deadline = time.monotonic() + HEALTH_PING_GRACE  # late answers count: a loaded host delays them
+            while len(answered) < sent and time.monotonic() < deadline:
+                came.clear()
+                came.wait(0.05)
+        finally:
+            block.delete()
+            self.cf.remove_header_callback(on_echo, CRTPPort.LINKCTRL, 0)
+        link = len(answered) / sent
+        if not got:
+            return preflight.Readings(math.nan, -1, 0, (math.nan,) * 3, link)
+        last = got[-1]
+        with self._lock:
+            p = None if self._pos is None else (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
+        return preflight.Readings(
+            vbat=last["pm.vbat"], pm_state=int(last["pm.state"]), supervisor=int(last["supervisor.info"]),
+            variance=(last["kalman.varPX"], last["kalman.varPY"], last["kalman.varPZ"]), link=link, position=p)
 
     def _connect(self) -> None:
         """Open the link and start the logs (blocks, bounded by ``connect_timeout`` twice). Raises
@@ -523,7 +673,7 @@ class CrazyfliePlant:
                 (p + v * h + 0.5 * h * h * u).tolist(), (v + u * h).tolist(), u.tolist(),
                 [0.0, 0.0, math.sin(sp.yaw / 2.0), math.cos(sp.yaw / 2.0)], 0.0, 0.0, 0.0)
             return
-        thrust, roll, pitch, _ = eq4(u, sp.yaw, sp.mass + sp.feedforward_mass, G, math.radians(sp.tilt_max),
+        thrust, roll, pitch, _ = eq4(u, sp.yaw, self.mass + sp.feedforward_mass, G, math.radians(sp.tilt_max),
                                      4.0 * MOTOR_THRUST_MAX)
         self.cf.commander.send_setpoint(math.degrees(roll), math.degrees(pitch), 0.0, thrust_to_pwm(thrust))
 
@@ -552,6 +702,7 @@ class CrazyfliePlant:
                     log.error("%s", exc)
                 self.cf.high_level_commander.stop()
         finally:
+            self._stop_mocap()
             with self._lock:
                 self.final_position = None if self._pos is None else self._pos.copy()
             if self._stopped or self.healthy():
@@ -560,6 +711,12 @@ class CrazyfliePlant:
                 _drop_link(self.cf)
 
 
+HEALTH_PING_GRACE = 2.0
+"""How long [s] the pre-flight waits after its last ping for answers still on their way: a late answer
+(a loaded host, a simulator catching up) is an answer; only a lost one counts against the link."""
+HEALTH_PING_TAG = 0x7E
+"""First byte of the pre-flight's link pings (9-byte echo requests, as cflib's own latency pings, which
+start with 0: cflib's echo handler reads every echo as ``<Bd`` and ignores other first bytes)."""
 PING_PERIOD = 0.1
 """Seconds between the link pings the plant sends (cflib's own ping thread's period)."""
 

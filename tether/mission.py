@@ -449,6 +449,9 @@ class Mission(Strict, frozen=True):
     description: str = ""
     assumed: list[str] = []
     """What the mission assumes that its source does not state (e.g. topology read off a figure)."""
+    fleet: str | None = None
+    """The lab's fleet file (``tether/fleet.py``, ``docs/lab.md``), relative to the mission file: each
+    ``crazyflie`` plant flies as the fleet's vehicle of the same URI. :func:`load` makes it absolute."""
 
     @property
     def n(self) -> int:
@@ -630,7 +633,32 @@ def load(path: str | Path) -> Mission:
             text = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise MissionError(str(path), [("<file>", f"cannot be read ({exc.strerror or exc}); check the path")]) from None
-    return loads(text, source=str(path))
+    return _with_fleet(loads(text, source=str(path)), path)
+
+
+def _with_fleet(m: Mission, path: Path) -> Mission:
+    """``m`` with its fleet file's path made absolute, once the fleet is valid and holds every
+    ``crazyflie`` plant's URI. Raises :class:`tether.fleet.FleetError` or :class:`MissionError`."""
+    if m.fleet is None:
+        return m
+    from tether import fleet as fl
+
+    where = (path.parent / m.fleet).resolve()
+    f = fl.load(where)
+    problems: Problems = []
+    for a in m.agents:
+        if not isinstance(a.plant, CrazyfliePlant):
+            continue
+        v = f.by_uri(a.plant.uri)
+        if v is None:
+            problems.append((f"agent {a.id}.plant.uri", f"{a.plant.uri} is no vehicle of the fleet {m.fleet}; "
+                                                        "add it there as a [[vehicles]] table or fix the URI"))
+        elif len(a.p0) == len(v.p0) and math.dist(a.p0, v.p0) > fl.PLACE_TOLERANCE:
+            problems.append((f"agent {a.id}.p0", f"is {a.p0} but the fleet puts vehicle {v.name} ({a.plant.uri}) "
+                                                 f"at {v.p0}; make them agree (the vehicle starts where it stands)"))
+    if problems:
+        raise MissionError(str(path), problems)
+    return msgspec.structs.replace(m, fleet=str(where))
 
 
 def with_duration(m: Mission, duration: float | None, source: str = "<mission>") -> Mission:

@@ -19,9 +19,12 @@ import logging
 import math
 import signal
 import sys
+from typing import Any
 
 from plant.cfsim import realism, server
+from plant.cfsim.estimator import EstimatorConfig
 from plant.cfsim.firmware import FirmwareConfig
+from plant.quadrotor import QuadrotorParams
 from tether import evloop
 
 log = logging.getLogger("tether.cfsim")
@@ -86,6 +89,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     radio.add_argument("--degrade", action="append", default=[], metavar="T:P",
                        help="with --radio: from T seconds after start, attempts are lost with probability P "
                             "(repeat for more steps, in time order)")
+    veh = ap.add_argument_group("the vehicle (every vehicle of this process)")
+    veh.add_argument("--mass", type=float, default=None, metavar="KG",
+                     help="vehicle mass [kg] (default: a Crazyflie 2.1's, 0.029)")
+    veh.add_argument("--position-source", choices=["onboard", "extpos"], default="onboard",
+                     help="onboard: a positioning deck measures the vehicle (default); extpos: only the "
+                          "external positions a client sends (motion capture) reach the estimator")
+    veh.add_argument("--vbat", type=float, default=None, metavar="V",
+                     help="battery voltage [V] reported without --battery (default 3.9)")
+    veh.add_argument("--radio-id", type=int, default=0xE7, metavar="N",
+                     help="last byte of the radio address, matched by packed external positions (default 231)")
     ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = ap.parse_args(argv)
     if args.count < 1:
@@ -99,6 +112,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                  "must lie in 1..65535")
     if args.p0 is not None and len(args.p0) != args.count:
         ap.error(f"--p0 given {len(args.p0)} times for --count {args.count}: give it once per vehicle or not at all")
+    if args.mass is not None and not (math.isfinite(args.mass) and 0.005 <= args.mass <= 1.0):
+        ap.error(f"--mass {args.mass}: give the vehicle's mass in kg, e.g. 0.032")
+    if args.vbat is not None and not (math.isfinite(args.vbat) and 0.0 <= args.vbat <= 5.0):
+        ap.error(f"--vbat {args.vbat}: give a 1-cell LiPo voltage in V, e.g. 3.9")
+    if not 0 <= args.radio_id <= 255:
+        ap.error(f"--radio-id {args.radio_id}: give the address's last byte, 0..255")
     if args.p0 is None and not math.isfinite(args.spacing):
         ap.error("--spacing must be a finite number of metres")
     try:
@@ -130,6 +149,9 @@ def _radio(args: argparse.Namespace) -> realism.RadioConfig:
 
 
 def config(args: argparse.Namespace) -> server.SimConfig:
+    vehicle: dict[str, Any] = {"estimator": EstimatorConfig(source=args.position_source), "radio_id": args.radio_id}
+    if args.vbat is not None:
+        vehicle["vbat"] = args.vbat
     starts = args.p0 or [(i * args.spacing, 0.0, 0.0) for i in range(args.count)]
     def noise(instance: int) -> realism.NoiseConfig | None:
         n = args.noise_cfg
@@ -139,9 +161,10 @@ def config(args: argparse.Namespace) -> server.SimConfig:
         vehicles=tuple(
             server.VehicleConfig(port=args.port[i] if args.port else args.base_port + i, p0=p0,
                                  firmware=FirmwareConfig(instance=args.instance + i, noise=noise(args.instance + i),
-                                                         battery=args.battery_cfg))
+                                                         battery=args.battery_cfg, **vehicle))
             for i, p0 in enumerate(starts)
         ),
+        quadrotor=QuadrotorParams() if args.mass is None else QuadrotorParams(mass=args.mass),
         host=args.host,
         trace=args.trace,
         link=realism.LinkConfig() if args.radio_cfg else args.link_cfg,

@@ -7,8 +7,8 @@ body, Eq. 4 and its 500 Hz attitude/rate PID), injected by the caller.
 
 :class:`Firmware` routes each port's packets to its part, as the firmware's CRTP router does: the
 commander (:mod:`plant.cfsim.commander`), the high-level commander (:mod:`plant.cfsim.high_level`),
-the supervisor (:mod:`plant.cfsim.supervisor`), the link, platform, log, param and mem services
-(:mod:`plant.cfsim.services`).
+the supervisor (:mod:`plant.cfsim.supervisor`), the localization service (external positions into
+the estimator), the link, platform, log, param and mem services (:mod:`plant.cfsim.services`).
 
 What runs every tick (100 Hz), in the firmware's order (``stabilizer.c``):
 
@@ -18,7 +18,9 @@ What runs every tick (100 Hz), in the firmware's order (``stabilizer.c``):
 3. the supervisor updates its state from the age and the motors, and overrides the setpoint of a
    vehicle that must level out or stop (:mod:`plant.cfsim.supervisor`);
 4. the controller turns the setpoint into a command of the quadrotor (:mod:`plant.cfsim.controller`);
-5. the world advances 10 ms: the quadrotor, plus a floor at ``z = 0`` (:mod:`plant.cfsim.world`);
+5. the world advances 10 ms: the quadrotor, plus a floor at ``z = 0`` (:mod:`plant.cfsim.world`), and
+   the position estimator follows the move (:mod:`plant.cfsim.estimator`; external positions reach it
+   from the localization port as they come);
 6. log blocks whose period elapsed are sampled.
 
 The logged ``stateEstimate.pitch`` / ``stabilizer.pitch`` are ``-pitch`` (the firmware's legacy
@@ -36,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plant.cfsim import crtp, realism, toc, trajectory
+from plant.cfsim.estimator import EstimatorConfig, PositionEstimator
 from plant.cfsim.commander import (
     OFF, ZERO3, Commander, Hover, Priority, Setpoint, Track, Velocity, ZHold, generic_setpoint, vec3,
 )
@@ -81,6 +84,11 @@ class FirmwareConfig:
     """A battery that drains with thrust (off: ``pm.vbat`` is the constant :attr:`vbat`)."""
     tilt_max_manual: float = math.radians(30.0)
     """Largest roll/pitch [rad] that integrated manual rate setpoints reach."""
+    estimator: EstimatorConfig = EstimatorConfig()
+    """Where the position estimate comes from (onboard positioning, or external positions only)."""
+    radio_id: int = 0xE7
+    """Last byte of the vehicle's radio address: the id packed external positions are matched
+    against (``crtp_localization_service.c`` ``my_id``)."""
 
 
 class Firmware:
@@ -101,6 +109,7 @@ class Firmware:
         # realism
         self.noise = realism.EstimatorNoise(self.cfg.noise, PERIOD) if self.cfg.noise is not None else None
         self.battery = realism.Battery(self.cfg.battery) if self.cfg.battery is not None else None
+        self.estimator = PositionEstimator(self.cfg.estimator, quad.p)
         self._fmax = quad.params.motor_thrust_max
         self._g = quad.params.g
         self.k = 0
@@ -146,8 +155,10 @@ class Firmware:
 
     @property
     def est_p(self) -> np.ndarray:
-        """The position estimate [m; world]: the truth plus the estimator's error, if modelled."""
-        return self.quad.p if self.noise is None else self.quad.p + self.noise.position
+        """The position estimate [m; world]: the estimator's (:mod:`plant.cfsim.estimator`), plus the
+        estimator noise of :mod:`plant.cfsim.realism`, if modelled."""
+        p = self.estimator.p
+        return p.copy() if self.noise is None else p + self.noise.position
 
     @property
     def est_v(self) -> np.ndarray:
@@ -208,6 +219,8 @@ class Firmware:
         if name == "stabilizer.stop" and value:
             self.sup.lock()
         elif name == "kalman.resetEstimation" and value:
+            self.params.put(name, 0)  # cleared once done (estimator_kalman.c)
+            self.estimator.reset()
             if self.noise is not None:
                 self.noise.reset()
             self.console_print("CFSIM: state estimate reset\n")
@@ -256,7 +269,31 @@ class Firmware:
         return self.platform.handle(pkt)
 
     def _supervisor(self, pkt: Packet) -> list[Packet]:
-        return self.sup.handle(pkt, self._hl_flying(), self.hl.finished(self.t))
+        return self.sup.handle(pkt, self._hl_flying(), self.hl.finished(self.t), self.k * PERIOD_MS)
+
+    def _localization(self, pkt: Packet) -> list[Packet]:
+        """The localization service (``crtp_localization_service.c``): external positions into the
+        estimator, the deprecated emergency stop and its watchdog. Answers nothing."""
+        d = pkt.data
+        std = self.params.get("locSrv.extPosStdDev")
+        if pkt.channel == crtp.LOC_EXT_POSITION_CHANNEL:
+            self.estimator.extpos(np.array(struct.unpack("<fff", d)), std)
+        elif pkt.channel == crtp.LOC_EXT_POSITION_PACKED_CHANNEL:
+            if len(d) % 7:
+                raise ValueError("packed external positions come in 7-byte items")
+            for ident, x, y, z in struct.iter_unpack("<Bhhh", d):
+                if ident == self.cfg.radio_id:  # others' positions go to peer localization: not modelled
+                    self.estimator.extpos(np.array((x, y, z)) / 1000.0, std)
+        elif pkt.channel == crtp.LOC_GENERIC_CHANNEL and d[0] == crtp.LOC_EMERGENCY_STOP:
+            self.sup.lock()
+        elif pkt.channel == crtp.LOC_GENERIC_CHANNEL and d[0] == crtp.LOC_EMERGENCY_STOP_WATCHDOG:
+            self.sup.notify_estop_watchdog(self.k * PERIOD_MS)
+        elif pkt.channel == crtp.LOC_GENERIC_CHANNEL and d[0] == crtp.LOC_EXT_POSE:
+            _, x, y, z, *_quat = struct.unpack("<B7f", d)  # the attitude part is not modelled
+            self.estimator.extpos(np.array((x, y, z)), std)
+        else:
+            self._ignored += 1
+        return []
 
     def _high_level(self, pkt: Packet) -> list[Packet]:
         return self.hl.handle(pkt, self.t, self.sup.locked)
@@ -274,6 +311,7 @@ class Firmware:
         Port.LINKCTRL: _link,
         Port.PLATFORM: _platform,
         Port.SUPERVISOR: _supervisor,
+        Port.LOCALIZATION: _localization,
         Port.MEM: _mem,
         Port.LOG: _log,
         Port.PARAM: _param,
@@ -313,11 +351,12 @@ class Firmware:
         # 4. controller
         self._applied = sp
         self.controller.command(sp, self.est_p, self.est_v)
-        # 5. world
-        v0 = quad.v
+        # 5. world, and the estimator's view of the move
+        v0, p0 = quad.v, quad.p
         self.world.advance(PERIOD, sp)
         self.k += 1
         self._accel = (quad.v - v0) / PERIOD
+        self.estimator.tick(quad.p - p0, quad.p, PERIOD)
         if any(f > 0.0 for f in quad.motor_commands):
             self.sup.motors_ran(self.k * PERIOD_MS)
         # 6. logs and console
@@ -357,5 +396,7 @@ class Firmware:
             "pm.vbat": vbat, "pm.state": realism.PM_BATTERY if bat is None else bat.state, "pm.batteryLevel": level,
             "supervisor.info": bits,
             "sys.canfly": (bits >> BIT_CAN_FLY) & 1, "sys.isFlying": (bits >> BIT_FLYING) & 1, "sys.isTumbled": 0,
+            "kalman.varPX": self.estimator.var[0], "kalman.varPY": self.estimator.var[1],
+            "kalman.varPZ": self.estimator.var[2],
         }
         return [float(values[v.full_name]) for v in toc.LOG_VARS]

@@ -4,7 +4,10 @@ and the lock. Pure.
 As the firmware's ``supervisor.c`` (with the watchdog of ``commander.c``): a setpoint older than
 0.5 s while flying levels the vehicle out (roll = pitch = 0, yaw rate 0, thrust kept); older than
 2 s, the motors stop and the vehicle is *locked* until the simulator restarts, as the firmware's
-supervisor locks until a reboot. An emergency stop or the ``stabilizer.stop`` parameter locks it too.
+supervisor locks until a reboot. An emergency stop or the ``stabilizer.stop`` parameter locks it too,
+and so does the emergency-stop watchdog (``supervisor.c`` ``checkEmergencyStopWatchdog``): armed by the
+first notification (supervisor command 0x04, or the deprecated localization type 4), it locks the
+vehicle once no notification came for 1 s, flying or not.
 """
 
 from __future__ import annotations
@@ -21,6 +24,9 @@ WDT_LEVEL_OUT_MS = 500
 WDT_SHUTDOWN_MS = 2000
 """Setpoint age [ms] above which a flying vehicle's motors stop and it locks
 (COMMANDER_WDT_TIMEOUT_SHUTDOWN)."""
+ESTOP_WATCHDOG_MS = 1000
+"""Once a client has notified the emergency-stop watchdog, silence from it for this long [ms] is an
+emergency stop (``supervisor.c`` DEFAULT_EMERGENCY_STOP_WATCHDOG_TIMEOUT)."""
 IS_FLYING_HYSTERESIS_MS = 2000
 """The supervisor counts the vehicle as flying until this long [ms] after the motors last ran.
 (Ages are counted in whole ticks, as the firmware counts them in whole milliseconds.)"""
@@ -54,6 +60,8 @@ class Supervisor:
         self.state = SupState.READY
         self.armed = True
         self.ignored = 0
+        self._estop_notified_ms: int | None = None
+        """When [ms since boot] the emergency-stop watchdog was last notified; None: never (disarmed)."""
         self._last_thrust_ms: int | None = None
         """When [ms since boot] the motors last ran; None if they never did."""
 
@@ -68,6 +76,14 @@ class Supervisor:
     def lock(self) -> None:
         """Motors off until the simulator restarts."""
         self.state = SupState.LOCKED
+
+    def notify_estop_watchdog(self, now_ms: int) -> None:
+        """A client's emergency-stop watchdog notification at ``now_ms`` [ms since boot]."""
+        self._estop_notified_ms = now_ms
+
+    @property
+    def estop_watchdog_armed(self) -> bool:
+        return self._estop_notified_ms is not None
 
     def request_arming(self, arm: bool) -> bool:
         """Arm or disarm; refused (False) once locked."""
@@ -98,9 +114,10 @@ class Supervisor:
             bits |= 1 << BIT_HL_FINISHED
         return bits
 
-    def handle(self, pkt: Packet, hl_active: bool, hl_finished: bool) -> list[Packet]:
-        """Answer one supervisor-port packet (``crtp_supervisor.c``): the state bitfield (see
-        :meth:`bits` for the two flags), arming, recovery, emergency stop."""
+    def handle(self, pkt: Packet, hl_active: bool, hl_finished: bool, now_ms: int) -> list[Packet]:
+        """Answer one supervisor-port packet (``crtp_supervisor.c``) at ``now_ms`` [ms since boot]:
+        the state bitfield (see :meth:`bits` for the two flags), arming, recovery, emergency stop and
+        its watchdog."""
         cmd = pkt.data[0]
         if pkt.channel == crtp.SUPERVISOR_INFO_CHANNEL and cmd == crtp.SUPERVISOR_GET_STATE_BITFIELD:
             return [Packet(Port.SUPERVISOR, pkt.channel, struct.pack("<BH", cmd | crtp.SUPERVISOR_RESPONSE,
@@ -115,11 +132,17 @@ class Supervisor:
             if cmd == crtp.SUPERVISOR_EMERGENCY_STOP:
                 self.lock()
                 return []
+            if cmd == crtp.SUPERVISOR_EMERGENCY_STOP_WATCHDOG:
+                self.notify_estop_watchdog(now_ms)
+                return []
         self.ignored += 1
         return []
 
     def update(self, now_ms: int, age_ms: int) -> None:
         """The tick's transition at ``now_ms`` [ms since boot], the setpoint being ``age_ms`` old."""
+        notified = self._estop_notified_ms
+        if notified is not None and now_ms >= notified + ESTOP_WATCHDOG_MS:
+            self.lock()
         last = self._last_thrust_ms
         flying = last is not None and now_ms - last < IS_FLYING_HYSTERESIS_MS
         sup = self.state

@@ -21,6 +21,7 @@ import zlib
 from dataclasses import dataclass
 
 from plant.cfsim import crtp
+from plant.cfsim.estimator import EXTPOS_STD_DEFAULT
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,6 +152,7 @@ LOG_VARS: tuple[LogVar, ...] = tuple(
     + _log("supervisor", "info", LOG_UINT16,
            "supervisor bitfield (bit 1 armed, 3 can fly, 4 flying, 6 locked, 8 HL active, ...)")
     + _log("sys", "canfly isFlying isTumbled", LOG_UINT8, "supervisor flag {n} (0/1)")
+    + _log("kalman", "varPX varPY varPZ", LOG_FLOAT, "variance of the position estimate, {n} [m^2]")
 )
 
 PARAM_VARS: tuple[ParamVar, ...] = (
@@ -167,7 +169,9 @@ PARAM_VARS: tuple[ParamVar, ...] = (
     ParamVar("stabilizer", "controller", PARAM_UINT8, 1, False,
              "controller (1 PID, 2 Mellinger, ...): stored, no effect (one controller is modelled)", True),
     ParamVar("kalman", "resetEstimation", PARAM_UINT8, 0, False,
-             "nonzero: reset the state estimate (with estimator noise, a fresh error is drawn)"),
+             "nonzero: reset the position estimate to the origin, untrusted (with estimator noise, a fresh error)"),
+    ParamVar("locSrv", "extPosStdDev", PARAM_FLOAT, EXTPOS_STD_DEFAULT, False,
+             "standard deviation [m] of an external position, as the estimator fuses it"),
     ParamVar("cfsim", "instance", PARAM_UINT16, 0, True, "index of this simulated vehicle in its launch"),
     ParamVar("cfsim", "mass", PARAM_FLOAT, 0.0, True, "vehicle mass [kg]"),
     ParamVar("cfsim", "hoverPwm", PARAM_UINT16, 0, True,
