@@ -47,12 +47,11 @@ from foxglove import channels as fch
 from foxglove import messages as fm
 from foxglove.mcap import MCAPWriteOptions
 
+from recorder import export
+from recorder.export import EPOCH_NS, epoch_of
 from tether import mission as ms
 from tether.runfile import NO_SAMPLE, Run, missing_report
 from tether.wire import SafetyEvent
-
-EPOCH_NS = 1_000_000_000 * 10**9
-"""Log time of mission time 0 [ns]: 2001-09-09T01:46:40Z, i.e. 1e9 s after the Unix epoch."""
 SCENE_RATE = 25.0
 """Default rate of the 3D scene in a file [Hz] (time series are always at every tick)."""
 GRAVITY = 9.81
@@ -74,9 +73,10 @@ PAYLOAD_COLOUR = (0.60, 0.35, 0.15)
 FENCE_COLOUR = (0.90, 0.20, 0.20)
 
 
-def stamp(t: float) -> int:
-    """The log time [ns] of mission time ``t`` [s]."""
-    return EPOCH_NS + int(round(t * 1e9))
+def stamp(t: float, epoch_ns: int = EPOCH_NS) -> int:
+    """The log time [ns] of mission time ``t`` [s] of a run whose tick 0 is at ``epoch_ns``
+    (:func:`recorder.export.epoch_of`; the default: simulated time's fixed epoch)."""
+    return epoch_ns + int(round(t * 1e9))
 
 
 def _ts(ns: int) -> fm.Timestamp:
@@ -209,6 +209,7 @@ class Rows:
         if layout.runtime:
             assert run.runtime is not None
             arrays["meas_age"], arrays["drops"] = run.runtime.meas_age, run.runtime.drops
+            arrays["plant_p"] = run.runtime.plant_p  # where the scene draws a vehicle without the agent's sample
         if layout.payload:
             arrays["payload_p"], arrays["payload_v"] = run.plant.payload_p, run.plant.payload_v
         if layout.tension:
@@ -241,15 +242,26 @@ class Rows:
 class View:
     """Logs a run's ticks, events and notes on the channels of one Foxglove context."""
 
-    def __init__(self, ctx: foxglove.Context, layout: Layout, scene_every: int = 1):
+    def __init__(self, ctx: foxglove.Context, layout: Layout, scene_every: int = 1,
+                 run: Run | None = None, whole: bool = True):
         self.lay, self.scene_every = layout, max(1, int(scene_every))
         self.enc = msgspec.json.Encoder()
         L = layout
+        self.epoch = EPOCH_NS if run is None else epoch_of(run)
         self.scene = fch.SceneUpdateChannel("/scene", context=ctx)
         self.tf = fch.FrameTransformsChannel("/tf", context=ctx)
         self.safety = fch.LogChannel("/safety", context=ctx)
         self.log = fch.LogChannel("/log", context=ctx)
         schema = L.agent_schema()
+
+        def channel(topic: str, sch: dict) -> Callable[[bytes, int], None]:
+            return foxglove.Channel(topic, schema=sch, context=ctx).base.log
+
+        # the rest of the run file: every array and event not on the channels above (recorder/export.py)
+        self.complete = (None if run is None else
+                         export.Complete(run, channel, set(schema["properties"]) | set(Rows.NAMES), whole))
+        if self.complete is not None:
+            schema["properties"].update(self.complete.agent_schema())
         self.agents = [foxglove.Channel(f"/agent/{aid}", schema=schema, context=ctx).base for aid in L.ids]
         self.leader = foxglove.Channel("/leader", schema=L.leader_schema(), context=ctx).base
         self.payload = (foxglove.Channel("/payload", schema=L.payload_schema(), context=ctx).base
@@ -296,7 +308,9 @@ class View:
         modes = r["safety_mode"]
         spheres, texts = [], []
         for i, aid in enumerate(L.ids):
-            p = r["p"][i]
+            p = _where(r, i)
+            if p is None:  # neither the agent nor its plant said where it is: not drawn
+                continue
             colour = self.mode_colour.get(modes[i], self.nosample)
             spheres.append(fm.SpherePrimitive(pose=self._pose(p), size=self.vsize, color=colour))
             label = str(aid) if modes[i] == 0 else f"{aid} {_name(L.modes, modes[i])}"
@@ -339,10 +353,13 @@ class View:
         quat = r.get("quat")
         tfs = []
         for i in range(L.n):
+            p = _where(r, i)
+            if p is None:
+                continue
             q = quat[i] if quat is not None else None
             rot = self.ident if q is None else fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
             tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id=self.frames[i],
-                                         translation=self._v3(r["p"][i]), rotation=rot))
+                                         translation=self._v3(p), rotation=rot))
         tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id="leader",
                                      translation=self._v3(lp), rotation=self.ident))
         if L.payload:
@@ -354,8 +371,9 @@ class View:
     def tick(self, k: int, t: float, r: dict, scene: bool | None = None) -> None:
         """Log tick ``k`` (mission time ``t``) from its rows ``r`` (:meth:`Rows.at`)."""
         L, enc = self.lay, self.enc
-        ns = stamp(t)
+        ns = stamp(t, self.epoch)
         modes, pmodes = r["safety_mode"], r["plant_mode"]
+        extra = self.complete.agent_fields(k) if self.complete is not None else None
         for i, ch in enumerate(self.agents):
             msg = {"t": t, "k": k, "xi_norm": r["xi_norm"][i], "xi": r["xi"][i], "zeta": r["zeta"][i],
                    "kp": r["kp"][i], "kv": r["kv"][i], "u": r["u"][i], "p": r["p"][i], "v": r["v"][i],
@@ -368,6 +386,8 @@ class View:
                                 for n, s in enumerate(L.link_src[i]) if s != 0]
             if L.runtime:
                 msg["meas_age"], msg["drops"] = r["meas_age"][i], r["drops"][i]
+            if extra is not None:
+                msg.update(extra[i])
             ch.log(enc.encode(msg), ns)
         self.leader.log(enc.encode({"t": t, "k": k, "p": r["leader_p"], "v": r["leader_v"], "a": r["leader_a"]}), ns)
         if self.payload is not None:
@@ -377,6 +397,8 @@ class View:
                 finite = [x for x in ten if x == x]
                 msg.update(tension=ten, tension_max=max(finite) if finite else None, slack_events=r["slack_events"])
             self.payload.log(enc.encode(msg), ns)
+        if self.complete is not None:
+            self.complete.tick(k, ns)
         if scene if scene is not None else k % self.scene_every == 0:
             self._scene(k, ns, r)
 
@@ -384,7 +406,7 @@ class View:
         """The scene at tick ``k`` (time ``t``), the first the record lacks after its last (at time
         ``last``): every vehicle where it was last heard, drawn as "no sample" (``r``'s modes, −1),
         and a note on ``/log``."""
-        self._scene(k, stamp(t), r)
+        self._scene(k, stamp(t, self.epoch), r)
         self.note(t, f"no sample after t = {last:.2f} s: the vehicles' modes and positions from here on "
                      "are not in this record", fm.LogLevel.Warning)
 
@@ -392,7 +414,7 @@ class View:
         """A safety event on ``/safety``, named by its origin (``agent <id>``: the supervisor's;
         ``plant <id>``: the plant's watchdog, whose events include command rejections without a
         mode change, ``src == dst``)."""
-        ns = stamp(e.t)
+        ns = stamp(e.t, self.epoch)
         dst = _name(self.lay.modes, e.dst)
         level = (fm.LogLevel.Error if dst == "ESTOP" else
                  fm.LogLevel.Warning if dst in ("HOLD", "LAND") or e.src == e.dst else fm.LogLevel.Info)
@@ -400,16 +422,42 @@ class View:
         text = f"t = {e.t:.3f} s: {origin} {e.vehicle}: {change}: {e.reason}"
         self.safety.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=f"{origin} {e.vehicle}"),
                         log_time=ns)
+        if self.complete is not None:
+            self.complete.event("events" if origin == "agent" else "plant_events", e, ns, self.lay.modes)
+
+    def launcher(self, event: dict[str, Any]) -> None:
+        """One of the launcher's events (``events.json``: ``t``, ``who``, ``what``, ``why``) on
+        ``/events/launcher`` and, as text, on ``/log`` (name ``launcher``)."""
+        t = event["t"] if event["t"] is not None else 0.0  # before tick 0: at tick 0
+        ns = stamp(t, self.epoch)
+        if self.complete is not None:
+            self.complete.launcher(event, ns)
+        level = fm.LogLevel.Warning if event["what"] != "back" else fm.LogLevel.Info
+        self.log.log(fm.Log(timestamp=_ts(ns), level=level, name="launcher",
+                            message=f"t = {t:.3f} s: {event['who']}: {event['what']}: {event['why']}"), log_time=ns)
 
     def note(self, t: float, text: str, level: fm.LogLevel = fm.LogLevel.Info, name: str = "tether") -> None:
         """A note on ``/log``."""
-        ns = stamp(t)
+        ns = stamp(t, self.epoch)
         self.log.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=name), log_time=ns)
 
 
 def _f(x: float) -> float:
-    """A coordinate for a scene primitive (NaN, i.e. no sample, drawn at the origin)."""
+    """A coordinate for a scene primitive (a NaN component of a position otherwise known: 0)."""
     return x if x == x else 0.0
+
+
+def _where(r: dict, i: int) -> list[float] | None:
+    """Where vehicle ``i`` is at a tick of rows ``r``: the agent's position, else its plant's own
+    measurement (an agent killed or silent: its plant holds and lands), else None (not drawn;
+    never the origin)."""
+    p = r["p"][i]
+    if all(x == x for x in p):
+        return p
+    plant = r.get("plant_p")
+    if plant is not None and all(x == x for x in plant[i]):
+        return plant[i]
+    return None
 
 
 def _name(modes: Sequence[str], code: int) -> str:
@@ -489,19 +537,24 @@ def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rat
     writer = foxglove.open_mcap(tmp, allow_overwrite=True, context=ctx,
                                 writer_options=MCAPWriteOptions(compression_threads=0, compression_level=ZSTD_LEVEL))
     try:
-        view = View(ctx, layout, scene_every(run.meta.rate, scene_rate))
+        view = View(ctx, layout, scene_every(run.meta.rate, scene_rate), run=run)
         writer.write_metadata("tether", {
             "mission": run.meta.mission, "source": run.meta.source, "law": run.meta.law,
-            "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(EPOCH_NS),
+            "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(view.epoch),
+            "clock": "unix" if run.meta.epoch_ns is not None else "simulated",
             "scene_every": str(view.scene_every), "modes": ",".join(layout.modes),
             "run_meta": msgspec.json.encode(msgspec.structs.replace(run.meta, mission_text=None)).decode()})
         if run.meta.mission_text:
-            writer.attach(log_time=EPOCH_NS, create_time=EPOCH_NS, name="mission.toml", media_type="application/toml",
-                          data=run.meta.mission_text.encode())
+            writer.attach(log_time=view.epoch, create_time=view.epoch, name="mission.toml",
+                          media_type="application/toml", data=run.meta.mission_text.encode())
         rows = Rows(run, layout, whole=True)
         events = _events(run)
         ev = 0
         _opening_notes(view, run)
+        assert view.complete is not None  # made with the run
+        view.complete.start(view.epoch)
+        for said in export.launcher_events(path.with_suffix(".npz")):
+            view.launcher(said)
         times = run.t.tolist()
         written = heard(run)
         ticks = np.flatnonzero(written).tolist()
@@ -543,7 +596,9 @@ class Live:
         self.ctx = foxglove.Context()
         self.server = foxglove.start_server(name="tether", host=host, port=port, context=self.ctx,
                                             capabilities=[foxglove.Capability.Time])
-        self.speed, self.mission, self.scene_rate, self.sleep = speed, mission, scene_rate, sleep
+        # None: the default rate, as in a file (0: every tick)
+        self.scene_rate = SCENE_RATE if scene_rate is None else scene_rate
+        self.speed, self.mission, self.sleep = speed, mission, sleep
         self.view: View | None = None
         self.rows: Rows | None = None
         self.wall0 = 0.0
@@ -561,7 +616,9 @@ class Live:
         the recorder's, while the run is being filled) are given."""
         if self.view is None:
             layout = Layout(run, _mission_of(run, self.mission))
-            self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate))
+            self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate), run=run, whole=False)
+            assert self.view.complete is not None  # made with the run
+            self.view.complete.start(self.view.epoch)
             self.rows = Rows(run, layout, whole=False)
             _opening_notes(self.view, run)
             self.wall0 = time.monotonic()
@@ -582,7 +639,7 @@ class Live:
             self.plant_events += 1
         assert self.rows is not None  # set by start()
         self.view.tick(k, t, self.rows.at(k))
-        self.server.broadcast_time(stamp(t))
+        self.server.broadcast_time(stamp(t, self.view.epoch))
 
     def finish(self, run: Run) -> None:
         if self.view is not None:
