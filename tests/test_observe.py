@@ -354,8 +354,8 @@ def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -
     def clock(vehicle: str) -> str:
         for line in pane().splitlines():
             cells = [c.strip() for c in line.split("│")]
-            if len(cells) > 9 and cells[1] == vehicle:
-                return cells[8]
+            if len(cells) > 10 and cells[1] == vehicle:
+                return cells[9]
         return ""
 
     def rows(mode: str) -> set[str]:
