@@ -212,3 +212,31 @@ class Complete:
 
 def _object(title: str, fields: Any) -> dict:
     return {"title": title, "type": "object", "properties": {f: {} for f in fields}}
+
+
+def app_layout(sdk_layout: dict) -> dict:
+    """A layout as the Foxglove app's **Layout → Import from file…** reads it: ``configById`` (each
+    panel's config under ``<panelType>!<n>``, its title as ``foxglovePanelTitle``), the mosaic tree
+    ``layout`` (a panel id, or ``{direction, first, second, splitPercentage}``), ``globalVariables``,
+    ``userNodes`` and ``playbackConfig``; from the Foxglove SDK's ``Layout.to_json()`` tree of splits
+    (``{type: split, direction, items: [{proportion, content}]}``) and panels. Pure."""
+    config: dict[str, dict] = {}
+
+    def node(content: dict) -> Any:
+        if content["type"] == "panel":
+            pid = f"{content['panelType']}!{len(config) + 1}"
+            config[pid] = {**content.get("config", {}),
+                           **({"foxglovePanelTitle": content["title"]} if content.get("title") else {})}
+            return pid
+        items = content["items"]
+        if len(items) == 1:
+            return node(items[0]["content"])
+        first, rest = items[0], items[1:]
+        share = [float(i.get("proportion", 1.0)) for i in items]
+        second = node({"type": "split", "direction": content["direction"], "items": rest})
+        return {"direction": content["direction"], "first": node(first["content"]), "second": second,
+                "splitPercentage": 100.0 * share[0] / sum(share)}
+
+    tree = node(sdk_layout["content"])
+    return {"configById": config, "globalVariables": {}, "userNodes": {}, "linkedGlobalVariables": [],
+            "playbackConfig": {"speed": 1}, "layout": tree}

@@ -34,6 +34,7 @@ Only the recorder, ``sim`` and ``cli`` import this module; agents, leaders and p
 from __future__ import annotations
 
 import gc
+import json
 import math
 import time
 from pathlib import Path
@@ -680,4 +681,4 @@ def layout(agent_ids: Sequence[int] = (1, 2, 3, 4), dim: int = 2) -> str:
                                                          fl.SplitItem(proportion=1, content=logs)])
     root = fl.SplitContainer(direction="row", items=[fl.SplitItem(proportion=3, content=left),
                                                      fl.SplitItem(proportion=2, content=plots)])
-    return fl.Layout(content=root).to_json()
+    return json.dumps(export.app_layout(json.loads(fl.Layout(content=root).to_json())), indent=2)

@@ -27,6 +27,7 @@ from sim import lockstep  # noqa: E402
 from tether import catalog  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.runfile import EVENT_FIELDS, EVENT_PREFIXES, Run  # noqa: E402
+from tether.wire import SafetyEvent  # noqa: E402
 
 from tests.support import REPO  # noqa: E402
 
@@ -192,3 +193,33 @@ def test_a_killed_agent_stays_where_its_plant_is_at_wall_clock_time(tmp_path: Pa
     assert r.returncode == 0, r.stderr[-3000:]
     launcher = [m for _, m in messages(out / "run.mcap")["/events/launcher"]]
     assert any(e["who"] == "agent/2" and e["what"] == "died" for e in launcher), launcher
+
+
+def test_the_shipped_layout_is_in_the_apps_import_format(tmp_path: Path) -> None:
+    """``docs/foxglove/tether.json`` has the Foxglove app's layout structure (``configById`` and a
+    mosaic tree of its panel ids, each used once), and every topic its panels read is in a Section 4
+    file."""
+    shipped = json.loads((REPO / "docs" / "foxglove" / "tether.json").read_text())
+    assert {"configById", "layout", "globalVariables", "userNodes", "playbackConfig"} <= set(shipped)
+    leaves: list[str] = []
+
+    def walk(node: Any) -> None:
+        if isinstance(node, str):
+            leaves.append(node)
+            return
+        assert node["direction"] in ("row", "column") and 0 < node["splitPercentage"] < 100
+        walk(node["first"])
+        walk(node["second"])
+
+    walk(shipped["layout"])
+    assert sorted(leaves) == sorted(shipped["configById"]) and len(set(leaves)) == len(leaves)
+    assert {pid.split("!")[0] for pid in leaves} == {"ThreeDee", "Plot", "Log"}
+    m = ms.load(catalog.resolve("section4"))
+    run = lockstep.simulate(m, duration=0.2)
+    run.safety.events = [SafetyEvent(k=5, t=5 * m.dt, vehicle=1, src=0, dst=1, reason="test")]  # a /safety
+    with open(viz.write_mcap(run, m, tmp_path / "run.mcap"), "rb") as fh:
+        topics = {ch.topic for ch in mcap_reader.make_reader(fh).get_summary().channels.values()}
+    for pid, cfg in shipped["configById"].items():
+        used = [p["value"].split(".")[0] for p in cfg.get("paths", [])] + \
+            ([cfg["topicToRender"]] if "topicToRender" in cfg else []) + list(cfg.get("topics", {}))
+        assert used and set(used) <= topics, (pid, used)
