@@ -22,8 +22,13 @@ The channels (``docs/foxglove.md``):
 ``/log``               foxglove.Log            the run's notes: what ran, divergence, gate rejections
 =====================  ======================  =========================================================
 
-Time: the log time (and every header stamp) of a sample of mission time t is ``EPOCH_NS + t`` in
-nanoseconds, so Foxglove's "seconds" clock reads 1000000000 + t. Mission time is the sample time
+Every other array and event of the run file is on the channels of :class:`recorder.export.Complete`
+(``/run``, ``/run/static``, ``/link/<dst>/<src>``, ``/clock/...``, ``/events/...``, and extra
+``/agent/<id>`` fields), so that the file is the whole run.
+
+Time: the log time (and every header stamp) of a sample of mission time t is ``epoch + t`` in
+nanoseconds: a real-time run's tick 0 Unix time (``RunMeta.epoch_ns``), else :data:`EPOCH_NS`, so
+that Foxglove's "seconds" clock reads 1000000000 + t. Mission time is the sample time
 ``t_k = k h`` of the run file (the simulator's and the lockstep clock's time; in real time the tick's
 sample time). Time series are written at every tick; the 3D scene (``/scene``, ``/tf``) at up to
 ``scene_rate`` Hz (:data:`SCENE_RATE`; 0: every tick).
