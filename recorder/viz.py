@@ -599,9 +599,18 @@ class Live:
     def __init__(self, port: int = 8765, host: str = "127.0.0.1", speed: float = 1.0,
                  mission: ms.Mission | None = None, scene_rate: float | None = SCENE_RATE,
                  sleep: Callable[[float], None] = time.sleep):
+        from recorder import wscompat
+
         self.ctx = foxglove.Context()
-        self.server = foxglove.start_server(name="tether", host=host, port=port, context=self.ctx,
+        # the SDK's server on a loopback port of its own; the public port is the shim's, which offers
+        # both names of the protocol (recorder/wscompat.py)
+        self.server = foxglove.start_server(name="tether", host="127.0.0.1", port=0, context=self.ctx,
                                             capabilities=[foxglove.Capability.Time])
+        try:
+            self.shim = wscompat.Shim(host, port, self.server.port)
+        except OSError:
+            self.server.stop()
+            raise
         # None: the default rate, as in a file (0: every tick)
         self.scene_rate = SCENE_RATE if scene_rate is None else scene_rate
         self.speed, self.mission, self.sleep = speed, mission, sleep
@@ -613,7 +622,8 @@ class Live:
 
     @property
     def port(self) -> int:
-        return self.server.port
+        """The public port Foxglove clients connect to."""
+        return self.shim.port
 
     def tick(self, run: Run, k: int, events: list[SafetyEvent] | None = None,
              plant_events: list[SafetyEvent] | None = None) -> None:
@@ -652,6 +662,7 @@ class Live:
             _closing_notes(self.view, run)
 
     def close(self) -> None:
+        self.shim.close()
         self.server.stop()
 
 
