@@ -38,6 +38,7 @@ Only the recorder, ``sim`` and ``cli`` import this module; agents, leaders and p
 
 from __future__ import annotations
 
+import collections
 import gc
 import json
 import math
@@ -76,6 +77,11 @@ NO_SAMPLE_COLOUR = (0.25, 0.25, 0.25)
 LEADER_COLOUR = (0.20, 0.45, 0.95)
 SLOT_COLOUR = (0.20, 0.45, 0.95)
 PAYLOAD_COLOUR = (0.60, 0.35, 0.15)
+GRAPH_COLOUR = (0.55, 0.75, 0.95)
+TRAIL = 50
+"""Scene frames of each vehicle's trail (2 s at the default 25 Hz)."""
+LEADER = -1
+"""The leader's index in :attr:`Layout.edges`."""
 FENCE_COLOUR = (0.90, 0.20, 0.20)
 
 
@@ -131,6 +137,8 @@ class Layout:
         self.n, self.dim = len(self.ids), run.p.shape[2]
         self.modes = tuple(run.meta.modes)
         self.offsets = np.zeros((self.n, 3))
+        self.edges: list[tuple[int, int]] = []
+        """The communication graph's edges j -> i as (index of j, or LEADER; index of i) (none without the mission)."""
         self.fence = None
         self.nominal_tension = 0.0
         if mission is not None:
@@ -139,6 +147,8 @@ class Layout:
                 if aid in by_id:
                     self.offsets[i, : self.dim] = by_id[aid].offset
             self.fence = mission.safety.geofence
+            index = {aid: i for i, aid in enumerate(self.ids)}
+            self.edges = [(index.get(e.src, LEADER), index[e.dst]) for e in mission.edges if e.dst in index]
             if mission.payload is not None:
                 self.nominal_tension = mission.payload.mass * GRAVITY / max(self.n, 1)
         pl = run.plant
@@ -284,12 +294,17 @@ class View:
         self.payload_colour = _colour(PAYLOAD_COLOUR)
         self.white = _colour((1.0, 1.0, 1.0))
         self.frames = [f"agent_{aid}" for aid in L.ids]
+        self.trails: list[collections.deque[fm.Point3]] = [collections.deque(maxlen=TRAIL) for _ in L.ids]
+        self.graph_colour = _colour(GRAPH_COLOUR, 0.5)
         self.fence = self._fence_entity() if L.fence is not None else None
 
     # ------------------------------------------------------------------ scene
     def _v3(self, p: Sequence[float], dz: float = 0.0) -> fm.Vector3:
         z = p[2] if len(p) > 2 else 0.0
         return fm.Vector3(x=_f(p[0]), y=_f(p[1]), z=_f(z) + dz)
+
+    def _point(self, p: Sequence[float]) -> fm.Point3:
+        return fm.Point3(x=_f(p[0]), y=_f(p[1]), z=_f(p[2]) if len(p) > 2 else 0.0)
 
     def _pose(self, p: Sequence[float]) -> fm.Pose:
         return fm.Pose(position=self._v3(p), orientation=self.ident)
@@ -328,8 +343,26 @@ class View:
         slots = [fm.CubePrimitive(pose=fm.Pose(position=fm.Vector3(x=_f(lead3[0] + o[0]), y=_f(lead3[1] + o[1]),
                                                                    z=_f(lead3[2] + o[2])), orientation=self.ident),
                                   size=self.vsize, color=self.slot_colour) for o in L.offsets.tolist()]
+        where = [_where(r, i) for i in range(L.n)]
+        trails = []
+        for i, p in enumerate(where):
+            if p is not None:
+                self.trails[i].append(self._point(p))
+            if len(self.trails[i]) > 1:
+                trails.append(fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=fm.Pose(orientation=self.ident),
+                                               thickness=1.5, scale_invariant=True, points=list(self.trails[i]),
+                                               color=_colour(MODE_COLOURS.get(modes[i], NO_SAMPLE_COLOUR), 0.5)))
+        graph = []
+        for j, i in L.edges:  # j -> i: i hears j
+            src, dst = (lp if j == LEADER else where[j]), where[i]
+            if src is not None and dst is not None:
+                graph += [self._point(src), self._point(dst)]
         ents = [
             fm.SceneEntity(timestamp=stamp_, frame_id="world", id="vehicles", spheres=spheres, texts=texts),
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="trails", lines=trails),
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="graph", lines=[fm.LinePrimitive(
+                type=fm.LinePrimitiveLineType.LineList, pose=fm.Pose(orientation=self.ident), thickness=1.0,
+                scale_invariant=True, points=graph, color=self.graph_colour)] if graph else []),
             fm.SceneEntity(timestamp=stamp_, frame_id="world", id="leader",
                            spheres=[fm.SpherePrimitive(pose=self._pose(lp), size=self.lsize, color=self.leader_colour)],
                            texts=[fm.TextPrimitive(pose=fm.Pose(position=self._v3(lp, 0.2), orientation=self.ident),

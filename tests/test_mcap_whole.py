@@ -127,6 +127,20 @@ def test_every_array_of_an_in_process_run_is_in_its_mcap(tmp_path: Path) -> None
     path = viz.write_mcap(run, m, tmp_path / "run.mcap", scene_rate=0)
     assert_whole(path, run)
     assert metadata(path)["epoch_ns"] == str(EPOCH_NS) and metadata(path)["clock"] == "simulated"
+    # the scene draws the communication graph between the vehicles and each vehicle's trail
+    scenes = messages(path)["/scene"]
+    k = len(scenes) - 1
+    ents = {e.id: e for e in scenes[k][1].entities}
+    graph = ents["graph"].lines[0].points
+    assert len(graph) == 2 * len(m.edges)
+    ids = [int(a) for a in run.agent_ids]
+    for n, e in enumerate(m.edges):  # j -> i, from j's position (the leader's) to i's
+        src = run.leader_p[k] if e.src not in ids else run.p[k, ids.index(e.src)]
+        dst = run.p[k, ids.index(e.dst)]
+        assert [graph[2 * n].x, graph[2 * n].y] == src.tolist() and [graph[2 * n + 1].x, graph[2 * n + 1].y] == dst.tolist()
+    trails = ents["trails"].lines
+    assert len(trails) == len(ids) and all(len(t.points) == viz.TRAIL for t in trails)
+    assert [trails[0].points[-1].x, trails[0].points[-1].y] == run.p[k, 0].tolist()
 
 
 def test_a_quadrotor_payload_run_has_its_attitude_in_tf(tmp_path: Path) -> None:
