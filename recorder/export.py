@@ -240,3 +240,26 @@ def app_layout(sdk_layout: dict) -> dict:
     tree = node(sdk_layout["content"])
     return {"configById": config, "globalVariables": {}, "userNodes": {}, "linkedGlobalVariables": [],
             "playbackConfig": {"speed": 1}, "layout": tree}
+
+
+def parameters(mission: Mission | None) -> dict[str, Any]:
+    """The run's parameters as the live view advertises them (read-only): the law's (``law.kp0``,
+    ``law.gamma_p``, ``law.sigma``, a custom law's ``law.params.<name>`` ...) and the failsafes'
+    (``safety.<field>``), by dotted name; None values left out. Pure."""
+    if mission is None:
+        return {}
+    import msgspec
+
+    out: dict[str, Any] = {}
+
+    def flat(prefix: str, value: Any) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                flat(f"{prefix}.{k}", v)
+        elif value is not None:
+            out[prefix] = value
+
+    flat("law", msgspec.to_builtins(mission.law))
+    flat("safety", msgspec.to_builtins(mission.safety))
+    out["mission.rate"] = mission.rate
+    return out

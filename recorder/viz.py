@@ -53,6 +53,7 @@ import foxglove
 from foxglove import channels as fch
 from foxglove import messages as fm
 from foxglove.mcap import MCAPWriteOptions
+from foxglove.websocket import ServerListener
 
 from recorder import export
 from recorder.export import EPOCH_NS, epoch_of
@@ -622,6 +623,26 @@ def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rat
     return path
 
 
+class _ReadOnly(ServerListener):
+    """The live view's parameters (:func:`recorder.export.parameters`): a client reads them, and a
+    client's set changes nothing (the server answers with the values the run flies). Called on the
+    SDK's threads; it only reads a dict built once."""
+
+    def __init__(self, values: dict[str, Any]):
+        self.values = values
+
+    def _params(self, names: Sequence[str]) -> list[foxglove.Parameter]:
+        return [foxglove.Parameter(n, value=self.values[n]) for n in names if n in self.values]
+
+    def on_get_parameters(self, client: Any, param_names: list[str], request_id: str | None = None
+                          ) -> list[foxglove.Parameter]:
+        return self._params(param_names or sorted(self.values))
+
+    def on_set_parameters(self, client: Any, parameters: list[foxglove.Parameter], request_id: str | None = None
+                          ) -> list[foxglove.Parameter]:
+        return self._params([p.name for p in parameters])
+
+
 class Live:
     """The live view: a Foxglove WebSocket server serving a run's channels as it is filled.
 
@@ -637,8 +658,10 @@ class Live:
         self.ctx = foxglove.Context()
         # the SDK's server on a loopback port of its own; the public port is the shim's, which offers
         # both names of the protocol (recorder/wscompat.py)
+        self.params = _ReadOnly(export.parameters(mission))
         self.server = foxglove.start_server(name="tether", host="127.0.0.1", port=0, context=self.ctx,
-                                            capabilities=[foxglove.Capability.Time])
+                                            capabilities=[foxglove.Capability.Time, foxglove.Capability.Parameters],
+                                            server_listener=self.params)
         try:
             self.shim = wscompat.Shim(host, port, self.server.port)
         except OSError:

@@ -16,8 +16,11 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("foxglove")
+ws_client = pytest.importorskip("websockets.sync.client")
 
 from recorder import wscompat  # noqa: E402
+from tether import catalog  # noqa: E402
+from tether import mission as ms  # noqa: E402
 
 from tests.foxglove_live import listen  # noqa: E402
 from tests.support import REPO, free_port  # noqa: E402
@@ -56,7 +59,36 @@ def test_both_subprotocols_get_the_live_view_and_the_scene_at_25_hz(tmp_path: Pa
             stamps = [t for t, _ in live.got["/scene"]]
             steps = {round((b - a) / 1e7) for a, b in zip(stamps, stamps[1:])}
             assert steps == {4}, (offer, steps)
+            assert "parameters" in (live.info or {})["capabilities"]
+        read_only_parameters(port)
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate(timeout=30)
+
+
+def request(ws: object, op: dict, want: str) -> dict:
+    """Send ``op`` and return the first reply of op ``want`` with its id."""
+    ws.send(json.dumps(op))  # type: ignore[attr-defined]
+    while True:
+        frame = ws.recv(timeout=30)  # type: ignore[attr-defined]
+        if isinstance(frame, str):
+            reply = json.loads(frame)
+            if reply["op"] == want and reply.get("id") == op["id"]:
+                return reply
+
+
+def read_only_parameters(port: int) -> None:
+    """The law's and the failsafes' parameters are advertised, and a client's set changes none."""
+    law = ms.load(catalog.resolve("section4")).law
+    with ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"],  # type: ignore[list-item]
+                           open_timeout=10) as ws:
+        got = request(ws, {"op": "getParameters", "parameterNames": [], "id": "all"}, "parameterValues")
+        values = {p["name"]: p["value"] for p in got["parameters"]}
+        assert values["law.sigma"] == law.sigma and values["law.kind"] == law.kind
+        assert "safety.land_after" in values and "mission.rate" in values
+        got = request(ws, {"op": "setParameters", "parameters": [{"name": "law.sigma", "value": 99.0}], "id": "set"},
+                      "parameterValues")
+        assert [(p["name"], p["value"]) for p in got["parameters"]] == [("law.sigma", law.sigma)]
+        again = request(ws, {"op": "getParameters", "parameterNames": ["law.sigma"], "id": "again"}, "parameterValues")
+        assert [p["value"] for p in again["parameters"]] == [law.sigma]
