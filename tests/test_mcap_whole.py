@@ -164,7 +164,7 @@ def test_a_quadrotor_payload_run_has_its_attitude_in_tf(tmp_path: Path) -> None:
 def test_a_killed_agent_stays_where_its_plant_is_at_wall_clock_time(tmp_path: Path) -> None:
     """A real-time run with agent 2 killed at 3 s: the recorder's file holds every array, its log times
     are tick 0's Unix time + t, and after the kill vehicle 2 is drawn where its plant is (not at the
-    origin); ``tether mcap`` adds the launcher's events (events.json) on /events/launcher."""
+    origin); the launcher's events (events.json) are on /events/launcher."""
     out = tmp_path / "run"
     before = time.time_ns()
     r = subprocess.run([sys.executable, "-m", "cli", "run", "failsafe", "--clock", "realtime", "--duration", "7",
@@ -200,12 +200,9 @@ def test_a_killed_agent_stays_where_its_plant_is_at_wall_clock_time(tmp_path: Pa
         assert np.hypot(*p[:2]) > 1.0  # far from the origin, where it was once drawn
         seen += 1
     assert seen >= 10
-    # the launcher's events: in the file once events.json is beside run.npz
+    # the launcher's events (events.json, written when every process has stopped) are in the run's file
     assert (out / "events.json").exists()
-    r = subprocess.run([sys.executable, "-m", "cli", "mcap", str(out)], cwd=REPO, capture_output=True, text=True,
-                       timeout=240)
-    assert r.returncode == 0, r.stderr[-3000:]
-    launcher = [m for _, m in messages(out / "run.mcap")["/events/launcher"]]
+    launcher = [m for _, m in msgs["/events/launcher"]]
     assert any(e["who"] == "agent/2" and e["what"] == "died" for e in launcher), launcher
 
 
