@@ -46,8 +46,8 @@ i.e. 1e9 s after the Unix epoch. A real-time run's tick 0 is at its own Unix tim
 
 TICK_ARRAYS = ("t", "leader_p", "leader_v", "leader_a", "payload_p", "payload_v")
 """Arrays with one row per tick and none per agent (topic ``/run``); every other array whose first
-two axes are (tick, agent) is a field of ``/agent/<id>``, except the link and clock statistics."""
-LINK_PREFIX, CLOCK_PREFIX = "link_", "clock_"
+two axes are (tick, agent) is a field of ``/agent/<id>``, except the link statistics."""
+LINK_PREFIX = "link_"
 EVENT_TOPICS = {"events": "/events/agent", "plant_events": "/events/plant"}
 """SafetyRecord's event lists -> their topics (structured; ``/safety`` has them as text)."""
 LAUNCHER_TOPIC = "/events/launcher"
@@ -67,11 +67,10 @@ class ArrayPlan:
     tick: tuple[str, ...]
     """(T, ...) arrays of no agent: fields of ``/run`` under their npz names."""
     agent: tuple[str, ...]
-    """(T, N, ...) arrays: fields of ``/agent/<id>`` under their npz names."""
+    """(T, N, ...) arrays: fields of ``/agent/<id>`` under their npz names (among them the clock
+    offsets ``clock_offset``, whose slots ``clock_role`` and ``clock_src`` of ``/run/static`` name)."""
     link: tuple[str, ...]
     """(T, N, D) ``link_*`` arrays: fields of ``/link/<dst>/<src>`` without the prefix."""
-    clock: tuple[str, ...]
-    """(T, N, S) ``clock_*`` arrays: fields of ``/clock/<dst>/<role>_<src>`` without the prefix."""
     static: tuple[str, ...]
     """Arrays without a tick axis (ids, link sources, gate counts, run totals): the one ``/run/static``
     message at tick 0, under their npz names."""
@@ -84,7 +83,7 @@ def plan(run: Run) -> ArrayPlan:
     by its shape (a (T, N, ...) array is an agent's field, any other without a tick axis is static)."""
     T, N = len(run.t), len(run.agent_ids)
     ev = tuple(p + f for p in EVENT_PREFIXES.values() for f in EVENT_FIELDS)
-    tick, agent, link, clock, static = [], [], [], [], []
+    tick, agent, link, static = [], [], [], []
     for name, a in run.arrays().items():
         if name in ev:
             continue
@@ -92,15 +91,13 @@ def plan(run: Run) -> ArrayPlan:
         per_agent = per_tick and a.ndim >= 2 and a.shape[1] == N and name not in TICK_ARRAYS
         if name.startswith(LINK_PREFIX) and a.ndim == 3:
             link.append(name)
-        elif name.startswith(CLOCK_PREFIX) and a.ndim == 3:
-            clock.append(name)
         elif per_agent:
             agent.append(name)
         elif per_tick:
             tick.append(name)
         else:
             static.append(name)
-    return ArrayPlan(tuple(tick), tuple(agent), tuple(link), tuple(clock), tuple(static), ev)
+    return ArrayPlan(tuple(tick), tuple(agent), tuple(link), tuple(static), ev)
 
 
 def launcher_events(npz: str | Path) -> list[dict[str, Any]]:
@@ -120,7 +117,7 @@ def launcher_events(npz: str | Path) -> list[dict[str, Any]]:
 class Complete:
     """The channels that make an MCAP file the whole run: every array of ``run.npz`` not already on
     ``/agent/<id>`` or ``/leader`` (on ``/run``, ``/agent/<id>``, ``/link/<dst>/<src>``,
-    ``/clock/<dst>/<role>_<src>``, ``/run/static``) and every event as a structured message.
+    ``/run/static``) and every event as a structured message.
 
     ``channel(topic, schema)`` opens a JSON channel and returns a ``log(bytes, log_time_ns)``
     callable (the Foxglove context's, given by :mod:`recorder.viz`); ``have`` names the fields the
@@ -137,7 +134,7 @@ class Complete:
         arrays = run.arrays()
         self.ids = [int(a) for a in run.agent_ids]
         self.agent_names = [n for n in p.agent if n not in have]
-        self.arrays = {n: arrays[n] for n in (*p.tick, *self.agent_names, *p.link, *p.clock)}
+        self.arrays = {n: arrays[n] for n in (*p.tick, *self.agent_names, *p.link)}
         self.lists: dict[str, list] = {}
         if whole:  # the ticks written only, as recorder.viz.Rows converts them
             index = np.flatnonzero(np.isfinite(run.t))
@@ -153,14 +150,6 @@ class Complete:
                     if src != 0:
                         topic = f"/link/{aid}/{src}"
                         self.links.append((i, slot, topic, channel(topic, _object("tether.Link", fields))))
-        self.clocks: list[tuple[int, int, Callable[[bytes, int], None]]] = []
-        if p.clock and run.clock is not None:
-            fields = [n[len(CLOCK_PREFIX):] for n in p.clock]
-            for i, aid in enumerate(self.ids):
-                for slot, (role, src) in enumerate(zip(run.clock.role[i].tolist(), run.clock.src[i].tolist())):
-                    if src != 0:
-                        self.clocks.append((i, slot, channel(f"/clock/{aid}/{role}_{src}",
-                                                             _object("tether.ClockOffset", fields))))
         self.static = {n: arrays[n].tolist() for n in p.static}
         self.static_log = channel("/run/static", _object("tether.RunStatic", p.static))
         event = _object("tether.SafetyEvent", [*EVENT_FIELDS, "src_name", "dst_name", "origin"])
@@ -180,18 +169,13 @@ class Complete:
         return [{name: rows[name][i] for name in self.agent_names} for i in range(len(self.ids))]
 
     def tick(self, k: int, ns: int) -> None:
-        """Log tick ``k`` of ``/run``, the links and the clocks at log time ``ns``."""
+        """Log tick ``k`` of ``/run`` and the links at log time ``ns``."""
         enc = self.enc
         self.tick_log(enc.encode({"k": k, **{name: self._row(name, k) for name in self.plan.tick}}), ns)
         if self.links:
             rows = {name: self._row(name, k) for name in self.plan.link}
             cut = len(LINK_PREFIX)
             for i, slot, _, log_ in self.links:
-                log_(enc.encode({"k": k, **{name[cut:]: r[i][slot] for name, r in rows.items()}}), ns)
-        if self.clocks:
-            rows = {name: self._row(name, k) for name in self.plan.clock}
-            cut = len(CLOCK_PREFIX)
-            for i, slot, log_ in self.clocks:
                 log_(enc.encode({"k": k, **{name[cut:]: r[i][slot] for name, r in rows.items()}}), ns)
 
     def start(self, ns: int) -> None:

@@ -23,7 +23,7 @@ The channels (``docs/foxglove.md``):
 =====================  ======================  =========================================================
 
 Every other array and event of the run file is on the channels of :class:`recorder.export.Complete`
-(``/run``, ``/run/static``, ``/link/<dst>/<src>``, ``/clock/...``, ``/events/...``, and extra
+(``/run``, ``/run/static``, ``/link/<dst>/<src>``, ``/events/...``, and extra
 ``/agent/<id>`` fields), so that the file is the whole run.
 
 Time: the log time (and every header stamp) of a sample of mission time t is ``epoch + t`` in

@@ -85,19 +85,13 @@ def rebuild(path: Path, run: Run) -> tuple[dict[str, np.ndarray], np.ndarray]:
                     got[name][k, i] = nan(value)
     for topic, rows in msgs.items():
         parts = topic.split("/")
-        if parts[1] in ("link", "clock"):
-            dst, src = int(parts[2]), parts[3]
-            i = ids.index(dst)
-            if parts[1] == "link":
-                slot = run.links.src[i].tolist().index(int(src))
-            else:
-                role, _, sid = src.partition("_")
-                slot = next(s for s, (r, j) in enumerate(zip(run.clock.role[i], run.clock.src[i]))
-                            if r == role and int(j) == int(sid))
+        if parts[1] == "link":  # /link/<dst>/<src>
+            i = ids.index(int(parts[2]))
+            slot = run.links.src[i].tolist().index(int(parts[3]))
             for _, m in rows:
                 k = m.pop("k")
                 for field, value in m.items():
-                    got[f"{parts[1]}_{field}"][k, i, slot] = nan(value)
+                    got[f"link_{field}"][k, i, slot] = nan(value)
     for attr, prefix in EVENT_PREFIXES.items():
         topic = {"events": "/events/agent", "plant_events": "/events/plant"}[attr]
         rows = [m for _, m in msgs.get(topic, [])]
