@@ -57,6 +57,19 @@ def rebuild(out: Path) -> bool:
     return True
 
 
+def with_events(out: Path) -> None:
+    """Rewrite ``run.mcap`` with the launcher's events (``events.json``, known only once every process
+    has stopped, after the recorder wrote the file; ``recorder/export.py`` puts them on
+    ``/events/launcher``). A run file that cannot be read leaves the recorder's ``run.mcap`` as it is."""
+    from recorder.export import mcap_beside
+    from tether.runfile import Run
+
+    try:
+        mcap_beside(Run.load(out), None, out / "run.npz")
+    except (OSError, ValueError) as why:
+        log.error("run.mcap is kept without the launcher's events: %s", why)
+
+
 LATE_WARN = 0.01
 """Above this share of an agent's ticks started more than a period late, the launcher says so at the
 end (the mark of a rate that holds; lockstep ticks are never late)."""
@@ -133,6 +146,8 @@ def conclude(launch: Launch, sup: Supervision | None, status: int) -> int:
         if o.faults:
             safefs.write_file(o.out / "faults.json", (jsonout.dumps(sup.injector.records()) + "\n").encode())
         safefs.write_file(o.out / "events.json", (jsonout.dumps([e.to_json() for e in events]) + "\n").encode())
+        if events and o.mcap and (o.out / "run.mcap").exists():
+            with_events(o.out)
     if status == EXIT_OK:
         status = from_events(events)
         reported = {e.who for e in events if e.what == "died"}

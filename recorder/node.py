@@ -287,6 +287,9 @@ class Recorder:
         else:
             await node.ready(rejoin=rejoin.epoch)
         rec.cpu_ready = time.process_time()
+        wall = node.clock.wall
+        if wall is not None:  # real time: tick 0's Unix time, for lining the run up with other logs
+            rec.run.meta.epoch_ns = round((wall() - node.mission_time()) * 1e9)
         self.started = True
         if node.rejoined and not attach:
             log.warning("rejoined a run under way at t = %.2f s (start instant from %d samples of the leader): "

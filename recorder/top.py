@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import re
 import signal
 import sys
 import time
@@ -60,6 +61,8 @@ class Row:
     last_event: wire.SafetyEvent | None = None
     last_plant_event: wire.SafetyEvent | None = None
     """The newest event its plant's watchdog reported (a mode change, a rejected or clamped command)."""
+    plant: wire.PlantState | None = None
+    """Its plant's newest sample (the watchdog's mode)."""
 
 
 @dataclass
@@ -116,9 +119,13 @@ class Board:
         """One sample on ``tether/<ns>/plant/<i>/state``: its watchdog's newest event is kept for
         vehicle i (an older one than held is ignored); a bad sample is dropped and counted by reason."""
         msg = self._decode(key, payload, "plant", "state", wire.PlantState)
-        if msg is None or not msg.events:
+        if msg is None:
             return
         row = self._row(msg.sender)
+        if row.plant is None or msg.k > row.plant.k:
+            row.plant = msg
+        if not msg.events:
+            return
         newest = max(msg.events, key=lambda e: (e.k, e.t))
         if row.last_plant_event is None or (newest.k, newest.t) >= (row.last_plant_event.k, row.last_plant_event.t):
             row.last_plant_event = newest
@@ -158,9 +165,11 @@ class Board:
     def cells(self, row: Row, now: float) -> tuple[list[str], list[str]]:
         """The row's cells as text, and a style per cell ("" for none)."""
         msg = row.msg
+        plant, pstyle = self._plant(row)
         if msg is None:
             state = "GONE" if row.alive is False else "no telemetry"
-            return ([str(row.vehicle), state] + ["-"] * 7, ["bold", "red" if row.alive is False else "dim"] + [""] * 7)
+            return ([str(row.vehicle), state, plant] + ["-"] * 7,
+                    ["bold", "red" if row.alive is False else "dim", pstyle] + [""] * 7)
         mode = wire.MODES[msg.mode] if 0 <= msg.mode < len(wire.MODES) else f"mode {msg.mode}"
         styles = ["bold"]
         age = now - row.heard if row.heard is not None else math.inf
@@ -172,6 +181,7 @@ class Board:
             mstyle = {"FLYING": "green", "HOLD": "yellow", "LAND": "dark_orange", "LANDED": "dim",
                       "ESTOP": "bold red"}.get(mode, "red")
         styles.append(mstyle)
+        styles.append(pstyle)
         xi = _norm(msg.xi)
         styles.append("red" if not xi <= self.xi_warn else "")
         _, values = law_state(msg)
@@ -189,16 +199,24 @@ class Board:
         styles.append(cstyle)
         event, ev = "-", row.last_event
         if ev is not None:
-            event = f"t={ev.t:.1f}s {_mode(ev.src)}->{_mode(ev.dst)} {ev.reason}"
+            event = f"t={ev.t:.1f}s {_mode(ev.src)}->{_mode(ev.dst)} {_reason(ev.reason)}"
         pev = row.last_plant_event
         if pev is not None and (ev is None or pev.t > ev.t):  # the plant's watchdog spoke last
             change = _mode(pev.dst) if pev.src == pev.dst else f"{_mode(pev.src)}->{_mode(pev.dst)}"
-            event = f"plant t={pev.t:.1f}s {change} {pev.reason}"
+            event = f"plant t={pev.t:.1f}s {change} {_reason(pev.reason)}"
         styles.append("yellow" if event != "-" else "")
         link_delivery = "-" if not links else f"{delivery:.0%}" + (" silent" if silent else "")
         link_age = "-" if not math.isfinite(p99) else f"{p99 * 1000:.0f} ms"
-        return ([str(row.vehicle), mode, _num(xi, 3), gains, _num(u, 2), link_delivery, link_age, clock, event],
-                styles)
+        return ([str(row.vehicle), mode, plant, _num(xi, 3), gains, _num(u, 2), link_delivery, link_age, clock,
+                 event], styles)
+
+    def _plant(self, row: Row) -> tuple[str, str]:
+        """The plant watchdog's mode cell: its mode (``STALE`` when its samples stopped), and a style."""
+        if row.plant is None:
+            return "-", "dim"
+        mode = _mode(row.plant.mode)
+        return mode, {"FLYING": "green", "HOLD": "yellow", "LAND": "dark_orange", "LANDED": "dim",
+                      "ESTOP": "bold red"}.get(mode, "red")
 
     def table(self, now: float, where: str = "") -> Table:
         """The monitor as a ``rich`` renderable."""
@@ -212,7 +230,7 @@ class Board:
         caption = "q: quit" + (f"   dropped {dropped} sample(s): " + ", ".join(
             f"{n} {why}" for why, n in sorted(self.drops.items())) if dropped else "")
         t = Table(title=heading, caption=caption, expand=False)
-        for name, justify in (("vehicle", "right"), ("mode", "left"), ("|xi| [m]", "right"),
+        for name, justify in (("vehicle", "right"), ("mode", "left"), ("plant", "left"), ("|xi| [m]", "right"),
                               (self.state_heading(), "left"), ("|u| [m/s2]", "right"), ("link delivery", "right"),
                               ("age p99", "right"), ("clock", "right"), ("last event", "left")):
             t.add_column(name, justify=justify)  # type: ignore[arg-type]
@@ -240,6 +258,15 @@ def _clock(links: list[wire.ClockLink]) -> tuple[str, str]:
     worst = max(finite, key=lambda c: (c.warn, abs(c.offset)))
     text = f"{worst.role}/{worst.src} {1000 * worst.offset:+.1f} ms"
     return (text + " !", "bold red") if worst.warn else (text, "")
+
+
+_NO_ID = re.compile(r"\b(neighbours?)(?=\s*$|\s{2}|\s(?:lost|back|holding|no longer)\b)")
+
+
+def _reason(text: str) -> str:
+    """An event's reason for the table: a role named without its id (``neighbour  lost``, as an
+    empty list of ids reads) says ``(no id)`` instead of showing a blank where an id belongs."""
+    return re.sub(r"\s{2,}", " ", _NO_ID.sub(r"\1 (no id)", text))
 
 
 def _escape(text: str) -> str:
@@ -293,55 +320,96 @@ class _Keys:
                 termios.tcsetattr(self.fd, termios.TCSADRAIN, self.saved)
 
 
-async def run(settings: object, ns: str, where: str, xi_warn: float = XI_WARN, age_warn: float = AGE_WARN) -> int:
-    """Open a session with ``settings`` (a :class:`tether.transport.ZenohSettings`), show the
-    monitor until ``q``, Ctrl-C or SIGTERM; returns 0."""
+RETRY = 0.5
+"""How often to try the swarm's router again while it does not answer [s] (as ``tether record``)."""
+
+
+class NoSwarm(Exception):
+    """The swarm's router did not answer within the wait (``--wait``)."""
+
+
+async def run(settings: object, ns: str, where: str, xi_warn: float = XI_WARN, age_warn: float = AGE_WARN,
+              wait: float = math.inf, say: Callable[[str], None] = lambda line: print(line, file=sys.stderr)) -> int:
+    """Open a session with ``settings`` (a :class:`tether.transport.ZenohSettings`), trying the
+    swarm's router every :data:`RETRY` s for up to ``wait`` s while it does not answer (``say``-ing
+    once that it waits), then show the monitor until ``q``, Ctrl-C or SIGTERM; returns 0. Raises
+    :class:`NoSwarm` when the router never answered within ``wait``. Blocks until then."""
+    from tether import transport as tp
+
+    if not isinstance(settings, tp.ZenohSettings):
+        raise TypeError("settings: a tether.transport.ZenohSettings")
+    quit_ = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, quit_.set)
+    try:
+        deadline = time.monotonic() + wait
+        told = False
+        while not quit_.is_set():
+            opened = False
+            try:
+                async with tp.open_session(settings) as session:
+                    opened = True
+                    await _monitor(session, ns, where, Board(ns, xi_warn=xi_warn, age_warn=age_warn), quit_)
+                    return 0
+            except tp.TransportError as exc:
+                if opened:
+                    raise
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise NoSwarm(f"no answer from the swarm's router at {where} within {wait:g} s "
+                                  f"({str(exc).splitlines()[0]})") from None
+                if not told:
+                    say(f"tether top: waiting for the swarm's router at {where} "
+                        f"(trying every {RETRY:g} s{'' if math.isinf(wait) else f' for up to {wait:g} s'}; "
+                        "Ctrl-C stops)")
+                    told = True
+            try:
+                async with asyncio.timeout(min(RETRY, max(left, 0.0))):
+                    await quit_.wait()
+            except TimeoutError:
+                pass
+        return 0
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+
+
+async def _monitor(session: Any, ns: str, where: str, board: Board, quit_: asyncio.Event) -> None:
+    """The monitor on an open session until ``quit_`` is set (``q`` sets it)."""
     from rich.console import Console
     from rich.live import Live
 
     from tether import handoff
     from tether import transport as tp
 
-    if not isinstance(settings, tp.ZenohSettings):
-        raise TypeError("settings: a tether.transport.ZenohSettings")
     keys = wire.Keys(ns)
-    board = Board(ns, xi_warn=xi_warn, age_warn=age_warn)
-    quit_ = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, quit_.set)
     samples: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096)
     plants: handoff.BoundedFifo[tp.Received] = handoff.BoundedFifo(4096)
     tokens: handoff.BoundedFifo[tp.TokenEvent] = handoff.BoundedFifo(1024)
     console = Console()
+    declared = [tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", samples),
+                tp.declare_subscriber(session, f"tether/{ns}/plant/*/state", plants),
+                tp.watch_tokens(session, keys.tokens, tokens)]
     try:
-        async with tp.open_session(settings) as session:
-            declared = [tp.declare_subscriber(session, f"tether/{ns}/agent/*/telemetry", samples),
-                        tp.declare_subscriber(session, f"tether/{ns}/plant/*/state", plants),
-                        tp.watch_tokens(session, keys.tokens, tokens)]
-            try:
-                with _Keys(quit_.set), Live(board.table(time.monotonic(), where), console=console, screen=True,
-                                            auto_refresh=False) as live:
-                    while not quit_.is_set():
-                        try:  # a redraw every REFRESH s, however many samples come
-                            async with asyncio.timeout(REFRESH):
-                                await quit_.wait()
-                        except TimeoutError:
-                            pass
-                        now = time.monotonic()
-                        for rec in samples.drain():
-                            board.telemetry(rec.key, rec.payload, now)
-                        for rec in plants.drain():
-                            board.plant(rec.key, rec.payload)
-                        for ev in tokens.drain():
-                            board.token(ev.key, ev.alive)
-                        if samples.dropped or plants.dropped:
-                            board.drops["overflow"] = samples.dropped + plants.dropped
-                        live.update(board.table(now, where), refresh=True)
-            finally:
-                for d in declared:
-                    d.undeclare()
+        with _Keys(quit_.set), Live(board.table(time.monotonic(), where), console=console, screen=True,
+                                    auto_refresh=False) as live:
+            while not quit_.is_set():
+                try:  # a redraw every REFRESH s, however many samples come
+                    async with asyncio.timeout(REFRESH):
+                        await quit_.wait()
+                except TimeoutError:
+                    pass
+                now = time.monotonic()
+                for rec in samples.drain():
+                    board.telemetry(rec.key, rec.payload, now)
+                for rec in plants.drain():
+                    board.plant(rec.key, rec.payload)
+                for ev in tokens.drain():
+                    board.token(ev.key, ev.alive)
+                if samples.dropped or plants.dropped:
+                    board.drops["overflow"] = samples.dropped + plants.dropped
+                live.update(board.table(now, where), refresh=True)
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
-    return 0
+        for d in declared:
+            d.undeclare()

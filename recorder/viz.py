@@ -22,8 +22,13 @@ The channels (``docs/foxglove.md``):
 ``/log``               foxglove.Log            the run's notes: what ran, divergence, gate rejections
 =====================  ======================  =========================================================
 
-Time: the log time (and every header stamp) of a sample of mission time t is ``EPOCH_NS + t`` in
-nanoseconds, so Foxglove's "seconds" clock reads 1000000000 + t. Mission time is the sample time
+Every other array and event of the run file is on the channels of :class:`recorder.export.Complete`
+(``/run``, ``/run/static``, ``/link/<dst>/<src>``, ``/events/...``, and extra
+``/agent/<id>`` fields), so that the file is the whole run.
+
+Time: the log time (and every header stamp) of a sample of mission time t is ``epoch + t`` in
+nanoseconds: a real-time run's tick 0 Unix time (``RunMeta.epoch_ns``), else :data:`EPOCH_NS`, so
+that Foxglove's "seconds" clock reads 1000000000 + t. Mission time is the sample time
 ``t_k = k h`` of the run file (the simulator's and the lockstep clock's time; in real time the tick's
 sample time). Time series are written at every tick; the 3D scene (``/scene``, ``/tf``) at up to
 ``scene_rate`` Hz (:data:`SCENE_RATE`; 0: every tick).
@@ -33,7 +38,9 @@ Only the recorder, ``sim`` and ``cli`` import this module; agents, leaders and p
 
 from __future__ import annotations
 
+import collections
 import gc
+import json
 import math
 import time
 from pathlib import Path
@@ -46,13 +53,13 @@ import foxglove
 from foxglove import channels as fch
 from foxglove import messages as fm
 from foxglove.mcap import MCAPWriteOptions
+from foxglove.websocket import ServerListener
 
+from recorder import export
+from recorder.export import EPOCH_NS, epoch_of
 from tether import mission as ms
 from tether.runfile import NO_SAMPLE, Run, missing_report
 from tether.wire import SafetyEvent
-
-EPOCH_NS = 1_000_000_000 * 10**9
-"""Log time of mission time 0 [ns]: 2001-09-09T01:46:40Z, i.e. 1e9 s after the Unix epoch."""
 SCENE_RATE = 25.0
 """Default rate of the 3D scene in a file [Hz] (time series are always at every tick)."""
 GRAVITY = 9.81
@@ -71,12 +78,18 @@ NO_SAMPLE_COLOUR = (0.25, 0.25, 0.25)
 LEADER_COLOUR = (0.20, 0.45, 0.95)
 SLOT_COLOUR = (0.20, 0.45, 0.95)
 PAYLOAD_COLOUR = (0.60, 0.35, 0.15)
+GRAPH_COLOUR = (0.55, 0.75, 0.95)
+TRAIL = 50
+"""Scene frames of each vehicle's trail (2 s at the default 25 Hz)."""
+LEADER = -1
+"""The leader's index in :attr:`Layout.edges`."""
 FENCE_COLOUR = (0.90, 0.20, 0.20)
 
 
-def stamp(t: float) -> int:
-    """The log time [ns] of mission time ``t`` [s]."""
-    return EPOCH_NS + int(round(t * 1e9))
+def stamp(t: float, epoch_ns: int = EPOCH_NS) -> int:
+    """The log time [ns] of mission time ``t`` [s] of a run whose tick 0 is at ``epoch_ns``
+    (:func:`recorder.export.epoch_of`; the default: simulated time's fixed epoch)."""
+    return epoch_ns + int(round(t * 1e9))
 
 
 def _ts(ns: int) -> fm.Timestamp:
@@ -135,6 +148,8 @@ class Layout:
         self.law_state = law_state_fields(run)
         """The law's state variables by name, with the description of each (:func:`law_state_fields`)."""
         self.offsets = np.zeros((self.n, 3))
+        self.edges: list[tuple[int, int]] = []
+        """The communication graph's edges j -> i as (index of j, or LEADER; index of i) (none without the mission)."""
         self.fence = None
         self.nominal_tension = 0.0
         if mission is not None:
@@ -143,6 +158,8 @@ class Layout:
                 if aid in by_id:
                     self.offsets[i, : self.dim] = by_id[aid].offset
             self.fence = mission.safety.geofence
+            index = {aid: i for i, aid in enumerate(self.ids)}
+            self.edges = [(index.get(e.src, LEADER), index[e.dst]) for e in mission.edges if e.dst in index]
             if mission.payload is not None:
                 self.nominal_tension = mission.payload.mass * GRAVITY / max(self.n, 1)
         pl = run.plant
@@ -222,6 +239,7 @@ class Rows:
         if layout.runtime:
             assert run.runtime is not None
             arrays["meas_age"], arrays["drops"] = run.runtime.meas_age, run.runtime.drops
+            arrays["plant_p"] = run.runtime.plant_p  # where the scene draws a vehicle without the agent's sample
         if layout.payload:
             arrays["payload_p"], arrays["payload_v"] = run.plant.payload_p, run.plant.payload_v
         if layout.tension:
@@ -258,15 +276,26 @@ class Rows:
 class View:
     """Logs a run's ticks, events and notes on the channels of one Foxglove context."""
 
-    def __init__(self, ctx: foxglove.Context, layout: Layout, scene_every: int = 1):
+    def __init__(self, ctx: foxglove.Context, layout: Layout, scene_every: int = 1,
+                 run: Run | None = None, whole: bool = True):
         self.lay, self.scene_every = layout, max(1, int(scene_every))
         self.enc = msgspec.json.Encoder()
         L = layout
+        self.epoch = EPOCH_NS if run is None else epoch_of(run)
         self.scene = fch.SceneUpdateChannel("/scene", context=ctx)
         self.tf = fch.FrameTransformsChannel("/tf", context=ctx)
         self.safety = fch.LogChannel("/safety", context=ctx)
         self.log = fch.LogChannel("/log", context=ctx)
         schema = L.agent_schema()
+
+        def channel(topic: str, sch: dict) -> Callable[[bytes, int], None]:
+            return foxglove.Channel(topic, schema=sch, context=ctx).base.log
+
+        # the rest of the run file: every array and event not on the channels above (recorder/export.py)
+        self.complete = (None if run is None else
+                         export.Complete(run, channel, set(schema["properties"]) | set(Rows.NAMES), whole))
+        if self.complete is not None:
+            schema["properties"].update(self.complete.agent_schema())
         self.agents = [foxglove.Channel(f"/agent/{aid}", schema=schema, context=ctx).base for aid in L.ids]
         self.leader = foxglove.Channel("/leader", schema=L.leader_schema(), context=ctx).base
         self.payload = (foxglove.Channel("/payload", schema=L.payload_schema(), context=ctx).base
@@ -283,12 +312,17 @@ class View:
         self.payload_colour = _colour(PAYLOAD_COLOUR)
         self.white = _colour((1.0, 1.0, 1.0))
         self.frames = [f"agent_{aid}" for aid in L.ids]
+        self.trails: list[collections.deque[fm.Point3]] = [collections.deque(maxlen=TRAIL) for _ in L.ids]
+        self.graph_colour = _colour(GRAPH_COLOUR, 0.5)
         self.fence = self._fence_entity() if L.fence is not None else None
 
     # ------------------------------------------------------------------ scene
     def _v3(self, p: Sequence[float], dz: float = 0.0) -> fm.Vector3:
         z = p[2] if len(p) > 2 else 0.0
         return fm.Vector3(x=_f(p[0]), y=_f(p[1]), z=_f(z) + dz)
+
+    def _point(self, p: Sequence[float]) -> fm.Point3:
+        return fm.Point3(x=_f(p[0]), y=_f(p[1]), z=_f(p[2]) if len(p) > 2 else 0.0)
 
     def _pose(self, p: Sequence[float]) -> fm.Pose:
         return fm.Pose(position=self._v3(p), orientation=self.ident)
@@ -313,7 +347,9 @@ class View:
         modes = r["safety_mode"]
         spheres, texts = [], []
         for i, aid in enumerate(L.ids):
-            p = r["p"][i]
+            p = _where(r, i)
+            if p is None:  # neither the agent nor its plant said where it is: not drawn
+                continue
             colour = self.mode_colour.get(modes[i], self.nosample)
             spheres.append(fm.SpherePrimitive(pose=self._pose(p), size=self.vsize, color=colour))
             label = str(aid) if modes[i] == 0 else f"{aid} {_name(L.modes, modes[i])}"
@@ -325,8 +361,26 @@ class View:
         slots = [fm.CubePrimitive(pose=fm.Pose(position=fm.Vector3(x=_f(lead3[0] + o[0]), y=_f(lead3[1] + o[1]),
                                                                    z=_f(lead3[2] + o[2])), orientation=self.ident),
                                   size=self.vsize, color=self.slot_colour) for o in L.offsets.tolist()]
+        where = [_where(r, i) for i in range(L.n)]
+        trails = []
+        for i, p in enumerate(where):
+            if p is not None:
+                self.trails[i].append(self._point(p))
+            if len(self.trails[i]) > 1:
+                trails.append(fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=fm.Pose(orientation=self.ident),
+                                               thickness=1.5, scale_invariant=True, points=list(self.trails[i]),
+                                               color=_colour(MODE_COLOURS.get(modes[i], NO_SAMPLE_COLOUR), 0.5)))
+        graph = []
+        for j, i in L.edges:  # j -> i: i hears j
+            src, dst = (lp if j == LEADER else where[j]), where[i]
+            if src is not None and dst is not None:
+                graph += [self._point(src), self._point(dst)]
         ents = [
             fm.SceneEntity(timestamp=stamp_, frame_id="world", id="vehicles", spheres=spheres, texts=texts),
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="trails", lines=trails),
+            fm.SceneEntity(timestamp=stamp_, frame_id="world", id="graph", lines=[fm.LinePrimitive(
+                type=fm.LinePrimitiveLineType.LineList, pose=fm.Pose(orientation=self.ident), thickness=1.0,
+                scale_invariant=True, points=graph, color=self.graph_colour)] if graph else []),
             fm.SceneEntity(timestamp=stamp_, frame_id="world", id="leader",
                            spheres=[fm.SpherePrimitive(pose=self._pose(lp), size=self.lsize, color=self.leader_colour)],
                            texts=[fm.TextPrimitive(pose=fm.Pose(position=self._v3(lp, 0.2), orientation=self.ident),
@@ -356,10 +410,13 @@ class View:
         quat = r.get("quat")
         tfs = []
         for i in range(L.n):
+            p = _where(r, i)
+            if p is None:
+                continue
             q = quat[i] if quat is not None else None
             rot = self.ident if q is None else fm.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
             tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id=self.frames[i],
-                                         translation=self._v3(r["p"][i]), rotation=rot))
+                                         translation=self._v3(p), rotation=rot))
         tfs.append(fm.FrameTransform(timestamp=stamp_, parent_frame_id="world", child_frame_id="leader",
                                      translation=self._v3(lp), rotation=self.ident))
         if L.payload:
@@ -371,8 +428,9 @@ class View:
     def tick(self, k: int, t: float, r: dict, scene: bool | None = None) -> None:
         """Log tick ``k`` (mission time ``t``) from its rows ``r`` (:meth:`Rows.at`)."""
         L, enc = self.lay, self.enc
-        ns = stamp(t)
+        ns = stamp(t, self.epoch)
         modes, pmodes = r["safety_mode"], r["plant_mode"]
+        extra = self.complete.agent_fields(k) if self.complete is not None else None
         for i, ch in enumerate(self.agents):
             msg = {"t": t, "k": k, "xi_norm": r["xi_norm"][i], "xi": r["xi"][i], "zeta": r["zeta"][i],
                    "kp": r["kp"][i], "kv": r["kv"][i], "u": r["u"][i], "p": r["p"][i], "v": r["v"][i],
@@ -387,6 +445,8 @@ class View:
                 msg["meas_age"], msg["drops"] = r["meas_age"][i], r["drops"][i]
             if L.law_state:
                 msg["law"] = dict(zip(L.law_state, r["law_state"][i]))
+            if extra is not None:
+                msg.update(extra[i])
             ch.log(enc.encode(msg), ns)
         self.leader.log(enc.encode({"t": t, "k": k, "p": r["leader_p"], "v": r["leader_v"], "a": r["leader_a"]}), ns)
         if self.payload is not None:
@@ -396,6 +456,8 @@ class View:
                 finite = [x for x in ten if x == x]
                 msg.update(tension=ten, tension_max=max(finite) if finite else None, slack_events=r["slack_events"])
             self.payload.log(enc.encode(msg), ns)
+        if self.complete is not None:
+            self.complete.tick(k, ns)
         if scene if scene is not None else k % self.scene_every == 0:
             self._scene(k, ns, r)
 
@@ -403,7 +465,7 @@ class View:
         """The scene at tick ``k`` (time ``t``), the first the record lacks after its last (at time
         ``last``): every vehicle where it was last heard, drawn as "no sample" (``r``'s modes, −1),
         and a note on ``/log``."""
-        self._scene(k, stamp(t), r)
+        self._scene(k, stamp(t, self.epoch), r)
         self.note(t, f"no sample after t = {last:.2f} s: the vehicles' modes and positions from here on "
                      "are not in this record", fm.LogLevel.Warning)
 
@@ -411,7 +473,7 @@ class View:
         """A safety event on ``/safety``, named by its origin (``agent <id>``: the supervisor's;
         ``plant <id>``: the plant's watchdog, whose events include command rejections without a
         mode change, ``src == dst``)."""
-        ns = stamp(e.t)
+        ns = stamp(e.t, self.epoch)
         dst = _name(self.lay.modes, e.dst)
         level = (fm.LogLevel.Error if dst == "ESTOP" else
                  fm.LogLevel.Warning if dst in ("HOLD", "LAND") or e.src == e.dst else fm.LogLevel.Info)
@@ -419,16 +481,42 @@ class View:
         text = f"t = {e.t:.3f} s: {origin} {e.vehicle}: {change}: {e.reason}"
         self.safety.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=f"{origin} {e.vehicle}"),
                         log_time=ns)
+        if self.complete is not None:
+            self.complete.event("events" if origin == "agent" else "plant_events", e, ns, self.lay.modes)
+
+    def launcher(self, event: dict[str, Any]) -> None:
+        """One of the launcher's events (``events.json``: ``t``, ``who``, ``what``, ``why``) on
+        ``/events/launcher`` and, as text, on ``/log`` (name ``launcher``)."""
+        t = event["t"] if event["t"] is not None else 0.0  # before tick 0: at tick 0
+        ns = stamp(t, self.epoch)
+        if self.complete is not None:
+            self.complete.launcher(event, ns)
+        level = fm.LogLevel.Warning if event["what"] != "back" else fm.LogLevel.Info
+        self.log.log(fm.Log(timestamp=_ts(ns), level=level, name="launcher",
+                            message=f"t = {t:.3f} s: {event['who']}: {event['what']}: {event['why']}"), log_time=ns)
 
     def note(self, t: float, text: str, level: fm.LogLevel = fm.LogLevel.Info, name: str = "tether") -> None:
         """A note on ``/log``."""
-        ns = stamp(t)
+        ns = stamp(t, self.epoch)
         self.log.log(fm.Log(timestamp=_ts(ns), level=level, message=text, name=name), log_time=ns)
 
 
 def _f(x: float) -> float:
-    """A coordinate for a scene primitive (NaN, i.e. no sample, drawn at the origin)."""
+    """A coordinate for a scene primitive (a NaN component of a position otherwise known: 0)."""
     return x if x == x else 0.0
+
+
+def _where(r: dict, i: int) -> list[float] | None:
+    """Where vehicle ``i`` is at a tick of rows ``r``: the agent's position, else its plant's own
+    measurement (an agent killed or silent: its plant holds and lands), else None (not drawn;
+    never the origin)."""
+    p = r["p"][i]
+    if all(x == x for x in p):
+        return p
+    plant = r.get("plant_p")
+    if plant is not None and all(x == x for x in plant[i]):
+        return plant[i]
+    return None
 
 
 def _name(modes: Sequence[str], code: int) -> str:
@@ -508,19 +596,24 @@ def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rat
     writer = foxglove.open_mcap(tmp, allow_overwrite=True, context=ctx,
                                 writer_options=MCAPWriteOptions(compression_threads=0, compression_level=ZSTD_LEVEL))
     try:
-        view = View(ctx, layout, scene_every(run.meta.rate, scene_rate))
+        view = View(ctx, layout, scene_every(run.meta.rate, scene_rate), run=run)
         writer.write_metadata("tether", {
             "mission": run.meta.mission, "source": run.meta.source, "law": run.meta.law,
-            "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(EPOCH_NS),
+            "rate_hz": f"{run.meta.rate:g}", "steps": str(run.meta.steps), "epoch_ns": str(view.epoch),
+            "clock": "unix" if run.meta.epoch_ns is not None else "simulated",
             "scene_every": str(view.scene_every), "modes": ",".join(layout.modes),
             "run_meta": msgspec.json.encode(msgspec.structs.replace(run.meta, mission_text=None)).decode()})
         if run.meta.mission_text:
-            writer.attach(log_time=EPOCH_NS, create_time=EPOCH_NS, name="mission.toml", media_type="application/toml",
-                          data=run.meta.mission_text.encode())
+            writer.attach(log_time=view.epoch, create_time=view.epoch, name="mission.toml",
+                          media_type="application/toml", data=run.meta.mission_text.encode())
         rows = Rows(run, layout, whole=True)
         events = _events(run)
         ev = 0
         _opening_notes(view, run)
+        assert view.complete is not None  # made with the run
+        view.complete.start(view.epoch)
+        for said in export.launcher_events(path.with_suffix(".npz")):
+            view.launcher(said)
         times = run.t.tolist()
         written = heard(run)
         ticks = np.flatnonzero(written).tolist()
@@ -549,6 +642,26 @@ def write_mcap(run: Run, mission: ms.Mission | None, path: str | Path, scene_rat
     return path
 
 
+class _ReadOnly(ServerListener):
+    """The live view's parameters (:func:`recorder.export.parameters`): a client reads them, and a
+    client's set changes nothing (the server answers with the values the run flies). Called on the
+    SDK's threads; it only reads a dict built once."""
+
+    def __init__(self, values: dict[str, Any]):
+        self.values = values
+
+    def _params(self, names: Sequence[str]) -> list[foxglove.Parameter]:
+        return [foxglove.Parameter(n, value=self.values[n]) for n in names if n in self.values]
+
+    def on_get_parameters(self, client: Any, param_names: list[str], request_id: str | None = None
+                          ) -> list[foxglove.Parameter]:
+        return self._params(param_names or sorted(self.values))
+
+    def on_set_parameters(self, client: Any, parameters: list[foxglove.Parameter], request_id: str | None = None
+                          ) -> list[foxglove.Parameter]:
+        return self._params([p.name for p in parameters])
+
+
 class Live:
     """The live view: a Foxglove WebSocket server serving a run's channels as it is filled.
 
@@ -559,10 +672,23 @@ class Live:
     def __init__(self, port: int = 8765, host: str = "127.0.0.1", speed: float = 1.0,
                  mission: ms.Mission | None = None, scene_rate: float | None = SCENE_RATE,
                  sleep: Callable[[float], None] = time.sleep):
+        from recorder import wscompat
+
         self.ctx = foxglove.Context()
-        self.server = foxglove.start_server(name="tether", host=host, port=port, context=self.ctx,
-                                            capabilities=[foxglove.Capability.Time])
-        self.speed, self.mission, self.scene_rate, self.sleep = speed, mission, scene_rate, sleep
+        # the SDK's server on a loopback port of its own; the public port is the shim's, which offers
+        # both names of the protocol (recorder/wscompat.py)
+        self.params = _ReadOnly(export.parameters(mission))
+        self.server = foxglove.start_server(name="tether", host="127.0.0.1", port=0, context=self.ctx,
+                                            capabilities=[foxglove.Capability.Time, foxglove.Capability.Parameters],
+                                            server_listener=self.params)
+        try:
+            self.shim = wscompat.Shim(host, port, self.server.port)
+        except OSError:
+            self.server.stop()
+            raise
+        # None: the default rate, as in a file (0: every tick)
+        self.scene_rate = SCENE_RATE if scene_rate is None else scene_rate
+        self.speed, self.mission, self.sleep = speed, mission, sleep
         self.view: View | None = None
         self.rows: Rows | None = None
         self.wall0 = 0.0
@@ -571,7 +697,8 @@ class Live:
 
     @property
     def port(self) -> int:
-        return self.server.port
+        """The public port Foxglove clients connect to."""
+        return self.shim.port
 
     def tick(self, run: Run, k: int, events: list[SafetyEvent] | None = None,
              plant_events: list[SafetyEvent] | None = None) -> None:
@@ -580,7 +707,9 @@ class Live:
         the recorder's, while the run is being filled) are given."""
         if self.view is None:
             layout = Layout(run, _mission_of(run, self.mission))
-            self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate))
+            self.view = View(self.ctx, layout, scene_every(run.meta.rate, self.scene_rate), run=run, whole=False)
+            assert self.view.complete is not None  # made with the run
+            self.view.complete.start(self.view.epoch)
             self.rows = Rows(run, layout, whole=False)
             _opening_notes(self.view, run)
             self.wall0 = time.monotonic()
@@ -601,13 +730,14 @@ class Live:
             self.plant_events += 1
         assert self.rows is not None  # set by start()
         self.view.tick(k, t, self.rows.at(k))
-        self.server.broadcast_time(stamp(t))
+        self.server.broadcast_time(stamp(t, self.view.epoch))
 
     def finish(self, run: Run) -> None:
         if self.view is not None:
             _closing_notes(self.view, run)
 
     def close(self) -> None:
+        self.shim.close()
         self.server.stop()
 
 
@@ -642,4 +772,4 @@ def layout(agent_ids: Sequence[int] = (1, 2, 3, 4), dim: int = 2) -> str:
                                                          fl.SplitItem(proportion=1, content=logs)])
     root = fl.SplitContainer(direction="row", items=[fl.SplitItem(proportion=3, content=left),
                                                      fl.SplitItem(proportion=2, content=plots)])
-    return fl.Layout(content=root).to_json()
+    return json.dumps(export.app_layout(json.loads(fl.Layout(content=root).to_json())), indent=2)

@@ -46,8 +46,10 @@ REAL_TIME_FILES = frozenset({
     "test_crazyflie.py", "test_deploy.py", "test_failsafe_runs.py", "test_faults.py", "test_hold_anchor.py",
     "test_lies.py", "test_observe.py", "test_partition.py", "test_plant_envelope.py", "test_plant_watchdog.py",
     "test_record_crash.py", "test_redteam.py", "test_rehearse.py", "test_rejoin.py", "test_relay.py",
-    "test_rt_priority.py", "test_runtime.py", "test_runtime_netem.py", "test_secure_run.py", "test_shared_plants.py",
-    "test_radio_host.py", "test_radio_link.py", "test_radio_monitor.py", "test_sites.py", "test_sitl.py", "test_skew.py",
+    "test_mcap_whole.py", "test_rt_priority.py", "test_runtime.py", "test_runtime_netem.py", "test_secure_run.py",
+    "test_shared_plants.py", "test_radio_host.py", "test_radio_link.py", "test_radio_monitor.py", "test_sites.py",
+    "test_sitl.py", "test_sitl_example.py", "test_skew.py", "test_lab_plant.py", "test_lab_deadman.py",
+    "test_cfsim_lab.py", "test_top_wait.py", "test_live_clients.py", "test_report.py",
 })
 """Files whose slow tests fly swarms (or Crazyflies) in real time."""
 

@@ -16,8 +16,8 @@ import pytest
 ws_client = pytest.importorskip("websockets.sync.client")
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
-"""The Foxglove WebSocket protocol's names: foxglove-sdk 0.30's server accepts only the first (the
-protocol's current name; the frames are those of ``foxglove.websocket.v1``), older servers the second."""
+"""The Foxglove WebSocket protocol's names: current clients offer the first, older ones (Lichtblick
+before Dec 2025, ``foxglove.websocket.v1`` libraries) only the second; the live view accepts either."""
 
 
 @dataclass
@@ -29,19 +29,24 @@ class Live:
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
     got: dict[str, list[tuple[int, bytes]]] = field(default_factory=lambda: defaultdict(list))
     clock: list[int] = field(default_factory=list)
+    subprotocol: str | None = None
+    """The subprotocol the server chose."""
 
 
 def listen(port: int, want: Mapping[str, int], timeout: float,
-           alive: Callable[[], bool] = lambda: True) -> Live:
+           alive: Callable[[], bool] = lambda: True, subprotocols: list[str] | None = None) -> Live:
     """Subscribe to every topic of ``want`` and collect until each has at least ``want[topic]``
     messages (0: subscribe, wait for none) or ``timeout`` s have passed. ``alive`` is polled while
-    connecting: a server process that ended fails the test at once instead of at the deadline."""
+    connecting: a server process that ended fails the test at once instead of at the deadline.
+    ``subprotocols``: what the client offers (default: both names)."""
+    offer = list(SUBPROTOCOLS if subprotocols is None else subprotocols)
     deadline = time.monotonic() + timeout
     topics = list(want)
     ws = None
     while ws is None:
         try:
-            ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5)
+            ws = ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=offer,  # type: ignore[arg-type]
+                                   open_timeout=5)
         except OSError:
             if time.monotonic() > deadline or not alive():
                 pytest.fail(f"no live server on port {port}")
@@ -49,7 +54,8 @@ def listen(port: int, want: Mapping[str, int], timeout: float,
     live = Live()
     subscribed = False
     with ws:
-        assert ws.subprotocol in SUBPROTOCOLS
+        assert ws.subprotocol in offer
+        live.subprotocol = ws.subprotocol
         while time.monotonic() < deadline and not (
                 subscribed and all(len(live.got[t]) >= n for t, n in want.items())):
             try:

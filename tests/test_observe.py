@@ -113,7 +113,9 @@ def test_run_live_serves_the_recorders_channels_while_the_run_goes_on(tmp_path: 
         real = [(stamp, s) for stamp, s in heard if s["safety_mode_name"] != "no sample"]
         assert real, [s["safety_mode_name"] for _, s in heard]
         stamp, sample = real[-1]
-        assert stamp == viz.stamp(sample["t"])
+        # real time: log times are wall-clock, tick 0's Unix time + t, one epoch for every sample
+        epochs = {s - round(x["t"] * 1e9) for s, x in real}
+        assert len(epochs) == 1 and abs(epochs.pop() - time.time_ns()) < 600 * 10**9, epochs
         assert 0.0 <= sample["t"] < duration and sample["k"] == round(sample["t"] * 100)
         assert sample["safety_mode_name"] == "FLYING" and len(sample["xi"]) == 2
         assert all(k >= 1.0 for k in sample["kp"]) and sample["xi_norm"] >= 0.0  # sigma-mod gains stay >= 1
@@ -278,14 +280,14 @@ def test_top_board_shows_a_plant_s_newest_event_when_it_came_last() -> None:
     rejected = wire.SafetyEvent(k=12, t=0.12, vehicle=2, src=wire.FLYING, dst=wire.FLYING,
                                 reason="command rejected: stamp ahead of the tick")
     b.plant("tether/s4/plant/2/state", state(2, 12, []))  # no event: nothing to show
-    assert b.cells(b.rows[2], now=0.1)[0][8] == "-"
+    assert b.cells(b.rows[2], now=0.1)[0][9] == "-"
     b.plant("tether/s4/plant/3/state", state(2, 12, [rejected]))  # plant 2's sample on plant 3's key
     assert b.drops == {"sender": 1} and b.rows[2].last_plant_event is None
     b.plant("tether/s4/plant/2/state", state(2, 12, [rejected]))
-    assert b.cells(b.rows[2], now=0.1)[0][8] == "plant t=0.1s FLYING command rejected: stamp ahead of the tick"
+    assert b.cells(b.rows[2], now=0.1)[0][9] == "plant t=0.1s FLYING command rejected: stamp ahead of the tick"
     held = wire.SafetyEvent(k=20, t=0.2, vehicle=2, src=wire.FLYING, dst=wire.HOLD, reason="leader silent 0.5 s")
     b.telemetry("tether/s4/agent/2/telemetry", telemetry(2, 20, mode=1, events=[held]), now=0.2)
-    assert b.cells(b.rows[2], now=0.2)[0][8] == "t=0.2s FLYING->HOLD leader silent 0.5 s"  # the agent's is newer
+    assert b.cells(b.rows[2], now=0.2)[0][9] == "t=0.2s FLYING->HOLD leader silent 0.5 s"  # the agent's is newer
 
 
 def test_top_board_keeps_each_agents_newest_telemetry_and_drops_the_rest() -> None:
@@ -303,25 +305,25 @@ def test_top_board_keeps_each_agents_newest_telemetry_and_drops_the_rest() -> No
     assert b.drops == {"stale": 1, "sender": 1, "malformed": 1, "key": 1, "type": 1}
     assert sorted(b.rows) == [1] and b.rows[1].msg is not None and b.rows[1].msg.k == 10
     cells, styles = b.cells(b.rows[1], now=0.1)
-    assert cells[:5] == ["1", "FLYING", "0.010", "1.00/1.50  1.00/1.00", "0.50"]
-    assert styles[1] == "green" and styles[2] == ""
+    assert cells[:6] == ["1", "FLYING", "-", "0.010", "1.00/1.50  1.00/1.00", "0.50"]
+    assert styles[1] == "green" and styles[2] == "dim" and styles[3] == ""
     # trouble: a mode other than FLYING, a big |xi|, an event; a gone token; silence
     ev = wire.SafetyEvent(k=20, t=0.2, vehicle=1, src=0, dst=1, reason="leader silent 0.52 s")
     b.telemetry(key(1), telemetry(1, 20, mode=1, xi=(0.6, 0.8), events=[ev]), now=1.0)
     cells, styles = b.cells(b.rows[1], now=1.1)
-    assert cells[1] == "HOLD" and styles[1] == "yellow" and styles[2] == "red"
-    assert cells[8] == "t=0.2s FLYING->HOLD leader silent 0.52 s"
+    assert cells[1] == "HOLD" and styles[1] == "yellow" and styles[3] == "red"
+    assert cells[9] == "t=0.2s FLYING->HOLD leader silent 0.52 s"
     # the clock-offset estimate: the most offset link, flagged as its agent flagged it
-    assert cells[7] == "-"
+    assert cells[8] == "-"
     clock = [wire.ClockLink(role="plant", src=1, offset=0.002), wire.ClockLink(role="agent", src=2, offset=-0.004),
              wire.ClockLink(role="leader", src=5, offset=float("nan"))]
     b.telemetry(key(1), telemetry(1, 21, mode=1, clock=clock), now=1.0)
     cells, styles = b.cells(b.rows[1], now=1.1)
-    assert (cells[7], styles[7]) == ("agent/2 -4.0 ms", "")
+    assert (cells[8], styles[8]) == ("agent/2 -4.0 ms", "")
     clock.append(wire.ClockLink(role="agent", src=4, offset=0.0312, warn=True))
     b.telemetry(key(1), telemetry(1, 22, mode=1, clock=clock), now=1.0)
     cells, styles = b.cells(b.rows[1], now=1.1)
-    assert (cells[7], styles[7]) == ("agent/4 +31.2 ms !", "bold red")
+    assert (cells[8], styles[8]) == ("agent/4 +31.2 ms !", "bold red")
     assert b.cells(b.rows[1], now=3.0)[0][1].startswith("STALE")
     b.token("@tether/s4/agent/1", False)
     b.token("@tether/s4/agent/4", True)
@@ -354,8 +356,8 @@ def test_top_under_tmux_shows_every_vehicle_and_the_one_killed(tmp_path: Path) -
     def clock(vehicle: str) -> str:
         for line in pane().splitlines():
             cells = [c.strip() for c in line.split("│")]
-            if len(cells) > 9 and cells[1] == vehicle:
-                return cells[8]
+            if len(cells) > 10 and cells[1] == vehicle:
+                return cells[9]
         return ""
 
     def rows(mode: str) -> set[str]:

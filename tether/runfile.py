@@ -133,6 +133,9 @@ class RunMeta(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     recovered: str | None = None
     """Runtime: set when the run was rebuilt from the recorder's journal (its recorder did not finish:
     killed, or its machine stopped); says up to which tick and time the journal holds samples."""
+    epoch_ns: int | None = None
+    """Real time: the Unix time of tick 0 [ns] on the recorder's clock (``t_k`` is then at
+    ``epoch_ns + t_k``); None for simulated time (lockstep, the simulators)."""
 
 
 class Links(msgspec.Struct, kw_only=True):
