@@ -172,14 +172,42 @@ def cmd_run(args: argparse.Namespace) -> int:
                                  sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     status = evloop.run(local.run(path, opts))
     out = Path(args.out)
-    if status in (0, 3) and (out / "run.npz").exists():  # finished, or ended by a failsafe: a run to look at
+    if (out / "run.npz").exists():  # what was recorded, whatever the ending: its metrics, figures and report
+        page = _write_results(out, status)
         from cli.sim import foxglove_step, next_steps
 
-        steps = [f"tether plot {out}: the run's figures (safety mode changes marked)"]
+        steps = [f"the report (one page, for the log book): {page}"] if page else []
+        steps += [f"the figures in {out} (SVG beside each PNG), the metrics in {out / 'metrics.json'}"]
         steps += [foxglove_step(out / "run.mcap")] if (out / "run.mcap").exists() else []
         steps += [f"the processes' logs: {out / 'logs'}"]
         next_steps(steps)
     return status
+
+
+def _write_results(out: Path, status: int) -> Path | None:
+    """``metrics.json``, the figures and ``report.html`` of the run recorded in ``out``, as
+    ``tether simulate`` writes them; the page, or None (said on stderr) if the run file cannot be
+    read back. The exit status stands either way."""
+    from cli import report
+    from deploy import outcome
+    from sim import figures, metrics
+    from tether import jsonout, safefs
+    from tether.runfile import Run
+
+    try:
+        run = Run.load(out / "run.npz")
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"warning: {out / 'run.npz'} could not be read back ({exc}): no figures, metrics or report",
+              file=sys.stderr)
+        return None
+    if not metrics.recorded(run).any():
+        print(f"warning: {out / 'run.npz'} holds no complete tick: no figures, metrics or report", file=sys.stderr)
+        return None
+    print(f"drawing the figures and the report in {out}", file=sys.stderr, flush=True)
+    values = jsonout.finite(metrics.report(run))
+    safefs.write_file(out / "metrics.json", jsonout.dumps(values).encode())
+    drawn = figures.run_panels(run, out)
+    return report.write_run(out, run, drawn=drawn, status=(status, outcome.MEANING.get(status, "unknown")))
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:

@@ -155,4 +155,19 @@ def conclude(launch: Launch, sup: Supervision | None, status: int) -> int:
                     ", ".join(f"{n} {why}" for why, n in sorted(sup.dropped.items())))
     if rebuild(o.out) or status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
         status = recorded(o.out / "run.npz", status, o.rt_priority)
+    write_outcome(o.out, status)
     return status
+
+
+OUTCOME = "outcome.json"
+"""The exit status of the run in its ``--out`` and what it means (``tether report`` shows it)."""
+
+
+def write_outcome(out: Path, status: int) -> None:
+    """Leave ``status`` and its meaning in ``out``/:data:`OUTCOME` (a full disk is logged, not raised:
+    the status stands)."""
+    doc = {"exit_status": status, "meaning": MEANING.get(status, "unknown")}
+    try:
+        safefs.write_file(out / OUTCOME, (jsonout.dumps(doc) + "\n").encode())
+    except OSError as exc:
+        log.error("could not write %s (%s)", out / OUTCOME, exc)
