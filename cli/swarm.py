@@ -4,6 +4,7 @@ and a deployment's ``deploy-gen`` and ``rehearse`` (their options are ``deploy/`
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -74,6 +75,9 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
                          "other work on the machine does not delay their ticks; the recorder keeps the normal policy "
                          "and the operator gateway its idle one. Needs root, CAP_SYS_NICE or an rtprio limit "
                          "(docs/runtime.md)")
+    rn.add_argument("--replace", action="store_true",
+                    help="write over the finished run --out holds (its run file, results and report are removed "
+                         "first); a run going on there is never replaced")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                     help="serve the run over the Foxglove WebSocket protocol while it goes on, from the recorder "
@@ -150,6 +154,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise BadArgument(f"--out: {Path(args.out) / 'logs'} is a file where the run writes its logs; remove it "
                           "or give another --out")
     cli_args.check_ns(args.ns)
+    _claim_out(Path(args.out), args.replace)
     try:
         injected = tuple(faults.parse(text) for text in args.fault)
     except faults.FaultError as exc:
@@ -208,6 +213,37 @@ def _write_results(out: Path, status: int) -> Path | None:
     safefs.write_file(out / "metrics.json", jsonout.dumps(values).encode())
     drawn = figures.run_panels(run, out)
     return report.write_run(out, run, drawn=drawn, status=(status, outcome.MEANING.get(status, "unknown")))
+
+
+RESULTS = ("run.npz", "run.npz.part", "journal.mcap", "run.mcap", "metrics.json", "report.html", "events.json",
+           "faults.json", "outcome.json", *(f"{name}.{ext}" for name in ("errors_gains", "velocities", "xy",
+                                                                        "formation") for ext in ("png", "svg")))
+"""What a run leaves in its ``--out`` besides its logs and certificates (which a new run rewrites)."""
+
+
+def _claim_out(out: Path, replace: bool) -> None:
+    """Refuse an ``--out`` that holds a run going on now, or a finished one unless ``replace`` (then
+    remove its results, so that nothing of it is taken for the new run's): exit 2 naming ``--out``
+    and the flag, before anything starts."""
+    from deploy import local
+
+    if not out.is_dir():
+        return
+    try:
+        os.close(local.claim_out(out))
+    except BlockingIOError:
+        raise BadArgument(f"--out: {out} {local.LIVE}; give another --out, or wait for that run to end") from None
+    except OSError:
+        return  # not ours to judge here: writable_dir has named what is wrong with it
+    held = [name for name in RESULTS if (out / name).exists()]
+    if not held:
+        return
+    if not replace:
+        raise BadArgument(f"--out: {out} holds a finished run ({', '.join(held[:4])}{', …' if len(held) > 4 else ''}); "
+                          "give another --out, or --replace to write over it")
+    for name in held:
+        (out / name).unlink()
+    print(f"--replace: removed the previous run's {', '.join(held)} from {out}", file=sys.stderr)
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:
