@@ -214,3 +214,36 @@ def test_an_interrupted_run_reports_what_was_recorded(tmp_path: Path) -> None:
     assert f"{got} of {planned} planned ticks recorded" in done.stdout, done.stdout
     page = (out / "report.html").read_text()
     assert "exit status 130" in page and f"{got} of {planned} ticks recorded" in page
+
+
+def test_monte_carlo_figure_gives_n_per_point_linear_axes_where_narrow_and_the_law(tmp_path: Path) -> None:
+    """Points averaging different numbers of replicates say so; a bound from 1.04 to 1.16 m is drawn on
+    a linear axis; the title names the law."""
+    from sim import study, studyplots, sweep
+
+    rows = []
+    for delay, bounds in ((0.0, (1.04, 1.05, 1.06, 1.07, 1.08, 1.09)), (50.0, (1.10, 1.12, 1.14, 1.16, 9e9, 9e9))):
+        for n, b in enumerate(bounds):
+            diverged = b > 1e6  # two replicates of the second cell diverged: it averages 4, the first 6
+            rows.append({"law": "sigma", "loss_pct": 0.0, "delay_ms": delay, "burst": 1.0, "sigma": 1.0,
+                         "gamma_p": 0.05, "gamma_v": 0.05, "seed": n, "diverged": diverged,
+                         **{m: (None if diverged else b) for m in sweep.MC_METRICS}})
+    summary = study.summarise(rows, sweep.GROUP, sweep.MC_METRICS)
+    paths = studyplots.study_figures(rows, summary, tmp_path, {"seeds": 6}, title="section4")
+    svg = paths[0].with_suffix(".svg").read_text()
+    assert "n=6" in svg and "n=4" in svg and "law sigma" in svg
+    assert not studyplots.wide([1.04, 1.16]) and studyplots.wide([0.01, 1.0])
+
+
+@pytest.mark.slow  # a small sweep and a browser
+def test_a_sweep_writes_a_report_that_opens_in_chromium(tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    done = tether("sweep", "section4", "--loss", "0,30", "--delay", "0,100", "--laws", "sigma", "--duration", "2",
+                  "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert pngs and all((out / p).with_suffix(".svg").exists() for p in pngs)
+    dom = check_in_browser(out / "report.html", tmp_path, len(pngs))
+    assert "<table>" in dom and "section4" in dom
+    (out / "report.html").unlink()
+    assert tether("report", str(out)).returncode == 0 and (out / "report.html").exists()
