@@ -137,7 +137,20 @@ def add_deploy_parsers(sub: argparse._SubParsersAction) -> None:
     rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
                                          "namespace of its own (root)")
     rehearse.add_arguments(rh)
-    rh.set_defaults(func=rehearse.run_args)
+    rh.set_defaults(func=cmd_rehearse)
+
+
+def cmd_rehearse(args: argparse.Namespace) -> int:
+    """``tether rehearse`` (``deploy/rehearse.py``), then the report of the run it recorded."""
+    from deploy import rehearse
+
+    status = rehearse.run_args(args)
+    out = Path(args.out)
+    if (out / "run.npz").exists():
+        page = _write_results(out, status, f"tether rehearse ended with exit status {status} (docs/exit-status.md)")
+        if page is not None:
+            print(f"the report (one page, for the log book): {page}")
+    return status
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -189,10 +202,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     return status
 
 
-def _write_results(out: Path, status: int) -> Path | None:
+def _write_results(out: Path, status: int, said: str | None = None) -> Path | None:
     """``metrics.json``, the figures and ``report.html`` of the run recorded in ``out``, as
     ``tether simulate`` writes them; the page, or None (said on stderr) if the run file cannot be
-    read back. The exit status stands either way."""
+    read back. The exit status stands either way. ``said``: the status in words where it is not
+    ``tether run``'s (a rehearsal's)."""
     from cli import report
     from deploy import outcome
     from sim import figures, metrics
@@ -212,6 +226,8 @@ def _write_results(out: Path, status: int) -> Path | None:
     values = jsonout.finite(metrics.report(run))
     safefs.write_file(out / "metrics.json", jsonout.dumps(values).encode())
     drawn = figures.run_panels(run, out)
+    if said is not None:
+        return report.write_run(out, run, drawn=drawn, notes=(said,))
     return report.write_run(out, run, drawn=drawn, status=(status, outcome.MEANING.get(status, "unknown")))
 
 

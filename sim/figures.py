@@ -452,6 +452,7 @@ def _frame_flying(run: Run, ax: Axes, target: np.ndarray | None) -> None:
     if not fly.all() and xy.size:
         lo, hi = xy.min(axis=0), xy.max(axis=0)
         pad = 0.08 * float(max(hi - lo)) + 0.1
+        ax.set_aspect("equal", adjustable="box")  # the limits stand, the box takes the aspect
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
 

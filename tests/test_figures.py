@@ -183,3 +183,29 @@ def test_curves_that_coincide_are_noted(section4: Run) -> None:
     t = np.linspace(0, 1, 50)
     assert figures.coinciding([("a", t), ("b", t + 1e-9), ("c", t + 0.5)]) == [["a", "b"]]
     assert figures.coinciding([("a", t), ("b", t[::-1])]) == []
+
+
+def test_the_relative_view_is_framed_on_the_vehicles_in_flight_and_marks_the_landed() -> None:
+    """Agent 1 lands at 5 s and is left far behind (its position then 200 m off): the relative view
+    keeps the formation's scale, and marks where agent 1 left its slot."""
+    import dataclasses
+
+    import msgspec
+
+    from tether import wire
+
+    run = simulated("failsafe", 10.0)
+    k = int(np.searchsorted(run.t, 5.0))
+    mode = run.safety.safety_mode.copy()
+    mode[k:, 0] = wire.LANDED
+    p = run.p.copy()
+    p[k + 1:, 0, :2] = p[k, 0, :2] - 200.0
+    landed = dataclasses.replace(run, p=p, safety=msgspec.structs.replace(run.safety, safety_mode=mode))
+    fig = figures.xy_figure(landed)
+    rel = fig.axes[1]
+    (x0, x1), (y0, y1) = rel.get_xlim(), rel.get_ylim()
+    assert x1 - x0 < 10.0 and y1 - y0 < 10.0  # the 1 m diamond, not 200 m of landed vehicle
+    marks = [c for c in rel.collections if c.get_label().startswith("left its slot")]
+    assert len(marks) == 1
+    assert any(t.get_text().startswith(f"{int(run.agent_ids[0])} down at") for t in rel.texts)
+    plt.close(fig)

@@ -140,22 +140,43 @@ def test_run_writes_its_report_and_refuses_its_out_while_it_runs_and_after(tmp_p
 
 
 STALL = 3.0
-"""How long the launcher is stopped [s]: three leases of 1 s, so the links to its router lapse."""
+"""How long agent 2's process is stopped [s]: three leases of 1 s, so its token lapses and comes back."""
+
+
+def child_of(parent: int, *words: str) -> int | None:
+    """The pid of a child of ``parent`` whose command line holds every one of ``words``, or None."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        args = [a.decode(errors="replace") for a in argv]
+        if ppid == parent and all(w in args for w in words):
+            return int(entry.name)
+    return None
 
 
 @pytest.mark.slow  # real processes
 def test_a_lockstep_run_whose_host_stalled_ends_clean_with_a_warning(tmp_path: Path) -> None:
+    """Agent 2's process starved for three leases (stopped, as a loaded host stops it): its token goes
+    and comes back, lockstep waits for it, every tick is recorded and equals the reference simulator:
+    exit 0 with a warning, where it was exit 4."""
     out = tmp_path / "run"
     log = tmp_path / "run.log"
     proc = tether_popen("run", "section4", "--duration", "150", "--out", str(out), "--quiet", "--insecure",
                         "--lease", "1", "--ns", f"stall-{os.getpid()}", log=log)
     try:
         wait_until(lambda: _up(log), 300, "the run's processes")
-        os.kill(proc.pid, signal.SIGSTOP)
+        agent = wait_until(lambda: child_of(proc.pid, "agent", "--id", "2"), 30, "agent 2's process")
+        os.kill(agent, signal.SIGSTOP)
         try:
             time.sleep(STALL)  # the stimulus (a stall this long), not a wait for a condition
         finally:
-            os.kill(proc.pid, signal.SIGCONT)
+            os.kill(agent, signal.SIGCONT)
         status = proc.wait(900)
     finally:
         kill(proc)
