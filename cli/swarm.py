@@ -223,12 +223,17 @@ def _write_results(out: Path, status: int, said: str | None = None) -> Path | No
         print(f"warning: {out / 'run.npz'} holds no complete tick: no figures, metrics or report", file=sys.stderr)
         return None
     print(f"drawing the figures and the report in {out}", file=sys.stderr, flush=True)
-    values = jsonout.finite(metrics.report(run))
-    safefs.write_file(out / "metrics.json", jsonout.dumps(values).encode())
-    drawn = figures.run_panels(run, out)
-    if said is not None:
-        return report.write_run(out, run, drawn=drawn, notes=(said,))
-    return report.write_run(out, run, drawn=drawn, status=(status, outcome.MEANING.get(status, "unknown")))
+    try:
+        values = jsonout.finite(metrics.report(run))
+        safefs.write_file(out / "metrics.json", jsonout.dumps(values).encode())
+        drawn = figures.run_panels(run, out)
+        if said is not None:
+            return report.write_run(out, run, drawn=drawn, notes=(said,))
+        return report.write_run(out, run, drawn=drawn, status=(status, outcome.MEANING.get(status, "unknown")))
+    except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not hide the run's exit status
+        print(f"warning: the figures, metrics or report of {out} could not be made ({type(exc).__name__}: {exc}); "
+              f"the run is in {out / 'run.npz'}, and `tether report {out}` tries again", file=sys.stderr)
+        return None
 
 
 RESULTS = ("run.npz", "run.npz.part", "journal.mcap", "run.mcap", "metrics.json", "report.html", "events.json",

@@ -474,9 +474,8 @@ def run_panels(run: Run, out_dir: str | Path, offsets: np.ndarray | None = None)
 def formation_figure(run: Run, offsets: np.ndarray | None = None) -> Figure:
     """The formation to scale at the start, a quarter, half way and the end of the run
     (``formation.png``): :func:`snapshots_figure` at those times, titled with the law."""
-    rows = np.flatnonzero(np.isfinite(run.t))
-    t0, t1 = float(run.t[rows[0]]), float(run.t[rows[-1]])
-    fig = snapshots_figure(run, tuple(t0 + f * (t1 - t0) for f in (0.0, 0.25, 0.5, 1.0)), offsets=offsets)
+    ticks = _snapshot_ticks(run)  # among the ticks recorded (a run cut short lacks the others)
+    fig = snapshots_figure(run, tuple(float(run.t[k]) for k in ticks), offsets=offsets)
     fig.suptitle(title(run, "the formation to scale (hollow: target slots)"), fontsize=10)
     fig.tight_layout()
     return fig
@@ -545,7 +544,8 @@ def snapshots_figure(run: Run, times: tuple[float, ...], three_d: bool = False,
         offsets = mission_offsets(run)
     n = len(run.agent_ids)
     colours = [colour(i) for i in range(n)]
-    ks = [min(len(run.t) - 1, int(round(t / (run.t[1] - run.t[0])))) for t in times]
+    dt = 1.0 / run.meta.rate
+    ks = [min(len(run.t) - 1, int(round(t / dt))) for t in times]
     order = _polygon(offsets[:, :2] if offsets is not None else run.p[ks[0], :, :2])
     if three_d:
         fig = plt.figure(figsize=(7.5, 6.5))
@@ -585,7 +585,8 @@ def snapshots_figure(run: Run, times: tuple[float, ...], three_d: bool = False,
         fig, axs = plt.subplots(1, len(ks), figsize=(3.6 * len(ks), 3.8), squeeze=False)
         lo = np.nanmin(np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]]), axis=0) - 0.3
         hi = np.nanmax(np.concatenate([run.p[:, :, :2].reshape(-1, 2), run.leader_p[:, :2]]), axis=0) + 0.3
-        spread = np.nanmax(np.ptp(run.p[ks][:, :, :2], axis=1)) + 0.6 if ks else 1.0
+        spread = float(np.nanmax(np.ptp(run.p[ks][:, :, :2], axis=1))) + 0.6 if ks else 1.0
+        spread = spread if np.isfinite(spread) else 1.0
         follow = float(np.max(hi - lo)) > 10 * spread  # a long mission: each panel centred on its leader
         for ax, k in zip(axs[0], ks):
             lead = run.leader_p[k, :2]

@@ -139,8 +139,8 @@ def test_run_writes_its_report_and_refuses_its_out_while_it_runs_and_after(tmp_p
     assert Run.load(out).t[-1] == pytest.approx(1.0)
 
 
-STALL = 3.0
-"""How long agent 2's process is stopped [s]: three leases of 1 s, so its token lapses and comes back."""
+STALL = 1.5
+"""How long agent 2's process is stopped [s]: a lease and a half, so its token lapses and comes back."""
 
 
 def child_of(parent: int, *words: str) -> int | None:
@@ -168,7 +168,7 @@ def test_a_lockstep_run_whose_host_stalled_ends_clean_with_a_warning(tmp_path: P
     out = tmp_path / "run"
     log = tmp_path / "run.log"
     proc = tether_popen("run", "section4", "--duration", "150", "--out", str(out), "--quiet", "--insecure",
-                        "--lease", "1", "--ns", f"stall-{os.getpid()}", log=log)
+                        "--lease", "1", "--network", "star", "--ns", f"stall-{os.getpid()}", log=log)
     try:
         wait_until(lambda: _up(log), 300, "the run's processes")
         agent = wait_until(lambda: child_of(proc.pid, "agent", "--id", "2"), 30, "agent 2's process")
