@@ -263,8 +263,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     drawn = list(figures.run_panels(run, out))
     for p in drawn:
         print(f"wrote {p}")
+    from cli import report
+    from sim import metrics
+    from tether import safefs
+
+    safefs.write_file(out / "metrics.json", jsonout.dumps(jsonout.finite(metrics.report(run))).encode())
+    page = report.write_run(out, run, drawn=drawn, status=(status, "clean"))
     print(f"distributed lockstep run vs reference simulator: max |difference| over p, v, xi, Kp, Kv = {worst:.3g}")
-    steps = [f"the figures: {', '.join(str(p) for p in drawn)}"]
+    steps = [f"the report (one page, for the log book): {page}", f"the figures: {', '.join(str(p) for p in drawn)}"]
     steps += [foxglove_step(out / "run.mcap")] if (out / "run.mcap").exists() else []
     steps += [f"the processes' logs: {out / 'logs'}",
               "tether reproduce section4 --out runs/section4: the paper's Figs. 4-6 over 1000 s and the report "
