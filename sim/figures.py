@@ -247,6 +247,21 @@ def error_rows(run: Run, geometry: metrics.Geometry | None) -> list[tuple[str, l
     return rows
 
 
+def lost_positions(run: Run) -> list[tuple[int, float]]:
+    """``(vehicle, t)``: the vehicles whose recorded position ends before the run does (a process
+    killed or cut off), with the time of their last position, among the ticks the run recorded."""
+    rows = np.flatnonzero(np.isfinite(run.t))
+    if not rows.size:
+        return []
+    last_tick = int(rows[-1])
+    out = []
+    for i, aid in enumerate(run.agent_ids):
+        have = np.flatnonzero(np.all(np.isfinite(run.p[:, i]), axis=1))
+        if have.size and int(have[-1]) < last_tick:
+            out.append((int(aid), float(run.t[have[-1]])))
+    return out
+
+
 def errors_figure(run: Run, geometry: metrics.Geometry | None = None) -> Figure:
     """Errors and gains over time (``errors_gains.png``), unsaved: the true formation error and the
     tracking error (when the run holds its mission), the agents' own ``||xi_i||``, ``Kp`` and ``Kv``
@@ -285,6 +300,15 @@ def errors_figure(run: Run, geometry: metrics.Geometry | None = None) -> Figure:
             if c == 0:
                 a.set_ylabel(ylabel, fontsize=8)
         note_coinciding(ax[r, whole], curves)
+    for r in range(len(rows)):  # one time axis for every panel of the whole run
+        ax[r, whole].set_xlim(float(finite[0]), float(finite[-1]))
+    if geometry is not None:
+        lost = lost_positions(run)
+        if lost:
+            ax[0, whole].text(0.01, 0.97, "; ".join(f"no position of vehicle {aid} after {t:.1f} s" for aid, t in lost)
+                              + ": Eq. 8 is undefined for it and the agents that hear it (tracking error below)",
+                              transform=ax[0, whole].transAxes, fontsize=6, va="top", ha="left",
+                              bbox={"boxstyle": "round", "fc": "white", "ec": "0.7", "alpha": 0.85})
     if long:
         ax[0, 0].set_title(f"first {ZOOM:g} s", fontsize=9)
         ax[0, 2].set_title(f"last {ZOOM:g} s", fontsize=9)

@@ -82,7 +82,12 @@ def formation_error(run: Run, adjacency: np.ndarray, offsets: np.ndarray) -> np.
     n = offsets.shape[0]
     e = np.concatenate([run.p - offsets[None], run.leader_p[:, None, :]], axis=1)  # (T, N+1, d)
     a = adjacency[:n]
-    return a.sum(axis=1)[None, :, None] * e[:, :n] - np.einsum("ij,tjd->tid", a, e)
+    # a vehicle with no position (killed, cut off) leaves only the agents that hear it undefined
+    missing = ~np.all(np.isfinite(e), axis=2)  # (T, N+1)
+    xi = a.sum(axis=1)[None, :, None] * e[:, :n] - np.einsum("ij,tjd->tid", a, np.where(missing[..., None], 0.0, e))
+    undefined = missing[:, :n] | (missing.astype(float) @ (a > 0).T.astype(float) > 0)
+    xi[undefined] = np.nan
+    return xi
 
 
 POSITIONING = 0.1

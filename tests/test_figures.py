@@ -209,3 +209,27 @@ def test_the_relative_view_is_framed_on_the_vehicles_in_flight_and_marks_the_lan
     assert len(marks) == 1
     assert any(t.get_text().startswith(f"{int(run.agent_ids[0])} down at") for t in rel.texts)
     plt.close(fig)
+
+
+def test_a_lost_vehicle_leaves_only_the_agents_that_hear_it_without_a_true_error() -> None:
+    """failsafe: leader -> 1, 3; ring 1 -> 2 -> 3 -> 4 -> 1. Vehicle 2's position gone from 5 s: the
+    true error of 2 and of 3 (which hears 2) is undefined after it, that of 1 and 4 is not."""
+    import dataclasses
+
+    from sim import metrics
+
+    run = simulated("failsafe", 8.0)
+    g = metrics.geometry(run)
+    assert g is not None
+    k = int(np.searchsorted(run.t, 5.0))
+    p = run.p.copy()
+    p[k:, 1] = np.nan
+    cut = dataclasses.replace(run, p=p)
+    true = metrics.true_xi_norm(cut, g)
+    ids = [int(a) for a in run.agent_ids]
+    assert np.all(np.isnan(true[k:, ids.index(2)])) and np.all(np.isnan(true[k:, ids.index(3)]))
+    assert np.all(np.isfinite(true[:, ids.index(1)])) and np.all(np.isfinite(true[:, ids.index(4)]))
+    np.testing.assert_allclose(true[:k], metrics.true_xi_norm(run, g)[:k], rtol=0, atol=1e-12)
+    fig = figures.errors_figure(cut)
+    assert any("no position of vehicle 2 after" in t.get_text() for t in fig.axes[0].texts)
+    plt.close(fig)
