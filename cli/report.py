@@ -83,7 +83,9 @@ def write_run(out: Path, run: Run, *, drawn: list[Path] | None = None, status: t
         else:
             worst, label = np.nanmax(metrics.xi_norm(run), axis=1), "max_i agents' own ‖ξ_i‖"
     text = report.run_page(run, values, shown, status=status or outcome_of(out),
-                           launcher_events=[e for e in _json_list(out / "events.json") if e.get("what") != "back"],
+                           launcher_events=[e for e in _json_list(out / "events.json") if e.get("what") != "back"
+                                            and not (e.get("what") == "failsafe"
+                                                     and str(e.get("who", "")).startswith("agent/"))],
                            faults=_json_list(out / "faults.json"), worst=worst, worst_label=label, notes=notes)
     target = page or out / NAME
     safefs.write_file(target, text.encode())

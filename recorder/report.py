@@ -83,7 +83,7 @@ def figure(name: str, png: bytes, caption: str) -> str:
 
 
 METRIC_TEXT = {
-    "duration_s": "mission time recorded [s]",
+    "duration_s": "mission time over which every agent's telemetry was recorded [s]",
     "formation_error_bound_m": "true formation error ‖ξ_i‖ (Eq. 8, from the positions), max over the last 10 % [m]",
     "formation_error_max_m": "true formation error, max over the run [m]",
     "formation_settling_time_s": "time from which the true formation error stays within 0.1 m [s]",
@@ -157,9 +157,14 @@ def _timeline(run: Run, worst: np.ndarray | None, worst_label: str, marks: Seque
         step = max(1, len(t) // 1500)
         tt, yy = t[::step], worst[::step]
         top_y = float(np.nanmax(yy)) or 1.0
-        pts = " ".join(f"{x(float(a)):.1f},{100 - 90 * float(b) / top_y:.1f}" for a, b in zip(tt, yy)
-                       if np.isfinite(a) and np.isfinite(b))
-        out.append(f"<polyline fill='none' stroke='#1f77b4' stroke-width='1' points='{pts}'/>")
+        pieces: list[list[str]] = [[]]
+        for a, b in zip(tt, yy):  # a gap where nothing was recorded, never a line across it
+            if np.isfinite(a) and np.isfinite(b):
+                pieces[-1].append(f"{x(float(a)):.1f},{100 - 90 * float(b) / top_y:.1f}")
+            elif pieces[-1]:
+                pieces.append([])
+        out += [f"<polyline fill='none' stroke='#1f77b4' stroke-width='1' points='{' '.join(pc)}'/>"
+                for pc in pieces if pc]
         out.append(f"<text x='{left - 4}' y='14' text-anchor='end'>{top_y:.3g} m</text>"
                    f"<text x='{left - 4}' y='100' text-anchor='end'>0</text>"
                    f"<text x='{left + 4}' y='12'>{esc(worst_label)}</text>")
@@ -244,11 +249,13 @@ def run_page(run: Run, metrics: Mapping[str, object], figures: Sequence[tuple[st
     known); ``worst``: ``(T,)`` the error drawn over the timeline, named ``worst_label``; ``notes``:
     warnings the command gave (what it did not compute, a stall it saw)."""
     meta = run.meta
-    have = np.all(run.safety.safety_mode != NO_SAMPLE, axis=1) if run.safety.safety_mode.size else np.array([])
-    recorded = int(have.sum()) if have.size else len(run.t)
+    mode = run.safety.safety_mode
+    every = int(np.all(mode != NO_SAMPLE, axis=1).sum()) if mode.size else len(run.t)
+    some = int(np.any(mode != NO_SAMPLE, axis=1).sum()) if mode.size else len(run.t)
+    held = f"{some} of {len(run.t)} ticks recorded" + (f" ({every} with every agent's telemetry)"
+                                                       if every != some else "")
     parts = [f"<h1>{esc(meta.mission)}: law {esc(meta.law)}</h1>",
-             f"<p class='muted'>{esc(meta.source)}, {meta.rate:g} Hz, seed {meta.seed}; {recorded} of "
-             f"{len(run.t)} ticks recorded"
+             f"<p class='muted'>{esc(meta.source)}, {meta.rate:g} Hz, seed {meta.seed}; {held}"
              + (f"; namespace {esc(meta.namespace)}" if meta.namespace else "")
              + (f"; {esc(meta.recovered)}" if meta.recovered else "") + "</p>"]
     if status is not None:
@@ -259,11 +266,8 @@ def run_page(run: Run, metrics: Mapping[str, object], figures: Sequence[tuple[st
     order = [k for k in METRIC_TEXT if k in metrics] + [k for k in metrics if k not in METRIC_TEXT]
     rows = [[k, metrics[k], METRIC_TEXT.get(k, "")] for k in order]
     parts += ["<h2 id='metrics'>Metrics</h2>", table(["metric", "value", "what it is"], rows)]
-    marks = []
-    for n, f in enumerate(list(faults) + list(launcher_events), 1):
-        tm = f.get("t", f.get("at"))
-        marks.append((float(tm) if isinstance(tm, (int, float)) else math.nan,
-                      f"F{n}: " + ", ".join(f"{k} {v}" for k, v in f.items())))
+    marks = [_mark(f) for f in faults] + [_mark(e) for e in launcher_events]
+    marks = [(tm, f"F{n}: {text}") for n, (tm, text) in enumerate(marks, 1)]
     parts += ["<h2 id='timeline'>Errors, modes, events and faults on one time axis</h2>",
               _timeline(run, worst, worst_label, marks)]
     ev_rows = [[f"{e.t:.3f}", e.vehicle, _mode(run, e.src), _mode(run, e.dst), e.reason]
@@ -272,12 +276,24 @@ def run_page(run: Run, metrics: Mapping[str, object], figures: Sequence[tuple[st
               table(["t [s]", "vehicle", "from", "to", "why"], ev_rows) if ev_rows else "<p>None.</p>"]
     if marks:
         parts += ["<h3>Faults and launcher events</h3>",
-                  table(["", "t [s]", "what"], [[f"F{n}", tm, text.split(": ", 1)[1]]
-                                               for n, (tm, text) in enumerate(marks, 1)])]
+                  table(["", "t [s]", "what"], [[f"F{n}", f"{tm:.3f}" if math.isfinite(tm) else "before tick 0",
+                                                text.split(": ", 1)[1]] for n, (tm, text) in enumerate(marks, 1)])]
     parts += ["<h2 id='figures'>Figures</h2>"] + [figure(n, png, cap) for n, png, cap in figures]
     parts += ["<h2 id='links'>Links</h2>", _links_section(run)]
     parts += ["<h2 id='mission'>Mission</h2>", _mission_section(run)]
     return _page(f"{meta.mission}: law {meta.law}", "".join(parts))
+
+
+def _mark(row: Mapping[str, object]) -> tuple[float, str]:
+    """A fault (``faults.json``) or a launcher event (``events.json``) as ``(t, words)``."""
+    def num(v: object) -> float:
+        return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else math.nan
+
+    if "fault" in row:
+        fired = num(row.get("fired"))
+        when = f"fired at {fired:.3f} s" if math.isfinite(fired) else "never fired"
+        return (fired if math.isfinite(fired) else num(row.get("at"))), f"fault {row['fault']} ({when})"
+    return num(row.get("t")), f"{row.get('who', '?')} {row.get('what', '')}: {row.get('why', '')}"
 
 
 def _mode(run: Run, code: int) -> str:
