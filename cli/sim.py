@@ -335,11 +335,13 @@ def cmd_mcap(args: argparse.Namespace) -> int:
                           "tether run --out wrote") from None
     npz = path / "run.npz" if path.is_dir() else path
     out = Path(args.out) if args.out else npz.with_suffix(".mcap")
-    from sim import metrics
+    import numpy as np
+
+    from tether.runfile import NO_SAMPLE
 
     t0 = time.perf_counter()
     viz.write_mcap(run, None, out, scene_rate=viz.SCENE_RATE if args.scene_rate is None else args.scene_rate)
-    have = int(metrics.recorded(run).sum())
+    have = int(np.any(run.safety.safety_mode != NO_SAMPLE, axis=1).sum())  # ticks with any agent's telemetry
     ticks = f"{have} ticks" if have == len(run.t) else f"{have} of {len(run.t)} planned ticks recorded"
     print(f"wrote {out} ({ticks}, {len(run.agent_ids)} agents) in {time.perf_counter() - t0:.2f} s")
     return 0
