@@ -35,7 +35,7 @@ EPILOG = ("New here? `tether demo` flies the paper's Section 4 case study as sep
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("start here", ("demo", "reproduce", "missions")),
     ("a mission", ("check", "simulate", "run")),
-    ("a run's files", ("plot", "mcap")),
+    ("a run's files", ("plot", "mcap", "report")),
     ("studies", ("sweep", "montecarlo", "warm")),
     ("a swarm that is flying", ("record", "top", "netem-set", "land", "estop")),
     ("deployment", ("deploy-gen", "rehearse")),

@@ -41,8 +41,32 @@ def _size(run: Run) -> str:
     return f"{mb:.3g} MB"
 
 
+def unflown(m: ms.Mission, text: str) -> list[str]:
+    """What ``m`` (its file's ``text``) asks for that the reference simulator does not fly: it steps
+    the law alone, on double integrators, over ideal links, with no safety layer. One phrase each."""
+    import tomllib
+
+    try:
+        tables = set(tomllib.loads(text))
+    except tomllib.TOMLDecodeError:
+        tables = set()
+    said = []
+    if m.netem is not None:
+        said.append("[netem] (its links are flown ideal: no loss, no delay)")
+    if "links" in tables:
+        said.append("[links] (no neighbour is ever stale or dropped)")
+    if "safety" in tables:
+        said.append("[safety] (no supervisor, no envelope, no watchdog)")
+    if m.payload is not None:
+        said.append("its payload (no cables, no load)")
+    kinds = sorted({type(a.plant).__name__ for a in m.agents} - {"DoubleIntegrator"})
+    if kinds:
+        said.append(f"its {', '.join(kinds)} plants (flown as double integrators)")
+    return said
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:
-    """simulate, reproduce, demo, plot, mcap."""
+    """simulate, reproduce, demo, plot, mcap, report."""
     s = sub.add_parser("simulate", help="run a mission in the reference simulator (one process)")
     s.add_argument("mission", help=cli_args.MISSION_HELP)
     s.add_argument("--out", required=True, help="output directory (run.npz, metrics.json, figures)")
@@ -95,12 +119,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                     help="directory for the figures (default: beside the run file)")
     pl.set_defaults(func=cmd_plot)
 
+    from cli import report
+
+    report.add_parser(sub)
+
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from sim import capacity, figures, metrics, refsim
-    from sim.setup import Setup
 
     path = cli_args.mission_path(args.mission)
     m = cli_args.load(args.mission, args.duration)
@@ -112,6 +139,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(f"warning: {m.name} has [safety.avoid], which the reference simulator does not fly: it computes the "
               "law alone, without the safety layer, so these vehicles may pass through each other; `tether run "
               f"{args.mission}` flies the filter (docs/safety.md)", file=sys.stderr)
+    skipped = unflown(m, path.read_text())
+    note = None
+    if skipped:  # said in one line, and on the report: the figures are of the law alone
+        note = (f"tether simulate flies the law alone: {m.name} asks for {'; '.join(skipped)}, which it does not "
+                f"fly; `tether run {args.mission}` flies them all (docs/netem.md)")
+        print(f"warning: {note}", file=sys.stderr)
     cli_args.check_live(args.live)
     slow = capacity.slow_path() if args.engine == "auto" else None
     if slow is not None:
@@ -144,11 +177,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     real = safefs.make_out(out)  # checked by writable_dir; made here following no link
     print(f"writing {out / 'run.npz'} ({_size(run)})", file=sys.stderr, flush=True)
     run.save(out / "run.npz")
-    summary = jsonout.finite(metrics.summary(run))
-    assert isinstance(summary, dict)
     diverged = not all(np.all(np.isfinite(getattr(run, f))) for f in ("p", "v", "kp", "kv"))
-    if not diverged:
-        summary["tracking_error_m"] = jsonout.finite(metrics.tracking_error(run, Setup.of(m).offsets[: m.n]))
+    summary = jsonout.finite(metrics.report(run) if not diverged else metrics.summary(run))
+    assert isinstance(summary, dict)
+    if note is not None:
+        summary["not_flown"] = skipped
     safefs.write_file(real / "metrics.json", jsonout.dumps(summary).encode())
     if diverged:
         print(f"error: the run diverged (non-finite states or gains); wrote {out / 'run.npz'} and "
@@ -164,9 +197,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.no_figures:
         print(f"drawing the figures in {out}", file=sys.stderr, flush=True)
         drawn = list(figures.run_panels(run, out))
+    from cli import report
+
+    page = report.write_run(out, run, drawn=drawn, notes=(note,) if note else ())
     print(jsonout.dumps(summary))
-    print(f"wrote {out / 'run.npz'}" + (f" and {mcap}" if mcap else ""))
-    steps = [f"the figures: {', '.join(str(p) for p in drawn)}"] if drawn else []
+    print(f"wrote {out / 'run.npz'}" + (f" and {mcap}" if mcap else "") + f"; the report: {page}")
+    steps = [f"the report (one page, for the log book): {page}"]
+    steps += [f"the figures (SVG beside each): {', '.join(str(p) for p in drawn)}"] if drawn else []
     steps += [foxglove_step(mcap)] if mcap else []
     steps += [f"tether run {args.mission} --out DIR: the same mission as separate processes over Zenoh"]
     next_steps(steps)
@@ -226,8 +263,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     drawn = list(figures.run_panels(run, out))
     for p in drawn:
         print(f"wrote {p}")
+    from cli import report
+    from sim import metrics
+    from tether import safefs
+
+    safefs.write_file(out / "metrics.json", jsonout.dumps(jsonout.finite(metrics.report(run))).encode())
+    page = report.write_run(out, run, drawn=drawn, status=(status, "clean"))
     print(f"distributed lockstep run vs reference simulator: max |difference| over p, v, xi, Kp, Kv = {worst:.3g}")
-    steps = [f"the figures: {', '.join(str(p) for p in drawn)}"]
+    steps = [f"the report (one page, for the log book): {page}", f"the figures: {', '.join(str(p) for p in drawn)}"]
     steps += [foxglove_step(out / "run.mcap")] if (out / "run.mcap").exists() else []
     steps += [f"the processes' logs: {out / 'logs'}",
               "tether reproduce section4 --out runs/section4: the paper's Figs. 4-6 over 1000 s and the report "
@@ -292,7 +335,13 @@ def cmd_mcap(args: argparse.Namespace) -> int:
                           "tether run --out wrote") from None
     npz = path / "run.npz" if path.is_dir() else path
     out = Path(args.out) if args.out else npz.with_suffix(".mcap")
+    import numpy as np
+
+    from tether.runfile import NO_SAMPLE
+
     t0 = time.perf_counter()
     viz.write_mcap(run, None, out, scene_rate=viz.SCENE_RATE if args.scene_rate is None else args.scene_rate)
-    print(f"wrote {out} ({len(run.t)} ticks, {len(run.agent_ids)} agents) in {time.perf_counter() - t0:.2f} s")
+    have = int(np.any(run.safety.safety_mode != NO_SAMPLE, axis=1).sum())  # ticks with any agent's telemetry
+    ticks = f"{have} ticks" if have == len(run.t) else f"{have} of {len(run.t)} planned ticks recorded"
+    print(f"wrote {out} ({ticks}, {len(run.agent_ids)} agents) in {time.perf_counter() - t0:.2f} s")
     return 0

@@ -183,7 +183,11 @@ def cmd_study(args: argparse.Namespace) -> int:
     workers = ", ".join(f"{w} {k}" for w, k in sorted(meta["per_worker"].items())) or "none"
     print(f"{len(rows)} cells ({meta['ran_now']} run now, {meta['resumed']} kept from before), {diverged} diverged; "
           f"cells per worker: {workers}")
-    print(f"wrote {out / 'sweep.csv'}" + (", summary.csv" if seeds else "") + ", sweep.md and figures")
+    from cli import report
+
+    page = report.write_study(out)
+    print(f"wrote {out / 'sweep.csv'}" + (", summary.csv" if seeds else "") + ", sweep.md and figures"
+          + (f"; the report: {page}" if page else ""))
     return 0
 
 

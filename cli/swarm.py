@@ -4,6 +4,7 @@ and a deployment's ``deploy-gen`` and ``rehearse`` (their options are ``deploy/`
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -74,6 +75,9 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
                          "other work on the machine does not delay their ticks; the recorder keeps the normal policy "
                          "and the operator gateway its idle one. Needs root, CAP_SYS_NICE or an rtprio limit "
                          "(docs/runtime.md)")
+    rn.add_argument("--replace", action="store_true",
+                    help="write over the finished run --out holds (its run file, results and report are removed "
+                         "first); a run going on there is never replaced")
     rn.add_argument("--quiet", action="store_true", help="no progress display")
     rn.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                     help="serve the run over the Foxglove WebSocket protocol while it goes on, from the recorder "
@@ -133,7 +137,20 @@ def add_deploy_parsers(sub: argparse._SubParsersAction) -> None:
     rh = sub.add_parser("rehearse", help="fly a generated deployment on this machine, each host in a network "
                                          "namespace of its own (root)")
     rehearse.add_arguments(rh)
-    rh.set_defaults(func=rehearse.run_args)
+    rh.set_defaults(func=cmd_rehearse)
+
+
+def cmd_rehearse(args: argparse.Namespace) -> int:
+    """``tether rehearse`` (``deploy/rehearse.py``), then the report of the run it recorded."""
+    from deploy import rehearse
+
+    status = rehearse.run_args(args)
+    out = Path(args.out)
+    if (out / "run.npz").exists():
+        page = _write_results(out, status, f"tether rehearse ended with exit status {status} (docs/exit-status.md)")
+        if page is not None:
+            print(f"the report (one page, for the log book): {page}")
+    return status
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -150,6 +167,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise BadArgument(f"--out: {Path(args.out) / 'logs'} is a file where the run writes its logs; remove it "
                           "or give another --out")
     cli_args.check_ns(args.ns)
+    _claim_out(Path(args.out), args.replace)
     try:
         injected = tuple(faults.parse(text) for text in args.fault)
     except faults.FaultError as exc:
@@ -172,14 +190,81 @@ def cmd_run(args: argparse.Namespace) -> int:
                                  sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None)
     status = evloop.run(local.run(path, opts))
     out = Path(args.out)
-    if status in (0, 3) and (out / "run.npz").exists():  # finished, or ended by a failsafe: a run to look at
+    if (out / "run.npz").exists():  # what was recorded, whatever the ending: its metrics, figures and report
+        page = _write_results(out, status)
         from cli.sim import foxglove_step, next_steps
 
-        steps = [f"tether plot {out}: the run's figures (safety mode changes marked)"]
+        steps = [f"the report (one page, for the log book): {page}"] if page else []
+        steps += [f"the figures in {out} (SVG beside each PNG), the metrics in {out / 'metrics.json'}"]
         steps += [foxglove_step(out / "run.mcap")] if (out / "run.mcap").exists() else []
         steps += [f"the processes' logs: {out / 'logs'}"]
         next_steps(steps)
     return status
+
+
+def _write_results(out: Path, status: int, said: str | None = None) -> Path | None:
+    """``metrics.json``, the figures and ``report.html`` of the run recorded in ``out``, as
+    ``tether simulate`` writes them; the page, or None (said on stderr) if the run file cannot be
+    read back. The exit status stands either way. ``said``: the status in words where it is not
+    ``tether run``'s (a rehearsal's)."""
+    from cli import report
+    from deploy import outcome
+    from sim import figures, metrics
+    from tether import jsonout, safefs
+    from tether.runfile import Run
+
+    try:
+        run = Run.load(out / "run.npz")
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"warning: {out / 'run.npz'} could not be read back ({exc}): no figures, metrics or report",
+              file=sys.stderr)
+        return None
+    if not metrics.recorded(run).any():
+        print(f"warning: {out / 'run.npz'} holds no complete tick: no figures, metrics or report", file=sys.stderr)
+        return None
+    print(f"drawing the figures and the report in {out}", file=sys.stderr, flush=True)
+    try:
+        values = jsonout.finite(metrics.report(run))
+        safefs.write_file(out / "metrics.json", jsonout.dumps(values).encode())
+        drawn = figures.run_panels(run, out)
+        if said is not None:
+            return report.write_run(out, run, drawn=drawn, notes=(said,))
+        return report.write_run(out, run, drawn=drawn, status=(status, outcome.MEANING.get(status, "unknown")))
+    except Exception as exc:  # noqa: BLE001 - a figure that cannot be drawn must not hide the run's exit status
+        print(f"warning: the figures, metrics or report of {out} could not be made ({type(exc).__name__}: {exc}); "
+              f"the run is in {out / 'run.npz'}, and `tether report {out}` tries again", file=sys.stderr)
+        return None
+
+
+RESULTS = ("run.npz", "run.npz.part", "journal.mcap", "run.mcap", "metrics.json", "report.html", "events.json",
+           "faults.json", "outcome.json", *(f"{name}.{ext}" for name in ("errors_gains", "velocities", "xy",
+                                                                        "formation") for ext in ("png", "svg")))
+"""What a run leaves in its ``--out`` besides its logs and certificates (which a new run rewrites)."""
+
+
+def _claim_out(out: Path, replace: bool) -> None:
+    """Refuse an ``--out`` that holds a run going on now, or a finished one unless ``replace`` (then
+    remove its results, so that nothing of it is taken for the new run's): exit 2 naming ``--out``
+    and the flag, before anything starts."""
+    from deploy import local
+
+    if not out.is_dir():
+        return
+    try:
+        os.close(local.claim_out(out))
+    except BlockingIOError:
+        raise BadArgument(f"--out: {out} {local.LIVE}; give another --out, or wait for that run to end") from None
+    except OSError:
+        return  # not ours to judge here: writable_dir has named what is wrong with it
+    held = [name for name in RESULTS if (out / name).exists()]
+    if not held:
+        return
+    if not replace:
+        raise BadArgument(f"--out: {out} holds a finished run ({', '.join(held[:4])}{', …' if len(held) > 4 else ''}); "
+                          "give another --out, or --replace to write over it")
+    for name in held:
+        (out / name).unlink()
+    print(f"--replace: removed the previous run's {', '.join(held)} from {out}", file=sys.stderr)
 
 
 def cmd_netem_set(args: argparse.Namespace) -> int:

@@ -36,7 +36,34 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
     """Launch and run a mission; returns the exit status (:mod:`deploy.outcome`). Raises
     :class:`~tether.mission.MissionError` (exit status 2) for bad input, before anything starts."""
     chosen = pace(opts.clock)
-    launch, router, settings = _prepare(mission_path, opts, chosen)
+    launch, router, settings, held = _prepare(mission_path, opts, chosen)
+    try:
+        return await _run(launch, router, settings, chosen)
+    finally:
+        os.close(held)  # the claim on --out (:func:`claim_out`) ends with the run
+
+
+LIVE = "holds a run that is going on now (another tether run writes there)"
+
+
+def claim_out(out: Path) -> int:
+    """Claim the run directory ``out`` for this run: an exclusive lock on the directory itself,
+    held until the returned descriptor is closed (and by the kernel no longer than the process).
+    Raises :class:`BlockingIOError` when another run holds it: two runs never write one
+    ``--out``."""
+    import fcntl
+
+    fd = os.open(out, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise
+    return fd
+
+
+async def _run(launch: Launch, router: str, settings: tp.ZenohSettings, chosen: Lockstep | Realtime) -> int:
+    """:func:`run` once ``--out`` is claimed."""
     o = launch.opts
     try:
         router, settings, sec = _secure(launch, router, settings)
@@ -66,10 +93,11 @@ async def run(mission_path: Path, opts: LaunchOptions) -> int:
 
 
 def _prepare(mission_path: Path, opts: LaunchOptions,
-             chosen: Lockstep | Realtime) -> tuple[Launch, str, tp.ZenohSettings]:
+             chosen: Lockstep | Realtime) -> tuple[Launch, str, tp.ZenohSettings, int]:
     """The launch of ``mission_path``, its options resolved and checked, the launcher's CPU scheduling
-    applied, ``--out`` made and every child's log opened; with the launcher's router endpoint and
-    settings. Raises :class:`~tether.mission.MissionError` (exit status 2) before anything starts."""
+    applied, ``--out`` made and claimed (:func:`claim_out`) and every child's log opened; with the
+    launcher's router endpoint and settings and the claim's descriptor. Raises
+    :class:`~tether.mission.MissionError` (exit status 2) before anything starts."""
     from tether.node import load_mission, os_error
 
     m = load_mission(mission_path, opts.duration)
@@ -100,8 +128,17 @@ def _prepare(mission_path: Path, opts: LaunchOptions,
         launch.opts = dataclasses.replace(opts, out=safefs.make_out(opts.out))
     except OSError as exc:
         raise ms.MissionError(f"tether run {mission_path}", [("--out", f"cannot make it: {os_error(exc)}")]) from None
-    launch.open_logs()  # a full or read-only --out: exit 2 naming the file, before anything starts
-    return launch, router, settings
+    try:
+        held = claim_out(launch.opts.out)
+    except BlockingIOError:
+        raise ms.MissionError(f"tether run {mission_path}", [("--out", f"{opts.out} {LIVE}; give another --out, "
+                                                              "or wait for that run to end")]) from None
+    try:
+        launch.open_logs()  # a full or read-only --out: exit 2 naming the file, before anything starts
+    except BaseException:
+        os.close(held)
+        raise
+    return launch, router, settings, held
 
 
 def _secure(launch: Launch, router: str,

@@ -41,6 +41,37 @@ def from_events(events: list[inject.Event]) -> int:
     return EXIT_OK
 
 
+def before_first_tick(sup: Supervision | None) -> bool:
+    """Whether the run ended before its first tick was recorded (lockstep) or its clock started
+    (real time): still starting up."""
+    return sup is None or (sup.done_tick < 0 and sup.epoch is None)
+
+
+STALL_FAULTS = frozenset({"kill", "freeze", "partition"})
+"""Injected faults that make a process's loss the run's subject, never a stall of its host."""
+
+
+def host_stall(clock: str, events: list[inject.Event], faults: list[str]) -> bool:
+    """Whether the processes lost in a run were only a stall of its host: a lockstep run (which waits
+    for every input, so a stall delays it and changes nothing in it), every loss a freeze (a token gone
+    for a while, or the launcher not running: never a death or a silence) and no kill, freeze or
+    partition injected. Such a run whose record is complete (:func:`complete`) is clean."""
+    lost = [e for e in events if e.what in inject.LOST]
+    return (clock == "lockstep" and bool(lost) and all(e.what == "froze" for e in lost)
+            and not STALL_FAULTS.intersection(faults))
+
+
+def complete(path: Path) -> bool:
+    """Whether the run file at ``path`` reads and holds every tick (its ``complete`` flag)."""
+    from tether import runfile
+
+    try:
+        with np.load(path, allow_pickle=False) as run:
+            return runfile.decode_meta(str(run["meta"])).complete is not False
+    except (OSError, KeyError, ValueError, msgspec.MsgspecError):
+        return False
+
+
 def rebuild(out: Path) -> bool:
     """Where the recorder died before writing ``run.npz`` (killed, its machine stopped), write it and
     ``run.mcap`` from the journal it kept as it went (``recorder/journal.py``); whether it did."""
@@ -168,6 +199,33 @@ def conclude(launch: Launch, sup: Supervision | None, status: int) -> int:
     if sup is not None and sup.dropped:
         log.warning("the launcher dropped %d malformed message(s): %s", sum(sup.dropped.values()),
                     ", ".join(f"{n} {why}" for why, n in sorted(sup.dropped.items())))
+    if status in (EXIT_INTERRUPTED, EXIT_TERMINATED) and before_first_tick(sup) and not rebuild(o.out) \
+            and not (o.out / "run.npz").exists():
+        log.warning("%s before the first tick: nothing was recorded (exit status %d)",
+                    "terminated" if status == EXIT_TERMINATED else "interrupted", status)
+        write_outcome(o.out, status)
+        return status
+    stalled = status == EXIT_LOST and host_stall(o.clock, events, [f.kind for f in o.faults])
     if rebuild(o.out) or status in (EXIT_OK, EXIT_FAILSAFE, EXIT_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED):
+        if stalled and complete(o.out / "run.npz"):
+            log.warning("the host stalled (%s), but a lockstep run waits for every input: every tick was "
+                        "recorded, and the data are those of a run without the stall; clean, with this warning",
+                        "; ".join(e.line() for e in events if e.what in inject.LOST))
+            status = from_events([e for e in events if e.what not in inject.LOST])
         status = recorded(o.out / "run.npz", status, o.rt_priority)
+    write_outcome(o.out, status)
     return status
+
+
+OUTCOME = "outcome.json"
+"""The exit status of the run in its ``--out`` and what it means (``tether report`` shows it)."""
+
+
+def write_outcome(out: Path, status: int) -> None:
+    """Leave ``status`` and its meaning in ``out``/:data:`OUTCOME` (a full disk is logged, not raised:
+    the status stands)."""
+    doc = {"exit_status": status, "meaning": MEANING.get(status, "unknown")}
+    try:
+        safefs.write_file(out / OUTCOME, (jsonout.dumps(doc) + "\n").encode())
+    except OSError as exc:
+        log.error("could not write %s (%s)", out / OUTCOME, exc)

@@ -13,6 +13,10 @@ Definitions (also in ``docs/metrics.md``):
 * true formation error: Eq. 8 from the recorded positions (:func:`formation_error`), against the
   ``xi`` the agents computed from the neighbour data they had.
 
+:func:`report` is the ``metrics.json`` of a run (``tether simulate``, ``tether run``, ``tether report``):
+:func:`summary` (the agents' own ``xi``) beside the true formation error and the tracking error, each
+named for what it is, when the run holds its mission (:func:`geometry`).
+
 A recorder's run may lack ticks (a run stopped early, a recorder frozen or killed: their modes read
 -1). :func:`summary` is taken over the ticks that hold every agent's telemetry (:func:`recorded`):
 a missing sample is not a divergence, and the tail and final values are those of the last ticks
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 
@@ -78,7 +83,96 @@ def formation_error(run: Run, adjacency: np.ndarray, offsets: np.ndarray) -> np.
     n = offsets.shape[0]
     e = np.concatenate([run.p - offsets[None], run.leader_p[:, None, :]], axis=1)  # (T, N+1, d)
     a = adjacency[:n]
-    return a.sum(axis=1)[None, :, None] * e[:, :n] - np.einsum("ij,tjd->tid", a, e)
+    # a vehicle with no position (killed, cut off) leaves only the agents that hear it undefined
+    missing = ~np.all(np.isfinite(e), axis=2)  # (T, N+1)
+    xi = a.sum(axis=1)[None, :, None] * e[:, :n] - np.einsum("ij,tjd->tid", a, np.where(missing[..., None], 0.0, e))
+    undefined = missing[:, :n] | (missing.astype(float) @ (a > 0).T.astype(float) > 0)
+    xi[undefined] = np.nan
+    return xi
+
+
+POSITIONING = 0.1
+"""The band [m] of :func:`report`'s ``formation_settling_time_s``: the paper's positioning accuracy."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """What the true errors need of a mission, in the run's agent order."""
+
+    adjacency: np.ndarray
+    """``(N+1, N+1)`` weights ``a_ij`` (i hears j), the leader last."""
+    offsets: np.ndarray
+    """``(N, d)`` formation offsets ``h_i`` [m]."""
+
+
+def geometry(run: Run) -> Geometry | None:
+    """The run's :class:`Geometry` from the mission text it holds; None when it holds none, or one
+    whose agents are not the run's (parsing only: no file is read)."""
+    from tether import graph
+    from tether import mission as ms
+
+    if not run.meta.mission_text:
+        return None
+    try:
+        m = ms.loads(run.meta.mission_text)
+    except ms.SchemaError:
+        return None
+    ids = [a.id for a in m.agents]
+    if sorted(ids) != sorted(int(a) for a in run.agent_ids) or m.dim != run.p.shape[2]:
+        return None
+    order = [ids.index(int(a)) for a in run.agent_ids] + [len(ids)]
+    adjacency = np.asarray(graph.topology(m).adjacency, dtype=float)[np.ix_(order, order)]
+    offsets = np.array([m.agents[k].offset for k in order[:-1]], dtype=float)
+    return Geometry(adjacency, offsets)
+
+
+def true_xi_norm(run: Run, g: Geometry) -> np.ndarray:
+    """``(T, N)`` norm of the true formation error (Eq. 8 from the vehicles' positions) [m]."""
+    return np.linalg.norm(formation_error(run, g.adjacency, g.offsets), axis=2)
+
+
+def tracking_norm(run: Run, g: Geometry) -> np.ndarray:
+    """``(T, N)`` distance of each vehicle from its slot ``p_leader + h_i`` [m]."""
+    return np.linalg.norm(run.p - g.offsets[None] - run.leader_p[:, None, :], axis=2)
+
+
+def settled_within(t: np.ndarray, worst: np.ndarray, band: float) -> float:
+    """The first sample time from which ``worst`` stays at or below ``band`` to the end (NaN if its
+    last sample is above it)."""
+    above = np.nonzero(~(worst <= band))[0]
+    if len(above) == 0:
+        return float(t[0])
+    last = above[-1]
+    return float(t[last + 1]) if last + 1 < len(t) else math.nan
+
+
+def report(run: Run, tail: float = 0.1) -> dict[str, float | bool]:
+    """``metrics.json``: :func:`summary` (its ``xi`` is the agents' own, from the data they had) with
+    ``settle_band_m``, the band its ``settling_time_s`` is measured against, and where the run holds
+    its mission (:func:`geometry`) the true formation error (Eq. 8 from the positions), the tracking
+    error and the time the true error settles within :data:`POSITIONING`."""
+    out: dict[str, float | bool] = dict(summary(run, tail))
+    out["settle_band_m"] = 1.1 * out["ultimate_bound_xi_m"]
+    g = geometry(run)
+    if g is None:
+        return out
+    # over every tick: a vehicle that stopped reporting leaves its own columns empty, not the others'
+    sl = tail_slice(run, tail)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN ticks (a recorder's gaps) stay NaN
+        return {**out, **_truth(run, g, sl)}
+
+
+def _truth(run: Run, g: Geometry, sl: slice) -> dict[str, float | bool]:
+    true, track = true_xi_norm(run, g), tracking_norm(run, g)
+    worst = np.nanmax(true, axis=1)
+    rows = np.isfinite(run.t) & np.isfinite(worst)  # ticks with no error at all (gaps) judge nothing
+    return {"formation_error_bound_m": float(np.nanmax(true[sl])),
+            "formation_error_max_m": float(np.nanmax(true)),
+            "tracking_error_m": float(np.nanmax(track[sl])),
+            "tracking_error_max_m": float(np.nanmax(track)),
+            "formation_settling_time_s": settled_within(run.t[rows], worst[rows], POSITIONING) if rows.any()
+            else math.nan}
 
 
 def recorded(run: Run) -> np.ndarray:

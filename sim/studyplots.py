@@ -1,11 +1,13 @@
 """Figures and the report of a study with more axes than loss x delay: the law's sigma and rates
 (``--sigma``, ``--gamma-p``, ``--gamma-v``) and Monte Carlo replicates (``--seeds``).
 
-One figure, ``study.png``: the ultimate bound of the true ``||xi||`` (log scale), the gains'
-convergence time and the peak gain against sigma (log scale) when the study has several sigmas,
-else against the delay; one line per combination of the other axes that vary. With replicates,
-each point is the mean over the replicates that did not diverge, with its 95 % Student-t
-confidence interval as error bars; the report's tables give mean, standard deviation and interval.
+One figure, ``study.png`` (and its SVG): the ultimate bound of the true ``||xi||``, the gains'
+convergence time and the peak gain against sigma when the study has several sigmas, else against
+the delay; one line per combination of the other axes that vary; log axes only where the values
+span more than a decade (:data:`WIDE`); the law named in the title. With replicates, each point is
+the mean over the replicates that did not diverge, labelled with how many (``n=``), with its 95 %
+Student-t confidence interval as error bars; the report's tables give mean, standard deviation and
+interval.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ def study_figures(rows: list[dict], summary: list[dict] | None, out: Path, meta:
     fig, ax = plt.subplots(1, len(PANELS), figsize=(5.2 * len(PANELS), 4.4), squeeze=False)
     for c, (metric, label, logy) in enumerate(PANELS):
         a = ax[0, c]
+        shown: list[float] = []
         for key, members in groups.items():
             members = sorted(members, key=lambda r: r[x_axis])
             x = np.array([float(r[x_axis]) for r in members])
@@ -65,23 +68,41 @@ def study_figures(rows: list[dict], summary: list[dict] | None, out: Path, meta:
                 err = np.vstack([v[:, 0] - v[:, 1], v[:, 2] - v[:, 0]])
                 err = np.where(np.isfinite(err), err, 0.0)
                 a.errorbar(x, v[:, 0], yerr=err, marker="o", capsize=3, label=name)
+                for xi, yi, r in zip(x, v[:, 0], members):  # how many replicates this point averages
+                    n = r.get(f"{metric}_n")
+                    if n is not None and np.isfinite(yi):
+                        a.annotate(f"n={int(n)}", (xi, yi), xytext=(4, 4), textcoords="offset points", fontsize=7)
             else:
                 a.plot(x, v[:, 0], marker="o", label=name)
-        if x_axis == "sigma" and all(float(r["sigma"]) > 0 for r in cells):
+            shown.extend(float(y) for y in v[:, 1:].ravel() if np.isfinite(y) and y > 0)
+        if x_axis == "sigma" and all(float(r["sigma"]) > 0 for r in cells) and wide([float(r["sigma"]) for r in cells]):
             a.set_xscale("log")
-        if logy:
+        if logy and wide(shown):
             a.set_yscale("log")
         a.set_xlabel(LABEL.get(x_axis, x_axis))
         a.set_title(label, fontsize=9)
         a.grid(True, which="both", alpha=0.3)
     ax[0, 0].legend(fontsize=7)
-    ci = (f"; mean of {meta['seeds']} replicates, bars: 95 % t-interval" if summary is not None else "")
-    fig.suptitle(f"{title}{ci}", fontsize=10)
+    ci = (f"; mean of the replicates that did not diverge (n per point, of {meta['seeds']}), bars: 95 % "
+          "t-interval" if summary is not None else "")
+    laws = sorted({str(r["law"]) for r in cells})
+    fig.suptitle(f"{title}, law {', '.join(laws)}{ci}", fontsize=10)
     fig.tight_layout()
     path = out / "study.png"
     fig.savefig(path, dpi=110)
+    fig.savefig(path.with_suffix(".svg"))
     plt.close(fig)
     return [path]
+
+
+WIDE = 10.0
+"""A log axis only where the values span more than this ratio; a narrow range reads better linear."""
+
+
+def wide(values: list[float]) -> bool:
+    """Whether positive ``values`` span more than :data:`WIDE` (max over min)."""
+    pos = [v for v in values if v > 0 and math.isfinite(v)]
+    return bool(pos) and max(pos) / min(pos) > WIDE
 
 
 def _fmt(x: object) -> str:

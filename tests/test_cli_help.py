@@ -169,11 +169,11 @@ def test_run_and_demo_end_with_what_to_do_next(tmp_path: Path) -> None:
     out = tmp_path / "run"
     r = tether("run", "section4", "--out", str(out), "--duration", "1", "--insecure", "--quiet")
     assert r.returncode == 0, r.stderr[-3000:]
-    assert "\nnext:\n" in r.stdout and f"tether plot {out}" in r.stdout and str(out / "logs") in r.stdout
+    assert "\nnext:\n" in r.stdout and str(out / "report.html") in r.stdout and str(out / "logs") in r.stdout
     demo = tmp_path / "demo"
     r = tether("demo", "--out", str(demo), "--duration", "1")
     assert r.returncode == 0, r.stderr[-3000:]
-    assert str(demo / "xy.png") in r.stdout.split("\nnext:\n")[1]
+    assert str(demo / "xy.png") in r.stdout.split("\nnext:\n")[1] and (demo / "report.html").exists()
     assert "tether reproduce section4" in r.stdout and "tether missions" in r.stdout
     assert "simulating the same mission in the reference simulator" in r.stderr
 
