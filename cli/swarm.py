@@ -146,7 +146,7 @@ def cmd_rehearse(args: argparse.Namespace) -> int:
 
     status = rehearse.run_args(args)
     out = Path(args.out)
-    if (out / "run.npz").exists():
+    if status != 2 and (out / "run.npz").is_file():  # 2: refused before anything ran (maybe unreadable)
         page = _write_results(out, status, f"tether rehearse ended with exit status {status} (docs/exit-status.md)")
         if page is not None:
             print(f"the report (one page, for the log book): {page}")

@@ -175,7 +175,7 @@ def test_tether_top_heads_the_state_column_with_the_laws_names() -> None:
                                                                      list(NAMES))), now=0.0)
     assert b.state_heading() == "kp  kv  s (per axis)"
     cells, styles = b.cells(b.rows[1], now=0.1)
-    assert cells[3] == "2.00/2.50  1.00/1.50  0.25/-0.50" and styles[3] == ""
+    assert cells[4] == "2.00/2.50  1.00/1.50  0.25/-0.50" and styles[4] == ""  # after vehicle, mode, plant, |xi|
     from rich.console import Console
 
     console = Console(width=200, record=True)

@@ -146,9 +146,13 @@ def test_figures_mark_mode_changes_only_when_there_are_events(tmp_path: Path) ->
 
     run = _full_run()
     fig, axes = plt.subplots(2, 1)
+    for a in axes:
+        a.set_xlim(0.0, 0.06)  # the run's span
     figures.mark_events(run, axes)
     assert [len(a.lines) for a in axes] == [2, 2]
-    assert sorted(t.get_text() for t in axes[0].texts) == ["5: HOLD", "8: ESTOP"]
+    assert sorted(t.get_text() for t in axes[0].texts) == ["1", "2"]  # numbered as figures.event_lines lists them
+    lines = figures.event_lines(run)
+    assert [line.split()[0] for line in lines] == ["1", "2"] and "HOLD" in lines[0] and "ESTOP" in lines[1]
     run.safety.events = []
     fig, axes = plt.subplots(2, 1)
     figures.mark_events(run, axes)

@@ -199,7 +199,7 @@ def test_the_transcription_check_catches_a_retyped_rule() -> None:
 
 # --------------------------------------------------------------------- an engine runs it
 def flapping_leader(m: Any, seconds: float) -> Network:
-    """Agent 1's link from the leader lost for 2.4 s (HOLD for 1.9 s, just under land_after), then
+    """Agent 1's link from the leader lost for 2.4 s (HOLD for 1.9 s, just under a land_after of 2 s), then
     back for 1.0 s, over and over: the measured flapping, on the link."""
     rules = []
     t = 1.0
@@ -216,7 +216,8 @@ def test_a_flapping_leader_link_lands_its_agent_in_both_lockstep_engines(dwell: 
     ``flap_limit`` times, then lands saying why (flapping; or, with the dwell, a resume that waits
     past land_after). Opened wide, the same link flaps it eleven times (the rule is what stops it)."""
     base = load_mission(builtin_path("section4"), 40.0)
-    m = replace(base, netem=flapping_leader(base, 40.0), safety=replace(base.safety, resume_dwell=dwell))
+    m = replace(base, netem=flapping_leader(base, 40.0),
+                safety=replace(base.safety, resume_dwell=dwell, land_after=2.0))
     run = compiled_equals_python(m)
     ev = [e for e in run.safety.events if e.vehicle == 1 and e.src != e.dst]
     back = [e for e in ev if (e.src, e.dst) == (HOLD, FLYING)]
