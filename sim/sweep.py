@@ -199,30 +199,36 @@ def figures_of_merit(run: Run, m: ms.Mission) -> dict[str, float | bool | None]:
 GAIN_TOL = 0.05
 """A gain has converged once it stays within this fraction of its final value."""
 
-METRICS_VERSION = 2
+METRICS_VERSION = 3
 """Changes whenever a figure of merit's definition does: part of every cell's identity, so a study
-made with other definitions is not resumed into this one (1: no ``gain_convergence_s``; 2: it)."""
+made with other definitions is not resumed into this one (1: no ``gain_convergence_s``; 2: it,
+against the final sample; 3: against the tail's mean, so that gains that settle into a ripple have
+one)."""
 
 
 def gain_convergence_time(t: np.ndarray, kp: np.ndarray, kv: np.ndarray, tol: float = GAIN_TOL,
                           tail: float = 0.1) -> float:
     """The first sample time after which every agent's every gain (``Kp`` and ``Kv``, each axis)
-    stays within ``tol`` times its final value [s]. NaN when the final value is no settled value (a
-    gain drifts by more than ``tol / 5`` of it over the last ``tail`` of the run: the run is too
-    short to tell, or the gains grow without bound), when the gains settle only in that tail, or when
-    the run diverged."""
+    stays within ``tol`` of its settled value [s], the settled value being its mean over the last
+    ``tail`` of the run (a gain of the sigma law settles into a ripple that the disturbances keep up,
+    so its final sample is no settled value). NaN when a gain has no settled value: its mean moves by
+    more than ``tol / 5`` of it between the two halves of the tail (the gains grow without bound, or
+    the run is too short to tell), or its ripple in the tail leaves the band; also when the run
+    diverged."""
     k = np.concatenate([kp.reshape(len(t), -1), kv.reshape(len(t), -1)], axis=1)
     if not np.all(np.isfinite(k)):
         return math.nan
-    final = k[-1]
-    i0 = min(len(t) - 1, int(math.floor(len(t) * (1.0 - tail))))
-    if np.any(np.abs(final - k[i0]) > 0.2 * tol * np.abs(final)):
+    i0 = min(len(t) - 2, int(math.floor(len(t) * (1.0 - tail))))
+    last = k[i0:]
+    half = len(last) // 2
+    settled = last.mean(axis=0)
+    if np.any(np.abs(last[half:].mean(axis=0) - last[:half].mean(axis=0)) > 0.2 * tol * np.abs(settled)):
         return math.nan
-    bad = np.nonzero(~np.all(np.abs(k - final) <= tol * np.abs(final), axis=1))[0]
+    bad = np.nonzero(~np.all(np.abs(k - settled) <= tol * np.abs(settled), axis=1))[0]
     if bad.size == 0:
         return float(t[0])
     first = bad[-1] + 1
-    if first >= len(t) or t[first] > t[0] + (1.0 - tail) * (t[-1] - t[0]):
+    if first > i0:  # the band is left within the tail itself
         return math.nan
     return float(t[first])
 

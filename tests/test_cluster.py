@@ -175,6 +175,14 @@ def test_gain_convergence_time() -> None:
     assert got == pytest.approx(5.0 * math.log(1.0 / (0.05 * (1.0 + math.exp(-99.9 / 5.0)))), abs=0.11)
     drifting = (1.0 + 0.1 * t)[:, None, None] * np.ones((1, 2, 2))
     assert math.isnan(sweep.gain_convergence_time(t, drifting, drifting))  # still moving in the tail
+    # the sigma law's gains on Section 4: a decay into a 2 % ripple kept up by the disturbances has a
+    # time, whatever the phase the run ends on; a ripple wider than the band has none
+    for phase in (0.0, 1.0, 2.0):
+        ripple = (1.0 + np.exp(-t / 5.0) + 0.02 * np.sin(2.0 * math.pi * t / 6.3 + phase))[:, None, None] \
+            * np.ones((1, 2, 2))
+        assert 10.0 < sweep.gain_convergence_time(t, ripple, ripple) < 20.0
+    wide = (1.0 + 0.2 * np.sin(t))[:, None, None] * np.ones((1, 2, 2))
+    assert math.isnan(sweep.gain_convergence_time(t, wide, wide))
 
 
 # --------------------------------------------------------------------------- the command's checks
