@@ -204,8 +204,11 @@ def test_a_sweep_row_says_when_the_safety_layer_acted_and_how_many_it_grounded()
     calm = sweep.point_mission(base, sweep.Point("sigma", 0.0, 0.0, 1.0), compensate=True)
     row = sweep.figures_of_merit(lockstep.simulate(calm), calm)
     assert row["failsafe_at_s"] is None and row["grounded"] == 0
-    # compensating 200 ms of delay oscillates (docs/netem.md): saturated, then one vehicle overspeeds
+    # compensating 200 ms of delay oscillates (docs/netem.md): saturated, then one vehicle overspeeds,
+    # holds and lands after land_after (2 s here: held for the default 10 s, its neighbours' oscillation
+    # carries its |xi| to the divergence bound first, and the row says diverged)
     wild = sweep.point_mission(base, sweep.Point("sigma", 0.0, 200.0, 1.0), compensate=True)
+    wild = msgspec.structs.replace(wild, safety=msgspec.structs.replace(wild.safety, land_after=2.0))
     row = sweep.figures_of_merit(lockstep.simulate(wild), wild)
     assert row["failsafe_at_s"] is not None and 0 < row["failsafe_at_s"] < 60.0
     assert row["grounded"] >= 1 and not row["diverged"]
