@@ -8,8 +8,9 @@ landing (LAND, held past ``land_after`` or flapping; then LANDED: its plant rest
 the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a run equals the
 Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``).
 The supervisor's rule is not written here: the loop calls ``agent.safety``'s own pure functions
-(``transition``, ``hold_cause``, ``believe``, ``silent``, ``report_kind``), compiled
-(``tests/test_supervisor_rule.py``):
+(``transition``, ``hold_cause``, ``believe``, ``silent``, ``report_kind``, the graph search
+``reaches_in``) and the failsafe laws' scalar cores of ``tether.failsafe`` (``hold_point``'s,
+``hold``'s, ``saturate``'s, ``landed``'s), compiled (``tests/test_supervisor_rule.py``):
 
 * what each agent hears is decided before the loop: an emulated link that only loses and delays
   (:func:`netem.channel.batchable`: Bernoulli or Gilbert-Elliott loss, a constant or jittered delay)
@@ -417,33 +418,20 @@ def _event_py(events: np.ndarray, fired: np.ndarray, k: int, i: int, src: int, d
 _event = kernel.jit(_event_py)
 
 
+_reaches_in = jit(safety.reaches_in)
+""":func:`agent.safety.reaches_in` itself, compiled: the supervisor's graph search (never re-typed here)."""
+
+
 def _reach_py(i: int, n: int, lo: int, hi: int, mask: int, l_src: np.ndarray, out_ptr: np.ndarray,
               out_dst: np.ndarray, seen: np.ndarray, gone: np.ndarray, stack: np.ndarray) -> bool:
     """``agent.safety.reaches``: whether the leader (column ``n``) reaches agent ``i`` without the
     in-neighbours of link slots ``lo .. hi-1`` whose bits are set in ``mask``."""
     for x in range(n + 1):
-        seen[x] = False
         gone[x] = False
     for l in range(lo, hi):
         if mask >> (l - lo) & 1:
             gone[l_src[l]] = True
-    if gone[n] or gone[i]:
-        return False
-    top = 0
-    stack[0] = n
-    seen[n] = True
-    while top >= 0:
-        node = stack[top]
-        top -= 1
-        if node == i:
-            return True
-        for e_ in range(out_ptr[node], out_ptr[node + 1]):
-            nxt = out_dst[e_]
-            if not seen[nxt] and not gone[nxt]:
-                seen[nxt] = True
-                top += 1
-                stack[top] = nxt
-    return False
+    return _reaches_in(out_ptr, out_dst, n, i, gone, seen, stack)
 
 
 _reach = kernel.jit(_reach_py)

@@ -150,6 +150,50 @@ def test_the_twin_compiles_the_supervisors_own_functions(name: str) -> None:
     assert twin.py_func is getattr(safety, name)
 
 
+def test_the_twin_compiles_the_supervisors_own_graph_search() -> None:
+    """Not a copy: the twin's reachability runs agent.safety's reaches_in, which reaches runs too."""
+    assert lockstep_kernel._reaches_in.py_func is safety.reaches_in
+    tree = ast.parse(inspect.getsource(safety.reaches))
+    assert "reaches_in" in {node.func.id for node in ast.walk(tree)
+                            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+    kernel_search = ast.parse(inspect.getsource(lockstep_kernel._reach_py))
+    assert not any(isinstance(node, ast.While) for node in ast.walk(kernel_search))  # no second search
+
+
+def closure(out: dict[int, list[int]], root: int, removed: set[int]) -> set[int]:
+    """The nodes ``root`` reaches without ``removed``, grown to a fixed point (an oracle of another form)."""
+    got = set() if root in removed else {root}
+    while True:
+        more = got | {b for a in got for b in out.get(a, ()) if b not in removed}
+        if more == got:
+            return got
+        got = more
+
+
+def test_the_compiled_graph_search_equals_the_supervisors_over_random_graphs() -> None:
+    """Random directed graphs and removed sets: the compiled search, the Python one over arrays and
+    reaches over the graph as a dict agree with a fixed-point closure on every pair."""
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        n = int(rng.integers(1, 9))
+        edges = sorted({(int(a), int(b)) for a, b in rng.integers(0, n, size=(int(rng.integers(0, 3 * n)), 2))})
+        out: dict[int, list[int]] = {}
+        for a, b in edges:
+            out.setdefault(a, []).append(b)
+        ptr = np.searchsorted([a for a, _ in edges], np.arange(n + 1), side="left").astype(np.int64)
+        dst = np.array([b for _, b in edges], dtype=np.int64)
+        removed = {int(x) for x in rng.integers(0, n, size=int(rng.integers(0, 3)))}
+        gone = np.array([x in removed for x in range(n)])
+        for root in range(n):
+            for target in range(n):
+                want = target in closure(out, root, removed)
+                assert safety.reaches(out, root, target, removed) == want
+                assert lockstep_kernel._reaches_in(ptr, dst, root, target, gone, np.zeros(n, dtype=np.bool_),
+                                                   np.zeros(n, dtype=np.int64)) == want
+                assert safety.reaches_in(ptr.tolist(), dst.tolist(), root, target, gone.tolist(), [False] * n,
+                                         [0] * n) == want
+
+
 @pytest.mark.parametrize("name", sorted(FAILSAFE_TWINS))
 def test_the_twin_compiles_the_failsafe_laws_own_functions(name: str) -> None:
     """Not a copy: the compiled function's Python is tether.failsafe's function object itself."""
