@@ -56,7 +56,7 @@ what numba compiles (scalars, no strings, no containers).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, MutableSequence, Sequence
 from dataclasses import dataclass
 
 from tether import failsafe
@@ -67,19 +67,43 @@ from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES, SafetyEvent
 
 
 def reaches(out_edges: dict[int, list[int]], root: int, target: int, removed: Iterable[int] = ()) -> bool:
-    """Whether ``root`` has a directed path to ``target`` in the graph without the ``removed`` nodes."""
-    gone = set(removed)
-    if root in gone or target in gone:
+    """Whether ``root`` has a directed path to ``target`` in the graph without the ``removed`` nodes
+    (:func:`reaches_in` over the graph's nodes, numbered)."""
+    removed = set(removed)
+    nodes = sorted(set(out_edges).union(*out_edges.values(), (root, target), removed))
+    index = {node: x for x, node in enumerate(nodes)}
+    out_ptr, out_dst = [0], []
+    for node in nodes:
+        out_dst += [index[nxt] for nxt in out_edges.get(node, ())]
+        out_ptr.append(len(out_dst))
+    gone = [node in removed for node in nodes]
+    return reaches_in(out_ptr, out_dst, index[root], index[target], gone, [False] * len(nodes), [0] * len(nodes))
+
+
+def reaches_in(out_ptr: Sequence[int], out_dst: Sequence[int], root: int, target: int, gone: Sequence[bool],
+               seen: MutableSequence[bool], stack: MutableSequence[int]) -> bool:
+    """Whether node ``root`` has a directed path to node ``target`` (nodes numbered from 0; node x's
+    out-neighbours ``out_dst[out_ptr[x]:out_ptr[x + 1]]``) without the nodes ``x`` where ``gone[x]``.
+    ``seen`` and ``stack``: room for one entry per node (overwritten). Lists or arrays: the
+    in-process engine's compiled twin compiles this very function."""
+    if gone[root] or gone[target]:
         return False
-    seen, frontier = {root}, [root]
-    while frontier:
-        node = frontier.pop()
+    for x in range(len(seen)):
+        seen[x] = False
+    top = 0
+    stack[0] = root
+    seen[root] = True
+    while top >= 0:
+        node = stack[top]
+        top -= 1
         if node == target:
             return True
-        for nxt in out_edges.get(node, ()):
-            if nxt not in seen and nxt not in gone:
-                seen.add(nxt)
-                frontier.append(nxt)
+        for e in range(out_ptr[node], out_ptr[node + 1]):
+            nxt = out_dst[e]
+            if not seen[nxt] and not gone[nxt]:
+                seen[nxt] = True
+                top += 1
+                stack[top] = nxt
     return False
 
 

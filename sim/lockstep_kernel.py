@@ -8,8 +8,9 @@ landing (LAND, held past ``land_after`` or flapping; then LANDED: its plant rest
 the Python does (no fast-math: no reassociation, no fused multiply-adds), so that a run equals the
 Python engine's bit for bit, its safety events worded the same (``tests/test_lockstep_kernel.py``).
 The supervisor's rule is not written here: the loop calls ``agent.safety``'s own pure functions
-(``transition``, ``hold_cause``, ``believe``, ``silent``, ``report_kind``), compiled
-(``tests/test_supervisor_rule.py``):
+(``transition``, ``hold_cause``, ``believe``, ``silent``, ``report_kind``, the graph search
+``reaches_in``) and the failsafe laws' scalar cores of ``tether.failsafe`` (``hold_point``'s,
+``hold``'s, ``saturate``'s, ``landed``'s), compiled (``tests/test_supervisor_rule.py``):
 
 * what each agent hears is decided before the loop: an emulated link that only loses and delays
   (:func:`netem.channel.batchable`: Bernoulli or Gilbert-Elliott loss, a constant or jittered delay)
@@ -89,9 +90,9 @@ _REPORT_FLYING, _REPORT_HOLD, _REPORT_STOPPED = safety.REPORT_FLYING, safety.REP
 
 # Columns of the loop's grouped arrays. ``cfg`` (float): the engine's and ``[safety]``'s numbers.
 (_H, _HH2, _GROUND, _THREE, _FEED_CODE, _MAX_AGE, _COMPENSATE, _LEADER_TIMEOUT, _NEIGHBOUR_TIMEOUT, _MAX_ERR,
- _GAIN_CAP, _MAX_SPEED, _MAX_ACCEL, _DIVERGE_AT, _LAND_AFTER, _HOLD_KP, _HOLD_KV, _LAND_SETTLE, _STILL, _CONFIRM,
- _FLAP_LIMIT, _RESUME_DWELL) = range(22)
-_CFG = 22
+ _GAIN_CAP, _MAX_SPEED, _MAX_ACCEL, _DIVERGE_AT, _LAND_AFTER, _HOLD_KP, _HOLD_KV, _LAND_SETTLE, _CONFIRM,
+ _FLAP_LIMIT, _RESUME_DWELL) = range(21)
+_CFG = 21
 # ``sup`` (int, per agent): its supervisor's mode, HOLD's cause (agent.safety.CAUSES), the dropped
 # edges and the holding neighbours followed (masks of link slots), the recoveries of the current run
 _MODE, _CAUSE, _LOST, _FOLLOWED, _FLAPS = range(5)
@@ -234,7 +235,7 @@ def simulate(m: Mission, *, duration: float | None = None, record: bool = True,
                         (_NEIGHBOUR_TIMEOUT, cfg.neighbour_timeout), (_MAX_ERR, cfg.max_formation_error),
                         (_GAIN_CAP, cfg.gain_cap), (_MAX_SPEED, cfg.max_speed), (_MAX_ACCEL, cfg.max_accel),
                         (_DIVERGE_AT, diverge_at), (_LAND_AFTER, cfg.land_after), (_HOLD_KP, cfg.hold_kp),
-                        (_HOLD_KV, cfg.hold_kv), (_LAND_SETTLE, cfg.land_settle), (_STILL, failsafe.STILL),
+                        (_HOLD_KV, cfg.hold_kv), (_LAND_SETTLE, cfg.land_settle),
                         (_CONFIRM, cfg.mode_confirm), (_FLAP_LIMIT, cfg.flap_limit),
                         (_RESUME_DWELL, cfg.resume_dwell)):
         numbers[col_] = float(number)
@@ -312,8 +313,7 @@ def _events(rows: np.ndarray, floats: np.ndarray, h: float, ids: list[int], laws
         elif kind != _LANDED:
             why = safety.reason(kind, safety.CAUSES[m1], m2, land_after, resume_dwell)
         else:  # failsafe.why_landed, 2D
-            why = "still" if speed < failsafe.STILL else (
-                f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped")
+            why = failsafe.why_settled(speed, held, False)
         out.append(wire.SafetyEvent(k=k, t=k * h, vehicle=ids[i], src=src, dst=dst, reason=why))
     return out
 
@@ -387,8 +387,15 @@ def _norm_py(x: np.ndarray, i: int) -> float:
 
 _norm = kernel.jit(_norm_py)
 
-_stopping = kernel.jit(failsafe.stopping_distance)
-""":func:`tether.failsafe.stopping_distance` itself, compiled: HOLD's anchor is the supervisor's float for float."""
+# The failsafe laws' arithmetic, compiled from its one definition (tether/failsafe.py): never re-typed
+# here (tests/test_supervisor_rule.py checks these are failsafe's own functions and the loop calls them)
+_stopping = jit(failsafe.stopping_distance)
+_hold_reach = jit(failsafe.hold_reach)
+_anchor_axis = jit(failsafe.anchor_axis)
+_floored = jit(failsafe.floored)
+_hold_axis = jit(failsafe.hold_axis)
+_saturation = jit(failsafe.saturation)
+_settled = jit(failsafe.settled)
 
 
 def _event_py(events: np.ndarray, fired: np.ndarray, k: int, i: int, src: int, dst: int, kind: int, m1: int,
@@ -411,33 +418,20 @@ def _event_py(events: np.ndarray, fired: np.ndarray, k: int, i: int, src: int, d
 _event = kernel.jit(_event_py)
 
 
+_reaches_in = jit(safety.reaches_in)
+""":func:`agent.safety.reaches_in` itself, compiled: the supervisor's graph search (never re-typed here)."""
+
+
 def _reach_py(i: int, n: int, lo: int, hi: int, mask: int, l_src: np.ndarray, out_ptr: np.ndarray,
               out_dst: np.ndarray, seen: np.ndarray, gone: np.ndarray, stack: np.ndarray) -> bool:
     """``agent.safety.reaches``: whether the leader (column ``n``) reaches agent ``i`` without the
     in-neighbours of link slots ``lo .. hi-1`` whose bits are set in ``mask``."""
     for x in range(n + 1):
-        seen[x] = False
         gone[x] = False
     for l in range(lo, hi):
         if mask >> (l - lo) & 1:
             gone[l_src[l]] = True
-    if gone[n] or gone[i]:
-        return False
-    top = 0
-    stack[0] = n
-    seen[n] = True
-    while top >= 0:
-        node = stack[top]
-        top -= 1
-        if node == i:
-            return True
-        for e_ in range(out_ptr[node], out_ptr[node + 1]):
-            nxt = out_dst[e_]
-            if not seen[nxt] and not gone[nxt]:
-                seen[nxt] = True
-                top += 1
-                stack[top] = nxt
-    return False
+    return _reaches_in(out_ptr, out_dst, n, i, gone, seen, stack)
 
 
 _reach = kernel.jit(_reach_py)
@@ -491,7 +485,6 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
     hold_kp = cfg[_HOLD_KP]
     hold_kv = cfg[_HOLD_KV]
     land_settle = cfg[_LAND_SETTLE]
-    still = cfg[_STILL]
     confirm = int(cfg[_CONFIRM])
     flap_limit = int(cfg[_FLAP_LIMIT])
     resume_dwell = cfg[_RESUME_DWELL]
@@ -671,12 +664,12 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
                                 return k  # nowhere to hold: the Python engine's (a zero command)
                         # failsafe.hold_point (3D: floor at the ground; no geofence here)
                         speed = _norm(v, i)
-                        if speed > 0.0 and math.isfinite(speed):
-                            scale = _stopping(speed, hold_kp, max_accel) / speed
+                        scale = _hold_reach(speed, _stopping(speed, hold_kp, max_accel))
+                        if scale == scale:
                             for c in range(d):
-                                p_hold[i, c] = p[i, c] + v[i, c] * scale
-                            if three and p_hold[i, d - 1] < ground:
-                                p_hold[i, d - 1] = ground if p[i, d - 1] >= ground else p[i, d - 1]
+                                p_hold[i, c] = _anchor_axis(p[i, c], v[i, c], scale)
+                            if three:
+                                p_hold[i, d - 1] = _floored(p[i, d - 1], p_hold[i, d - 1], ground)
                         else:
                             for c in range(d):
                                 p_hold[i, c] = p[i, c]
@@ -691,7 +684,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
             if sup[i, _MODE] == land:  # 2D: failsafe.landed (still, or held land_settle), else HOLD's law
                 held = t - clock[i, _SINCE]
                 speed = _norm(v, i)
-                if speed < still or held >= land_settle:
+                if _settled(speed, 0.0, held, land_settle, False):
                     row = fired[0]
                     if not _event(events, fired, k, i, land, landed, _LANDED, 0, 0):
                         return k
@@ -705,16 +698,15 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
             else:
                 if sup[i, _MODE] != flying:  # failsafe.hold (LAND in 2D too): brake, return to p_hold
                     for c in range(d):
-                        u[i, c] = -hold_kv * v[i, c] - hold_kp * (p[i, c] - p_hold[i, c])
+                        u[i, c] = _hold_axis(p[i, c], v[i, c], p_hold[i, c], hold_kp, hold_kv)
                 # failsafe.saturate
                 uu = u[i, 0] * u[i, 0]
                 for c in range(1, d):
                     uu = uu + u[i, c] * u[i, c]
                 if not math.isfinite(uu):
                     return k  # HOLD's command not finite: the Python engine's (a zero command)
-                norm = math.sqrt(uu)
-                if not norm <= max_accel:
-                    scale = max_accel / norm
+                scale = _saturation(uu, max_accel)
+                if scale != 1.0:
                     for c in range(d):
                         u[i, c] = u[i, c] * scale
             if keep:

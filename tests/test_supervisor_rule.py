@@ -16,7 +16,7 @@ import pytest
 from agent import safety
 from agent.safety import Supervisor
 from sim import lockstep, lockstep_kernel
-from tether import wire
+from tether import failsafe, wire
 from tether.catalog import builtin_path
 from tether.netprofile import Bernoulli, LinkProfile, LinkRule, Network
 from tether.node import load_mission
@@ -137,11 +137,81 @@ TWINS = {"transition": "_transition", "hold_cause": "_hold_cause", "believe": "_
 """Each pure function of agent/safety.py's rule, and the name the twin compiles it under."""
 
 
+FAILSAFE_TWINS = {"stopping_distance": "_stopping", "hold_reach": "_hold_reach", "anchor_axis": "_anchor_axis", "floored": "_floored",
+                  "hold_axis": "_hold_axis", "saturation": "_saturation", "settled": "_settled"}
+"""Each scalar core of tether/failsafe.py's laws (hold_point, hold, saturate, landed), and the name
+the twin compiles it under."""
+
+
 @pytest.mark.parametrize("name", sorted(TWINS))
 def test_the_twin_compiles_the_supervisors_own_functions(name: str) -> None:
     """Not a copy: the compiled function's Python is agent.safety's function object itself."""
     twin = getattr(lockstep_kernel, TWINS[name])
     assert twin.py_func is getattr(safety, name)
+
+
+def test_the_twin_compiles_the_supervisors_own_graph_search() -> None:
+    """Not a copy: the twin's reachability runs agent.safety's reaches_in, which reaches runs too."""
+    assert lockstep_kernel._reaches_in.py_func is safety.reaches_in
+    tree = ast.parse(inspect.getsource(safety.reaches))
+    assert "reaches_in" in {node.func.id for node in ast.walk(tree)
+                            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+    kernel_search = ast.parse(inspect.getsource(lockstep_kernel._reach_py))
+    assert not any(isinstance(node, ast.While) for node in ast.walk(kernel_search))  # no second search
+
+
+def closure(out: dict[int, list[int]], root: int, removed: set[int]) -> set[int]:
+    """The nodes ``root`` reaches without ``removed``, grown to a fixed point (an oracle of another form)."""
+    got = set() if root in removed else {root}
+    while True:
+        more = got | {b for a in got for b in out.get(a, ()) if b not in removed}
+        if more == got:
+            return got
+        got = more
+
+
+def test_the_compiled_graph_search_equals_the_supervisors_over_random_graphs() -> None:
+    """Random directed graphs and removed sets: the compiled search, the Python one over arrays and
+    reaches over the graph as a dict agree with a fixed-point closure on every pair."""
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        n = int(rng.integers(1, 9))
+        edges = sorted({(int(a), int(b)) for a, b in rng.integers(0, n, size=(int(rng.integers(0, 3 * n)), 2))})
+        out: dict[int, list[int]] = {}
+        for a, b in edges:
+            out.setdefault(a, []).append(b)
+        ptr = np.searchsorted([a for a, _ in edges], np.arange(n + 1), side="left").astype(np.int64)
+        dst = np.array([b for _, b in edges], dtype=np.int64)
+        removed = {int(x) for x in rng.integers(0, n, size=int(rng.integers(0, 3)))}
+        gone = np.array([x in removed for x in range(n)])
+        for root in range(n):
+            for target in range(n):
+                want = target in closure(out, root, removed)
+                assert safety.reaches(out, root, target, removed) == want
+                assert lockstep_kernel._reaches_in(ptr, dst, root, target, gone, np.zeros(n, dtype=np.bool_),
+                                                   np.zeros(n, dtype=np.int64)) == want
+                assert safety.reaches_in(ptr.tolist(), dst.tolist(), root, target, gone.tolist(), [False] * n,
+                                         [0] * n) == want
+
+
+@pytest.mark.parametrize("name", sorted(FAILSAFE_TWINS))
+def test_the_twin_compiles_the_failsafe_laws_own_functions(name: str) -> None:
+    """Not a copy: the compiled function's Python is tether.failsafe's function object itself."""
+    twin = getattr(lockstep_kernel, FAILSAFE_TWINS[name])
+    assert twin.py_func is getattr(failsafe, name)
+
+
+FAILSAFE_CALLERS = {"hold_point": {"stopping_distance", "hold_reach", "anchor_axis", "floored"}, "hold": {"hold_axis", "saturate"},
+                    "land": {"hold_axis", "saturate"}, "saturate": {"saturation"}, "landed": {"settled"}}
+"""Which scalar cores each of tether/failsafe.py's laws calls: the laws the Python path flies are
+made of the functions the twin compiles."""
+
+
+@pytest.mark.parametrize("law", sorted(FAILSAFE_CALLERS))
+def test_the_failsafe_laws_are_made_of_the_compiled_cores(law: str) -> None:
+    tree = ast.parse(inspect.getsource(getattr(failsafe, law)))
+    called = {node.func.id for node in ast.walk(tree) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+    assert FAILSAFE_CALLERS[law] <= called
 
 
 def same(a: Any, b: Any) -> bool:
@@ -172,10 +242,45 @@ def test_the_compiled_rule_equals_the_supervisors_over_random_states() -> None:
         assert lockstep_kernel._report_kind(code) == safety.report_kind(code)
 
 
+ODD = (math.nan, math.inf, -math.inf, 0.0, -0.0, 5e-324, 1e-3, 0.05, 0.1, 1.0, 2.5, 1e200)
+
+
+def test_the_compiled_failsafe_cores_equal_the_python_over_random_and_odd_values() -> None:
+    """Random values and odd ones (NaN, infinities, signed zeros, the smallest and overflowing
+    magnitudes): the compiled cores give the Python's results, bit for bit."""
+    rng = np.random.default_rng(11)
+    def value() -> float:
+        return float(rng.choice(ODD)) if rng.random() < 0.3 else float(rng.normal(0.0, 3.0))
+    for _ in range(3000):
+        x = tuple(value() for _ in range(5))
+        kp, max_accel = float(rng.choice((0.5, 1.0, 4.0))), float(rng.choice((0.5, 5.0, 10.0)))
+        assert same([lockstep_kernel._hold_axis(*x)], [failsafe.hold_axis(*x)]), x
+        assert same([lockstep_kernel._anchor_axis(*x[:3])], [failsafe.anchor_axis(*x[:3])]), x
+        assert same([lockstep_kernel._floored(*x[:3])], [failsafe.floored(*x[:3])]), x
+        speed, uu = abs(x[0]), x[1] * x[1]
+        stop = failsafe.stopping_distance(speed, kp, max_accel)
+        assert same([lockstep_kernel._stopping(speed, kp, max_accel)], [stop]), speed
+        assert same([lockstep_kernel._hold_reach(speed, stop)], [failsafe.hold_reach(speed, stop)]), speed
+        assert same([lockstep_kernel._saturation(uu, max_accel)], [failsafe.saturation(uu, max_accel)]), uu
+        three = bool(rng.integers(0, 2))
+        assert lockstep_kernel._settled(speed, x[2], abs(x[3]), abs(x[4]), three) == \
+            failsafe.settled(speed, x[2], abs(x[3]), abs(x[4]), three)
+
+
 RULE_STATE = {"land_after", "confirm", "flap_limit", "resume_dwell", "leader_timeout", "neighbour_timeout",
-              "_SINCE", "_HEALTHY", "_LAST_FLAP", "_FLAPS", "_CAUSE", "_SAID", "_RUN"}
-"""What only the rule's own functions compare: a comparison of one of these in the loop itself is
-the rule typed a second time."""
+              "_SINCE", "_HEALTHY", "_LAST_FLAP", "_FLAPS", "_CAUSE", "_SAID", "_RUN",
+              "max_accel", "p_hold", "land_settle", "held", "still", "STILL", "TOUCHDOWN"}
+"""What only the rule's and the failsafe laws' own functions compare: a comparison of one of these
+in the loop itself is the rule, HOLD's anchor, saturation or landing typed a second time."""
+
+FAILSAFE_GAINS = {"hold_kp", "hold_kv", "max_accel", "ground"}
+"""The failsafe laws' numbers: only their compiled cores do arithmetic with them."""
+
+
+def arithmetic_names(tree: ast.AST) -> set[str]:
+    """The names any arithmetic (a binary or unary operation) of ``tree`` reads."""
+    return {node.id for op in ast.walk(tree) if isinstance(op, (ast.BinOp, ast.UnaryOp))
+            for node in ast.walk(op) if isinstance(node, ast.Name)}
 
 
 def test_the_loop_compares_nothing_of_the_rule_itself() -> None:
@@ -185,16 +290,32 @@ def test_the_loop_compares_nothing_of_the_rule_itself() -> None:
     compared = {node.id for cmp in ast.walk(tree) if isinstance(cmp, ast.Compare)
                 for node in ast.walk(cmp) if isinstance(node, ast.Name)}
     assert not compared & RULE_STATE, sorted(compared & RULE_STATE)
+    assert not arithmetic_names(tree) & FAILSAFE_GAINS, sorted(arithmetic_names(tree) & FAILSAFE_GAINS)
     called = {node.func.id for node in ast.walk(tree) if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
-    assert set(TWINS.values()) <= called
+    assert set(TWINS.values()) | set(FAILSAFE_TWINS.values()) <= called
 
 
-def test_the_transcription_check_catches_a_retyped_rule() -> None:
-    """The check above is not vacuous: the rule's old hand-typed line is caught."""
-    tree = ast.parse("if t - clock[i, _SINCE] >= land_after:\n    pass\n")
+@pytest.mark.parametrize("line", [
+    "if t - clock[i, _SINCE] >= land_after:\n    pass\n",  # the rule
+    "if not norm <= max_accel:\n    pass\n",  # failsafe.saturate
+    "if speed < still or held >= land_settle:\n    pass\n",  # failsafe.landed
+    "if three and p_hold[i, d - 1] < ground:\n    pass\n",  # failsafe.hold_point's floor
+])
+def test_the_transcription_check_catches_a_retyped_rule(line: str) -> None:
+    """The check above is not vacuous: the old hand-typed lines are caught."""
+    tree = ast.parse(line)
     compared = {node.id for cmp in ast.walk(tree) if isinstance(cmp, ast.Compare)
                 for node in ast.walk(cmp) if isinstance(node, ast.Name)}
     assert compared & RULE_STATE
+
+
+@pytest.mark.parametrize("line", [
+    "u[i, c] = -hold_kv * v[i, c] - hold_kp * (p[i, c] - p_hold[i, c])\n",  # failsafe.hold
+    "scale = _stopping(speed, hold_kp, max_accel) / speed\n",  # failsafe.hold_point
+    "scale = max_accel / norm\n",  # failsafe.saturate
+])
+def test_the_transcription_check_catches_retyped_failsafe_arithmetic(line: str) -> None:
+    assert arithmetic_names(ast.parse(line)) & FAILSAFE_GAINS
 
 
 # --------------------------------------------------------------------- an engine runs it

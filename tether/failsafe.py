@@ -20,6 +20,11 @@ measurement (``docs/safety.md``). Vectors are sequences of ``d`` floats [SI unit
 * :func:`braking_distance`, :func:`fence_breach` — how far a vehicle travels once HOLD brakes, and
   whether it is outside a geofence box or would leave it braking from here;
 * :func:`inside` — a position brought into a box (where a vehicle outside a geofence lands).
+
+Each law's arithmetic is a function of scalars (:func:`saturation`, :func:`hold_axis`,
+:func:`hold_reach`, :func:`anchor_axis`, :func:`floored`, :func:`settled`) that the law calls on
+every axis and the in-process engine (``sim/lockstep_kernel.py``) compiles, so both run one
+definition, operation for operation.
 """
 
 from __future__ import annotations
@@ -40,18 +45,33 @@ def saturate(u: Vec, max_accel: float) -> list[float] | None:
     uu = dot(u, u)  # finite only if every component is (checked one by one only where not)
     if not math.isfinite(uu) and not all(map(math.isfinite, u)):
         return None
+    scale = saturation(uu, max_accel)
+    if scale == 1.0:
+        return u
+    return [c * scale for c in u]
+
+
+def saturation(uu: float, max_accel: float) -> float:
+    """The factor :func:`saturate` scales a command of squared norm ``uu`` by: 1.0 where its norm is
+    at most ``max_accel``, else ``max_accel`` over the norm (NaN where ``uu`` is). Scalars: the
+    in-process engine compiles this very function."""
     n = math.sqrt(uu)
     if n <= max_accel:
-        return u
-    scale = max_accel / n
-    return [c * scale for c in u]
+        return 1.0
+    return max_accel / n
 
 
 def hold(p: Vec, v: Vec, p_hold: Vec, kp: float, kv: float, max_accel: float) -> list[float]:
     """HOLD's command: brake to zero velocity and return to ``p_hold``, at most ``max_accel``.
     Non-finite measurements give a zero command (nothing better is known)."""
-    u = saturate([-kv * vc - kp * (pc - hc) for pc, vc, hc in zip(p, v, p_hold)], max_accel)
+    u = saturate([hold_axis(pc, vc, hc, kp, kv) for pc, vc, hc in zip(p, v, p_hold)], max_accel)
     return [0.0] * len(p) if u is None else u
+
+
+def hold_axis(p: float, v: float, p_hold: float, kp: float, kv: float) -> float:
+    """:func:`hold`'s command on one axis, before saturation: ``-kv v - kp (p - p_hold)``. Scalars:
+    the in-process engine compiles this very function."""
+    return -kv * v - kp * (p - p_hold)
 
 
 def descent_rate(p: Vec, kv: float, land_speed: float, ground: float) -> float:
@@ -68,7 +88,7 @@ def land(p: Vec, v: Vec, p_hold: Vec, kp: float, kv: float, max_accel: float,
     tracking, plus ``bias`` [m/s^2], the integral term :class:`Landing` keeps)."""
     if len(p) < 3:
         return hold(p, v, p_hold, kp, kv, max_accel)
-    u = [-kv * vc - kp * (pc - hc) for pc, vc, hc in zip(p, v, p_hold)]
+    u = [hold_axis(pc, vc, hc, kp, kv) for pc, vc, hc in zip(p, v, p_hold)]
     u[-1] = kv * (descent_rate(p, kv, land_speed, ground) - v[-1]) + bias
     out = saturate(u, max_accel)
     return [0.0] * len(p) if out is None else out
@@ -117,17 +137,28 @@ def landed(p: Vec, v: Vec, ground: float, held: float = 0.0, settle: float = mat
     ``|d| w / |kp - w^2 + j kv w|`` for ever (0.1-0.3 m/s on ``section4``), never below
     :data:`STILL`. ``settle`` bounds how long a 2D landing lasts (``safety.land_settle``); in 3D
     nothing but the ground ends it (a timeout must never disarm a vehicle in the air)."""
-    speed = norm(v)  # infinite if a component is not finite
-    if len(p) < 3:
+    three = len(p) >= 3
+    return settled(norm(v), float(p[-1] - ground) if three else 0.0, held, settle, three)
+
+
+def settled(speed: float, height: float, held: float, settle: float, three: bool) -> bool:
+    """:func:`landed` of a vehicle at ``speed`` [m/s] (infinite if not finite), ``height`` [m] above
+    the ground (3D; unused in 2D), in LAND for ``held`` [s]. Scalars: the in-process engine
+    compiles this very function."""
+    if not three:
         return speed < STILL or held >= settle
-    return bool(p[-1] - ground <= TOUCHDOWN) and speed < 2 * STILL
+    return height <= TOUCHDOWN and speed < 2 * STILL
 
 
 def why_landed(p: Vec, v: Vec, held: float) -> str:
     """The reason :func:`landed` gives for a vehicle that has been in LAND ``held`` seconds."""
-    if len(p) >= 3:
+    return why_settled(norm(v), held, len(p) >= 3)
+
+
+def why_settled(speed: float, held: float, three: bool) -> str:
+    """:func:`why_landed` of a vehicle at ``speed`` [m/s] (infinite if not finite), in LAND for ``held`` [s]."""
+    if three:
         return "touched down"
-    speed = norm(v)  # infinite if a component is not finite
     if speed < STILL:
         return "still"
     return f"landing held {held:.2f} s (land_settle), still moving at {speed:.2g} m/s: stopped"
@@ -154,12 +185,35 @@ def hold_point(p: Vec, v: Vec, kp: float, max_accel: float, floor: float | None 
     vehicle at rest, or a velocity that is not finite, anchors where it is."""
     p = floats(p)
     speed = norm(v)
-    if not (speed > 0.0 and math.isfinite(speed)):
+    scale = hold_reach(speed, stopping_distance(speed, kp, max_accel))
+    if scale != scale:
         return list(p)
-    scale = stopping_distance(speed, kp, max_accel) / speed
-    out = [pc + vc * scale for pc, vc in zip(p, v)]
-    if floor is not None and out[-1] < floor:
-        out[-1] = max(floor, min(p[-1], out[-1])) if p[-1] >= floor else p[-1]
+    out = [anchor_axis(pc, vc, scale) for pc, vc in zip(p, v)]
+    if floor is not None:
+        out[-1] = floored(p[-1], out[-1], floor)
+    return out
+
+
+def hold_reach(speed: float, stop: float) -> float:
+    """How far ahead :func:`hold_point` anchors a vehicle at ``speed`` [m/s], per m/s of its
+    velocity [s]: its :func:`stopping_distance` ``stop`` [m] over ``speed``; NaN where it anchors
+    where it is (at rest, or a speed not finite). Scalars: the in-process engine compiles this very
+    function (and :func:`stopping_distance`)."""
+    if not (speed > 0.0 and math.isfinite(speed)):
+        return math.nan
+    return stop / speed
+
+
+def anchor_axis(p: float, v: float, scale: float) -> float:
+    """:func:`hold_point` on one axis: ``p + v scale`` [m] (``scale`` from :func:`hold_reach`)."""
+    return p + v * scale
+
+
+def floored(p: float, out: float, floor: float) -> float:
+    """:func:`hold_point`'s last axis (3D, up), ``out`` [m], kept at or above ``floor`` [m]: a
+    vehicle at ``p`` above the floor anchors no lower than it, one already below where it is."""
+    if out < floor:
+        return max(floor, min(p, out)) if p >= floor else p
     return out
 
 
