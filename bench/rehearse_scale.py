@@ -35,7 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import missions  # noqa: E402
-from bench.procstat import CLK_TCK, machine_jiffies  # noqa: E402
+from bench.procstat import CLK_TCK, children_of, cmdline, cpu_times, machine_jiffies  # noqa: E402
 from tests.factories import build  # noqa: E402
 
 LIFT = 4.0
@@ -109,6 +109,7 @@ class Row:
     wall: float
     cores: float
     load_peak: float
+    by_role: dict[str, float]
 
     def line(self) -> str:
         return (f"| {self.status} | {self.events} ({self.failsafes} failsafes) | {self.envelope:.3f} | "
@@ -116,6 +117,10 @@ class Row:
                 f"({100 * (1 - self.recorded / max(self.expected, 1)):.2f} % lost) | {self.tick0:.1f} "
                 f"({self.router_up:.1f} / {self.units_up:.1f}) | {self.wall:.0f} | {self.cores:.2f} | "
                 f"{self.load_peak:.0f} |")
+
+    def cpu(self) -> str:
+        """CPU [s] the units used, summed by role."""
+        return "units' CPU [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in sorted(self.by_role.items(), key=lambda kv: -kv[1]))
 
 
 HEADER = ("| exit | events | envelope, last half [m] | lockstep [m] | samples recorded | start-up to tick 0 [s] "
@@ -127,29 +132,48 @@ def envelope(xi: np.ndarray, t: np.ndarray, since: float) -> float:
     return float(np.nanmax(np.linalg.norm(xi[t >= since - 1e-9], axis=-1)))
 
 
-def rehearse(deploy: Path, run: Path, duration: float, log: Path, timeout: float) -> tuple[int, float, float, float]:
-    """``tether rehearse`` to its end; (exit status, wall [s], machine CPU [cores], peak 1-min load)."""
+def role(argv: list[str]) -> str:
+    """What a rehearsed unit's process is: agent, plant, leader, recorder, router or start."""
+    if "deploy.router" in argv:
+        return "router"
+    after = argv[argv.index("cli") + 1:] if "cli" in argv else argv[-1:]
+    return after[0] if after else "?"
+
+
+def rehearse(deploy: Path, run: Path, duration: float, log: Path,
+             timeout: float) -> tuple[int, float, float, float, dict[str, float]]:
+    """``tether rehearse`` to its end; (exit status, wall [s], machine CPU [cores], peak 1-min load,
+    CPU [s] of the units by role, read from ``/proc`` every second)."""
     peak = [os.getloadavg()[0]]
+    cpu: dict[int, tuple[str, float]] = {}
     done = threading.Event()
 
-    def watch() -> None:
+    def watch(pid: int) -> None:
         while not done.wait(1.0):
             peak[0] = max(peak[0], os.getloadavg()[0])
+            for child in children_of(pid):
+                if (times := cpu_times(child)) is not None:
+                    name = cpu[child][0] if child in cpu else role(cmdline(child))
+                    cpu[child] = (name, sum(times))
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
     b0, _ = machine_jiffies()
     t0 = time.monotonic()
     with open(log, "wb") as fh:
-        status = subprocess.run([sys.executable, "-m", "cli", "rehearse", str(deploy), "--out", str(run),
+        proc = subprocess.Popen([sys.executable, "-m", "cli", "rehearse", str(deploy), "--out", str(run),
                                  "--duration", repr(duration), "--timeout", repr(timeout)], cwd=ROOT,
                                 stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT,
-                                env=dict(os.environ, PYTHONPATH=str(ROOT))).returncode
+                                env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        watcher = threading.Thread(target=watch, args=(proc.pid,), daemon=True)
+        watcher.start()
+        status = proc.wait()
     wall = time.monotonic() - t0
     b1, _ = machine_jiffies()
     done.set()
     watcher.join()
-    return status, wall, (b1 - b0) / CLK_TCK / wall, peak[0]
+    by_role: dict[str, float] = {}
+    for name, seconds in cpu.values():
+        by_role[name] = by_role.get(name, 0.0) + seconds
+    return status, wall, (b1 - b0) / CLK_TCK / wall, peak[0], by_role
 
 
 def one(tmp: Path, n: int, per_host: int, rate: float, duration: float, timeout: float) -> Row:
@@ -161,7 +185,7 @@ def one(tmp: Path, n: int, per_host: int, rate: float, duration: float, timeout:
     run = tmp / "run"
     log = tmp / "rehearse.log"
     started = time.time()
-    status, wall, cores, peak = rehearse(deploy, run, duration, log, timeout)
+    status, wall, cores, peak, by_role = rehearse(deploy, run, duration, log, timeout)
     text = log.read_text()
     if not (run / "run.npz").exists():
         raise SystemExit(f"no run file (exit {status}):\n{text[-3000:]}")
@@ -174,7 +198,7 @@ def one(tmp: Path, n: int, per_host: int, rate: float, duration: float, timeout:
                recorded=int(r.meta.samples_recorded or 0), expected=int(r.meta.samples_expected or 0),
                router_up=(first("router up", text) or started) - started,
                units_up=(first("units started", text) or started) - started,
-               tick0=(float(tick0.group(1)) if tick0 else started) - started, wall=wall, cores=cores, load_peak=peak)
+               tick0=(float(tick0.group(1)) if tick0 else started) - started, wall=wall, cores=cores, load_peak=peak, by_role=by_role)
 
 
 def main() -> None:
@@ -195,7 +219,9 @@ def main() -> None:
         with tempfile.TemporaryDirectory(prefix="rehearse-scale-") as d:
             tmp = Path(d) if a.keep is None else a.keep / f"run{k}"
             tmp.mkdir(parents=True, exist_ok=True)
-            print(one(tmp, a.agents, a.per_host, a.rate, a.duration, a.timeout).line(), flush=True)
+            row = one(tmp, a.agents, a.per_host, a.rate, a.duration, a.timeout)
+            print(row.line(), flush=True)
+            print(row.cpu(), file=sys.stderr, flush=True)
 
 
 if __name__ == "__main__":
