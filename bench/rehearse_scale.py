@@ -133,11 +133,11 @@ def envelope(xi: np.ndarray, t: np.ndarray, since: float) -> float:
 
 
 def role(argv: list[str]) -> str:
-    """What a rehearsed unit's process is: agent, plant, leader, recorder, router or start."""
+    """What a rehearsed unit's process is: agent, plant, leader, recorder, router or other (the start tool)."""
     if "deploy.router" in argv:
         return "router"
-    after = argv[argv.index("cli") + 1:] if "cli" in argv else argv[-1:]
-    return after[0] if after else "?"
+    after = argv[argv.index("cli") + 1:] if "cli" in argv else []
+    return after[0] if after and after[0] in ("agent", "plant", "leader", "recorder") else "other"
 
 
 def rehearse(deploy: Path, run: Path, duration: float, log: Path,
