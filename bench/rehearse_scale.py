@@ -11,7 +11,8 @@ exit status, the events of ``events.json``, the formation-error envelope over th
 the lockstep reference of the same mission (``sim.refsim``), samples recorded of those expected, the
 start-up time (the rehearsal's start to tick 0, and of it the router, the units' start and the wait of
 ``tether-start`` for every process), the wall time, and the whole machine's CPU (cores' worth, from
-``/proc/stat``) and peak load average over the run. Needs root (network namespaces), as the rehearsal.
+``/proc/stat``) and peak load average over the run; then, on stderr, the CPU the units used by role
+(agents, plants, recorder, router, leader), read from ``/proc`` each second. Needs root (network namespaces), as the rehearsal.
 """
 
 from __future__ import annotations
@@ -120,11 +121,13 @@ class Row:
 
     def cpu(self) -> str:
         """CPU [s] the units used, summed by role."""
-        return "units' CPU [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in sorted(self.by_role.items(), key=lambda kv: -kv[1]))
+        ranked = sorted(self.by_role.items(), key=lambda kv: -kv[1])
+        return "units' CPU [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in ranked)
 
 
 HEADER = ("| exit | events | envelope, last half [m] | lockstep [m] | samples recorded | start-up to tick 0 [s] "
-          "(router up / units started) | wall [s] | machine CPU [cores] | peak load |\n|---|---|---|---|---|---|---|---|---|")
+          "(router up / units started) | wall [s] | machine CPU [cores] | peak load |\n"
+          "|---|---|---|---|---|---|---|---|---|")
 
 
 def envelope(xi: np.ndarray, t: np.ndarray, since: float) -> float:
@@ -198,7 +201,8 @@ def one(tmp: Path, n: int, per_host: int, rate: float, duration: float, timeout:
                recorded=int(r.meta.samples_recorded or 0), expected=int(r.meta.samples_expected or 0),
                router_up=(first("router up", text) or started) - started,
                units_up=(first("units started", text) or started) - started,
-               tick0=(float(tick0.group(1)) if tick0 else started) - started, wall=wall, cores=cores, load_peak=peak, by_role=by_role)
+               tick0=(float(tick0.group(1)) if tick0 else started) - started, wall=wall, cores=cores,
+               load_peak=peak, by_role=by_role)
 
 
 def main() -> None:
