@@ -45,7 +45,7 @@ REAL_TIME_FILES = frozenset({
     "test_busy_host.py", "test_cfsim.py", "test_cfsim_paths.py", "test_cfsim_trajectory.py", "test_colocate.py",
     "test_crazyflie.py", "test_deploy.py", "test_failsafe_runs.py", "test_faults.py", "test_hold_anchor.py",
     "test_lies.py", "test_observe.py", "test_partition.py", "test_plant_envelope.py", "test_plant_watchdog.py",
-    "test_record_crash.py", "test_redteam.py", "test_rehearse.py", "test_rehearse_scale.py", "test_rejoin.py",
+    "test_record_crash.py", "test_redteam.py", "test_rehearse.py", "test_rejoin.py",
     "test_relay.py",
     "test_mcap_whole.py", "test_rt_priority.py", "test_runtime.py", "test_runtime_netem.py", "test_secure_run.py",
     "test_shared_plants.py", "test_radio_host.py", "test_radio_link.py", "test_radio_monitor.py", "test_sites.py",
