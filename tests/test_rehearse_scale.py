@@ -1,11 +1,8 @@
-"""The deployment of a rehearsal at scale (deploy/rehearse.py; its flight is ``bench/rehearse_scale.py``): 16 agents on 8 companion computers, two vehicles (agent
-and plant each) a host, router, leader and recorder on a ground station: 9 network namespaces, 36
-units, every link mTLS over the bridge. The deployment is the one ``bench/rehearse_scale.py``
-measures (a ring mission of 16 from ``bench/missions.py``, raised clear of the ground).
-
-Needs root and iproute2 for the namespaces (skipped otherwise, with the reason), as
-tests/test_rehearse.py. Addresses are 10.77.0.1 and 10.77.0.11-18, inside the namespaces only.
-"""
+"""The deployment of a rehearsal at scale (deploy/rehearse.py): 16 agents on 8 companion computers,
+two vehicles (agent and plant each) a host, router, leader and recorder on a ground station: 9
+network namespaces, 36 units. Its flight is measured by ``bench/rehearse_scale.py`` (a ring mission
+of 16 from ``bench/missions.py``, raised clear of the ground), not tested: on two cores it measures
+the machine's load as much as tether (docs/deploy.md, Scale)."""
 
 from __future__ import annotations
 
