@@ -113,14 +113,15 @@ def _mission_section(run: Run) -> str:
         m = ms.loads(text)
     except ms.SchemaError as exc:
         return f"<p class='muted'>The mission text could not be read ({esc(exc)}).</p><pre>{esc(text)}</pre>"
-    topo = graph.topology(m)
-    a = np.asarray(topo.adjacency)
+    topo = graph.topology(m)  # its edges, not its adjacency matrix (N^2: a 10 000-agent chain)
     ids = [ag.id for ag in m.agents]
-    rows = []
-    for i, ag in enumerate(m.agents):
-        hears = [("leader" if j == len(ids) else str(ids[j])) + (f" ({a[i, j]:g})" if a[i, j] != 1 else "")
-                 for j in np.flatnonzero(a[i])]
-        rows.append([ag.id, ", ".join(f"{x:g}" for x in ag.offset), float(a[i].sum()), ", ".join(hears)])
+    heard: list[list[str]] = [[] for _ in ids]
+    kappa = [0.0] * len(ids)
+    for src, dst, w in zip(topo.src.tolist(), topo.dst.tolist(), topo.weight.tolist()):
+        heard[dst].append(("leader" if src == len(ids) else str(ids[src])) + (f" ({w:g})" if w != 1 else ""))
+        kappa[dst] += w
+    rows = [[ag.id, ", ".join(f"{x:g}" for x in ag.offset), kappa[i], ", ".join(heard[i])]
+            for i, ag in enumerate(m.agents)]
     law = msgspec.to_builtins(m.law)
     law_rows = [[k, ", ".join(f"{x:g}" for x in v) if isinstance(v, list) else fmt(v)] for k, v in law.items()]
     parts = [f"<p>{len(ids)} agents in {m.dim}D, {m.rate:g} Hz, {m.duration:g} s in its file; plants: "

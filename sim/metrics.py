@@ -95,6 +95,11 @@ POSITIONING = 0.1
 """The band [m] of :func:`report`'s ``formation_settling_time_s``: the paper's positioning accuracy."""
 
 
+DENSE_AGENTS = 2000
+"""The true errors use the graph's dense ``(N+1, N+1)`` adjacency: above this many agents (32 MB of
+it) :func:`geometry` gives none, and the metrics hold the agents' own errors only."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Geometry:
     """What the true errors need of a mission, in the run's agent order."""
@@ -106,8 +111,9 @@ class Geometry:
 
 
 def geometry(run: Run) -> Geometry | None:
-    """The run's :class:`Geometry` from the mission text it holds; None when it holds none, or one
-    whose agents are not the run's (parsing only: no file is read)."""
+    """The run's :class:`Geometry` from the mission text it holds; None when it holds none, one of
+    more than :data:`DENSE_AGENTS` agents, or one whose agents are not the run's (parsing only: no
+    file is read)."""
     from tether import graph
     from tether import mission as ms
 
@@ -119,6 +125,8 @@ def geometry(run: Run) -> Geometry | None:
         return None
     ids = [a.id for a in m.agents]
     if sorted(ids) != sorted(int(a) for a in run.agent_ids) or m.dim != run.p.shape[2]:
+        return None
+    if len(ids) > DENSE_AGENTS:
         return None
     order = [ids.index(int(a)) for a in run.agent_ids] + [len(ids)]
     adjacency = np.asarray(graph.topology(m).adjacency, dtype=float)[np.ix_(order, order)]
