@@ -523,6 +523,12 @@ def formation_figure(run: Run, offsets: np.ndarray | None = None) -> Figure:
     """The formation to scale at the start, a quarter, half way and the end of the run
     (``formation.png``): :func:`snapshots_figure` at those times, titled with the law."""
     ticks = _snapshot_ticks(run)  # among the ticks recorded (a run cut short lacks the others)
+    if not ticks:  # no tick holds every vehicle's position (a recorder killed early): say so
+        fig, ax = plt.subplots(figsize=(6.0, 2.0))
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no recorded tick holds every vehicle's position", ha="center", va="center")
+        fig.suptitle(title(run, "the formation to scale"), fontsize=10)
+        return fig
     fig = snapshots_figure(run, tuple(float(run.t[k]) for k in ticks), offsets=offsets)
     fig.suptitle(title(run, "the formation to scale (hollow: target slots)"), fontsize=10)
     fig.tight_layout()

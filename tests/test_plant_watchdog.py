@@ -130,7 +130,7 @@ def fly(tmp: Path, name: str, duration: float, command_until: float,
 def test_a_silent_agents_plant_holds_within_cmd_timeout_then_lands(tmp_path: Path) -> None:
     s = ms.Safety()
     last = 3.0  # the agent's last command is that of tick 3 s - h
-    states, log = fly(tmp_path, "wdsilent", 12.0, last)
+    states, log = fly(tmp_path, "wdsilent", 12.0 + s.cmd_cutoff - 2.0, last)  # lands after cmd_cutoff
     t = np.array([m.t for m in states])
     mode = np.array([m.mode for m in states])
     v = np.array([m.vel for m in states])

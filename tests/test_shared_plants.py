@@ -109,7 +109,8 @@ def test_shared_plants_lockstep_run_equals_the_plant_processes_run(tmp_path: Pat
 @pytest.mark.slow
 def test_the_world_holds_and_lands_the_vehicle_whose_agent_died_while_the_others_fly_on(tmp_path: Path) -> None:
     kill_at = 2.0
-    with launch(tmp_path, f"shared-rt-{os.getpid()}", "--clock", "realtime", "--duration", "9", "--insecure",
+    duration = kill_at + ms.Safety().cmd_cutoff + 5.0  # the world's watchdog lands vehicle 3 after cmd_cutoff
+    with launch(tmp_path, f"shared-rt-{os.getpid()}", "--clock", "realtime", "--duration", f"{duration:g}", "--insecure",
                 "--shared-plants", "--fault", f"kill:agent/3@{kill_at:g}") as run:
         run.wait(STARTUP + 60)
     log = run.launcher_log
