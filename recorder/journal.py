@@ -4,9 +4,10 @@ mid-run (``kill -9``, its launcher killed, its machine stopped) leaves a run tha
 ``journal.mcap`` in the run directory is an MCAP file (the format Foxglove and ``mcap`` read, made
 for recording as you go): zstd-compressed chunks, one closed and handed to the operating system at
 least every :data:`FLUSH_PERIOD` of wall time and of mission time (a lockstep run goes faster than
-the wall clock), then ``fsync``-ed from a worker thread (the event loop never waits for the disk).
-A chunk is whole or absent: a file cut anywhere reads up to its last whole chunk, i.e. everything
-recorded up to one flush period before the cut, on either clock (:func:`read`).
+the wall clock), and everything handed over ``fsync``-ed every :data:`FLUSH_PERIOD` of wall time
+from a worker thread (the event loop never waits for the disk). A chunk is whole or absent: a file
+cut anywhere reads up to its last whole chunk, i.e. everything recorded up to one flush period
+before the cut, on either clock (:func:`read`); a machine that stops loses what was not yet synced.
 
 Each message is one wire message exactly as the recorder took it, after its plausibility gate
 (``tether.wire.encode``: msgpack, message encoding ``msgpack``, a JSON schema per type): the
