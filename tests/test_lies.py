@@ -11,7 +11,7 @@ stretch of the run, then the run file is read back. What is asserted:
   leave FLYING, and the agent counts the contradiction;
 * the leader drifts at 0.5 m/s (each forged sample the next tick's, a plausible step ahead of the
   genuine one): agent 1 rejects it as ``profile``, judges the leader's stream suspect, holds, and no
-  vehicle is steered more than 2 m from where the true leader's formation wants it;
+  vehicle is steered more than 2 m sideways from where the true leader's formation wants it;
 * ``agent/2/cmd`` carries, for 1 s, a copy of each genuine command with u = (20, 0): plant 2 flies
   neither command of a contested tick, says so, holds while no command is trusted, and vehicle 2
   stays within 4 m more than before of its slot (it holds while the formation flies on).
@@ -192,7 +192,13 @@ def test_a_plausible_lie_is_caught_or_bounded(tmp_path: Path, case: str) -> None
         reasons = [e.reason for e in rec.safety.events if e.vehicle == 1]
         assert any("leader mostly rejected" in r for r in reasons)
         assert rec.safety.gate_counts is not None
-        # steered off: how far sideways (the forged drift's direction) each vehicle went after AT
-        after = rec.t >= AT
-        side = np.abs(rec.p[after][:, :, 1] - rec.p[after][:1, :, 1])
+        # steered off: each vehicle's true error sideways (the forged drift's direction; the true
+        # leader never moves sideways) while the attack lasts and SETTLE after it. Followed, the
+        # forgery would carry the formation 2.5 m; measured 1.1 m, the disturbances' own swing
+        # (1.0 m before the attack). Vehicles rejoin afterwards, so their later swing is not judged.
+        window = (rec.t >= AT) & (rec.t <= AT + span + SETTLE)
+        lp, _, _ = profile.build(m.leader, m.dim)(rec.t[window])
+        slots = np.asarray(lp)[:, None, :] + np.array([a.offset for a in m.agents])[None]
+        side = np.abs(rec.p[window][:, :, 1] - slots[:, :, 1])
+        print(f"leader-drift: sideways true error max {np.nanmax(side):.3f} m")
         assert float(np.nanmax(side)) < 2.0
