@@ -32,7 +32,9 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-4; every step bounded by a timeout,
      stiffer, but not Eq. 17 alone).
 
 6. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
-   with the high-level commander, wait until down (bounded), stop, close the link. A vehicle its
+   with the high-level commander, wait until down (bounded), stop, wait until the supervisor no
+   longer counts it as flying (closing sooner lets the firmware's watchdog lock it on the ground:
+   :meth:`CrazyfliePlant._wait_supervisor_landed`), close the link. A vehicle its
    watchdog already landed (LANDED) or stopped (ESTOP) is not flown again.
 
 The plant's command watchdog (:mod:`plant.watchdog`, run by the plant process) decides what each
@@ -446,6 +448,36 @@ class CrazyfliePlant:
             self._fresh.clear()
             self._fresh.wait(0.1)
 
+    def _wait_supervisor_landed(self) -> None:
+        """Wait, bounded by :data:`SUPERVISOR_LANDED_WAIT`, until the firmware's supervisor no longer
+        counts the landed vehicle as flying (``supervisor.info`` bit 4).
+
+        The supervisor counts a vehicle as flying for 2 s after its motors last ran. Closing the link
+        sends a zero setpoint that takes the commander from the high-level planner, which was
+        feeding it; if that setpoint ages past the commander watchdog's 0.5 s while the vehicle still
+        counts as flying, the supervisor levels out and then locks it (a reboot before the next
+        flight). Once it has left *flying*, the watchdog no longer acts. Firmware without
+        ``supervisor.info`` gets the hysteresis waited out."""
+        from cflib.crazyflie.log import LogConfig
+
+        seen = threading.Event()
+        block = LogConfig(name="tether_landed", period_in_ms=50)
+        block.add_variable("supervisor.info", "uint16_t")
+        block.data_received_cb.add_callback(
+            lambda _stamp, data, _block: None if int(data["supervisor.info"]) & SUPERVISOR_IS_FLYING else seen.set())
+        try:
+            self.cf.log.add_config(block)
+        except KeyError:
+            time.sleep(SUPERVISOR_LANDED_WAIT)
+            return
+        block.start()
+        try:
+            if not seen.wait(SUPERVISOR_LANDED_WAIT):
+                log.warning("crazyflie %d: the supervisor still counts it as flying %g s after landing",
+                            self.ids[0], SUPERVISOR_LANDED_WAIT)
+        finally:
+            block.delete()
+
     def _take_off(self) -> None:
         sp = self.spec
         cmd = self.cf.commander
@@ -701,6 +733,7 @@ class CrazyfliePlant:
                 except (TimeoutError, LinkLost) as exc:
                     log.error("%s", exc)
                 self.cf.high_level_commander.stop()
+                self._wait_supervisor_landed()
         finally:
             self._stop_mocap()
             with self._lock:
@@ -711,6 +744,11 @@ class CrazyfliePlant:
                 _drop_link(self.cf)
 
 
+SUPERVISOR_IS_FLYING = 1 << 4
+"""``supervisor.info``'s bit: the supervisor counts the vehicle as flying."""
+SUPERVISOR_LANDED_WAIT = 3.0
+"""How long [s] :meth:`CrazyfliePlant.close` waits for a landed vehicle's supervisor to stop counting
+it as flying (the firmware's hysteresis is 2 s after the motors last ran)."""
 HEALTH_PING_GRACE = 2.0
 """How long [s] the pre-flight waits after its last ping for answers still on their way: a late answer
 (a loaded host, a simulator catching up) is an answer; only a lost one counts against the link."""
