@@ -220,8 +220,8 @@ class Layout:
 
 
 class Rows:
-    """Tick k of a run's arrays as Python lists: the whole run converted once (files), or one
-    tick at a time (live)."""
+    """Tick k of a run's arrays as Python lists: a chunk of ticks converted at once (files:
+    :class:`recorder.export.Chunks`), or one tick at a time (live)."""
 
     NAMES = ("p", "v", "u", "xi", "zeta", "kp", "kv", "d", "leader_p", "leader_v", "leader_a")
 
@@ -249,11 +249,8 @@ class Rows:
         if layout.law_state:
             arrays["law_state"] = None
         self.arrays = arrays
-        if whole:  # the ticks written only (a stopped run's empty rest is never converted)
-            index = np.flatnonzero(np.isfinite(run.t))
-            self.pos = np.full(len(run.t), -1, dtype=np.int64)
-            self.pos[index] = np.arange(len(index))
-            self.lists = {name: self._full(name, index).tolist() for name in arrays}
+        self.chunks = (export.Chunks(lambda k0, k1: {n: self._full(n, slice(k0, k1)) for n in arrays}, len(run.t))
+                       if whole else None)
 
     def _full(self, name: str, k: slice | int | np.ndarray = slice(None)) -> np.ndarray:
         if name == "xi_norm":
@@ -267,9 +264,8 @@ class Rows:
         return self.arrays[name][k]
 
     def at(self, k: int) -> dict[str, list]:
-        if self.whole:
-            n = int(self.pos[k])
-            return {name: rows[n] for name, rows in self.lists.items()}
+        if self.chunks is not None:
+            return self.chunks.at(k)
         return {name: self._full(name, k).tolist() for name in self.arrays}
 
 

@@ -311,7 +311,8 @@ CHAIN_SECONDS = 30.0
 """Bound on ``check`` and ``simulate`` of the :data:`BIG_CHAIN` chain [s]: measured about 1 s
 (``check``) and 9 s (``simulate``, most of it the run.mcap scene of 10 000 vehicles) on an idle machine."""
 CHAIN_RSS = 500 * 2**20
-"""Bound on their peak resident set [bytes]: measured 57 MB (``check``) and 300 MB (``simulate``);
+"""Bound on their peak resident set [bytes]: measured 57 MB (``check``) and 390 MB (``simulate``: 265 MB
+without run.mcap);
 a single dense (N+1) x (N+1) matrix of the chain is 800 MB (the ``check`` of old took 2.4 GB)."""
 
 
