@@ -2,7 +2,9 @@
 at the end.
 
 Every agent whose plant is ``crazyflie`` with a ``udp://HOST:PORT`` URI on this machine gets a
-software Crazyflie on that port, standing at its agent's ``p0``. The vehicles are grouped by simulated
+software Crazyflie on that port, standing at its agent's ``p0`` and as heavy as the lab weighed it
+(the fleet's mass for its URI where the mission names a fleet, else the plant table's ``mass``; a
+``--mass`` in ``--sitl-args`` overrides both, for every vehicle). The vehicles are grouped by simulated
 dongle as ``tether run`` groups real ones (:func:`plant.radio.dongles`: four to a dongle, in port
 order), and each group is one ``python -m plant.cfsim --radio --count N --port P... --p0 X,Y,Z...``
 process: its vehicles share the dongle's airtime over a Crazyradio-like link (retries, in order),
@@ -64,17 +66,27 @@ class SitlVehicle:
     host: str
     port: int
     p0: tuple[float, float, float]
+    mass: float
+    """The simulated vehicle's mass [kg]: the fleet's for its URI where the mission names a fleet
+    (what the lab weighed), else the plant table's ``mass``."""
 
 
 def vehicles(m: ms.Mission) -> list[SitlVehicle]:
     """The software Crazyflies ``m`` needs (its ``crazyflie`` agents with a local ``udp://`` URI)."""
+    fleet = None
+    if m.fleet is not None:
+        from tether import fleet as fl
+
+        fleet = fl.load(m.fleet)
     out = []
     for a in m.agents:
         if isinstance(a.plant, ms.CrazyfliePlant):
             u = urlsplit(a.plant.uri)
             if u.scheme == "udp" and u.hostname in LOCAL_HOSTS and u.port is not None:
                 p0 = (list(a.p0) + [0.0, 0.0, 0.0])[:3]
-                out.append(SitlVehicle(a.id, u.hostname, u.port, (float(p0[0]), float(p0[1]), float(p0[2]))))
+                listed = None if fleet is None else fleet.by_uri(a.plant.uri)
+                mass = a.plant.mass if fleet is None or listed is None else float(fleet.mass_of(listed))
+                out.append(SitlVehicle(a.id, u.hostname, u.port, (float(p0[0]), float(p0[1]), float(p0[2])), mass))
     return out
 
 
@@ -187,6 +199,7 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
             cmd = [sys.executable, "-m", "plant.cfsim", "--radio", "--count", str(len(g)),
                    "--host", v.host if v.host != "localhost" else "127.0.0.1", "--instance", str(aid),
                    *(a for w in g for a in ("--port", str(w.port))), *("--p0=" + ",".join(repr(c) for c in w.p0) for w in g),
+                   *(() if "--mass" in extra else (a for w in g for a in ("--mass", repr(w.mass)))),
                    "--log-level", "INFO", *extra]
             p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  text=True, env=env, preexec_fn=_set_pdeathsig)  # noqa: PLW1509 (setsid + prctl only)

@@ -99,3 +99,22 @@ def test_check_refuses_a_bad_fleet_with_exit_2_naming_the_field(tmp_path: Path) 
     r = tether("check", str(_mission_with_fleet(tmp_path, bad)))
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert "health.battery_min" in r.stderr and "3.8 V" in r.stderr, r.stderr
+
+
+def test_sitl_weighs_each_software_vehicle_as_the_fleet_does(tmp_path: Path) -> None:
+    """``tether run --sitl`` gives each simulated vehicle the fleet's mass for its URI (cf3 carries
+    more), and the simulator's ``--mass`` once per vehicle builds each airframe with its own."""
+    from deploy import sitl
+    from plant.cfsim.__main__ import config, parse_args
+
+    m = ms.load(_mission_with_fleet(tmp_path, EXAMPLE.read_text()))
+    assert [v.mass for v in sitl.vehicles(m)] == [0.029, 0.029, 0.0325, 0.029]
+    plain = ms.load(REPO / "tether" / "missions" / "exp1_cf.toml")  # no fleet: the plant table's mass
+    assert {v.mass for v in sitl.vehicles(plain)} == {0.029}
+    cfg = config(parse_args(["--count", "3", "--mass", "0.029", "--mass", "0.0325", "--mass", "0.03"]))
+    assert [v.quadrotor.mass for v in cfg.vehicles if v.quadrotor is not None] == [0.029, 0.0325, 0.03]
+    cfg = config(parse_args(["--count", "2", "--mass", "0.04"]))
+    assert [v.quadrotor.mass for v in cfg.vehicles if v.quadrotor is not None] == [0.04, 0.04]
+    with pytest.raises(SystemExit) as exc:
+        parse_args(["--count", "3", "--mass", "0.03", "--mass", "0.04"])
+    assert exc.value.code == 2

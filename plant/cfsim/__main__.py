@@ -90,8 +90,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                        help="with --radio: from T seconds after start, attempts are lost with probability P "
                             "(repeat for more steps, in time order)")
     veh = ap.add_argument_group("the vehicle (every vehicle of this process)")
-    veh.add_argument("--mass", type=float, default=None, metavar="KG",
-                     help="vehicle mass [kg] (default: a Crazyflie 2.1's, 0.029)")
+    veh.add_argument("--mass", type=float, action="append", metavar="KG",
+                     help="vehicle mass [kg] (default: a Crazyflie 2.1's, 0.029); once for every vehicle, or once "
+                          "per vehicle in order")
     veh.add_argument("--position-source", choices=["onboard", "extpos"], default="onboard",
                      help="onboard: a positioning deck measures the vehicle (default); extpos: only the "
                           "external positions a client sends (motion capture) reach the estimator")
@@ -112,8 +113,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                  "must lie in 1..65535")
     if args.p0 is not None and len(args.p0) != args.count:
         ap.error(f"--p0 given {len(args.p0)} times for --count {args.count}: give it once per vehicle or not at all")
-    if args.mass is not None and not (math.isfinite(args.mass) and 0.005 <= args.mass <= 1.0):
-        ap.error(f"--mass {args.mass}: give the vehicle's mass in kg, e.g. 0.032")
+    if args.mass is not None and len(args.mass) not in (1, args.count):
+        ap.error(f"--mass given {len(args.mass)} times for --count {args.count}: give it once for every vehicle, "
+                 "once per vehicle, or not at all")
+    for mass in args.mass or ():
+        if not (math.isfinite(mass) and 0.005 <= mass <= 1.0):
+            ap.error(f"--mass {mass}: give the vehicle's mass in kg, e.g. 0.032")
     if args.vbat is not None and not (math.isfinite(args.vbat) and 0.0 <= args.vbat <= 5.0):
         ap.error(f"--vbat {args.vbat}: give a 1-cell LiPo voltage in V, e.g. 3.9")
     if not 0 <= args.radio_id <= 255:
@@ -161,10 +166,11 @@ def config(args: argparse.Namespace) -> server.SimConfig:
         vehicles=tuple(
             server.VehicleConfig(port=args.port[i] if args.port else args.base_port + i, p0=p0,
                                  firmware=FirmwareConfig(instance=args.instance + i, noise=noise(args.instance + i),
-                                                         battery=args.battery_cfg, **vehicle))
+                                                         battery=args.battery_cfg, **vehicle),
+                                 quadrotor=None if not args.mass else QuadrotorParams(mass=args.mass[i % len(args.mass)]))
             for i, p0 in enumerate(starts)
         ),
-        quadrotor=QuadrotorParams() if args.mass is None else QuadrotorParams(mass=args.mass),
+        quadrotor=QuadrotorParams(),
         host=args.host,
         trace=args.trace,
         link=realism.LinkConfig() if args.radio_cfg else args.link_cfg,

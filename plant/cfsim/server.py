@@ -49,6 +49,8 @@ class VehicleConfig:
     yaw0: float = 0.0
     """Start yaw [rad]."""
     firmware: FirmwareConfig = field(default_factory=FirmwareConfig)
+    quadrotor: QuadrotorParams | None = None
+    """This vehicle's airframe (its mass, say); None: :attr:`SimConfig.quadrotor`, every vehicle's."""
 
 
 @dataclass(frozen=True)
@@ -229,7 +231,7 @@ async def run(cfg: SimConfig, monotonic: Callable[[], float] = time.monotonic,
     t0 = monotonic()
     try:
         for i, v in enumerate(cfg.vehicles):
-            quad = Quadrotor(cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
+            quad = Quadrotor(v.quadrotor or cfg.quadrotor, np.array(v.p0, dtype=float), yaw0=v.yaw0)
             link = cfg.link
             if link.active:
                 link = realism.LinkConfig(link.latency, link.jitter, link.loss, link.seed + v.firmware.instance)
