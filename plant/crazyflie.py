@@ -34,7 +34,9 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-4; every step bounded by a timeout,
 6. **Land** on exit, Ctrl-C or SIGTERM: notify the commander that low-level setpoints stop, land
    with the high-level commander, wait until down (bounded), stop, wait until the supervisor no
    longer counts it as flying (closing sooner lets the firmware's watchdog lock it on the ground:
-   :meth:`CrazyfliePlant._wait_supervisor_landed`), close the link. A vehicle its
+   :meth:`CrazyfliePlant._wait_supervisor_landed`), close the link. Killed outright, the plant
+   lands nothing itself: its guardian does (:mod:`plant.deadman`, armed at each take-off and
+   disarmed once the vehicle is down or its motors are off). A vehicle its
    watchdog already landed (LANDED) or stopped (ESTOP) is not flown again.
 
 The plant's command watchdog (:mod:`plant.watchdog`, run by the plant process) decides what each
@@ -86,7 +88,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plant import radio
+from plant import deadman, radio
 from plant.base import Sample
 from plant.cfsim import motors
 from plant.quadrotor import QuadrotorParams, eq4
@@ -448,6 +450,11 @@ class CrazyfliePlant:
             self._fresh.clear()
             self._fresh.wait(0.1)
 
+    def _landed_seen(self) -> bool:
+        """The last position estimate is on the ground (within 5 cm)."""
+        with self._lock:
+            return self._pos is not None and float(self._pos[2]) <= 0.05
+
     def _wait_supervisor_landed(self) -> None:
         """Wait, bounded by :data:`SUPERVISOR_LANDED_WAIT`, until the firmware's supervisor no longer
         counts the landed vehicle as flying (``supervisor.info`` bit 4).
@@ -489,6 +496,7 @@ class CrazyfliePlant:
         self._wait_until(lambda: self._pos is not None and self._pos[2] >= 0.9 * sp.takeoff_height,
                          sp.takeoff_time + 5.0, "take-off")
         log.info("crazyflie %d: airborne at %s", self.ids[0], np.round(self._position(), 3).tolist())
+        deadman.guardian(sp.land_time).arm(sp.uri)  # should this process die, a guardian lands it
 
     def _position(self) -> np.ndarray:
         """A copy of the newest position estimate; LinkLost if none came yet."""
@@ -692,6 +700,7 @@ class CrazyfliePlant:
         if mode in (LANDED, ESTOP) or self._stopped:
             if not self._stopped:
                 log.warning("crazyflie %d: motors off (%s)", self.ids[0], "landed" if mode == LANDED else "e-stop")
+                deadman.guardian(self.spec.land_time).disarm(self.spec.uri)  # motors off stay off
             self._stopped = True
             self.cf.commander.send_stop_setpoint()
             return
@@ -738,6 +747,8 @@ class CrazyfliePlant:
             self._stop_mocap()
             with self._lock:
                 self.final_position = None if self._pos is None else self._pos.copy()
+            if self._stopped or self._landed_seen():
+                deadman.guardian(self.spec.land_time).disarm(self.spec.uri)
             if self._stopped or self.healthy():
                 self.cf.close_link()  # its zero-thrust setpoint is harmless on the ground
             else:
