@@ -6,8 +6,8 @@ levels it out after 0.5 s and stops its motors after 2 s, in the air (``docs/lab
 firmware has nothing that would land it on its own. So the process that holds the links starts a
 small guardian process beside it (:class:`Guardian`), joined to it by a pipe and by nothing else:
 no Zenoh, no shared state, its own session (a signal to the plant's process group does not reach
-it). The plant tells it which vehicles are in the air (``arm URI``, ``disarm URI``); a plant that
-ends well says ``bye``. When the pipe closes without ``bye`` the plant's process is gone, and with
+it). The plant tells it which vehicles are in the air (``arm URI``, ``disarm URI``) and lets it go
+(``bye``) once none is: it lives while a vehicle of that process flies. When the pipe closes without ``bye`` the plant's process is gone, and with
 it its hold on the radio: the guardian opens each armed vehicle's link itself, hands the commander
 to the high-level planner (``send_notify_setpoint_stop``) and orders a landing (``land`` to 0 m
 over ``land_time``), a few times over (a radio link may lose a packet), then exits. Measured on the
@@ -137,15 +137,17 @@ def guard(orders: IO[str], land_time: float) -> int:
 
 
 class Guardian:
-    """The plant side: starts the guardian process at the first :meth:`arm` and tells it what is
-    in the air. Thread-safe (plants of one radio host arm and disarm from their own threads).
-    :meth:`close` says ``bye`` (the process ended well); a process that dies without it leaves the
-    guardian to land what is armed."""
+    """The plant side: starts the guardian process when a vehicle is armed and none was, tells it
+    what is in the air, and lets it go (``bye``) once nothing is: no guardian idles beside a process
+    whose vehicles are all down. Thread-safe (plants of one radio host arm and disarm from their own
+    threads). A process that dies while a vehicle is armed leaves the guardian to land it."""
 
     def __init__(self, land_time: float):
         self.land_time = land_time
         self._proc: subprocess.Popen[str] | None = None
-        self._lock = threading.Lock()
+        self._armed: set[str] = set()
+        self._lock = threading.RLock()
+        """Held across each order and the state it changes (an arm never lands between a disarm and its bye)."""
 
     def _say(self, line: str) -> None:
         with self._lock:
@@ -171,18 +173,27 @@ class Guardian:
 
     def arm(self, uri: str) -> None:
         """``uri``'s vehicle is in the air: land it if this process dies."""
-        self._say(f"arm {uri}")
+        with self._lock:
+            self._armed.add(uri)
+            self._say(f"arm {uri}")
 
     def disarm(self, uri: str) -> None:
         """``uri``'s vehicle is on the ground or its motors are off: leave it alone."""
-        self._say(f"disarm {uri}")
+        with self._lock:
+            self._armed.discard(uri)
+            self._say(f"disarm {uri}")
+            if not self._armed:
+                self.close()
 
     def close(self) -> None:
-        """This process ends well: the guardian exits without acting. Idempotent."""
-        self._say("bye")
+        """The guardian exits without acting (this process ends well, or nothing is in the air); a
+        later :meth:`arm` starts another. Idempotent."""
         with self._lock:
+            self._say("bye")
             proc, self._proc = self._proc, None
-        if proc is not None:
+            self._armed.clear()
+            if proc is None:
+                return
             assert proc.stdin is not None
             try:
                 proc.stdin.close()

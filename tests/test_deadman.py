@@ -50,16 +50,21 @@ def test_the_guardian_command_refuses_a_bad_land_time() -> None:
     assert p.returncode == 2 and "--land-time" in p.stderr and "positive" in p.stderr
 
 
-def test_a_guardian_process_exits_quietly_when_its_plant_ends_well() -> None:
+def test_a_guardian_process_lives_only_while_a_vehicle_is_armed() -> None:
     g = deadman.Guardian(2.0)
     assert g.pid is None
     g.disarm("nope://1")  # nothing armed yet: no process is started for it
     assert g.pid is None
     g.arm("nope://1")
-    pid = g.pid
-    assert pid is not None
+    g.arm("nope://2")
+    first = g._proc
+    assert first is not None and first.poll() is None
     g.disarm("nope://1")
-    proc = g._proc
-    assert proc is not None
+    assert g._proc is first and first.poll() is None  # vehicle 2 is still in the air
+    g.disarm("nope://2")  # nothing in the air: the guardian is let go, without acting
+    assert g.pid is None and first.returncode == 0
+    g.arm("nope://3")  # the next take-off starts another
+    second = g._proc
+    assert second is not None and second is not first
     g.close()
-    assert proc.returncode == 0 and g.pid is None
+    assert second.returncode == 0 and g.pid is None
