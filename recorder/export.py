@@ -121,9 +121,9 @@ CHUNK_VALUES = 1 << 18
 class Chunks:
     """Tick ``k`` of arrays as Python lists, converted a chunk of ticks at a time: as fast as
     converting the whole run at once (one ``tolist`` per array and chunk, not per tick) in memory
-    bounded by :data:`CHUNK_VALUES` (a 100 000-tick run converted whole took 1.2 GB, a
-    10 000-agent one 450 MB). ``rows(k0, k1)`` gives each array's ticks ``k0:k1`` as numpy arrays;
-    ticks are asked for in increasing order."""
+    bounded by :data:`CHUNK_VALUES` (converted whole, a 100 000-tick run's lists took 1.2 GB).
+    ``rows(k0, k1)`` gives each array's ticks ``k0:k1`` as numpy arrays; ticks are asked for in
+    increasing order."""
 
     def __init__(self, rows: Callable[[int, int], dict[str, np.ndarray]], ticks: int):
         self._rows, self._ticks = rows, ticks
