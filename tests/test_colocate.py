@@ -68,7 +68,10 @@ def test_colocated_run_starts_no_plant_process_and_is_complete(section4_runs: tu
     rec = Run.load(co)
     assert rec.meta.complete is True
     assert rec.meta.samples_recorded == rec.meta.samples_expected == (1 + 2 * len(AGENTS)) * 501
-    assert rec.meta.recorder_drops.total() == 0
+    # nothing lost or refused; a peer's lockstep resend on a busy host reaches the recorder as a copy of a
+    # sample it has (counted apart, "copy", and never recorded twice), so copies are no loss
+    drops = rec.meta.recorder_drops
+    assert drops.total() - drops.other.get("copy", 0) == 0, drops
     assert np.all(rec.safety.plant_mode == wire.FLYING) and np.all(rec.safety.safety_mode == wire.FLYING)
 
 
