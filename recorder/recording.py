@@ -76,7 +76,7 @@ class Recording:
         bound = laws.of_mission(m)
         self.states = len(bound.law.state)
         """The law's state variables per axis (each telemetry's ``x`` holds ``states * d`` floats)."""
-        meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate,
+        meta = RunMeta(mission=m.name, source=source, law=bound.law.name, rate=m.rate,
                        steps=m.steps, seed=m.seed, namespace=ctx.namespace, mission_text=ctx.mission_text,
                        law_state=bound.law.state, law_units=bound.units)
         self.run = Run.empty(T, m.agent_ids, d, meta)

@@ -100,7 +100,7 @@ def _simulate(m: Mission, mode: Mode, duration: float | None, record: bool, subs
     s = Setup.of(m)
     steps = m.steps if duration is None else int(round(duration * m.rate))
     source: Source = "reference-discrete" if mode == "discrete" else "reference-continuous"
-    meta = RunMeta(mission=m.name, source=source, law=m.law.kind, rate=m.rate, steps=steps,
+    meta = RunMeta(mission=m.name, source=source, law=s.bound.law.name, rate=m.rate, steps=steps,
                    seed=m.seed, law_state=s.bound.law.state, law_units=s.bound.units)
     if mode not in ("discrete", "continuous"):
         raise ValueError(f"mode must be 'discrete' or 'continuous', not {mode!r}")

@@ -76,7 +76,7 @@ def steps_of(m: Mission, duration: float | None) -> int:
 def meta_of(m: Mission, steps: int) -> RunMeta:
     """The in-process engine's run metadata (either form of it)."""
     bound = laws.of_mission(m)
-    return RunMeta(mission=m.name, source="lockstep-inprocess", law=m.law.kind, rate=m.rate, steps=steps,
+    return RunMeta(mission=m.name, source="lockstep-inprocess", law=bound.law.name, rate=m.rate, steps=steps,
                    seed=m.seed, law_state=bound.law.state, law_units=bound.units)
 
 

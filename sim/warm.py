@@ -231,7 +231,7 @@ def warm(m: Any, parts: tuple[str, ...] = ("refsim-discrete", "refsim-continuous
                 continue
         setup = Setup.of(m)
         meta = RunMeta(mission=m.name, source="reference-continuous" if mode == "continuous" else "reference-discrete",
-                       law=m.law.kind, rate=m.rate, steps=WARMUP_TICKS, seed=m.seed,
+                       law=setup.bound.law.name, rate=m.rate, steps=WARMUP_TICKS, seed=m.seed,
                        law_state=setup.bound.law.state, law_units=setup.bound.units)
         done[part] = warm_refsim(setup, mode, 2 if part.endswith("parallel") else 1, meta)
     return done

@@ -101,7 +101,7 @@ class RunMeta(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     source: Source
     """Which engine wrote the run."""
     law: str
-    """``sigma`` or ``benchmark``."""
+    """The law's name: ``sigma``, ``benchmark``, or a law of one's own by its ``name`` (``integral``, ``pd``)."""
     rate: float
     """Control rate [Hz]."""
     steps: int
