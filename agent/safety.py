@@ -68,16 +68,40 @@ from tether.wire import ESTOP, FLYING, HOLD, LAND, LANDED, MODES, SafetyEvent
 
 def reaches(out_edges: dict[int, list[int]], root: int, target: int, removed: Iterable[int] = ()) -> bool:
     """Whether ``root`` has a directed path to ``target`` in the graph without the ``removed`` nodes
-    (:func:`reaches_in` over the graph's nodes, numbered)."""
-    removed = set(removed)
-    nodes = sorted(set(out_edges).union(*out_edges.values(), (root, target), removed))
-    index = {node: x for x, node in enumerate(nodes)}
-    out_ptr, out_dst = [0], []
-    for node in nodes:
-        out_dst += [index[nxt] for nxt in out_edges.get(node, ())]
-        out_ptr.append(len(out_dst))
-    gone = [node in removed for node in nodes]
-    return reaches_in(out_ptr, out_dst, index[root], index[target], gone, [False] * len(nodes), [0] * len(nodes))
+    (:meth:`Graph.reaches`; a caller that asks again and again keeps the :class:`Graph`)."""
+    return Graph(out_edges).reaches(root, target, removed)
+
+
+class Graph:
+    """A directed graph numbered once for :func:`reaches_in` (out-neighbours in compressed rows),
+    with the search's scratch room: a supervisor builds it from the mission's edges at start and
+    asks it whenever a neighbour is lost, never renumbering the graph per question."""
+
+    def __init__(self, out_edges: dict[int, list[int]]):
+        nodes = sorted(set(out_edges).union(*out_edges.values()))
+        self.index = {node: x for x, node in enumerate(nodes)}
+        self.out_ptr, self.out_dst = [0], []
+        for node in nodes:
+            self.out_dst += [self.index[nxt] for nxt in out_edges.get(node, ())]
+            self.out_ptr.append(len(self.out_dst))
+        self._seen, self._stack = [False] * len(nodes), [0] * len(nodes)
+
+    def reaches(self, root: int, target: int, removed: Iterable[int] = ()) -> bool:
+        """Whether ``root`` has a directed path to ``target`` without the ``removed`` nodes (a node
+        of no edge reaches itself alone)."""
+        removed = set(removed)
+        if root in removed or target in removed:
+            return False
+        if root == target:
+            return True
+        if root not in self.index or target not in self.index:
+            return False
+        gone = [False] * len(self._seen)
+        for node in removed:
+            if node in self.index:
+                gone[self.index[node]] = True
+        return reaches_in(self.out_ptr, self.out_dst, self.index[root], self.index[target], gone, self._seen,
+                          self._stack)
 
 
 def reaches_in(out_ptr: Sequence[int], out_dst: Sequence[int], root: int, target: int, gone: Sequence[bool],
@@ -152,9 +176,11 @@ class Supervisor:
         self.neighbours = tuple(neighbours)
         self.leader = m.leader.id
         self.hears_leader = self.leader in self.neighbours
-        self.out_edges: dict[int, list[int]] = {}
+        out_edges: dict[int, list[int]] = {}
         for e in m.edges:
-            self.out_edges.setdefault(e.src, []).append(e.dst)
+            out_edges.setdefault(e.src, []).append(e.dst)
+        self.graph = Graph(out_edges)
+        """The mission's graph, numbered once for the reachability questions of every tick."""
         self.mode = FLYING
         self.cause = ""
         """Why the vehicle holds: ``speed``, ``plant``, ``leader``, ``unreachable`` or a latched reason."""
@@ -226,10 +252,10 @@ class Supervisor:
                 holding.add(j)
         self.missing = frozenset(lost)
         removed = lost | set(status.others_gone)
-        reachable = not removed or reaches(self.out_edges, self.leader, self.agent_id, removed)
+        reachable = not removed or self.graph.reaches(self.leader, self.agent_id, removed)
         followed: frozenset[int] = frozenset()
         if reachable and holding:
-            if reaches(self.out_edges, self.leader, self.agent_id, removed | holding):
+            if self.graph.reaches(self.leader, self.agent_id, removed | holding):
                 lost |= holding
             else:
                 followed = frozenset(holding)

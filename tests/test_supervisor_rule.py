@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import inspect
 import math
+import textwrap
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -151,9 +152,10 @@ def test_the_twin_compiles_the_supervisors_own_functions(name: str) -> None:
 
 
 def test_the_twin_compiles_the_supervisors_own_graph_search() -> None:
-    """Not a copy: the twin's reachability runs agent.safety's reaches_in, which reaches runs too."""
+    """Not a copy: the twin's reachability runs agent.safety's reaches_in, which the supervisor's
+    graph (and so reaches) runs too."""
     assert lockstep_kernel._reaches_in.py_func is safety.reaches_in
-    tree = ast.parse(inspect.getsource(safety.reaches))
+    tree = ast.parse(textwrap.dedent(inspect.getsource(safety.Graph.reaches)))
     assert "reaches_in" in {node.func.id for node in ast.walk(tree)
                             if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
     kernel_search = ast.parse(inspect.getsource(lockstep_kernel._reach_py))
