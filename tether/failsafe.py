@@ -213,7 +213,7 @@ def floored(p: float, out: float, floor: float) -> float:
     """:func:`hold_point`'s last axis (3D, up), ``out`` [m], kept at or above ``floor`` [m]: a
     vehicle at ``p`` above the floor anchors no lower than it, one already below where it is."""
     if out < floor:
-        return max(floor, min(p, out)) if p >= floor else p
+        return floor if p >= floor else p
     return out
 
 
