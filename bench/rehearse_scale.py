@@ -38,6 +38,7 @@ if str(ROOT) not in sys.path:
 from bench import missions  # noqa: E402
 from bench.procstat import CLK_TCK, children_of, cmdline, cpu_times, machine_jiffies  # noqa: E402
 from tests.factories import build  # noqa: E402
+from tests.support import log_time  # noqa: E402
 
 LIFT = 4.0
 """Height [m] every start position of the ring mission is raised by: its transient dips up to 2.7 m
@@ -83,16 +84,10 @@ def prepare(tmp: Path, n: int, per_host: int, rate: float, duration: float) -> t
     return mission, out
 
 
-def log_stamp(line: str) -> float:
-    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
-    stamp, ms_ = line[:23].split(",")
-    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms_) / 1000
-
-
 def first(pattern: str, text: str) -> float | None:
     """Time of the first log record matching ``pattern``, or None."""
     m = re.search(rf"^(.*{pattern}.*)$", text, re.M)
-    return log_stamp(m.group(1)) if m else None
+    return log_time(m.group(1)) if m else None
 
 
 @dataclass

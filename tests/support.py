@@ -187,3 +187,9 @@ def software_crazyflies(args: list[str], startup: float = 30.0) -> Iterator[Soft
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+
+
+def log_time(line: str) -> float:
+    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
+    stamp, ms = line[:23].split(",")
+    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms) / 1000

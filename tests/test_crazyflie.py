@@ -21,7 +21,7 @@ pytest.importorskip("cflib.crtp")
 
 from tests import factories, support  # noqa: E402
 from tests.support import read, wait_until  # noqa: E402
-from tests.test_rehearse import log_time  # noqa: E402
+from tests.support import log_time  # noqa: E402
 from sim import metrics  # noqa: E402
 from tether import mission as ms  # noqa: E402
 from tether.catalog import builtin_path  # noqa: E402

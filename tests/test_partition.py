@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 
 from tests import netns
-from tests.support import read, wait_until
+from tests.support import log_time, read, wait_until
 from tether import mission as ms
 from tether import transport as tp
 from tether import wire
@@ -69,10 +69,6 @@ cores, possibly beside other tests)."""
 
 
 # =========================================================================== helpers
-def log_time(line: str) -> float:
-    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
-    stamp, ms_ = line[:23].split(",")
-    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms_) / 1000
 
 
 def first_line(text: str, pattern: str, after: float = -math.inf) -> str | None:

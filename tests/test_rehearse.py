@@ -35,7 +35,7 @@ import pytest
 
 from deploy import gen, rehearse
 from sim import refsim
-from tests.support import read, wait_until
+from tests.support import log_time, read, wait_until
 from tether.catalog import builtin_path
 from tether.node import load_mission
 from tether.runfile import Run
@@ -426,10 +426,6 @@ def test_ctrl_c_tears_everything_down(tmp_path: Path) -> None:
 
 
 # =========================================================================== skew, detected
-def log_time(line: str) -> float:
-    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
-    stamp, ms_ = line[:23].split(",")
-    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms_) / 1000
 
 
 @pytest.mark.slow  # a real-time run with vehicle 2's clock 30 ms ahead

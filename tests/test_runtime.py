@@ -46,7 +46,7 @@ import tether.wire
 from leader import profile
 from sim import refsim
 from sim.setup import Setup
-from tests.support import read, rt_permitted, wait_until
+from tests.support import log_time, read, rt_permitted, wait_until
 from tether import transport as tp
 from tether import handoff
 from tether import wire
@@ -127,10 +127,6 @@ def router_of(children: dict[str, int]) -> str:
     return argv[argv.index("--connect") + 1]
 
 
-def log_time(line: str) -> float:
-    """Unix time of a log record (``%(asctime)s``: local time, milliseconds after the comma)."""
-    stamp, ms = line[:23].split(",")
-    return time.mktime(time.strptime(stamp, "%Y-%m-%d %H:%M:%S")) + int(ms) / 1000
 
 
 def stop(proc: subprocess.Popen) -> None:

@@ -28,7 +28,8 @@ import pytest
 
 from deploy import gen, hosts
 from tests.support import read
-from tests.test_rehearse import RESTART_SAFETY, log_time, needs_namespaces, run_rehearsal
+from tests.support import log_time
+from tests.test_rehearse import RESTART_SAFETY, needs_namespaces, run_rehearsal
 from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.runfile import Run
