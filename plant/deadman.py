@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import signal
 import subprocess
@@ -223,8 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m plant.deadman", description=__doc__.split("\n\n")[0])
     p.add_argument("--land-time", type=float, required=True, help="seconds the landing takes (> 0)")
     a = p.parse_args(argv)
-    if not a.land_time > 0:
-        p.error("--land-time: must be a positive number of seconds, e.g. 3")
+    if not (math.isfinite(a.land_time) and a.land_time > 0):
+        p.error("--land-time: must be a positive, finite number of seconds, e.g. 3")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     # a stop of the plant's service (SIGTERM to its whole control group), a hang-up or Ctrl-C must not
     # take the guardian first: its life is the plant's (the pipe) and, after it, at most a second
