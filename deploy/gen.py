@@ -13,7 +13,10 @@ From a mission and a hosts file (``deploy/hosts.py``), writes::
 
 Hosts: ``router`` (the Zenoh router, a Python session in router mode), ``leader`` (the virtual
 leader and the operator's start command ``control-0``), ``recorder``, and one ``agent-<i>`` per
-vehicle (agent i and its plant). Profiles: the router's (``mode: router``, listens), clients'
+vehicle (agent i and its plant). Crazyflies have no companion computer: their plants are flown from
+the radio host (``leader``, or ``radio`` when the hosts file names one), one unit
+``tether-radio-<k>`` per dongle (``python -m cli.radio``), with their agents unless the hosts file
+places them. Profiles: the router's (``mode: router``, listens), clients'
 (``network = "client"``: connect to the router only) or peers' (``network = "peer"``: listen on
 their host and connect to the router, which relays where there is no direct link). Every link is
 TLS 1.3 with client certificates (mTLS); ``transport/link/protocols`` is ``["tls"]``, so no
@@ -40,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy import acl, pki
-from deploy.hosts import HostsError, Placement, Plan, control_character, load, plan
+from deploy.hosts import HostsError, Placement, Plan, Radio, control_character, load, plan
 from tether import catalog
 from tether import mission as ms
 from tether import safefs
@@ -48,9 +51,9 @@ from tether import transport as tp
 
 UNITS = {"router": "tether-router.service", "leader": "tether-leader.service", "control": "tether-start.service",
          "recorder": "tether-recorder.service", "agent": "tether-agent.service", "plant": "tether-plant.service",
-         "plant-crazyflie": "tether-plant-crazyflie.service"}
-"""Template of each role's systemd unit, in ``deploy/systemd/`` (a Crazyflie's plant has its own: the
-radio's USB device and cflib's cache directory)."""
+         "radio": "tether-radio.service"}
+"""Template of each role's systemd unit, in ``deploy/systemd/`` (``radio``: one per dongle, every
+Crazyflie plant of it; the radio's USB device and cflib's cache directory)."""
 OPENSSL_JOBS = 4
 """Hosts written at once (each certificate is one ``openssl`` process; ``bench/deploygen.py`` times
 the whole command)."""
@@ -150,9 +153,11 @@ def template_text(role: str) -> str:
     return (folder / UNITS[role]).read_text().replace("@HARDENING@\n", (folder / HARDENING).read_text())
 
 
-def unit(role: str, values: dict[str, str]) -> str:
+def unit(role: str, values: dict[str, str | list[str]]) -> str:
     """The role's unit template with every ``@NAME@`` filled from ``values``; a placeholder without
-    a value is an error (a template and the generator out of step).
+    a value is an error (a template and the generator out of step). A list value is several words
+    of a command line: it may only stand alone as a word of ``ExecStart=`` or ``ReadWritePaths=``,
+    and each of its words is written as one (:func:`exec_word`).
 
     Values come from a checked :class:`~deploy.hosts.Plan` (no control character, paths absolute and
     normalised: :func:`deploy.hosts.path_problem`) and are written so that systemd reads them back
@@ -164,19 +169,31 @@ def unit(role: str, values: dict[str, str]) -> str:
     if missing:
         raise GenerateError(f"template {UNITS[role]} has placeholders the generator does not fill: {missing}")
     for name, value in values.items():
-        if (bad := control_character(value)) is not None:
-            raise GenerateError(f"{name} = {value!r} holds a control character ({bad}); no unit is written")
+        for v in value if isinstance(value, list) else [value]:
+            if (bad := control_character(v)) is not None:
+                raise GenerateError(f"{name} = {v!r} holds a control character ({bad}); no unit is written")
+
+    def one(name: str) -> str:
+        value = values[name]
+        if isinstance(value, list):
+            raise GenerateError(f"template {UNITS[role]}: @{name}@ is several words; it may only stand alone as a "
+                                f"word of {' or '.join(WORD_LISTS)}")
+        return value
 
     def fill(text: str, escape: bool = True) -> str:
-        return _PLACEHOLDER.sub(lambda mt: values[mt.group(1)].replace("%", "%%") if escape
-                                else values[mt.group(1)], text)
+        return _PLACEHOLDER.sub(lambda mt: one(mt.group(1)).replace("%", "%%") if escape else one(mt.group(1)), text)
+
+    def words(w: str) -> list[str]:
+        whole = _PLACEHOLDER.fullmatch(w)
+        if whole is not None and isinstance(values[whole.group(1)], list):
+            return [exec_word(v) for v in values[whole.group(1)]]
+        return [exec_word(fill(w, escape=False)) if _PLACEHOLDER.search(w) else w]
 
     lines = []
     for line in template.splitlines():
         key, sep, rest = line.partition("=")
         if sep and key in WORD_LISTS:
-            line = key + "=" + " ".join(exec_word(fill(w, escape=False)) if _PLACEHOLDER.search(w) else w
-                                        for w in rest.split(" "))
+            line = key + "=" + " ".join(x for w in rest.split(" ") for x in words(w))
         elif line.startswith("#"):
             line = fill(line, escape=False)  # a comment: no specifiers
         else:
@@ -188,15 +205,23 @@ def unit(role: str, values: dict[str, str]) -> str:
     return text
 
 
-def template_of(p: Placement, m: ms.Mission) -> str:
-    """The key in :data:`UNITS` of the unit template of process ``p`` of mission ``m``."""
-    if p.role == "plant" and isinstance(next(a for a in m.agents if a.id == p.node_id).plant, ms.CrazyfliePlant):
-        return "plant-crazyflie"
-    return p.role
+def unit_name(p: Placement, pl: Plan) -> str:
+    """The unit that runs process ``p``: a Crazyflie's plant runs in its dongle's radio unit."""
+    if p.role == "control":
+        return "tether-start.service"
+    radio = pl.radio_of(p)
+    return f"tether-{p.name if radio is None else radio.name}.service"
 
 
-def unit_name(p: Placement) -> str:
-    return "tether-start.service" if p.role == "control" else f"tether-{p.name}.service"
+def radio_words(r: Radio, pl: Plan) -> list[str]:
+    """The arguments of ``python -m cli.radio`` for radio host ``r``: each vehicle's ``tether plant``
+    options after a ``--``, as its own unit would have run it (its identity, its configuration)."""
+    cdir = pl.config_dir(r.host)
+    out: list[str] = []
+    for aid in r.agents:
+        out += ["--", "--mission", f"{cdir}/mission.toml", "--id", str(aid), "--ns", pl.ns, "--clock", "realtime",
+                "--zenoh-config", f"{cdir}/plant-{aid}.json5"]
+    return out
 
 
 # --------------------------------------------------------------------------- generate
@@ -281,6 +306,8 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
             written.append(tls.replace("ca.crt", ca_cert))
             if any(p.role != "router" for p in pl.on(host)):
                 written.append(hdir.replace("mission.toml", mission_text))
+            common: dict[str, str | list[str]] = {"HOST": host, "NS": pl.ns, "USER": pl.hosts.user,
+                                                  "CONFIG_DIR": pl.config_dir(host), "PYTHON": pl.hosts.python}
             for p in pl.on(host):
                 addresses = list(dict.fromkeys(a for a in (p.address, _bind_of(p)) if a))
                 cert, key = pki.issue_one_step(authority, tls, p.name, p.common_name(pl.ns), addresses,
@@ -291,12 +318,17 @@ def _write(top: safefs.Dir, mission_path: Path, m: ms.Mission, pl: Plan,
                      f"mode {p.mode}" + (f", listens on {p.listen}" if p.listen else "")
                      + (f", connects to {', '.join(pl.dials(p))}" if pl.dials(p) else "")],
                     profile(p, pl, router_access.get(p.name, access))).encode())
-                svc = sd.replace(unit_name(p), unit(template_of(p, m), {
-                    "HOST": host, "NS": pl.ns, "ID": str(p.node_id), "NODE": p.name, "USER": pl.hosts.user,
-                    "CONFIG_DIR": pl.config_dir(host), "TETHER": pl.hosts.tether, "PYTHON": pl.hosts.python,
-                    "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
-                }).encode())
-                written += [cert, key, conf, svc]
+                written += [cert, key, conf]
+                if pl.radio_of(p) is None:
+                    written.append(sd.replace(unit_name(p, pl), unit(p.role, {
+                        **common, "ID": str(p.node_id), "NODE": p.name, "TETHER": pl.hosts.tether,
+                        "OUT": pl.hosts.recorder.out if pl.hosts.recorder is not None else "/var/lib/tether/runs",
+                    }).encode()))
+            for r in pl.radios:
+                if r.host == host:
+                    written.append(sd.replace(f"tether-{r.name}.service", unit("radio", {
+                        **common, "RADIO": r.name, "DONGLE": r.dongle, "IDS": ", ".join(map(str, r.agents)),
+                        "VEHICLES": radio_words(r, pl)}).encode()))
 
     with top.sub("hosts") as hosts_dir, ThreadPoolExecutor(max_workers=OPENSSL_JOBS) as pool:
         # openssl runs in processes of its own: hosts are written side by side, each in its own directory
@@ -338,8 +370,20 @@ def guide(dep: Deployment, m: ms.Mission, grants: list[acl.Grant],
     for host in pl.host_names:
         ps = pl.on(host)
         listens = ", ".join(p.listen for p in ps if p.listen) or "–"
+        units = dict.fromkeys(unit_name(p, pl) for p in ps)
         lines.append(f"| `hosts/{host}/` → `{pl.config_dir(host)}` | {ps[0].address} | "
-                     f"{', '.join(p.name for p in ps)} | {listens} | {', '.join(unit_name(p) for p in ps)} |")
+                     f"{', '.join(p.name for p in ps)} | {listens} | {', '.join(units)} |")
+    if pl.radios:
+        lines += ["", "## Radios", "",
+                  "A Crazyflie has no companion computer: every Crazyflie's plant is flown from the radio host "
+                  f"(`hosts/{pl.radios[0].host}/`), one process per dongle (`python -m cli.radio`), each vehicle still "
+                  "a plant of its own (its identity, keys, watchdog and dead-man; docs/lab.md).", "",
+                  "| unit | dongle | plants |", "|---|---|---|",
+                  *(f"| `tether-{r.name}.service` | `{r.dongle}` | {', '.join(f'plant-{a}' for a in r.agents)} |"
+                    for r in pl.radios), "",
+                  "On that host the service user needs the radio: add it to group `plugdev` and install the udev rule "
+                  "of docs/deploy.md (Hardened units). A `sim://` dongle is software Crazyflies on that host "
+                  "(`udp://` URIs): start them there before the run (docs/cfsim.md; `tether rehearse --sitl` does)."]
     if pl.links():
         lines += ["", "Router-to-router links (each dialled by the first, TLS with the same mTLS): "
                   + ", ".join(f"`{a}` → `{b}`" for a, b in pl.links()) + ". On each, a router may say and hear "

@@ -12,6 +12,13 @@ Without a hosts file (:func:`plan` with ``hosts=None``) every host gets a placeh
 (``tether-router``, ``tether-leader``, ``tether-recorder``, ``tether-agent-<i>``) that the site's
 DNS or ``/etc/hosts`` must resolve, and the network is a star of clients around the router.
 
+A Crazyflie has no companion computer: its plant drives it through a radio on the ground. Every
+vehicle whose plant is ``crazyflie`` is therefore flown from the radio host (``[radio]``, default
+the leader's host), one process per dongle (:func:`plant.radio.dongles`: cflib shares a Crazyradio
+only among the links of one process), each vehicle still a plant of its own on the wire (its own
+identity and keys). Its agent runs on its ``[[agents]]`` host where the file lists one, else on the
+radio host too.
+
 The format, field by field, is in ``docs/deploy.md``.
 """
 
@@ -115,9 +122,14 @@ class HostsFile(Strict, frozen=True):
     instead of ``[router]``; every other host names its router (``router = "field"``)."""
     leader: NodeHost | None = None
     """The ground station: the virtual leader and the operator's start command."""
+    radio: NodeHost | None = None
+    """The host the Crazyradios are plugged into: every Crazyflie's plant (one process per dongle),
+    and the agents of Crazyflies the file does not list. Default: the leader's host (host dir
+    ``leader``); given, host dir ``radio``."""
     recorder: RecorderHost | None = None
     agents: list[AgentHost] | None = None
-    """One entry per agent of the mission (all of them), or none for placeholder names."""
+    """One entry per agent of the mission (a Crazyflie's may be left out: its agent then runs on the
+    radio host), or none for placeholder names."""
 
 
 class HostsError(SchemaError):
@@ -137,7 +149,7 @@ class Placement:
     role: Role
     node_id: int
     host: str
-    """Name of the host directory (``router``, ``leader``, ``recorder``, ``agent-<i>``)."""
+    """Name of the host directory (``router``, ``leader``, ``recorder``, ``radio``, ``agent-<i>``)."""
     address: str
     listen: str | None
     """``tls/<bind>:<port>`` when this process listens, else ``None``."""
@@ -163,12 +175,37 @@ class Placement:
 
 
 @dataclass(frozen=True)
+class Radio:
+    """One radio host process: the Crazyflies of one dongle, flown from one process (:mod:`cli.radio`)."""
+
+    index: int
+    """Its number in the deployment (unit ``tether-radio-<index>``), in the order of its first vehicle."""
+    dongle: str
+    """:attr:`plant.radio.Dongle.name`: ``radio://0``, ``sim://127.0.0.1/0``, a ``usb://`` URI."""
+    agents: tuple[int, ...]
+    host: str
+    """The host directory it runs on (``leader`` or ``radio``)."""
+
+    @property
+    def name(self) -> str:
+        return f"radio-{self.index}"
+
+
+@dataclass(frozen=True)
 class Plan:
     """Everything the generator needs besides the mission: the hosts file's values and the placements."""
 
     ns: str
     hosts: HostsFile
     placements: tuple[Placement, ...]
+    radios: tuple[Radio, ...] = ()
+    """The radio host processes, one per dongle; every Crazyflie's plant is flown by one."""
+
+    def radio_of(self, p: Placement) -> Radio | None:
+        """The radio host process that flies plant ``p``, or None (not a Crazyflie's plant)."""
+        if p.role != "plant":
+            return None
+        return next((r for r in self.radios if p.node_id in r.agents), None)
 
     @property
     def router(self) -> Placement:
@@ -255,7 +292,8 @@ def load(path: str | Path) -> HostsFile:
 _FIELDS = {
     "": [f.encode_name for f in msgspec.structs.fields(HostsFile)],
     "router": [f.encode_name for f in msgspec.structs.fields(Host)],
-    "leader": [f.encode_name for f in msgspec.structs.fields(Host)],
+    "leader": [f.encode_name for f in msgspec.structs.fields(NodeHost)],
+    "radio": [f.encode_name for f in msgspec.structs.fields(NodeHost)],
     "recorder": [f.encode_name for f in msgspec.structs.fields(RecorderHost)],
     "agents": [f.encode_name for f in msgspec.structs.fields(AgentHost)],
     "routers": [f.encode_name for f in msgspec.structs.fields(RouterHost)],
@@ -368,13 +406,20 @@ def _endpoint(address: str, port: int) -> str:
     return f"tls/{host}:{port}"
 
 
+def crazyflies(m: ms.Mission) -> list[tuple[int, str]]:
+    """``(agent id, URI)`` of every vehicle of ``m`` whose plant is a Crazyflie, in mission order."""
+    return [(a.id, a.plant.uri) for a in m.agents if isinstance(a.plant, ms.CrazyfliePlant)]
+
+
 def _default_hosts(m: ms.Mission) -> HostsFile:
+    """Placeholder names; a Crazyflie's agent runs beside its radio (no companion computer)."""
+    flown = {aid for aid, _ in crazyflies(m)}
     return HostsFile(
         version=HOSTS_VERSION,
         router=Host(address="tether-router"),
         leader=NodeHost(address="tether-leader"),
         recorder=RecorderHost(address="tether-recorder"),
-        agents=[AgentHost(id=a, address=f"tether-agent-{a}") for a in m.agent_ids],
+        agents=[AgentHost(id=a, address=f"tether-agent-{a}") for a in m.agent_ids if a not in flown],
     )
 
 
@@ -434,13 +479,21 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
             out.append((f"agents[{k}].id", f"is {a.id}, not an agent of mission {m.name!r}; "
                                            f"use one of {m.agent_ids}"))
         listed.setdefault(a.id, k)
-    missing = [a for a in m.agent_ids if a not in listed]
+    flown = dict(crazyflies(m))
+    missing = [a for a in m.agent_ids if a not in listed and a not in flown]
     if missing:
         out.append(("agents", f"lacks agent{'s' if len(missing) > 1 else ''} {', '.join(map(str, missing))} of "
                               f"mission {m.name!r}; add one [[agents]] table per agent, e.g. "
-                              f"`[[agents]] id = {missing[0]}, address = \"...\"`"))
+                              f"`[[agents]] id = {missing[0]}, address = \"...\"` (only a Crazyflie's may be left "
+                              "out: it runs on the radio host)"))
+    if h.radio is not None and not flown:
+        out.append(("radio", f"is given but mission {m.name!r} has no Crazyflie (no plant of kind \"crazyflie\"); "
+                             "remove [radio]"))
 
+    radio = h.radio or leader
     tables: list[tuple[str, Host]] = [("leader", leader), ("recorder", recorder)]
+    if h.radio is not None:
+        tables.append(("radio", h.radio))
     tables = ([(f"routers[{k}]", r) for k, r in enumerate(sites)] if sites else [("router", router)]) + tables
     tables += [(f"agents[{k}]", a) for k, a in enumerate(agents)]
     for where, host in tables:
@@ -452,6 +505,8 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
             out.append((f"{where}.port", f"is {host.port}; a TLS port is 1 to 65535 (an agent host's plant "
                                          "takes port + 1)"))
     nodes: list[tuple[str, NodeHost]] = [("leader", leader), ("recorder", recorder)]
+    if h.radio is not None:
+        nodes.append(("radio", h.radio))
     nodes += [(f"agents[{k}]", a) for k, a in enumerate(agents)]
     via = _check_sites(sites, nodes, out)
     if out:
@@ -478,10 +533,33 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
     place("control", 0, "leader", leader, 0, False, "client", through=via["leader"])
     place("recorder", 0, "recorder", recorder, 0, peer, node_mode, through=via["recorder"])
     by_id = {a.id: (k, a) for k, a in reversed(list(enumerate(agents)))}
+    # the radio host: after the leader's listener when it is the leader's host
+    radio_host, radio_via = ("radio", via["radio"]) if h.radio is not None else ("leader", via["leader"])
+    next_port = [0 if h.radio is not None else 1]
+
+    def on_radio(role: Role, aid: int) -> None:
+        place(role, aid, radio_host, radio, next_port[0] if peer else 0, peer, node_mode, through=radio_via)
+        next_port[0] += peer
+
     for aid in m.agent_ids:
-        k, a = by_id[aid]
-        place("agent", aid, f"agent-{aid}", a, 0, peer, node_mode, through=via[f"agents[{k}]"])
-        place("plant", aid, f"agent-{aid}", a, 1, peer, node_mode, through=via[f"agents[{k}]"])
+        if aid in by_id:
+            k, a = by_id[aid]
+            place("agent", aid, f"agent-{aid}", a, 0, peer, node_mode, through=via[f"agents[{k}]"])
+            if aid not in flown:
+                place("plant", aid, f"agent-{aid}", a, 1, peer, node_mode, through=via[f"agents[{k}]"])
+        else:
+            on_radio("agent", aid)
+        if aid in flown:
+            on_radio("plant", aid)
+    from plant import radio as radios  # pure: the grouping rule tether run uses
+
+    groups = tuple(Radio(k, d.name, d.agents, radio_host) for k, d in enumerate(radios.dongles(list(flown.items()))))
+    if peer and flown:
+        top = (radio.port if radio.port is not None else h.port) + next_port[0] - 1
+        if top > 65535:
+            out.append(("radio.port" if h.radio is not None else "leader.port",
+                        f"leaves no room: the radio host's {next_port[0]} listeners need ports up to {top} (> 65535); "
+                        "give a lower port"))
 
     # two listeners on one socket address would fail at start on the host: say so now
     seen: dict[str, str] = {}
@@ -494,7 +572,7 @@ def plan(m: ms.Mission, hosts: HostsFile | None = None, source: str = "<hosts>")
         seen.setdefault(p.listen, p.name)
     if out:
         raise HostsError(source, _by_id(out, agents))
-    return Plan(ns=ns, hosts=h, placements=tuple(placements))
+    return Plan(ns=ns, hosts=h, placements=tuple(placements), radios=groups)
 
 
 def _by_id(out: Problems, agents: list[AgentHost]) -> Problems:
@@ -569,7 +647,7 @@ def _check_sites(sites: list[RouterHost] | None, nodes: list[tuple[str, NodeHost
 
 
 def _where(p: Placement, agents: list[AgentHost], sites: list[RouterHost] | None) -> str:
-    if p.role in ("agent", "plant"):
+    if p.role in ("agent", "plant") and p.host.startswith("agent-"):
         k = next(k for k, a in enumerate(agents) if a.id == p.node_id)
         return f"agents[{k}].port"
     if p.role == "router" and sites:

@@ -48,7 +48,8 @@ class LaunchOptions:
     stall_timeout: float = 30.0
     """Lockstep: fail when no tick completes for this long [s]."""
     start_lead: float = 1.0
-    """Real time: seconds between the start announcement and tick 0."""
+    """Real time: seconds between the start announcement and tick 0 (longer where a Crazyflie takes
+    off in it: :func:`tether.mission.start_lead`)."""
     lease: float = 2.0
     """Zenoh link lease [s]: a frozen process is seen gone after about this long."""
     log_level: str = "INFO"

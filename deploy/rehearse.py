@@ -24,6 +24,11 @@ network namespace of its own (root only, like ``ip netns``):
 * **Order, as an operator would.** The router's unit first (``tether-router``; until it logs that
   it listens), then every other long-running unit, then the one-shot ``tether-start`` on the leader's
   host, which waits for every process's liveliness token and announces tick 0.
+* **Crazyflies.** A radio unit (``tether-radio-<k>``: every Crazyflie of one dongle, ``python -m
+  cli.radio``) gets ``--duration`` and ``--clock-skew`` for each of its vehicles. With ``--sitl``
+  the software Crazyflies of the mission's ``udp://`` plants (:mod:`deploy.sitl`) are started in the
+  radio host's namespace, at the radio unit's scheduling, before the units, and stopped after them:
+  the lab's deployment, flown against simulated vehicles.
 * **Partitions.** ``--partition A:B@T+D`` cuts the machines of host directories A and B apart from
   mission time T for D seconds (two sites' routers): a blackhole route to the other's address in
   each namespace (iproute2 only: no netfilter, no kernel netem), removed at T + D.
@@ -280,8 +285,11 @@ def plan(deploy: Path) -> Plan:
     return Plan(deploy, hosts, units, names)
 
 
-TETHER_ROLES = ("agent", "plant", "leader", "recorder", "world")
-"""Units whose program is a tether process (they take ``--duration`` and ``--clock-skew``)."""
+TETHER_ROLES = ("agent", "plant", "leader", "recorder", "world", "radio")
+"""Units whose program is a tether process (they take ``--duration`` and ``--clock-skew``; a radio
+host's, each of its vehicles)."""
+PLANT_ROLES = ("plant", "world", "radio")
+"""Units whose logs hold plants' watchdog events."""
 
 
 def command(u: Unit, duration: float | None, skew: float = 0.0) -> list[str]:
@@ -299,11 +307,20 @@ def command(u: Unit, duration: float | None, skew: float = 0.0) -> list[str]:
         else:
             raise RehearseError(f"unit {u.name}: its program {prog} does not exist here and is neither tether nor "
                                 "python; install it at that path")
+    extra = []
     if duration is not None and u.role in TETHER_ROLES:
-        argv += ["--duration", repr(duration)]
+        extra += ["--duration", repr(duration)]
     if skew and u.role in TETHER_ROLES:
-        argv += ["--clock-skew", repr(skew)]
-    return argv
+        extra += ["--clock-skew", repr(skew)]
+    if u.role != "radio" or "--" not in argv:
+        return argv + extra
+    first = argv.index("--")  # python -m cli.radio -- PLANT_ARGS -- PLANT_ARGS ...: each vehicle's options
+    out = argv[:first]
+    for k, a in enumerate(argv[first:], first):
+        if a == "--" and k > first:
+            out += extra
+        out.append(a)
+    return out + extra
 
 
 def recorder_out(units: list[Unit]) -> Path | None:
@@ -461,6 +478,10 @@ class Options:
     grace: float = 5.0
     replace: bool = False
     """Remove an earlier run's files from ``out`` (:data:`EARLIER`) instead of refusing it."""
+    sitl: tuple[str, ...] | None = None
+    """Start the software Crazyflies of the mission's ``udp://`` plants in the radio host's
+    namespace before the units (as ``tether run --sitl`` does on one machine), with these extra
+    simulator options; None: no simulator."""
 
 
 def _mission(p: Plan) -> ms.Mission:
@@ -501,7 +522,7 @@ def conclude(out: Path, runs: list[Running], m: ms.Mission, lost: list[inject.Ev
         return outcome.EXIT_FAILED
     agents, plants = [], []
     for r in runs:
-        if r.unit.role in ("agent", "plant", "world"):
+        if r.unit.role == "agent" or r.unit.role in PLANT_ROLES:
             text = r.log_path.read_text(errors="replace")
             if r.unit.role == "agent":
                 agents += sitelogs.agent_events(text, int(r.unit.name.rsplit("-", 1)[1]), m.dt)
@@ -627,6 +648,15 @@ def rehearse(deploy: Path, opts: Options) -> int:
                 raise RehearseError(f"--kill {unit}: no such unit; use one of {', '.join(sorted(names))}")
         mission = _mission(pl)
         duration = opts.duration if opts.duration is not None else mission.duration
+        radio_host = next((u.host for u in pl.units if u.role == "radio"), None)
+        if opts.sitl is not None:
+            from deploy import sitl
+
+            if radio_host is None:
+                raise RehearseError(f"--sitl: the deployment has no radio unit (tether-radio-<k>): mission "
+                                    f"{mission.name} flies no Crazyflie; drop --sitl")
+            if bad := sitl.problems(mission, opts.sitl):
+                raise RehearseError("--sitl: " + "; ".join(f"{f}: {why}" for f, why in bad))
     except RehearseError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -643,6 +673,8 @@ def rehearse(deploy: Path, opts: Options) -> int:
     stopping = False
     ns_of: dict[str, str] = {}
     """Host directory -> its namespace."""
+    sims: Any = None
+    """The software Crazyflies (``--sitl``): a :class:`deploy.sitl.Sitl`."""
 
     def on_signal(signum: int, _frame: object) -> None:
         raise KeyboardInterrupt
@@ -669,6 +701,15 @@ def rehearse(deploy: Path, opts: Options) -> int:
                     r.log_path.read_text(errors="replace")[-2000:] for r in router))
             time.sleep(0.05)
         log.info("router up in %s", ", ".join(ns_of[r.unit.host] for r in router))
+        if opts.sitl is not None and radio_host is not None:
+            from deploy import sitl
+
+            # at the radio unit's scheduling: the vehicles' clock must not starve behind the control loops
+            policy = next(u.scheduling for u in pl.units if u.role == "radio")
+            chrt = () if policy is None else ("chrt", f"--{policy[0]}", str(policy[1]))
+            sims = sitl.start(mission, opts.sitl, logs, wrap=("ip", "netns", "exec", ns_of[radio_host], *chrt))
+            record["sitl"] = {"host": radio_host, "pids": [p.pid for p in sims.procs.values()]}
+            log.info("software Crazyflies up in %s", ns_of[radio_host])
         for r in others:
             r.spawn(ns_of[r.unit.host], env)
         starter.spawn(ns_of[starter.unit.host], env)
@@ -762,6 +803,8 @@ def rehearse(deploy: Path, opts: Options) -> int:
             signal.signal(sig, signal.SIG_IGN)
         try:
             _stop_all(runs, opts.grace)
+            if sims is not None:
+                record["sitl"]["exits"] = sims.stop(opts.grace)
             net.destroy()
         finally:
             for sig, h in previous.items():
@@ -887,13 +930,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--partition", action="append", type=_partition, default=[], metavar="HOST_A:HOST_B@T+D",
                    help="no packet passes between the machines of host directories HOST_A and HOST_B from mission "
                         "time T for D seconds (two sites cut apart); repeatable")
+    p.add_argument("--sitl", action="store_true",
+                   help="start the software Crazyflies of the mission's udp:// plants in the radio host's namespace "
+                        "first (python -m plant.cfsim, as tether run --sitl does)")
+    p.add_argument("--sitl-args", default="", metavar="ARGS",
+                   help="extra options of every software Crazyflie, one string (e.g. \"--noise 0.1 --seed 2\"); "
+                        "with --sitl")
 
 
 def run_args(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s rehearse: %(message)s")
+    if args.sitl_args and not args.sitl:
+        print("error: --sitl-args: give it with --sitl", file=sys.stderr)
+        return 2
     return rehearse(Path(args.deploy), Options(out=Path(args.out), duration=args.duration, timeout=args.timeout,
                                                kills=list(args.kill), skews=dict(args.skew),
-                                               partitions=list(args.partition), replace=args.replace))
+                                               partitions=list(args.partition), replace=args.replace,
+                                               sitl=tuple(shlex.split(args.sitl_args)) if args.sitl else None))
 
 
 def main(argv: list[str] | None = None) -> int:

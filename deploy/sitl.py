@@ -165,9 +165,11 @@ class Sitl:
         return codes
 
 
-def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = STARTUP_TIMEOUT) -> Sitl:
+def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = STARTUP_TIMEOUT,
+          wrap: tuple[str, ...] = ()) -> Sitl:
     """Start one simulator per vehicle of ``m`` and wait until each is ready; on any failure the ones
-    started are stopped and ``RuntimeError`` says which failed and why (its stderr's tail).
+    started are stopped and ``RuntimeError`` says which failed and why (its stderr's tail). ``wrap``
+    is put before each simulator's command (``ip netns exec NS``: the radio host of a rehearsal).
 
     ``logs`` (``--out``'s ``logs``, under a real path: ``tether.safefs.make_out``) gets each
     simulator's stderr as ``cfsim-<id>.log``, made first and following no link: a log that is a
@@ -201,7 +203,7 @@ def start(m: ms.Mission, extra: tuple[str, ...], logs: Path, timeout: float = ST
                    *(a for w in g for a in ("--port", str(w.port))), *("--p0=" + ",".join(repr(c) for c in w.p0) for w in g),
                    *(() if "--mass" in extra else (a for w in g for a in ("--mass", repr(w.mass)))),
                    "--log-level", "INFO", *extra]
-            p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            p = subprocess.Popen([*wrap, *cmd], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  text=True, env=env, preexec_fn=_set_pdeathsig)  # noqa: PLW1509 (setsid + prctl only)
             sitl.procs[aid] = p
             sitl.stderr[aid] = []

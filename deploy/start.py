@@ -37,9 +37,11 @@ def members(m: ms.Mission) -> list[tuple[str, int]]:
 async def start(m: ms.Mission, settings: tp.ZenohSettings, ns: str | None = None, lead: float = 3.0,
                 timeout: float = 120.0) -> float:
     """Wait (up to ``timeout`` [s]) for every member's token, publish the start instant
-    ``now + lead`` [s since the Unix epoch], and return it at that instant. Raises :class:`~tether.transport.TokensMissing`
+    ``now + lead`` [s since the Unix epoch] (longer where a Crazyflie must take off in it:
+    :func:`tether.mission.start_lead`), and return it at that instant. Raises :class:`~tether.transport.TokensMissing`
     naming the absent processes."""
     keys = wire.Keys(ns or m.name)
+    lead = ms.start_lead(m, lead)
     async with tp.open_session(settings) as session:
         tokens = [keys.token(r, i) for r, i in members(m)]
         await tp.wait_for_tokens(session, tokens, timeout)

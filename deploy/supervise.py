@@ -243,7 +243,7 @@ async def _realtime(launch: Launch, session: zenoh.Session, progress: Progress |
     were given their bound), or until interrupted. Returns True when interrupted."""
     m, o, keys = launch.mission, launch.opts, launch.keys
     pub = tp.declare_publisher(session, keys.start, tp.SYNC)
-    epoch = time.time() + o.start_lead
+    epoch = time.time() + ms.start_lead(m, o.start_lead)  # a Crazyflie takes off in it
     pub.put(wire.encode(wire.Start(sender=0, seq=0, k=0, t=0.0, epoch=epoch)))
     pub.undeclare()
     sup.epoch = epoch

@@ -64,6 +64,12 @@ Once the state estimate is back the watchdog flies the agent again if the agent 
 lands the vehicle otherwise. If every attempt fails, the plant process withdraws its liveliness
 token (its agent holds, its neighbours count it out) and fails at the mission's end.
 
+**A link that fails** (:class:`plant.radio.LinkMonitor`) and **a vehicle flying on motion capture
+whose positions stop coming** (:func:`plant.mocap.fix_lost`: occluded or gone for
+``plant.mocap.LOST_AFTER``; its estimator then drifts on the IMU) are not reconnected: the vehicle
+holds for ``FAILED_HOLD`` and lands with its high-level commander (:meth:`CrazyfliePlant._hold_then_land`),
+and the plant withdraws.
+
 cflib's own ping thread is stopped once a link is up and the plant pings from a thread of its own
 (:func:`_ping_instead`): cflib's thread can deadlock cflib's link-error handling, and with it every
 setpoint after a lost link; the pings themselves stay, because a send is what finds a dead
@@ -200,21 +206,32 @@ class CrazyfliePlant:
         self._fleet: Any = None
         self._mocap: Any = None
         """The running ``plant.mocap.MocapFeed`` of a vehicle that flies on motion capture."""
+        self._no_fix: str | None = None
+        """Why its motion-capture positions stopped coming, once they have (:meth:`_fix_lost`)."""
         self.health: Any = None
         """The pre-flight ``plant.preflight.Readings`` the take-off was allowed on."""
 
-    def open(self) -> "CrazyfliePlant":
-        """Connect, start the logs and take off (blocks until airborne; every wait bounded).
-        Raises ``ConnectionError`` naming the URI, or ``TimeoutError``; the link is closed then."""
+    def open(self, take_off: bool = True) -> "CrazyfliePlant":
+        """Connect, start the logs, run the pre-flight checks and, with ``take_off``, take off (blocks
+        until airborne; every wait bounded). Raises ``ConnectionError`` naming the URI,
+        ``TimeoutError`` or :class:`plant.preflight.PreflightRefused`; the link is closed then.
+        Without ``take_off`` the vehicle stays on the ground until :meth:`take_off`."""
         self._connect()
         try:
             self._prepare()
-            self._take_off()
+            if take_off:
+                self._take_off()
         except BaseException:
             self._stop_mocap()
             self.cf.close_link()
             raise
         return self
+
+    def take_off(self) -> None:
+        """Take off to the plant's ``takeoff_height`` after :meth:`open` without it (blocks until
+        airborne, at most ``takeoff_time + 5`` s; ``TimeoutError`` then, the vehicle still the
+        plant's to land with :meth:`close`)."""
+        self._take_off()
 
     # ------------------------------------------------------------------ lab: fleet, mocap, pre-flight
     @property
@@ -515,7 +532,19 @@ class CrazyfliePlant:
     def healthy(self) -> bool:
         """The link is up, fit to fly (:meth:`_link_failed`) and the state estimate fresh (not older than
         ``STALE_AFTER``)."""
-        return self._lost is None and time.monotonic() - self._last_log <= STALE_AFTER and not self._link_failed()
+        return (self._lost is None and time.monotonic() - self._last_log <= STALE_AFTER and not self._link_failed()
+                and self._fix_lost() is None)
+
+    def _fix_lost(self) -> str | None:
+        """Why a vehicle flying on motion capture has lost its fix (:func:`plant.mocap.fix_lost`), for
+        good once lost (the plant lands it, :meth:`recover`); None while positions come, or without
+        motion capture."""
+        if self._no_fix is None and self._mocap is not None and self.vehicle is not None:
+            why = self._mocap.lost(self.vehicle.name, time.monotonic())
+            if why is not None:
+                self._no_fix = why
+                log.error("crazyflie %d: %s", self.ids[0], why)
+        return self._no_fix
 
     def _watch_link(self, expected: float) -> None:
         """Count this link's log packets (``expected`` a second) and ping round trips from now on."""
@@ -583,12 +612,14 @@ class CrazyfliePlant:
                 self._stopped = self._pos is not None and self._pos[2] <= 0.05  # down: motors may stop
             time.sleep(0.05)
         if self._stopped:
-            log.error("crazyflie %d: landed on its own after its link failed", self.ids[0])
+            log.error("crazyflie %d: landed on its own (%s)", self.ids[0], self._down())
         else:  # close() then leaves it to its onboard commander, without a zero-thrust setpoint
             log.error("crazyflie %d: not seen on the ground within %g s of the order to land", self.ids[0],
                       sp.land_time + 5.0)
 
     def _down(self) -> str:
+        if self._no_fix is not None:
+            return self._no_fix
         if self.monitor is not None and self.monitor.failed is not None:
             return f"link failed: {self.monitor.failed.why}"
         if self._lost is not None:
@@ -614,7 +645,8 @@ class CrazyfliePlant:
         import asyncio
 
         uid = self.ids[0]
-        if self.monitor is not None and self.monitor.failed is not None:  # reconnecting mends no radio
+        if self._no_fix is not None or (self.monitor is not None and self.monitor.failed is not None):
+            # reconnecting mends no radio, and no motion capture
             await asyncio.to_thread(self._hold_then_land)
             return False
         self.hold_blind()

@@ -10,7 +10,9 @@ its position [m; the capture system's world frame, z up] and attitude.
 :func:`checked_position` (pure) decides whether a rigid body's position may be sent: a body missing
 from the frame, a non-finite position, or one outside the arena's bounds is not sent (counted by
 the feed), so a vehicle never fuses a wild measurement; its estimator's variance then grows and the
-pre-flight check (:mod:`plant.preflight`) or the link watchdog notices. :class:`MocapFeed` is the thin
+pre-flight check (:mod:`plant.preflight`) notices. In flight, :func:`fix_lost` says when a body's
+positions stopped coming (for :data:`LOST_AFTER`, or the feed ended): the plant then lands the vehicle
+as for a failed link. :class:`MocapFeed` is the thin
 adapter: one daemon thread reads frames and hands each vehicle's position to a ``send`` callable
 (``cf.extpos.send_extpos(x, y, z)``: the unpacked form, one vehicle per link; the packed form, several vehicles
 in one broadcast packet, needs a broadcast link the plant does not own).
@@ -54,6 +56,28 @@ def checked_position(bodies: Mapping[str, Any], name: str, bounds: Bounds) -> np
     return p
 
 
+LOST_AFTER = 0.5
+"""A vehicle whose rigid body has had no position sent for this long [s] (occluded, out of the
+arena, the capture system or its network gone) has lost its fix: its onboard estimator dead-reckons
+on the IMU and drifts, so the plant lands it (:func:`fix_lost`). A few frames' occlusion (tens of
+milliseconds) is ridden out."""
+
+
+def fix_lost(stats: "FeedStats", name: str, now: float, since: float, error: str | None,
+             lost_after: float = LOST_AFTER) -> str | None:
+    """Why the positions of rigid body ``name`` no longer come, or None while they do: the feed's
+    thread ended (``error``), or the last position sent (else ``since``, when the feed started) is
+    more than ``lost_after`` [s] before ``now`` (both ``time.monotonic()``). Pure."""
+    if error is not None:
+        return f"motion capture lost: {error}"
+    last = stats.last_sent.get(name, since)
+    if now - last > lost_after:
+        refused = stats.refused.get(name, 0)
+        return (f"motion capture lost: no position of rigid body {name} for {now - last:.2f} s "
+                f"({refused} frame(s) without it, out of bounds or not finite)")
+    return None
+
+
 @dataclass
 class FeedStats:
     """What a feed did, per rigid body name (read from other threads: plain counters, monotonic)."""
@@ -89,6 +113,8 @@ class MocapFeed:
         self.stats = FeedStats()
         self.error: str | None = None
         """Why the feed's thread ended early (the connection failed or broke), if it did."""
+        self.started = time.monotonic()
+        """When the feed started (``time.monotonic()``): the reference of :func:`fix_lost` before a first send."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -126,3 +152,10 @@ class MocapFeed:
         except Exception as exc:  # a broken connection or link: recorded, the plant's checks see it
             self.error = f"{type(exc).__name__}: {exc}"
             log.error("motion capture (%s %s): %s", self.backend, self.hostname, self.error)
+        else:
+            if self.error is None:
+                self.error = "the feed was stopped"
+
+    def lost(self, name: str, now: float) -> str | None:
+        """Why rigid body ``name``'s positions no longer come (:func:`fix_lost`), or None."""
+        return fix_lost(self.stats, name, now, self.started, self.error)

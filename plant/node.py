@@ -75,7 +75,10 @@ async def _host(node: Node, ids: list[int], world: bool) -> None:
     if real:  # only then is the driver loaded (build has loaded it already)
         from plant.crazyflie import CrazyfliePlant, LinkLost
     if real and isinstance(plant, CrazyfliePlant):
-        await asyncio.to_thread(plant.open)  # connect and take off: seconds, off the event loop
+        # connect and pre-flight, on the ground: seconds, off the event loop; the take-off waits for
+        # the run's start (_fly), so that a process (re)started when no run is about to begin, or in
+        # one already under way, never takes its vehicle up
+        await asyncio.to_thread(plant.open, False)
         vehicle: Resting | CrazyfliePlant = plant
         lost: type[Exception] = LinkLost
     else:
@@ -126,6 +129,10 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
     await node.ready(rejoin=None if resumer is None else resumer.epoch)
     for src in cmds:  # started: the commands are read at the tick, and need not wake the loop any more
         node.quieten(src)
+    if not isinstance(plant, Resting):  # a real vehicle takes off for this run, in the start's lead before tick 0
+        await asyncio.to_thread(plant.take_off)
+        if (late := node.mission_time()) > 0:
+            log.warning("crazyflie %d: airborne %.2f s after tick 0: give the start a longer lead", ids[0], late)
     first = 0
     if node.rejoined and resumer is not None:
         first = min(m.steps, math.floor(node.mission_time() / h) + 1)

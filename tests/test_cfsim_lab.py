@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from plant.cfsim import estimator, supervisor
-from plant.mocap import Bounds, MocapFeed, checked_position
+from plant.mocap import LOST_AFTER, Bounds, FeedStats, MocapFeed, checked_position, fix_lost
 from tests.support import free_port, software_crazyflies
 
 cflib_crtp = pytest.importorskip("cflib.crtp")
@@ -102,6 +102,16 @@ def _bounded(fn: object, timeout: float, what: str) -> None:
 
 
 @pytest.mark.slow
+def test_a_fix_is_lost_after_its_silence_or_with_the_feed() -> None:
+    stats = FeedStats(sent={"cf1": 10}, refused={"cf1": 3}, last_sent={"cf1": 100.0})
+    assert fix_lost(stats, "cf1", 100.0 + LOST_AFTER, 90.0, None) is None  # a few frames occluded: ridden out
+    why = fix_lost(stats, "cf1", 100.0 + LOST_AFTER + 0.01, 90.0, None)
+    assert why is not None and "rigid body cf1 for 0.51 s" in why and "3 frame(s)" in why
+    assert fix_lost(stats, "cf2", 90.4, 90.0, None) is None  # never sent yet: counted from the feed's start
+    assert fix_lost(stats, "cf2", 90.6, 90.0, None) is not None
+    assert "the feed was stopped" in (fix_lost(stats, "cf1", 100.0, 90.0, "the feed was stopped") or "")
+
+
 def test_swarm_reset_estimators_through_cflib() -> None:
     """Bitcraze's own swarm recipe: ``Swarm.reset_estimators`` resets each vehicle's Kalman
     estimator and waits until ``kalman.varPX/varPY/varPZ`` have settled (ten samples at 2 Hz)."""

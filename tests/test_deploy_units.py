@@ -255,31 +255,35 @@ def test_every_generated_unit_is_rated_ok_by_systemd_analyze(tmp_path: Path) -> 
             role = "control" if u.name == "tether-start.service" else u.name.removesuffix(".service").split("-")[1]
             assert s["CapabilityBoundingSet"] == [""] and s["NoNewPrivileges"] == ["yes"], u
             assert s["ProtectSystem"] == ["strict"] and s["ProtectHome"] == ["yes"], u
-            assert (s.get("CPUSchedulingPolicy") == ["rr"]) == (role in ("agent", "plant", "leader", "router")), u
-            crazyflie = name == "exp1_cf" and role == "plant"
+            assert (s.get("CPUSchedulingPolicy") == ["rr"]) == (role in ("agent", "plant", "leader", "router",
+                                                                           "radio")), u
+            crazyflie = role == "radio"
+            assert not (name == "exp1_cf" and role == "plant"), u  # a Crazyflie's plant runs in its radio's unit
             assert (s.get("DeviceAllow") == ["char-usb_device rw"]) == crazyflie, u
             assert s["PrivateDevices"][-1] == ("no" if crazyflie else "yes"), u  # the last assignment wins
             if crazyflie:
                 assert s["SupplementaryGroups"] == ["plugdev"] and s["DevicePolicy"] == ["closed"]
                 cache = s["CacheDirectory"][0]
                 assert s["Environment"] == [f"XDG_CACHE_HOME=%C/{cache}"], u  # cflib's TOC cache (toc_cache)
+                assert s["TimeoutStopSec"] == ["60"], u  # the dead-man lands the vehicles before the SIGKILL
             if role == "recorder":
                 assert s["ReadWritePaths"] == ["/var/lib/tether/runs"]
     for name, (level, word) in ratings.items():
         print(f"{name}: {level} {word}")
-    assert len(ratings) == 24
+    # section4: router, leader, start, recorder, 4 agents and 4 plants; exp1_cf: the same with one radio unit
+    assert len(ratings) == 12 + 9, sorted(ratings)
     assert all(level <= 3.0 for level, _ in ratings.values()), ratings
 
 
 def test_a_crazyflie_plant_caches_its_toc_in_the_units_cache_directory(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    """``XDG_CACHE_HOME`` as the Crazyflie plant's unit sets it (its ``CacheDirectory=``, which systemd
-    makes the user's) is where cflib's TOC cache goes: nothing under the home, which the unit hides."""
+    """``XDG_CACHE_HOME`` as a radio unit sets it (its ``CacheDirectory=``, which systemd makes the
+    user's) is where cflib's TOC cache goes: nothing under the home, which the unit hides."""
     from plant.crazyflie import toc_cache
 
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "tether-plant-3"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "tether-radio-0"))
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    assert toc_cache() == tmp_path / "tether-plant-3" / "tether" / "cf-toc" and toc_cache().is_dir()
+    assert toc_cache() == tmp_path / "tether-radio-0" / "tether" / "cf-toc" and toc_cache().is_dir()
     assert not (tmp_path / "home").exists()
 
 

@@ -5,6 +5,7 @@ itself is checked purely first."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from pathlib import Path
 
@@ -144,3 +145,37 @@ def test_a_motion_capture_vehicle_converges_on_its_rigid_body_before_take_off(tm
             plant._stopped = True  # on the floor: close without a landing
             plant.close()
         assert plant._mocap is None  # the feed stops with the plant
+
+
+@pytest.mark.slow
+def test_a_vehicle_that_loses_its_motion_capture_is_landed(tmp_path: Path) -> None:
+    """A vehicle flying on motion capture whose positions stop coming (the capture system gone: its
+    feed stopped) is unfit to fly within ``plant.mocap.LOST_AFTER``: the plant reports it unhealthy
+    naming the motion capture, and its recovery lands it rather than reconnecting. On the ground here
+    (the mock backend's bodies hold still, so a flight on them would not be a flight); the same
+    failsafe as a failed link's (``test_radio_monitor.py`` flies that one)."""
+    pytest.importorskip("motioncapture")
+    from plant import mocap
+    from plant.crazyflie import CrazyfliePlant, LinkLost
+
+    port = support.free_port(udp=True)
+    body = '[mocap]\nbackend = "mock"\noptions = { rigid_bodies = "cf1(0.5,0.5,0.0,1,0,0,0)" }'
+    with support.software_crazyflies(["--count", "1", "--base-port", str(port), "--position-source", "extpos",
+                                      "--p0=0.5,0.5,0"]):
+        plant = CrazyfliePlant(_mission(tmp_path, port, source="mocap", mocap=body), [1]).open(take_off=False)
+        try:
+            assert plant.healthy()
+            feed = plant._mocap
+            assert feed is not None
+            feed.__exit__(None, None, None)  # the capture system goes away
+            gone = time.monotonic()
+            support.wait_until(lambda: not plant.healthy(), 5.0, "the lost fix to be seen")
+            seen = time.monotonic() - gone
+            print(f"\nmotion capture stopped: unfit to fly after {seen:.2f} s")
+            assert seen < mocap.LOST_AFTER + 0.5, seen
+            with pytest.raises(LinkLost, match="motion capture lost"):
+                plant.state()
+            assert asyncio.run(plant.recover()) is False  # no reconnection: it lands
+        finally:
+            plant._stopped = True
+            plant.close()

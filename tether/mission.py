@@ -213,9 +213,9 @@ class CrazyfliePlant(Kind, tag="crazyflie", frozen=True):
     """``attitude``: Eq. 4 to ``send_setpoint`` (the paper's two loops); ``full_state``:
     ``send_full_state_setpoint`` (the onboard position controller closes a loop of its own)."""
     takeoff_height: float = 0.5
-    """Height the high-level commander takes off to before the run starts [m]."""
+    """Height the high-level commander takes off to in the start's lead, before tick 0 [m]."""
     takeoff_time: float = 2.0
-    """[s]."""
+    """[s]; the start's lead is at least this plus :data:`TAKEOFF_MARGIN` (:func:`start_lead`)."""
     land_time: float = 2.0
     """[s]."""
     connect_timeout: float = 10.0
@@ -886,6 +886,19 @@ def per_axis(v: PerAxis, dim: int) -> list[float]:
     in length: :func:`tether.checks.validate` checks it has ``dim``)."""
     return [float(v)] * dim if not isinstance(v, list) else [float(x) for x in v]
 
+
+
+TAKEOFF_MARGIN = 2.0
+"""[s] a start's lead leaves a Crazyflie beyond its ``takeoff_time``: the take-off order over the
+radio, the climb's last tenth (the plant waits for 90 % of the height) and a busy host's delay."""
+
+
+def start_lead(m: Mission, lead: float) -> float:
+    """The lead [s] from a run's start announcement to tick 0: ``lead``, or longer where a Crazyflie
+    takes off in it (its plant takes off on hearing the start, never before: :mod:`plant.node`),
+    the largest ``takeoff_time`` plus :data:`TAKEOFF_MARGIN`. Pure."""
+    need = [a.plant.takeoff_time + TAKEOFF_MARGIN for a in m.agents if isinstance(a.plant, CrazyfliePlant)]
+    return max([lead, *need])
 
 
 def in_neighbours(m: Mission, agent_id: int) -> list[tuple[int, float]]:
