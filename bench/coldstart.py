@@ -10,7 +10,9 @@ alternate, so both see the same machine load. Prints, per command, the median wa
 (the process and its children) cold and warm and the cold/warm ratio, with the load average.
 
 ``--tree DIR``: run the tether source tree at ``DIR`` (e.g. a ``git archive`` of a base commit)
-instead of this one, to compare a base with this tree under the same load.
+instead of this one, to compare a base with this tree under the same load. ``--after-first``: also
+time each command on a cold cache right after ``tether demo`` (the README's first command, which
+starts the once-per-machine background compile of :func:`sim.warm.prewarm`): the row ``NAME+demo``.
 
 Figures (one repeat each, a 2-core machine shared at load 9-28, so wall times swing with the load;
 CPU time is the figure to compare). "before": the engines without :mod:`sim.warm`; "after": with it.
@@ -58,11 +60,18 @@ COMMANDS: dict[str, list[str]] = {
 """The timed commands (``tether ARGS --out DIR``)."""
 
 
-def run(tree: Path, args: list[str], cache: Path, out: Path) -> tuple[float, float]:
+FIRST = ["demo"]
+"""The README's first command after installing (``tether demo``): ``--after-first`` times a cold
+cache's first study right after it, with the background compile it starts (:func:`sim.warm.prewarm`)."""
+
+
+def run(tree: Path, args: list[str], cache: Path, out: Path, prewarm: bool = False) -> tuple[float, float]:
     """Run ``tether ARGS --out OUT`` from ``tree`` with its caches under ``cache``; blocks until it
-    exits. Returns its wall and CPU time [s] (CPU: user + system of it and the children it waited on)."""
+    exits. Returns its wall and CPU time [s] (CPU: user + system of it and the children it waited on;
+    a detached background compile is not among them). ``prewarm``: let the command start the
+    background compile (off otherwise, so that a cold run is the compile it pays itself)."""
     env = dict(os.environ, PYTHONPATH=str(tree), NUMBA_CACHE_DIR=str(cache / "numba"),
-               TETHER_CACHE=str(cache / "tether"))
+               TETHER_CACHE=str(cache / "tether"), TETHER_PREWARM="1" if prewarm else "0")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "cli", *args, "--out", str(out)], cwd=tree, env=env,
@@ -81,6 +90,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--what", nargs="+", choices=sorted(COMMANDS), default=list(COMMANDS))
     ap.add_argument("--tree", type=Path, default=ROOT, help="the tether source tree to run (default: this one)")
+    ap.add_argument("--after-first", action="store_true",
+                    help="also time each command on a cold cache right after `tether demo` (the README's first "
+                         "command, which starts the background compile)")
     a = ap.parse_args()
     tree = a.tree.resolve()
     print(f"tree {tree}; load average at start {os.getloadavg()[0]:.1f}, {os.cpu_count()} cores", flush=True)
@@ -93,16 +105,27 @@ def main() -> None:
             run(tree, args, warm_cache, base / f"prime-{what}")  # fills the warm caches, untimed
             cold: list[tuple[float, float]] = []
             warm: list[tuple[float, float]] = []
+            first: list[tuple[float, float]] = []
             loads: list[float] = []
             for r in range(a.repeats):
                 loads.append(os.getloadavg()[0])
                 cold.append(run(tree, args, base / f"{what}-cold-{r}", base / f"o-{what}-c{r}"))
                 warm.append(run(tree, args, warm_cache, base / f"o-{what}-w{r}"))
-                print(f"  {what} #{r}: cold {cold[-1][0]:.1f} s wall {cold[-1][1]:.1f} s CPU; "
-                      f"warm {warm[-1][0]:.1f} s wall {warm[-1][1]:.1f} s CPU", flush=True)
+                line = (f"  {what} #{r}: cold {cold[-1][0]:.1f} s wall {cold[-1][1]:.1f} s CPU; "
+                        f"warm {warm[-1][0]:.1f} s wall {warm[-1][1]:.1f} s CPU")
+                if a.after_first:
+                    fresh = base / f"{what}-first-{r}"
+                    demo = run(tree, FIRST, fresh, base / f"o-{what}-d{r}", prewarm=True)
+                    first.append(run(tree, args, fresh, base / f"o-{what}-f{r}", prewarm=True))
+                    line += (f"; after tether demo ({demo[0]:.1f} s wall): {first[-1][0]:.1f} s wall "
+                             f"{first[-1][1]:.1f} s CPU")
+                print(line, flush=True)
             cw, cc = (statistics.median(x[i] for x in cold) for i in (0, 1))
             ww, wc = (statistics.median(x[i] for x in warm) for i in (0, 1))
             rows.append((what, cw, ww, cc, wc, statistics.median(loads)))
+            if first:
+                fw, fc = (statistics.median(x[i] for x in first) for i in (0, 1))
+                rows.append((f"{what}+demo", fw, ww, fc, wc, statistics.median(loads)))
         print(f"\n{'command':<11} {'cold wall':>9} {'warm wall':>9} {'ratio':>6} {'cold CPU':>8} {'warm CPU':>8} "
               f"{'ratio':>6} {'load':>5}  (medians of {a.repeats}, seconds)")
         for what, cw, ww, cc, wc, load in rows:

@@ -183,6 +183,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return p
 
 
+PREWARM_ON = ("demo", "simulate", "run", "check", "missions", "reproduce")
+"""Commands that start the once-per-machine background compile (:func:`sim.warm.prewarm`)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(argv[0] if argv else None)
@@ -194,6 +198,10 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         evloop.choose()  # TETHER_LOOP: a wrong value is an error before anything starts
+        if argv[0] in PREWARM_ON:  # a new user's first commands: the first study's kernels, compiled meanwhile
+            from sim import warm
+
+            warm.prewarm()
         return int(args.func(args))
     except (SchemaError, BadArgument, evloop.LoopError) as exc:  # a mission, settings, profile or hosts
         # file; an argument; the environment's TETHER_LOOP

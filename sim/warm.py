@@ -18,7 +18,8 @@ when it is done; a part already marked costs a ``stat``:
     python -m sim.warm [MISSION] [--parts refsim-discrete refsim-continuous lockstep]
 
 compiles the parts ahead of any run (at install, on a CI runner, on each host of a Dask cluster
-before its first study): blocks until they are in the cache.
+before its first study): blocks until they are in the cache. :func:`prewarm` does it in the
+background, once per machine, from the first commands a new user runs (``tether demo`` among them).
 
 The mark is keyed on the kernels' sources, the law's source, numba's and Python's versions and
 the cache location; if numba's cache is removed while the mark stays, a run compiles as it would
@@ -177,6 +178,58 @@ def compiled_or_background(s: Any, mode: str, threads: int, steps: int) -> bool:
     return False
 
 
+PREWARM = ("refsim-discrete", "lockstep")
+"""The parts :func:`prewarm` compiles: what a first ``tether simulate``, ``sweep`` and ``montecarlo``
+of a shipped mission take (Section 4's law)."""
+PREWARM_MISSION = "section4"
+_PREWARM_SOURCES = ("sim/kernel.py", "sim/lockstep_kernel.py", "sim/lawkernels.py", "agent/laws")
+
+
+def prewarm_stamp() -> Path:
+    """The file :func:`prewarm` leaves once this machine's compile cache holds :data:`PREWARM`:
+    named by the kernels' and laws' files (size and modification time: no import of numba, no
+    hashing), the Python version and the cache location, so that an edit or another cache compiles
+    again."""
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256()
+    for rel in _PREWARM_SOURCES:
+        base = root / rel
+        for f in sorted(base.glob("*.py")) if base.is_dir() else [base]:
+            st = f.stat()
+            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}\0".encode())
+    h.update(f"{sys.version}\0{os.environ.get('NUMBA_CACHE_DIR', '')}\0{lawkernels.cache_dir()}".encode())
+    return marks_dir() / f"prewarm-{h.hexdigest()[:20]}.done"
+
+
+def prewarm() -> bool:
+    """Compile :data:`PREWARM` for this machine in the background, once: unless the stamp says it is
+    done (a ``stat``), start a detached ``python -m sim.warm`` at idle CPU priority (``SCHED_IDLE``:
+    it takes only what nothing else wants, so a real-time swarm beside it is not disturbed) that
+    outlives the command and leaves the stamp. Called by the commands a new user runs first
+    (``tether demo``, ``simulate``, ``run``, ``check``): the first study then finds its kernels
+    compiled. ``TETHER_PREWARM=0`` turns it off. Returns whether a compile was started. Does not block."""
+    if os.environ.get("TETHER_PREWARM", "1") == "0":
+        return False
+    try:
+        stamp = prewarm_stamp()
+        if stamp.exists():
+            return False
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        subprocess.Popen([sys.executable, "-m", "sim.warm", PREWARM_MISSION, "--parts", *PREWARM, "--stamp", str(stamp)],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True, preexec_fn=_idle)  # noqa: PLW1509 (a scheduler call only)
+    except OSError:
+        return False  # no cache to write or no process to start: the first study compiles, as before
+    return True
+
+
+def _idle() -> None:  # runs in the child between fork and exec
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (OSError, AttributeError):
+        os.nice(19)
+
+
 def refsim_part(mode: str, threads: int) -> str:
     """The part a reference-simulator run in ``mode`` with ``threads`` takes."""
     if mode == "continuous":
@@ -246,6 +299,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("mission", nargs="?", default="section4", help="a mission file or built-in name")
     ap.add_argument("--parts", nargs="+", choices=PARTS, default=["refsim-discrete", "refsim-continuous", "lockstep"])
     ap.add_argument("--remove-mission", action="store_true", help="remove the mission file once read")
+    ap.add_argument("--stamp", default=None, help="a file to create once every part is compiled (prewarm)")
     a = ap.parse_args(argv)
     path = catalog.resolve(a.mission)
     m = ms.load(path)
@@ -253,6 +307,8 @@ def main(argv: list[str] | None = None) -> None:
         path.unlink(missing_ok=True)
     for part, compiled in warm(m, tuple(a.parts)).items():
         print(f"{part}: {'compiled' if compiled else 'already in the cache'}")
+    if a.stamp is not None:
+        Path(a.stamp).touch()
 
 
 if __name__ == "__main__":

@@ -22,9 +22,12 @@ def pytest_configure(config: pytest.Config) -> None:
     """One BLAS thread per process and matplotlib's file backend, for the tests and every process they
     start: the suite may run on every core at once (``pytest -n auto``), and a swarm is a dozen processes, so BLAS
     thread pools would only fight over the same cores; no test has a display. Set only where unset, so
-    that a developer's own choice stands."""
+    that a developer's own choice stands. No background compile from the ``tether`` commands the tests
+    run (``TETHER_PREWARM=0``, :func:`sim.warm.prewarm`): many of them use caches of their own, and each
+    would start one; ``tests/test_warm.py`` turns it on where it is the subject."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     os.environ.setdefault("MPLBACKEND", "Agg")
+    os.environ.setdefault("TETHER_PREWARM", "0")
 
 
 @pytest.hookimpl(trylast=True)  # after ``-m``/``-k`` have deselected: only the tests that will run count

@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -127,3 +128,30 @@ def test_a_short_cold_run_takes_numpy_and_the_next_one_the_cache(tmp_path: Path)
     ref = _result(_start(SHORT.replace("ENGINE", "engine='numpy'"), tmp_path), 600)
     assert cold["digest"] == warm["digest"] == ref["digest"]
     assert not list(marks.glob("*.toml"))  # the background compile removed its mission file
+
+
+@pytest.mark.slow  # a real background compile of two parts (tens of seconds of CPU)
+def test_a_first_command_compiles_the_first_studys_kernels_in_the_background(tmp_path: Path) -> None:
+    """``tether check`` on a machine with empty caches starts one detached compile at idle priority
+    and returns at once; once its stamp is there the marks of a first study's parts are too (a
+    ``tether sweep`` would find them compiled), and a second command starts nothing."""
+    env = dict(_env(tmp_path), TETHER_PREWARM="1")
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "cli", "check", "section4"], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=60)
+    took = time.monotonic() - t0
+    assert done.returncode == 0, done.stderr[-2000:]
+    code = ("import json, os; from sim import warm; print(json.dumps({'stamp': str(warm.prewarm_stamp()), "
+            "'marks': str(warm.marks_dir())}))")
+    where = json.loads(subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+                                      timeout=60, check=True).stdout)
+    stamp, marks = Path(where["stamp"]), Path(where["marks"])
+    wait_until(stamp.exists, 300.0, "the background compile's stamp")
+    names = sorted(f.name for f in marks.glob("*.done") if not f.name.startswith("prewarm-"))
+    print(f"\ntether check returned in {took:.2f} s; compiled in the background: {names}")
+    assert any(n.startswith("lockstep-") for n in names), names
+    assert any(n.startswith("refsim-discrete-") and "parallel" not in n for n in names), names
+    # a second first command: the stamp is there, nothing is started
+    again = subprocess.run([sys.executable, "-c", "from sim import warm; print(warm.prewarm())"], cwd=ROOT, env=env,
+                           capture_output=True, text=True, timeout=60, check=True)
+    assert again.stdout.strip() == "False"
