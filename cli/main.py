@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         if argv[0] in PREWARM_ON:  # a new user's first commands: the first study's kernels, compiled meanwhile
             from sim import warm
 
-            warm.prewarm()
+            warm.prewarm(idle=argv[0] == "run")  # beside a swarm in real time: what no one else wants only
         return int(args.func(args))
     except (SchemaError, BadArgument, evloop.LoopError) as exc:  # a mission, settings, profile or hosts
         # file; an argument; the environment's TETHER_LOOP

@@ -178,7 +178,7 @@ def compiled_or_background(s: Any, mode: str, threads: int, steps: int) -> bool:
     return False
 
 
-PREWARM = ("refsim-discrete", "lockstep")
+PREWARM = ("lockstep", "refsim-discrete")
 """The parts :func:`prewarm` compiles: what a first ``tether simulate``, ``sweep`` and ``montecarlo``
 of a shipped mission take (Section 4's law)."""
 PREWARM_MISSION = "section4"
@@ -201,13 +201,14 @@ def prewarm_stamp() -> Path:
     return marks_dir() / f"prewarm-{h.hexdigest()[:20]}.done"
 
 
-def prewarm() -> bool:
+def prewarm(idle: bool = False) -> bool:
     """Compile :data:`PREWARM` for this machine in the background, once: unless the stamp says it is
-    done (a ``stat``), start a detached ``python -m sim.warm`` at idle CPU priority (``SCHED_IDLE``:
-    it takes only what nothing else wants, so a real-time swarm beside it is not disturbed) that
-    outlives the command and leaves the stamp. Called by the commands a new user runs first
-    (``tether demo``, ``simulate``, ``run``, ``check``): the first study then finds its kernels
-    compiled. ``TETHER_PREWARM=0`` turns it off. Returns whether a compile was started. Does not block."""
+    done (a ``stat``), start a detached ``python -m sim.warm`` that outlives the command and leaves the
+    stamp, at ``nice`` 10, or with ``idle`` at idle CPU priority (``SCHED_IDLE``: it takes only what
+    nothing else wants, so that a real-time swarm beside it is not disturbed). Called by the commands
+    a new user runs first (``tether demo``, ``simulate``, ``run``, ``check``): the first study then
+    finds its kernels compiled. ``TETHER_PREWARM=0`` turns it off. Returns whether a compile was
+    started. Does not block."""
     if os.environ.get("TETHER_PREWARM", "1") == "0":
         return False
     try:
@@ -217,13 +218,17 @@ def prewarm() -> bool:
         stamp.parent.mkdir(parents=True, exist_ok=True)
         subprocess.Popen([sys.executable, "-m", "sim.warm", PREWARM_MISSION, "--parts", *PREWARM, "--stamp", str(stamp)],
                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                         start_new_session=True, preexec_fn=_idle)  # noqa: PLW1509 (a scheduler call only)
+                         start_new_session=True, preexec_fn=_idle if idle else _nice)  # noqa: PLW1509
     except OSError:
         return False  # no cache to write or no process to start: the first study compiles, as before
     return True
 
 
-def _idle() -> None:  # runs in the child between fork and exec
+def _nice() -> None:  # runs in the child between fork and exec: a scheduler call only
+    os.nice(10)
+
+
+def _idle() -> None:  # runs in the child between fork and exec: a scheduler call only
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (OSError, AttributeError):
