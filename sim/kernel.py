@@ -62,6 +62,12 @@ def supports(dist: DisturbanceBank) -> bool:
             and dist.amp.ndim == 2 and dist.table.ndim == 3 and dist.hold_ticks.ndim == 1)
 
 
+if AVAILABLE:  # a kernel's cache goes stale with the functions it calls too (sim/jitcache.py)
+    from sim import jitcache
+
+    jitcache.install()
+
+
 def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     # no fastmath: no reassociation, no fused multiply-adds, so each operation rounds as numpy's does
     return fn if numba is None else numba.njit(cache=True, nogil=True)(fn)

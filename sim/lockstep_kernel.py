@@ -51,7 +51,7 @@ from plant.disturbance import DisturbanceBank
 from sim import kernel, lawkernels
 from sim.setup import DIVERGE_AT, Progress, hosts_of, leader_of, meta_of, steps_of
 from sim.kernel import law_load, law_record, law_shown, law_step, law_store  # the law (sim.lawkernels rebinds them)
-from tether import failsafe, wire
+from tether import failsafe, vec, wire
 from tether.inputs import RECENT_SEQS
 from tether.mission import Mission
 from tether.runfile import Links, Run
@@ -377,15 +377,7 @@ def _release_py(seq: np.ndarray, tick: np.ndarray, ticks: int, recent: int, out:
 _release = kernel.jit(_release_py)
 
 
-def _norm_py(x: np.ndarray, i: int) -> float:
-    """``tether.vec.norm`` of row ``i``: the squares added in order; infinite if one is not finite."""
-    sq = x[i, 0] * x[i, 0]
-    for c in range(1, x.shape[1]):
-        sq = sq + x[i, c] * x[i, c]
-    return math.sqrt(sq) if sq == sq else math.inf
-
-
-_norm = kernel.jit(_norm_py)
+_norm = jit(vec.norm)  # the supervisor's speed and error norm, compiled from its one definition
 
 # The failsafe laws' arithmetic, compiled from its one definition (tether/failsafe.py): never re-typed
 # here (tests/test_supervisor_rule.py checks these are failsafe's own functions and the loop calls them)
@@ -635,17 +627,14 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
             if active:
                 # Supervisor._diverged (|xi|, the gains, a finite command) and the speed bound: mode
                 # changes this loop does not follow
-                sq = xi[0] * xi[0]
-                for c in range(1, d):
-                    sq = sq + xi[c] * xi[c]
-                err = math.sqrt(sq) if sq == sq else math.inf
+                err = _norm(xi)
                 if not err <= max_err:
                     return k
                 for c in range(d):
                     shown = law_shown(law_load(state, i, c))
                     if not (shown[0] <= gain_cap and shown[1] <= gain_cap) or not math.isfinite(u[i, c]):
                         return k
-                if _norm(v, i) > max_speed:
+                if _norm(v[i]) > max_speed:
                     return k
             # Supervisor.command: HOLD's cause (the loop models the leader silent, for an agent that
             # hears it, and the leader no longer reaching it) and agent.safety.transition, compiled
@@ -663,7 +652,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
                             if not math.isfinite(p[i, c]):
                                 return k  # nowhere to hold: the Python engine's (a zero command)
                         # failsafe.hold_point (3D: floor at the ground; no geofence here)
-                        speed = _norm(v, i)
+                        speed = _norm(v[i])
                         scale = _hold_reach(speed, _stopping(speed, hold_kp, max_accel))
                         if scale == scale:
                             for c in range(d):
@@ -683,7 +672,7 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
                 clock[i, _LAST_FLAP] = nlast
             if sup[i, _MODE] == land:  # 2D: failsafe.landed (still, or held land_settle), else HOLD's law
                 held = t - clock[i, _SINCE]
-                speed = _norm(v, i)
+                speed = _norm(v[i])
                 if _settled(speed, 0.0, held, land_settle, False):
                     row = fired[0]
                     if not _event(events, fired, k, i, land, landed, _LANDED, 0, 0):

@@ -39,7 +39,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from sim import lawkernels
+from sim import jitcache, lawkernels
 
 PARTS = ("refsim-discrete", "refsim-discrete-parallel", "refsim-continuous", "lockstep")
 """The compiled pieces a run may need, each warmed on its own (a run compiles only its own)."""
@@ -77,7 +77,7 @@ def _key(part: str, law: Any) -> str:
     template = sys.modules.get(_TEMPLATE[part]) or __import__(_TEMPLATE[part], fromlist=["_"])
     h = hashlib.sha256()
     for text in (part, numba.__version__, sys.version, os.environ.get("NUMBA_CACHE_DIR", ""),
-                 str(inspect.getsourcefile(template)), inspect.getsource(template),
+                 str(inspect.getsourcefile(template)), inspect.getsource(template), jitcache.digest(),
                  inspect.getsource(sys.modules[type(law).__module__])):
         h.update(text.encode())
         h.update(b"\0")
@@ -182,22 +182,15 @@ PREWARM = ("lockstep", "refsim-discrete")
 """The parts :func:`prewarm` compiles: what a first ``tether simulate``, ``sweep`` and ``montecarlo``
 of a shipped mission take (Section 4's law)."""
 PREWARM_MISSION = "section4"
-_PREWARM_SOURCES = ("sim/kernel.py", "sim/lockstep_kernel.py", "sim/lawkernels.py", "agent/laws")
 
 
 def prewarm_stamp() -> Path:
     """The file :func:`prewarm` leaves once this machine's compile cache holds :data:`PREWARM`:
-    named by the kernels' and laws' files (size and modification time: no import of numba, no
-    hashing), the Python version and the cache location, so that an edit or another cache compiles
-    again."""
-    root = Path(__file__).resolve().parent.parent
+    named by the kernels' sources (:func:`sim.jitcache.digest`: no import of numba), the Python
+    version and the cache location, so that an edit or another cache compiles again."""
     h = hashlib.sha256()
-    for rel in _PREWARM_SOURCES:
-        base = root / rel
-        for f in sorted(base.glob("*.py")) if base.is_dir() else [base]:
-            st = f.stat()
-            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}\0".encode())
-    h.update(f"{sys.version}\0{os.environ.get('NUMBA_CACHE_DIR', '')}\0{lawkernels.cache_dir()}".encode())
+    h.update(f"{jitcache.digest()}\0{sys.version}\0{os.environ.get('NUMBA_CACHE_DIR', '')}\0"
+             f"{lawkernels.cache_dir()}".encode())
     return marks_dir() / f"prewarm-{h.hexdigest()[:20]}.done"
 
 

@@ -151,6 +151,19 @@ def test_the_twin_compiles_the_supervisors_own_functions(name: str) -> None:
     assert twin.py_func is getattr(safety, name)
 
 
+def test_the_twin_compiles_the_supervisors_own_norm() -> None:
+    """Not a copy: the twin's speed and error bounds run tether.vec.norm, the supervisor's."""
+    from tether import vec
+
+    assert lockstep_kernel._norm.py_func is vec.norm
+    assert "sqrt" not in inspect.getsource(lockstep_kernel._ticks_py)  # no norm of its own beside it
+    rng = np.random.default_rng(3)
+    for d in (1, 2, 3, 4):
+        for x in [rng.normal(size=d) * 10.0 ** rng.integers(-3, 4) for _ in range(200)] + [np.full(d, np.nan),
+                                                                                          np.full(d, np.inf)]:
+            assert same([lockstep_kernel._norm(x)], [vec.norm(x.tolist())]), x
+
+
 def test_the_twin_compiles_the_supervisors_own_graph_search() -> None:
     """Not a copy: the twin's reachability runs agent.safety's reaches_in, which the supervisor's
     graph (and so reaches) runs too."""

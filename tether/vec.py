@@ -50,6 +50,16 @@ def dot(x: Vec, y: Vec) -> float:
 
 
 def norm(x: Vec) -> float:
-    """``|x|``; infinite if a component is not finite (a NaN one makes ``x . x`` NaN)."""
-    sq = dot(x, x)
+    """``|x|``: the squares added in order (``x . x`` as :func:`dot` adds it); infinite if a component
+    is not finite (a NaN one makes the sum NaN). Self-contained, so that the in-process engine's
+    twin compiles this very function (``sim/lockstep_kernel.py``), on a row of its arrays."""
+    n = len(x)
+    if n == 3:  # the hot path: the same additions, left to right, without the loop
+        sq = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+    elif n == 2:
+        sq = x[0] * x[0] + x[1] * x[1]
+    else:
+        sq = x[0] * x[0]
+        for c in range(1, n):
+            sq = sq + x[c] * x[c]
     return math.sqrt(sq) if sq == sq else math.inf
