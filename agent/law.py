@@ -26,15 +26,21 @@ from tether.mission import Mission, in_neighbours
 from tether.vec import floats, rows
 
 
+def weighted_term(k: int, acc: float, w: float, x: float) -> float:
+    """Term ``k`` of a weighted sum added in row order: ``w x`` for the first, ``acc + w x`` after
+    it (each product and sum rounded once, on any platform). Pure, on floats: the in-process
+    engine's twin (``sim/lockstep_kernel.py``) compiles this very function."""
+    return w * x if k == 0 else acc + w * x
+
+
 def weighted_sum(w: Sequence[float], xs: Sequence[Sequence[float]]) -> list[float]:
     """``sum_j w_j x_j``, component by component, the terms added one after the other in row order
-    (``(w_0 x_0 + w_1 x_1) + w_2 x_2 ...``): each product and sum rounded once, on any platform.
-    ``xs`` holds the ``x_j`` (at least one)."""
-    w0 = w[0]
-    acc = [w0 * x for x in xs[0]]
-    for k in range(1, len(w)):
+    (``(w_0 x_0 + w_1 x_1) + w_2 x_2 ...``, :func:`weighted_term`). ``xs`` holds the ``x_j`` (at
+    least one)."""
+    acc = [0.0] * len(xs[0])
+    for k in range(len(w)):
         wk = w[k]
-        acc = [a + wk * x for a, x in zip(acc, xs[k])]
+        acc = [weighted_term(k, a, wk, x) for a, x in zip(acc, xs[k])]
     return acc
 
 
@@ -71,7 +77,7 @@ class AgentLaw:
         nbrs = tuple(src for src, _ in ins)
         w = tuple(float(wt) for _, wt in ins)
         h_i = offsets[agent_id]
-        kappa = _total(w)
+        kappa = total(w)
         sum_wdelta = tuple(kappa * hc - sc for hc, sc in zip(h_i, weighted_sum(w, [offsets[j] for j in nbrs])))
         deltas = tuple(tuple(hc - jc for hc, jc in zip(h_i, offsets[j])) for j in nbrs)
         bound = laws.of_mission(m) if bound is None else bound
@@ -85,7 +91,7 @@ class AgentLaw:
         """The law with the edges from the ``lost`` in-neighbours dropped and kappa_i re-normalised
         over the others (their rows stay, with weight 0, so samples keep the same order)."""
         w = tuple(0.0 if j in lost else wt for j, wt in zip(self.neighbours, self.weights))
-        return AgentLaw(self.agent_id, self.neighbours, w, _total(w), tuple(weighted_sum(w, self.deltas)),
+        return AgentLaw(self.agent_id, self.neighbours, w, total(w), tuple(weighted_sum(w, self.deltas)),
                         self.bound, self.coefficients, self.deltas)
 
     def step(
@@ -126,7 +132,7 @@ class AgentLaw:
         return (u, xi, zeta, *nxt)
 
 
-def _total(w: Sequence[float]) -> float:
+def total(w: Sequence[float]) -> float:
     """``sum_j w_j`` added in order from 0 (``np.bincount``'s order; ``ndarray.sum`` adds 8 or more
     terms pairwise)."""
     acc = 0.0
@@ -152,11 +158,21 @@ def neighbour_sample(
     is moved forward by its age with its own velocity and acceleration (constant-acceleration
     extrapolation).
     """
-    if sample is None or not age <= max_age:
-        return [pc - dc for pc, dc in zip(p, delta)], list(v), [0.0] * len(a), False
-    pj, vj, aj = sample
+    usable = sample is not None and age <= max_age
+    pj, vj, aj = sample if sample is not None and usable else (p, v, a)  # unread when not usable
+    axes = [neighbour_axis(pc, vc, dc, qc, wc, ac, usable, age, compensate)
+            for pc, vc, dc, qc, wc, ac in zip(p, v, delta, pj, vj, aj)]
+    return [x[0] for x in axes], [x[1] for x in axes], [x[2] for x in axes], usable
+
+
+def neighbour_axis(p: float, v: float, delta: float, pj: float, vj: float, aj: float, usable: bool, age: float,
+                   compensate: bool) -> tuple[float, float, float]:
+    """One axis of :func:`neighbour_sample`: agent i's own ``p``, ``v`` and offset ``delta`` to j,
+    j's sample ``pj, vj, aj`` (read only if ``usable``) and its ``age``. Pure, on floats: the
+    in-process engine's twin compiles this very function."""
+    if not usable:
+        return p - delta, v, 0.0
     if compensate and age > 0.0:
         half = 0.5 * age * age
-        return ([pc + vc * age + half * ac for pc, vc, ac in zip(pj, vj, aj)],
-                [vc + ac * age for vc, ac in zip(vj, aj)], list(aj), True)
-    return list(pj), list(vj), list(aj), True
+        return pj + vj * age + half * aj, vj + aj * age, aj
+    return pj, vj, aj

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from agent import safety
+from agent import law as agent_law
 from agent.law import AgentLaw
 from plant import base as plants
 from plant.disturbance import DisturbanceBank
@@ -379,6 +380,12 @@ _release = kernel.jit(_release_py)
 
 _norm = jit(vec.norm)  # the supervisor's speed and error norm, compiled from its one definition
 
+# The agent's input assembly, compiled from its one definition (agent/law.py): the sample it uses for
+# an in-neighbour, axis by axis, the weighted sums term by term, kappa over the edges kept
+_neighbour_axis = jit(agent_law.neighbour_axis)
+_weighted_term = jit(agent_law.weighted_term)
+_total = jit(agent_law.total)
+
 # The failsafe laws' arithmetic, compiled from its one definition (tether/failsafe.py): never re-typed
 # here (tests/test_supervisor_rule.py checks these are failsafe's own functions and the loop calls them)
 _stopping = jit(failsafe.stopping_distance)
@@ -561,25 +568,21 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
                     for c in range(d):
                         cur_swd[i, c] = swd[i, c]
                 else:  # AgentLaw.without: the weights of the lost zeroed, kappa and sum_wdelta over them
-                    acc = 0.0
+                    kept = np.empty(hi - lo)
                     for l in range(lo, hi):
-                        acc += 0.0 if new >> (l - lo) & 1 else l_w[l]
-                    cur_kappa[i] = acc
+                        kept[l - lo] = 0.0 if new >> (l - lo) & 1 else l_w[l]
+                    cur_kappa[i] = _total(kept)
                     for c in range(d):
                         sd = 0.0
                         for l in range(lo, hi):
-                            w = 0.0 if new >> (l - lo) & 1 else l_w[l]
-                            if l == lo:
-                                sd = w * l_delta[l, c]
-                            else:
-                                sd = sd + w * l_delta[l, c]
+                            sd = _weighted_term(l - lo, sd, kept[l - lo], l_delta[l, c])
                         cur_swd[i, c] = sd
             if follow_new != sup[i, _FOLLOWED]:  # holding neighbours followed, or no longer
                 if not _event(events, fired, k, i, sup[i, _MODE], sup[i, _MODE], _FOLLOW, follow_new & ~sup[i, _FOLLOWED],
                               sup[i, _FOLLOWED] & ~follow_new):
                     return k
                 sup[i, _FOLLOWED] = follow_new
-            # agent.law.neighbour_sample per in-neighbour, AgentLaw.step (weighted_sum term by term)
+            # agent.law.neighbour_sample per in-neighbour (neighbour_axis), AgentLaw.step (weighted_term)
             ka = cur_kappa[i]
             for c in range(d):
                 sp = 0.0
@@ -588,31 +591,21 @@ def _ticks_py(k0: int, k1: int, steps: int, record: bool, cfg: np.ndarray, kappa
                 for l in range(lo, hi):
                     age = age_of[l - lo]
                     s = newest[k, l]
-                    if s >= 0 and age <= max_age:
+                    usable = s >= 0 and age <= max_age
+                    pj = vj = aj = 0.0
+                    if usable:
                         qs = s % ring
                         src = l_src[l]
                         pj = hp[qs, src, c]
                         vj = hv[qs, src, c]
                         aj = ha[qs, src, c]
-                        if compensate and age > 0.0:
-                            half = 0.5 * age * age
-                            pj = pj + vj * age + half * aj
-                            vj = vj + aj * age
-                    else:
-                        pj = p[i, c] - l_delta[l, c]
-                        vj = v[i, c]
-                        aj = 0.0
+                    pj, vj, aj = _neighbour_axis(p[i, c], v[i, c], l_delta[l, c], pj, vj, aj, usable, age, compensate)
                     if feed == 2:
                         aj = 0.0
                     w = 0.0 if sup[i, _LOST] >> (l - lo) & 1 else l_w[l]
-                    if l == lo:
-                        sp = w * pj
-                        sv = w * vj
-                        sa = w * aj
-                    else:
-                        sp = sp + w * pj
-                        sv = sv + w * vj
-                        sa = sa + w * aj
+                    sp = _weighted_term(l - lo, sp, w, pj)
+                    sv = _weighted_term(l - lo, sv, w, vj)
+                    sa = _weighted_term(l - lo, sa, w, aj)
                 uu, e, z, xn = law_step(ka, p[i, c], v[i, c], sp, sv, sa, cur_swd[i, c], law_load(state, i, c),
                                         coef[c])
                 xi[c] = e

@@ -164,6 +164,31 @@ def test_the_twin_compiles_the_supervisors_own_norm() -> None:
             assert same([lockstep_kernel._norm(x)], [vec.norm(x.tolist())]), x
 
 
+def test_the_twin_assembles_the_laws_inputs_with_the_agents_own_functions() -> None:
+    """Not a copy: the sample used for an in-neighbour, the weighted sums and kappa over the kept edges
+    are agent.law's functions, compiled; the loop has no sum or extrapolation of its own beside them,
+    and each agrees with the Python one bit for bit."""
+    from agent import law
+
+    assert lockstep_kernel._neighbour_axis.py_func is law.neighbour_axis
+    assert lockstep_kernel._weighted_term.py_func is law.weighted_term
+    assert lockstep_kernel._total.py_func is law.total
+    src = inspect.getsource(lockstep_kernel._ticks_py)
+    assert "0.5 * age * age" not in src and "w * pj" not in src and "+ w *" not in src
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        x = rng.normal(size=6) * 10.0 ** rng.integers(-3, 4)
+        age = float(rng.choice([0.0, 0.01, 0.2, np.nan]))
+        for usable in (True, False):
+            for comp in (True, False):
+                args = (*x.tolist(), usable and age == age, age, comp)
+                assert same(list(lockstep_kernel._neighbour_axis(*args)), list(law.neighbour_axis(*args))), args
+        for k in (0, 1, 5):
+            assert same([lockstep_kernel._weighted_term(k, *x[:3].tolist())], [law.weighted_term(k, *x[:3].tolist())])
+        w = rng.random(4)
+        assert same([lockstep_kernel._total(w)], [law.total(w.tolist())])
+
+
 def test_the_twin_compiles_the_supervisors_own_graph_search() -> None:
     """Not a copy: the twin's reachability runs agent.safety's reaches_in, which the supervisor's
     graph (and so reaches) runs too."""
