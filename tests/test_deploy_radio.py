@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import json
 import shlex
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import msgspec
@@ -27,7 +24,6 @@ from tether import mission as ms
 from tether.catalog import builtin_path
 from tether.runfile import Run
 from tether.wire import FLYING
-from tests.support import REPO
 
 EXP1_CF = builtin_path("exp1_cf")
 
@@ -193,19 +189,11 @@ def radio_deployment(tmp_path: Path) -> Path:
     return gen.generate(EXP1_CF, tmp_path / "dep", hosts=path).out
 
 
-def _rehearse(dep: Path, out: Path, *args: str, timeout: float = 150.0) -> tuple[int, str]:
-    log = out.parent / f"{out.name}.log"
-    with open(log, "wb") as fh:
-        proc = subprocess.Popen([sys.executable, "-m", "cli", "rehearse", str(dep), "--out", str(out), "--sitl",
-                                 "--duration", repr(DURATION), *args], cwd=REPO, stdin=subprocess.DEVNULL,
-                                stdout=fh, stderr=subprocess.STDOUT)
-        try:
-            status = proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGINT)
-            proc.wait(30)
-            pytest.fail(f"the rehearsal did not end within {timeout:g} s:\n{log.read_text()[-3000:]}")
-    return status, log.read_text(errors="replace")
+def _rehearse(dep: Path, out: Path, *args: str) -> tuple[int, str]:
+    from tests.test_rehearse import run_rehearsal
+
+    return run_rehearsal(out.parent / f"{out.name}.log", str(dep), "--out", str(out), "--sitl", "--duration",
+                         repr(DURATION), *args, timeout=150.0)
 
 
 @pytest.mark.slow  # a real-time rehearsal of 12 s with four software Crazyflies
