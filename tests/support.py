@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -148,11 +148,11 @@ class SoftwareCrazyflies:
 
 
 @contextlib.contextmanager
-def software_crazyflies(args: list[str], startup: float = 30.0) -> Iterator[SoftwareCrazyflies]:
-    """Start ``python -m plant.cfsim *args`` and wait, with a real deadline, for ``cfsim ready``.
-    Both output streams are drained by threads (a full pipe would block the simulator). On exit
-    the simulator gets SIGTERM, then SIGKILL after 10 s."""
-    proc = subprocess.Popen([sys.executable, "-m", "plant.cfsim", *args], stdin=subprocess.DEVNULL,
+def software_crazyflies(args: list[str], startup: float = 30.0, wrap: Sequence[str] = ()) -> Iterator[SoftwareCrazyflies]:
+    """Start ``python -m plant.cfsim *args`` (after ``wrap``: ``chrt --rr 10``) and wait, with a real
+    deadline, for ``cfsim ready``. Both output streams are drained by threads (a full pipe would block
+    the simulator). On exit the simulator gets SIGTERM, then SIGKILL after 10 s."""
+    proc = subprocess.Popen([*wrap, sys.executable, "-m", "plant.cfsim", *args], stdin=subprocess.DEVNULL,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     lines: queue.Queue[str | None] = queue.Queue()
     sim = SoftwareCrazyflies(proc, {})
