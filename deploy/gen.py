@@ -213,14 +213,22 @@ def unit_name(p: Placement, pl: Plan) -> str:
     return f"tether-{p.name if radio is None else radio.name}.service"
 
 
+def command_words(role: str, values: dict[str, str]) -> list[str]:
+    """The words of the ``ExecStart=`` line of ``role``'s unit template, each placeholder filled with
+    its value as it is (the arguments the process gets, not a unit's quoted line)."""
+    line = next(ln for ln in template_text(role).splitlines() if ln.startswith("ExecStart="))
+    return [_PLACEHOLDER.sub(lambda mt: values[mt.group(1)], w) for w in line.partition("=")[2].split(" ")]
+
+
 def radio_words(r: Radio, pl: Plan) -> list[str]:
     """The arguments of ``python -m cli.radio`` for radio host ``r``: each vehicle's ``tether plant``
-    options after a ``--``, as its own unit would have run it (its identity, its configuration)."""
-    cdir = pl.config_dir(r.host)
+    options after a ``--``, read from the plant unit's own template (``tether-plant.service``) filled
+    for it, as its own unit would have run it (its identity, its configuration)."""
     out: list[str] = []
     for aid in r.agents:
-        out += ["--", "--mission", f"{cdir}/mission.toml", "--id", str(aid), "--ns", pl.ns, "--clock", "realtime",
-                "--zenoh-config", f"{cdir}/plant-{aid}.json5"]
+        words = command_words("plant", {"TETHER": pl.hosts.tether, "CONFIG_DIR": pl.config_dir(r.host),
+                                        "ID": str(aid), "NS": pl.ns, "NODE": f"plant-{aid}"})
+        out += ["--", *words[words.index("plant") + 1:]]
     return out
 
 

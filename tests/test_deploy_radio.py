@@ -132,6 +132,20 @@ def test_a_radio_unit_runs_each_vehicle_as_its_own_plant_unit_would(tmp_path: Pa
     assert "| `tether-radio-0.service` | `sim://127.0.0.1/0` | plant-1, plant-2, plant-3, plant-4 |" in guide
 
 
+def test_a_radio_units_paths_read_back_as_written(tmp_path: Path) -> None:
+    """A ``config_dir`` with a space and a ``%``: systemd (as the rehearsal reads a unit) gives each
+    vehicle the very paths its own plant unit would name."""
+    path = tmp_path / "hosts.toml"
+    path.write_text('version = 1\nconfig_dir = "/srv/te ther%x/{host}"\n')
+    dep = gen.generate(EXP1_CF, tmp_path / "dep", hosts=path)
+    u = rehearse.parse_unit(dep.host_dir("leader") / "systemd" / "tether-radio-0.service", "leader")
+    parser = build_parser("plant")
+    for aid, group in zip((1, 2, 3, 4), split(u.argv[3:])):
+        args = parser.parse_args(["plant", *group])
+        assert args.zenoh_config == f"/srv/te ther%x/leader/plant-{aid}.json5"
+        assert args.mission == "/srv/te ther%x/leader/mission.toml"
+
+
 def test_a_list_value_is_several_words_of_a_command_line_only() -> None:
     values: dict[str, str | list[str]] = {"HOST": "h", "NS": "n", "USER": "tether", "CONFIG_DIR": "/etc/tether",
                                           "PYTHON": "/usr/bin/python3", "RADIO": "radio-0", "DONGLE": "radio://0",
