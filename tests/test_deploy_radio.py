@@ -158,6 +158,23 @@ def test_a_list_value_is_several_words_of_a_command_line_only() -> None:
         gen.unit("radio", {**values, "VEHICLES": ["--", "--id", "1\n2"]})
 
 
+def test_sitl_a_rehearsal_cannot_fly_is_refused_before_anything_starts(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``--sitl-args`` without ``--sitl``; ``--sitl`` for a deployment without a radio unit: exit 2,
+    naming the option and the fix, before any namespace or process."""
+    from cli import main as tether
+    from tests.test_rehearse import needs_namespaces
+
+    assert tether.main(["rehearse", str(tmp_path), "--out", str(tmp_path / "o"), "--sitl-args", "--noise 0.1"]) == 2
+    assert "--sitl-args: give it with --sitl" in capsys.readouterr().err
+    needs_namespaces()
+    dep = gen.generate(builtin_path("section4"), tmp_path / "dep")
+    assert tether.main(["rehearse", str(dep.out), "--out", str(tmp_path / "run"), "--sitl"]) == 2
+    err = capsys.readouterr().err
+    assert "--sitl: the deployment has no radio unit" in err and "drop --sitl" in err, err
+    assert not (tmp_path / "run" / "rehearsal.json").exists()
+
+
 def test_a_rehearsal_gives_each_vehicle_of_a_radio_unit_its_duration_and_skew() -> None:
     u = rehearse.Unit("tether-radio-0", "leader", ["/x/python", "-m", "cli.radio", "--", "--id", "1", "--", "--id", "2"])
     argv = rehearse.command(u, 12.0, 0.03)
