@@ -120,6 +120,7 @@ def _prepare(mission_path: Path, opts: LaunchOptions,
             raise ms.MissionError(f"tether run {mission_path}", [("--rt-priority", str(exc))]) from None
     elif (applied := chosen.schedule()) is not None:
         opts = dataclasses.replace(opts, rt_priority=applied)
+    tp.reserve_ports((*opts.listen, *opts.vehicle_connect.values()))  # free until bound: never ours to pick
     router = tp.loopback_endpoint(tp.free_tcp_port())
     settings = tp.ZenohSettings(mode="router", listen=(router, *opts.listen), lease=opts.lease,
                                 ingress_limits=chosen.limits(m, launch.keys.ns))

@@ -230,8 +230,12 @@ def _rehearse(dep: Path, out: Path, *args: str) -> tuple[int, str]:
 @pytest.mark.slow  # a real-time rehearsal of 12 s with four software Crazyflies
 def test_a_crazyflie_deployment_flies_from_its_radio_host(radio_deployment: Path, tmp_path: Path) -> None:
     status, log = _rehearse(radio_deployment, tmp_path / "run")
-    assert status == 0, log[-4000:]
+    # 5: recorded with a few samples lost on the way to the recorder, the known limit of real-time runs
+    # on a busy machine (docs/benchmarks.md, lost samples): a burst the router's ingress limit cuts
+    assert status in (0, 5), log[-4000:]
     run = Run.load(tmp_path / "run" / "run.npz")
+    got, want = run.meta.samples_recorded, run.meta.samples_expected
+    assert got is not None and want is not None and got >= 0.99 * want, (got, want)
     record = json.loads((tmp_path / "run" / "rehearsal.json").read_text())
     units = record["units"]
     # the simulators where the radio is: the radio unit's host (the leader's, with no [radio] table)

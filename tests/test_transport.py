@@ -545,6 +545,26 @@ def test_free_tcp_port_never_gives_a_port_twice_even_when_the_generator_repeats_
             s.bind(("127.0.0.1", q))  # free: nothing bound it
 
 
+def test_a_port_the_user_named_is_never_picked_before_its_session_binds_it() -> None:
+    """``tether run --listen tcp/127.0.0.1:P`` names a port that stays free until the router binds
+    it; the launcher's own router port is picked in between and once picked P (the launcher then
+    refused its own listen list). A reserved port is never returned, even when it is drawn first."""
+    low = tp.free_tcp_port()
+    named = [tp.loopback_endpoint(low + 1), f"tls/[::1]:{low + 2}#iface=lo", "unixsock-stream/x.sock"]
+    assert [tp.endpoint_port(e) for e in named] == [low + 1, low + 2, None]
+
+    class Draws(random.Random):  # draws the named ports first, then ones nobody named
+        def __init__(self, ports: list[int]) -> None:
+            super().__init__(0)
+            self.ports = ports
+
+        def randint(self, a: int, b: int) -> int:
+            return self.ports.pop(0)
+
+    tp.reserve_ports(named)
+    assert tp.free_tcp_port(Draws([low + 1, low + 2, *range(low + 3, low + 40)])) in range(low + 3, low + 40)
+
+
 def test_token_key_is_hermetic_and_rejects_bad_chunks() -> None:
     assert tp.token_key("sect4", "agent", 3) == "@tether/sect4/agent/3"
     with pytest.raises(ValueError, match="role"):

@@ -57,11 +57,13 @@ __all__ = [
     "declare_publisher",
     "declare_subscriber",
     "declare_token",
+    "endpoint_port",
     "free_tcp_port",
     "listen_problem",
     "load_settings",
     "loopback_endpoint",
     "open_session",
+    "reserve_ports",
     "token_key",
     "validate_settings",
     "wait_for_subscribers",
@@ -428,6 +430,21 @@ def free_tcp_port(rng: random.Random | None = None, span: int = 1) -> int:
         if _give(range(port, port + 1)):
             return port
     raise OSError(f"no {span} free TCP port(s) on 127.0.0.1 that this process has not given out already")
+
+
+def endpoint_port(endpoint: str) -> int | None:
+    """The port of a ``<proto>/<host>:<port>`` endpoint; ``None`` for other protocols or bad syntax."""
+    m = _ENDPOINT.match(endpoint)
+    hp = _HOST_PORT.match(m["addr"]) if m is not None and m["proto"] in _HOST_PORT_PROTOCOLS else None
+    return int(hp["port"]) if hp is not None else None
+
+
+def reserve_ports(endpoints: Iterable[str]) -> None:
+    """Never let :func:`free_tcp_port` return a port that one of ``endpoints`` names: a port the
+    user gave (``--listen``) is free until its session binds it, so a launcher picking its own
+    router's port in between could otherwise pick the same one."""
+    with _GIVEN_LOCK:
+        _GIVEN.update(p for p in map(endpoint_port, endpoints) if p)
 
 
 def _free_now(ports: range) -> bool:
