@@ -6,9 +6,9 @@ Lifetime (:meth:`CrazyfliePlant.open` does 1-4; every step bounded by a timeout,
 1. **Connect** to the vehicle's URI and wait for ``fully_connected`` (TOCs cached in
    ``$XDG_CACHE_HOME/tether/cf-toc``, so later connections skip the TOC download).
 2. **Log** ``stateEstimate.x/y/z/vx/vy/vz`` once a control tick (at most 100 Hz, cflib's fastest) and
-   ``stateEstimate.ax/ay/az`` (world frame, in g) every other tick, in two blocks (one block cannot hold
-   nine floats: 26 bytes per packet; :func:`log_periods`: four vehicles at 100 Hz, eight at 50 Hz fit
-   on one radio, ``docs/crazyflie.md``).
+   ``stateEstimate.ax/ay/az`` (world frame, in g) with ``supervisor.info`` every other tick, in two
+   blocks (one block cannot hold nine floats: 26 bytes per packet; :func:`log_periods`: four vehicles
+   at 100 Hz, eight at 50 Hz fit on one radio, ``docs/crazyflie.md``).
 3. **Prepare** (:meth:`CrazyfliePlant._prepare`): with a fleet file (``tether/fleet.py``), set the
    vehicle type's firmware parameters, start its motion-capture feed (:mod:`plant.mocap`) and reset
    its estimator; then the pre-flight checks (:mod:`plant.preflight`): a refusal raises
@@ -44,6 +44,13 @@ setpoint carries: the agent's command (FLYING), or the watchdog's own HOLD and L
 through the same Eq. 4 (or full-state) setpoints while the agent is silent; in LANDED (touched
 down) and ESTOP (operator) :meth:`CrazyfliePlant.step` sends ``send_stop_setpoint`` every tick:
 motors off, and the firmware's 2 s watchdog stays fed, so it never locks a vehicle in the air.
+
+**A vehicle its firmware takes out of the air** (``supervisor.info`` says tumbled, crashed or locked:
+after a ground side stalled for 2 s the firmware cuts the motors and the vehicle falls) is down for
+good (:meth:`CrazyfliePlant.down`, :func:`plant.preflight.down`): the watchdog goes to ESTOP, so its
+agent lands and its neighbours drop it instead of following a vehicle lying on the floor whose agent
+commands it up, and the plant sends only stop setpoints. A re-opened link that finds such a vehicle
+on the ground does not take it off again.
 
 **A link that goes quiet** (no state estimate for ``STALE_AFTER``) or **is lost** (cflib's
 ``connection_lost``/``connection_failed``) makes :meth:`CrazyfliePlant.state` raise
@@ -94,7 +101,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plant import deadman, radio
+from plant import deadman, preflight, radio
 from plant.base import Sample
 from plant.cfsim import motors
 from plant.quadrotor import QuadrotorParams, eq4
@@ -179,6 +186,12 @@ class CrazyfliePlant:
         """Newest velocity estimate [m/s; world frame]."""
         self._acc: np.ndarray | None = None
         """Newest acceleration estimate [m/s^2; world frame]."""
+        self._supervisor: int | None = None
+        """Newest ``supervisor.info`` bitfield, logged with the acceleration."""
+        self._airborne = False
+        """Taken off for this run (and not yet landed by :meth:`close`): :meth:`down` watches the firmware."""
+        self._down_why: str | None = None
+        """Why the firmware took the vehicle out of the air, once it has (:meth:`down`, for good)."""
         self._fresh = threading.Event()
         self._lost: str | None = None
         self._last_log = -math.inf
@@ -243,7 +256,6 @@ class CrazyfliePlant:
         """Before take-off (blocks, bounded): the fleet's firmware parameters, its motion-capture feed
         and an estimator reset, if the mission names a fleet; then the pre-flight checks
         (:mod:`plant.preflight`). Raises :class:`plant.preflight.PreflightRefused` naming the vehicle."""
-        from plant import preflight
 
         uid, cf = self.ids[0], self.cf
         limits, settle = preflight.Limits(), 10.0
@@ -303,8 +315,6 @@ class CrazyfliePlant:
 
         from cflib.crazyflie.log import LogConfig
         from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
-
-        from plant import preflight
 
         period = 0.1
         block = LogConfig(name="tether_health", period_in_ms=int(period * 1000))
@@ -421,6 +431,7 @@ class CrazyfliePlant:
         acc = LogConfig(name="tether_a", period_in_ms=acc_ms)
         for n in ("ax", "ay", "az"):
             acc.add_variable(f"stateEstimate.{n}", "float")
+        acc.add_variable("supervisor.info", "uint16_t")  # 2 bytes more in a packet already sent: no airtime
         pv.data_received_cb.add_callback(self._on_pv)
         acc.data_received_cb.add_callback(self._on_acc)
         self._watch_link(1000.0 / pv_ms + 1000.0 / acc_ms)
@@ -457,6 +468,7 @@ class CrazyfliePlant:
             if self.monitor is not None:
                 self.monitor.packet(time.monotonic())
             self._acc = G * np.array([data[f"stateEstimate.{n}"] for n in ("ax", "ay", "az")], dtype=float)
+            self._supervisor = int(data["supervisor.info"])
 
     def _wait_until(self, ready: Callable[[], bool], timeout: float, what: str) -> None:
         deadline = time.monotonic() + timeout
@@ -514,6 +526,7 @@ class CrazyfliePlant:
         self._wait_until(lambda: self._pos is not None and self._pos[2] >= 0.9 * sp.takeoff_height,
                          sp.takeoff_time + 5.0, "take-off")
         log.info("crazyflie %d: airborne at %s", self.ids[0], np.round(self._position(), 3).tolist())
+        self._airborne = True
         deadman.guardian(sp.land_time).arm(sp.uri)  # should this process die, a guardian lands it
 
     def _position(self) -> np.ndarray:
@@ -545,6 +558,21 @@ class CrazyfliePlant:
                 self._no_fix = why
                 log.error("crazyflie %d: %s", self.ids[0], why)
         return self._no_fix
+
+    def down(self) -> str | None:
+        """Why the firmware has taken this vehicle out of the air (:func:`plant.preflight.down`: it
+        tumbled, crashed, or locked its motors after a watchdog cut, as when the ground side stalled
+        for 2 s), for good once said; None while it flies, and before take-off, after the plant's own
+        motors-off and once :meth:`close` lands it. The plant's watchdog then goes to ESTOP: its agent
+        lands and its neighbours drop it, instead of flying on a vehicle lying on the floor."""
+        if self._down_why is None and self._airborne and not self._stopped and not self._landed:
+            with self._lock:
+                bits = self._supervisor
+            why = None if bits is None else preflight.down(bits)
+            if why is not None:
+                self._down_why = why
+                log.error("crazyflie %d: down: %s", self.ids[0], why)
+        return self._down_why
 
     def _watch_link(self, expected: float) -> None:
         """Count this link's log packets (``expected`` a second) and ping round trips from now on."""
@@ -685,6 +713,8 @@ class CrazyfliePlant:
         self._relinking = True
         try:
             _drop_link(self.cf)
+            with self._lock:
+                self._supervisor = None  # the re-opened link's own word on the firmware (:meth:`_relaunch`)
             self._connect()
             self._relaunch()
         finally:
@@ -697,11 +727,13 @@ class CrazyfliePlant:
         while :meth:`step` sends nothing. Blocks, bounded; raises ``TimeoutError`` or
         :class:`LinkLost` (then the next attempt, or the plant withdraws)."""
         sp = self.spec
-        self._wait_until(lambda: self._pos is not None and self._vel is not None, STALE_AFTER + 2.0,
-                         "a state estimate after reconnecting")
+        self._wait_until(lambda: self._pos is not None and self._vel is not None and self._supervisor is not None,
+                         STALE_AFTER + 2.0, "a state estimate after reconnecting")
         with self._lock:
             p, v = self._position(), self._velocity()
         if self._stopped or p[2] >= 0.5 * sp.takeoff_height or float(np.linalg.norm(v)) > 0.3:
+            return
+        if self.down() is not None:  # not restarted: cut by its firmware while the link was down, still locked
             return
         log.warning("crazyflie %d: on the ground at %s after the link came back (the vehicle restarted): taking off "
                     "again", self.ids[0], np.round(p, 3).tolist())

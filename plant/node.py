@@ -160,7 +160,8 @@ async def _fly(node: Node, ids: list[int], world: bool, plant: Resting | Crazyfl
                                           health is not None and health.suspect, t, dog.mode)
                 if msg is not None:
                     dog.offer(msg.u, msg.t, msg.k, k, msg.mode, k_clock=k_clock)
-                d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0])
+                d = dog.step(t, None if s is None else s.p[r], None if s is None else s.v[r], operator[0],
+                             down=None if cf is None else cf.down())
                 for ev in (*judged, *d.events):
                     log.warning("vehicle %d: %s", aid, ev)
                     noted[r].append(ev.wire(k, aid))

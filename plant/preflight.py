@@ -14,6 +14,10 @@ A vehicle is refused take-off, with every reason named, when
 * its estimate puts it more than ``tether.fleet.PLACE_TOLERANCE`` (0.3 m) from where the fleet file says it stands
   (plausible but false: two rigid bodies or two radio addresses swapped, a vehicle put down on the
   wrong spot).
+
+In flight, :func:`down` reads the same supervisor bits for the one thing a plant cannot mend: the
+firmware has taken the vehicle out of the air (tumbled, crashed, or locked after a watchdog cut its
+motors), and it will not fly again until it restarts.
 """
 
 from __future__ import annotations
@@ -23,8 +27,7 @@ from dataclasses import dataclass
 
 from tether.fleet import PLACE_TOLERANCE
 
-BIT_CAN_FLY = 3
-BIT_LOCKED = 6
+BIT_CAN_FLY, BIT_TUMBLED, BIT_LOCKED, BIT_CRASHED = 3, 5, 6, 7
 """Supervisor bitfield bits (firmware ``supervisor.c`` ``supervisor.info``; cflib ``supervisor.py``)."""
 PM_LOW_POWER, PM_SHUTDOWN = 3, 4
 """``pm.state`` values that forbid a take-off (firmware ``pm.h``)."""
@@ -60,6 +63,16 @@ class Limits:
     """[m^2]."""
     link_min: float = 0.9
     """[0..1]."""
+
+
+def down(supervisor: int) -> str | None:
+    """Why a flying vehicle's firmware has cut its motors, from its supervisor bitfield; None while
+    it may fly. Tumbled (upside down: the firmware stops the motors), crashed (tumbled while flying),
+    locked (an emergency stop, or the commander watchdog's cut after 2 s without a setpoint): in each
+    the motors are off until the vehicle restarts, whatever it is sent."""
+    why = [what for bit, what in ((BIT_CRASHED, "crashed"), (BIT_TUMBLED, "tumbled"), (BIT_LOCKED, "locked"))
+           if supervisor >> bit & 1]
+    return None if not why else f"its firmware has cut the motors ({', '.join(why)}; restart the vehicle)"
 
 
 def converged(variance: tuple[float, float, float], lim: Limits) -> bool:

@@ -21,6 +21,8 @@ after the cut-off a vehicle lands instead of falling, and it enforces the missio
                                                           land_after); ESTOP if the fence's action is estop
     operator "land":  FLYING/HOLD -> LAND at once, never back to FLYING
     operator "estop": any mode -> ESTOP at once (motors off), terminal
+    the vehicle itself says it is down (a Crazyflie's firmware has cut its motors: tumbled, crashed,
+      locked): any mode -> ESTOP at once, terminal, so that its agent lands and its neighbours drop it
     the agent's own command says LANDED (its supervisor has landed it) -> LANDED (rest, disarmed);
       ESTOP -> ESTOP (motors off)
     no own measurement (a real vehicle's link is down, or its estimate is not finite): FLYING -> HOLD;
@@ -184,6 +186,8 @@ class Watchdog:
     _saturation_noted: bool = False
     _touching: bool = False
     """3D: the vehicle is on the ground (at or below it) while flying: its contact was an event."""
+    _down: str | None = None
+    """Why the vehicle itself said it can no longer fly (latched: ESTOP for good)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.period) and self.period > 0):
@@ -264,11 +268,13 @@ class Watchdog:
         return True
 
     def step(self, t: float, p: Sequence[float] | np.ndarray | None, v: Sequence[float] | np.ndarray | None,
-             operator: str | None = None) -> Decision:
+             operator: str | None = None, down: str | None = None) -> Decision:
         """Decide the mode and command for the period starting at the plant's tick time ``t`` [s]
         from the commands offered so far, the operator's last action (``"land"``, ``"estop"`` or
-        None) and the measurement ``p`` [m], ``v`` [m/s] (None: the plant has none this tick; a
-        measurement with a component that is not finite counts as none, and in :attr:`garbled`)."""
+        None), the measurement ``p`` [m], ``v`` [m/s] (None: the plant has none this tick; a
+        measurement with a component that is not finite counts as none, and in :attr:`garbled`) and
+        ``down``: why the vehicle itself says it can no longer fly (its firmware cut the motors), or
+        None; once said, ESTOP for good."""
         s = self.safety
         events: list[Event] = self._notes
         self._notes = []
@@ -290,8 +296,12 @@ class Watchdog:
             pl = vl = None
         measured = pl is not None and vl is not None
         blind = "own measurement not finite" if garbled else "no own measurement"
+        if down is not None and self._down is None:
+            self._down = down
         if operator == "estop":
             go(ESTOP, "operator estop")
+        elif self._down is not None:
+            go(ESTOP, f"vehicle down: {self._down}")
         elif self._agent_mode == ESTOP:
             go(ESTOP, "agent estop")
         elif self._agent_mode == LANDED and self.mode != LANDED and self.age(t) <= s.cmd_timeout:

@@ -116,6 +116,40 @@ def one_crazyflie(name: str, port: int, duration: float, takeoff_height: float =
         "edges": [{"from": 2, "to": 1, "weight": 1.0}], **extra})
 
 
+def test_a_vehicle_whose_firmware_cut_its_motors_is_down_for_good() -> None:
+    """A plant that stops sending setpoints for more than 2 s (its host stalled) leaves the firmware's
+    commander watchdog to level the vehicle out and then cut its motors: it falls and its supervisor
+    locks. The plant reads that from ``supervisor.info`` and says the vehicle is down, for good; its
+    watchdog then e-stops it, and the plant sends only stop setpoints."""
+    from plant.crazyflie import CrazyfliePlant
+    from plant.watchdog import Watchdog
+    from tether.wire import ESTOP
+
+    port = support.free_port(udp=True)
+    with software_crazyflies([port], [(0.0, 0.0, 0.0)]):
+        m = one_crazyflie("cfdown", port, 10.0)
+        plant = CrazyfliePlant(m, [1]).open()
+        try:
+            for _ in range(50):  # flying: nothing is down
+                v = plant.state().v[0]
+                plant.step(np.array([[0.0, 0.0, -2.0 * v[2]]]))
+                assert plant.down() is None
+                time.sleep(0.01)
+            stalled = time.monotonic()  # from here the plant sends nothing, as if its host had stalled
+            why = wait_until(plant.down, 8.0, "the firmware's cut to be seen")
+            seen = time.monotonic() - stalled
+            print(f"\nsetpoints stopped: the plant saw the vehicle down after {seen:.2f} s: {why}")
+            assert seen >= 1.9 and "locked" in why, (seen, why)  # the firmware's 2 s, not a guess before it
+            wait_until(lambda: plant.state().p[0, 2] < 0.05, 5.0, "the vehicle on the floor")
+            s = plant.state()
+            d = Watchdog(m.safety, 3, m.dt).step(0.02, s.p[0], s.v[0], None, down=plant.down())
+            assert d.mode == ESTOP
+            plant.step(np.zeros((1, 3)), [d.rest])
+            assert plant._stopped and plant.down() == why  # said once, kept
+        finally:
+            plant.close()
+
+
 def test_a_reopened_link_neither_measures_nor_commands_before_a_restart_is_handled() -> None:
     """A killed and restarted software Crazyflie, driven directly: once :meth:`recover` has
     re-opened the link (healthy, fresh logs) and before it has found the vehicle on the ground,
@@ -288,6 +322,45 @@ def test_a_vehicle_killed_mid_flight_is_detected_and_its_agent_holds(tmp_path: P
     xi = run.xi[run.t >= 12.0][:, others]
     recorded = np.isfinite(xi).all(axis=-1)  # NaN: a telemetry sample lost on the way (real time)
     assert recorded.mean() > 0.9 and np.max(np.abs(xi[recorded])) < 10.0, (recorded.mean(), np.nanmax(np.abs(xi)))
+
+
+def test_a_vehicle_its_firmware_dropped_is_left_on_the_floor_and_nobody_climbs(tmp_path: Path) -> None:
+    """Vehicle 3's agent and plant processes frozen for 2.6 s mid-flight (``--fault freeze``: its side
+    of the ground station stalled): its firmware, without setpoints for 2 s, cuts the motors and the
+    vehicle falls. Once the plant runs again it reads the locked supervisor at its first log packet:
+    its watchdog e-stops the vehicle and sends only stop setpoints, whatever its agent, fresh again,
+    commands; the agent lands, and agent 4 (which hears only agent 3) stops following it. Nobody
+    else moves off the formation's height. Vehicle 3 sits on a simulated radio of its own (another
+    loopback address), so that only its processes freeze."""
+    ports = [support.free_port(udp=True) for _ in range(4)]
+    trace = tmp_path / "trace.txt"
+    with software_crazyflies(ports[:2] + ports[3:], [START[0], START[1], START[3]], wrap=CHRT), \
+            support.software_crazyflies(["--count", "1", "--base-port", str(ports[2]), "--host", "127.0.0.2",
+                                         "--instance", "2", "--p0=" + ",".join(map(str, START[2])),
+                                         "--trace", str(trace)], wrap=CHRT):
+        path = crazyflie_mission(tmp_path, ports, 14.0)
+        m = ms.load(path)
+        path.write_text(ms.dumps(msgspec.structs.replace(m, agents=[
+            msgspec.structs.replace(a, plant=msgspec.structs.replace(a.plant, uri=f"udp://127.0.0.2:{ports[2]}"))
+            if a.id == 3 else a for a in m.agents])))
+        r = _run(path, tmp_path / "run", [*RT, "--fault", "freeze:plant/3@6+2.6", "--fault", "freeze:agent/3@6+2.6"])
+    logs = tmp_path / "run" / "logs"
+    plant3, agent3 = read(logs / "plant-3.log"), read(logs / "agent-3.log")
+    assert r.returncode == 4 and re.search(r"plant/3 +froze", r.stderr), r.stderr[-3000:]  # as tether run says
+    assert not re.search(r"plant/[124] +(froze|died)", r.stderr), r.stderr[-3000:]
+    assert "down: its firmware has cut the motors (locked" in plant3, plant3[-3000:]
+    assert re.search(r"-> ESTOP at [0-9.]+ s: vehicle down", plant3), plant3[-3000:]
+    assert re.search(r"-> LAND: plant reports ESTOP|-> LANDED: touched down", agent3), agent3[-3000:]
+    rows = np.loadtxt(trace, dtype=object)
+    z, sup = rows[:, 4].astype(float), rows[:, 9].astype(str)
+    cut = int(np.argmax(sup == "locked"))
+    assert sup[cut] == "locked" and sup[-1] == "locked" and z[-1] < 0.05  # on the floor, motors off
+    assert np.max(z[cut:]) <= z[cut] + 0.01, "taken up again"
+    run = Run.load(tmp_path / "run")
+    others = [i for i, a in enumerate(run.agent_ids) if a != 3]
+    top = float(np.nanmax(run.p[:, others, 2]))
+    print(f"\nvehicle 3 dropped by its firmware: the others' highest point {top:.2f} m (formation at 1 m)")
+    assert top < 1.3, top
 
 
 def test_ctrl_c_lands_every_vehicle(tmp_path: Path) -> None:

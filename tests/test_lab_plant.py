@@ -42,6 +42,18 @@ def test_refusals_name_every_reason() -> None:
     assert "nowhere" in preflight.refusals(nowhere, lim, place=(0.0, 0.0, 0.0))[0]
 
 
+def test_a_flying_vehicle_is_down_when_its_firmware_says_it_cut_the_motors() -> None:
+    assert preflight.down(OK.supervisor) is None
+    flying = 1 << 3 | 1 << 4 | 1 << 1  # can fly, flying, armed
+    assert preflight.down(flying) is None
+    for bit, word in ((preflight.BIT_LOCKED, "locked"), (preflight.BIT_TUMBLED, "tumbled"),
+                      (preflight.BIT_CRASHED, "crashed")):
+        why = preflight.down(flying | 1 << bit)
+        assert why is not None and word in why and "restart the vehicle" in why, why
+    why = preflight.down(1 << preflight.BIT_CRASHED | 1 << preflight.BIT_TUMBLED)
+    assert why is not None and "crashed, tumbled" in why
+
+
 FLEET = """
 version = 1
 [types.cf]

@@ -121,6 +121,27 @@ def test_operator_estop_is_immediate_and_terminal(before: int) -> None:
     assert dog.terminal
 
 
+@pytest.mark.parametrize("before", [FLYING, HOLD, LAND])
+def test_a_vehicle_that_says_it_is_down_is_estopped_for_good(before: int) -> None:
+    """A Crazyflie whose firmware cut its motors (``plant.preflight.down``) lies on the floor: flying
+    it on would have its agent command it up and its neighbours follow. ESTOP at once, latched: no
+    later word (its agent landed, fresh commands, the reason gone) takes it out of ESTOP."""
+    dog, veh = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 0.8])
+    silent_for = {FLYING: 0, HOLD: 30, LAND: 110}[before]
+    fly(dog, veh, 1, 5, command=lambda k: [0.0, 0.0, 0.0])
+    fly(dog, veh, 5, 5 + silent_for)
+    assert dog.mode == before
+    k = 6 + silent_for
+    d = dog.step(k * H, veh.p, veh.v, None, down="its firmware has cut the motors (locked)")
+    assert d.mode == ESTOP and d.u == [0.0, 0.0, 0.0]
+    assert [e.reason for e in d.events if e.dst == ESTOP] == ["vehicle down: its firmware has cut the motors (locked)"]
+    assert dog.terminal
+    assert set(fly(dog, veh, k + 1, k + 40, command=lambda k: [1.0, 0.0, 3.0])) == {ESTOP}  # the reason not repeated
+    dog.offer([0.0, 0.0, 0.0], (k + 40) * H, k + 40, k + 41, LANDED)  # its agent says landed
+    assert dog.step((k + 41) * H, veh.p, veh.v).mode == ESTOP
+    assert dog.step((k + 42) * H, veh.p, veh.v, "estop").mode == ESTOP  # the operator's e-stop changes nothing
+
+
 def test_invalid_commands_do_not_count_and_nothing_unsafe_leaves() -> None:
     dog, veh = Watchdog(SAFETY, 3, H), Fake(3, [0.0, 0.0, 1.0])
     fly(dog, veh, 1, 5, command=lambda k: [0.0, 0.0, 0.0])
